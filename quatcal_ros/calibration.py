@@ -1,0 +1,356 @@
+"""Estimate the sensor mounting rotation A_z from still samples: robust, with quality figures.
+
+Pipeline (one function, `calibrate`, used by the node, the bag replay and the CSV tool through
+`Calibrator` / session.Session):
+1. motions from the samples, all pairs or consecutive pairs (motions.py, eq. (35)-(36));
+2. screening: motions too small to inform, and (robust mode) motions whose rotation angles
+   theta_a and theta_b disagree (A_a and A_b must be similar matrices, Lemma 4 of Shiu and
+   Ahmad; erratum 3 of the paper);
+3. (robust) a consensus search whose minimal solver is the paper's two-motion method
+   (solver.solve_two_motions), scored by the median sample residual (least median of squares,
+   so no threshold has to be guessed);
+4. (robust) rejection of bad samples: a bad detection spoils every motion it takes part in,
+   so samples, not only motions, are tested, by their residual in the base frame;
+5. least squares over the remaining motions (leastsq.py, stacked eq. (41));
+6. quality: per-motion residuals, RMS residual, uncertainty and excitation (quality.py).
+
+Quaternions are (w, x, y, z).  The answer is the rotation of T_link_sensor (eye-in-hand) or
+T_base_sensor (eye-to-hand).
+"""
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from quatcal_ros import quality
+from quatcal_ros import quaternion as quat
+from quatcal_ros.leastsq import least_squares_rotation
+from quatcal_ros.motions import Motions, pair_indices, SampleRotations
+from quatcal_ros.solver import DegenerateMotionError, solve_two_motions
+
+# Quantile of the chi distribution with 3 degrees of freedom at 99.9 %: a sample whose residual
+# angle exceeds 4.03 sigma is an outlier with 0.1 % false alarms.
+CHI3_999 = 4.03
+# Median of the chi distribution with 3 degrees of freedom (median angle / sigma).
+CHI3_MEDIAN = 1.5382
+# Smallest outlier threshold (radians): below it, differences are rounding, not bad data.
+MIN_OUTLIER_THRESHOLD = 1e-6
+# Minimum axis separation (degrees) of the two motions of a consensus hypothesis.
+HYPOTHESIS_AXIS_SEPARATION_DEG = 20.0
+
+
+class InsufficientDataError(DegenerateMotionError):
+    """Too few samples or usable motions to determine the rotation."""
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    """How to turn samples into an estimate (plain numbers; the node freezes its params here)."""
+
+    setup: str = 'eye_in_hand'          # or 'eye_to_hand'
+    pairs: str = 'all'                  # or 'consecutive'
+    robust: bool = True
+    invert_sensor: bool = False         # the sensor poses are the sensor in the object frame
+    min_motion_deg: float = 5.0         # smaller motions carry too little information
+    max_angle_mismatch_deg: float = 5.0  # upper bound of |theta_a - theta_b| of a good motion
+    min_axis_spread_deg: float = 2.0    # motion axes closer to parallel than this: Case 1
+    hypotheses: int = 32                # consensus-search trials (P(all bad) ~ 1e-15)
+    seed: int = 0                       # fixed, so the same data always give the same answer
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """The estimate and everything needed to judge it."""
+
+    quaternion: np.ndarray          # (w, x, y, z), w >= 0
+    matrix: np.ndarray              # 3x3
+    samples: int
+    motions: int                    # motions formed from the samples
+    inliers: int                    # motions used in the final least squares
+    inlier_samples: int
+    residual_rms_deg: float         # RMS of the per-motion residual angles (inliers)
+    uncertainty_deg: float          # expected RMS error angle, sqrt(trace(cov))
+    noise_deg: float                # estimated per-axis rotation noise of one sample
+    excitation: float               # weakest / strongest information eigenvalue, 0..1
+    weakest_axis: np.ndarray        # unit axis (parent frame) that is least determined
+    hint: str
+    setup: str
+    pairs: str
+    rejected: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+    motion_residuals_deg: np.ndarray = None   # per inlier motion
+
+    def to_json_dict(self):
+        """The JSON object of DESIGN.md contract 3 (plus extra keys, never renamed)."""
+        x, y, z, w = quat.xyzw_from_wxyz(self.quaternion)
+        return {
+            'rotation': {'x': float(x), 'y': float(y), 'z': float(z), 'w': float(w)},
+            'matrix': [[float(v) for v in row] for row in self.matrix],
+            'samples': self.samples,
+            'motions': self.motions,
+            'inliers': self.inliers,
+            'residual_rms_deg': _finite_or_none(self.residual_rms_deg),
+            'uncertainty_deg': _finite_or_none(self.uncertainty_deg),
+            'rejected': self.rejected,
+            'warnings': self.warnings,
+            'setup': self.setup,
+            'pairs': self.pairs,
+            'inlier_samples': self.inlier_samples,
+            'noise_deg': _finite_or_none(self.noise_deg),
+            'excitation': self.excitation,
+            'weakest_axis': [float(v) for v in self.weakest_axis],
+            'hint': self.hint,
+        }
+
+
+def _finite_or_none(value):
+    return float(value) if np.isfinite(value) else None
+
+
+def calibrate(samples, options=CalibrationOptions()):
+    """Estimate A_z from still samples (list of pose.Sample); see the module docstring.
+
+    Raises DegenerateMotionError (a ValueError) with the reason and the motion that would
+    help when the samples cannot determine the rotation.
+    """
+    n = len(samples)
+    if n < 3:
+        raise InsufficientDataError(
+            f'{n} sample(s): at least 3 are needed (two motions about different axes); '
+            'move the robot to new poses, rotating the link by 20-40 degrees each time')
+    rotations = SampleRotations.from_samples(samples, options.setup, options.invert_sensor)
+    warnings = convention_warnings(samples, options)
+    motions = Motions.between(rotations, *pair_indices(n, options.pairs))
+    usable, rejected = _screen(motions, options)
+    sample_ok = np.ones(n, dtype=bool)
+    try:
+        if options.robust:
+            q_z = _consensus(rotations, motions.subset(usable), options)
+            for _ in range(2):
+                sample_ok = _good_samples(rotations, q_z)
+                fit = motions.subset(usable & sample_ok[motions.I] & sample_ok[motions.J])
+                _require_motions(fit, options)
+                q_z = least_squares_rotation(fit.q_a, fit.q_b, reference=q_z)
+        else:
+            fit = motions.subset(usable)
+            _require_motions(fit, options)
+            q_z = least_squares_rotation(fit.q_a, fit.q_b)
+            q_z = least_squares_rotation(fit.q_a, fit.q_b, reference=q_z)
+        info = _check_excitation(rotations, fit, options)
+    except DegenerateMotionError as error:
+        raise type(error)(' '.join([str(error)] + warnings)) from None
+    rejected += _rejected_samples(rotations, q_z, sample_ok, motions)
+    return _result(rotations, q_z, fit, info, sample_ok, motions, rejected, warnings,
+                   options)
+
+
+def _screen(motions, options):
+    """Motions usable for the estimate (bool mask) and the reasons for the others."""
+    angle_a, angle_b = motions.angle_a, motions.angle_b
+    too_small = np.minimum(angle_a, angle_b) < np.radians(options.min_motion_deg)
+    usable = ~too_small
+    mismatch = np.abs(angle_a - angle_b)
+    limit = np.inf
+    if options.robust and np.any(usable):
+        # |theta_a - theta_b| of a good motion is Gaussian: 5 robust sigmas, within bounds.
+        sigma = np.median(mismatch[usable]) / 0.6745
+        limit = np.clip(5.0 * sigma, np.radians(0.1), np.radians(options.max_angle_mismatch_deg))
+        usable &= mismatch <= limit
+    rejected = []
+    for k in np.flatnonzero(~usable):
+        i, j = int(motions.I[k]), int(motions.J[k])
+        if too_small[k]:
+            reason = (f'too small to inform: the link rotates {np.degrees(angle_a[k]):.2f} deg '
+                      f'(minimum {options.min_motion_deg:g} deg)')
+        else:
+            reason = (f'rotation angles disagree: link {np.degrees(angle_a[k]):.2f} deg, '
+                      f'sensor {np.degrees(angle_b[k]):.2f} deg (limit '
+                      f'{np.degrees(limit):.2f} deg)')
+        rejected.append({'motion': [i, j], 'reason': reason})
+    return usable, rejected
+
+
+def _consensus(rotations, candidates, options):
+    """Least-median-of-squares consensus over two-motion hypotheses of the paper's method."""
+    if len(candidates) < 2:
+        raise InsufficientDataError(
+            f'only {len(candidates)} usable motion(s): at least two motions about different '
+            'axes are needed; rotate the link by 20-40 degrees about a new axis and stop')
+    hypotheses = [least_squares_rotation(candidates.q_a, candidates.q_b)]
+    rng = np.random.default_rng(options.seed)
+    axes = candidates.axis_a
+    min_cos = np.cos(np.radians(HYPOTHESIS_AXIS_SEPARATION_DEG))
+    for _ in range(4 * options.hypotheses):
+        if len(hypotheses) > options.hypotheses:
+            break
+        k1, k2 = rng.choice(len(candidates), size=2, replace=False)
+        if abs(axes[k1] @ axes[k2]) > min_cos:
+            continue
+        A_a = quat.matrix_from_quaternion(candidates.q_a[[k1, k2]])
+        A_b = quat.matrix_from_quaternion(candidates.q_b[[k1, k2]])
+        try:
+            solution = solve_two_motions(
+                A_a[0], A_b[0], A_a[1], A_b[1], min_rotation=0.0, angle_tolerance=np.pi,
+                min_axis_separation=0.0)
+        except DegenerateMotionError:
+            continue
+        hypotheses.append(solution.quaternion)
+    scores = [np.median(np.linalg.norm(quality.sample_residuals(rotations, q), axis=1))
+              for q in hypotheses]
+    return hypotheses[int(np.argmin(scores))]
+
+
+def _outlier_threshold(angles):
+    """Residual angle (radians) above which a sample is an outlier (robust chi-3 test)."""
+    sigma = np.median(angles) / CHI3_MEDIAN
+    return max(CHI3_999 * sigma, MIN_OUTLIER_THRESHOLD)
+
+
+def _good_samples(rotations, q_z):
+    """Samples whose object orientation agrees with the consensus (bool mask)."""
+    ok = np.ones(len(rotations), dtype=bool)
+    for _ in range(3):
+        angles = np.linalg.norm(quality.sample_residuals(rotations, q_z, ok), axis=1)
+        ok = angles <= _outlier_threshold(angles[ok])
+    return ok
+
+
+def _rejected_samples(rotations, q_z, sample_ok, motions):
+    """Reasons for each rejected sample."""
+    if np.all(sample_ok):
+        return []
+    angles = np.degrees(np.linalg.norm(
+        quality.sample_residuals(rotations, q_z, sample_ok), axis=1))
+    threshold = np.degrees(_outlier_threshold(np.radians(angles[sample_ok])))
+    rejected = []
+    for i in np.flatnonzero(~sample_ok):
+        spoiled = int(np.sum((motions.I == i) | (motions.J == i)))
+        rejected.append({'sample': int(i), 'reason': (
+            f'its object orientation disagrees with the other samples by {angles[i]:.2f} deg '
+            f'(threshold {threshold:.2f} deg): a bad detection such as a marker flip; its '
+            f'{spoiled} motions are not used')})
+    return rejected
+
+
+def _require_motions(fit, options):
+    if len(fit) < 2:
+        raise InsufficientDataError(
+            f'only {len(fit)} usable motion(s) after screening: at least two motions about '
+            'different axes are needed; rotate the link by 20-40 degrees about a new axis')
+
+
+def _check_excitation(rotations, fit, options):
+    """Information of the fitted motions; Case 1 (all axes parallel) is refused."""
+    info = quality.Information.of(quat.matrix_from_quaternion(rotations.link), fit.I, fit.J)
+    ratio, axis = info.excitation()
+    if ratio < np.sin(np.radians(options.min_axis_spread_deg)) ** 2:
+        frame = _parent_frame(options)
+        raise DegenerateMotionError(
+            f'Case 1: all {len(fit)} usable motions rotate about (nearly) the same axis, '
+            f'{quality.nearest_axis_name(axis, frame)} ([{", ".join(f"{c:.2f}" for c in axis)}]'
+            '), so the rotation about it is undetermined; '
+            + quality.next_motion_hint(0.0, axis, frame))
+    return info
+
+
+def _parent_frame(options):
+    return 'link' if options.setup == 'eye_in_hand' else 'base'
+
+
+def _result(rotations, q_z, fit, info, sample_ok, motions, rejected, warnings, options):
+    residuals = quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok]
+    sigma = quality.noise_sigma(residuals)
+    covariance = info.covariance(sigma)
+    ratio, axis = info.excitation()
+    motion_residuals = np.degrees(fit.residual_angles(q_z))
+    return CalibrationResult(
+        quaternion=q_z, matrix=quat.matrix_from_quaternion(q_z),
+        samples=len(rotations), motions=len(motions), inliers=len(fit),
+        inlier_samples=int(np.sum(sample_ok)),
+        residual_rms_deg=float(np.sqrt(np.mean(motion_residuals ** 2))),
+        uncertainty_deg=quality.uncertainty_deg(covariance),
+        noise_deg=float(np.degrees(sigma)), excitation=ratio, weakest_axis=axis,
+        hint=quality.next_motion_hint(ratio, axis, _parent_frame(options)),
+        setup=options.setup, pairs=options.pairs, rejected=rejected, warnings=warnings,
+        motion_residuals_deg=motion_residuals)
+
+
+# --- frame-convention check -------------------------------------------------------------
+
+CONVENTION_PAIRS = 2000   # pairs examined: plenty for a median, bounded cost
+
+
+def convention_warnings(samples, options):
+    """Warnings when an inverted link or sensor convention fits the data much better.
+
+    The rotation angles of A_a and A_b agree for every motion only under the right
+    convention (Lemma 4 of Shiu and Ahmad); inverting the sensor poses (sensor in the object
+    frame, as ../shared/datasets/ethz_robot_arm_real stores them) or the link poses
+    (eye-to-hand instead of eye-in-hand) breaks that agreement.
+    """
+    n = len(samples)
+    I, J = pair_indices(n, 'all')
+    if len(I) > CONVENTION_PAIRS:
+        pick = np.random.default_rng(options.seed).choice(len(I), CONVENTION_PAIRS, False)
+        I, J = I[pick], J[pick]
+    mismatch = {}
+    for setup in ('eye_in_hand', 'eye_to_hand'):
+        for invert in (False, True):
+            rotations = SampleRotations.from_samples(samples, setup, invert)
+            m = Motions.between(rotations, I, J)
+            big = np.maximum(m.angle_a, m.angle_b) > np.radians(options.min_motion_deg)
+            if np.sum(big) < 3:
+                return []
+            mismatch[setup, invert] = np.degrees(np.median(np.abs(m.angle_a - m.angle_b)[big]))
+    current = mismatch[options.setup, options.invert_sensor]
+    best = min(mismatch, key=mismatch.get)
+    if current < 0.5 or current < 3.0 * mismatch[best]:
+        return []
+    fixes = []
+    if best[1] != options.invert_sensor:
+        fixes.append('the sensor poses look inverted (the sensor in the object frame instead '
+                     'of the object in the sensor frame): invert them (--invert-sensor, '
+                     'or publish T_sensor_obj)' if best[1] else
+                     'the sensor poses fit better as given without --invert-sensor')
+    if best[0] != options.setup:
+        fixes.append(f'the link motions fit a {best[0]} setup: use --setup {best[0]}')
+    return [f'frame convention: the rotation angles of link and sensor motions disagree by '
+            f'{current:.2f} deg (median) as configured but by {mismatch[best]:.2f} deg with '
+            f'another convention; ' + '; '.join(fixes)]
+
+
+class Calibrator:
+    """Samples in, estimate out, after every sample: what the session drives."""
+
+    def __init__(self, options=CalibrationOptions()):
+        self.options = options
+        self.samples = []
+        self.result = None
+        self.last_error = 'no samples yet'
+
+    def reset(self):
+        """Forget all samples and the estimate."""
+        self.samples = []
+        self.result = None
+        self.last_error = 'no samples yet'
+
+    def add_sample(self, sample):
+        """Add one still sample and re-estimate; returns messages describing what changed."""
+        self.samples.append(sample)
+        return self._update()
+
+    def reconfigure(self, **changes):
+        """Change options (e.g. setup) and re-estimate from the same samples."""
+        self.options = replace(self.options, **changes)
+        return self._update()
+
+    def _update(self):
+        try:
+            self.result = calibrate(self.samples, self.options)
+        except DegenerateMotionError as error:
+            self.result = None
+            self.last_error = str(error)
+            return [f'no estimate yet ({len(self.samples)} samples): {error}']
+        r = self.result
+        return [f'estimate from {r.samples} samples, {r.inliers} motions: residual '
+                f'{r.residual_rms_deg:.3f} deg RMS, uncertainty {r.uncertainty_deg:.3f} deg']

@@ -1,0 +1,212 @@
+"""Quaternion algebra of Chou and Kamel (1988), Section 2, in numpy.
+
+Every quaternion in this module is an array of shape (..., 4) in **scalar-first** order
+(w, x, y, z), the paper's [e0, e1, e2, e3].  ROS messages and the samples CSV use (x, y, z, w):
+convert only at those boundaries, with `wxyz_from_xyzw` and `xyzw_from_wxyz`.
+
+Rotation matrices are 3x3 (or (..., 3, 3)) and act on column vectors.  A unit quaternion p
+and its matrix A = matrix_from_quaternion(p) satisfy eq. (19)-(20): p (x) [0, v] (x) p* =
+[0, A v].
+"""
+
+import numpy as np
+
+IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+def wxyz_from_xyzw(q_xyzw):
+    """Reorder (x, y, z, w) (ROS, CSV) to (w, x, y, z) (this package's core)."""
+    q = np.asarray(q_xyzw, dtype=float)
+    return np.concatenate([q[..., 3:4], q[..., 0:3]], axis=-1)
+
+
+def xyzw_from_wxyz(q_wxyz):
+    """Reorder (w, x, y, z) (this package's core) to (x, y, z, w) (ROS, CSV)."""
+    q = np.asarray(q_wxyz, dtype=float)
+    return np.concatenate([q[..., 1:4], q[..., 0:1]], axis=-1)
+
+
+def skew(v):
+    """Cross-product matrix of eq. (9): skew(a) @ b == cross(a, b)."""
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def multiply(a, b):
+    """Hamilton product a (x) b of eq. (6)-(8), (w, x, y, z), broadcasting over leading axes."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    a0, av = a[..., :1], a[..., 1:]
+    b0, bv = b[..., :1], b[..., 1:]
+    scalar = a0 * b0 - np.sum(av * bv, axis=-1, keepdims=True)
+    vector = a0 * bv + b0 * av + np.cross(av, bv)
+    return np.concatenate([scalar, vector], axis=-1)
+
+
+def conjugate(q):
+    """Conjugate of eq. (3): the vector part negated; the inverse of a unit quaternion."""
+    q = np.array(q, dtype=float)
+    q[..., 1:] *= -1.0
+    return q
+
+
+def plus_matrix(a):
+    """The 'plus' matrix of eq. (11): a (x) b == plus_matrix(a) @ b."""
+    a0, x, y, z = a
+    return np.array([[a0, -x, -y, -z],
+                     [x, a0, -z, y],
+                     [y, z, a0, -x],
+                     [z, -y, x, a0]])
+
+
+def minus_matrix(b):
+    """The 'minus' matrix of eq. (12): a (x) b == minus_matrix(b) @ a."""
+    b0, x, y, z = b
+    return np.array([[b0, -x, -y, -z],
+                     [x, b0, z, -y],
+                     [y, -z, b0, x],
+                     [z, y, -x, b0]])
+
+
+def normalize(q):
+    """Unit quaternion(s) in the direction of q; raises ValueError for a zero quaternion."""
+    q = np.asarray(q, dtype=float)
+    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    if np.any(norm < 1e-12):
+        raise ValueError('cannot normalise a zero quaternion')
+    return q / norm
+
+
+def canonical(q):
+    """Pick the sign of q (which and -q are the same rotation) with w >= 0.
+
+    Ties (w == 0) are broken by the first non-zero vector component being positive, so the
+    result is unique for every rotation, 180 degrees included.
+    """
+    q = np.array(q, dtype=float)
+    flat = q.reshape(-1, 4)
+    for row in flat:
+        for component in row:
+            if abs(component) > 1e-15:
+                if component < 0.0:
+                    row *= -1.0
+                break
+    return flat.reshape(q.shape)
+
+
+def matrix_from_quaternion(p):
+    """Rotation matrix of unit quaternion(s) p = (w, x, y, z), eq. (20), (..., 4) -> (..., 3, 3).
+
+    A = (e0^2 - e.e) I + 2 (e e^T + e0 skew(e)); p is normalised first.
+    """
+    p = normalize(p)
+    e0 = p[..., 0, None, None]
+    e = p[..., 1:]
+    outer = e[..., :, None] * e[..., None, :]
+    x, y, z = e[..., 0], e[..., 1], e[..., 2]
+    zero = np.zeros_like(x)
+    skew_e = np.stack([np.stack([zero, -z, y], -1),
+                       np.stack([z, zero, -x], -1),
+                       np.stack([-y, x, zero], -1)], -2)
+    dot = np.sum(e * e, axis=-1)[..., None, None]
+    return (e0 * e0 - dot) * np.eye(3) + 2.0 * (outer + e0 * skew_e)
+
+
+def quaternion_from_matrix(A):
+    """Unit quaternion (w, x, y, z), w >= 0, of a 3x3 rotation matrix (inverse of eq. (20)).
+
+    Stable for every rotation, 180 degrees included: the symmetric 4x4 matrix K of Bar-Itzhack
+    (2000) has the wanted quaternion as the eigenvector of its largest eigenvalue, which also
+    gives the nearest rotation when A is slightly non-orthogonal (noisy input).
+    """
+    A = np.asarray(A, dtype=float)
+    if A.shape != (3, 3) or not np.all(np.isfinite(A)):
+        raise ValueError('expected a finite 3x3 rotation matrix')
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = A
+    K = np.array([
+        [m00 + m11 + m22, m21 - m12, m02 - m20, m10 - m01],
+        [m21 - m12, m00 - m11 - m22, m01 + m10, m02 + m20],
+        [m02 - m20, m01 + m10, m11 - m00 - m22, m12 + m21],
+        [m10 - m01, m02 + m20, m12 + m21, m22 - m00 - m11],
+    ]) / 3.0
+    _, vectors = np.linalg.eigh(K)
+    return canonical(vectors[:, -1])
+
+
+def axis_angle(p):
+    """Unit axis u and angle theta in [0, pi] of eq. (16) for a unit quaternion p.
+
+    The axis of a rotation by (almost) zero is undefined; (0, 0, 1) is returned then.
+    """
+    p = canonical(normalize(p))
+    s = np.linalg.norm(p[1:])
+    theta = 2.0 * np.arctan2(s, p[0])
+    if s < 1e-15:
+        return np.array([0.0, 0.0, 1.0]), 0.0
+    return p[1:] / s, theta
+
+
+def from_axis_angle(axis, angle):
+    """Unit quaternion of a rotation by `angle` (radians) about `axis`, eq. (22)."""
+    axis = np.asarray(axis, dtype=float)
+    axis = axis / np.linalg.norm(axis)
+    return np.concatenate([[np.cos(angle / 2.0)], np.sin(angle / 2.0) * axis])
+
+
+def from_rotation_vector(rotvec):
+    """Unit quaternion(s) of rotation vector(s) (axis times angle in radians), (..., 3)."""
+    rotvec = np.asarray(rotvec, dtype=float)
+    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
+    # sin(angle/2)/angle, with its limit 1/2 at angle -> 0.
+    half_sinc = 0.5 * np.sinc(angle / (2.0 * np.pi))
+    return np.concatenate([np.cos(angle / 2.0), half_sinc * rotvec], axis=-1)
+
+
+def rotation_vector(p):
+    """Rotation vector(s) (axis times angle, angle in [0, pi]) of unit quaternion(s) (..., 4)."""
+    p = np.asarray(p, dtype=float)
+    p = np.where(p[..., :1] < 0.0, -p, p)
+    s = np.linalg.norm(p[..., 1:], axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(s, p[..., :1])
+    scale = np.where(s > 1e-15, angle / np.where(s > 1e-15, s, 1.0), 2.0)
+    return scale * p[..., 1:]
+
+
+def angle_between(p, q):
+    """Angle (radians, in [0, pi]) of the rotation taking unit quaternion p to q.
+
+    Computed with atan2 on the relative quaternion p* (x) q: accurate to rounding for tiny
+    angles, where arccos(p . q) would resolve only about 1e-8 rad.
+    """
+    return rotation_angle(multiply(conjugate(p), q))
+
+
+def rotation_angle(p):
+    """Rotation angle (radians, in [0, pi]) of unit quaternion(s) (..., 4)."""
+    p = np.asarray(p, dtype=float)
+    return 2.0 * np.arctan2(np.linalg.norm(p[..., 1:], axis=-1), np.abs(p[..., 0]))
+
+
+def slerp(p, q, fraction):
+    """Spherical linear interpolation from p (fraction 0) to q (fraction 1), shortest path."""
+    p = np.asarray(p, dtype=float)
+    q = np.asarray(q, dtype=float)
+    dot = float(p @ q)
+    if dot < 0.0:
+        q, dot = -q, -dot
+    if dot > 0.9995:
+        return normalize(p + fraction * (q - p))
+    omega = np.arccos(min(dot, 1.0))
+    return (np.sin((1.0 - fraction) * omega) * p + np.sin(fraction * omega) * q) / np.sin(omega)
+
+
+def average(quaternions, weights=None):
+    """Rotation average (w, x, y, z) of a set of unit quaternions (Markley et al. 2007).
+
+    The eigenvector of the largest eigenvalue of sum w_i q_i q_i^T: insensitive to the sign of
+    each q_i, and the maximum-likelihood mean for small scatter.
+    """
+    Q = np.asarray(quaternions, dtype=float).reshape(-1, 4)
+    w = np.ones(len(Q)) if weights is None else np.asarray(weights, dtype=float)
+    _, vectors = np.linalg.eigh((Q * w[:, None]).T @ Q)
+    return canonical(vectors[:, -1])
