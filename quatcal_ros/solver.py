@@ -127,6 +127,11 @@ def _resolve_half_turn_signs(axes):
     (u_a1, u_b1, half1), (u_a2, u_b2, half2) = axes
     if not (half1 or half2):
         return u_b1, u_b2
+    if half1 and half2:
+        # Negating both u_b still satisfies both motions: A_z and A_z rot(u_b1 x u_b2, pi).
+        raise DegenerateMotionError(
+            'both motions are half turns (180 deg): two rotations fit them, so A_z is '
+            'ambiguous; make a motion of less than 180 degrees')
     c_a = float(u_a1 @ u_a2)
     if abs(c_a) < 1e-6:
         raise DegenerateMotionError(

@@ -1,0 +1,44 @@
+"""`python -m quatcal_ros TOOL [ARGS...]`: the package's tools (DESIGN.md contract 3).
+
+The same tools are ROS executables: `ros2 run quatcal_ros TOOL`.
+"""
+
+import importlib
+import sys
+
+TOOLS = {
+    'solve': ('quatcal_ros.cli', 'solve_main', 'rotation from a samples CSV (prints JSON)'),
+    'replay': ('quatcal_ros.cli', 'replay_main', 'rotation from a rosbag2 recording'),
+    'calibrator': ('quatcal_ros.node', 'main', 'the live calibration node'),
+    'sim_cell': ('quatcal_ros.sim_cell', 'main', 'a simulated robot cell (ROS node)'),
+    'demo': ('quatcal_ros.demo', 'main', 'calibrator against the simulated cell, until '
+                                         'it converges'),
+}
+
+
+def usage():
+    """The list of tools."""
+    lines = ['usage: python -m quatcal_ros TOOL [ARGS...]', '', 'tools:']
+    lines += [f'  {name:<11} {text}' for name, (_, _, text) in TOOLS.items()]
+    return '\n'.join(lines)
+
+
+def main(argv=None):
+    """Run the tool named by the first argument with the remaining arguments."""
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ('-h', '--help'):
+        print(usage())
+        return 0 if argv else 2
+    if argv[0] not in TOOLS:
+        print(f'quatcal_ros: unknown tool {argv[0]!r}\n{usage()}', file=sys.stderr)
+        return 2
+    module, function, _ = TOOLS[argv[0]]
+    tool_main = getattr(importlib.import_module(module), function)
+    if argv[0] in ('calibrator', 'sim_cell'):
+        # ROS nodes take rclpy's argument list (with --ros-args) including a program name.
+        return tool_main(args=[argv[0]] + argv[1:]) or 0
+    return tool_main(argv[1:]) or 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,102 @@
+"""The samples CSV of DESIGN.md contract 2: one still sample per row.
+
+    stamp,link_x,link_y,link_z,link_qx,link_qy,link_qz,link_qw,
+    sensor_x,sensor_y,sensor_z,sensor_qx,sensor_qy,sensor_qz,sensor_qw
+
+stamp in seconds, positions in metres, quaternions (x, y, z, w) as in ROS (converted to the
+core's (w, x, y, z) here, by column name).  Errors name the file, the row (line number in the
+file) and the field.
+"""
+
+import csv
+import io
+import math
+
+from quatcal_ros.pose import Pose, Sample
+from quatcal_ros.quaternion import wxyz_from_xyzw
+
+COLUMNS = ('stamp',
+           'link_x', 'link_y', 'link_z', 'link_qx', 'link_qy', 'link_qz', 'link_qw',
+           'sensor_x', 'sensor_y', 'sensor_z', 'sensor_qx', 'sensor_qy', 'sensor_qz', 'sensor_qw')
+# A quaternion whose norm differs from 1 by more than this is bad input, not rounding.
+QUATERNION_NORM_TOLERANCE = 1e-2
+
+
+class BadInputError(ValueError):
+    """Input that cannot be used; the message names the file, row and field."""
+
+
+def read_samples(path):
+    """Samples (list of pose.Sample) from a samples CSV file; raises BadInputError."""
+    try:
+        with open(path, newline='') as stream:
+            return parse_samples(stream, str(path))
+    except OSError as error:
+        raise BadInputError(f'{path}: cannot read: {error.strerror}') from None
+    except UnicodeDecodeError:
+        raise BadInputError(f'{path}: not a text file (UTF-8 expected)') from None
+
+
+def parse_samples(stream, name='<samples>'):
+    """Samples from an open text stream of the samples CSV format."""
+    reader = csv.reader(stream)
+    header = next(reader, None)
+    if header is None:
+        raise BadInputError(f'{name}: empty file: expected the header row {",".join(COLUMNS)}')
+    header = [column.strip() for column in header]
+    missing = [column for column in COLUMNS if column not in header]
+    if missing:
+        raise BadInputError(f'{name}, row 1 (header): missing column(s) {", ".join(missing)}; '
+                            f'expected {",".join(COLUMNS)}')
+    index = {column: header.index(column) for column in COLUMNS}
+    samples = []
+    for row in reader:
+        if not row or all(not cell.strip() for cell in row):
+            continue
+        samples.append(_sample_from_row(row, index, name, reader.line_num))
+    return samples
+
+
+def _sample_from_row(row, index, name, line):
+    values = {}
+    for column, i in index.items():
+        where = f'{name}, row {line}, field {column}'
+        if i >= len(row):
+            raise BadInputError(f'{where}: missing (the row has {len(row)} fields)')
+        try:
+            value = float(row[i])
+        except ValueError:
+            raise BadInputError(f'{where}: {row[i].strip()!r} is not a number') from None
+        if not math.isfinite(value):
+            raise BadInputError(f'{where}: {row[i].strip()} is not a finite number')
+        values[column] = value
+    return Sample(
+        stamp_ns=int(round(values['stamp'] * 1e9)),
+        link=_pose(values, 'link', name, line),
+        sensor=_pose(values, 'sensor', name, line))
+
+
+def _pose(values, prefix, name, line):
+    xyzw = [values[f'{prefix}_q{axis}'] for axis in 'xyzw']
+    norm = math.sqrt(sum(v * v for v in xyzw))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise BadInputError(
+            f'{name}, row {line}, fields {prefix}_qx..{prefix}_qw: the quaternion has norm '
+            f'{norm:.4g}, not 1 (tolerance {QUATERNION_NORM_TOLERANCE:g}); quaternions are '
+            'x, y, z, w')
+    position = [values[f'{prefix}_{axis}'] for axis in 'xyz']
+    return Pose.create(position, wxyz_from_xyzw(xyzw))
+
+
+def format_samples(samples):
+    """The samples CSV text of `samples` (list of pose.Sample), full float precision."""
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator='\n')
+    writer.writerow(COLUMNS)
+    for s in samples:
+        row = [f'{s.stamp_ns / 1e9:.9f}']
+        for pose in (s.link, s.sensor):
+            w, x, y, z = pose.quaternion
+            row += [repr(float(v)) for v in (*pose.position, x, y, z, w)]
+        writer.writerow(row)
+    return out.getvalue()
