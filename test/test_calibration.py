@@ -1,0 +1,195 @@
+"""Least squares, robustness and quality figures on synthetic cells with known answers."""
+
+import numpy as np
+import pytest
+
+from quatcal_ros import quaternion as quat
+from quatcal_ros import simulation
+from quatcal_ros.calibration import calibrate, CalibrationOptions, Calibrator
+from quatcal_ros.leastsq import MotionSystem
+from quatcal_ros.motions import Motions, pair_indices, SampleRotations
+from quatcal_ros.pose import Pose, Sample
+from quatcal_ros.solver import DegenerateMotionError
+
+
+def error_deg(result, cell):
+    return np.degrees(quat.angle_between(result.quaternion, cell.mounting.quaternion))
+
+
+def synthetic(seed, n, setup='eye_in_hand', **noise):
+    rng = np.random.default_rng(seed)
+    cell = simulation.random_cell(rng, setup)
+    samples, outliers = simulation.samples(rng, cell, n, **noise)
+    return cell, samples, outliers
+
+
+@pytest.mark.parametrize('setup', ['eye_in_hand', 'eye_to_hand'])
+@pytest.mark.parametrize('pairs', ['all', 'consecutive'])
+def test_noise_free_cells_are_recovered_to_rounding(setup, pairs):
+    for seed in range(20):
+        cell, samples, _ = synthetic(seed, 8, setup)
+        result = calibrate(samples, CalibrationOptions(setup=setup, pairs=pairs))
+        # float64 rounding through ~10 products and an eigen-solve: 1e-9 deg is ~1e-11 rad.
+        assert error_deg(result, cell) < 1e-9
+        assert result.inlier_samples == 8
+        assert all('too small' in r['reason'] for r in result.rejected)
+
+
+def test_noise_level_sets_the_error_and_the_uncertainty_is_honest():
+    """RMS true error / RMS reported uncertainty within [0.7, 1.3] over 200 noisy cells."""
+    errors, uncertainties = [], []
+    for seed in range(200):
+        noise = [0.1, 0.5, 1.0][seed % 3]
+        cell, samples, _ = synthetic(1000 + seed, 10 + seed % 20, rotation_noise_deg=noise)
+        result = calibrate(samples)
+        errors.append(error_deg(result, cell))
+        uncertainties.append(result.uncertainty_deg)
+        # The noise estimate recovers the simulated per-axis noise (3N - 6 dof, N >= 10).
+        assert 0.4 * noise < result.noise_deg < 1.8 * noise
+    ratio = np.sqrt(np.mean(np.square(errors))) / np.sqrt(np.mean(np.square(uncertainties)))
+    assert 0.7 <= ratio <= 1.3
+
+
+def test_uncertainty_is_honest_for_consecutive_pairs_too():
+    errors, uncertainties = [], []
+    for seed in range(200):
+        cell, samples, _ = synthetic(3000 + seed, 12, rotation_noise_deg=0.5)
+        result = calibrate(samples, CalibrationOptions(pairs='consecutive'))
+        errors.append(error_deg(result, cell))
+        uncertainties.append(result.uncertainty_deg)
+    ratio = np.sqrt(np.mean(np.square(errors))) / np.sqrt(np.mean(np.square(uncertainties)))
+    assert 0.7 <= ratio <= 1.3
+
+
+def test_all_pairs_beat_consecutive_pairs():
+    all_errors, consecutive_errors = [], []
+    for seed in range(60):
+        cell, samples, _ = synthetic(5000 + seed, 15, rotation_noise_deg=0.5)
+        all_errors.append(error_deg(calibrate(samples), cell))
+        consecutive_errors.append(
+            error_deg(calibrate(samples, CalibrationOptions(pairs='consecutive')), cell))
+    assert np.median(all_errors) < np.median(consecutive_errors)
+
+
+def test_flipped_marker_samples_are_rejected_as_samples():
+    for seed in range(30):
+        cell, samples, outliers = synthetic(7000 + seed, 30, rotation_noise_deg=0.5,
+                                            outlier_fraction=0.1)
+        result = calibrate(samples)
+        rejected = sorted(r['sample'] for r in result.rejected if 'sample' in r)
+        assert set(outliers) <= set(rejected)
+        # chi-3 test at 99.9 %: a false alarm now and then, never a crowd of them.
+        assert len(rejected) <= len(outliers) + 2
+        clean = calibrate([s for i, s in enumerate(samples) if i not in outliers])
+        assert error_deg(result, cell) < 3.0 * max(clean.uncertainty_deg, 0.05)
+        assert all('marker flip' in r['reason'] for r in result.rejected if 'sample' in r)
+
+
+def test_without_robustness_outliers_spoil_the_estimate():
+    cell, samples, outliers = synthetic(8000, 30, rotation_noise_deg=0.5, outlier_fraction=0.1)
+    assert outliers
+    plain = calibrate(samples, CalibrationOptions(robust=False))
+    robust = calibrate(samples)
+    assert error_deg(plain, cell) > 5.0 * error_deg(robust, cell)
+
+
+def test_same_data_give_the_same_answer():
+    _, samples, _ = synthetic(9000, 25, rotation_noise_deg=1.0, outlier_fraction=0.1)
+    first = calibrate(samples).to_json_dict()
+    assert all(calibrate(samples).to_json_dict() == first for _ in range(3))
+
+
+def test_motions_about_one_axis_are_refused_with_a_hint():
+    rng = np.random.default_rng(1)
+    cell = simulation.random_cell(rng)
+    axis = np.array([0.0, 0.0, 1.0])
+    samples = []
+    for k, angle in enumerate([0, 20, 45, 70, 100]):
+        link = cell.home @ Pose.create([0.01 * k, 0, 0], quat.from_axis_angle(axis, np.radians(angle)))
+        samples.append(Sample(k, link, cell.sensor_pose(link)))
+    with pytest.raises(DegenerateMotionError, match=r'Case 1.*link z.*perpendicular'):
+        calibrate(samples)
+
+
+def test_too_few_samples_and_no_motion_are_refused():
+    cell, samples, _ = synthetic(2, 5)
+    with pytest.raises(DegenerateMotionError, match='at least 3'):
+        calibrate(samples[:2])
+    still = [Sample(k, samples[0].link, samples[0].sensor) for k in range(5)]
+    with pytest.raises(DegenerateMotionError, match='usable motion'):
+        calibrate(still)
+
+
+def test_calibrator_estimates_from_the_first_two_non_parallel_motions():
+    cell, samples, _ = synthetic(4, 6, rotation_noise_deg=0.1)
+    calibrator = Calibrator()
+    calibrator.add_sample(samples[0])
+    assert calibrator.result is None
+    calibrator.add_sample(samples[1])
+    assert calibrator.result is None and 'at least 3' in calibrator.last_error
+    messages = calibrator.add_sample(samples[2])
+    assert calibrator.result is not None and 'estimate from 3 samples' in messages[0]
+    for sample in samples[3:]:
+        calibrator.add_sample(sample)
+    assert error_deg(calibrator.result, cell) < 3 * calibrator.result.uncertainty_deg + 0.01
+    calibrator.reset()
+    assert calibrator.result is None and calibrator.samples == []
+
+
+def test_inverted_sensor_convention_is_detected_and_named():
+    cell, samples, _ = synthetic(5, 15, rotation_noise_deg=0.2)
+    inverted = [Sample(s.stamp_ns, s.link, s.sensor.inverse()) for s in samples]
+    result = calibrate(inverted, CalibrationOptions(robust=False))
+    assert any('--invert-sensor' in w for w in result.warnings)
+    fixed = calibrate(inverted, CalibrationOptions(invert_sensor=True))
+    assert not fixed.warnings
+    assert error_deg(fixed, cell) < 3 * fixed.uncertainty_deg + 0.01
+
+
+def test_wrong_setup_is_detected_and_named():
+    cell, samples, _ = synthetic(6, 15, 'eye_to_hand', rotation_noise_deg=0.2)
+    try:
+        said = ' '.join(calibrate(samples).warnings)
+    except DegenerateMotionError as error:
+        said = str(error)
+    assert '--setup eye_to_hand' in said and '--invert-sensor' in said
+    right = calibrate(samples, CalibrationOptions(setup='eye_to_hand'))
+    assert not right.warnings
+    assert error_deg(right, cell) < 3 * right.uncertainty_deg + 0.01
+
+
+def test_hint_names_the_least_excited_axis():
+    rng = np.random.default_rng(3)
+    cell = simulation.random_cell(rng)
+    samples = []
+    # Rotations about link x and, slightly, link y: the rotation about link z is least known.
+    for k, (ax, ay) in enumerate([(0, 0), (30, 0), (-30, 0), (0, 4), (20, -4), (-10, 3)]):
+        rot = quat.multiply(quat.from_axis_angle([1, 0, 0], np.radians(ax)),
+                            quat.from_axis_angle([0, 1, 0], np.radians(ay)))
+        link = cell.home @ Pose.create([0.01 * k, 0.0, 0.0], rot)
+        samples.append(Sample(k, link, cell.sensor_pose(link)))
+    result = calibrate(samples, CalibrationOptions(min_motion_deg=2.0))
+    assert 'link z' in result.hint and result.excitation < 0.2
+
+
+def test_contract_3_json_keys():
+    _, samples, _ = synthetic(7, 10, rotation_noise_deg=0.3)
+    out = calibrate(samples).to_json_dict()
+    for key in ('rotation', 'matrix', 'samples', 'motions', 'inliers', 'residual_rms_deg',
+                'uncertainty_deg', 'rejected', 'warnings'):
+        assert key in out
+    assert set(out['rotation']) == {'x', 'y', 'z', 'w'}
+    assert out['samples'] == 10 and out['motions'] == 45
+
+
+def test_incremental_least_squares_equals_batch():
+    _, samples, _ = synthetic(8, 30, rotation_noise_deg=0.5)
+    rotations = SampleRotations.from_samples(samples)
+    motions = Motions.between(rotations, *pair_indices(30))
+    batch = MotionSystem()
+    batch.add(motions.q_a, motions.q_b)
+    incremental = MotionSystem()
+    for k in range(len(motions)):
+        incremental.add(motions.q_a[k], motions.q_b[k])
+    np.testing.assert_allclose(incremental.normal_matrix, batch.normal_matrix, atol=1e-9)
+    assert quat.angle_between(incremental.solve()[0], batch.solve()[0]) < 1e-12
