@@ -35,6 +35,8 @@ CHI3_999 = 4.03
 CHI3_MEDIAN = 1.5382
 # Smallest outlier threshold (radians): below it, differences are rounding, not bad data.
 MIN_OUTLIER_THRESHOLD = 1e-6
+# Median motion residual (degrees) above which the frame conventions are checked.
+SUSPICIOUS_RESIDUAL_DEG = 0.5
 # Minimum axis separation (degrees) of the two motions of a consensus hypothesis.
 HYPOTHESIS_AXIS_SEPARATION_DEG = 20.0
 
@@ -119,7 +121,6 @@ def calibrate(samples, options=CalibrationOptions()):
             f'{n} sample(s): at least 3 are needed (two motions about different axes); '
             'move the robot to new poses, rotating the link by 20-40 degrees each time')
     rotations = SampleRotations.from_samples(samples, options.setup, options.invert_sensor)
-    warnings = convention_warnings(samples, options)
     motions = Motions.between(rotations, *pair_indices(n, options.pairs))
     usable, rejected = _screen(motions, options)
     sample_ok = np.ones(n, dtype=bool)
@@ -135,13 +136,33 @@ def calibrate(samples, options=CalibrationOptions()):
             fit = motions.subset(usable)
             _require_motions(fit, options)
             q_z = least_squares_rotation(fit.q_a, fit.q_b)
-            q_z = least_squares_rotation(fit.q_a, fit.q_b, reference=q_z)
+            if _near_half_turns(fit):
+                q_z = least_squares_rotation(fit.q_a, fit.q_b, reference=q_z)
         info = _check_excitation(rotations, fit, options)
     except DegenerateMotionError as error:
-        raise type(error)(' '.join([str(error)] + warnings)) from None
+        raise type(error)(' '.join([str(error)] + convention_warnings(samples, options))) \
+            from None
+    warnings = convention_warnings(samples, options) if _suspicious(fit, q_z) else []
     rejected += _rejected_samples(rotations, q_z, sample_ok, motions)
     return _result(rotations, q_z, fit, info, sample_ok, motions, rejected, warnings,
                    options)
+
+
+def _suspicious(fit, q_z):
+    """Whether the residuals are too large for the noise the angle mismatches show.
+
+    Under the right convention the median residual is ~2.3 times the median |theta_a -
+    theta_b| (3-D versus 1-D projections of the same noise); a wrong convention leaves the
+    angles equal but the residuals at tens of degrees.
+    """
+    residual = np.median(fit.residual_angles(q_z))
+    mismatch = np.median(np.abs(fit.angle_a - fit.angle_b))
+    return residual > np.radians(SUSPICIOUS_RESIDUAL_DEG) and residual > 6.0 * mismatch
+
+
+def _near_half_turns(motions):
+    """Whether any motion is within ~6 deg of a half turn, where erratum 3's sign rule fails."""
+    return bool(np.any(np.minimum(np.abs(motions.q_a[:, 0]), np.abs(motions.q_b[:, 0])) < 0.05))
 
 
 def _screen(motions, options):
@@ -201,8 +222,14 @@ def _consensus(rotations, candidates, options):
 
 
 def _outlier_threshold(angles):
-    """Residual angle (radians) above which a sample is an outlier (robust chi-3 test)."""
-    sigma = np.median(angles) / CHI3_MEDIAN
+    """Residual angle (radians) above which a sample is an outlier (robust chi-3 test).
+
+    The residual angles of good samples follow sigma times a chi distribution with 3 degrees of
+    freedom, shrunk by sqrt((3N - 6) / 3N) because six parameters were fitted to them.
+    """
+    n = len(angles)
+    shrink = np.sqrt(max(3 * n - 6, 1) / (3 * n))
+    sigma = np.median(angles) / (CHI3_MEDIAN * shrink)
     return max(CHI3_999 * sigma, MIN_OUTLIER_THRESHOLD)
 
 
@@ -294,7 +321,8 @@ def convention_warnings(samples, options):
     """
     current = _median_residual_deg(samples, options.setup, options.invert_sensor, options)
     other = _median_residual_deg(samples, options.setup, not options.invert_sensor, options)
-    if current is None or other is None or current < 0.5 or current < 3.0 * other:
+    if (current is None or other is None or current < SUSPICIOUS_RESIDUAL_DEG
+            or current < 3.0 * other):
         return []
     other_setup = 'eye_to_hand' if options.setup == 'eye_in_hand' else 'eye_in_hand'
     invert = ('the sensor poses are inverted (the sensor in the object frame instead of the '

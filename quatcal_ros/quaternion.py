@@ -36,11 +36,12 @@ def multiply(a, b):
     """Hamilton product a (x) b of eq. (6)-(8), (w, x, y, z), broadcasting over leading axes."""
     a = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float)
-    a0, av = a[..., :1], a[..., 1:]
-    b0, bv = b[..., :1], b[..., 1:]
-    scalar = a0 * b0 - np.sum(av * bv, axis=-1, keepdims=True)
-    vector = a0 * bv + b0 * av + np.cross(av, bv)
-    return np.concatenate([scalar, vector], axis=-1)
+    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    return np.stack([aw * bw - ax * bx - ay * by - az * bz,
+                     aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw], axis=-1)
 
 
 def conjugate(q):
