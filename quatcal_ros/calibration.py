@@ -24,7 +24,7 @@ import numpy as np
 
 from quatcal_ros import quality
 from quatcal_ros import quaternion as quat
-from quatcal_ros.leastsq import least_squares_rotation
+from quatcal_ros.leastsq import least_squares_rotation, MotionSystem
 from quatcal_ros.motions import Motions, pair_indices, SampleRotations
 from quatcal_ros.solver import DegenerateMotionError, solve_two_motions
 
@@ -37,6 +37,8 @@ CHI3_MEDIAN = 1.5382
 MIN_OUTLIER_THRESHOLD = 1e-6
 # Median motion residual (degrees) above which the frame conventions are checked.
 SUSPICIOUS_RESIDUAL_DEG = 0.5
+# Motions used to estimate the scale of |theta_a - theta_b| (a median needs no more).
+MISMATCH_SCALE_MOTIONS = 20000
 # Minimum axis separation (degrees) of the two motions of a consensus hypothesis.
 HYPOTHESIS_AXIS_SEPARATION_DEG = 20.0
 
@@ -115,6 +117,26 @@ def calibrate(samples, options=CalibrationOptions()):
     Raises DegenerateMotionError (a ValueError) with the reason and the motion that would
     help when the samples cannot determine the rotation.
     """
+    return _solve(samples, options).result
+
+
+@dataclass(frozen=True)
+class _Solution:
+    """A result and the state an incremental update continues from."""
+
+    result: CalibrationResult
+    rotations: SampleRotations
+    fit: Motions                 # the motions of the final least squares
+    system: MotionSystem         # their normal matrix
+    sample_ok: np.ndarray        # bool per sample
+    mismatch_limit: float        # radians, |theta_a - theta_b| screen
+    outlier_threshold: float     # radians, sample residual test
+    motion_count: int            # motions formed from the samples
+    rejected: list
+
+
+def _solve(samples, options):
+    """The full pipeline of the module docstring on `samples`."""
     n = len(samples)
     if n < 3:
         raise InsufficientDataError(
@@ -122,7 +144,7 @@ def calibrate(samples, options=CalibrationOptions()):
             'move the robot to new poses, rotating the link by 20-40 degrees each time')
     rotations = SampleRotations.from_samples(samples, options.setup, options.invert_sensor)
     motions = Motions.between(rotations, *pair_indices(n, options.pairs))
-    usable, rejected = _screen(motions, options)
+    usable, limit, rejected = _screen(motions, options)
     sample_ok = np.ones(n, dtype=bool)
     try:
         if options.robust:
@@ -136,16 +158,23 @@ def calibrate(samples, options=CalibrationOptions()):
             fit = motions.subset(usable)
             _require_motions(fit, options)
             q_z = least_squares_rotation(fit.q_a, fit.q_b)
-            if _near_half_turns(fit):
-                q_z = least_squares_rotation(fit.q_a, fit.q_b, reference=q_z)
+        system = MotionSystem()
+        system.add(fit.q_a, fit.q_b, reference=q_z if options.robust or _near_half_turns(fit)
+                   else None)
+        q_z = system.solve()[0]
         info = _check_excitation(rotations, fit, options)
     except DegenerateMotionError as error:
         raise type(error)(' '.join([str(error)] + convention_warnings(samples, options))) \
             from None
     warnings = convention_warnings(samples, options) if _suspicious(fit, q_z) else []
     rejected += _rejected_samples(rotations, q_z, sample_ok, motions)
-    return _result(rotations, q_z, fit, info, sample_ok, motions, rejected, warnings,
-                   options)
+    result = _result(rotations, q_z, fit, info, sample_ok, len(motions), rejected, warnings,
+                     options)
+    threshold = (_outlier_threshold(np.linalg.norm(
+        quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok], axis=1))
+        if options.robust else np.inf)
+    return _Solution(result, rotations, fit, system, sample_ok, limit, threshold,
+                     len(motions), rejected)
 
 
 def _suspicious(fit, q_z):
@@ -172,9 +201,10 @@ def _screen(motions, options):
     usable = ~too_small
     mismatch = np.abs(angle_a - angle_b)
     limit = np.inf
-    if options.robust and np.any(usable):
+    if options.robust and np.any(usable[:MISMATCH_SCALE_MOTIONS]):
         # |theta_a - theta_b| of a good motion is Gaussian: 5 robust sigmas, within bounds.
-        sigma = np.median(mismatch[usable]) / 0.6745
+        sigma = np.median(mismatch[:MISMATCH_SCALE_MOTIONS][usable[:MISMATCH_SCALE_MOTIONS]]) \
+            / 0.6745
         limit = np.clip(5.0 * sigma, np.radians(0.1), np.radians(options.max_angle_mismatch_deg))
         usable &= mismatch <= limit
     rejected = []
@@ -188,7 +218,7 @@ def _screen(motions, options):
                       f'sensor {np.degrees(angle_b[k]):.2f} deg (limit '
                       f'{np.degrees(limit):.2f} deg)')
         rejected.append({'motion': [i, j], 'reason': reason})
-    return usable, rejected
+    return usable, limit, rejected
 
 
 def _consensus(rotations, candidates, options):
@@ -249,14 +279,17 @@ def _rejected_samples(rotations, q_z, sample_ok, motions):
     angles = np.degrees(np.linalg.norm(
         quality.sample_residuals(rotations, q_z, sample_ok), axis=1))
     threshold = np.degrees(_outlier_threshold(np.radians(angles[sample_ok])))
-    rejected = []
-    for i in np.flatnonzero(~sample_ok):
-        spoiled = int(np.sum((motions.I == i) | (motions.J == i)))
-        rejected.append({'sample': int(i), 'reason': (
-            f'its object orientation disagrees with the other samples by {angles[i]:.2f} deg '
-            f'(threshold {threshold:.2f} deg): a bad detection such as a marker flip; its '
-            f'{spoiled} motions are not used')})
-    return rejected
+    return [_sample_rejection(i, angles[i], threshold,
+                              int(np.sum((motions.I == i) | (motions.J == i))))
+            for i in np.flatnonzero(~sample_ok)]
+
+
+def _sample_rejection(index, angle_deg, threshold_deg, spoiled):
+    """The `rejected` entry of a bad sample."""
+    return {'sample': int(index), 'reason': (
+        f'its object orientation disagrees with the other samples by {angle_deg:.2f} deg '
+        f'(threshold {threshold_deg:.2f} deg): a bad detection such as a marker flip; its '
+        f'{spoiled} motions are not used')}
 
 
 def _require_motions(fit, options):
@@ -284,7 +317,7 @@ def _parent_frame(options):
     return 'link' if options.setup == 'eye_in_hand' else 'base'
 
 
-def _result(rotations, q_z, fit, info, sample_ok, motions, rejected, warnings, options):
+def _result(rotations, q_z, fit, info, sample_ok, motion_count, rejected, warnings, options):
     residuals = quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok]
     sigma = quality.noise_sigma(residuals)
     covariance = info.covariance(sigma)
@@ -292,7 +325,7 @@ def _result(rotations, q_z, fit, info, sample_ok, motions, rejected, warnings, o
     motion_residuals = np.degrees(fit.residual_angles(q_z))
     return CalibrationResult(
         quaternion=q_z, matrix=quat.matrix_from_quaternion(q_z),
-        samples=len(rotations), motions=len(motions), inliers=len(fit),
+        samples=len(rotations), motions=motion_count, inliers=len(fit),
         inlier_samples=int(np.sum(sample_ok)),
         residual_rms_deg=float(np.sqrt(np.mean(motion_residuals ** 2))),
         uncertainty_deg=quality.uncertainty_deg(covariance),
@@ -350,37 +383,96 @@ def _median_residual_deg(samples, setup, invert_sensor, options):
 
 
 class Calibrator:
-    """Samples in, estimate out, after every sample: what the session drives."""
+    """Samples in, estimate out, after every sample: what session.Session drives.
 
-    def __init__(self, options=CalibrationOptions()):
+    A new sample is tested against the current estimate, its motions screened and added to the
+    least-squares system (O(1) per motion), and the estimate re-solved: cheap enough for the
+    live node.  Every `full_solve_every` samples (and while there are few) the full robust
+    pipeline of `calibrate` runs again, so an early misjudgement cannot persist.
+    """
+
+    def __init__(self, options=CalibrationOptions(), full_solve_every=10, small=12):
         self.options = options
-        self.samples = []
-        self.result = None
-        self.last_error = 'no samples yet'
+        self.full_solve_every = full_solve_every
+        self.small = small
+        self.reset()
 
     def reset(self):
         """Forget all samples and the estimate."""
         self.samples = []
         self.result = None
         self.last_error = 'no samples yet'
+        self._solution = None
 
     def add_sample(self, sample):
         """Add one still sample and re-estimate; returns messages describing what changed."""
         self.samples.append(sample)
-        return self._update()
+        n = len(self.samples)
+        if self._solution is None or n <= self.small or n % self.full_solve_every == 0:
+            return self._full_solve()
+        return self._add_incrementally(sample)
+
+    def add_samples(self, samples):
+        """Add many samples (a file, a resumed session) and estimate once."""
+        self.samples.extend(samples)
+        return self._full_solve() if self.samples else []
 
     def reconfigure(self, **changes):
         """Change options (e.g. setup) and re-estimate from the same samples."""
         self.options = replace(self.options, **changes)
-        return self._update()
+        return self._full_solve()
 
-    def _update(self):
+    def _full_solve(self):
         try:
-            self.result = calibrate(self.samples, self.options)
+            self._solution = _solve(self.samples, self.options)
         except DegenerateMotionError as error:
-            self.result = None
+            self.result = self._solution = None
             self.last_error = str(error)
             return [f'no estimate yet ({len(self.samples)} samples): {error}']
+        self.result = self._solution.result
+        return [self._describe()]
+
+    def _add_incrementally(self, sample):
+        old = self._solution
+        rotations = old.rotations.appended(sample)
+        k = len(rotations) - 1
+        q_z = old.result.quaternion
+        Z = rotations.object_orientations(q_z)
+        angle = quat.angle_between(Z[k], quat.average(Z[:k][old.sample_ok]))
+        rejected = list(old.rejected)
+        messages = []
+        fit, system = old.fit, old.system
+        if angle > old.outlier_threshold:
+            sample_ok = np.append(old.sample_ok, False)
+            spoiled = int(np.sum(old.sample_ok)) if self.options.pairs == 'all' else 1
+            rejected.append(_sample_rejection(k, np.degrees(angle),
+                                              np.degrees(old.outlier_threshold), spoiled))
+            messages.append(f'sample {k} rejected: {rejected[-1]["reason"]}')
+        else:
+            sample_ok = np.append(old.sample_ok, True)
+            partners = np.flatnonzero(old.sample_ok)
+            if self.options.pairs == 'consecutive':
+                partners = partners[-1:]
+            new = Motions.between(rotations, partners, np.full(len(partners), k))
+            good = (np.minimum(new.angle_a, new.angle_b)
+                    >= np.radians(self.options.min_motion_deg))
+            good &= np.abs(new.angle_a - new.angle_b) <= old.mismatch_limit
+            new = new.subset(good)
+            system = system.copy()
+            system.add(new.q_a, new.q_b, reference=q_z)
+            q_z = system.solve()[0]
+            fit = Motions.concatenate(fit, new)
+        info = quality.Information.of(quat.matrix_from_quaternion(rotations.link), fit.I, fit.J)
+        motion_count = old.motion_count + (k if self.options.pairs == 'all' else 1)
+        result = _result(rotations, q_z, fit, info, sample_ok, motion_count, rejected,
+                         old.result.warnings, self.options)
+        self._solution = replace(old, result=result, rotations=rotations, fit=fit,
+                                 system=system, sample_ok=sample_ok, motion_count=motion_count,
+                                 rejected=rejected)
+        self.result = result
+        return messages + [self._describe()]
+
+    def _describe(self):
         r = self.result
-        return [f'estimate from {r.samples} samples, {r.inliers} motions: residual '
-                f'{r.residual_rms_deg:.3f} deg RMS, uncertainty {r.uncertainty_deg:.3f} deg']
+        return (f'estimate from {r.samples} samples, {r.inliers} motions: residual '
+                f'{r.residual_rms_deg:.3f} deg RMS, uncertainty {r.uncertainty_deg:.3f} deg')

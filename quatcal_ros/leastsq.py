@@ -76,6 +76,13 @@ class MotionSystem:
         self.normal_matrix += np.einsum('kij,kil->jl', B, B)
         self.count += len(B)
 
+    def copy(self):
+        """An independent copy (the system is mutable)."""
+        other = MotionSystem()
+        other.normal_matrix = self.normal_matrix.copy()
+        other.count = self.count
+        return other
+
     def solve(self):
         """(p_z (w, x, y, z) with w >= 0, eigenvalues of M ascending)."""
         values, vectors = np.linalg.eigh(self.normal_matrix)

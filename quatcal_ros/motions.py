@@ -31,6 +31,8 @@ class SampleRotations:
 
     link: np.ndarray
     sensor: np.ndarray
+    link_inverted: bool = False
+    sensor_inverted: bool = False
 
     @staticmethod
     def from_samples(samples, setup='eye_in_hand', invert_sensor=False):
@@ -39,14 +41,26 @@ class SampleRotations:
             raise ValueError(f'setup must be one of {SETUPS}, not {setup!r}')
         link = np.array([s.link.quaternion for s in samples], dtype=float).reshape(-1, 4)
         sensor = np.array([s.sensor.quaternion for s in samples], dtype=float).reshape(-1, 4)
-        if setup == 'eye_to_hand':
+        eye_to_hand = setup == 'eye_to_hand'
+        if eye_to_hand:
             link = quat.conjugate(link)
         if invert_sensor:
             sensor = quat.conjugate(sensor)
-        return SampleRotations(link, sensor)
+        return SampleRotations(link, sensor, eye_to_hand, bool(invert_sensor))
 
     def __len__(self):
         return len(self.link)
+
+    def appended(self, sample):
+        """These rotations and those of one more sample (same setup and inversion)."""
+        link = np.asarray(sample.link.quaternion, dtype=float)[None, :]
+        sensor = np.asarray(sample.sensor.quaternion, dtype=float)[None, :]
+        if self.link_inverted:
+            link = quat.conjugate(link)
+        if self.sensor_inverted:
+            sensor = quat.conjugate(sensor)
+        return SampleRotations(np.vstack([self.link, link]), np.vstack([self.sensor, sensor]),
+                               self.link_inverted, self.sensor_inverted)
 
     def object_orientations(self, q_z):
         """Z_i = link_i (x) q_z (x) sensor_i: the object's orientation in the base frame.
@@ -86,6 +100,13 @@ class Motions:
 
     def __len__(self):
         return len(self.I)
+
+    @staticmethod
+    def concatenate(first, second):
+        """The motions of `first` followed by those of `second`."""
+        return Motions(*(np.concatenate([a, b]) for a, b in zip(
+            (first.I, first.J, first.q_a, first.q_b),
+            (second.I, second.J, second.q_a, second.q_b))))
 
     def subset(self, mask):
         """The motions where `mask` (bool or index array) selects."""
