@@ -193,3 +193,21 @@ def test_incremental_least_squares_equals_batch():
         incremental.add(motions.q_a[k], motions.q_b[k])
     np.testing.assert_allclose(incremental.normal_matrix, batch.normal_matrix, atol=1e-9)
     assert quat.angle_between(incremental.solve()[0], batch.solve()[0]) < 1e-12
+
+
+def test_incremental_updates_agree_with_the_full_solve_and_reject_flips():
+    cell, samples, outliers = synthetic(10, 39, rotation_noise_deg=0.5, outlier_fraction=0.1)
+    calibrator = Calibrator(full_solve_every=10, small=12)
+    for k, sample in enumerate(samples):
+        calibrator.add_sample(sample)
+        if k < 14 or calibrator.result is None:
+            continue
+        full = calibrate(samples[:k + 1])
+        # Same data, same model: the two differ by the samples each path rejected, far less
+        # than the uncertainty.
+        assert quat.angle_between(calibrator.result.quaternion, full.quaternion) < np.radians(
+            0.3 * full.uncertainty_deg)
+    late = [i for i in outliers if i > 12 and (i + 1) % 10]
+    assert late, 'the draw must put an outlier on the incremental path'
+    rejected = {r['sample'] for r in calibrator.result.rejected if 'sample' in r}
+    assert set(late) <= rejected
