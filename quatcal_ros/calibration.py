@@ -144,7 +144,7 @@ def _solve(samples, options):
             'move the robot to new poses, rotating the link by 20-40 degrees each time')
     rotations = SampleRotations.from_samples(samples, options.setup, options.invert_sensor)
     motions = Motions.between(rotations, *pair_indices(n, options.pairs))
-    usable, limit, rejected = _screen(motions, options)
+    usable, limit = _screen(motions, options)
     sample_ok = np.ones(n, dtype=bool)
     try:
         if options.robust:
@@ -167,7 +167,8 @@ def _solve(samples, options):
         raise type(error)(' '.join([str(error)] + convention_warnings(samples, options))) \
             from None
     warnings = convention_warnings(samples, options) if _suspicious(fit, q_z) else []
-    rejected += _rejected_samples(rotations, q_z, sample_ok, motions)
+    rejected = (_rejected_motions(motions, usable, sample_ok, limit, options)
+                + _rejected_samples(rotations, q_z, sample_ok, motions))
     result = _result(rotations, q_z, fit, info, sample_ok, len(motions), rejected, warnings,
                      options)
     threshold = (_outlier_threshold(np.linalg.norm(
@@ -195,10 +196,9 @@ def _near_half_turns(motions):
 
 
 def _screen(motions, options):
-    """Motions usable for the estimate (bool mask) and the reasons for the others."""
+    """Motions usable for the estimate (bool mask) and the |theta_a - theta_b| limit."""
     angle_a, angle_b = motions.angle_a, motions.angle_b
-    too_small = np.minimum(angle_a, angle_b) < np.radians(options.min_motion_deg)
-    usable = ~too_small
+    usable = np.minimum(angle_a, angle_b) >= np.radians(options.min_motion_deg)
     mismatch = np.abs(angle_a - angle_b)
     limit = np.inf
     if options.robust and np.any(usable[:MISMATCH_SCALE_MOTIONS]):
@@ -207,18 +207,24 @@ def _screen(motions, options):
             / 0.6745
         limit = np.clip(5.0 * sigma, np.radians(0.1), np.radians(options.max_angle_mismatch_deg))
         usable &= mismatch <= limit
+    return usable, limit
+
+
+def _rejected_motions(motions, usable, sample_ok, limit, options):
+    """Reasons for the screened-out motions between good samples (a rejected sample's own
+    entry covers its motions)."""
     rejected = []
-    for k in np.flatnonzero(~usable):
-        i, j = int(motions.I[k]), int(motions.J[k])
-        if too_small[k]:
-            reason = (f'too small to inform: the link rotates {np.degrees(angle_a[k]):.2f} deg '
+    unexplained = motions.subset(~usable & sample_ok[motions.I] & sample_ok[motions.J])
+    angles_a, angles_b = np.degrees(unexplained.angle_a), np.degrees(unexplained.angle_b)
+    for i, j, a, b in zip(unexplained.I, unexplained.J, angles_a, angles_b):
+        if min(a, b) < options.min_motion_deg:
+            reason = (f'too small to inform: the link rotates {a:.2f} deg '
                       f'(minimum {options.min_motion_deg:g} deg)')
         else:
-            reason = (f'rotation angles disagree: link {np.degrees(angle_a[k]):.2f} deg, '
-                      f'sensor {np.degrees(angle_b[k]):.2f} deg (limit '
-                      f'{np.degrees(limit):.2f} deg)')
-        rejected.append({'motion': [i, j], 'reason': reason})
-    return usable, limit, rejected
+            reason = (f'rotation angles disagree: link {a:.2f} deg, sensor {b:.2f} deg '
+                      f'(limit {np.degrees(limit):.2f} deg)')
+        rejected.append({'motion': [int(i), int(j)], 'reason': reason})
+    return rejected
 
 
 def _consensus(rotations, candidates, options):

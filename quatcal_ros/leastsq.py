@@ -63,8 +63,19 @@ def b_matrices(q_a, q_b, reference=None):
     return plus_matrices(q_a) - minus_matrices(aligned_b(q_a, q_b, reference))
 
 
+# P+(e_i)^T P-(e_j) for the unit quaternions e_i: P+(a)^T P-(b) is bilinear in a and b.
+_CROSS_TERMS = np.array([[plus_matrices(np.eye(4)[i:i + 1])[0].T
+                          @ minus_matrices(np.eye(4)[j:j + 1])[0]
+                          for j in range(4)] for i in range(4)])
+
+
 class MotionSystem:
-    """Incremental normal matrix M = sum_k B_k^T B_k and its minimum-eigenvector solution."""
+    """Incremental normal matrix M = sum_k B_k^T B_k and its minimum-eigenvector solution.
+
+    For unit p_a, p_b the plus and minus matrices are orthogonal, so
+    B^T B = 2 I - (P+(p_a)^T P-(p_b) + its transpose), and the sum over motions needs only
+    C = sum_k p_ak p_bk^T (4x4): adding K motions costs one K x 4 x 4 product.
+    """
 
     def __init__(self):
         self.normal_matrix = np.zeros((4, 4))
@@ -72,9 +83,11 @@ class MotionSystem:
 
     def add(self, q_a, q_b, reference=None):
         """Add one motion (or a (K, 4) batch of motions): O(1) per motion."""
-        B = b_matrices(q_a, q_b, reference)
-        self.normal_matrix += np.einsum('kij,kil->jl', B, B)
-        self.count += len(B)
+        q_a = np.asarray(q_a, dtype=float).reshape(-1, 4)
+        C = q_a.T @ aligned_b(q_a, q_b, reference)
+        S = np.einsum('ij,ijkl->kl', C, _CROSS_TERMS)
+        self.normal_matrix += 2.0 * len(q_a) * np.eye(4) - S - S.T
+        self.count += len(q_a)
 
     def copy(self):
         """An independent copy (the system is mutable)."""
