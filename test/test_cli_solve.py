@@ -1,0 +1,115 @@
+"""`python -m quatcal_ros solve SAMPLES.csv`: DESIGN.md contracts 2 and 3, run as users run it."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from quatcal_ros import quaternion as quat
+from quatcal_ros import simulation
+from quatcal_ros.pose import Pose, Sample
+from quatcal_ros.samples_csv import COLUMNS, format_samples
+
+
+def run_solve(repo_root, *args):
+    env = dict(os.environ, PYTHONPATH=str(repo_root))
+    return subprocess.run([sys.executable, '-m', 'quatcal_ros', 'solve', *map(str, args)],
+                          capture_output=True, text=True, env=env, timeout=120)
+
+
+@pytest.fixture
+def cell_csv(tmp_path):
+    rng = np.random.default_rng(21)
+    cell = simulation.random_cell(rng)
+    samples, outliers = simulation.samples(rng, cell, 20, rotation_noise_deg=0.3,
+                                           outlier_fraction=0.1)
+    path = tmp_path / 'samples.csv'
+    path.write_text(format_samples(samples))
+    return cell, path, outliers
+
+
+def test_solve_prints_the_contract_json(repo_root, cell_csv):
+    cell, path, outliers = cell_csv
+    done = run_solve(repo_root, path)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    r = out['rotation']
+    q = quat.wxyz_from_xyzw([r['x'], r['y'], r['z'], r['w']])
+    error = np.degrees(quat.angle_between(q, cell.mounting.quaternion))
+    assert error < 3 * out['uncertainty_deg']
+    assert out['samples'] == 20 and out['motions'] == 190
+    assert sorted(e['sample'] for e in out['rejected'] if 'sample' in e) == outliers
+    np.testing.assert_allclose(out['matrix'], quat.matrix_from_quaternion(q), atol=1e-12)
+
+
+def test_solve_options(repo_root, cell_csv):
+    _, path, _ = cell_csv
+    for args in (['--pairs', 'consecutive'], ['--no-robust'], ['--min-motion-deg', '2']):
+        done = run_solve(repo_root, path, *args)
+        assert done.returncode == 0, done.stderr
+        assert json.loads(done.stdout)['samples'] == 20
+
+
+def test_solve_eye_to_hand(repo_root, tmp_path):
+    rng = np.random.default_rng(22)
+    cell = simulation.random_cell(rng, 'eye_to_hand')
+    samples, _ = simulation.samples(rng, cell, 12, rotation_noise_deg=0.2)
+    path = tmp_path / 'eth.csv'
+    path.write_text(format_samples(samples))
+    done = run_solve(repo_root, path, '--setup', 'eye_to_hand')
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    q = quat.wxyz_from_xyzw([out['rotation'][k] for k in 'xyzw'])
+    assert np.degrees(quat.angle_between(q, cell.mounting.quaternion)) < 1.0
+    assert out['setup'] == 'eye_to_hand' and not out['warnings']
+
+
+GOOD_ROW = '1.0,0,0,0,0,0,0,1,0,0,1,0,0,0,1'
+
+
+@pytest.mark.parametrize('text, expected', [
+    ('', 'empty file'),
+    ('stamp,link_x\n1,2\n', 'row 1 (header): missing column(s) link_y'),
+    (','.join(COLUMNS) + '\n' + GOOD_ROW.replace('1.0,', 'abc,', 1) + '\n',
+     "row 2, field stamp: 'abc' is not a number"),
+    (','.join(COLUMNS) + '\n' + GOOD_ROW + '\n' + GOOD_ROW[:-1] + 'nan\n',
+     'row 3, field sensor_qw: nan is not a finite number'),
+    (','.join(COLUMNS) + '\n' + GOOD_ROW.replace(',1,0,0,1,', ',0,0,0,1,', 1) + '\n',
+     'row 2, fields link_qx..link_qw: the quaternion has norm 0'),
+    (','.join(COLUMNS) + '\n' + GOOD_ROW[:-1] + '2\n',
+     'row 2, fields sensor_qx..sensor_qw: the quaternion has norm 2'),
+    (','.join(COLUMNS) + '\n' + GOOD_ROW + '\n' + '1.0,0,0\n', 'row 3, field link_z: missing'),
+    (','.join(COLUMNS) + '\n' + GOOD_ROW + '\n' + GOOD_ROW + '\n', '2 sample(s); at least 3'),
+])
+def test_bad_input_exits_2_naming_row_and_field(repo_root, tmp_path, text, expected):
+    path = tmp_path / 'bad.csv'
+    path.write_text(text)
+    done = run_solve(repo_root, path)
+    assert done.returncode == 2
+    assert expected in done.stderr and str(path) in done.stderr
+    assert 'Traceback' not in done.stderr and done.stdout == ''
+
+
+def test_missing_file_and_bad_arguments_exit_2(repo_root, tmp_path):
+    done = run_solve(repo_root, tmp_path / 'nope.csv')
+    assert done.returncode == 2 and 'cannot read' in done.stderr
+    done = run_solve(repo_root, tmp_path / 'nope.csv', '--setup', 'sideways')
+    assert done.returncode == 2 and 'invalid choice' in done.stderr
+
+
+def test_undetermined_rotation_exits_3_with_the_reason(repo_root, tmp_path):
+    rng = np.random.default_rng(23)
+    cell = simulation.random_cell(rng)
+    samples = []
+    for k, angle in enumerate([0, 25, 50, 75]):
+        link = cell.home @ Pose.create([0, 0, 0.01 * k],
+                                       quat.from_axis_angle([0, 0, 1], np.radians(angle)))
+        samples.append(Sample(k * 10 ** 9, link, cell.sensor_pose(link)))
+    path = tmp_path / 'one_axis.csv'
+    path.write_text(format_samples(samples))
+    done = run_solve(repo_root, path)
+    assert done.returncode == 3
+    assert 'Case 1' in done.stderr and 'perpendicular' in done.stderr
