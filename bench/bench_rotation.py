@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Rotation accuracy and speed against OpenCV's calibrateHandEye, on the same synthetic cells.
+"""
+Rotation accuracy and speed against OpenCV's calibrateHandEye, on the same synthetic cells.
 
 Every row draws `--trials` eye-in-hand cells (quatcal_ros.simulation) with the given number of
 samples, sensor rotation noise (per axis, degrees), 1 mm sensor translation noise and an

@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Solver speed against issue 2's targets, beside OpenCV's PARK on the same samples.
+"""
+Solver speed against issue 2's targets, beside OpenCV's PARK on the same samples.
 
 - all-pairs least squares at 50 samples vs cv2.calibrateHandEye(PARK): target >= 3x faster;
 - adding one sample to a 200-sample session and re-estimating by least squares: < 1 ms
@@ -66,7 +67,7 @@ def _qs(motions):
 
 
 def add_one_to_calibrator(samples):
-    """The live Calibrator's incremental path (gate, motions, re-solve, quality figures)."""
+    """Time the live Calibrator's incremental path (gate, motions, solve, quality figures)."""
     calibrator = Calibrator(full_solve_every=10 ** 9)
     calibrator.add_samples(samples[:-1])
 

@@ -1,4 +1,5 @@
-"""`python -m quatcal_ros TOOL [ARGS...]`: the package's tools (DESIGN.md contract 3).
+"""
+`python -m quatcal_ros TOOL [ARGS...]`: the package's tools (DESIGN.md contract 3).
 
 The same tools are ROS executables: `ros2 run quatcal_ros TOOL`.
 """
@@ -17,7 +18,7 @@ TOOLS = {
 
 
 def usage():
-    """The list of tools."""
+    """Return the list of tools."""
     lines = ['usage: python -m quatcal_ros TOOL [ARGS...]', '', 'tools:']
     lines += [f'  {name:<11} {text}' for name, (_, _, text) in TOOLS.items()]
     return '\n'.join(lines)

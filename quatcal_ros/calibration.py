@@ -1,4 +1,5 @@
-"""Estimate the sensor mounting rotation A_z from still samples: robust, with quality figures.
+"""
+Estimate the sensor mounting rotation A_z from still samples: robust, with quality figures.
 
 Pipeline (one function, `calibrate`, used by the node, the bag replay and the CSV tool through
 `Calibrator` / session.Session):
@@ -85,7 +86,7 @@ class CalibrationResult:
     motion_residuals_deg: np.ndarray = None   # per inlier motion
 
     def to_json_dict(self):
-        """The JSON object of DESIGN.md contract 3 (plus extra keys, never renamed)."""
+        """Return the JSON object of DESIGN.md contract 3 (plus extra keys, never renamed)."""
         x, y, z, w = quat.xyzw_from_wxyz(self.quaternion)
         return {
             'rotation': {'x': float(x), 'y': float(y), 'z': float(z), 'w': float(w)},
@@ -112,7 +113,8 @@ def _finite_or_none(value):
 
 
 def calibrate(samples, options=CalibrationOptions()):
-    """Estimate A_z from still samples (list of pose.Sample); see the module docstring.
+    """
+    Estimate A_z from still samples (list of pose.Sample); see the module docstring.
 
     Raises DegenerateMotionError (a ValueError) with the reason and the motion that would
     help when the samples cannot determine the rotation.
@@ -136,7 +138,7 @@ class _Solution:
 
 
 def _solve(samples, options):
-    """The full pipeline of the module docstring on `samples`."""
+    """Run the full pipeline of the module docstring on `samples`."""
     n = len(samples)
     if n < 3:
         raise InsufficientDataError(
@@ -151,7 +153,7 @@ def _solve(samples, options):
             q_z = _consensus(rotations, motions.subset(usable), options)
             for _ in range(2):
                 sample_ok = _good_samples(rotations, q_z)
-                fit = motions.subset(usable & sample_ok[motions.I] & sample_ok[motions.J])
+                fit = motions.subset(usable & sample_ok[motions.i] & sample_ok[motions.j])
                 _require_motions(fit, options)
                 q_z = least_squares_rotation(fit.q_a, fit.q_b, reference=q_z)
         else:
@@ -179,7 +181,8 @@ def _solve(samples, options):
 
 
 def _suspicious(fit, q_z):
-    """Whether the residuals are too large for the noise the angle mismatches show.
+    """
+    Whether the residuals are too large for the noise the angle mismatches show.
 
     Under the right convention the median residual is ~2.3 times the median |theta_a -
     theta_b| (3-D versus 1-D projections of the same noise); a wrong convention leaves the
@@ -211,12 +214,15 @@ def _screen(motions, options):
 
 
 def _rejected_motions(motions, usable, sample_ok, limit, options):
-    """Reasons for the screened-out motions between good samples (a rejected sample's own
-    entry covers its motions)."""
+    """
+    Give reasons for the screened-out motions between good samples.
+
+    A rejected sample's own entry covers its motions.
+    """
     rejected = []
-    unexplained = motions.subset(~usable & sample_ok[motions.I] & sample_ok[motions.J])
+    unexplained = motions.subset(~usable & sample_ok[motions.i] & sample_ok[motions.j])
     angles_a, angles_b = np.degrees(unexplained.angle_a), np.degrees(unexplained.angle_b)
-    for i, j, a, b in zip(unexplained.I, unexplained.J, angles_a, angles_b):
+    for i, j, a, b in zip(unexplained.i, unexplained.j, angles_a, angles_b):
         if min(a, b) < options.min_motion_deg:
             reason = (f'too small to inform: the link rotates {a:.2f} deg '
                       f'(minimum {options.min_motion_deg:g} deg)')
@@ -258,7 +264,8 @@ def _consensus(rotations, candidates, options):
 
 
 def _outlier_threshold(angles):
-    """Residual angle (radians) above which a sample is an outlier (robust chi-3 test).
+    """
+    Residual angle (radians) above which a sample is an outlier (robust chi-3 test).
 
     The residual angles of good samples follow sigma times a chi distribution with 3 degrees of
     freedom, shrunk by sqrt((3N - 6) / 3N) because six parameters were fitted to them.
@@ -270,7 +277,7 @@ def _outlier_threshold(angles):
 
 
 def _good_samples(rotations, q_z):
-    """Samples whose object orientation agrees with the consensus (bool mask)."""
+    """Mark the samples whose object orientation agrees with the consensus (bool mask)."""
     ok = np.ones(len(rotations), dtype=bool)
     for _ in range(3):
         angles = np.linalg.norm(quality.sample_residuals(rotations, q_z, ok), axis=1)
@@ -286,12 +293,12 @@ def _rejected_samples(rotations, q_z, sample_ok, motions):
         quality.sample_residuals(rotations, q_z, sample_ok), axis=1))
     threshold = np.degrees(_outlier_threshold(np.radians(angles[sample_ok])))
     return [_sample_rejection(i, angles[i], threshold,
-                              int(np.sum((motions.I == i) | (motions.J == i))))
+                              int(np.sum((motions.i == i) | (motions.j == i))))
             for i in np.flatnonzero(~sample_ok)]
 
 
 def _sample_rejection(index, angle_deg, threshold_deg, spoiled):
-    """The `rejected` entry of a bad sample."""
+    """Return the `rejected` entry of a bad sample."""
     return {'sample': int(index), 'reason': (
         f'its object orientation disagrees with the other samples by {angle_deg:.2f} deg '
         f'(threshold {threshold_deg:.2f} deg): a bad detection such as a marker flip; its '
@@ -307,7 +314,7 @@ def _require_motions(fit, options):
 
 def _check_excitation(rotations, fit, options):
     """Information of the fitted motions; Case 1 (all axes parallel) is refused."""
-    info = quality.Information.of(quat.matrix_from_quaternion(rotations.link), fit.I, fit.J)
+    info = quality.Information.of(quat.matrix_from_quaternion(rotations.link), fit.i, fit.j)
     ratio, axis = info.excitation()
     if ratio < np.sin(np.radians(options.min_axis_spread_deg)) ** 2:
         frame = _parent_frame(options)
@@ -347,7 +354,8 @@ CONVENTION_PAIRS = 2000   # pairs examined: plenty for a median, bounded cost
 
 
 def convention_warnings(samples, options):
-    """Warnings when the data fit far better with the sensor poses inverted.
+    """
+    Warnings when the data fit far better with the sensor poses inverted.
 
     Under the right convention one rotation solves every motion; with the sensor poses
     inverted (the sensor in the object frame, as ../shared/datasets/ethz_robot_arm_real stores
@@ -375,11 +383,11 @@ def convention_warnings(samples, options):
 def _median_residual_deg(samples, setup, invert_sensor, options):
     """Median motion residual (degrees) of a plain least-squares fit under one convention."""
     rotations = SampleRotations.from_samples(samples, setup, invert_sensor)
-    I, J = pair_indices(len(samples), 'all')
-    if len(I) > CONVENTION_PAIRS:
-        pick = np.random.default_rng(options.seed).choice(len(I), CONVENTION_PAIRS, False)
-        I, J = I[pick], J[pick]
-    motions = Motions.between(rotations, I, J)
+    i, j = pair_indices(len(samples), 'all')
+    if len(i) > CONVENTION_PAIRS:
+        pick = np.random.default_rng(options.seed).choice(len(i), CONVENTION_PAIRS, False)
+        i, j = i[pick], j[pick]
+    motions = Motions.between(rotations, i, j)
     motions = motions.subset(np.minimum(motions.angle_a, motions.angle_b)
                              >= np.radians(options.min_motion_deg))
     if len(motions) < 3:
@@ -389,7 +397,8 @@ def _median_residual_deg(samples, setup, invert_sensor, options):
 
 
 class Calibrator:
-    """Samples in, estimate out, after every sample: what session.Session drives.
+    """
+    Samples in, estimate out, after every sample: what session.Session drives.
 
     A new sample is tested against the current estimate, its motions screened and added to the
     least-squares system (O(1) per motion), and the estimate re-solved: cheap enough for the
@@ -468,7 +477,7 @@ class Calibrator:
             system.add(new.q_a, new.q_b, reference=q_z)
             q_z = system.solve()[0]
             fit = Motions.concatenate(fit, new)
-        info = quality.Information.of(quat.matrix_from_quaternion(rotations.link), fit.I, fit.J)
+        info = quality.Information.of(quat.matrix_from_quaternion(rotations.link), fit.i, fit.j)
         motion_count = old.motion_count + (k if self.options.pairs == 'all' else 1)
         result = _result(rotations, q_z, fit, info, sample_ok, motion_count, rejected,
                          old.result.warnings, self.options)

@@ -1,4 +1,5 @@
-"""Command-line tools of DESIGN.md contract 3 that run without ROS: `solve`.
+"""
+Command-line tools of DESIGN.md contract 3 that run without ROS: `solve`.
 
 Exit status: 0 success; 2 bad input or arguments (stderr names file, row and field); 3 the
 data cannot determine the rotation (stderr says why and what motion would help).
@@ -11,7 +12,6 @@ import sys
 from quatcal_ros.calibration import CalibrationOptions
 from quatcal_ros.samples_csv import BadInputError, read_samples
 from quatcal_ros.session import Session, SessionConfig
-from quatcal_ros.solver import DegenerateMotionError
 
 EXIT_BAD_INPUT = 2
 EXIT_UNDETERMINED = 3
@@ -35,7 +35,7 @@ def add_estimator_arguments(parser):
 
 
 def estimator_options(args):
-    """CalibrationOptions from parsed arguments."""
+    """Build the CalibrationOptions of parsed arguments."""
     return CalibrationOptions(setup=args.setup, pairs=args.pairs, robust=not args.no_robust,
                               invert_sensor=args.invert_sensor,
                               min_motion_deg=args.min_motion_deg)

@@ -1,4 +1,5 @@
-"""Least squares over many motions: the stacked system of eq. (41), solved incrementally.
+"""
+Least squares over many motions: the stacked system of eq. (41), solved incrementally.
 
 Each motion k gives B_k p_z = 0 with B_k = P+(p_ak) - P-(p_bk) (eq. (39)-(41), erratum 2),
 where p_bk takes the sign that makes it describe the same rotation as p_ak (erratum 3).
@@ -41,7 +42,8 @@ def minus_matrices(q):
 
 
 def aligned_b(q_a, q_b, reference=None):
-    """q_b with the sign of erratum 3: a0 * b0 >= 0.
+    """
+    q_b with the sign of erratum 3: a0 * b0 >= 0.
 
     Near half turns (a0 ~ b0 ~ 0) that rule is decided by noise; given a `reference`
     estimate of p_z, the sign that makes p_a (x) p_z closest to p_z (x) p_b is used instead.
@@ -70,7 +72,8 @@ _CROSS_TERMS = np.array([[plus_matrices(np.eye(4)[i:i + 1])[0].T
 
 
 class MotionSystem:
-    """Incremental normal matrix M = sum_k B_k^T B_k and its minimum-eigenvector solution.
+    """
+    Incremental normal matrix M = sum_k B_k^T B_k and its minimum-eigenvector solution.
 
     For unit p_a, p_b the plus and minus matrices are orthogonal, so
     B^T B = 2 I - (P+(p_a)^T P-(p_b) + its transpose), and the sum over motions needs only
@@ -90,7 +93,7 @@ class MotionSystem:
         self.count += len(q_a)
 
     def copy(self):
-        """An independent copy (the system is mutable)."""
+        """Return an independent duplicate: the system is mutable."""
         other = MotionSystem()
         other.normal_matrix = self.normal_matrix.copy()
         other.count = self.count

@@ -1,4 +1,5 @@
-"""Motions (A_a, A_b) from still samples, eq. (35)-(36), vectorised over sample pairs.
+"""
+Motions (A_a, A_b) from still samples, eq. (35)-(36), vectorised over sample pairs.
 
 Eye-in-hand (sensor on the link): with link poses L_i = T_base_link and sensor poses
 S_i = T_sensor_obj, the motion between samples i and j is
@@ -23,7 +24,8 @@ PAIRINGS = ('all', 'consecutive')
 
 @dataclass(frozen=True)
 class SampleRotations:
-    """The orientations of a sample set, in the form the motions need.
+    """
+    The orientations of a sample set, in the form the motions need.
 
     link: (N, 4) link rotations, inverted for eye-to-hand so that every setup reads
         A_a = inv(link_i) link_j;  sensor: (N, 4) sensor rotations (object in sensor frame).
@@ -52,7 +54,7 @@ class SampleRotations:
         return len(self.link)
 
     def appended(self, sample):
-        """These rotations and those of one more sample (same setup and inversion)."""
+        """Return these rotations and those of one more sample (same setup, inversion)."""
         link = np.asarray(sample.link.quaternion, dtype=float)[None, :]
         sensor = np.asarray(sample.sensor.quaternion, dtype=float)[None, :]
         if self.link_inverted:
@@ -63,7 +65,8 @@ class SampleRotations:
                                self.link_inverted, self.sensor_inverted)
 
     def object_orientations(self, q_z):
-        """Z_i = link_i (x) q_z (x) sensor_i: the object's orientation in the base frame.
+        """
+        Z_i = link_i (x) q_z (x) sensor_i: the object's orientation in the base frame.
 
         Constant for noise-free data; the spread of Z_i measures each sample's error.
         """
@@ -71,7 +74,7 @@ class SampleRotations:
 
 
 def pair_indices(n, pairing='all'):
-    """Index arrays (I, J), I < J, of the motions formed from n samples."""
+    """Return index arrays (i, j), i < j, of the motions formed from n samples."""
     if pairing == 'consecutive':
         first = np.arange(max(n - 1, 0))
         return first, first + 1
@@ -82,35 +85,35 @@ def pair_indices(n, pairing='all'):
 
 @dataclass(frozen=True)
 class Motions:
-    """Motions k = (I[k], J[k]) with their quaternions q_a, q_b (K, 4), eq. (35)-(36)."""
+    """Motions k = (i[k], j[k]) with their quaternions q_a, q_b (K, 4), eq. (35)-(36)."""
 
-    I: np.ndarray
-    J: np.ndarray
+    i: np.ndarray
+    j: np.ndarray
     q_a: np.ndarray
     q_b: np.ndarray
 
     @staticmethod
-    def between(rotations, I, J):
-        """The motions from sample I[k] to sample J[k]."""
-        I = np.asarray(I, dtype=int)
-        J = np.asarray(J, dtype=int)
-        q_a = quat.multiply(quat.conjugate(rotations.link[I]), rotations.link[J])
-        q_b = quat.multiply(rotations.sensor[I], quat.conjugate(rotations.sensor[J]))
-        return Motions(I, J, q_a, q_b)
+    def between(rotations, i, j):
+        """Form the motions from sample i[k] to sample j[k]."""
+        i = np.asarray(i, dtype=int)
+        j = np.asarray(j, dtype=int)
+        q_a = quat.multiply(quat.conjugate(rotations.link[i]), rotations.link[j])
+        q_b = quat.multiply(rotations.sensor[i], quat.conjugate(rotations.sensor[j]))
+        return Motions(i, j, q_a, q_b)
 
     def __len__(self):
-        return len(self.I)
+        return len(self.i)
 
     @staticmethod
     def concatenate(first, second):
-        """The motions of `first` followed by those of `second`."""
+        """Join the motions of `first` and those of `second`."""
         return Motions(*(np.concatenate([a, b]) for a, b in zip(
-            (first.I, first.J, first.q_a, first.q_b),
-            (second.I, second.J, second.q_a, second.q_b))))
+            (first.i, first.j, first.q_a, first.q_b),
+            (second.i, second.j, second.q_a, second.q_b))))
 
     def subset(self, mask):
-        """The motions where `mask` (bool or index array) selects."""
-        return Motions(self.I[mask], self.J[mask], self.q_a[mask], self.q_b[mask])
+        """Select the motions where `mask` (bool or index array) says."""
+        return Motions(self.i[mask], self.j[mask], self.q_a[mask], self.q_b[mask])
 
     @property
     def angle_a(self):
@@ -124,7 +127,7 @@ class Motions:
 
     @property
     def axis_a(self):
-        """Unit rotation axes of A_a in the link frame, (K, 3), sign of w >= 0."""
+        """Return the unit rotation axes of A_a in the link frame, (K, 3), sign of w >= 0."""
         v = np.where(self.q_a[:, :1] < 0.0, -self.q_a, self.q_a)[:, 1:]
         norm = np.linalg.norm(v, axis=1, keepdims=True)
         return v / np.where(norm > 0.0, norm, 1.0)

@@ -1,4 +1,5 @@
-"""Rigid transforms and still samples, the plain-number types the core works on.
+"""
+Rigid transforms and still samples, the plain-number types the core works on.
 
 A `Pose` T_parent_child holds the position of the child origin in the parent frame (metres)
 and the child's orientation as a unit quaternion (w, x, y, z): it maps child coordinates to
@@ -60,7 +61,8 @@ class Pose:
 
 @dataclass(frozen=True)
 class Sample:
-    """One still sample: both poses at the same instant (header stamp, integer nanoseconds).
+    """
+    One still sample: both poses at the same instant (header stamp, integer nanoseconds).
 
     link: T_base_link, the link pose in the robot base frame.
     sensor: T_sensor_obj, the observed fixed object in the sensor frame.

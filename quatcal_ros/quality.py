@@ -1,4 +1,5 @@
-"""How good an estimate is: sample residuals, uncertainty, excitation and the next-motion hint.
+"""
+How good an estimate is: sample residuals, uncertainty, excitation and the next-motion hint.
 
 The quality figures come from a linear model of the samples.  For the estimate p_z let
 Z_i = link_i (x) p_z (x) sensor_i be the object's orientation in the base frame
@@ -26,7 +27,8 @@ AXIS_NAMES = ('x', 'y', 'z')
 
 
 def sample_residuals(rotations, q_z, inliers=None):
-    """Rotation vectors eps_i (N, 3), radians, base frame, of each Z_i about the mean Z.
+    """
+    Rotation vectors eps_i (N, 3), radians, base frame, of each Z_i about the mean Z.
 
     The mean is taken over `inliers` (bool mask or None for all samples).
     """
@@ -52,14 +54,14 @@ class Information:
     G: np.ndarray
 
     @staticmethod
-    def of(link_matrices, I, J):
-        """H and G for motions (I[k], J[k]) given the link rotation matrices (N, 3, 3)."""
-        D = link_matrices[J] - link_matrices[I]
+    def of(link_matrices, i, j):
+        """H and G for motions (i[k], j[k]) given the link rotation matrices (N, 3, 3)."""
+        D = link_matrices[j] - link_matrices[i]
         H = np.einsum('kji,kjl->il', D, D)
         C = np.zeros((len(link_matrices), 3, 3))
         Dt = np.transpose(D, (0, 2, 1))
-        np.add.at(C, J, Dt)
-        np.add.at(C, I, -Dt)
+        np.add.at(C, j, Dt)
+        np.add.at(C, i, -Dt)
         G = np.einsum('nij,nkj->ik', C, C)
         return Information(H, G)
 
@@ -79,7 +81,7 @@ class Information:
 
 
 def uncertainty_deg(covariance):
-    """Expected RMS error angle (degrees): sqrt(trace(cov))."""
+    """Return the expected RMS error angle (degrees): sqrt(trace(cov))."""
     return float(np.degrees(np.sqrt(max(np.trace(covariance), 0.0))))
 
 

@@ -1,4 +1,5 @@
-"""Quaternion algebra of Chou and Kamel (1988), Section 2, in numpy.
+"""
+Quaternion algebra of Chou and Kamel (1988), Section 2, in numpy.
 
 Every quaternion in this module is an array of shape (..., 4) in **scalar-first** order
 (w, x, y, z), the paper's [e0, e1, e2, e3].  ROS messages and the samples CSV use (x, y, z, w):
@@ -27,7 +28,7 @@ def xyzw_from_wxyz(q_wxyz):
 
 
 def skew(v):
-    """Cross-product matrix of eq. (9): skew(a) @ b == cross(a, b)."""
+    """Return the cross-product matrix of eq. (9): its product with b is the cross product."""
     x, y, z = v
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
@@ -52,7 +53,7 @@ def conjugate(q):
 
 
 def plus_matrix(a):
-    """The 'plus' matrix of eq. (11): a (x) b == plus_matrix(a) @ b."""
+    """Return the 'plus' matrix of eq. (11), the left factor of a (x) b = P+(a) b."""
     a0, x, y, z = a
     return np.array([[a0, -x, -y, -z],
                      [x, a0, -z, y],
@@ -61,7 +62,7 @@ def plus_matrix(a):
 
 
 def minus_matrix(b):
-    """The 'minus' matrix of eq. (12): a (x) b == minus_matrix(b) @ a."""
+    """Return the 'minus' matrix of eq. (12), the factor of a (x) b = P-(b) a."""
     b0, x, y, z = b
     return np.array([[b0, -x, -y, -z],
                      [x, b0, z, -y],
@@ -70,7 +71,7 @@ def minus_matrix(b):
 
 
 def normalize(q):
-    """Unit quaternion(s) in the direction of q; raises ValueError for a zero quaternion."""
+    """Scale q to unit length; raise ValueError for a zero quaternion."""
     q = np.asarray(q, dtype=float)
     norm = np.linalg.norm(q, axis=-1, keepdims=True)
     if np.any(norm < 1e-12):
@@ -79,7 +80,8 @@ def normalize(q):
 
 
 def canonical(q):
-    """Pick the sign of q (which and -q are the same rotation) with w >= 0.
+    """
+    Pick the sign of q (which and -q are the same rotation) with w >= 0.
 
     Ties (w == 0) are broken by the first non-zero vector component being positive, so the
     result is unique for every rotation, 180 degrees included.
@@ -96,7 +98,8 @@ def canonical(q):
 
 
 def matrix_from_quaternion(p):
-    """Rotation matrix of unit quaternion(s) p = (w, x, y, z), eq. (20), (..., 4) -> (..., 3, 3).
+    """
+    Rotation matrix of unit quaternion(s) p = (w, x, y, z), eq. (20), (..., 4) -> (..., 3, 3).
 
     A = (e0^2 - e.e) I + 2 (e e^T + e0 skew(e)); p is normalised first.
     """
@@ -114,7 +117,8 @@ def matrix_from_quaternion(p):
 
 
 def quaternion_from_matrix(A):
-    """Unit quaternion (w, x, y, z), w >= 0, of a 3x3 rotation matrix (inverse of eq. (20)).
+    """
+    Return the unit quaternion (w, x, y, z), w >= 0, of a 3x3 rotation matrix (eq. (20) inverted).
 
     Stable for every rotation, 180 degrees included: the symmetric 4x4 matrix K of Bar-Itzhack
     (2000) has the wanted quaternion as the eigenvector of its largest eigenvalue, which also
@@ -135,7 +139,8 @@ def quaternion_from_matrix(A):
 
 
 def axis_angle(p):
-    """Unit axis u and angle theta in [0, pi] of eq. (16) for a unit quaternion p.
+    """
+    Return the unit axis u and angle theta in [0, pi] of eq. (16) for a unit quaternion p.
 
     The axis of a rotation by (almost) zero is undefined; (0, 0, 1) is returned then.
     """
@@ -148,14 +153,14 @@ def axis_angle(p):
 
 
 def from_axis_angle(axis, angle):
-    """Unit quaternion of a rotation by `angle` (radians) about `axis`, eq. (22)."""
+    """Return the unit quaternion of a rotation by `angle` (radians) about `axis`, eq. (22)."""
     axis = np.asarray(axis, dtype=float)
     axis = axis / np.linalg.norm(axis)
     return np.concatenate([[np.cos(angle / 2.0)], np.sin(angle / 2.0) * axis])
 
 
 def from_rotation_vector(rotvec):
-    """Unit quaternion(s) of rotation vector(s) (axis times angle in radians), (..., 3)."""
+    """Return the unit quaternion(s) of rotation vector(s) (axis times angle, radians)."""
     rotvec = np.asarray(rotvec, dtype=float)
     angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
     # sin(angle/2)/angle, with its limit 1/2 at angle -> 0.
@@ -174,7 +179,8 @@ def rotation_vector(p):
 
 
 def angle_between(p, q):
-    """Angle (radians, in [0, pi]) of the rotation taking unit quaternion p to q.
+    """
+    Angle (radians, in [0, pi]) of the rotation taking unit quaternion p to q.
 
     Computed with atan2 on the relative quaternion p* (x) q: accurate to rounding for tiny
     angles, where arccos(p . q) would resolve only about 1e-8 rad.
@@ -202,7 +208,8 @@ def slerp(p, q, fraction):
 
 
 def average(quaternions, weights=None):
-    """Rotation average (w, x, y, z) of a set of unit quaternions (Markley et al. 2007).
+    """
+    Average a set of unit quaternions (w, x, y, z) (Markley et al. 2007).
 
     The eigenvector of the largest eigenvalue of sum w_i q_i q_i^T: insensitive to the sign of
     each q_i, and the maximum-likelihood mean for small scatter.

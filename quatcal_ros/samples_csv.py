@@ -1,4 +1,5 @@
-"""The samples CSV of DESIGN.md contract 2: one still sample per row.
+"""
+The samples CSV of DESIGN.md contract 2: one still sample per row.
 
     stamp,link_x,link_y,link_z,link_qx,link_qy,link_qz,link_qw,
     sensor_x,sensor_y,sensor_z,sensor_qx,sensor_qy,sensor_qz,sensor_qw
@@ -27,7 +28,7 @@ class BadInputError(ValueError):
 
 
 def read_samples(path):
-    """Samples (list of pose.Sample) from a samples CSV file; raises BadInputError."""
+    """Read samples (list of pose.Sample) from a samples CSV file; raise BadInputError."""
     try:
         with open(path, newline='') as stream:
             return parse_samples(stream, str(path))
@@ -38,7 +39,7 @@ def read_samples(path):
 
 
 def parse_samples(stream, name='<samples>'):
-    """Samples from an open text stream of the samples CSV format."""
+    """Parse samples from an open text stream of the samples CSV format."""
     reader = csv.reader(stream)
     header = next(reader, None)
     if header is None:
@@ -89,7 +90,7 @@ def _pose(values, prefix, name, line):
 
 
 def format_samples(samples):
-    """The samples CSV text of `samples` (list of pose.Sample), full float precision."""
+    """Format `samples` (list of pose.Sample) as samples CSV text, full float precision."""
     out = io.StringIO()
     writer = csv.writer(out, lineterminator='\n')
     writer.writerow(COLUMNS)

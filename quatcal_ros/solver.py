@@ -1,4 +1,5 @@
-"""The two-motion method of Chou and Kamel (1988), Sections 4 and 5, as the paper gives it.
+"""
+The two-motion method of Chou and Kamel (1988), Sections 4 and 5, as the paper gives it.
 
 Solves A_a A_z = A_z A_b (eq. (37)) for the rotation A_z from two motions (A_a1, A_b1),
 (A_a2, A_b2).  A_z maps sensor coordinates to link coordinates (the rotation of the transform
@@ -60,14 +61,15 @@ class TwoMotionSolution:
 
 
 def motion_axis_angle(A, name='motion'):
-    """Unit quaternion p (w >= 0), unit axis u and angle theta in [0, pi] of rotation A."""
+    """Return unit quaternion p (w >= 0), unit axis u and angle theta in [0, pi] of A."""
     p = quat.quaternion_from_matrix(A)
     axis, angle = quat.axis_angle(p)
     return p, axis, angle
 
 
 def null_space_basis(u_a, u_b):
-    """Orthonormal 4x2 basis of the null space of B in eq. (45), in closed form (erratum 5).
+    """
+    Orthonormal 4x2 basis of the null space of B in eq. (45), in closed form (erratum 5).
 
     For c = u_a . u_b >= -0.9 the basis of erratum 5 with the paper's printed signs:
     column 0 is -[1 + c, u_b x u_a] / n, column 1 is +-[0, u_a + u_b] / n with its first
@@ -169,7 +171,8 @@ def residual_vector(y, W, case):
 
 
 def newton_correction(y, E, W, alpha, beta, gamma, case):
-    """Delta y solving J Delta y = E (eq. (69)-(70)) by the closed forms (72)-(74).
+    """
+    Delta y solving J Delta y = E (eq. (69)-(70)) by the closed forms (72)-(74).
 
     Case 3 row 4 of J is [-w12, -w22, 0, 1]; after eliminating the first two columns it reads
     [0, 0, gamma, beta].  Case 2 (erratum 6) has row 4 = [-w11, -w21, 1, 0], reducing to
@@ -200,17 +203,32 @@ def newton_correction(y, E, W, alpha, beta, gamma, case):
 def solve_two_motions(Aa1, Ab1, Aa2, Ab2, y0=None, *, min_rotation=np.radians(0.5),
                       angle_tolerance=np.radians(1.0), min_axis_separation=np.radians(0.05),
                       tolerance=1e-13, max_iterations=50):
-    """Solve A_a A_z = A_z A_b for A_z from two motions by the paper's method.
+    """
+    Solve A_a A_z = A_z A_b for A_z from two motions by the paper's method.
 
     Parameters
     ----------
-    Aa1, Ab1, Aa2, Ab2 : 3x3 rotation matrices; motion k is (A_ak, A_bk), eq. (35)-(36).
-    y0 : initial guess [y11, y12, y21, y22]; default the paper's [0.1, 0.2, 0.1, 0.2].
-    min_rotation : radians; a motion rotating less is refused (NoRotationError).
-    angle_tolerance : radians; |theta_a - theta_b| above it is refused (AngleMismatchError).
-    min_axis_separation : radians; motion axes closer than this to parallel or anti-parallel
-        are Case 1 (ParallelAxesError).
-    tolerance : Newton-Raphson stops when the largest correction max |Delta y_k| <= tolerance.
+    Aa1 : array_like, 3x3
+        Rotation A_a of motion 1, the link's motion, eq. (35).
+    Ab1 : array_like, 3x3
+        Rotation A_b of motion 1, the sensor's motion, eq. (36).
+    Aa2 : array_like, 3x3
+        Rotation A_a of motion 2.
+    Ab2 : array_like, 3x3
+        Rotation A_b of motion 2.
+    y0 : array_like, optional
+        Initial guess [y11, y12, y21, y22]; default the paper's [0.1, 0.2, 0.1, 0.2].
+    min_rotation : float
+        Radians; a motion rotating less is refused (NoRotationError).
+    angle_tolerance : float
+        Radians; |theta_a - theta_b| above it is refused (AngleMismatchError).
+    min_axis_separation : float
+        Radians; motion axes closer than this to parallel or anti-parallel are Case 1
+        (ParallelAxesError).
+    tolerance : float
+        Newton-Raphson stops when the largest correction max |Delta y_k| <= tolerance.
+    max_iterations : int
+        Newton-Raphson gives up (DegenerateMotionError) after this many steps.
 
     Returns
     -------

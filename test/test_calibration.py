@@ -105,7 +105,8 @@ def test_motions_about_one_axis_are_refused_with_a_hint():
     axis = np.array([0.0, 0.0, 1.0])
     samples = []
     for k, angle in enumerate([0, 20, 45, 70, 100]):
-        link = cell.home @ Pose.create([0.01 * k, 0, 0], quat.from_axis_angle(axis, np.radians(angle)))
+        turn = quat.from_axis_angle(axis, np.radians(angle))
+        link = cell.home @ Pose.create([0.01 * k, 0, 0], turn)
         samples.append(Sample(k, link, cell.sensor_pose(link)))
     with pytest.raises(DegenerateMotionError, match=r'Case 1.*link z.*perpendicular'):
         calibrate(samples)

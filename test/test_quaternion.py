@@ -21,7 +21,7 @@ quaternions = st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4).filter(
 
 
 def same_rotation(p, q):
-    """p and q are the same rotation (q or -q)."""
+    """Measure how far p is from being the same rotation as q (q or -q)."""
     return min(np.max(np.abs(p - q)), np.max(np.abs(p + q)))
 
 

@@ -176,7 +176,8 @@ def test_null_space_basis_near_antiparallel_axes():
 def test_exact_recovery_when_motion_axis_maps_to_its_negative():
     # A_z a half turn about an axis perpendicular to u_a: u_b = A_z^T u_a = -u_a (erratum 5).
     A_z = rotation([0, 0, 1], 180)
-    motions = [motion_pair(A_z, rotation([1, 0, 0], 50)), motion_pair(A_z, rotation([0, 1, 1], 80))]
+    motions = [motion_pair(A_z, rotation([1, 0, 0], 50)),
+               motion_pair(A_z, rotation([0, 1, 1], 80))]
     assert_recovers(A_z, motions)
 
 
