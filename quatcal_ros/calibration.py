@@ -443,7 +443,7 @@ class Calibrator:
         except DegenerateMotionError as error:
             self.result = self._solution = None
             self.last_error = str(error)
-            return [f'no estimate yet ({len(self.samples)} samples): {error}']
+            return [f'no estimate yet: {error}']
         self.result = self._solution.result
         return [self._describe()]
 

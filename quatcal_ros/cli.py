@@ -54,8 +54,7 @@ def solve_main(argv=None):
     except BadInputError as error:
         return fail(parser.prog, error, EXIT_BAD_INPUT)
     session = Session(SessionConfig(calibration=estimator_options(args)))
-    for sample in samples:
-        session.add_sample(sample)
+    session.add_samples(samples)
     return print_result(parser.prog, session, f'{args.samples}: ')
 
 

@@ -83,6 +83,11 @@ def pair_indices(n, pairing='all'):
     raise ValueError(f'pairing must be one of {PAIRINGS}, not {pairing!r}')
 
 
+def motion_count(n, pairing='all'):
+    """Return how many motions n samples form (the length of pair_indices(n, pairing))."""
+    return n * (n - 1) // 2 if pairing == 'all' else max(n - 1, 0)
+
+
 @dataclass(frozen=True)
 class Motions:
     """Motions k = (i[k], j[k]) with their quaternions q_a, q_b (K, 4), eq. (35)-(36)."""

@@ -1,0 +1,278 @@
+"""
+One calibration session: pose streams -> pairing -> capture -> Calibrator -> estimate.
+
+The live node, the bag replay and the CSV tool all drive this one object, so they give the same
+answer on the same data.  Streams come in as (header stamp in integer nanoseconds, Pose):
+link poses T_base_link and sensor poses T_sensor_obj; CSV rows and resumed samples come in as
+pose.Sample.  Every call returns what happened as small event objects, which the shells log
+and publish (EstimateUpdated carries the new calibration.CalibrationResult):
+
+    SampleCaptured(index, sample), EstimateUpdated(result), Rejected(what, reason),
+    Notice(text)
+
+Time that goes backwards on a stream by more than `time_jump_ns` (a bag played again, a clock
+reset) starts a new timeline: the pairing buffers are cleared, the samples are kept.  Smaller
+steps back are late messages and are rejected.
+"""
+
+from collections import Counter
+from dataclasses import dataclass, field
+import math
+
+from quatcal_ros.calibration import CalibrationOptions, Calibrator
+from quatcal_ros.capture import Capture, CaptureConfig
+from quatcal_ros.motions import motion_count
+from quatcal_ros.pairing import LINK, OutOfOrderStamp, Pairer, PairingConfig, SENSOR
+
+STATES = ('waiting for poses', 'collecting', 'estimating')
+TOPICS = {LINK: 'link_pose', SENSOR: 'sensor_pose'}
+# After this many poses in a row could not be paired, a Notice says why.
+UNPAIRED_NOTICE_AFTER = 30
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """Everything a session needs, as plain numbers (durations in ns on header stamps)."""
+
+    pairing: PairingConfig = field(default_factory=PairingConfig)
+    capture: CaptureConfig = field(default_factory=CaptureConfig)
+    calibration: CalibrationOptions = field(default_factory=CalibrationOptions)
+    time_jump_ns: int = 500_000_000
+
+    def __post_init__(self):
+        if self.time_jump_ns < 0:
+            raise ValueError(f'time_jump_ns must be >= 0, not {self.time_jump_ns}')
+
+
+@dataclass(frozen=True)
+class SampleCaptured:
+    """A sample was added to the estimator as sample number `index`."""
+
+    index: int
+    sample: object
+
+
+@dataclass(frozen=True)
+class EstimateUpdated:
+    """A new estimate (calibration.CalibrationResult) exists: publish it."""
+
+    result: object
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """Input that was not used: `what` is 'link_pose', 'sensor_pose' or 'sample'."""
+
+    what: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class Notice:
+    """Something the user should know (log it)."""
+
+    text: str
+
+
+def _finite(*poses):
+    # A sum is finite exactly when every term is (short of overflow past 1e308): fast.
+    return all(math.isfinite(p.position.sum() + p.quaternion.sum()) for p in poses)
+
+
+def _late_reason(error):
+    if error.jump_ns == 0:
+        return 'same stamp as the previous message: dropped'
+    return (f'stamp {error.jump_ns * 1e-6:.3g} ms older than the previous message '
+            '(out of order): dropped')
+
+
+class Session:
+    """Pairs the streams, captures samples and keeps the estimate (module docstring)."""
+
+    def __init__(self, config=SessionConfig()):
+        self.config = config
+        self._calibrator = Calibrator(config.calibration)
+        self._start_streams()
+
+    def _start_streams(self):
+        self._pairer = Pairer(self.config.pairing)
+        self._capture = Capture(self.config.capture)
+        self._counts = Counter()
+        self._unpaired_seen = 0
+        self._unpaired_streak = 0
+        self._pending = []
+
+    # --- inputs --------------------------------------------------------------------------
+
+    def add_link_pose(self, stamp_ns, pose):
+        """Add a link pose T_base_link at header stamp stamp_ns (int); return the events."""
+        return self._add_pose(LINK, stamp_ns, pose)
+
+    def add_sensor_pose(self, stamp_ns, pose):
+        """Add a sensor pose T_sensor_obj at header stamp stamp_ns (int); return the events."""
+        return self._add_pose(SENSOR, stamp_ns, pose)
+
+    def capture(self, now_ns):
+        """
+        Capture a sample now from the latest still window (manual mode, or any mode).
+
+        now_ns: the current time on the stamps' clock (the node's clock).  Returns (True,
+        description) or (False, the reason for refusing); the events of a capture come with
+        pop_events() or the next add_*() call.
+        """
+        sample, reason = self._capture.capture_now(int(now_ns))
+        if sample is None:
+            return False, reason
+        self._pending += self._store(sample)
+        return True, f'sample {len(self._calibrator.samples) - 1} captured: {reason}'
+
+    def add_sample(self, sample):
+        """Add a ready sample (pose.Sample: CSV row, resumed session); return the events."""
+        events = self.pop_events()
+        if not _finite(sample.link, sample.sensor):
+            return events + [self._reject('sample', 'non-finite numbers in a pose')]
+        return events + self._store(sample)
+
+    def add_samples(self, samples):
+        """Add many ready samples (a CSV file, a resumed session), estimate once; return events."""
+        events = self.pop_events()
+        good = []
+        for sample in samples:
+            if _finite(sample.link, sample.sensor):
+                good.append(sample)
+            else:
+                events.append(self._reject('sample', 'non-finite numbers in a pose'))
+        first = len(self._calibrator.samples)
+        messages = self._calibrator.add_samples(good)
+        if good:
+            self._capture.note_sample(good[-1])   # the next still sample needs a motion first
+        events += [SampleCaptured(first + k, sample) for k, sample in enumerate(good)]
+        events += [Notice(text) for text in messages]
+        if self.result is not None:
+            events.append(EstimateUpdated(self.result))
+        return events
+
+    def pop_events(self):
+        """Events not yet returned (those of capture()); each event is returned once."""
+        events, self._pending = self._pending, []
+        return events
+
+    def reset(self):
+        """Start over: forget the streams, the samples, the estimate and the counters."""
+        self._calibrator.reset()
+        self._start_streams()
+
+    # --- what the shells show ------------------------------------------------------------
+
+    @property
+    def samples(self):
+        """Return the samples so far (list of pose.Sample), in the estimator's order."""
+        return list(self._calibrator.samples)
+
+    @property
+    def result(self):
+        """Return the latest calibration.CalibrationResult, or None before two usable motions."""
+        return self._calibrator.result
+
+    @property
+    def last_error(self):
+        """Return why there is no estimate (the estimator's last message)."""
+        return self._calibrator.last_error
+
+    @property
+    def state(self):
+        """Return the state: 'waiting for poses', 'collecting' or 'estimating'."""
+        if self.result is not None:
+            return STATES[2]
+        if self._counts['pairs'] or self._calibrator.samples:
+            return STATES[1]
+        return STATES[0]
+
+    @property
+    def counters(self):
+        """
+        Return the counts since the last reset.
+
+        link_messages, sensor_messages: poses received; pairs, unpaired: sensor (slower
+        stream) stamps paired or not; samples; motions: sample pairs the estimator forms;
+        rejected: messages and samples not used; time_jumps: new timelines started.
+        """
+        samples = len(self._calibrator.samples)
+        return {
+            'link_messages': self._counts[LINK],
+            'sensor_messages': self._counts[SENSOR],
+            'pairs': self._counts['pairs'],
+            'unpaired': self._unpaired_seen,
+            'samples': samples,
+            'motions': motion_count(samples, self._calibrator.options.pairs),
+            'rejected': self._counts['rejected'],
+            'time_jumps': self._counts['time_jumps'],
+        }
+
+    @property
+    def rates_hz(self):
+        """Observed rate of each stream, {'link': Hz or None, 'sensor': Hz or None}."""
+        return self._pairer.rates_hz()
+
+    # --- internals -----------------------------------------------------------------------
+
+    def _add_pose(self, stream, stamp_ns, pose):
+        events = self.pop_events()
+        self._counts[stream] += 1
+        if not _finite(pose):
+            return events + [self._reject(TOPICS[stream], 'non-finite numbers in the pose')]
+        try:
+            pairs = self._pairer.add(stream, stamp_ns, pose)
+        except OutOfOrderStamp as error:
+            if error.jump_ns <= self.config.time_jump_ns:
+                return events + [self._reject(TOPICS[stream], _late_reason(error))]
+            events.append(self._new_timeline(error))
+            pairs = self._pairer.add(stream, stamp_ns, pose)
+        events += self._unpaired_notice(bool(pairs))
+        if pairs and not self._counts['pairs']:
+            events.append(self._pairing_notice())
+        for pair in pairs:
+            self._counts['pairs'] += 1
+            sample = self._capture.add_pair(pair)
+            if sample is not None:
+                events += self._store(sample)
+        return events
+
+    def _store(self, sample):
+        previous = self._calibrator.result
+        messages = self._calibrator.add_sample(sample)
+        self._capture.note_sample(sample)
+        events = [SampleCaptured(len(self._calibrator.samples) - 1, sample)]
+        events += [Notice(text) for text in messages]
+        if self.result is not None and self.result is not previous:
+            events.append(EstimateUpdated(self.result))
+        return events
+
+    def _reject(self, what, reason):
+        self._counts['rejected'] += 1
+        return Rejected(what, reason)
+
+    def _pairing_notice(self):
+        faster = self._pairer.faster
+        slower = LINK if faster == SENSOR else SENSOR
+        rates = self._pairer.rates_hz()
+        return Notice(f'pairing by header stamps: {faster} poses ({rates[faster]:.3g} Hz) '
+                      f'interpolated at the {slower} stamps ({rates[slower]:.3g} Hz)')
+
+    def _new_timeline(self, error):
+        self._pairer.reset()
+        self._capture.clear_window()
+        self._counts['time_jumps'] += 1
+        return Notice(f'time jumped back by {error.jump_ns * 1e-9:.1f} s (bag replayed?): '
+                      'pairing buffers cleared, samples kept')
+
+    def _unpaired_notice(self, paired):
+        """Return a Notice when UNPAIRED_NOTICE_AFTER poses in a row could not be paired."""
+        total = sum(self._pairer.unpaired.values())
+        before = 0 if paired else self._unpaired_streak
+        self._unpaired_streak = before + total - self._unpaired_seen
+        self._unpaired_seen = total
+        if before < UNPAIRED_NOTICE_AFTER <= self._unpaired_streak:
+            return [Notice(f'{self._unpaired_streak} poses in a row could not be paired: '
+                           f'{self._pairer.last_unpaired}')]
+        return []

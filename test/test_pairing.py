@@ -1,0 +1,251 @@
+"""Tests of quatcal_ros.pairing: interpolation, gaps, bounded buffers, stamp order."""
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+import numpy as np
+from numpy.testing import assert_allclose
+import pytest
+
+from quatcal_ros import quaternion as quat
+from quatcal_ros.pairing import interpolate_pose, OutOfOrderStamp, Pairer, PairingConfig
+from quatcal_ros.pose import Pose
+
+START_NS = 1_700_000_000 * 10**9   # a realistic epoch: float64 cannot hold it to the ns
+NS = 10**9
+
+
+class ConstantTwist:
+    """A pose moving at constant angular and linear velocity: SLERP and lerp are exact on it."""
+
+    def __init__(self, rng, degrees_per_s, metres_per_s):
+        self.q0 = quat.normalize(rng.standard_normal(4))
+        self.p0 = rng.uniform(-1.0, 1.0, 3)
+        axis = quat.normalize(rng.standard_normal(3))
+        self.omega = axis * np.radians(degrees_per_s)
+        self.velocity = quat.normalize(rng.standard_normal(3)) * metres_per_s
+
+    def at(self, stamp_ns):
+        t = (stamp_ns - START_NS) / NS
+        q = quat.multiply(self.q0, quat.from_rotation_vector(self.omega * t))
+        return Pose(self.p0 + self.velocity * t, q)
+
+
+def stamps(rate_hz, duration_s, offset_ns=0):
+    """Integer stamps from START_NS + offset_ns at rate_hz for duration_s."""
+    count = int(duration_s * rate_hz)
+    return [START_NS + offset_ns + int(round(i * NS / rate_hz)) for i in range(count)]
+
+
+def feed(pairer, link, sensor):
+    """Add (stamp, pose) lists in stamp order (link first on equal stamps); return all pairs."""
+    messages = sorted([(s, 0, p) for s, p in link] + [(s, 1, p) for s, p in sensor],
+                      key=lambda m: m[:2])
+    pairs = []
+    for stamp, kind, pose in messages:
+        pairs += pairer.add_link(stamp, pose) if kind == 0 else pairer.add_sensor(stamp, pose)
+    return pairs
+
+
+def assert_same_pose(pose, expected, atol):
+    assert_allclose(pose.position, expected.position, rtol=0.0, atol=atol)
+    sign = 1.0 if pose.quaternion @ expected.quaternion >= 0.0 else -1.0
+    assert_allclose(sign * pose.quaternion, expected.quaternion, rtol=0.0, atol=atol)
+
+
+def marker(stamp_ns):
+    """Make a sensor pose that encodes its own stamp, to check which one a pair uses."""
+    return Pose(np.array([0.0, 0.0, (stamp_ns - START_NS) / NS]), quat.IDENTITY.copy())
+
+
+def test_link_is_interpolated_at_sensor_stamps_exactly():
+    rng = np.random.default_rng(1)
+    link_truth = ConstantTwist(rng, degrees_per_s=90.0, metres_per_s=0.5)
+    link = [(s, link_truth.at(s)) for s in stamps(500.0, 3.0)]
+    # Sensor stamps 30 Hz, off the link grid by an odd number of nanoseconds.
+    sensor = [(s, marker(s)) for s in stamps(30.0, 2.9, offset_ns=12_345_677)]
+    pairer = Pairer()
+    pairs = feed(pairer, link, sensor)
+    assert pairer.faster == 'link'
+    assert len(pairs) == len(sensor)
+    for pair, (stamp, sensor_pose) in zip(pairs, sensor):
+        assert pair.stamp_ns == stamp and pair.sensor is sensor_pose
+        # 0.18 deg between link samples: quaternion.slerp takes its normalised-lerp branch
+        # (dot > 0.9995), whose error there is ~1e-11; 1e-9 leaves room for rounding.
+        assert_same_pose(pair.link, link_truth.at(stamp), atol=1e-9)
+
+
+def test_faster_sensor_stream_is_interpolated_at_link_stamps():
+    rng = np.random.default_rng(2)
+    sensor_truth = ConstantTwist(rng, degrees_per_s=600.0, metres_per_s=0.2)
+    link = [(s, marker(s)) for s in stamps(10.0, 3.0, offset_ns=3_000_001)]
+    sensor = [(s, sensor_truth.at(s)) for s in stamps(60.0, 3.2)]
+    pairer = Pairer()
+    pairs = feed(pairer, link, sensor)
+    assert pairer.faster == 'sensor'
+    assert [pair.stamp_ns for pair in pairs] == [s for s, _ in link]
+    for pair in pairs:
+        # 10 deg between sensor samples: the true SLERP branch, exact up to rounding.
+        assert_same_pose(pair.sensor, sensor_truth.at(pair.stamp_ns), atol=1e-12)
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**32 - 1), link_hz=st.floats(20.0, 1000.0),
+       sensor_hz=st.floats(5.0, 60.0), latency_ms=st.integers(0, 200))
+def test_any_rates_and_latency_give_exact_pairs_in_order(seed, link_hz, sensor_hz, latency_ms):
+    rng = np.random.default_rng(seed)
+    link_truth = ConstantTwist(rng, 60.0, 0.3)
+    sensor_truth = ConstantTwist(rng, 60.0, 0.3)
+    link = [(s, link_truth.at(s)) for s in stamps(link_hz, 2.0) if rng.random() > 0.1]
+    sensor = [(s, sensor_truth.at(s)) for s in stamps(sensor_hz, 2.0, int(rng.integers(NS)) // 10)
+              if rng.random() > 0.1]
+    # Delivery order: camera frames arrive latency_ms after their stamps.
+    delivery = sorted([(s, 0, s, p) for s, p in link]
+                      + [(s + latency_ms * 1_000_000, 1, s, p) for s, p in sensor])
+    pairer = Pairer(PairingConfig(tolerance_ns=0))   # interpolated or exact stamps only
+    pairs = []
+    for _, kind, stamp, pose in delivery:
+        pairs += pairer.add_link(stamp, pose) if kind == 0 else pairer.add_sensor(stamp, pose)
+    slower = dict(sensor if pairer.faster == 'link' else link)
+    assert all(a.stamp_ns < b.stamp_ns for a, b in zip(pairs, pairs[1:]))
+    assert len(pairs) + sum(pairer.unpaired.values()) <= len(slower)
+    for pair in pairs:
+        assert pair.stamp_ns in slower
+        # Up to 3.6 deg between neighbours quaternion.slerp normalises a lerp, off by at most
+        # 5e-7 there; elsewhere it is exact to rounding.
+        assert_same_pose(pair.link, link_truth.at(pair.stamp_ns), atol=1e-6)
+        assert_same_pose(pair.sensor, sensor_truth.at(pair.stamp_ns), atol=1e-6)
+
+
+def test_interpolate_pose_endpoints_and_midpoint():
+    a = Pose.create([0.0, 0.0, 0.0], quat.IDENTITY)
+    b = Pose.create([2.0, 0.0, 0.0], quat.from_axis_angle([0.0, 0.0, 1.0], np.radians(90.0)))
+    assert_same_pose(interpolate_pose(a, b, 0.0), a, atol=1e-15)
+    assert_same_pose(interpolate_pose(a, b, 1.0), b, atol=1e-15)
+    middle = Pose.create([1.0, 0.0, 0.0],
+                         quat.from_axis_angle([0.0, 0.0, 1.0], np.radians(45.0)))
+    assert_same_pose(interpolate_pose(a, b, 0.5), middle, atol=1e-15)
+
+
+def test_exact_stamps_pair_with_the_samples_themselves():
+    rng = np.random.default_rng(3)
+    truth = ConstantTwist(rng, 30.0, 0.1)
+    common = stamps(30.0, 1.0)
+    link = [(s, truth.at(s)) for s in common]
+    sensor = [(s, marker(s)) for s in common]
+    pairs = feed(Pairer(), link, sensor)
+    assert len(pairs) == len(common)
+    for pair, (_, link_pose), (_, sensor_pose) in zip(pairs, link, sensor):
+        assert pair.link is link_pose and pair.sensor is sensor_pose
+
+
+def test_nothing_is_paired_across_a_gap():
+    rng = np.random.default_rng(4)
+    truth = ConstantTwist(rng, 45.0, 0.2)
+    gap = (START_NS + NS, START_NS + NS + 300_000_000)   # 0.3 s without link poses
+    link = [(s, truth.at(s)) for s in stamps(500.0, 3.0) if not gap[0] < s < gap[1]]
+    last_before_gap = max(s for s, _ in link if s <= gap[0])
+    sensor_stamps = stamps(30.0, 2.9, offset_ns=1_234_567) + [last_before_gap + 400_000]
+    sensor = [(s, marker(s)) for s in sorted(sensor_stamps)]
+    config = PairingConfig(tolerance_ns=1_000_000, max_gap_ns=50_000_000)
+    pairer = Pairer(config)
+    pairs = feed(pairer, link, sensor)
+    paired = {pair.stamp_ns: pair for pair in pairs}
+    in_gap = [s for s in sensor_stamps if gap[0] < s < gap[1]]
+    assert len(in_gap) == 10
+    # Within tolerance (0.4 ms) of the last link pose before the gap: paired with it as it is.
+    assert paired.pop(last_before_gap + 400_000).link is dict(link)[last_before_gap]
+    assert not set(in_gap) & set(paired)
+    assert pairer.unpaired['gap'] == len(in_gap) - 1
+    assert 'gap of 0.300 s' in pairer.last_unpaired
+    for stamp, pair in paired.items():
+        assert_same_pose(pair.link, truth.at(stamp), atol=1e-9)   # as in the exactness test
+
+
+def test_a_late_sensor_frame_waits_for_the_link_to_reach_its_stamp():
+    rng = np.random.default_rng(5)
+    truth = ConstantTwist(rng, 20.0, 0.1)
+    pairer = Pairer()
+    link = [(s, truth.at(s)) for s in stamps(500.0, 0.2)]
+    sensor = [(s, marker(s)) for s in stamps(30.0, 0.1, offset_ns=1_000)]
+    assert len(feed(pairer, link[:60], sensor)) == 3     # roles are known from here on
+    early = START_NS + 150_000_777    # a sensor stamp ahead of the newest link pose (118 ms)
+    assert pairer.add_sensor(early, marker(early)) == []
+    pairs = []
+    for stamp, pose in link[60:]:
+        pairs += pairer.add_link(stamp, pose)
+    assert [pair.stamp_ns for pair in pairs] == [early]
+    assert_same_pose(pairs[0].link, truth.at(early), atol=1e-9)
+
+
+def test_sensor_frames_are_dropped_when_the_link_stream_stops():
+    config = PairingConfig(window_ns=500_000_000)
+    pairer = Pairer(config)
+    link = [(s, Pose.identity()) for s in stamps(500.0, 0.1)]
+    sensor = [(s, marker(s)) for s in stamps(30.0, 2.0, offset_ns=1_000)]
+    feed(pairer, link, sensor)
+    assert pairer.unpaired['waiting'] > 0
+    assert 'link stream stopped' in pairer.last_unpaired
+    assert pairer.buffered()['sensor'] <= 0.5 * 30 + 1
+
+
+def test_buffers_are_bounded_by_window_and_length():
+    config = PairingConfig(window_ns=NS, max_length=300)
+    pairer = Pairer(config)
+    link = [(s, Pose.identity()) for s in stamps(1000.0, 20.0)]
+    sensor = [(s, marker(s)) for s in stamps(30.0, 20.0, offset_ns=333)]
+    largest = {'link': 0, 'sensor': 0}
+    messages = sorted([(s, 0, p) for s, p in link] + [(s, 1, p) for s, p in sensor],
+                      key=lambda m: m[:2])
+    for stamp, kind, pose in messages:
+        pairer.add('link' if kind == 0 else 'sensor', stamp, pose)
+        for name, count in pairer.buffered().items():
+            largest[name] = max(largest[name], count)
+    assert largest['link'] == 300          # max_length binds: 1 s at 1 kHz is 1001 poses
+    assert 30 <= largest['sensor'] <= 31   # the window binds: 1 s at 30 Hz
+    # The storage behind the buffers is compacted, not only the visible part.
+    assert len(pairer._streams['link'].stamps) <= 2 * max(300, 256)
+
+
+def test_out_of_order_stamps_are_reported_and_change_nothing():
+    rng = np.random.default_rng(6)
+    truth = ConstantTwist(rng, 30.0, 0.1)
+    pairer = Pairer()
+    link = [(s, truth.at(s)) for s in stamps(500.0, 0.5)]
+    sensor = [(s, marker(s)) for s in stamps(30.0, 0.4, offset_ns=999)]
+    before = len(feed(pairer, link, sensor))
+    newest = link[-1][0]
+    with pytest.raises(OutOfOrderStamp) as older:
+        pairer.add_link(newest - 5_000_000, truth.at(newest))
+    assert older.value.jump_ns == 5_000_000 and older.value.stream == 'link'
+    with pytest.raises(OutOfOrderStamp) as repeated:
+        pairer.add_sensor(sensor[-1][0], marker(sensor[-1][0]))
+    assert repeated.value.jump_ns == 0
+    # Unchanged: the next in-order messages pair as before.
+    after = feed(pairer, [(s, truth.at(s)) for s in stamps(500.0, 0.1, offset_ns=NS)],
+                 [(START_NS + NS + 50_000_001, marker(START_NS + NS + 50_000_001))])
+    assert before == len(sensor) and len(after) == 1
+    assert_same_pose(after[0].link, truth.at(after[0].stamp_ns), atol=1e-9)
+
+
+def test_reset_starts_a_new_timeline_without_mixing_the_old_one():
+    rng = np.random.default_rng(7)
+    first, second = ConstantTwist(rng, 30.0, 0.1), ConstantTwist(rng, 30.0, 0.1)
+    pairer = Pairer()
+    feed(pairer, [(s, first.at(s)) for s in stamps(500.0, 2.0, offset_ns=10 * NS)],
+         [(s, marker(s)) for s in stamps(30.0, 2.0, offset_ns=10 * NS + 7)])
+    with pytest.raises(OutOfOrderStamp):
+        pairer.add_link(START_NS, second.at(START_NS))
+    pairer.reset()
+    assert pairer.faster is None and pairer.buffered() == {'link': 0, 'sensor': 0}
+    pairs = feed(pairer, [(s, second.at(s)) for s in stamps(500.0, 1.0)],
+                 [(s, marker(s)) for s in stamps(30.0, 1.0, offset_ns=7)])
+    assert len(pairs) == 30
+    for pair in pairs:
+        assert_same_pose(pair.link, second.at(pair.stamp_ns), atol=1e-9)
+
+
+def test_config_is_checked():
+    with pytest.raises(ValueError):
+        PairingConfig(max_gap_ns=0)
+    with pytest.raises(ValueError):
+        PairingConfig(window_ns=10, max_gap_ns=100)

@@ -1,0 +1,251 @@
+"""Tests of quatcal_ros.session: streams in, samples and the estimate out (real Calibrator)."""
+
+import bisect
+import re
+
+import numpy as np
+import pytest
+
+from quatcal_ros import quaternion as quat
+from quatcal_ros import simulation as sim
+from quatcal_ros.calibration import CalibrationOptions
+from quatcal_ros.capture import CaptureConfig
+from quatcal_ros.pose import Pose, Sample
+from quatcal_ros.session import (EstimateUpdated, Notice, Rejected, SampleCaptured, Session,
+                                 SessionConfig)
+
+MS = 1_000_000
+LINK, SENSOR = 0, 1
+
+
+def stop_and_go_messages(rng, n_stops, drop_probability=0.1, noise=(0.2, 0.001)):
+    """
+    Make a stop-and-go run as the node receives it: (delivery_ns, stream, stamp_ns, pose).
+
+    Link poses at 500 Hz are delivered at their stamps; camera frames at 30 Hz (a tenth
+    dropped; noise = (deg, m) per axis) are delivered 20-40 ms after their stamps.
+    Returns (streams, messages sorted by delivery).
+    """
+    cell = sim.random_cell(rng)
+    streams = sim.stop_and_go_streams(
+        rng, cell, n_stops, link_rate_hz=500.0, sensor_rate_hz=30.0, rotation_noise_deg=noise[0],
+        translation_noise_m=noise[1], latency_s=0.0, drop_probability=drop_probability)
+    latency = rng.integers(20 * MS, 40 * MS, len(streams.sensor), endpoint=True)
+    messages = [(stamp, LINK, stamp, pose) for stamp, pose in streams.link]
+    messages += [(stamp + int(delay), SENSOR, stamp, pose)
+                 for (stamp, pose), delay in zip(streams.sensor, latency)]
+    messages.sort(key=lambda m: m[:2])
+    return streams, messages
+
+
+def feed(session, messages):
+    """Deliver messages to the session; return all events."""
+    events = []
+    for _, stream, stamp, pose in messages:
+        add = session.add_link_pose if stream == LINK else session.add_sensor_pose
+        events += add(stamp, pose)
+    return events
+
+
+def of_type(events, kind):
+    return [event for event in events if isinstance(event, kind)]
+
+
+def error_deg(result, truth):
+    return float(np.degrees(quat.angle_between(result.quaternion, truth.quaternion)))
+
+
+def test_stop_and_go_streams_give_one_sample_per_stop_and_the_mounting():
+    rng = np.random.default_rng(20)
+    streams, messages = stop_and_go_messages(rng, n_stops=8)
+    session = Session()
+    assert session.state == 'waiting for poses'
+    events = feed(session, messages)
+    # Rates from the first few poses (the camera's drops make its rate under 30 Hz).
+    assert re.fullmatch(r'pairing by header stamps: link poses \(500 Hz\) interpolated at the '
+                        r'sensor stamps \(\d\d(\.\d)? Hz\)', of_type(events, Notice)[0].text)
+    captured = of_type(events, SampleCaptured)
+    assert [event.index for event in captured] == list(range(8))
+    assert session.samples == [event.sample for event in captured]
+    assert of_type(events, Rejected) == []
+    updates = of_type(events, EstimateUpdated)
+    assert updates and updates[-1].result is session.result
+    assert session.state == 'estimating'
+    # Each sample averages ~15 frames of 0.2 deg noise per axis (~0.05 deg per sample); over
+    # seeds 20 and 30-33 the error is 0.06-0.28 deg at 1.6 times the stated uncertainty or less.
+    error = error_deg(session.result, streams.truth)
+    assert error < 0.5 and error < 3.0 * session.result.uncertainty_deg
+    assert session.counters == {
+        'link_messages': len(streams.link), 'sensor_messages': len(streams.sensor),
+        'pairs': len(streams.sensor), 'unpaired': 0, 'samples': 8, 'motions': 28,
+        'rejected': 0, 'time_jumps': 0}
+    assert session.rates_hz['link'] == pytest.approx(500.0)
+
+
+def test_noise_free_streams_give_the_mounting_exactly():
+    rng = np.random.default_rng(25)
+    streams, messages = stop_and_go_messages(rng, n_stops=5, noise=(0.0, 0.0))
+    session = Session()
+    feed(session, messages)
+    # Only the averaging of link and sensor poses apart over the band-wide tail of a move
+    # is inexact, to second order: (0.2 deg)^2 in radians is 7e-4 deg; seen: ~2e-6 deg.
+    assert error_deg(session.result, streams.truth) < 1e-3
+
+
+def test_time_going_back_clears_the_pairing_and_keeps_the_samples():
+    rng = np.random.default_rng(21)
+    streams, messages = stop_and_go_messages(rng, n_stops=3, drop_probability=0.0)
+    session = Session()
+    feed(session, messages)
+    assert len(session.samples) == 3
+    newest_link = streams.link[-1][0]
+
+    events = session.add_link_pose(newest_link - 5 * MS, streams.link[-1][1])
+    assert events == [Rejected('link_pose', 'stamp 5 ms older than the previous message '
+                                            '(out of order): dropped')]
+    assert session.add_link_pose(newest_link, streams.link[-1][1]) == [
+        Rejected('link_pose', 'same stamp as the previous message: dropped')]
+
+    # The bag plays again from its start.
+    replay = feed(session, messages[:len(messages) // 3])
+    jump_s = (newest_link - streams.link[0][0]) * 1e-9
+    assert replay[0] == Notice(f'time jumped back by {jump_s:.1f} s (bag replayed?): pairing '
+                               'buffers cleared, samples kept')
+    assert session.counters['time_jumps'] == 1
+    # The first stop of the replay is far from the last sample: captured again, as index 3.
+    assert [event.index for event in of_type(replay, SampleCaptured)] == [3]
+    counters = session.counters
+    assert counters['rejected'] == 2 and counters['unpaired'] == 0
+
+
+def test_manual_capture_through_the_session():
+    rng = np.random.default_rng(22)
+    streams, messages = stop_and_go_messages(rng, n_stops=3)
+    session = Session(SessionConfig(capture=CaptureConfig(mode='manual')))
+    assert session.capture(streams.stills[0][0]) == (
+        False, 'no paired poses in the last 1.0 s: check that both topics publish and that '
+               'their stamps use the same clock')
+
+    delivery_times = [m[0] for m in messages]
+    delivered = 0
+
+    def deliver_until(t_ns):
+        nonlocal delivered
+        end = bisect.bisect_right(delivery_times, t_ns)
+        events = feed(session, messages[delivered:end])
+        delivered = end
+        return events
+
+    first_still, _ = streams.stills[0]
+    assert of_type(deliver_until(first_still + 1200 * MS), SampleCaptured) == []
+    ok, text = session.capture(first_still + 1200 * MS)
+    assert ok and re.fullmatch(r'sample 0 captured: averaged \d+ pairs over 0\.\d+ s', text)
+    events = session.pop_events()
+    assert [type(e) for e in events] == [SampleCaptured, Notice]
+    assert session.pop_events() == []
+    assert session.capture(first_still + 1200 * MS)[1].startswith('no motion since the last')
+
+    moving = streams.stills[0][1] + 1000 * MS     # in the middle of the move to stop 1
+    deliver_until(moving)
+    ok, reason = session.capture(moving)
+    assert not ok and reason.startswith('robot is moving: link rotated ')
+
+    second_still, _ = streams.stills[1]
+    deliver_until(second_still + 1200 * MS)
+    assert session.capture(second_still + 1200 * MS)[0]
+    # Events not popped come with the next call that returns events.
+    events = deliver_until(second_still + 1300 * MS)
+    assert [e.index for e in of_type(events, SampleCaptured)] == [1]
+    assert session.counters['samples'] == 2
+
+
+def test_csv_samples_and_bad_ones():
+    rng = np.random.default_rng(23)
+    cell = sim.random_cell(rng)
+    samples, _ = sim.samples(rng, cell, 12, rotation_noise_deg=0.05)
+    session = Session()
+    events = []
+    for sample in samples:
+        events += session.add_sample(sample)
+    assert [e.index for e in of_type(events, SampleCaptured)] == list(range(12))
+    assert of_type(events, EstimateUpdated)[-1].result is session.result
+    # 0.05 deg noise on 12 samples: errors of a few hundredths of a degree; 0.2 is >5 sigma.
+    assert error_deg(session.result, cell.mounting) < 0.2
+    assert session.state == 'estimating'
+
+    broken = Sample(0, Pose(np.array([np.nan, 0.0, 0.0]), quat.IDENTITY.copy()), Pose.identity())
+    assert session.add_sample(broken) == [Rejected('sample', 'non-finite numbers in a pose')]
+    assert session.add_sensor_pose(1, Pose(np.zeros(3), np.full(4, np.inf))) == [
+        Rejected('sensor_pose', 'non-finite numbers in the pose')]
+    assert session.counters['rejected'] == 2 and len(session.samples) == 12
+
+
+def test_reset_forgets_everything():
+    rng = np.random.default_rng(24)
+    streams, messages = stop_and_go_messages(rng, n_stops=3)
+    session = Session()
+    feed(session, messages)
+    assert session.samples
+    session.reset()
+    assert session.samples == [] and session.result is None
+    assert session.state == 'waiting for poses'
+    assert set(session.counters.values()) == {0}
+    # Time may start anywhere after a reset: no jump, no rejection.
+    feed(session, messages[:3000])
+    assert session.counters['time_jumps'] == 0 and session.counters['pairs'] > 0
+
+
+def test_unpairable_streams_are_explained_once():
+    session = Session()
+    start = sim.DEFAULT_START_NS
+    events = []
+    for i in range(2500):   # 5 s of link poses at 500 Hz; camera stamps 10 s behind them
+        stamp = start + i * 2 * MS
+        events += session.add_link_pose(stamp, Pose.identity())
+        if i % 17 == 0:
+            events += session.add_sensor_pose(stamp - 10_000 * MS, Pose.identity())
+    notices = of_type(events, Notice)
+    assert len(notices) == 1
+    assert notices[0].text.startswith('30 poses in a row could not be paired: sensor stamp ')
+    assert 'stamps from different clocks?' in notices[0].text
+    assert session.counters['pairs'] == 0 and session.state == 'waiting for poses'
+
+
+def eth_session(shared_dir, sensor_offset_ns=0, invert_sensor=True):
+    """Replay the ETH recording (continuous motion) through a session in continuous mode."""
+    folder = shared_dir / 'datasets' / 'ethz_robot_arm_real'
+    messages = []
+    for stream, name, offset in ((LINK, 'link_hinge_in_base.csv', 0),
+                                 (SENSOR, 'ir_camera_in_target.csv', sensor_offset_ns)):
+        rows = np.loadtxt(folder / name, delimiter=',')
+        poses = [Pose(row[1:4], quat.wxyz_from_xyzw(row[4:8])) for row in rows]
+        stamps = np.rint(rows[:, 0] * 1e9).astype(np.int64) + offset
+        messages += [(int(s), stream, int(s), p) for s, p in zip(stamps, poses)]
+    messages.sort(key=lambda m: m[:2])
+    # SOURCE.md: the file holds the camera in the target frame, the inverse of T_sensor_obj.
+    session = Session(SessionConfig(
+        capture=CaptureConfig(mode='continuous', continuous_step_deg=10.0),
+        calibration=CalibrationOptions(invert_sensor=invert_sensor)))
+    feed(session, messages)
+    return session
+
+
+def test_eth_continuous_recording(shared_dir):
+    session = eth_session(shared_dir)
+    counters = session.counters
+    # The camera starts 0.5 s before the link: its first 15 frames have no link pose.
+    assert counters['pairs'] == 1688 and counters['unpaired'] == 15
+    assert 25 <= counters['samples'] <= 50      # 460 deg of rotation in 10 deg steps
+    result = session.result
+    # SOURCE.md: about 0.9 deg RMS with link interpolation (another sampling); the ETH
+    # authors report that a 0.1 s time offset doubles the residual, so check both.
+    assert result.residual_rms_deg < 1.0 and not result.warnings
+    shifted = eth_session(shared_dir, sensor_offset_ns=100 * MS).result
+    assert shifted.residual_rms_deg > 1.5 * result.residual_rms_deg
+
+
+def test_eth_recording_with_the_documented_convention_names_the_fix(shared_dir):
+    # Solved as if the file held T_sensor_obj, the motions fit badly: the tool must say so.
+    session = eth_session(shared_dir, invert_sensor=False)
+    said = ' '.join(session.result.warnings) if session.result else session.last_error
+    assert '--invert-sensor' in said
