@@ -1,0 +1,280 @@
+"""The sim_cell node over real DDS, in-process (rclpy's own test pattern), and as a program."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+
+from geometry_msgs.msg import PoseStamped, TransformStamped
+import numpy as np
+from numpy.testing import assert_allclose
+import pytest
+import rclpy
+from rclpy.exceptions import InvalidParameterValueException
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+
+from quatcal_ros import conversions as conv
+from quatcal_ros import quaternion as quat
+from quatcal_ros import simulation as sim
+from quatcal_ros.pose import Pose
+from quatcal_ros.sim_cell import SimCell
+
+# Domains 40-49 are this test suite's; the program test uses its own.
+DOMAIN_ID = 45
+PROGRAM_DOMAIN_ID = 46
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+@pytest.fixture
+def namespace():
+    """Return a namespace of this test alone, so that other runs on the domain cannot talk in."""
+    return f'/quatcal_test_{uuid.uuid4().hex[:12]}'
+
+
+@pytest.fixture
+def context():
+    """Yield a private rclpy Context on DOMAIN_ID, shut down afterwards."""
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+class Recorder:
+    """A subscriber node that keeps (arrival_ns, message) of the sim_cell topics."""
+
+    def __init__(self, context, namespace):
+        self.node = Node('sim_cell_recorder', context=context, namespace=namespace)
+        self.link, self.sensor, self.truth = [], [], []
+        stream = QoSProfile(depth=100)
+        self.node.create_subscription(PoseStamped, 'link_pose', self._keep(self.link), stream)
+        self.node.create_subscription(PoseStamped, 'sensor_pose', self._keep(self.sensor), stream)
+        self.node.create_subscription(TransformStamped, 'sim_cell/ground_truth',
+                                      self._keep(self.truth), LATCHED)
+
+    def _keep(self, store):
+        return lambda msg: store.append((time.time_ns(), msg))
+
+
+def spin_until(executor, condition, timeout_s):
+    """Spin until condition() holds or timeout_s passes; return condition()."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        remaining = deadline - time.monotonic()
+        if remaining <= 0.0:
+            break
+        executor.spin_once(timeout_sec=min(0.05, remaining))
+    return condition()
+
+
+def spin_for(executor, seconds):
+    """Spin for a fixed time."""
+    spin_until(executor, lambda: False, seconds)
+
+
+def _overrides(**values):
+    return [Parameter(name, value=value) for name, value in values.items()]
+
+
+CASES = {
+    'eye_in_hand_given_mounting_noise_free': dict(
+        seed=7, setup='eye_in_hand', link_rate_hz=200.0, sensor_rate_hz=20.0, latency_s=0.05,
+        drop_probability=0.2, rotation_noise_deg=0.0, translation_noise_m=0.0, still_s=0.5,
+        move_s=1.0, mounting_xyz=[0.05, -0.02, 0.1], mounting_rpy_deg=[10.0, -20.0, 30.0]),
+    'eye_to_hand_random_mounting_default_noise': dict(
+        seed=3, setup='eye_to_hand', link_rate_hz=250.0, sensor_rate_hz=25.0, latency_s=0.03,
+        drop_probability=0.05, still_s=0.5, move_s=1.0),
+}
+
+
+def _expected_streams(values, start_ns):
+    """Return stop_and_go_streams() for the node's parameters (same rng use, same order)."""
+    rng = np.random.default_rng(values['seed'])
+    mounting = None
+    if 'mounting_xyz' in values:
+        roll, pitch, yaw = np.radians(values['mounting_rpy_deg'])
+        mounting = Pose.create(values['mounting_xyz'],
+                               sim.quaternion_wxyz_from_rpy(roll, pitch, yaw))
+    cell = sim.random_cell(rng, values['setup'], mounting=mounting)
+    return sim.stop_and_go_streams(
+        rng, cell, n_stops=20, link_rate_hz=values['link_rate_hz'],
+        sensor_rate_hz=values['sensor_rate_hz'], still_s=values['still_s'],
+        move_s=values['move_s'], rotation_noise_deg=values.get('rotation_noise_deg', 0.2),
+        translation_noise_m=values.get('translation_noise_m', 0.001),
+        latency_s=values['latency_s'], drop_probability=values['drop_probability'],
+        start_ns=start_ns)
+
+
+@pytest.mark.parametrize('case', sorted(CASES))
+def test_publishes_latched_truth_and_the_simulated_streams(context, namespace, case):
+    values = CASES[case]
+    sim_node = SimCell(context=context, namespace=namespace,
+                       parameter_overrides=_overrides(**values))
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(sim_node)
+    nodes = [sim_node]
+    try:
+        spin_for(executor, 0.5)            # ground truth is published before anyone listens
+        recorder = Recorder(context, namespace)
+        nodes.append(recorder.node)
+        executor.add_node(recorder.node)
+        assert spin_until(executor, lambda: recorder.truth and len(recorder.sensor) > 5, 10.0)
+        spin_for(executor, 3.0)
+    finally:
+        executor.shutdown()
+        for node in nodes:
+            node.destroy_node()
+
+    # Latched ground truth: the mounting, link -> sensor (eye_in_hand) or base -> sensor.
+    assert len(recorder.truth) == 1
+    truth = recorder.truth[0][1]
+    parent = 'tool0' if values['setup'] == 'eye_in_hand' else 'base_link'
+    assert (truth.header.frame_id, truth.child_frame_id) == (parent, 'camera')
+    mounting = conv.pose_from_msg(truth)
+    assert quat.angle_between(mounting.quaternion, sim_node.cell.mounting.quaternion) < 1e-12
+    if 'mounting_rpy_deg' in values:
+        assert_allclose(mounting.position, values['mounting_xyz'], atol=1e-15)
+
+    link = [(conv.stamp_ns_from_header(m.header), conv.pose_from_msg(m), arrival, m)
+            for arrival, m in recorder.link]
+    sensor = [(conv.stamp_ns_from_header(m.header), conv.pose_from_msg(m), arrival, m)
+              for arrival, m in recorder.sensor]
+    assert {m.header.frame_id for *_, m in link} == {'base_link'}
+    assert {m.header.frame_id for *_, m in sensor} == {'camera'}
+
+    # Stamps on the node's grids, counted from the ground truth stamp (trajectory start).
+    start = conv.stamp_ns_from_header(truth.header)
+    link_period = 1e9 / values['link_rate_hz']
+    sensor_period = 1e9 / values['sensor_rate_hz']
+    link_steps = np.diff([s for s, *_ in link]) / round(link_period)
+    assert np.all(link_steps == np.round(link_steps)) and np.all(link_steps >= 1)
+    assert np.mean(link_steps == 1) > 0.95   # a busy test executor may drop a few
+    assert np.all((np.array([s for s, *_ in sensor]) - start) % round(sensor_period) == 0)
+
+    # Rates, roughly: over the recording, arrivals keep up with the clock within 25 %.
+    arrivals = np.array([a for _, _, a, _ in link])
+    span_s = (arrivals[-1] - arrivals[0]) / 1e9
+    assert len(link) / span_s == pytest.approx(values['link_rate_hz'], rel=0.25)
+    sensor_span_s = (sensor[-1][2] - sensor[0][2]) / 1e9
+    expected_sensor_rate = values['sensor_rate_hz'] * (1.0 - values['drop_probability'])
+    assert len(sensor) / sensor_span_s == pytest.approx(expected_sensor_rate, rel=0.35)
+
+    # Frames arrive latency_s after their exposure stamp (the same system clock), not before.
+    delays = np.array([(arrival - stamp) / 1e9 for stamp, _, arrival, _ in sensor])
+    assert delays.min() >= values['latency_s']
+    assert np.median(delays) < values['latency_s'] + 0.05
+
+    # The very poses of stop_and_go_streams with the same seed and start.
+    expected = _expected_streams(values, start)
+    expected_link = dict(expected.link)
+    for stamp, pose, *_ in link:
+        assert_allclose(pose.position, expected_link[stamp].position, rtol=0, atol=1e-12)
+        assert quat.angle_between(pose.quaternion, expected_link[stamp].quaternion) < 1e-7
+    expected_sensor = dict(expected.sensor)
+    first, last = sensor[0][0], sensor[-1][0]
+    assert [s for s, *_ in sensor] == [s for s in expected_sensor if first <= s <= last]
+    for stamp, pose, *_ in sensor:
+        assert_allclose(pose.position, expected_sensor[stamp].position, rtol=0, atol=1e-12)
+
+    # Noise free: link @ X @ sensor is the fixed object (sensor stamps are on link stamps).
+    if values.get('rotation_noise_deg', 0.2) == 0.0 and values['setup'] == 'eye_in_hand':
+        link_by_stamp = {stamp: pose for stamp, pose, *_ in link}
+        objects = [link_by_stamp[stamp] @ mounting @ pose
+                   for stamp, pose, *_ in sensor if stamp in link_by_stamp]
+        assert len(objects) > 10
+        for obj in objects:
+            assert_allclose(obj.position, sim_node.cell.target.position, atol=1e-9)
+
+
+def test_follows_the_ros_clock_with_use_sim_time(context, namespace):
+    values = dict(seed=1, link_rate_hz=100.0, sensor_rate_hz=10.0, latency_s=0.0)
+    # /clock remapped into the test's namespace, so no other clock can reach the node.
+    sim_node = SimCell(context=context, namespace=namespace,
+                       cli_args=['--ros-args', '-r', f'/clock:={namespace}/clock'],
+                       parameter_overrides=_overrides(use_sim_time=True, **values))
+    recorder = Recorder(context, namespace)
+    clock_pub = recorder.node.create_publisher(Clock, 'clock', 10)
+    executor = SingleThreadedExecutor(context=context)
+    for node in (sim_node, recorder.node):
+        executor.add_node(node)
+    sim_start_ns = 1000 * 10 ** 9
+    sim_now_ns = sim_start_ns
+    try:
+        spin_for(executor, 0.5)
+        assert not recorder.truth and not recorder.link   # no /clock yet: ROS time is 0
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and len(recorder.link) < 150:
+            # 50 ms of sim time per round: the node catches up with several samples per tick.
+            sim_now_ns += 5 * 10 ** 7
+            clock_pub.publish(Clock(clock=conv.time_msg(sim_now_ns)))
+            spin_for(executor, 0.02)
+    finally:
+        executor.shutdown()
+        sim_node.destroy_node()
+        recorder.node.destroy_node()
+    assert len(recorder.link) >= 150
+    truth_stamp = conv.stamp_ns_from_header(recorder.truth[0][1].header)
+    assert sim_start_ns <= truth_stamp <= sim_now_ns
+    stamps = np.array([conv.stamp_ns_from_header(m.header) for _, m in recorder.link])
+    assert stamps.min() >= truth_stamp and stamps.max() <= sim_now_ns
+    assert np.all(np.diff(stamps) == 10 ** 7)
+
+
+@pytest.mark.parametrize('overrides, error, message', [
+    ({'setup': 'on_the_table'}, ValueError, 'setup'),
+    ({'mounting_xyz': [0.1, 0.2]}, ValueError, 'mounting_xyz'),
+    ({'mounting_xyz': [0.1, 0.2, 0.3]}, ValueError, 'give both'),
+    ({'drop_probability': 1.5}, InvalidParameterValueException, 'drop_probability'),
+    ({'link_rate_hz': 0.0}, InvalidParameterValueException, 'link_rate_hz'),
+])
+def test_bad_parameters_are_named(context, overrides, error, message):
+    with pytest.raises(error, match=message):
+        SimCell(context=context, parameter_overrides=_overrides(**overrides))
+
+
+def test_parameters_are_described_with_ranges(context):
+    node = SimCell(context=context)
+    try:
+        descriptor = node.describe_parameter('rotation_noise_deg')
+        assert descriptor.description and descriptor.read_only
+        assert descriptor.floating_point_range[0].to_value == 10.0
+        assert node.describe_parameter('n_stops').integer_range[0].from_value == 0
+        assert node.get_parameter('rotation_noise_deg').value == 0.2
+        assert node.get_parameter('sensor_frame').value == 'camera'
+    finally:
+        node.destroy_node()
+
+
+def test_program_logs_the_truth_and_stops_cleanly_on_ctrl_c(repo_root):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(PROGRAM_DOMAIN_ID),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
+    process = subprocess.Popen(
+        [sys.executable, '-m', 'quatcal_ros.sim_cell', '--ros-args', '-p', 'n_stops:=2',
+         '-p', 'still_s:=0.2', '-p', 'move_s:=0.3'],
+        cwd=repo_root, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        time.sleep(3.0)
+        process.send_signal(signal.SIGINT)
+        output, _ = process.communicate(timeout=10)
+    finally:
+        process.kill()
+    assert process.returncode == 0, output
+    assert 'ground truth eye_in_hand tool0 -> camera: quaternion (x, y, z, w) = (' in output
+    assert 'visited all 2 stops' in output
+    assert 'Traceback' not in output
+
+
+def test_program_exits_2_on_bad_parameters(repo_root):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(PROGRAM_DOMAIN_ID))
+    result = subprocess.run(
+        [sys.executable, '-m', 'quatcal_ros.sim_cell', '--ros-args', '-p', 'setup:=sideways'],
+        cwd=repo_root, env=env, capture_output=True, text=True, timeout=30)
+    assert result.returncode == 2
+    assert 'sideways' in result.stderr + result.stdout
