@@ -195,16 +195,33 @@ def rotation_angle(p):
 
 
 def slerp(p, q, fraction):
-    """Spherical linear interpolation from p (fraction 0) to q (fraction 1), shortest path."""
+    """
+    Interpolate from p (fraction 0) to q (fraction 1) on the shortest arc (SLERP).
+
+    Broadcasts over leading axes: p, q (..., 4), fraction (...).  Exact for rotation at a
+    constant angular velocity; the linear blend is used only where sin(omega) < 1e-9, where
+    it agrees with SLERP to rounding.
+    """
     p = np.asarray(p, dtype=float)
     q = np.asarray(q, dtype=float)
-    dot = float(p @ q)
-    if dot < 0.0:
-        q, dot = -q, -dot
-    if dot > 0.9995:
-        return normalize(p + fraction * (q - p))
-    omega = np.arccos(min(dot, 1.0))
-    return (np.sin((1.0 - fraction) * omega) * p + np.sin(fraction * omega) * q) / np.sin(omega)
+    f = np.asarray(fraction, dtype=float)[..., None]
+    dot = np.sum(p * q, axis=-1, keepdims=True)
+    q = np.where(dot < 0.0, -q, q)
+    omega = np.arccos(np.clip(np.abs(dot), 0.0, 1.0))
+    sin_omega = np.sin(omega)
+    near = sin_omega < 1e-9
+    safe = np.where(near, 1.0, sin_omega)
+    a = np.where(near, 1.0 - f, np.sin((1.0 - f) * omega) / safe)
+    b = np.where(near, f, np.sin(f * omega) / safe)
+    return normalize(a * p + b * q)
+
+
+def rotate(q, v):
+    """Rotate vector(s) v (..., 3) by unit quaternion(s) q (w, x, y, z) (..., 4), eq. (19)."""
+    q = np.asarray(q, dtype=float)
+    w, u = q[..., :1], q[..., 1:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
 
 
 def average(quaternions, weights=None):

@@ -42,40 +42,15 @@ def _home_pose():
 
 # --- vectorised pose algebra on (N, 3) positions and (N, 4) quaternions -----------------------
 
-def rotate(q_wxyz, v):
-    """Rotate vector(s) v (..., 3) by unit quaternion(s) (w, x, y, z) (..., 4), broadcasting."""
-    q = np.asarray(q_wxyz, dtype=float)
-    w, u = q[..., :1], q[..., 1:]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
-
-
 def compose(p1, q1, p2, q2):
     """T1 @ T2 for arrays of poses (position, quaternion (w, x, y, z)), broadcasting."""
-    return p1 + rotate(q1, p2), quat.multiply(q1, q2)
+    return p1 + quat.rotate(q1, p2), quat.multiply(q1, q2)
 
 
 def invert(p, q):
     """inv(T) for arrays of poses (position, quaternion (w, x, y, z))."""
     q_inv = quat.conjugate(q)
-    return -rotate(q_inv, p), q_inv
-
-
-def slerp_many(q0, q1, fraction):
-    """Row-wise shortest-path SLERP of (N, 4) quaternions (w, x, y, z), fraction (N,)."""
-    q0 = np.asarray(q0, dtype=float)
-    q1 = np.asarray(q1, dtype=float)
-    f = np.asarray(fraction, dtype=float)[:, None]
-    dot = np.sum(q0 * q1, axis=-1, keepdims=True)
-    q1 = np.where(dot < 0.0, -q1, q1)
-    dot = np.abs(dot)
-    omega = np.arccos(np.clip(dot, 0.0, 1.0))
-    sin_omega = np.sin(omega)
-    near = sin_omega < 1e-6
-    safe = np.where(near, 1.0, sin_omega)
-    a = np.where(near, 1.0 - f, np.sin((1.0 - f) * omega) / safe)
-    b = np.where(near, f, np.sin(f * omega) / safe)
-    return quat.normalize(a * q0 + b * q1)
+    return -quat.rotate(q_inv, p), q_inv
 
 
 def minimum_jerk(s):
@@ -236,7 +211,7 @@ def _in_view(positions, quaternions, max_view_angle_deg, max_incidence_deg,
     """Whether a camera at the sensor frame sees the object (a marker), per T_sensor_obj."""
     distance = np.linalg.norm(positions, axis=-1)
     off_axis = np.arccos(np.clip(positions[:, 2] / distance, -1.0, 1.0))
-    normal = rotate(quaternions, np.array([0.0, 0.0, 1.0]))
+    normal = quat.rotate(quaternions, np.array([0.0, 0.0, 1.0]))
     facing = -np.sum(normal * positions, axis=-1) / distance
     incidence = np.arccos(np.clip(facing, -1.0, 1.0))
     return ((distance >= min_distance_m) & (off_axis <= np.radians(max_view_angle_deg))
@@ -266,7 +241,7 @@ def stop_poses(rng, cell, n, rotation_spread_deg=30.0, translation_range_m=(0.10
         angles = np.radians(rng.uniform(0.0, rotation_spread_deg, m))
         turns = quat.from_rotation_vector(random_unit_vectors(rng, m) * angles[:, None])
         shifts = random_unit_vectors(rng, m) * rng.uniform(*translation_range_m, m)[:, None]
-        link_p = pivot + rotate(turns, home.position - pivot) + shifts
+        link_p = pivot + quat.rotate(turns, home.position - pivot) + shifts
         link_q = quat.normalize(quat.multiply(turns, home.quaternion))
         seen = _in_view(*cell.sensor_poses(link_p, link_q), max_view_angle_deg,
                         max_incidence_deg)
@@ -483,7 +458,7 @@ class StopAndGo:
         p0, p1 = self._positions[k], self._positions[following]
         q0, q1 = self._quaternions[k], self._quaternions[following]
         positions = p0 + s[:, None] * (p1 - p0)
-        quaternions = np.where((s == 0.0)[:, None], q0, slerp_many(q0, q1, s))
+        quaternions = np.where((s == 0.0)[:, None], q0, quat.slerp(q0, q1, s))
         return positions, quaternions
 
 

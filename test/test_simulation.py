@@ -212,16 +212,6 @@ def test_rpy_follows_the_ros_convention():
                     expected, atol=EXACT)
 
 
-def test_slerp_many_matches_the_scalar_slerp():
-    rng = np.random.default_rng(4)
-    q0, q1 = sim.random_quaternions(rng, 50), sim.random_quaternions(rng, 50)
-    q1[:5] = q0[:5] * (1.0 - 1e-9)          # nearly equal rows take the linear branch
-    f = rng.uniform(0.0, 1.0, 50)
-    many = sim.slerp_many(q0, q1, f)
-    for i in range(50):
-        assert quat.angle_between(many[i], quat.slerp(q0[i], q1[i], f[i])) < 1e-7
-
-
 def test_minimum_jerk_starts_and_ends_at_rest():
     s = sim.minimum_jerk(np.array([-1.0, 0.0, 1e-4, 0.5, 1.0 - 1e-4, 1.0, 2.0]))
     assert_allclose(s, [0.0, 0.0, 0.0, 0.5, 1.0, 1.0, 1.0], atol=1e-10)
