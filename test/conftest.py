@@ -1,0 +1,35 @@
+"""Fixtures and settings shared by all tests of quatcal_ros."""
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+# Nodes started by the tests (in-process or as subprocesses, which inherit this) talk over real
+# DDS: keep discovery on this machine so parallel runs and other hosts do not interfere.
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+
+
+@pytest.fixture(scope='session')
+def repo_root():
+    """Return the repository root (the package directory), as a pathlib.Path."""
+    return REPO_ROOT
+
+
+@pytest.fixture(scope='session')
+def shared_dir():
+    """
+    Return the project's shared/ directory (datasets/, paper/), as a pathlib.Path.
+
+    Found through the environment variable QUATCAL_SHARED, else at ../shared beside the
+    repository (where CI puts it). Tests that use it are skipped when it is missing.
+    """
+    env = os.environ.get('QUATCAL_SHARED')
+    candidate = Path(env) if env else REPO_ROOT.parent / 'shared'
+    if not (candidate / 'datasets').is_dir():
+        how = 'QUATCAL_SHARED=%s' % env if env else 'default ../shared beside the repository'
+        pytest.skip('shared data not found: %s has no datasets/ (%s); set QUATCAL_SHARED to '
+                    'the shared/ directory to run this test' % (candidate, how))
+    return candidate.resolve()
