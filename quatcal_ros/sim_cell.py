@@ -20,6 +20,10 @@ from dataclasses import dataclass
 
 from geometry_msgs.msg import PoseStamped, TransformStamped
 import numpy as np
+from quatcal_ros import conversions
+from quatcal_ros import quaternion as quat
+from quatcal_ros import simulation
+from quatcal_ros.pose import Pose
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
 from rclpy.exceptions import ParameterException
@@ -27,11 +31,6 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-
-from quatcal_ros import conversions
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation
-from quatcal_ros.pose import Pose
 
 NODE_NAME = 'sim_cell'
 # A clock step larger than this (or backwards) pauses the motion instead of replaying it.
@@ -118,8 +117,8 @@ def read_config(node):
         parameter = node.declare_parameter(name, default, _descriptor(description, limits))
         values[name] = parameter.value
     if values['setup'] not in simulation.SETUPS:
-        raise ValueError(f"parameter setup must be one of {simulation.SETUPS}, "
-                         f"not {values['setup']!r}")
+        setup = values['setup']
+        raise ValueError(f'parameter setup must be one of {simulation.SETUPS}, not {setup!r}')
     values['mounting'] = mounting_from_parameters(values.pop('mounting_xyz'),
                                                   values.pop('mounting_rpy_deg'))
     return SimCellConfig(**values)

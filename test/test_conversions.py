@@ -9,12 +9,11 @@ from geometry_msgs.msg import Transform, Vector3
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
 import pytest
-from rclpy.serialization import deserialize_message, serialize_message
-
 from quatcal_ros import conversions as conv
 from quatcal_ros import quaternion as quat
 from quatcal_ros import simulation as sim
 from quatcal_ros.pose import Pose
+from rclpy.serialization import deserialize_message, serialize_message
 
 STAMPS = [0, 1, 999_999_999, 1_000_000_000, sim.DEFAULT_START_NS + 123_456_789,
           -1, -1_500_000_000, (2 ** 31 - 1) * 10 ** 9 + 999_999_999]

@@ -11,6 +11,11 @@ from geometry_msgs.msg import PoseStamped, TransformStamped
 import numpy as np
 from numpy.testing import assert_allclose
 import pytest
+from quatcal_ros import conversions as conv
+from quatcal_ros import quaternion as quat
+from quatcal_ros import simulation as sim
+from quatcal_ros.pose import Pose
+from quatcal_ros.sim_cell import SimCell
 import rclpy
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import SingleThreadedExecutor
@@ -18,12 +23,6 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
-
-from quatcal_ros import conversions as conv
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation as sim
-from quatcal_ros.pose import Pose
-from quatcal_ros.sim_cell import SimCell
 
 # Domains 40-49 are this test suite's; the program test uses its own.
 DOMAIN_ID = 45
@@ -84,13 +83,14 @@ def _overrides(**values):
 
 
 CASES = {
-    'eye_in_hand_given_mounting_noise_free': dict(
-        seed=7, setup='eye_in_hand', link_rate_hz=200.0, sensor_rate_hz=20.0, latency_s=0.05,
-        drop_probability=0.2, rotation_noise_deg=0.0, translation_noise_m=0.0, still_s=0.5,
-        move_s=1.0, mounting_xyz=[0.05, -0.02, 0.1], mounting_rpy_deg=[10.0, -20.0, 30.0]),
-    'eye_to_hand_random_mounting_default_noise': dict(
-        seed=3, setup='eye_to_hand', link_rate_hz=250.0, sensor_rate_hz=25.0, latency_s=0.03,
-        drop_probability=0.05, still_s=0.5, move_s=1.0),
+    'eye_in_hand_given_mounting_noise_free': {
+        'seed': 7, 'setup': 'eye_in_hand', 'link_rate_hz': 200.0, 'sensor_rate_hz': 20.0,
+        'latency_s': 0.05, 'drop_probability': 0.2, 'rotation_noise_deg': 0.0,
+        'translation_noise_m': 0.0, 'still_s': 0.5, 'move_s': 1.0,
+        'mounting_xyz': [0.05, -0.02, 0.1], 'mounting_rpy_deg': [10.0, -20.0, 30.0]},
+    'eye_to_hand_random_mounting_default_noise': {
+        'seed': 3, 'setup': 'eye_to_hand', 'link_rate_hz': 250.0, 'sensor_rate_hz': 25.0,
+        'latency_s': 0.03, 'drop_probability': 0.05, 'still_s': 0.5, 'move_s': 1.0},
 }
 
 
@@ -194,7 +194,7 @@ def test_publishes_latched_truth_and_the_simulated_streams(context, namespace, c
 
 
 def test_follows_the_ros_clock_with_use_sim_time(context, namespace):
-    values = dict(seed=1, link_rate_hz=100.0, sensor_rate_hz=10.0, latency_s=0.0)
+    values = {'seed': 1, 'link_rate_hz': 100.0, 'sensor_rate_hz': 10.0, 'latency_s': 0.0}
     # /clock remapped into the test's namespace, so no other clock can reach the node.
     sim_node = SimCell(context=context, namespace=namespace,
                        cli_args=['--ros-args', '-r', f'/clock:={namespace}/clock'],
