@@ -1,0 +1,169 @@
+"""
+Files that must survive a crash: atomic writes and the calibration result YAML.
+
+`atomic_write_text` / `atomic_write_bytes` write a temporary file in the target's directory,
+fsync it, rename it over the target with os.replace and fsync the directory, so a reader sees
+either the old file or the new one, never a torn one.
+
+The result YAML (written by the live node's ~/save and by the bag replay) holds:
+
+    parent_frame: tool0          # link frame (eye_in_hand) or base frame (eye_to_hand)
+    child_frame: camera          # sensor frame
+    setup: eye_in_hand
+    rotation: {x: .., y: .., z: .., w: ..}   # quaternion x, y, z, w (ROS order), parent -> child
+    matrix: [[..], [..], [..]]               # rotation matrix, child coordinates -> parent
+    quality: {samples, motions, inliers, residual_rms_deg, uncertainty_deg}
+    hint: ..
+    warnings: [..]
+
+The core's quaternions are (w, x, y, z); this file is the boundary where they become x, y, z, w.
+No rclpy here: the module is plain Python for every tool.
+"""
+
+import math
+import os
+from pathlib import Path
+import tempfile
+
+import numpy as np
+import yaml
+
+RESULT_FORMAT = 'quatcal_ros/rotation'
+RESULT_FORMAT_VERSION = 1
+QUALITY_FIELDS = ('samples', 'motions', 'inliers', 'residual_rms_deg', 'uncertainty_deg')
+
+
+def atomic_write_bytes(path, data, mode=0o644):
+    """
+    Replace the file `path` by `data` atomically; create missing parent directories.
+
+    :param path: target file (str or path-like); `~` is expanded.
+    :param data: bytes to write.
+    :param mode: permission bits of the new file.
+    :return: the target as an absolute pathlib.Path.
+    :raises OSError: when the directory cannot be created or written; the target is unchanged.
+    """
+    target = Path(path).expanduser().absolute()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix='.' + target.name + '.', suffix='.tmp',
+                                    dir=target.parent)
+    try:
+        with os.fdopen(fd, 'wb') as tmp:
+            tmp.write(data)
+            tmp.flush()
+            os.fsync(tmp.fileno())
+        os.chmod(tmp_name, mode)
+        os.replace(tmp_name, target)
+    except BaseException:
+        _remove_quietly(tmp_name)
+        raise
+    _fsync_directory(target.parent)
+    return target
+
+
+def atomic_write_text(path, text, mode=0o644, encoding='utf-8'):
+    """Replace the file `path` by `text` atomically (see atomic_write_bytes)."""
+    return atomic_write_bytes(path, text.encode(encoding), mode=mode)
+
+
+def _remove_quietly(name):
+    try:
+        os.unlink(name)
+    except OSError:
+        pass
+
+
+def _fsync_directory(directory):
+    """Make the rename durable; some file systems cannot open a directory, which is fine."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _plain_number(value):
+    """Python int or float for YAML; NaN and inf become None (null), which all readers accept."""
+    if value is None:
+        return None
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        return int(value)
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extra=None):
+    """
+    Build the result YAML's content as plain Python types.
+
+    :param result: a calibration.CalibrationResult (quaternion (w, x, y, z), matrix, samples,
+        motions, inliers, residual_rms_deg, uncertainty_deg, hint, warnings).
+    :param parent_frame: link frame (eye_in_hand) or robot base frame (eye_to_hand).
+    :param child_frame: sensor frame.
+    :param setup: 'eye_in_hand' or 'eye_to_hand'.
+    :param extra: optional dict of further top-level keys (for example the source bag).
+    :return: a dict that yaml.safe_dump accepts.
+    """
+    w, x, y, z = (float(c) for c in np.asarray(result.quaternion, dtype=float).reshape(4))
+    matrix = np.asarray(result.matrix, dtype=float).reshape(3, 3)
+    quality = {name: _plain_number(getattr(result, name, None)) for name in QUALITY_FIELDS}
+    document = {
+        'format': RESULT_FORMAT,
+        'format_version': RESULT_FORMAT_VERSION,
+        'parent_frame': str(parent_frame),
+        'child_frame': str(child_frame),
+        'setup': str(setup),
+        'rotation': {'x': x, 'y': y, 'z': z, 'w': w},
+        'matrix': [[float(v) for v in row] for row in matrix],
+        'quality': quality,
+        'hint': str(getattr(result, 'hint', '') or ''),
+        'warnings': [str(text) for text in (getattr(result, 'warnings', None) or [])],
+    }
+    if extra:
+        document.update(extra)
+    return document
+
+
+def format_result_yaml(result, parent_frame, child_frame, setup='eye_in_hand', extra=None):
+    """Return the result YAML text (see result_document for the arguments)."""
+    document = result_document(result, parent_frame, child_frame, setup, extra)
+    header = ('# Hand-eye rotation calibration by quatcal_ros (Chou and Kamel 1988).\n'
+              '# rotation: quaternion x, y, z, w of the transform parent_frame -> child_frame;\n'
+              '# matrix maps child_frame coordinates to parent_frame coordinates.\n')
+    return header + yaml.safe_dump(document, sort_keys=False, default_flow_style=None)
+
+
+def write_result_yaml(path, result, parent_frame, child_frame, setup='eye_in_hand',
+                      extra=None):
+    """
+    Write the result YAML to `path` atomically; return the absolute path written.
+
+    :raises OSError: when the file cannot be written (the previous file, if any, is kept).
+    """
+    text = format_result_yaml(result, parent_frame, child_frame, setup, extra)
+    return atomic_write_text(path, text)
+
+
+def read_result_yaml(path):
+    """
+    Read a result YAML back.
+
+    :return: the document (dict) with 'quaternion_xyzw' added as a numpy array (x, y, z, w).
+    :raises ValueError: when the file is not a result YAML (the message names the file).
+    """
+    path = Path(path).expanduser()
+    with open(path, encoding='utf-8') as stream:
+        document = yaml.safe_load(stream)
+    try:
+        rotation = document['rotation']
+        q = np.array([rotation[k] for k in ('x', 'y', 'z', 'w')], dtype=float)
+    except (KeyError, TypeError) as error:
+        raise ValueError(f'{path}: not a quatcal_ros result file (no rotation x, y, z, w: '
+                         f'{error})') from None
+    document['quaternion_xyzw'] = q
+    return document

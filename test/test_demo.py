@@ -1,0 +1,75 @@
+"""Tests of `python -m quatcal_ros demo` (quatcal_ros.demo), on ROS_DOMAIN_ID 52."""
+
+import os
+from pathlib import Path
+import subprocess
+import sys
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from quatcal_ros import demo
+from quatcal_ros import quaternion as quat
+from quatcal_ros.pose import Pose
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+DOMAIN_ID = '52'
+
+
+@pytest.fixture
+def domain(monkeypatch):
+    monkeypatch.setenv('ROS_DOMAIN_ID', DOMAIN_ID)
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+
+
+def test_demo_in_process_prints_estimate_truth_and_error(domain, capsys):
+    status = demo.main(['--seed', '3', '--uncertainty-deg', '0.3'])
+    out, err = capsys.readouterr()
+    assert status == 0, out + err
+    assert 'sample 3: estimate x, y, z, w = (' in out
+    for words in ('estimated rotation (x, y, z, w):', 'reported uncertainty:',
+                  'ground truth (x, y, z, w):', 'true error:', 'OK:'):
+        assert words in out
+
+
+def test_demo_gives_up_at_the_time_limit(domain, capsys):
+    status = demo.main(['--time-limit-s', '0.5'])
+    assert status == 1
+    assert 'FAILED' in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('argv', [['--uncertainty-deg', '0'], ['--max-samples', '2'],
+                                  ['--still-s', '0.1'], ['--setup', 'sideways']])
+def test_demo_refuses_bad_arguments(argv):
+    with pytest.raises(SystemExit) as exit_:
+        demo.parse_args(argv)
+    assert exit_.value.code == 2
+
+
+def _result(angle_deg, uncertainty_deg, samples=10):
+    q = quat.from_axis_angle([0.0, 0.0, 1.0], np.radians(angle_deg))
+    return SimpleNamespace(quaternion=q, uncertainty_deg=uncertainty_deg, samples=samples,
+                           residual_rms_deg=0.1)
+
+
+def test_report_judges_the_true_error(capsys):
+    args = demo.parse_args([])
+    truth = Pose.identity()
+    assert demo.report(args, _result(0.2, 0.09), truth) == 0
+    assert demo.report(args, _result(0.3, 0.09), truth) == 1
+    assert 'exceeds 3x' in capsys.readouterr().err
+    assert demo.report(args, _result(0.01, 0.5, samples=5), truth) == 1
+    assert 'not converged' in capsys.readouterr().err
+    assert demo.report(args, None, truth) == 1
+    assert demo.report(args, _result(0.01, 0.05), None) == 1
+
+
+def test_demo_command_with_defaults_converges():
+    env = dict(os.environ, ROS_DOMAIN_ID=DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    paths = [str(REPO_ROOT)] + [p for p in [env.get('PYTHONPATH')] if p]
+    env['PYTHONPATH'] = os.pathsep.join(paths)
+    done = subprocess.run([sys.executable, '-m', 'quatcal_ros', 'demo'], env=env, cwd=REPO_ROOT,
+                          capture_output=True, text=True, timeout=150)
+    assert done.returncode == 0, done.stdout + done.stderr
+    error = [line for line in done.stdout.splitlines() if line.startswith('true error:')]
+    assert error and float(error[0].split()[2]) < 0.3

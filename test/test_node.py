@@ -1,0 +1,495 @@
+"""
+Tests of the calibrator node over real DDS: in-process (rclpy style) and as processes.
+
+In-process tests build the node in a private Context with parameter_overrides and drive it
+from a second node through the middleware, spinning one executor with deadlines.  The
+multi-process test runs `python -m quatcal_ros sim_cell` and `... calibrator` and stops them
+with SIGINT / SIGTERM.  ROS_DOMAIN_ID 53 (in-process) and 54 (processes) keep these tests
+apart from the other test files.
+"""
+
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import QuaternionStamped
+from geometry_msgs.msg import TransformStamped
+import numpy as np
+import pytest
+from quatcal_ros import conversions
+from quatcal_ros import quaternion as quat
+from quatcal_ros import simulation
+from quatcal_ros.node import CalibratorNode
+from quatcal_ros.node import DIAGNOSTIC_NAME
+from quatcal_ros.node_config import ConfigError
+from quatcal_ros.pose import Pose
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy
+from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import QoSProfile
+from rclpy.qos import ReliabilityPolicy
+from std_srvs.srv import Trigger
+import yaml
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+DOMAIN_ID = 53
+PROCESS_DOMAIN_ID = 54
+NS = simulation.NS_PER_S
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def angle_deg(q_wxyz, p_wxyz):
+    """Angle between two rotations (w, x, y, z), degrees."""
+    return float(np.degrees(quat.angle_between(q_wxyz, p_wxyz)))
+
+
+def rotation_of(msg):
+    """(w, x, y, z) of a QuaternionStamped."""
+    q = msg.quaternion
+    return np.array([q.w, q.x, q.y, q.z])
+
+
+class Harness:
+    """A calibrator node and a driver node in one private context and executor."""
+
+    def __init__(self, overrides=(), sensor_qos=RELIABLE, message_type=PoseStamped):
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.node = CalibratorNode(context=self.context, parameter_overrides=list(overrides))
+        self.driver = rclpy.create_node('test_driver', context=self.context)
+        self.message_type = message_type
+        self.link_pub = self.driver.create_publisher(message_type, 'link_pose', RELIABLE)
+        self.sensor_pub = self.driver.create_publisher(message_type, 'sensor_pose', sensor_qos)
+        self.rotations = []
+        self.diagnostics = []
+        self.driver.create_subscription(QuaternionStamped, '/calibrator/rotation',
+                                        self.rotations.append, LATCHED)
+        self.driver.create_subscription(DiagnosticArray, '/diagnostics',
+                                        self.diagnostics.append, 10)
+        self.clients = {name: self.driver.create_client(Trigger, f'/calibrator/{name}')
+                        for name in ('capture', 'reset', 'save')}
+        self.sent = {'link_pose': 0, 'sensor_pose': 0}
+        for node in (self.node, self.driver):
+            self.executor.add_node(node)
+        self.spin_until(lambda: self.link_pub.get_subscription_count()
+                        and self.sensor_pub.get_subscription_count()
+                        and all(c.service_is_ready() for c in self.clients.values()),
+                        what='discovery of the calibrator')
+
+    def close(self):
+        self.executor.shutdown()
+        self.driver.destroy_node()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+    def spin_until(self, condition, timeout=10.0, what='condition'):
+        deadline = time.monotonic() + timeout
+        while not condition():
+            if time.monotonic() > deadline:
+                raise AssertionError(f'timed out after {timeout} s waiting for {what}')
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def spin_for(self, seconds):
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def call(self, name):
+        future = self.clients[name].call_async(Trigger.Request())
+        self.spin_until(future.done, what=f'the {name} service')
+        return future.result()
+
+    def publish(self, stream, stamp_ns, pose):
+        publisher = self.link_pub if stream == 'link_pose' else self.sensor_pub
+        if self.message_type is PoseStamped:
+            msg = conversions.pose_stamped_msg(pose, stamp_ns, 'frame')
+        else:
+            msg = conversions.transform_stamped_msg(pose, stamp_ns, 'frame', 'child')
+        publisher.publish(msg)
+        self.sent[stream] += 1
+
+    def wait_received(self, best_effort_slack=0, timeout=10.0):
+        """Spin until the node has the messages sent (best-effort ones may be dropped)."""
+        received = self.node.stats.received
+
+        def done():
+            return (received['link_pose'] >= self.sent['link_pose']
+                    and received['sensor_pose'] >= self.sent['sensor_pose'] - best_effort_slack)
+        try:
+            self.spin_until(done, timeout, what='the node to receive the poses')
+        except AssertionError:
+            if received['link_pose'] < self.sent['link_pose']:
+                raise
+
+    def publish_events(self, events, chunk=60, best_effort_slack=0):
+        """Publish (stream, stamp_ns, pose) in order, in chunks the node keeps up with."""
+        for start in range(0, len(events), chunk):
+            for stream, stamp_ns, pose in events[start:start + chunk]:
+                self.publish(stream, stamp_ns, pose)
+            self.wait_received(best_effort_slack)
+
+
+@pytest.fixture
+def harness_factory():
+    made = []
+
+    def make(*args, **kwargs):
+        made.append(Harness(*args, **kwargs))
+        return made[-1]
+    yield make
+    for harness in made:
+        harness.close()
+
+
+def still_events(cell, link, start_ns, duration_s=0.8, rate_hz=25.0):
+    """Both streams at rate_hz holding one link pose (noise-free sensor)."""
+    sensor = cell.sensor_pose(link)
+    events = []
+    for i in range(int(duration_s * rate_hz)):
+        stamp = start_ns + int(i * NS / rate_hz)
+        events += [('link_pose', stamp, link), ('sensor_pose', stamp, sensor)]
+    return events
+
+
+def turned(cell, axis, angle_deg_, shift=(0.0, 0.0, 0.0)):
+    """Home link pose turned about a base-frame axis and shifted."""
+    q = quat.multiply(quat.from_axis_angle(axis, np.radians(angle_deg_)), cell.home.quaternion)
+    return Pose(cell.home.position + np.asarray(shift), quat.normalize(q))
+
+
+# --- recovery from a simulated stop-and-go cell ---------------------------------------------
+
+def stream_events(streams):
+    """Merge the streams in delivery order, as (topic, header stamp, pose)."""
+    events = [(stamp, 0, 'link_pose', stamp, pose) for stamp, pose in streams.link]
+    events += [(delivery, 1, 'sensor_pose', stamp, pose) for delivery, (stamp, pose)
+               in zip(streams.sensor_delivery_ns, streams.sensor)]
+    return [event[2:] for event in sorted(events, key=lambda e: e[:2])]
+
+
+def test_recovers_the_rotation_of_a_simulated_cell(harness_factory):
+    rng = np.random.default_rng(5)
+    cell = simulation.random_cell(rng)
+    streams = simulation.stop_and_go_streams(
+        rng, cell, n_stops=12, link_rate_hz=50.0, sensor_rate_hz=30.0, still_s=1.0, move_s=1.0,
+        rotation_noise_deg=0.2, translation_noise_m=0.001, rotation_spread_deg=40.0)
+    # The sensor publishes with sensor-data QoS (best effort), as camera drivers do.
+    h = harness_factory(sensor_qos=qos_profile_sensor_data)
+    h.publish_events(stream_events(streams), best_effort_slack=20)
+    h.spin_until(lambda: h.rotations, what='an estimate on ~/rotation')
+    result = h.node.session.result
+    assert result.samples >= 10
+    assert 0.0 < result.uncertainty_deg < 0.5
+    error = angle_deg(result.quaternion, cell.mounting.quaternion)
+    assert error < 3.0 * result.uncertainty_deg
+    h.spin_until(lambda: len(h.rotations) and np.allclose(
+        rotation_of(h.rotations[-1]) * np.sign(rotation_of(h.rotations[-1])[0]),
+        result.quaternion, atol=1e-6), what='the last estimate on ~/rotation')
+    assert h.rotations[-1].header.frame_id == 'tool0'
+
+
+# --- what the motions must be ---------------------------------------------------------------
+
+def test_estimate_needs_two_non_parallel_motions_then_save_and_reset(harness_factory, tmp_path):
+    rng = np.random.default_rng(2)
+    cell = simulation.random_cell(rng)
+    result_file = tmp_path / 'out' / 'calibration.yaml'
+    h = harness_factory([Parameter('result_file', value=str(result_file)),
+                         Parameter('diagnostics_period_s', value=0.2)])
+    z = [0.0, 0.0, 1.0]
+    stops = [turned(cell, z, 0.0), turned(cell, z, 30.0, (0.05, 0.0, 0.0)),
+             turned(cell, z, -25.0, (0.0, 0.05, 0.02)), turned(cell, z, 60.0, (0.0, 0.0, 0.04))]
+    start = simulation.DEFAULT_START_NS
+    for k, link in enumerate(stops):
+        h.publish_events(still_events(cell, link, start + k * NS))
+        h.spin_until(lambda: len(h.node.session.samples) == k + 1, what=f'sample {k}')
+        assert h.node.session.result is None, f'an estimate from {k + 1} parallel stops'
+    h.spin_for(0.3)
+    assert h.rotations == []
+    refused = h.call('save')
+    assert not refused.success and 'no estimate' in refused.message
+    assert not result_file.exists()
+    status = h.node.diagnostic_status()
+    assert status.message.startswith('collecting: 4 samples')
+
+    # A motion about another axis makes the estimate.
+    tilted = turned(cell, [1.0, 0.0, 0.0], 30.0, (0.0, -0.05, 0.0))
+    h.publish_events(still_events(cell, tilted, start + 4 * NS))
+    h.spin_until(lambda: h.rotations, what='an estimate after a non-parallel motion')
+    result = h.node.session.result
+    assert angle_deg(result.quaternion, cell.mounting.quaternion) < 1e-3
+    assert angle_deg(rotation_of(h.rotations[-1]), cell.mounting.quaternion) < 1e-3
+
+    h.diagnostics.clear()
+    h.spin_until(lambda: any(s.name == DIAGNOSTIC_NAME and s.message.startswith('estimating')
+                             for a in h.diagnostics for s in a.status),
+                 what='diagnostics of the estimate')
+    status = [s for a in h.diagnostics for s in a.status][-1]
+    values = {kv.key: kv.value for kv in status.values}
+    assert status.hardware_id == 'tool0'
+    assert values['state'] == 'estimating' and values['samples'] == '5'
+    assert float(values['uncertainty_deg']) < 0.01
+    for key in ('motions', 'inliers', 'residual_rms_deg', 'hint', 'link_messages',
+                'sensor_messages', 'bad_messages'):
+        assert key in values
+
+    # A runtime change re-estimates from the same samples and publishes again.
+    published = len(h.rotations)
+    (changed,) = h.node.set_parameters([Parameter('robust', value=False)])
+    assert changed.successful
+    h.spin_until(lambda: len(h.rotations) > published, what='a re-estimate on ~/rotation')
+    assert len(h.node.session.samples) == 5
+    assert h.node.session.config.calibration.robust is False
+    assert angle_deg(h.node.session.result.quaternion, cell.mounting.quaternion) < 1e-3
+
+    saved = h.call('save')
+    assert saved.success and str(result_file) in saved.message
+    document = yaml.safe_load(result_file.read_text())
+    q_xyzw = [document['rotation'][k] for k in 'xyzw']
+    assert angle_deg(quat.wxyz_from_xyzw(q_xyzw), cell.mounting.quaternion) < 1e-3
+    assert document['parent_frame'] == 'tool0' and document['child_frame'] == 'camera'
+    assert document['quality']['samples'] == 5
+
+    reset = h.call('reset')
+    assert reset.success and '5 samples' in reset.message
+    assert h.node.session.samples == [] and h.node.session.result is None
+    assert not h.call('save').success
+
+
+# --- services in manual mode ----------------------------------------------------------------
+
+def test_manual_capture_service(harness_factory):
+    rng = np.random.default_rng(3)
+    cell = simulation.random_cell(rng)
+    h = harness_factory([Parameter('capture_mode', value='manual'),
+                         Parameter('still_window_s', value=0.2)])
+    refused = h.call('capture')
+    assert not refused.success and 'no paired poses' in refused.message
+
+    def publish_still(link):
+        now = h.node.now_ns()
+        h.publish_events(still_events(cell, link, now - int(0.5 * NS), duration_s=0.5,
+                                      rate_hz=40.0))
+
+    publish_still(cell.home)
+    assert h.node.session.samples == []        # manual mode: nothing captured by itself
+    captured = h.call('capture')
+    assert captured.success, captured.message
+    assert len(h.node.session.samples) == 1
+    again = h.call('capture')
+    assert not again.success and 'no motion' in again.message
+    h.spin_for(0.6)     # so that the next stamps follow the last ones
+    publish_still(turned(cell, [0.0, 1.0, 0.0], 20.0))
+    assert h.call('capture').success
+    assert len(h.node.session.samples) == 2
+
+
+# --- parameters -----------------------------------------------------------------------------
+
+def test_invalid_parameters_are_refused_at_start(harness_factory):
+    context = Context()
+    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    try:
+        for name, value in (('setup', 'sideways'), ('still_window_s', -1.0),
+                            ('capture_mode', 'never'), ('pose_type', 'odometry')):
+            with pytest.raises(ConfigError, match=name):
+                CalibratorNode(context=context,
+                               parameter_overrides=[Parameter(name, value=value)])
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def test_parameters_at_runtime(harness_factory):
+    h = harness_factory()
+    node = h.node
+    for parameter, words in ((Parameter('pairs', value='some'), 'pairs'),
+                             (Parameter('max_gap_s', value=50.0), 'max_gap_s'),
+                             (Parameter('pose_type', value='transform'), 'read-only'),
+                             (Parameter('robust', value='no'), 'type')):
+        (result,) = node.set_parameters([parameter])
+        assert not result.successful and words in result.reason, result.reason
+    assert node.config.pairs == 'all' and node.get_parameter('pairs').value == 'all'
+    (result,) = node.set_parameters([Parameter('pairs', value='consecutive')])
+    assert result.successful
+    assert node.config.pairs == 'consecutive'
+    assert node.session.config.calibration.pairs == 'consecutive'
+    (result,) = node.set_parameters([Parameter('link_frame', value='flange')])
+    assert result.successful and node.config.link_frame == 'flange'
+
+
+def test_transform_messages_with_pose_type_transform(harness_factory):
+    h = harness_factory([Parameter('pose_type', value='transform')],
+                        message_type=TransformStamped)
+    cell = simulation.random_cell(np.random.default_rng(6))
+    h.publish_events(still_events(cell, cell.home, simulation.DEFAULT_START_NS))
+    h.spin_until(lambda: len(h.node.session.samples) == 1, what='a sample from transforms')
+
+
+def test_topic_names_follow_namespace_and_remapping():
+    context = Context()
+    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    try:
+        node = CalibratorNode(context=context, namespace='cell1',
+                              cli_args=['--ros-args', '-r', 'link_pose:=/robot/tool_pose'])
+        topics = {sub.topic_name for sub in node.subscriptions}
+        assert topics == {'/robot/tool_pose', '/cell1/sensor_pose'}
+        assert node.rotation_publisher.topic_name == '/cell1/calibrator/rotation'
+        assert {srv.service_name for srv in node.services} >= {
+            '/cell1/calibrator/capture', '/cell1/calibrator/reset', '/cell1/calibrator/save'}
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+# --- bad input ------------------------------------------------------------------------------
+
+def test_bad_messages_are_counted_not_fatal(harness_factory):
+    h = harness_factory([Parameter('diagnostics_period_s', value=0.2)])
+    bad = []
+    nan_pose = PoseStamped()
+    nan_pose.pose.position.x = float('nan')
+    nan_pose.pose.orientation.w = 1.0
+    bad.append((h.link_pub, nan_pose))
+    zero_q = PoseStamped()
+    zero_q.pose.orientation.w = 0.0      # all zero: a zero quaternion
+    bad.append((h.sensor_pub, zero_q))
+    unnormalised = PoseStamped()
+    unnormalised.pose.orientation.w = 2.0
+    bad.append((h.sensor_pub, unnormalised))
+    for publisher, msg in bad:
+        msg.header.stamp.sec = 10
+        publisher.publish(msg)
+    h.spin_until(lambda: h.node.stats.bad_total == 3, what='three bad messages counted')
+    assert h.node.stats.bad[('link_pose', 'pose.position.x')] == 1
+    assert h.node.stats.bad[('sensor_pose', 'pose.orientation')] == 2
+    h.diagnostics.clear()
+    h.spin_until(lambda: h.diagnostics, what='diagnostics')
+    values = {kv.key: kv.value for kv in h.diagnostics[-1].status[0].values}
+    assert values['bad_messages'] == '3'
+    assert values['link_messages'] == '1' and values['sensor_messages'] == '2'
+    # Still alive: a good still stream is captured afterwards.
+    rng = np.random.default_rng(4)
+    cell = simulation.random_cell(rng)
+    h.publish_events(still_events(cell, cell.home, simulation.DEFAULT_START_NS))
+    h.spin_until(lambda: len(h.node.session.samples) == 1, what='a sample after bad input')
+
+
+# --- as processes ---------------------------------------------------------------------------
+
+def _tool_command(tool):
+    if (REPO_ROOT / 'quatcal_ros' / '__main__.py').exists():
+        return [sys.executable, '-m', 'quatcal_ros', tool]
+    module = {'calibrator': 'quatcal_ros.node', 'sim_cell': 'quatcal_ros.sim_cell'}[tool]
+    return [sys.executable, '-c', f'import sys; from {module} import main; sys.exit(main())']
+
+
+def _process_env():
+    env = dict(os.environ, ROS_DOMAIN_ID=str(PROCESS_DOMAIN_ID),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
+    env['PYTHONPATH'] = os.pathsep.join(
+        [str(REPO_ROOT)] + [p for p in [env.get('PYTHONPATH')] if p])
+    return env
+
+
+def _start(tool, *ros_args, log_path):
+    command = _tool_command(tool) + (['--ros-args', *ros_args] if ros_args else [])
+    return subprocess.Popen(command, env=_process_env(), cwd=REPO_ROOT,
+                            stdout=log_path.open('w'), stderr=subprocess.STDOUT)
+
+
+def _stop(process, sig, timeout=15.0):
+    if process.poll() is None:
+        process.send_signal(sig)
+    try:
+        return process.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+        return None
+
+
+class Listener:
+    """A node in the test process that listens to the processes' outputs."""
+
+    def __init__(self):
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=PROCESS_DOMAIN_ID)
+        self.node = rclpy.create_node('test_listener', context=self.context)
+        self.rotations, self.truths, self.statuses = [], [], []
+        self.node.create_subscription(QuaternionStamped, '/calibrator/rotation',
+                                      self.rotations.append, LATCHED)
+        self.node.create_subscription(TransformStamped, '/sim_cell/ground_truth',
+                                      self.truths.append, LATCHED)
+        self.node.create_subscription(
+            DiagnosticArray, '/diagnostics',
+            lambda msg: self.statuses.extend(s for s in msg.status if s.name == DIAGNOSTIC_NAME),
+            10)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def spin_until(self, condition, timeout, what, processes=()):
+        deadline = time.monotonic() + timeout
+        while not condition():
+            for process in processes:
+                assert process.poll() is None, f'{process.args} exited with {process.returncode}'
+            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+def test_processes_converge_to_the_ground_truth_and_exit_cleanly(tmp_path):
+    sim = _start('sim_cell', '-p', 'seed:=4', '-p', 'still_s:=0.6', '-p', 'move_s:=0.6',
+                 '-p', 'link_rate_hz:=100.0', '-p', 'rotation_spread_deg:=40.0',
+                 log_path=tmp_path / 'sim.log')
+    calibrator = _start('calibrator', '-p', 'still_window_s:=0.3',
+                        '-p', 'diagnostics_period_s:=0.5', log_path=tmp_path / 'calib.log')
+    listener = Listener()
+    processes = (sim, calibrator)
+    try:
+        def converged():
+            if not (listener.rotations and listener.truths and listener.statuses):
+                return False
+            values = {kv.key: kv.value for kv in listener.statuses[-1].values}
+            return values['uncertainty_deg'] and float(values['uncertainty_deg']) < 0.2
+        listener.spin_until(converged, 60.0, 'an uncertainty below 0.2 deg', processes)
+        values = {kv.key: kv.value for kv in listener.statuses[-1].values}
+        uncertainty = float(values['uncertainty_deg'])
+        truth = conversions.pose_from_msg(listener.truths[-1]).quaternion
+        estimate = rotation_of(listener.rotations[-1])
+        assert listener.rotations[-1].header.frame_id == 'tool0'
+        assert angle_deg(estimate, truth) < 3.0 * uncertainty + 0.05
+    finally:
+        codes = [_stop(process, signal.SIGINT) for process in processes]
+        listener.close()
+    logs = (tmp_path / 'calib.log').read_text()
+    assert codes == [0, 0], logs
+    assert 'sample 0 captured' in logs and 'estimate:' in logs
+
+
+def test_process_exits_cleanly_on_sigterm_and_refuses_bad_parameters(tmp_path):
+    bad = subprocess.run(
+        _tool_command('calibrator') + ['--ros-args', '-p', 'setup:=sideways'],
+        env=_process_env(), cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
+    assert bad.returncode != 0
+    assert 'setup' in bad.stdout + bad.stderr and 'sideways' in bad.stdout + bad.stderr
+    calibrator = _start('calibrator', log_path=tmp_path / 'calib.log')
+    deadline = time.monotonic() + 30.0
+    while 'calibrating' not in (tmp_path / 'calib.log').read_text():
+        assert calibrator.poll() is None and time.monotonic() < deadline
+        time.sleep(0.1)
+    assert _stop(calibrator, signal.SIGTERM) == 0

@@ -1,0 +1,125 @@
+"""Tests of quatcal_ros.persistence: atomic writes and the result YAML."""
+
+import os
+from types import SimpleNamespace
+
+import numpy as np
+from numpy.testing import assert_allclose
+import pytest
+from quatcal_ros import calibration
+from quatcal_ros import persistence
+from quatcal_ros import quaternion as quat
+from quatcal_ros import simulation
+import yaml
+
+
+def _leftovers(directory, name):
+    return [p for p in os.listdir(directory) if p != name]
+
+
+def test_atomic_write_creates_directories_and_leaves_no_temporary(tmp_path):
+    target = tmp_path / 'a' / 'b' / 'result.yaml'
+    written = persistence.atomic_write_text(target, 'first\n')
+    assert written == target
+    assert target.read_text() == 'first\n'
+    persistence.atomic_write_text(target, 'second\n')
+    assert target.read_text() == 'second\n'
+    assert _leftovers(target.parent, 'result.yaml') == []
+    assert (target.stat().st_mode & 0o777) == 0o644
+
+
+def test_atomic_write_expands_user(tmp_path, monkeypatch):
+    monkeypatch.setenv('HOME', str(tmp_path))
+    written = persistence.atomic_write_bytes('~/x/out.bin', b'\x00\x01')
+    assert written == tmp_path / 'x' / 'out.bin'
+    assert written.read_bytes() == b'\x00\x01'
+
+
+def test_failed_write_keeps_the_old_file(tmp_path, monkeypatch):
+    target = tmp_path / 'result.yaml'
+    target.write_text('old\n')
+
+    def broken_replace(src, dst):
+        raise OSError(28, 'No space left on device')
+
+    monkeypatch.setattr(persistence.os, 'replace', broken_replace)
+    with pytest.raises(OSError, match='No space'):
+        persistence.atomic_write_text(target, 'new\n')
+    assert target.read_text() == 'old\n'
+    assert _leftovers(tmp_path, 'result.yaml') == []
+
+
+def test_write_is_synced_then_renamed_then_directory_synced(tmp_path, monkeypatch):
+    calls = []
+    real_fsync, real_replace = os.fsync, os.replace
+    monkeypatch.setattr(persistence.os, 'fsync',
+                        lambda fd: calls.append('fsync') or real_fsync(fd))
+    monkeypatch.setattr(persistence.os, 'replace',
+                        lambda a, b: calls.append('replace') or real_replace(a, b))
+    persistence.atomic_write_text(tmp_path / 'f.txt', 'x')
+    assert calls == ['fsync', 'replace', 'fsync']
+
+
+def test_unwritable_directory_raises_oserror(tmp_path):
+    blocker = tmp_path / 'file'
+    blocker.write_text('not a directory')
+    with pytest.raises(OSError):
+        persistence.atomic_write_text(blocker / 'result.yaml', 'x')
+
+
+@pytest.fixture(scope='module')
+def real_result():
+    rng = np.random.default_rng(11)
+    cell = simulation.random_cell(rng)
+    samples, _ = simulation.samples(rng, cell, 8, rotation_noise_deg=0.05)
+    return cell, calibration.calibrate(samples)
+
+
+def test_result_yaml_round_trip(tmp_path, real_result):
+    cell, result = real_result
+    path = persistence.write_result_yaml(tmp_path / 'calib.yaml', result, 'tool0', 'camera')
+    with open(path) as stream:
+        document = yaml.safe_load(stream)
+    assert document['parent_frame'] == 'tool0'
+    assert document['child_frame'] == 'camera'
+    assert document['setup'] == 'eye_in_hand'
+    rotation = document['rotation']
+    assert list(rotation) == ['x', 'y', 'z', 'w']
+    q_xyzw = np.array([rotation[k] for k in 'xyzw'])
+    assert_allclose(q_xyzw, quat.xyzw_from_wxyz(result.quaternion), atol=1e-12)
+    assert np.degrees(quat.angle_between(quat.wxyz_from_xyzw(q_xyzw),
+                                         cell.mounting.quaternion)) < 0.5
+    assert_allclose(document['matrix'], result.matrix, atol=1e-12)
+    quality = document['quality']
+    assert quality['samples'] == 8 and isinstance(quality['samples'], int)
+    assert quality['motions'] == result.motions
+    assert quality['inliers'] == result.inliers
+    assert quality['residual_rms_deg'] == pytest.approx(result.residual_rms_deg)
+    assert quality['uncertainty_deg'] == pytest.approx(result.uncertainty_deg)
+    assert document['hint'] == result.hint
+    back = persistence.read_result_yaml(path)
+    assert_allclose(back['quaternion_xyzw'], q_xyzw)
+
+
+def test_result_yaml_plain_result_with_nan_and_extra(tmp_path):
+    result = SimpleNamespace(
+        quaternion=np.array([0.0, 0.0, 0.0, 1.0]), matrix=np.diag([-1.0, -1.0, 1.0]),
+        samples=np.int64(3), motions=3, inliers=2, residual_rms_deg=float('nan'),
+        uncertainty_deg=np.float64(0.25), hint='rotate about x', warnings=['careful'])
+    text = persistence.format_result_yaml(result, 'base_link', 'camera', 'eye_to_hand',
+                                          extra={'source': 'run.bag'})
+    assert text.startswith('#')
+    document = yaml.safe_load(text)
+    assert document['rotation'] == {'x': 0.0, 'y': 0.0, 'z': 1.0, 'w': 0.0}
+    assert document['quality']['residual_rms_deg'] is None
+    assert document['quality']['uncertainty_deg'] == 0.25
+    assert document['setup'] == 'eye_to_hand'
+    assert document['warnings'] == ['careful']
+    assert document['source'] == 'run.bag'
+
+
+def test_read_result_yaml_refuses_other_files(tmp_path):
+    path = tmp_path / 'other.yaml'
+    path.write_text('a: 1\n')
+    with pytest.raises(ValueError, match='other.yaml'):
+        persistence.read_result_yaml(path)
