@@ -27,7 +27,9 @@ from quatcal_ros import quality
 from quatcal_ros import quaternion as quat
 from quatcal_ros.leastsq import least_squares_rotation, MotionSystem
 from quatcal_ros.motions import Motions, pair_indices, SampleRotations
+from quatcal_ros.refine import refine
 from quatcal_ros.solver import DegenerateMotionError, solve_two_motions
+from quatcal_ros.translation import SamplePositions, solve_translation
 
 # Quantile of the chi distribution with 3 degrees of freedom at 99.9 %: a sample whose residual
 # angle exceeds 4.03 sigma is an outlier with 0.1 % false alarms.
@@ -61,6 +63,31 @@ class CalibrationOptions:
     min_axis_spread_deg: float = 2.0    # motion axes closer to parallel than this: Case 1
     hypotheses: int = 32                # consensus-search trials (P(all bad) ~ 1e-15)
     seed: int = 0                       # fixed, so the same data always give the same answer
+    method: str = 'refined'             # or 'closed-form' (Chou-Kamel + closed-form translation)
+
+
+METHODS = ('refined', 'closed-form')
+# The joint refinement needs enough samples to estimate both noise levels (6 unknowns each
+# for the mounting and the object, 6 residuals per sample).
+MIN_REFINE_SAMPLES = 6
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One estimate of the mounting: rotation (w, x, y, z), translation (m), uncertainties."""
+
+    quaternion: np.ndarray
+    translation: np.ndarray
+    uncertainty_deg: float
+    translation_uncertainty_mm: float
+
+    def to_json_dict(self):
+        """Return rotation {x, y, z, w}, translation {x, y, z} and the uncertainties."""
+        x, y, z, w = quat.xyzw_from_wxyz(self.quaternion)
+        return {'rotation': {'x': float(x), 'y': float(y), 'z': float(z), 'w': float(w)},
+                'translation': dict(zip('xyz', (float(v) for v in self.translation))),
+                'uncertainty_deg': _finite_or_none(self.uncertainty_deg),
+                'translation_uncertainty_mm': _finite_or_none(self.translation_uncertainty_mm)}
 
 
 @dataclass(frozen=True)
@@ -84,6 +111,12 @@ class CalibrationResult:
     rejected: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
     motion_residuals_deg: np.ndarray = None   # per inlier motion
+    translation: np.ndarray = None  # (3,) metres, of the published estimate
+    translation_uncertainty_mm: float = float('nan')
+    translation_noise_mm: float = float('nan')   # per-axis noise of one sample's position
+    method: str = 'closed-form'     # which estimate the top-level fields hold
+    closed_form: Estimate = None    # Chou-Kamel rotation and closed-form translation
+    refined: Estimate = None        # the joint refinement, when it ran
 
     def to_json_dict(self):
         """Return the JSON object of DESIGN.md contract 3 (plus extra keys, never renamed)."""
@@ -105,6 +138,12 @@ class CalibrationResult:
             'excitation': self.excitation,
             'weakest_axis': [float(v) for v in self.weakest_axis],
             'hint': self.hint,
+            'translation': dict(zip('xyz', (float(v) for v in self.translation))),
+            'translation_uncertainty_mm': _finite_or_none(self.translation_uncertainty_mm),
+            'translation_noise_mm': _finite_or_none(self.translation_noise_mm),
+            'method': self.method,
+            'closed_form': self.closed_form.to_json_dict(),
+            'refined': self.refined.to_json_dict() if self.refined else None,
         }
 
 
@@ -171,8 +210,8 @@ def _solve(samples, options):
     warnings = convention_warnings(samples, options) if _suspicious(fit, q_z) else []
     rejected = (_rejected_motions(motions, usable, sample_ok, limit, options)
                 + _rejected_samples(rotations, q_z, sample_ok, motions))
-    result = _result(rotations, q_z, fit, info, sample_ok, len(motions), rejected, warnings,
-                     options)
+    result = _result(samples, rotations, q_z, fit, info, sample_ok, len(motions), rejected,
+                     warnings, options)
     threshold = (_outlier_threshold(np.linalg.norm(
         quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok], axis=1))
         if options.robust else np.inf)
@@ -330,22 +369,54 @@ def _parent_frame(options):
     return 'link' if options.setup == 'eye_in_hand' else 'base'
 
 
-def _result(rotations, q_z, fit, info, sample_ok, motion_count, rejected, warnings, options):
+def _result(samples, rotations, q_z, fit, info, sample_ok, motion_count, rejected, warnings,
+            options):
     residuals = quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok]
     sigma = quality.noise_sigma(residuals)
     covariance = info.covariance(sigma)
     ratio, axis = info.excitation()
-    motion_residuals = np.degrees(fit.residual_angles(q_z))
+    positions = SamplePositions.from_samples(samples, rotations)
+    translation = solve_translation(rotations, positions, q_z, info, fit.i, fit.j, sample_ok,
+                                    covariance)
+    closed = Estimate(q_z, translation.translation, quality.uncertainty_deg(covariance),
+                      translation.uncertainty_mm)
+    refined, noise_deg, noise_mm = None, np.degrees(sigma), 1e3 * translation.noise_m
+    warnings = list(warnings)
+    if options.method == 'refined' and np.sum(sample_ok) >= MIN_REFINE_SAMPLES:
+        refinement = refine(rotations.link[sample_ok], positions.link[sample_ok],
+                            rotations.sensor[sample_ok], positions.sensor[sample_ok],
+                            q_z, translation.translation)
+        if _plausible(refinement, closed):
+            refined = Estimate(refinement.quaternion, refinement.translation,
+                               refinement.uncertainty_deg,
+                               refinement.translation_uncertainty_mm)
+            noise_deg, noise_mm = refinement.rotation_noise_deg, refinement.translation_noise_mm
+        else:
+            warnings.append('the joint refinement did not converge to a plausible answer: '
+                            'the closed-form estimate is published instead')
+    published = refined or closed
+    motion_residuals = np.degrees(fit.residual_angles(published.quaternion))
     return CalibrationResult(
-        quaternion=q_z, matrix=quat.matrix_from_quaternion(q_z),
+        quaternion=published.quaternion, matrix=quat.matrix_from_quaternion(published.quaternion),
         samples=len(rotations), motions=motion_count, inliers=len(fit),
         inlier_samples=int(np.sum(sample_ok)),
         residual_rms_deg=float(np.sqrt(np.mean(motion_residuals ** 2))),
-        uncertainty_deg=quality.uncertainty_deg(covariance),
-        noise_deg=float(np.degrees(sigma)), excitation=ratio, weakest_axis=axis,
+        uncertainty_deg=published.uncertainty_deg,
+        noise_deg=float(noise_deg), excitation=ratio, weakest_axis=axis,
         hint=quality.next_motion_hint(ratio, axis, _parent_frame(options)),
         setup=options.setup, pairs=options.pairs, rejected=rejected, warnings=warnings,
-        motion_residuals_deg=motion_residuals)
+        motion_residuals_deg=motion_residuals, translation=published.translation,
+        translation_uncertainty_mm=published.translation_uncertainty_mm,
+        translation_noise_mm=float(noise_mm), method='refined' if refined else 'closed-form',
+        closed_form=closed, refined=refined)
+
+
+def _plausible(refinement, closed):
+    """Whether the refinement converged near the closed form (within 10 of its sigmas)."""
+    moved = np.degrees(quat.angle_between(refinement.quaternion, closed.quaternion))
+    limit = 10.0 * max(closed.uncertainty_deg, 0.01) + 1.0
+    return bool(refinement.converged and np.all(np.isfinite(refinement.quaternion))
+                and moved < limit)
 
 
 # --- frame-convention check -------------------------------------------------------------
@@ -479,7 +550,8 @@ class Calibrator:
             fit = Motions.concatenate(fit, new)
         info = quality.Information.of(quat.matrix_from_quaternion(rotations.link), fit.i, fit.j)
         motion_count = old.motion_count + (k if self.options.pairs == 'all' else 1)
-        result = _result(rotations, q_z, fit, info, sample_ok, motion_count, rejected,
+        result = _result(self.samples, rotations, q_z, fit, info, sample_ok, motion_count,
+                         rejected,
                          old.result.warnings, self.options)
         self._solution = replace(old, result=result, rotations=rotations, fit=fit,
                                  system=system, sample_ok=sample_ok, motion_count=motion_count,

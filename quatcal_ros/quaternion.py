@@ -29,8 +29,12 @@ def xyzw_from_wxyz(q_wxyz):
 
 def skew(v):
     """Return the cross-product matrix of eq. (9): its product with b is the cross product."""
-    x, y, z = v
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    v = np.asarray(v, dtype=float)
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    zero = np.zeros_like(x)
+    return np.stack([np.stack([zero, -z, y], -1),
+                     np.stack([z, zero, -x], -1),
+                     np.stack([-y, x, zero], -1)], -2)
 
 
 def multiply(a, b):
@@ -107,11 +111,7 @@ def matrix_from_quaternion(p):
     e0 = p[..., 0, None, None]
     e = p[..., 1:]
     outer = e[..., :, None] * e[..., None, :]
-    x, y, z = e[..., 0], e[..., 1], e[..., 2]
-    zero = np.zeros_like(x)
-    skew_e = np.stack([np.stack([zero, -z, y], -1),
-                       np.stack([z, zero, -x], -1),
-                       np.stack([-y, x, zero], -1)], -2)
+    skew_e = skew(e)
     dot = np.sum(e * e, axis=-1)[..., None, None]
     return (e0 * e0 - dot) * np.eye(3) + 2.0 * (outer + e0 * skew_e)
 

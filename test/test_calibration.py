@@ -1,4 +1,9 @@
-"""Least squares, robustness and quality figures on synthetic cells with known answers."""
+"""
+Least squares, robustness and quality figures on synthetic cells with known answers.
+
+Most tests here check the paper's method and its least-squares extension, so they ask for
+method='closed-form' (CLOSED); the joint refinement is tested at the end with translation noise.
+"""
 
 import numpy as np
 import pytest
@@ -10,6 +15,9 @@ from quatcal_ros.leastsq import MotionSystem
 from quatcal_ros.motions import Motions, pair_indices, SampleRotations
 from quatcal_ros.pose import Pose, Sample
 from quatcal_ros.solver import DegenerateMotionError
+
+
+CLOSED = CalibrationOptions(method='closed-form')
 
 
 def error_deg(result, cell):
@@ -28,7 +36,8 @@ def synthetic(seed, n, setup='eye_in_hand', **noise):
 def test_noise_free_cells_are_recovered_to_rounding(setup, pairs):
     for seed in range(20):
         cell, samples, _ = synthetic(seed, 8, setup)
-        result = calibrate(samples, CalibrationOptions(setup=setup, pairs=pairs))
+        options = CalibrationOptions(setup=setup, pairs=pairs, method='closed-form')
+        result = calibrate(samples, options)
         # float64 rounding through ~10 products and an eigen-solve: 1e-9 deg is ~1e-11 rad.
         assert error_deg(result, cell) < 1e-9
         assert result.inlier_samples == 8
@@ -41,7 +50,7 @@ def test_noise_level_sets_the_error_and_the_uncertainty_is_honest():
     for seed in range(200):
         noise = [0.1, 0.5, 1.0][seed % 3]
         cell, samples, _ = synthetic(1000 + seed, 10 + seed % 20, rotation_noise_deg=noise)
-        result = calibrate(samples)
+        result = calibrate(samples, CLOSED)
         errors.append(error_deg(result, cell))
         uncertainties.append(result.uncertainty_deg)
         # The noise estimate recovers the simulated per-axis noise (3N - 6 dof, N >= 10).
@@ -54,7 +63,7 @@ def test_uncertainty_is_honest_for_consecutive_pairs_too():
     errors, uncertainties = [], []
     for seed in range(200):
         cell, samples, _ = synthetic(3000 + seed, 12, rotation_noise_deg=0.5)
-        result = calibrate(samples, CalibrationOptions(pairs='consecutive'))
+        result = calibrate(samples, CalibrationOptions(pairs='consecutive', method='closed-form'))
         errors.append(error_deg(result, cell))
         uncertainties.append(result.uncertainty_deg)
     ratio = np.sqrt(np.mean(np.square(errors))) / np.sqrt(np.mean(np.square(uncertainties)))
@@ -65,9 +74,9 @@ def test_all_pairs_beat_consecutive_pairs():
     all_errors, consecutive_errors = [], []
     for seed in range(60):
         cell, samples, _ = synthetic(5000 + seed, 15, rotation_noise_deg=0.5)
-        all_errors.append(error_deg(calibrate(samples), cell))
-        consecutive_errors.append(
-            error_deg(calibrate(samples, CalibrationOptions(pairs='consecutive')), cell))
+        all_errors.append(error_deg(calibrate(samples, CLOSED), cell))
+        consecutive_errors.append(error_deg(calibrate(samples, CalibrationOptions(
+            pairs='consecutive', method='closed-form')), cell))
     assert np.median(all_errors) < np.median(consecutive_errors)
 
 
@@ -75,12 +84,12 @@ def test_flipped_marker_samples_are_rejected_as_samples():
     for seed in range(30):
         cell, samples, outliers = synthetic(7000 + seed, 30, rotation_noise_deg=0.5,
                                             outlier_fraction=0.1)
-        result = calibrate(samples)
+        result = calibrate(samples, CLOSED)
         rejected = sorted(r['sample'] for r in result.rejected if 'sample' in r)
         assert set(outliers) <= set(rejected)
         # chi-3 test at 99.9 %: a false alarm now and then, never a crowd of them.
         assert len(rejected) <= len(outliers) + 2
-        clean = calibrate([s for i, s in enumerate(samples) if i not in outliers])
+        clean = calibrate([s for i, s in enumerate(samples) if i not in outliers], CLOSED)
         assert error_deg(result, cell) < 3.0 * max(clean.uncertainty_deg, 0.05)
         assert all('marker flip' in r['reason'] for r in result.rejected if 'sample' in r)
 
@@ -88,8 +97,8 @@ def test_flipped_marker_samples_are_rejected_as_samples():
 def test_without_robustness_outliers_spoil_the_estimate():
     cell, samples, outliers = synthetic(8000, 30, rotation_noise_deg=0.5, outlier_fraction=0.1)
     assert outliers
-    plain = calibrate(samples, CalibrationOptions(robust=False))
-    robust = calibrate(samples)
+    plain = calibrate(samples, CalibrationOptions(robust=False, method='closed-form'))
+    robust = calibrate(samples, CLOSED)
     assert error_deg(plain, cell) > 5.0 * error_deg(robust, cell)
 
 
@@ -212,3 +221,47 @@ def test_incremental_updates_agree_with_the_full_solve_and_reject_flips():
     assert late, 'the draw must put an outlier on the incremental path'
     rejected = {r['sample'] for r in calibrator.result.rejected if 'sample' in r}
     assert set(late) <= rejected
+
+
+def test_refinement_is_honest_and_beats_the_closed_form_with_translations():
+    """Rotation and translation: RMS true error / RMS reported within [0.7, 1.3]."""
+    rows = {'rot': [], 'rot_unc': [], 'trans': [], 'trans_unc': [], 'closed': []}
+    for seed in range(200):
+        noise = [0.1, 0.5, 1.0][seed % 3]
+        cell, samples, _ = synthetic(11000 + seed, 10 + seed % 20, rotation_noise_deg=noise,
+                                     translation_noise_m=0.001)
+        result = calibrate(samples)
+        assert result.method == 'refined' and result.refined is not None
+        rows['rot'].append(error_deg(result, cell))
+        rows['rot_unc'].append(result.uncertainty_deg)
+        rows['trans'].append(1e3 * np.linalg.norm(result.translation - cell.mounting.position))
+        rows['trans_unc'].append(result.translation_uncertainty_mm)
+        rows['closed'].append(np.degrees(quat.angle_between(result.closed_form.quaternion,
+                                                            cell.mounting.quaternion)))
+    rms = {key: np.sqrt(np.mean(np.square(values))) for key, values in rows.items()}
+    assert 0.7 <= rms['rot'] / rms['rot_unc'] <= 1.3
+    assert 0.7 <= rms['trans'] / rms['trans_unc'] <= 1.3
+    assert np.median(rows['rot']) < 0.7 * np.median(rows['closed'])
+
+
+def test_closed_form_translation_is_honest():
+    errors, uncertainties = [], []
+    for seed in range(200):
+        cell, samples, _ = synthetic(12000 + seed, 10 + seed % 20, rotation_noise_deg=0.5,
+                                     translation_noise_m=0.001)
+        result = calibrate(samples, CLOSED)
+        errors.append(1e3 * np.linalg.norm(result.translation - cell.mounting.position))
+        uncertainties.append(result.translation_uncertainty_mm)
+    ratio = np.sqrt(np.mean(np.square(errors))) / np.sqrt(np.mean(np.square(uncertainties)))
+    assert 0.7 <= ratio <= 1.3
+
+
+@pytest.mark.parametrize('setup', ['eye_in_hand', 'eye_to_hand'])
+def test_noise_free_translation_is_exact(setup):
+    for seed in range(10):
+        cell, samples, _ = synthetic(seed, 8, setup)
+        for method in ('closed-form', 'refined'):
+            result = calibrate(samples, CalibrationOptions(setup=setup, method=method))
+            # Rounding only: positions of ~1 m through a few products and solves.
+            np.testing.assert_allclose(result.translation, cell.mounting.position, atol=1e-9)
+            assert error_deg(result, cell) < 1e-7

@@ -36,6 +36,9 @@ def test_moveit_eye_to_hand_reproduces_the_published_rotation(moveit_samples):
                                             quat.from_axis_angle([0, 1, 0], -2.540)),
                               quat.from_axis_angle([0, 0, 1], 1.950))
     assert np.degrees(quat.angle_between(result.quaternion, reference)) < 0.5
+    # Translation (0.659, -0.249, 0.830) m, printed to the millimetre: within 5 mm (issue 6).
+    assert np.linalg.norm(result.translation - [0.659, -0.249, 0.830]) < 0.005
+    assert result.method == 'refined'
     assert result.residual_rms_deg < 0.5
     assert result.inlier_samples >= 45
     assert not result.warnings

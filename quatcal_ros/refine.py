@@ -1,0 +1,147 @@
+"""
+Joint maximum-likelihood refinement of the whole mounting over the absolute poses.
+
+Motion-based methods (the paper's, OpenCV's) use only what pairs of samples say, and the
+rotation-only ones ignore what the translations say about the rotation. Here every sample
+is compared with one model: the object is fixed, so for sample i (link poses inverted for
+eye-to-hand, as in motions.py)
+    S_i = inv(X) inv(L_i) O
+with X the mounting and O the object pose in the base (eye-to-hand: link) frame. The 12
+unknowns (X, O) minimise the squared rotation residuals (radians, sensor frame) over
+sigma_r^2 plus the translation residuals (metres) over sigma_t^2. The two noise levels are
+re-estimated from the residuals themselves, and a soft-L1 loss tames what outliers survived
+the rotation stage. scipy.optimize.least_squares does the minimisation; it starts from the
+closed form (Chou-Kamel rotation, closed-form translation), which stays the fallback.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from quatcal_ros import quaternion as quat
+from scipy.optimize import least_squares
+
+# Soft-L1 scale in units of the estimated noise: residuals up to ~3 sigma count fully.
+ROBUST_SCALE = 3.0
+NOISE_ITERATIONS = 3
+# Floors of the noise estimates, so exact synthetic data do not divide by zero.
+MIN_ROTATION_NOISE = 1e-6      # radians
+MIN_TRANSLATION_NOISE = 1e-6   # metres
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """The refined mounting X and object pose O, with their uncertainties."""
+
+    quaternion: np.ndarray          # X rotation (w, x, y, z)
+    translation: np.ndarray         # X translation, metres
+    object_quaternion: np.ndarray
+    object_translation: np.ndarray
+    rotation_noise_deg: float       # estimated per-axis noise of one sensor orientation
+    translation_noise_mm: float     # estimated per-axis noise of one sensor position
+    uncertainty_deg: float          # expected RMS error angle of X's rotation
+    translation_uncertainty_mm: float
+    converged: bool
+
+
+def predicted_sensor_poses(link_q, link_t, x_q, x_t, o_q, o_t):
+    """Return S_i = inv(X) inv(L_i) O as (N, 4) quaternions and (N, 3) positions."""
+    q = quat.multiply(quat.conjugate(link_q), o_q)
+    t = quat.rotate(quat.conjugate(link_q), o_t - link_t)
+    return (quat.multiply(quat.conjugate(x_q), q),
+            quat.rotate(quat.conjugate(x_q), t - x_t))
+
+
+def residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t):
+    """Compare measured and predicted sensor poses: rotation (rad) and position (m) errors."""
+    pred_q, pred_t = predicted_sensor_poses(link_q, link_t, x_q, x_t, o_q, o_t)
+    rotation = quat.rotation_vector(quat.multiply(quat.conjugate(pred_q), sensor_q))
+    return rotation, sensor_t - pred_t
+
+
+def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
+    """
+    Refine the mounting (x_q, x_t) over samples (link_q, link_t, sensor_q, sensor_t).
+
+    All inputs are arrays of the samples to use (inliers of the rotation stage), link poses
+    already inverted for eye-to-hand. Returns a Refinement.
+    """
+    o_q, o_t = _object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t)
+    n = len(link_q)
+    sigma_r, sigma_t = _noise(*residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q,
+                                         o_t), n)
+    x = np.zeros(12)
+    converged = True
+    for _ in range(NOISE_ITERATIONS):
+        def cost(p, sigma_r=sigma_r, sigma_t=sigma_t):
+            model = _unpack(p, x_q, x_t, o_q, o_t)
+            r, t = residuals(link_q, link_t, sensor_q, sensor_t, *model)
+            return np.concatenate([(r / sigma_r).ravel(), (t / sigma_t).ravel()])
+
+        def jacobian(p, sigma_r=sigma_r, sigma_t=sigma_t):
+            return _jacobian(link_q, link_t, *_unpack(p, x_q, x_t, o_q, o_t), sigma_r, sigma_t)
+        fit = least_squares(cost, x, jac=jacobian, loss='soft_l1', f_scale=ROBUST_SCALE,
+                            x_scale='jac')
+        x = fit.x
+        converged = converged and fit.success
+        sigma_r, sigma_t = _noise(*residuals(link_q, link_t, sensor_q, sensor_t,
+                                             *_unpack(x, x_q, x_t, o_q, o_t)), n)
+    covariance = _covariance(fit.jac)
+    X_q, X_t, O_q, O_t = _unpack(x, x_q, x_t, o_q, o_t)
+    return Refinement(
+        quaternion=quat.canonical(X_q), translation=X_t, object_quaternion=O_q,
+        object_translation=O_t, rotation_noise_deg=float(np.degrees(sigma_r)),
+        translation_noise_mm=float(1e3 * sigma_t),
+        uncertainty_deg=float(np.degrees(np.sqrt(max(np.trace(covariance[:3, :3]), 0.0)))),
+        translation_uncertainty_mm=float(
+            1e3 * np.sqrt(max(np.trace(covariance[3:6, 3:6]), 0.0))),
+        converged=bool(converged))
+
+
+def _unpack(p, x_q, x_t, o_q, o_t):
+    """Return X and O for parameters p: rotation vectors applied on the left, translations."""
+    return (quat.multiply(quat.from_rotation_vector(p[0:3]), x_q), x_t + p[3:6],
+            quat.multiply(quat.from_rotation_vector(p[6:9]), o_q), o_t + p[9:12])
+
+
+def _jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t):
+    """
+    Return the whitened residual Jacobian (6N x 12) for left perturbations a, b of X, O.
+
+    With M = inv(L) O and w = R_L^T (t_O - t_L) - t_X (the object seen from the link, minus
+    the mounting offset), to first order:
+        rotation residual:     d/da = R_M^T,  d/db = -R_O^T
+        translation residual:  d/da = -R_X^T skew(w),  d/dt_X = R_X^T,  d/dt_O = -R_X^T R_L^T
+    """
+    n = len(link_q)
+    R_L = quat.matrix_from_quaternion(link_q)
+    R_X = quat.matrix_from_quaternion(x_q)
+    R_O = quat.matrix_from_quaternion(o_q)
+    w = np.einsum('nji,nj->ni', R_L, o_t - link_t) - x_t
+    J = np.zeros((2, n, 3, 12))
+    J[0, :, :, 0:3] = np.einsum('ji,njk->nik', R_O, R_L)
+    J[0, :, :, 6:9] = -R_O.T
+    J[1, :, :, 0:3] = -np.einsum('ji,njk->nik', R_X, quat.skew(w))
+    J[1, :, :, 3:6] = R_X.T
+    J[1, :, :, 9:12] = -np.einsum('ji,nkj->nik', R_X, R_L)
+    J[0] /= sigma_r
+    J[1] /= sigma_t
+    return J.reshape(6 * n, 12)
+
+
+def _object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
+    """Return the mean object pose O = L_i X S_i over the samples."""
+    q = quat.multiply(quat.multiply(link_q, x_q), sensor_q)
+    t = link_t + quat.rotate(link_q, x_t + quat.rotate(x_q, sensor_t))
+    return quat.average(q), t.mean(axis=0)
+
+
+def _noise(rotation, translation, n):
+    """Return per-axis noise estimates: 3N residuals each, 12 unknowns shared between them."""
+    dof = max(3 * n - 6, 1)
+    return (max(float(np.sqrt(np.sum(rotation ** 2) / dof)), MIN_ROTATION_NOISE),
+            max(float(np.sqrt(np.sum(translation ** 2) / dof)), MIN_TRANSLATION_NOISE))
+
+
+def _covariance(jacobian):
+    """Return the Gauss-Newton covariance (J^T J)^-1 of the whitened problem."""
+    return np.linalg.pinv(jacobian.T @ jacobian)
