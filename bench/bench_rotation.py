@@ -1,11 +1,12 @@
 #!/usr/bin/env python3
 """
-Rotation accuracy and speed against OpenCV's calibrateHandEye, on the same synthetic cells.
+Mounting accuracy and speed against OpenCV's calibrateHandEye, on the same synthetic cells.
 
 Every row draws `--trials` eye-in-hand cells (quatcal_ros.simulation) with the given number of
 samples, sensor rotation noise (per axis, degrees), 1 mm sensor translation noise and an
 optional 10 % of flipped-marker outliers; each method solves the same samples.  Printed: the
-median and 95th percentile of the rotation error (degrees) and the median time per solve.
+median and 95th percentile of the rotation error (degrees), the same of the translation error
+(millimetres) and the median time per solve.
 Run: python bench/bench_rotation.py [--trials N] [--quick]
 """
 
@@ -27,8 +28,9 @@ OPENCV_METHODS = {
     'DANIILIDIS': cv2.CALIB_HAND_EYE_DANIILIDIS,
 }
 OURS = {
-    'ours (robust)': CalibrationOptions(),
-    'ours (LSQ)': CalibrationOptions(robust=False),
+    'ours refined': CalibrationOptions(),
+    'ours closed-form': CalibrationOptions(method='closed-form'),
+    'ours LSQ': CalibrationOptions(method='closed-form', robust=False),
 }
 TRANSLATION_NOISE_M = 0.001
 
@@ -39,12 +41,13 @@ def solve_opencv(samples, method):
     t_g2b = [s.link.position.reshape(3, 1) for s in samples]
     R_t2c = [s.sensor.rotation for s in samples]
     t_t2c = [s.sensor.position.reshape(3, 1) for s in samples]
-    R, _ = cv2.calibrateHandEye(R_g2b, t_g2b, R_t2c, t_t2c, method=method)
-    return quat.quaternion_from_matrix(R)
+    R, t = cv2.calibrateHandEye(R_g2b, t_g2b, R_t2c, t_t2c, method=method)
+    return quat.quaternion_from_matrix(R), t.ravel()
 
 
 def solve_ours(samples, options):
-    return calibrate(samples, options).quaternion
+    result = calibrate(samples, options)
+    return result.quaternion, result.translation
 
 
 def timed(function, *args):
@@ -57,6 +60,7 @@ def run_row(n, noise_deg, outliers, trials, seed):
     methods = {name: (solve_ours, options) for name, options in OURS.items()}
     methods.update({name: (solve_opencv, flag) for name, flag in OPENCV_METHODS.items()})
     errors = {name: [] for name in methods}
+    translation_errors = {name: [] for name in methods}
     times = {name: [] for name in methods}
     for trial in range(trials):
         rng = np.random.default_rng([seed, n, int(noise_deg * 10), int(outliers * 100), trial])
@@ -66,21 +70,24 @@ def run_row(n, noise_deg, outliers, trials, seed):
                                         outlier_fraction=outliers)
         for name, (solve, how) in methods.items():
             try:
-                q, seconds = timed(solve, samples, how)
+                (q, t), seconds = timed(solve, samples, how)
                 error = np.degrees(quat.angle_between(q, cell.mounting.quaternion))
+                translation_error = 1e3 * np.linalg.norm(t - cell.mounting.position)
             except (cv2.error, ValueError):
-                error, seconds = 180.0, np.nan
+                error, translation_error, seconds = 180.0, 1e6, np.nan   # failed: worst
             errors[name].append(error)
+            translation_errors[name].append(translation_error)
             times[name].append(seconds)
-    return errors, times
+    return errors, translation_errors, times
 
 
-def print_table(rows):
+def print_table(rows, digits=3):
     names = list(rows[0][3].keys())
     print('| samples | noise (deg) | outliers | ' + ' | '.join(names) + ' |')
     print('|---|---|---|' + '---|' * len(names))
     for n, noise, outliers, errors in rows:
-        cells = [f'{np.median(e):.3f} / {np.percentile(e, 95):.3f}' for e in errors.values()]
+        cells = [f'{np.median(e):.{digits}f} / {np.percentile(e, 95):.{digits}f}'
+                 for e in errors.values()]
         print(f'| {n} | {noise} | {int(outliers * 100)} % | ' + ' | '.join(cells) + ' |')
 
 
@@ -101,13 +108,15 @@ def main():
     args = parser.parse_args()
     trials = 10 if args.quick else args.trials
     sizes = (10, 50) if args.quick else (10, 20, 50, 200)
-    rows, time_rows = [], []
+    rows, translation_rows, time_rows = [], [], []
     for n in sizes:
         all_times = None
         for outliers in (0.0, 0.1):
             for noise in (0.1, 0.5, 1.0):
-                errors, times = run_row(n, noise, outliers, trials, args.seed)
+                errors, translation_errors, times = run_row(n, noise, outliers, trials,
+                                                            args.seed)
                 rows.append((n, noise, outliers, errors))
+                translation_rows.append((n, noise, outliers, translation_errors))
                 if all_times is None:
                     all_times = {k: list(v) for k, v in times.items()}
                 else:
@@ -115,8 +124,11 @@ def main():
                         all_times[k] += v
         time_rows.append((n, all_times))
     print(f'Rotation error, degrees: median / 95th percentile ({trials} cells per row, '
-          f'sensor translation noise {TRANSLATION_NOISE_M * 1e3:g} mm)\n')
+          f'sensor rotation noise as listed, translation noise '
+          f'{TRANSLATION_NOISE_M * 1e3:g} mm)\n')
     print_table(rows)
+    print('\nTranslation error, millimetres: median / 95th percentile (same cells)\n')
+    print_table(translation_rows, digits=2)
     print('\nMedian time per solve, milliseconds (all rows of that size)\n')
     print_times(time_rows)
 
