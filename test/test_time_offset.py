@@ -1,0 +1,67 @@
+"""Time offset between the robot and sensor streams: synthetic known offsets and the ETH data."""
+
+import numpy as np
+from quatcal_ros import quaternion as quat
+from quatcal_ros import simulation
+from quatcal_ros.calibration import CalibrationOptions
+from quatcal_ros.capture import CaptureConfig
+from quatcal_ros.pose import Pose
+from quatcal_ros.session import SessionConfig
+from quatcal_ros.time_offset import estimate_time_offset
+from quatcal_ros.time_offset import find_time_offset
+from quatcal_ros.time_offset import refine_time_offset
+import pytest
+
+MS = 1_000_000
+
+
+@pytest.fixture(scope='module')
+def streams():
+    rng = np.random.default_rng(3)
+    cell = simulation.random_cell(rng)
+    return simulation.stop_and_go_streams(rng, cell, 12, rotation_noise_deg=0.3,
+                                          translation_noise_m=0.001, latency_s=0.03)
+
+
+def arrays(stream):
+    return np.array([s for s, _ in stream]), np.array([p.quaternion for _, p in stream])
+
+
+@pytest.mark.parametrize('late_ms', [0, 40, -70, 200])
+def test_cross_correlation_finds_a_known_offset(streams, late_ms):
+    link_stamps, link_q = arrays(streams.link)
+    sensor_stamps, sensor_q = arrays(streams.sensor)
+    found = estimate_time_offset(link_stamps, link_q, sensor_stamps + late_ms * MS, sensor_q)
+    # A 200 Hz grid with parabolic peak interpolation, 30 Hz frames with 0.3 deg noise: the
+    # peak lands within a few ms (measured 2-4 ms); 8 ms leaves room.
+    assert abs(found.offset_ns + late_ms * MS) < 8 * MS
+    assert found.correlation > 0.8
+
+
+def test_refinement_minimises_the_given_residual():
+    assert abs(refine_time_offset(lambda t: (t - 12 * MS) ** 2, 0) - 12 * MS) < MS
+
+
+def test_too_short_an_overlap_is_refused(streams):
+    link_stamps, link_q = arrays(streams.link[:200])
+    sensor_stamps, sensor_q = arrays(streams.sensor[:12])
+    with pytest.raises(ValueError, match='overlap'):
+        estimate_time_offset(link_stamps, link_q, sensor_stamps, sensor_q)
+
+
+def test_eth_recording_offset_and_residuals(shared_dir):
+    folder = shared_dir / 'datasets' / 'ethz_robot_arm_real'
+
+    def load(name):
+        rows = np.loadtxt(folder / name, delimiter=',')
+        stamps = np.rint(rows[:, 0] * 1e9).astype(np.int64)
+        return [(int(s), Pose(r[1:4], quat.wxyz_from_xyzw(r[4:8]))) for s, r in zip(stamps, rows)]
+    config = SessionConfig(capture=CaptureConfig(mode='continuous', continuous_step_deg=10.0),
+                           calibration=CalibrationOptions(invert_sensor=True))
+    report, session = find_time_offset(load('link_hinge_in_base.csv'),
+                                       load('ir_camera_in_target.csv'), config)
+    # Measured here: the camera stamps are about 22 ms late (offset -22 ms), and applying the
+    # offset lowers the RMS residual from 0.82 to 0.74 deg.
+    assert -40 * MS < report.offset_ns < -5 * MS
+    assert report.residual_with_deg < report.residual_without_deg
+    assert session.result is not None and session.result.residual_rms_deg < 1.0
