@@ -1,6 +1,7 @@
 """Time offset between the robot and sensor streams: synthetic known offsets and the ETH data."""
 
 import numpy as np
+import pytest
 from quatcal_ros import quaternion as quat
 from quatcal_ros import simulation
 from quatcal_ros.calibration import CalibrationOptions
@@ -10,7 +11,6 @@ from quatcal_ros.session import SessionConfig
 from quatcal_ros.time_offset import estimate_time_offset
 from quatcal_ros.time_offset import find_time_offset
 from quatcal_ros.time_offset import refine_time_offset
-import pytest
 
 MS = 1_000_000
 
