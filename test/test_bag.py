@@ -1,0 +1,228 @@
+"""Tests of quatcal_ros.bag: reading rosbag2 recordings and replaying them into a Session."""
+
+import numpy as np
+from numpy.testing import assert_allclose
+import pytest
+
+from quatcal_ros import bag, conversions
+from quatcal_ros import quaternion as quat
+from quatcal_ros import simulation as sim
+from quatcal_ros.bag import Bag, BagError, PoseInput, Replay, TYPESTORE, write_bag
+from quatcal_ros.pose import Pose
+from quatcal_ros.session import Session
+from rosbags.rosbag2 import Writer
+
+POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+TRANSFORM_STAMPED = 'geometry_msgs/msg/TransformStamped'
+TOPICS = {'/link': POSE_STAMPED, '/sensor': POSE_STAMPED}
+MS = 1_000_000
+
+
+@pytest.fixture(scope='module')
+def streams():
+    rng = np.random.default_rng(40)
+    cell = sim.random_cell(rng)
+    return sim.stop_and_go_streams(rng, cell, 6, link_rate_hz=200.0, rotation_noise_deg=0.2,
+                                   translation_noise_m=0.001)
+
+
+def pose_messages(streams, link_type=POSE_STAMPED):
+    """(topic, log time, message) of both streams, in log-time order (sensor frames late)."""
+    if link_type == POSE_STAMPED:
+        link = [('/link', stamp + MS, conversions.pose_stamped_msg(pose, stamp, 'base',
+                                                                   typestore=TYPESTORE))
+                for stamp, pose in streams.link]
+    else:
+        link = [('/link', stamp + MS, conversions.transform_stamped_msg(
+            pose, stamp, 'base', 'tool0', typestore=TYPESTORE)) for stamp, pose in streams.link]
+    sensor = [('/sensor', delivered, conversions.pose_stamped_msg(pose, stamp, 'camera',
+                                                                  typestore=TYPESTORE))
+              for (stamp, pose), delivered in zip(streams.sensor, streams.sensor_delivery_ns)]
+    return sorted(link + sensor, key=lambda message: message[1])
+
+
+@pytest.fixture(scope='module')
+def pose_bag(tmp_path_factory, streams):
+    path = tmp_path_factory.mktemp('bags') / 'poses'
+    write_bag(path, TOPICS, pose_messages(streams))
+    return path
+
+
+def replay(path, link='/link', sensor='/sensor', session=None, **options):
+    session = session or Session()
+    with Bag(path) as recording:
+        report = Replay(recording, PoseInput(link), PoseInput(sensor), **options).run(session)
+    return session, report
+
+
+@pytest.mark.parametrize('storage', ['sqlite3', 'mcap'])
+def test_write_and_read_back(tmp_path, streams, storage):
+    messages = pose_messages(streams)
+    write_bag(tmp_path / 'b', TOPICS, messages, storage)
+    with Bag(tmp_path / 'b') as recording:
+        assert recording.topics == {'/link': (POSE_STAMPED, len(streams.link)),
+                                    '/sensor': (POSE_STAMPED, len(streams.sensor))}
+        assert recording.message_count == len(messages)
+        read = list(recording.messages(recording.connections({'/link', '/sensor'})))
+    assert [log_ns for _, log_ns, _ in read] == [log_ns for _, log_ns, _ in messages]
+    first = TYPESTORE.deserialize_cdr(read[0][2], POSE_STAMPED)
+    assert conversions.stamp_ns_from_header(first.header) == streams.link[0][0]
+
+
+def test_replay_is_the_session_fed_in_log_order(pose_bag, streams):
+    """No second pipeline: the replay gives what the same poses fed by hand give."""
+    session, report = replay(pose_bag)
+    by_hand = Session()
+    fed = [(stamp + MS, 0, stamp, pose) for stamp, pose in streams.link]
+    fed += [(delivered, 1, stamp, pose)
+            for (stamp, pose), delivered in zip(streams.sensor, streams.sensor_delivery_ns)]
+    for _, stream, stamp, pose in sorted(fed, key=lambda m: m[:2]):
+        (by_hand.add_link_pose if stream == 0 else by_hand.add_sensor_pose)(stamp, pose)
+    assert session.counters == by_hand.counters
+    assert session.counters['samples'] == 6
+    # Equal but for the last bit of the poses' round trip through messages (renormalised).
+    assert_allclose(session.result.quaternion, by_hand.result.quaternion, atol=1e-12)
+    assert report.messages == len(streams.link) + len(streams.sensor)
+    assert report.warnings() == []
+    assert report.frames == {'link': ('base', None), 'sensor': ('camera', None)}
+    assert report.stamps['sensor'] == [streams.sensor[0][0], streams.sensor[-1][0]]
+
+
+def test_transform_stamped_and_result_frames(tmp_path, streams):
+    write_bag(tmp_path / 'b', {'/link': TRANSFORM_STAMPED, '/sensor': POSE_STAMPED},
+              pose_messages(streams, TRANSFORM_STAMPED), 'mcap')
+    session, report = replay(tmp_path / 'b')
+    assert session.counters['samples'] == 6
+    assert bag.result_frames(report) == ('tool0', 'camera')
+    assert bag.result_frames(report, 'eye_to_hand') == ('base', 'camera')
+    assert bag.result_frames(report, invert_sensor=True) == ('tool0', None)
+
+
+def test_progress_is_reported(pose_bag):
+    seen = []
+    with Bag(pose_bag) as recording:
+        Replay(recording, PoseInput('/link'), PoseInput('/sensor')).run(Session(), seen.append)
+    assert seen and seen == sorted(seen) and not seen[0] % bag.PROGRESS_EVERY
+
+
+def test_bad_messages_are_counted_and_skipped(tmp_path, streams):
+    messages = pose_messages(streams)
+    links = [i for i, m in enumerate(messages) if m[0] == '/link']
+    nan, zero, stamp = links[10], links[20:23], links[30]
+    messages[nan][2].pose.position.x = float('nan')
+    for i in zero:
+        orientation = messages[i][2].pose.orientation
+        orientation.x = orientation.y = orientation.z = orientation.w = 0.0
+    messages[stamp][2].header.stamp.nanosec = 2_000_000_000
+    write_bag(tmp_path / 'b', TOPICS, messages)
+    session, report = replay(tmp_path / 'b')
+    assert report.skipped == {('/link', 'message', 'non_finite, pose.position.x'): 1,
+                              ('/link', 'message', 'zero_quaternion, pose.orientation'): 3,
+                              ('/link', 'message', 'bad_stamp'): 1}
+    warnings = report.warnings()
+    assert '/link: 3 message(s) skipped (zero_quaternion, pose.orientation): ' \
+        'pose.orientation has norm 0' in '\n'.join(warnings)
+    assert session.counters['link_messages'] == len(streams.link) - 5
+    assert session.counters['samples'] == 6
+
+
+def test_undecodable_and_late_messages(tmp_path, streams):
+    path = tmp_path / 'b'
+    with Writer(path, version=8) as writer:
+        link = writer.add_connection('/link', POSE_STAMPED, typestore=TYPESTORE)
+        sensor = writer.add_connection('/sensor', POSE_STAMPED, typestore=TYPESTORE)
+        for topic, log_ns, msg in pose_messages(streams):
+            connection = link if topic == '/link' else sensor
+            writer.write(connection, log_ns, TYPESTORE.serialize_cdr(msg, POSE_STAMPED))
+        writer.write(link, 4 * 10**18, b'\x00\x01not a message')
+        late = conversions.pose_stamped_msg(streams.link[-1][1], streams.link[-1][0] - 20 * MS,
+                                            'base', typestore=TYPESTORE)
+        writer.write(link, 4 * 10**18 + 1, TYPESTORE.serialize_cdr(late, POSE_STAMPED))
+    _, report = replay(path)
+    assert report.skipped[('/link', 'message', 'undecodable')] == 1
+    assert report.rejected == {('link_pose', 'out_of_order'): 1}
+    assert any('1 link_pose message(s) rejected (out_of_order), e.g. stamp 20 ms older' in w
+               for w in report.warnings())
+
+
+def tf_message(transforms):
+    return TYPESTORE.types[bag.TF_TYPE](transforms=transforms)
+
+
+def test_tf_frames_with_static_transforms_anywhere_in_the_bag(tmp_path, streams):
+    """Link pose base_link -> tool0 through a static base_link -> robot_base."""
+    rng = np.random.default_rng(41)
+    mount = Pose(rng.uniform(-1, 1, 3), sim.random_quaternions(rng, 1)[0])
+    messages = [('/tf', stamp + MS, tf_message([conversions.transform_stamped_msg(
+        pose, stamp, '/robot_base', 'tool0', typestore=TYPESTORE)]))
+        for stamp, pose in streams.link]
+    messages += [m for m in pose_messages(streams) if m[0] == '/sensor']
+    static = tf_message([conversions.transform_stamped_msg(mount, 0, 'base_link', 'robot_base',
+                                                           typestore=TYPESTORE)])
+    messages = sorted(messages, key=lambda m: m[1])
+    messages.insert(len(messages) // 2, ('/tf_static', messages[len(messages) // 2][1], static))
+    write_bag(tmp_path / 'b', {'/tf': bag.TF_TYPE, '/tf_static': bag.TF_TYPE,
+                               '/sensor': POSE_STAMPED}, messages, 'mcap')
+    session = Session()
+    with Bag(tmp_path / 'b') as recording:
+        report = Replay(recording, PoseInput(frames=('base_link', 'tool0')),
+                        PoseInput('/sensor')).run(session)
+    assert session.counters['link_messages'] == len(streams.link)
+    assert session.counters['samples'] == 6
+    assert report.frames['link'] == ('base_link', 'tool0')
+    assert report.warnings() == []
+    # A static base frame turns every link pose alike: the motions, so the answer, are kept.
+    error = np.degrees(quat.angle_between(session.result.quaternion, streams.truth.quaternion))
+    assert error < 3 * session.result.uncertainty_deg
+
+
+def test_opening_errors_name_the_file(tmp_path):
+    with pytest.raises(BagError, match='no such file or directory'):
+        Bag(tmp_path / 'missing')
+    (tmp_path / 'dir').mkdir()
+    with pytest.raises(BagError, match='not a rosbag2 directory .no metadata.yaml'):
+        Bag(tmp_path / 'dir')
+    (tmp_path / 'file.txt').write_text('hello')
+    with pytest.raises(BagError, match='file.txt: not a rosbag2 directory'):
+        Bag(tmp_path / 'file.txt')
+    (tmp_path / 'broken').mkdir()
+    (tmp_path / 'broken' / 'metadata.yaml').write_text('rosbag2_bagfile_information: [')
+    with pytest.raises(BagError, match='broken: cannot open the bag'):
+        Bag(tmp_path / 'broken')
+
+
+def test_input_errors_name_the_topic(tmp_path, pose_bag):
+    write_bag(tmp_path / 'empty', TOPICS, [])
+    with Bag(tmp_path / 'empty') as recording:
+        with pytest.raises(BagError, match='holds no messages'):
+            Replay(recording, PoseInput('/link'), PoseInput('/sensor'))
+    with Bag(pose_bag) as recording:
+        with pytest.raises(BagError, match=r'no topic /nope \(link poses\).*\n  /link '
+                                           r'\(geometry_msgs/msg/PoseStamped, \d+ messages\)'):
+            Replay(recording, PoseInput('/nope'), PoseInput('/sensor'))
+        with pytest.raises(BagError, match='both come from topic /link'):
+            Replay(recording, PoseInput('/link'), PoseInput('/link'))
+        with pytest.raises(BagError, match=r'no TF topic \(/tf, /tf_static\)'):
+            Replay(recording, PoseInput(frames=('a', 'b')), PoseInput('/sensor'))
+    string = TYPESTORE.types['std_msgs/msg/String']
+    write_bag(tmp_path / 'chat', {'/chatter': 'std_msgs/msg/String', '/link': POSE_STAMPED,
+                                  '/tf': bag.TF_TYPE},
+              [('/chatter', 1, string(data='hi')), ('/tf', 2, tf_message([]))])
+    with Bag(tmp_path / 'chat') as recording:
+        with pytest.raises(BagError, match='topic /chatter .sensor poses. has type '
+                                           'std_msgs/msg/String'):
+            Replay(recording, PoseInput(frames=('a', 'b')), PoseInput('/chatter'))
+        with pytest.raises(BagError, match=r'topic /link \(link poses\) has no messages'):
+            Replay(recording, PoseInput('/link'), PoseInput(frames=('a', 'b')))
+        with pytest.raises(BagError, match='holds tf2_msgs/TFMessage: give --sensor-frames'):
+            Replay(recording, PoseInput(frames=('a', 'b')), PoseInput('/tf'))
+
+
+def test_damaged_storage_is_a_bag_error(tmp_path, pose_bag, streams):
+    path = tmp_path / 'b'
+    write_bag(path, TOPICS, pose_messages(streams), 'mcap')
+    data = next(path.glob('*.mcap'))
+    data.write_bytes(data.read_bytes()[:len(data.read_bytes()) // 2])
+    with pytest.raises(BagError, match=str(path)):
+        with Bag(path) as recording:
+            Replay(recording, PoseInput('/link'), PoseInput('/sensor')).run(Session())

@@ -1,0 +1,351 @@
+"""`python -m quatcal_ros replay BAG_DIR ...`: DESIGN.md contract 3 on rosbag2 recordings."""
+
+import csv
+import io
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+from numpy.testing import assert_allclose
+import pytest
+
+from quatcal_ros import conversions
+from quatcal_ros import quaternion as quat
+from quatcal_ros import simulation as sim
+from quatcal_ros.bag import TF_TYPE, TYPESTORE, write_bag
+from quatcal_ros.cli import replay_main
+from quatcal_ros.persistence import read_result_yaml
+from quatcal_ros.pose import Pose
+from quatcal_ros.progress import Progress
+from quatcal_ros.samples_csv import read_samples
+from quatcal_ros.session import Session
+
+POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+TRANSFORM_STAMPED = 'geometry_msgs/msg/TransformStamped'
+MS = 1_000_000
+
+
+def run_replay(repo_root, *args):
+    env = dict(os.environ, PYTHONPATH=str(repo_root))
+    return subprocess.run([sys.executable, '-m', 'quatcal_ros', 'replay', *map(str, args)],
+                          capture_output=True, text=True, env=env, timeout=120)
+
+
+def run_solve(repo_root, *args):
+    env = dict(os.environ, PYTHONPATH=str(repo_root))
+    return subprocess.run([sys.executable, '-m', 'quatcal_ros', 'solve', *map(str, args)],
+                          capture_output=True, text=True, env=env, timeout=120)
+
+
+def rotation(out):
+    r = out['rotation']
+    return quat.wxyz_from_xyzw([r['x'], r['y'], r['z'], r['w']])
+
+
+def assert_recovers(done, truth):
+    assert done.returncode == 0, done.stderr
+    assert 'Traceback' not in done.stderr
+    out = json.loads(done.stdout)
+    error = np.degrees(quat.angle_between(rotation(out), truth.quaternion))
+    assert error < 3 * out['uncertainty_deg'], (error, out['uncertainty_deg'])
+    return out
+
+
+def msg(kind, pose, stamp, frame, child=None):
+    if kind == POSE_STAMPED:
+        return conversions.pose_stamped_msg(pose, stamp, frame, typestore=TYPESTORE)
+    return conversions.transform_stamped_msg(pose, stamp, frame, child, typestore=TYPESTORE)
+
+
+def tf_message(*transforms):
+    return TYPESTORE.types[TF_TYPE](transforms=list(transforms))
+
+
+@pytest.fixture(scope='module')
+def streams():
+    """Simulate a stop-and-go run: 10 stops, link 200 Hz, camera 30 Hz (late, 5 % dropped)."""
+    rng = np.random.default_rng(50)
+    cell = sim.random_cell(rng)
+    return sim.stop_and_go_streams(rng, cell, 10, link_rate_hz=200.0, rotation_noise_deg=0.2,
+                                   translation_noise_m=0.001)
+
+
+def topic_messages(streams, kind):
+    """Link T_base_tool0 on /link_pose, sensor T_camera_marker on /sensor_pose."""
+    link = [('/link_pose', stamp + MS, msg(kind, pose, stamp, 'base', 'tool0'))
+            for stamp, pose in streams.link]
+    sensor = [('/sensor_pose', delivered, msg(kind, pose, stamp, 'camera', 'marker'))
+              for (stamp, pose), delivered in zip(streams.sensor, streams.sensor_delivery_ns)]
+    return sorted(link + sensor, key=lambda m: m[1])
+
+
+@pytest.fixture(scope='module')
+def bags(tmp_path_factory, streams):
+    """Write the run as PoseStamped (sqlite3) and as TransformStamped (mcap) bags."""
+    root = tmp_path_factory.mktemp('replay')
+    write_bag(root / 'pose', {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED},
+              topic_messages(streams, POSE_STAMPED), 'sqlite3')
+    write_bag(root / 'transform', {'/link_pose': TRANSFORM_STAMPED,
+                                   '/sensor_pose': TRANSFORM_STAMPED},
+              topic_messages(streams, TRANSFORM_STAMPED), 'mcap')
+    return root
+
+
+def test_pose_stamped_bag_gives_the_mounting_and_the_samples_solve_agrees(
+        repo_root, bags, streams, tmp_path):
+    csv_path, yaml_path = tmp_path / 'out' / 'samples.csv', tmp_path / 'out' / 'result.yaml'
+    done = run_replay(repo_root, bags / 'pose', '--link-topic', '/link_pose', '--sensor-topic',
+                      '/sensor_pose', '--samples-out', csv_path, '--result-out', yaml_path,
+                      '--parent-frame', 'tool0')
+    out = assert_recovers(done, streams.truth)
+    assert out['samples'] == 10 and out['motions'] == 45 and out['warnings'] == []
+    assert 'replay: ' in done.stderr and '10 samples (auto capture)' in done.stderr
+    with open(csv_path) as stream:
+        assert len(list(csv.reader(stream))) == 11
+    solved = run_solve(repo_root, csv_path)
+    assert solved.returncode == 0, solved.stderr
+    assert_allclose(rotation(json.loads(solved.stdout)), rotation(out), atol=1e-9)
+    document = read_result_yaml(yaml_path)
+    assert document['parent_frame'] == 'tool0' and document['child_frame'] == 'camera'
+    assert document['setup'] == 'eye_in_hand'
+    assert document['quality']['samples'] == 10
+    assert document['source']['link'] == '/link_pose'
+    assert_allclose(document['quaternion_xyzw'], quat.xyzw_from_wxyz(rotation(out)))
+
+
+def test_samples_are_those_of_the_session_fed_by_hand(bags, streams, tmp_path, capsys):
+    """The streaming pass (closed-form estimates) captures what the node's session would."""
+    status = replay_main([str(bags / 'pose'), '--link-topic', '/link_pose', '--sensor-topic',
+                          '/sensor_pose', '--samples-out', str(tmp_path / 's.csv'), '--quiet'])
+    assert status == 0
+    session = Session()   # the default options: the refined estimator
+    fed = [(stamp + MS, 0, stamp, pose) for stamp, pose in streams.link]
+    fed += [(delivered, 1, stamp, pose)
+            for (stamp, pose), delivered in zip(streams.sensor, streams.sensor_delivery_ns)]
+    for _, stream, stamp, pose in sorted(fed, key=lambda m: m[:2]):
+        (session.add_link_pose if stream == 0 else session.add_sensor_pose)(stamp, pose)
+    replayed = read_samples(tmp_path / 's.csv')
+    assert len(replayed) == len(session.samples) == 10
+    for ours, theirs in zip(replayed, session.samples):
+        assert abs(ours.stamp_ns - theirs.stamp_ns) < 1000   # the CSV holds seconds
+        assert_allclose(ours.link.quaternion, theirs.link.quaternion, atol=1e-12)
+        assert_allclose(ours.sensor.position, theirs.sensor.position, atol=1e-12)
+    out = json.loads(capsys.readouterr().out)
+    assert_allclose(rotation(out), session.result.quaternion, atol=1e-6)
+
+
+def test_transform_stamped_mcap_bag(repo_root, bags, streams, tmp_path):
+    done = run_replay(repo_root, bags / 'transform', '--link-topic', '/link_pose',
+                      '--sensor-topic', '/sensor_pose', '--result-out', tmp_path / 'r.yaml',
+                      '--quiet')
+    out = assert_recovers(done, streams.truth)
+    assert out['samples'] == 10 and done.stderr == ''
+    document = read_result_yaml(tmp_path / 'r.yaml')
+    assert (document['parent_frame'], document['child_frame']) == ('tool0', 'camera')
+
+
+def test_tf_bag_with_static_frames_in_both_chains(repo_root, streams, tmp_path):
+    """
+    /tf and /tf_static, as robot_state_publisher and a marker detector publish them.
+
+    Link: base_link -(static)-> robot_base -> shoulder -> tool0 (two joints, one message);
+    sensor: camera -(static)-> camera_optical -> marker (the detector); plus unrelated frames.
+    """
+    rng = np.random.default_rng(51)
+    base_mount, optical = (Pose(rng.uniform(-0.5, 0.5, 3), sim.random_quaternions(rng, 1)[0])
+                           for _ in range(2))
+    messages = [('/tf_static', streams.link[0][0], tf_message(
+        conversions.transform_stamped_msg(base_mount, 0, 'base_link', 'robot_base',
+                                          typestore=TYPESTORE),
+        conversions.transform_stamped_msg(optical, 0, 'camera', 'camera_optical',
+                                          typestore=TYPESTORE)))]
+    for stamp, pose in streams.link:
+        shoulder = Pose(pose.position / 2, quat.IDENTITY)
+        messages.append(('/tf', stamp + MS, tf_message(
+            msg(TRANSFORM_STAMPED, shoulder, stamp, 'robot_base', 'shoulder'),
+            msg(TRANSFORM_STAMPED, shoulder.inverse() @ pose, stamp, 'shoulder', 'tool0'),
+            msg(TRANSFORM_STAMPED, pose, stamp, 'map', 'odom'))))
+    for (stamp, pose), delivered in zip(streams.sensor, streams.sensor_delivery_ns):
+        messages.append(('/tf', delivered, tf_message(
+            msg(TRANSFORM_STAMPED, optical.inverse() @ pose, stamp, 'camera_optical',
+                'marker'))))
+    messages.sort(key=lambda m: m[1])
+    write_bag(tmp_path / 'tf', {'/tf': TF_TYPE, '/tf_static': TF_TYPE}, messages, 'mcap')
+    done = run_replay(repo_root, tmp_path / 'tf', '--link-frames', 'base_link', 'tool0',
+                      '--sensor-frames', 'camera', 'marker', '--result-out',
+                      tmp_path / 'r.yaml')
+    out = assert_recovers(done, streams.truth)
+    assert out['samples'] == 10 and out['warnings'] == []
+    assert f'{len(streams.link)} link and {len(streams.sensor)} sensor poses' in done.stderr
+    document = read_result_yaml(tmp_path / 'r.yaml')
+    assert (document['parent_frame'], document['child_frame']) == ('tool0', 'camera')
+
+
+@pytest.fixture(scope='module')
+def eth_bag(shared_dir, tmp_path_factory):
+    """Convert the ETH robot-arm recording to a bag: link 50 Hz, camera in target 30 Hz."""
+    folder = shared_dir / 'datasets' / 'ethz_robot_arm_real'
+    messages = []
+    for name, topic, frame in (('link_hinge_in_base.csv', '/link', 'base_link'),
+                               ('ir_camera_in_target.csv', '/camera', 'target')):
+        with open(folder / name) as stream:
+            for row in csv.reader(stream):
+                t, x, y, z, qx, qy, qz, qw = (float(v) for v in row)
+                stamp = int(round(t * 1e9))
+                pose = Pose.create([x, y, z], quat.wxyz_from_xyzw([qx, qy, qz, qw]))
+                messages.append((topic, stamp, msg(POSE_STAMPED, pose, stamp, frame)))
+    path = tmp_path_factory.mktemp('eth') / 'eth'
+    write_bag(path, {'/link': POSE_STAMPED, '/camera': POSE_STAMPED},
+              sorted(messages, key=lambda m: m[1]))
+    return path
+
+
+def test_eth_real_recording_replays_in_continuous_mode(repo_root, eth_bag):
+    done = run_replay(repo_root, eth_bag, '--link-topic', '/link', '--sensor-topic', '/camera',
+                      '--invert-sensor', '--capture', 'continuous')
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert out['residual_rms_deg'] < 1.0 and out['samples'] > 30
+    # Auto mode finds no stop in this recording and falls back, saying so.
+    auto = run_replay(repo_root, eth_bag, '--link-topic', '/link', '--sensor-topic', '/camera',
+                      '--invert-sensor')
+    assert auto.returncode == 0, auto.stderr
+    fallback = json.loads(auto.stdout)
+    assert any('no still samples in auto mode' in w for w in fallback['warnings'])
+    assert_allclose(rotation(fallback), rotation(out), atol=1e-12)
+    strict = run_replay(repo_root, eth_bag, '--link-topic', '/link', '--sensor-topic',
+                        '/camera', '--invert-sensor', '--no-fallback')
+    assert strict.returncode == 2 and 'use --capture continuous' in strict.stderr
+    assert 'Traceback' not in strict.stderr
+
+
+def test_malformed_messages_are_skipped_and_reported(repo_root, streams, tmp_path):
+    messages = topic_messages(streams, POSE_STAMPED)
+    sensor = [m for m in messages if m[0] == '/sensor_pose']
+    sensor[3][2].pose.position.y = float('nan')
+    for m in sensor[10:12]:
+        m[2].pose.orientation.x = m[2].pose.orientation.y = 0.0
+        m[2].pose.orientation.z = m[2].pose.orientation.w = 0.0
+    write_bag(tmp_path / 'bad', {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED},
+              messages)
+    done = run_replay(repo_root, tmp_path / 'bad', '--link-topic', '/link_pose',
+                      '--sensor-topic', '/sensor_pose')
+    out = assert_recovers(done, streams.truth)
+    warnings = '\n'.join(out['warnings'])
+    assert '/sensor_pose: 1 message(s) skipped (non_finite, pose.position.y): pose.position.y ' \
+        'is nan' in warnings
+    assert '/sensor_pose: 2 message(s) skipped (zero_quaternion, pose.orientation): ' \
+        'pose.orientation has norm 0.00' in warnings
+
+
+def test_motions_about_one_axis_exit_3(repo_root, tmp_path):
+    """Stops turned about one axis only: the rotation is not determined (exit 3)."""
+    rng = np.random.default_rng(52)
+    cell = sim.random_cell(rng)
+    axis = [0.0, 0.0, 1.0]
+    messages = []
+    for k, angle in enumerate(np.radians([0.0, 20.0, 45.0, 70.0, 95.0])):
+        link = Pose(cell.home.position + 0.02 * k,
+                    quat.multiply(quat.from_axis_angle(axis, angle), cell.home.quaternion))
+        sensor = cell.sensor_pose(link)
+        start = sim.DEFAULT_START_NS + k * 2 * 10**9
+        for j in range(100):   # a second still at each stop, link 100 Hz, camera 25 Hz
+            stamp = start + j * 10 * MS
+            messages.append(('/link_pose', stamp, msg(POSE_STAMPED, link, stamp, 'base')))
+            if j % 4 == 0:
+                messages.append(('/sensor_pose', stamp + 20 * MS,
+                                 msg(POSE_STAMPED, sensor, stamp, 'camera')))
+    write_bag(tmp_path / 'one_axis', {'/link_pose': POSE_STAMPED,
+                                      '/sensor_pose': POSE_STAMPED},
+              sorted(messages, key=lambda m: m[1]))
+    done = run_replay(repo_root, tmp_path / 'one_axis', '--link-topic', '/link_pose',
+                      '--sensor-topic', '/sensor_pose')
+    assert done.returncode == 3, done.stderr
+    assert 'cannot be determined' in done.stderr and 'Traceback' not in done.stderr
+
+
+@pytest.fixture(scope='module')
+def error_bags(tmp_path_factory, bags):
+    """Broken and unusable recordings for the error cases."""
+    root = tmp_path_factory.mktemp('errors')
+    string = TYPESTORE.types['std_msgs/msg/String']
+    write_bag(root / 'chatter', {'/chatter': 'std_msgs/msg/String',
+                                 '/link_pose': POSE_STAMPED, '/tf': TF_TYPE},
+              [('/chatter', 1, string(data='hello')),
+               ('/link_pose', 2, msg(POSE_STAMPED, Pose.identity(), 2, 'base')),
+               ('/tf', 3, tf_message())])
+    write_bag(root / 'empty', {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED}, [])
+    (root / 'not_a_bag').mkdir()
+    (root / 'not_a_bag' / 'notes.txt').write_text('hello')
+    shutil.copytree(bags / 'pose', root / 'bad_metadata')
+    (root / 'bad_metadata' / 'metadata.yaml').write_text('rosbag2_bagfile_information: {')
+    shutil.copytree(bags / 'pose', root / 'bad_db3')
+    for data in (root / 'bad_db3').glob('*.db3'):
+        data.write_bytes(b'this is not an sqlite database' * 100)
+    shutil.copytree(bags / 'transform', root / 'cut_mcap')
+    for data in (root / 'cut_mcap').glob('*.mcap'):
+        data.write_bytes(data.read_bytes()[:5000])
+    return root
+
+
+TOPICS = ('--link-topic', '/link_pose', '--sensor-topic', '/sensor_pose')
+
+
+@pytest.mark.parametrize('bag_name, args, expected', [
+    ('pose', ('--link-topic', '/joint_states', '--sensor-topic', '/sensor_pose'),
+     [r'no topic /joint_states \(link poses\)',
+      r'/link_pose \(geometry_msgs/msg/PoseStamped, \d+ messages\)']),
+    ('chatter', ('--link-topic', '/link_pose', '--sensor-topic', '/chatter'),
+     ['topic /chatter \\(sensor poses\\) has type std_msgs/msg/String']),
+    ('chatter', ('--link-topic', '/tf', '--sensor-topic', '/link_pose'),
+     ['topic /tf \\(link poses\\) holds tf2_msgs/TFMessage: give --link-frames']),
+    ('pose', ('--link-frames', 'base', 'tool0', '--sensor-topic', '/sensor_pose'),
+     [r'no TF topic \(/tf, /tf_static\) in the bag']),
+    ('empty', TOPICS, ['empty: the bag holds no messages']),
+    ('not_a_bag', TOPICS, ['not_a_bag: not a rosbag2 directory \\(no metadata.yaml']),
+    ('missing', TOPICS, ['missing: no such file or directory']),
+    ('bad_metadata', TOPICS, ['bad_metadata: cannot open the bag']),
+    ('bad_db3', TOPICS, ['bad_db3: cannot open the bag']),
+    ('cut_mcap', TOPICS, ['cut_mcap: ']),
+    ('pose', TOPICS + ('--still-window-s', '-1'),
+     ['bad option: --still-window-s must be a positive number, not -1']),
+    ('pose', ('--link-topic', '/link_pose'), ['one of the arguments --sensor-topic '
+                                              '--sensor-frames is required']),
+])
+def test_bad_input_exits_2_naming_the_problem(repo_root, bags, error_bags, bag_name, args,
+                                              expected):
+    path = (bags if bag_name == 'pose' else error_bags) / bag_name
+    done = run_replay(repo_root, path, *args)
+    assert done.returncode == 2, (done.stdout, done.stderr)
+    assert done.stdout == '' and 'Traceback' not in done.stderr
+    for pattern in expected:
+        assert re.search(pattern, done.stderr), (pattern, done.stderr)
+
+
+class FakeTerminal(io.StringIO):
+    """A stderr that says it is a terminal."""
+
+    def isatty(self):
+        return True
+
+
+def test_progress_bar_is_throttled_and_only_on_terminals():
+    stream = FakeTerminal()
+    progress = Progress(1000, 'replay', stream=stream, interval_s=3600.0)
+    for done in range(0, 1000, 10):
+        progress.update(done, lambda: 'samples 1, motions 0')
+    progress.close(1000, 'samples 3, motions 3')
+    lines = stream.getvalue().split('\r')
+    assert len(lines) == 3   # '', the first update, the final state
+    assert lines[-1].startswith('replay: 1000/1000 (100 %)  samples 3, motions 3  [')
+    assert stream.getvalue().endswith('\n')
+    quiet = io.StringIO()
+    progress = Progress(10, 'replay', stream=quiet)
+    progress.update(5)
+    progress.close(10)
+    assert quiet.getvalue() == '' and not progress.enabled
+    assert not Progress(10, stream=FakeTerminal(), enabled=False).enabled

@@ -1,0 +1,217 @@
+"""Tests of quatcal_ros.tf_tree: chains through the tree, interpolation, FramePoses streams."""
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+import numpy as np
+from numpy.testing import assert_allclose
+import pytest
+
+from quatcal_ros import quaternion as quat
+from quatcal_ros.pose import Pose
+from quatcal_ros.tf_tree import FramePoses, NEVER, READY, TransformTree, TreeError, WAIT
+
+START_NS = 1_700_000_000 * 10**9
+MS = 10**6
+
+
+def random_pose(rng):
+    return Pose(rng.uniform(-1.0, 1.0, 3), quat.normalize(rng.standard_normal(4)))
+
+
+def assert_same_pose(a, b, atol=1e-12):
+    assert_allclose(a.position, b.position, atol=atol)
+    assert quat.angle_between(a.quaternion, b.quaternion) < 1e-9
+
+
+@pytest.fixture
+def robot():
+    """Build base -> shoulder -> tool (dynamic), base -> camera and tool -> marker (static)."""
+    rng = np.random.default_rng(5)
+    tree = TransformTree()
+    poses = {name: random_pose(rng) for name in ('shoulder', 'tool', 'camera', 'marker')}
+    tree.set_transform('base', 'camera', 0, poses['camera'], static=True)
+    tree.set_transform('tool', 'marker', 0, poses['marker'], static=True)
+    tree.set_transform('base', 'shoulder', START_NS, poses['shoulder'])
+    tree.set_transform('shoulder', 'tool', START_NS, poses['tool'])
+    return tree, poses
+
+
+def test_lookup_composes_down_the_tree(robot):
+    tree, p = robot
+    assert_same_pose(tree.lookup('base', 'marker', START_NS),
+                     p['shoulder'] @ p['tool'] @ p['marker'])
+
+
+def test_lookup_goes_up_to_the_common_ancestor_inverting_edges(robot):
+    tree, p = robot
+    expected = p['camera'].inverse() @ p['shoulder'] @ p['tool'] @ p['marker']
+    assert_same_pose(tree.lookup('camera', 'marker', START_NS), expected)
+    assert_same_pose(tree.lookup('marker', 'camera', START_NS), expected.inverse())
+    chain = tree.chain('camera', 'marker')
+    assert chain.steps == (('camera', True), ('shoulder', False), ('tool', False),
+                           ('marker', False))
+
+
+def test_same_frame_is_the_identity(robot):
+    tree, _ = robot
+    pose = tree.lookup('tool', 'tool', START_NS)
+    assert_same_pose(pose, Pose.identity())
+
+
+def test_leading_slashes_are_ignored(robot):
+    tree, p = robot
+    assert_same_pose(tree.lookup('/base', '/camera', 0), p['camera'])
+
+
+def test_unconnected_frames(robot):
+    tree, _ = robot
+    tree.set_transform('map', 'odom', START_NS, Pose.identity())
+    assert tree.chain('base', 'odom') is None
+    with pytest.raises(LookupError, match='not connected'):
+        tree.lookup('base', 'odom', START_NS)
+    assert tree.chain('base', 'nowhere') is None
+
+
+def test_interpolation_is_lerp_and_slerp():
+    tree = TransformTree()
+    q0 = quat.IDENTITY
+    q1 = quat.from_axis_angle([0.0, 0.0, 1.0], np.radians(90.0))
+    tree.set_transform('a', 'b', START_NS, Pose(np.zeros(3), q0))
+    tree.set_transform('a', 'b', START_NS + 100 * MS, Pose(np.array([1.0, 2.0, 0.0]), q1))
+    pose = tree.lookup('a', 'b', START_NS + 25 * MS)
+    assert_allclose(pose.position, [0.25, 0.5, 0.0], atol=1e-12)
+    expected = quat.from_axis_angle([0.0, 0.0, 1.0], np.radians(22.5))
+    assert quat.angle_between(pose.quaternion, expected) < 1e-9
+
+
+def test_no_extrapolation_and_no_interpolation_across_long_gaps():
+    tree = TransformTree(max_gap_ns=50 * MS)
+    for k in (0, 10, 200):
+        tree.set_transform('a', 'b', START_NS + k * MS, Pose.identity())
+    chain = tree.chain('a', 'b')
+    assert tree.evaluate(chain, START_NS + 5 * MS)[0] == READY
+    assert tree.evaluate(chain, START_NS + 201 * MS)[0] == WAIT
+    status, why = tree.evaluate(chain, START_NS + 100 * MS)
+    assert status == NEVER and 'gap of 0.19 s' in why and 'a -> b' in why
+    assert tree.evaluate(chain, START_NS - 1)[0] == NEVER
+
+
+def test_buffers_are_bounded():
+    tree = TransformTree(cache_ns=1000 * MS, max_length=50)
+    for k in range(2000):
+        tree.set_transform('a', 'b', START_NS + k * MS, Pose.identity())
+    edge = tree._edges['b']
+    assert len(edge) == 50 and len(edge.stamps) < 400
+    assert tree.evaluate(tree.chain('a', 'b'), START_NS + 1000 * MS)[0] == NEVER
+    # Older than the buffer's time span: not stored, counted.
+    tree2 = TransformTree(cache_ns=100 * MS)
+    tree2.set_transform('a', 'b', START_NS + 500 * MS, Pose.identity())
+    assert not tree2.set_transform('a', 'b', START_NS + 300 * MS, Pose.identity())
+    assert tree2.stale['b'] == 1
+
+
+def test_late_transforms_are_inserted_in_order():
+    tree = TransformTree()
+    for k in (0, 20, 10):
+        tree.set_transform('a', 'b', START_NS + k * MS, Pose(np.array([k, 0.0, 0.0]),
+                                                             quat.IDENTITY))
+    assert_allclose(tree.lookup('a', 'b', START_NS + 15 * MS).position, [15.0, 0.0, 0.0])
+
+
+def test_loops_are_refused_and_parents_can_change():
+    tree = TransformTree()
+    tree.set_transform('a', 'b', 0, Pose.identity(), static=True)
+    tree.set_transform('b', 'c', 0, Pose.identity(), static=True)
+    with pytest.raises(TreeError, match='loop'):
+        tree.set_transform('c', 'a', 0, Pose.identity(), static=True)
+    with pytest.raises(TreeError):
+        tree.set_transform('a', 'a', 0, Pose.identity())
+    tree.set_transform('x', 'c', 0, Pose.identity(), static=True)
+    assert tree.parent('c') == 'x' and tree.chain('a', 'c') is None
+
+
+def test_time_jump_back_clears_dynamic_transforms_only(robot):
+    tree, p = robot
+    generation = tree.generation
+    tree.set_transform('base', 'shoulder', START_NS - 10 * 10**9, p['shoulder'])
+    assert tree.generation == generation + 1
+    assert tree.evaluate(tree.chain('base', 'tool'), START_NS)[0] == WAIT
+    assert_same_pose(tree.lookup('base', 'camera', 0), p['camera'])
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(2, 12))
+def test_chains_compose_consistently(seed, n_frames):
+    """T_a_c = T_a_b @ T_b_c and T_b_a = inv(T_a_b) on random trees."""
+    rng = np.random.default_rng(seed)
+    tree = TransformTree()
+    for child in range(1, n_frames):
+        parent = int(rng.integers(0, child))
+        tree.set_transform(f'f{parent}', f'f{child}', START_NS, random_pose(rng),
+                           static=bool(rng.integers(0, 2)))
+    a, b, c = (f'f{i}' for i in rng.integers(0, n_frames, 3))
+    ab = tree.lookup(a, b, START_NS)
+    assert_same_pose(tree.lookup(a, c, START_NS), ab @ tree.lookup(b, c, START_NS), 1e-9)
+    assert_same_pose(tree.lookup(b, a, START_NS), ab.inverse(), 1e-9)
+
+
+def test_frame_poses_at_each_dynamic_stamp_of_the_chain():
+    """Two dynamic edges at different rates: a pose at every stamp of either, in order."""
+    rng = np.random.default_rng(8)
+    tree = TransformTree()
+    tree.set_transform('world', 'base', 0, random_pose(rng), static=True)
+    frames = FramePoses(tree, 'world', 'tool')
+    unrelated = FramePoses(tree, 'world', 'base')
+    out = []
+    fast_ms = range(0, 200, 10)      # base -> arm at 100 Hz
+    slow_ms = range(5, 200, 25)      # arm -> tool at 40 Hz, other stamps
+    events = sorted([(k, 'arm') for k in fast_ms] + [(k, 'tool') for k in slow_ms])
+    for k, child in events:
+        parent = 'base' if child == 'arm' else 'arm'
+        tree.set_transform(parent, child, START_NS + k * MS, random_pose(rng))
+        frames.note(child, START_NS + k * MS)
+        unrelated.note(child, START_NS + k * MS)
+        out += frames.ready()
+    stamps = [stamp for stamp, _ in out]
+    assert stamps == sorted(set(stamps))
+    expected = {START_NS + k * MS for k in list(fast_ms) + list(slow_ms) if 5 <= k <= 180}
+    assert set(stamps) == expected
+    for stamp, pose in out:
+        assert_same_pose(pose, tree.lookup('world', 'tool', stamp))
+    assert not unrelated.ready() and unrelated.pending == 0
+    frames.finish()
+    assert frames.dropped['end of recording'] == 1   # 190 ms waits for the next tool stamp
+
+
+def test_frame_poses_drop_what_can_never_be_evaluated():
+    tree = TransformTree(max_gap_ns=20 * MS)
+    frames = FramePoses(tree, 'a', 'c')
+    tree.set_transform('x', 'y', START_NS, Pose.identity())
+    frames.note('y', START_NS)   # elsewhere in the tree: not counted
+    tree.set_transform('b', 'c', START_NS, Pose.identity())
+    frames.note('c', START_NS)
+    assert frames.dropped['frames not connected'] == 1
+    tree.set_transform('a', 'b', START_NS, Pose.identity())
+    frames.note('b', START_NS)
+    assert [stamp for stamp, _ in frames.ready()] == [START_NS]
+    tree.set_transform('b', 'c', START_NS + 100 * MS, Pose.identity())
+    frames.note('c', START_NS + 100 * MS)
+    tree.set_transform('a', 'b', START_NS + 100 * MS, Pose.identity())
+    frames.note('b', START_NS + 100 * MS)
+    assert [stamp for stamp, _ in frames.ready()] == [START_NS + 100 * MS]
+    tree.set_transform('b', 'c', START_NS + 150 * MS, Pose.identity())
+    frames.note('c', START_NS + 150 * MS)
+    tree.set_transform('a', 'b', START_NS + 200 * MS, Pose.identity())
+    frames.note('b', START_NS + 200 * MS)
+    assert frames.ready() == []   # 150 ms: a -> b has a 100 ms gap; 200 ms: b -> c waits
+    assert frames.dropped['not evaluable'] == 1 and 'a -> b: gap' in frames.last_dropped
+    assert frames.pending == 1
+
+
+def test_frame_poses_restart_after_a_time_jump():
+    tree = TransformTree()
+    frames = FramePoses(tree, 'a', 'b')
+    for stamp in (START_NS, START_NS + 10 * MS, START_NS - 60 * 10**9):
+        tree.set_transform('a', 'b', stamp, Pose.identity())
+        frames.note('b', stamp)
+        assert [s for s, _ in frames.ready()] == [stamp]
