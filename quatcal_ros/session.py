@@ -12,7 +12,10 @@ and publish (EstimateUpdated carries the new calibration.CalibrationResult):
 
 Time that goes backwards on a stream by more than `time_jump_ns` (a bag played again, a clock
 reset) starts a new timeline: the pairing buffers are cleared, the samples are kept.  Smaller
-steps back are late messages and are rejected.
+steps back are late messages and are rejected.  After such a jump, a still sample at the stamp
+(within the still window) and the link pose (within the still bands) of an earlier sample is
+the same data played again (`ros2 bag play --loop`): it is not added, so that it does not
+count as new evidence, and a Notice says so.
 """
 
 from collections import Counter
@@ -20,7 +23,7 @@ from dataclasses import dataclass, field
 import math
 
 from quatcal_ros.calibration import CalibrationOptions, Calibrator
-from quatcal_ros.capture import Capture, CaptureConfig
+from quatcal_ros.capture import Capture, CaptureConfig, pose_change
 from quatcal_ros.motions import motion_count
 from quatcal_ros.pairing import LINK, OutOfOrderStamp, Pairer, PairingConfig, SENSOR
 
@@ -38,6 +41,9 @@ class SessionConfig:
     capture: CaptureConfig = field(default_factory=CaptureConfig)
     calibration: CalibrationOptions = field(default_factory=CalibrationOptions)
     time_jump_ns: int = 500_000_000
+    # Added to every sensor stamp: a known latency of the sensor's clock (time_offset.py
+    # estimates it from a recording); -0.03 s for a camera stamping frames 30 ms late.
+    sensor_offset_ns: int = 0
 
     def __post_init__(self):
         if self.time_jump_ns < 0:
@@ -61,10 +67,16 @@ class EstimateUpdated:
 
 @dataclass(frozen=True)
 class Rejected:
-    """Input that was not used: `what` is 'link_pose', 'sensor_pose' or 'sample'."""
+    """
+    Input that was not used: `what` is 'link_pose', 'sensor_pose' or 'sample'.
+
+    `code` names the reason for counters ('non_finite', 'duplicate_stamp', 'out_of_order':
+    codes of message_checks.REASONS); it does not take part in comparisons.
+    """
 
     what: str
     reason: str
+    code: str = field(default='', compare=False)
 
 
 @dataclass(frozen=True)
@@ -80,10 +92,11 @@ def _finite(*poses):
 
 
 def _late_reason(error):
+    """Return (text, code) of a stamp that is not newer than the previous one."""
     if error.jump_ns == 0:
-        return 'same stamp as the previous message: dropped'
+        return 'same stamp as the previous message: dropped', 'duplicate_stamp'
     return (f'stamp {error.jump_ns * 1e-6:.3g} ms older than the previous message '
-            '(out of order): dropped')
+            '(out of order): dropped', 'out_of_order')
 
 
 class Session:
@@ -110,7 +123,7 @@ class Session:
 
     def add_sensor_pose(self, stamp_ns, pose):
         """Add a sensor pose T_sensor_obj at header stamp stamp_ns (int); return the events."""
-        return self._add_pose(SENSOR, stamp_ns, pose)
+        return self._add_pose(SENSOR, stamp_ns + self.config.sensor_offset_ns, pose)
 
     def capture(self, now_ns):
         """
@@ -123,6 +136,11 @@ class Session:
         sample, reason = self._capture.capture_now(int(now_ns))
         if sample is None:
             return False, reason
+        repeated = self._repeat_of(sample)
+        if repeated is not None:
+            self._counts['repeated_samples'] += 1
+            return False, (f'this still repeats sample {repeated} (the same data played '
+                           'again): not added twice')
         self._pending += self._store(sample)
         return True, f'sample {len(self._calibrator.samples) - 1} captured: {reason}'
 
@@ -130,7 +148,8 @@ class Session:
         """Add a ready sample (pose.Sample: CSV row, resumed session); return the events."""
         events = self.pop_events()
         if not _finite(sample.link, sample.sensor):
-            return events + [self._reject('sample', 'non-finite numbers in a pose')]
+            return events + [self._reject('sample', 'non-finite numbers in a pose',
+                                          'non_finite')]
         return events + self._store(sample)
 
     def add_samples(self, samples):
@@ -141,7 +160,8 @@ class Session:
             if _finite(sample.link, sample.sensor):
                 good.append(sample)
             else:
-                events.append(self._reject('sample', 'non-finite numbers in a pose'))
+                events.append(self._reject('sample', 'non-finite numbers in a pose',
+                                           'non_finite'))
         first = len(self._calibrator.samples)
         messages = self._calibrator.add_samples(good)
         if good:
@@ -195,7 +215,8 @@ class Session:
 
         link_messages, sensor_messages: poses received; pairs, unpaired: sensor (slower
         stream) stamps paired or not; samples; motions: sample pairs the estimator forms;
-        rejected: messages and samples not used; time_jumps: new timelines started.
+        rejected: messages and samples not used; time_jumps: new timelines started;
+        repeated_samples: samples not added because they repeat earlier ones (module doc).
         """
         samples = len(self._calibrator.samples)
         return {
@@ -207,6 +228,7 @@ class Session:
             'motions': motion_count(samples, self._calibrator.options.pairs),
             'rejected': self._counts['rejected'],
             'time_jumps': self._counts['time_jumps'],
+            'repeated_samples': self._counts['repeated_samples'],
         }
 
     @property
@@ -220,12 +242,13 @@ class Session:
         events = self.pop_events()
         self._counts[stream] += 1
         if not _finite(pose):
-            return events + [self._reject(TOPICS[stream], 'non-finite numbers in the pose')]
+            return events + [self._reject(TOPICS[stream], 'non-finite numbers in the pose',
+                                          'non_finite')]
         try:
             pairs = self._pairer.add(stream, stamp_ns, pose)
         except OutOfOrderStamp as error:
             if error.jump_ns <= self.config.time_jump_ns:
-                return events + [self._reject(TOPICS[stream], _late_reason(error))]
+                return events + [self._reject(TOPICS[stream], *_late_reason(error))]
             events.append(self._new_timeline(error))
             pairs = self._pairer.add(stream, stamp_ns, pose)
         events += self._unpaired_notice(bool(pairs))
@@ -235,8 +258,36 @@ class Session:
             self._counts['pairs'] += 1
             sample = self._capture.add_pair(pair)
             if sample is not None:
-                events += self._store(sample)
+                events += self._store_captured(sample)
         return events
+
+    def _store_captured(self, sample):
+        """Store a sample taken from the streams, unless it repeats an earlier one."""
+        repeated = self._repeat_of(sample)
+        if repeated is None:
+            return self._store(sample)
+        self._counts['repeated_samples'] += 1
+        return [Notice(f'sample at stamp {sample.stamp_ns * 1e-9:.3f} s repeats sample '
+                       f'{repeated} (the same data played again): not added twice')]
+
+    def _repeat_of(self, sample):
+        """
+        Return the index of the earlier sample that `sample` repeats, or None.
+
+        Only after a time jump: stamps within the still window and link poses within the still
+        bands (a new sample needs a motion of twice the bands, so within one timeline no two
+        samples are this close).
+        """
+        if not self._counts['time_jumps']:
+            return None
+        capture = self.config.capture
+        for index, old in enumerate(self._calibrator.samples):
+            if abs(old.stamp_ns - sample.stamp_ns) <= capture.window_ns:
+                angle, distance = pose_change(sample.link, old.link)
+                if (angle <= capture.rotation_band_deg
+                        and distance <= capture.translation_band_m):
+                    return index
+        return None
 
     def _store(self, sample):
         previous = self._calibrator.result
@@ -248,16 +299,18 @@ class Session:
             events.append(EstimateUpdated(self.result))
         return events
 
-    def _reject(self, what, reason):
+    def _reject(self, what, reason, code=''):
         self._counts['rejected'] += 1
-        return Rejected(what, reason)
+        return Rejected(what, reason, code)
 
     def _pairing_notice(self):
         faster = self._pairer.faster
         slower = LINK if faster == SENSOR else SENSOR
-        rates = self._pairer.rates_hz()
-        return Notice(f'pairing by header stamps: {faster} poses ({rates[faster]:.3g} Hz) '
-                      f'interpolated at the {slower} stamps ({rates[slower]:.3g} Hz)')
+        # A rate is None when a stamp far ahead left too few poses in the window.
+        rates = {stream: 'rate unknown' if hz is None else f'{hz:.3g} Hz'
+                 for stream, hz in self._pairer.rates_hz().items()}
+        return Notice(f'pairing by header stamps: {faster} poses ({rates[faster]}) '
+                      f'interpolated at the {slower} stamps ({rates[slower]})')
 
     def _new_timeline(self, error):
         self._pairer.reset()

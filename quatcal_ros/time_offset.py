@@ -14,7 +14,7 @@ late needs an offset of -30 ms.
 """
 
 import bisect
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import heapq
 
 import numpy as np
@@ -127,13 +127,14 @@ def replay_streams(link, sensor, config, sensor_offset_ns=0):
     """
     Feed two recorded streams to a new Session in stamp order; return the session.
 
-    link, sensor: lists of (stamp_ns, pose.Pose) sorted by stamp; the sensor stamps are
-    shifted by sensor_offset_ns first.
+    link, sensor: lists of (stamp_ns, pose.Pose) sorted by stamp; the session shifts the
+    sensor stamps by sensor_offset_ns (SessionConfig.sensor_offset_ns), and the messages
+    arrive in the order of the shifted stamps.
     """
-    session = Session(config)
-    shifted = ((stamp + sensor_offset_ns, 1, pose) for stamp, pose in sensor)
-    merged = heapq.merge(((s, 0, p) for s, p in link), shifted, key=lambda m: (m[0], m[1]))
-    for stamp, stream, pose in merged:
+    session = Session(replace(config, sensor_offset_ns=sensor_offset_ns))
+    shifted = ((stamp + sensor_offset_ns, 1, stamp, pose) for stamp, pose in sensor)
+    merged = heapq.merge(((s, 0, s, p) for s, p in link), shifted, key=lambda m: m[:2])
+    for _, stream, stamp, pose in merged:
         if stream == 0:
             session.add_link_pose(stamp, pose)
         else:

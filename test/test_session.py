@@ -78,7 +78,7 @@ def test_stop_and_go_streams_give_one_sample_per_stop_and_the_mounting():
     assert session.counters == {
         'link_messages': len(streams.link), 'sensor_messages': len(streams.sensor),
         'pairs': len(streams.sensor), 'unpaired': 0, 'samples': 8, 'motions': 28,
-        'rejected': 0, 'time_jumps': 0}
+        'rejected': 0, 'time_jumps': 0, 'repeated_samples': 0}
     assert session.rates_hz['link'] == pytest.approx(500.0)
 
 
@@ -112,10 +112,15 @@ def test_time_going_back_clears_the_pairing_and_keeps_the_samples():
     assert replay[0] == Notice(f'time jumped back by {jump_s:.1f} s (bag replayed?): pairing '
                                'buffers cleared, samples kept')
     assert session.counters['time_jumps'] == 1
-    # The first stop of the replay is far from the last sample: captured again, as index 3.
-    assert [event.index for event in of_type(replay, SampleCaptured)] == [3]
+    # The first stop of the replay is the same still at the same stamps as sample 0: not
+    # added twice (the same data again are no new evidence).
+    assert of_type(replay, SampleCaptured) == []
+    assert [e.text for e in of_type(replay, Notice) if 'repeats' in e.text] == [
+        f'sample at stamp {session.samples[0].stamp_ns * 1e-9:.3f} s repeats sample 0 (the '
+        'same data played again): not added twice']
     counters = session.counters
     assert counters['rejected'] == 2 and counters['unpaired'] == 0
+    assert counters['samples'] == 3 and counters['repeated_samples'] == 1
 
 
 def test_manual_capture_through_the_session():
