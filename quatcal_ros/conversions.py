@@ -21,6 +21,8 @@ from quatcal_ros.pose import Pose
 NS_PER_S = 1_000_000_000
 # Quaternions whose norm is within this of 1 are renormalised; farther ones are rejected.
 DEFAULT_NORM_TOLERANCE = 1e-3
+# A quaternion with a smaller norm is a zero quaternion (reason 'zero_quaternion').
+ZERO_NORM = 1e-6
 _INT32_MIN, _INT32_MAX = -2 ** 31, 2 ** 31 - 1
 
 
@@ -28,12 +30,15 @@ class BadPoseError(ValueError):
     """
     A pose holds numbers that are not a pose; the message names the field.
 
-    `field` is the offending field ('pose.position.x', 'pose.orientation', ...).
+    `field` is the offending field ('pose.position.x', 'pose.orientation', ...); `reason`
+    one of 'non_finite', 'zero_quaternion', 'non_unit_quaternion', 'malformed' (the codes of
+    message_checks.REASONS).
     """
 
-    def __init__(self, message, field=''):
+    def __init__(self, message, field='', reason='malformed'):
         super().__init__(message)
         self.field = field
+        self.reason = reason
 
 
 # --- reading ---------------------------------------------------------------------------------
@@ -56,6 +61,24 @@ def validate_pose_numbers(position, quaternion_xyzw, norm_tolerance=DEFAULT_NORM
     """
     if norm_tolerance < 0.0:
         raise ValueError(f'norm_tolerance must be >= 0, not {norm_tolerance}')
+    # Fast path (every message of a live stream): plain floats, no names formatted.
+    try:
+        px, py, pz = position
+        qx, qy, qz, qw = quaternion_xyzw
+        values = (float(px), float(py), float(pz), float(qx), float(qy), float(qz), float(qw))
+    except (TypeError, ValueError):
+        values = None
+    if values is not None and math.isfinite(sum(values)):
+        norm = math.hypot(*values[3:])
+        if abs(norm - 1.0) <= norm_tolerance:
+            return np.array(values[:3]), np.array(values[3:]) / norm
+    return _validate_slowly(position, quaternion_xyzw, norm_tolerance, position_name,
+                            orientation_name)
+
+
+def _validate_slowly(position, quaternion_xyzw, norm_tolerance, position_name,
+                     orientation_name):
+    """validate_pose_numbers field by field, raising BadPoseError with the field's name."""
     position, quaternion_xyzw = list(position), list(quaternion_xyzw)
     if len(position) != 3 or len(quaternion_xyzw) != 4:
         raise BadPoseError(f'expected 3 position and 4 quaternion components, got '
@@ -65,14 +88,15 @@ def validate_pose_numbers(position, quaternion_xyzw, norm_tolerance=DEFAULT_NORM
     values = [_number(v, name) for name, v in fields]
     for (name, _), v in zip(fields, values):
         if not math.isfinite(v):
-            raise BadPoseError(f'{name} is {v}', name)
+            raise BadPoseError(f'{name} is {v}', name, 'non_finite')
     q = np.array(values[3:])
-    norm = float(np.linalg.norm(q))
+    norm = math.hypot(*values[3:])   # no overflow for huge components
     if abs(norm - 1.0) > norm_tolerance:
         shown = f'{norm:.2f}' if abs(norm - 1.0) >= 0.01 else f'{norm:.6f}'
         raise BadPoseError(
             f'{orientation_name} has norm {shown}; a rotation quaternion has norm 1 '
-            f'(accepted within {norm_tolerance:g})', orientation_name)
+            f'(accepted within {norm_tolerance:g})', orientation_name,
+            'zero_quaternion' if norm < ZERO_NORM else 'non_unit_quaternion')
     return np.array(values[:3]), q / norm
 
 

@@ -12,7 +12,9 @@ Exit status: 0 when the estimate converged (uncertainty below --uncertainty-deg,
 """
 
 import argparse
+import os
 import sys
+import tempfile
 import time
 
 from geometry_msgs.msg import TransformStamped
@@ -93,12 +95,19 @@ class Demo:
 
     def __init__(self, args, context):
         self.args = args
-        if not args.verbose:
-            for name in ('sim_cell', 'calibrator', 'demo_listener'):
-                rclpy.logging.set_logger_level(name, LoggingSeverity.WARN)
+        # Quieter nodes for the demo; close() puts the levels back (they are process-wide).
+        self.log_levels = {} if args.verbose else {
+            name: rclpy.logging.get_logger_effective_level(name)
+            for name in ('sim_cell', 'calibrator', 'demo_listener')}
+        for name in self.log_levels:
+            rclpy.logging.set_logger_level(name, LoggingSeverity.WARN)
         self.sim = SimCell(context=context, parameter_overrides=_sim_parameters(args))
-        self.calibrator = CalibratorNode(context=context,
-                                         parameter_overrides=_calibrator_parameters(args))
+        # The demo's samples journal goes to a temporary directory, not ~/.ros/quatcal, so it
+        # never moves a real session's journal aside.
+        self.journal_dir = tempfile.TemporaryDirectory(prefix='quatcal_demo_')
+        self.calibrator = CalibratorNode(
+            context=context, parameter_overrides=_calibrator_parameters(args) + [Parameter(
+                'samples_file', value=os.path.join(self.journal_dir.name, 'samples.csv'))])
         self.listener = rclpy.create_node('demo_listener', context=context)
         self.truth = None
         self.listener.create_subscription(TransformStamped, '/sim_cell/ground_truth',
@@ -132,6 +141,9 @@ class Demo:
         self.executor.shutdown()
         for node in (self.listener, self.calibrator, self.sim):
             node.destroy_node()
+        self.journal_dir.cleanup()
+        for name, level in self.log_levels.items():
+            rclpy.logging.set_logger_level(name, level)
 
 
 def progress_line(samples, session):

@@ -3,17 +3,26 @@ The live calibrator node: pose topics in, hand-eye rotation estimate out (DESIGN
 
 A thin shell around session.Session:
 - subscribes `link_pose` and `sensor_pose` (relative names; PoseStamped, or TransformStamped
-  with pose_type:=transform) and feeds the header stamps and poses to the session;
+  with pose_type:=transform) and feeds the header stamps and poses to the session; bad
+  messages (message_checks) are skipped, counted per stream and reason on /diagnostics and
+  logged, throttled, with the topic and the reason;
 - publishes `~/rotation` (QuaternionStamped, reliable + transient local, depth 1, frame_id =
-  link_frame) on each new estimate and a status on `/diagnostics` at diagnostics_period_s;
-- serves `~/capture`, `~/reset` and `~/save` (std_srvs/Trigger).
+  link_frame) and `~/transform` (TransformStamped link_frame -> sensor_frame, same QoS) on
+  each new estimate, and a status on `/diagnostics` at diagnostics_period_s;
+- with publish_tf:=true, broadcasts the estimate on /tf_static (tf2_ros, when installed);
+- serves `~/capture`, `~/reset` and `~/save` (std_srvs/Trigger); ~/save also writes
+  easy_handeye2_file and logs the static_transform_publisher line;
+- appends every captured sample, fsync'd, to samples_file (journal.py) before logging it;
+  resume:=true continues the session in it after a crash or restart, ~/reset moves it aside;
+- warns when the newest samples disagree with the earlier ones (a moved marker, drift.py).
 
 Messages are read only through conversions; quaternions in the core are (w, x, y, z).
 Times come from header stamps and the node clock (so use_sim_time and bag replays work).
 """
 
-from collections import Counter
+from dataclasses import replace
 import signal
+import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -23,9 +32,15 @@ from geometry_msgs.msg import QuaternionStamped
 from geometry_msgs.msg import TransformStamped
 import numpy as np
 from quatcal_ros import conversions
+from quatcal_ros import drift
+from quatcal_ros import exports
+from quatcal_ros import journal
+from quatcal_ros import message_checks
 from quatcal_ros import node_config
 from quatcal_ros import persistence
 from quatcal_ros import quaternion as quat
+from quatcal_ros.message_checks import StreamStats
+from quatcal_ros.pose import Pose
 from quatcal_ros.session import EstimateUpdated
 from quatcal_ros.session import Notice
 from quatcal_ros.session import Rejected
@@ -44,19 +59,27 @@ from std_srvs.srv import Trigger
 
 NODE_NAME = 'calibrator'
 DIAGNOSTIC_NAME = 'calibrator: hand-eye rotation'
-LINK, SENSOR = 'link_pose', 'sensor_pose'
-# A stream that has sent nothing for this long (node clock) is stale: diagnostics say WARN.
-STALE_AFTER_S = 3.0
+LINK, SENSOR = message_checks.LINK, message_checks.SENSOR
+# A stream that has sent nothing usable for this long (node clock) is stale: diagnostics
+# say WARN and name it.
+STALE_AFTER_S = message_checks.STALE_AFTER_S
 # An RMS motion residual above this (degrees) means inconsistent data: diagnostics say WARN.
 HIGH_RESIDUAL_DEG = 1.0
 LOG_THROTTLE_S = 5.0
-# Parameters that change only the presentation, not the session.
-PRESENTATION_PARAMETERS = ('link_frame', 'sensor_frame', 'result_file')
+# Parameters that change only the presentation or the message checks, not the session.
+PRESENTATION_PARAMETERS = ('link_frame', 'sensor_frame', 'result_file', 'max_stamp_offset_s',
+                           'link_frame_id', 'sensor_frame_id', 'easy_handeye2_file',
+                           'publish_tf')
+# Said once (WARN) and kept in /diagnostics when publish_tf is true but tf2_ros is missing.
+TF2_ROS_MISSING = ('publish_tf is true but tf2_ros is not installed: the result is not '
+                   'broadcast on /tf_static (it is still on ~/transform)')
 
-LINK_QOS = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST,
+# Depth 1000: one second of a 1 kHz stream (or of a flood of bad messages) waits while a new
+# sample is estimated (tens of ms, more on a loaded machine) instead of being dropped.
+LINK_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
                       reliability=ReliabilityPolicy.RELIABLE)
 # BEST_EFFORT matches reliable and best-effort (sensor data) publishers alike.
-SENSOR_QOS = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST,
+SENSOR_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
                         reliability=ReliabilityPolicy.BEST_EFFORT)
 LATCHED_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                          reliability=ReliabilityPolicy.RELIABLE,
@@ -78,37 +101,6 @@ def describe_result(result):
             f'motions used); next: {result.hint}')
 
 
-class StreamStats:
-    """Messages received per stream, bad ones per stream and field, and when last heard."""
-
-    def __init__(self):
-        self.received = Counter()
-        self.bad = Counter()
-        self.first_ns = None
-        self.last_ns = {}
-
-    def note(self, stream, now_ns):
-        self.received[stream] += 1
-        self.last_ns[stream] = now_ns
-        if self.first_ns is None:
-            self.first_ns = now_ns
-
-    def note_bad(self, stream, field):
-        self.bad[stream, field or 'message'] += 1
-
-    @property
-    def bad_total(self):
-        return sum(self.bad.values())
-
-    def stale(self, now_ns, after_s=STALE_AFTER_S):
-        """Streams not heard for after_s (node clock) since the first message of either."""
-        if self.first_ns is None:
-            return []
-        limit = now_ns - int(after_s * 1e9)
-        return [stream for stream in (LINK, SENSOR)
-                if self.last_ns.get(stream, self.first_ns) < limit]
-
-
 class CalibratorNode(Node):
     """The `calibrator` node (module docstring); raises node_config.ConfigError on bad params."""
 
@@ -120,13 +112,22 @@ class CalibratorNode(Node):
             self.destroy_node()
             raise
         self.session = Session(node_config.session_config(self.config))
-        self.stats = StreamStats()
+        self.stats = StreamStats(LOG_THROTTLE_S)
+        self.checks = node_config.check_config(self.config)
         self._rejected_samples = set()
         message_type = PoseStamped if self.config.pose_type == 'pose' else TransformStamped
-        self.create_subscription(message_type, LINK, self._on_link, LINK_QOS)
-        self.create_subscription(message_type, SENSOR, self._on_sensor, SENSOR_QOS)
+        self.topics = {   # resolved names (namespace, remapping), for the logs
+            stream: self.create_subscription(message_type, stream, callback, qos).topic_name
+            for stream, callback, qos in ((LINK, self._on_link, LINK_QOS),
+                                          (SENSOR, self._on_sensor, SENSOR_QOS))}
         self.rotation_publisher = self.create_publisher(
             QuaternionStamped, '~/rotation', LATCHED_QOS)
+        self.transform_publisher = self.create_publisher(
+            TransformStamped, '~/transform', LATCHED_QOS)
+        self._tf_broadcaster = None   # tf2_ros.StaticTransformBroadcaster, with publish_tf
+        self._tf_problem = None       # why publish_tf has no effect, for /diagnostics
+        self._tf_warned = False
+        self._start_tf_broadcast()
         self.diagnostics_publisher = self.create_publisher(
             DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
         self.create_timer(self.config.diagnostics_period_s, self.publish_diagnostics)
@@ -140,6 +141,15 @@ class CalibratorNode(Node):
             f'{self.config.sensor_frame} from {self.resolve_topic_name(LINK)} and '
             f'{self.resolve_topic_name(SENSOR)} ({message_type.__name__}), capture mode '
             f'{self.config.capture_mode}')
+        self._move = None          # drift.Move once the samples show a moved marker/sensor
+        self._move_checked = 0     # samples the move check has seen
+        self._journal_error = None
+        try:
+            self.journal = None
+            self.journal = self._start_journal()
+        except node_config.ConfigError:
+            self.destroy_node()
+            raise
 
     def now_ns(self):
         """Return the node clock (ROS time; simulated with use_sim_time) in nanoseconds."""
@@ -154,24 +164,60 @@ class CalibratorNode(Node):
         self._on_pose(SENSOR, msg, self.session.add_sensor_pose)
 
     def _on_pose(self, stream, msg, add):
-        self.stats.note(stream, self.now_ns())
+        """
+        Check one pose message and feed it to the session, or count and skip it.
+
+        The checks (message_checks module docstring) run cheapest first; a bad message costs
+        a counter update, and its text is built only when its throttled log line is due.
+        """
+        now_ns = self.get_clock().now().nanoseconds
+        self.stats.note(stream, now_ns)
+        header = msg.header
+        try:
+            stamp_ns = conversions.stamp_ns_from_header(header)
+        except ValueError as error:   # nanosec out of range
+            self._bad_message(stream, 'bad_stamp', error)
+            return
+        reason = message_checks.check(stream, stamp_ns, header.frame_id, now_ns, self.checks)
+        if reason is not None:
+            checks = self.checks
+            self._bad_message(stream, reason, lambda: message_checks.describe(
+                reason, stream, stamp_ns, header.frame_id, now_ns, checks))
+            return
         try:
             pose = conversions.pose_from_msg(msg)
-            stamp_ns = conversions.stamp_ns_from_header(msg.header)
         except conversions.BadPoseError as error:
-            self._bad_message(stream, getattr(error, 'field', ''), str(error))
+            self._bad_message(stream, message_checks.pose_error_reason(error), error)
             return
-        except ValueError as error:   # a stamp out of range
-            self._bad_message(stream, 'header.stamp', str(error))
+        events = add(stamp_ns, pose)
+        if not events:
+            self.stats.note_good(stream, now_ns)
             return
-        self.handle_events(add(stamp_ns, pose))
+        rejected = [e for e in events if isinstance(e, Rejected) and e.what == stream]
+        if rejected:   # out of order or duplicate: the session's verdict on this message
+            self._bad_message(stream, message_checks.rejected_reason(rejected[0]),
+                              rejected[0].reason)
+            events = [e for e in events if not (isinstance(e, Rejected) and e.what == stream)]
+        else:
+            self.stats.note_good(stream, now_ns)
+        self.handle_events(events)
 
-    def _bad_message(self, stream, field, reason):
-        self.stats.note_bad(stream, field)
-        count = self.stats.bad[stream, field or 'message']
+    def _bad_message(self, stream, reason, detail):
+        """
+        Count a skipped message; log it with the topic and reason, throttled per both.
+
+        detail: the explanation (text, exception, or a function that builds it when logged).
+        """
+        count = self.stats.note_bad(stream, reason, time.monotonic_ns())
+        if count is None:
+            return
+        total = self.stats.bad[stream, reason]
+        so_far = (f'{total} so far' if count == total
+                  else f'{count} since the last report, {total} in all')
+        text = detail() if callable(detail) else str(detail)
         self.get_logger().warning(
-            f'{stream}: bad message ignored ({count} so far with bad {field or "content"}): '
-            f'{reason}', throttle_duration_sec=LOG_THROTTLE_S)
+            f'{self.topics[stream]}: bad message skipped ({reason}, {so_far}; reported at most '
+            f'every {LOG_THROTTLE_S:g} s): {text}')
 
     # --- session events --------------------------------------------------------------------
 
@@ -179,6 +225,7 @@ class CalibratorNode(Node):
         """Log the session's events and publish each new estimate."""
         for event in events:
             if isinstance(event, SampleCaptured):
+                self._journal_sample(event)   # on disk before it is reported captured
                 self._log_sample(event)
             elif isinstance(event, EstimateUpdated):
                 self.publish_estimate(event.result)
@@ -201,14 +248,48 @@ class CalibratorNode(Node):
             self.get_logger().info(text, throttle_duration_sec=LOG_THROTTLE_S)
 
     def publish_estimate(self, result):
-        """Publish `result` on ~/rotation and log it."""
+        """Publish `result` on ~/rotation and ~/transform (with publish_tf, /tf_static); log."""
         msg = conversions.quaternion_stamped_msg(
             result.quaternion, self.now_ns(), self.config.link_frame)
         self.rotation_publisher.publish(msg)
+        transform = self.transform_msg(result, conversions.stamp_ns_from_header(msg.header))
+        self.transform_publisher.publish(transform)
+        if self.config.publish_tf and self._tf_broadcaster is not None:
+            self._tf_broadcaster.sendTransform(transform)
         self.get_logger().info(describe_result(result))
         self._log_rejected_samples(result)
         for warning in result.warnings:
             self.get_logger().warning(warning, throttle_duration_sec=LOG_THROTTLE_S)
+        self._check_move(result)
+
+    def transform_msg(self, result, stamp_ns):
+        """Return the TransformStamped link_frame -> sensor_frame of `result`."""
+        return conversions.transform_stamped_msg(
+            Pose.create(result.translation, result.quaternion), stamp_ns,
+            self.config.link_frame, self.config.sensor_frame)
+
+    def _start_tf_broadcast(self):
+        """
+        With publish_tf, make the /tf_static broadcaster (once), or say why there is none.
+
+        tf2_ros comes with a ROS 2 install, not with the PyPI wheels: without it the node
+        warns once and /diagnostics keeps saying so (the result is still on ~/transform).
+        """
+        if not self.config.publish_tf or self._tf_broadcaster is not None:
+            return
+        try:
+            import tf2_ros
+        except ImportError:
+            self._tf_problem = TF2_ROS_MISSING
+            if not self._tf_warned:
+                self._tf_warned = True
+                self.get_logger().warning(TF2_ROS_MISSING)
+            return
+        self._tf_problem = None
+        self._tf_broadcaster = tf2_ros.StaticTransformBroadcaster(self)
+        result = self.session.result
+        if result is not None:   # publish_tf turned on at runtime: send the current estimate
+            self._tf_broadcaster.sendTransform(self.transform_msg(result, self.now_ns()))
 
     def _log_rejected_samples(self, result):
         """Log each sample the estimator newly rejects (bad detections), with the reason."""
@@ -217,6 +298,104 @@ class CalibratorNode(Node):
         for index in sorted(set(rejected) - self._rejected_samples):
             self.get_logger().info(f'rejected sample {index}: {rejected[index]}')
         self._rejected_samples = set(rejected)
+
+    def _check_move(self, result):
+        """Warn (once, until ~/reset) when the newest samples show a moved marker or sensor."""
+        samples = self.session.samples
+        if self._move is None:
+            options = self.session.config.calibration
+            self._move = drift.find_move(
+                samples, result.quaternion, options.setup, options.invert_sensor,
+                first=max(0, self._move_checked - drift.RECENT + 1))
+            if self._move is not None:
+                self.get_logger().warning(self._move.text())
+        self._move_checked = len(samples)
+
+    def move_warning(self):
+        """Return the moved-marker warning with the current sample count, or None."""
+        if self._move is None:
+            return None
+        return replace(self._move, samples=len(self.session.samples) - self._move.first).text()
+
+    # --- samples journal -------------------------------------------------------------------
+
+    def _journal_header(self):
+        return journal.JournalHeader(self.config.setup, self.config.link_frame,
+                                     self.config.sensor_frame)
+
+    def _start_journal(self):
+        """
+        Open samples_file; with resume:=true, reload its samples and publish the estimate.
+
+        :raises node_config.ConfigError: when the journal cannot be used (in use by another
+            node, recorded with another setup or frames while resume:=true, not writable).
+        """
+        try:
+            opened, report = journal.start(self.config.samples_file, self._journal_header(),
+                                           self.config.resume)
+        except (journal.JournalRefused, OSError) as error:
+            raise node_config.ConfigError(
+                f'samples_file {self.config.samples_file}: {error}') from None
+        logger = self.get_logger()
+        for level, text in report.messages:   # one call site per severity (rclpy insists)
+            if level == 'error':
+                logger.error(text)
+            elif level == 'warning':
+                logger.warning(text)
+            else:
+                logger.info(text)
+        if report.samples:
+            # Already in the journal: not appended again, not logged one by one.
+            events = self.session.add_samples(report.samples)
+            self.handle_events([e for e in events if not isinstance(e, SampleCaptured)])
+            if self.session.result is None:
+                self.get_logger().info(f'no estimate from the resumed samples yet: '
+                                       f'{self.session.last_error}')
+        return opened
+
+    def _journal_sample(self, event):
+        """Append a captured sample to samples_file (fsync'd); a failure is kept in view."""
+        if self.journal is None:
+            return
+        try:
+            self.journal.append(event.sample)
+            self._journal_error = None
+        except OSError as error:
+            self._journal_error = (
+                f'{self.journal.unwritten} captured samples not yet saved to '
+                f'{self.journal.path} ({error.strerror or error}): they are kept and written '
+                'with the next sample')
+            self.get_logger().error(self._journal_error)
+
+    def _restart_journal(self):
+        """Start a new journal (~/reset); return what happened to the old one, as text."""
+        if self.journal is None:
+            return ''
+        try:
+            moved = self.journal.restart()
+        except OSError as error:
+            self._journal_error = f'could not start a new samples journal: {error}'
+            self.get_logger().error(self._journal_error)
+            return f'; {self._journal_error}'
+        self._journal_error = None
+        return f'; the old samples journal was moved to {moved}' if moved else ''
+
+    def _update_journal_header(self):
+        """Record a runtime change of setup or frames in the journal's first line."""
+        if self.journal is None:
+            return
+        try:
+            self.journal.set_header(self._journal_header())
+        except OSError as error:
+            self.get_logger().error(f'could not record the new setup or frames in '
+                                    f'{self.journal.path}: {error}')
+
+    def destroy_node(self):
+        """Close the samples journal (releasing its lock), then destroy the node."""
+        if getattr(self, 'journal', None) is not None:
+            self.journal.close()
+            self.journal = None
+        return super().destroy_node()
 
     # --- diagnostics -----------------------------------------------------------------------
 
@@ -230,7 +409,9 @@ class CalibratorNode(Node):
             if missing:
                 return f'waiting for poses (nothing on {" and ".join(missing)} yet)'
             if self.stats.bad_total:
-                return f'waiting for poses ({self.stats.bad_total} bad messages ignored)'
+                (stream, reason), _ = self.stats.bad.most_common(1)[0]
+                return (f'waiting for poses ({self.stats.bad_total} bad messages skipped, '
+                        f'most for {reason} on {stream})')
             return 'waiting for poses (none paired yet: are both stamped on the same clock?)'
         return (f'collecting: {len(self.session.samples)} samples, need motions about 2 '
                 'different axes')
@@ -239,13 +420,16 @@ class CalibratorNode(Node):
         """Build the DiagnosticStatus published on /diagnostics."""
         result = self.session.result
         counters = self.session.counters
-        problems = [f'no message on {stream} for over {STALE_AFTER_S:g} s'
-                    for stream in self.stats.stale(self.now_ns())]
+        stale = self.stats.stale_reasons(self.now_ns(), STALE_AFTER_S)
+        problems = [text for _, text in stale]
         if result is not None and result.residual_rms_deg > HIGH_RESIDUAL_DEG:
             problems.append(f'high residual {result.residual_rms_deg:.2f} deg RMS: check the '
                             'frame conventions and the time alignment of the streams')
         if result is not None:
             problems += list(result.warnings)
+        problems += [text for text in (self.move_warning(), self._journal_error) if text]
+        if self.config.publish_tf and self._tf_problem:
+            problems.append(self._tf_problem)
         message = '; '.join([self.status_message()] + problems)
         hint = result.hint if result is not None else self.session.last_error
         values = {
@@ -255,19 +439,38 @@ class CalibratorNode(Node):
             'inliers': result.inliers if result is not None else 0,
             'residual_rms_deg': _number_text(result and result.residual_rms_deg),
             'uncertainty_deg': _number_text(result and result.uncertainty_deg),
+            'method': result.method if result is not None else '',
+            'translation_xyz_m': (' '.join(f'{v:.6f}' for v in result.translation)
+                                  if result is not None else ''),
+            'translation_uncertainty_mm': _number_text(
+                result and result.translation_uncertainty_mm),
+            'tf_static': self._tf_status(),
             'hint': hint,
             'link_messages': self.stats.received[LINK],
             'sensor_messages': self.stats.received[SENSOR],
             'bad_messages': self.stats.bad_total,
+            'stale': ' '.join(stream for stream, _ in stale),
             'paired_poses': counters['pairs'],
             'rejected_messages': counters['rejected'],
+            # Clock jumps back (a bag played again): each restarted the pairing; stills that
+            # repeat earlier samples after one are not added twice.
+            'time_jumps': counters['time_jumps'],
+            'repeated_samples': counters['repeated_samples'],
         }
-        for (stream, field), count in sorted(self.stats.bad.items()):
-            values[f'bad {stream} {field}'] = count
+        for (stream, reason), count in sorted(self.stats.bad.items()):
+            values[message_checks.diagnostic_key(stream, reason)] = count
         return DiagnosticStatus(
             level=DiagnosticStatus.WARN if problems else DiagnosticStatus.OK,
             name=DIAGNOSTIC_NAME, message=message, hardware_id=self.config.link_frame,
             values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
+
+    def _tf_status(self):
+        """Return the /tf_static broadcast state, for /diagnostics."""
+        if not self.config.publish_tf:
+            return 'off (publish_tf is false)'
+        if self._tf_problem:
+            return 'not broadcast: tf2_ros is not installed'
+        return 'broadcast'
 
     def publish_diagnostics(self):
         """Publish the status once (the timer's callback)."""
@@ -289,9 +492,11 @@ class CalibratorNode(Node):
         discarded = len(self.session.samples)
         self.session.reset()
         self._rejected_samples = set()
+        self._move, self._move_checked = None, 0
+        journal_text = self._restart_journal()
         response.success = True
         response.message = (f'session cleared: {discarded} samples discarded (the last '
-                            '~/rotation stays latched until a new estimate)')
+                            f'~/rotation stays latched until a new estimate){journal_text}')
         self.get_logger().info(response.message)
         return response
 
@@ -313,7 +518,31 @@ class CalibratorNode(Node):
         response.success = True
         response.message = f'saved to {path}'
         self.get_logger().info(f'result {response.message}')
+        self._save_easy_handeye2(result, response)
+        self.get_logger().info(
+            'to broadcast the result on /tf_static: ' + exports.static_transform_publisher_command(
+                result, self.config.link_frame, self.config.sensor_frame))
         return response
+
+    def _save_easy_handeye2(self, result, response):
+        """Write easy_handeye2_file (when set) beside the result file; note it in `response`."""
+        target = self.config.easy_handeye2_file
+        if not target:
+            return
+        # The link poses' header frame is the robot base (eye_in_hand); '' when not checked.
+        base = {'robot_base_frame': self.config.link_frame_id} \
+            if self.config.setup == 'eye_in_hand' else {}
+        try:
+            path = persistence.atomic_write_text(target, exports.easy_handeye2_yaml(
+                result, self.config.link_frame, self.config.sensor_frame,
+                setup=self.config.setup, name=exports.easy_handeye2_name(target), **base))
+        except OSError as error:
+            response.success = False
+            response.message += f'; could not write easy_handeye2_file {target}: {error}'
+            self.get_logger().error(f'could not write easy_handeye2_file {target}: {error}')
+            return
+        response.message += f'; easy_handeye2 layout saved to {path}'
+        self.get_logger().info(f'result in the easy_handeye2 layout saved to {path}')
 
     # --- parameters at runtime -------------------------------------------------------------
 
@@ -327,9 +556,14 @@ class CalibratorNode(Node):
     def _apply_parameters(self, parameters):
         new = node_config.updated(self.config, parameters)
         old, self.config = self.config, new
+        self.checks = node_config.check_config(new)
         changed = [n for n, v in new.as_dict().items() if old.as_dict()[n] != v]
         if changed:
             self.get_logger().info(f'parameters changed: {", ".join(changed)}')
+        if set(changed) & set(journal.HEADER_KEYS):
+            self._update_journal_header()
+        if 'publish_tf' in changed:
+            self._start_tf_broadcast()
         if any(name not in PRESENTATION_PARAMETERS for name in changed):
             self._rebuild_session()
 

@@ -14,6 +14,7 @@ import math
 
 from quatcal_ros.calibration import CalibrationOptions
 from quatcal_ros.capture import CaptureConfig
+from quatcal_ros.message_checks import CheckConfig
 from quatcal_ros.pairing import PairingConfig
 from quatcal_ros.session import SessionConfig
 from rcl_interfaces.msg import FloatingPointRange
@@ -22,6 +23,7 @@ from rclpy.exceptions import ParameterException
 
 NS_PER_S = 1_000_000_000
 DEFAULT_RESULT_FILE = '~/.ros/quatcal/calibration.yaml'
+DEFAULT_SAMPLES_FILE = '~/.ros/quatcal/samples.csv'
 POSE_TYPES = ('pose', 'transform')
 SETUPS = ('eye_in_hand', 'eye_to_hand')
 CAPTURE_MODES = ('auto', 'manual', 'continuous')
@@ -43,6 +45,7 @@ class Spec:
     low: float = None
     high: float = None
     read_only: bool = False
+    allow_empty: bool = False
 
     def descriptor(self):
         """Return the ParameterDescriptor declared with the parameter."""
@@ -70,8 +73,8 @@ class Spec:
             return f'must be a string, not {value!r}'
         if self.choices and value not in self.choices:
             return f'must be one of {", ".join(self.choices)}, not {value!r}'
-        if not value.strip():
-            return 'must not be empty'
+        if not value.strip() and not (self.allow_empty and value == ''):
+            return 'must not be empty' + (" (or '' for any)" if self.allow_empty else '')
         return None
 
     def _check_number(self, value):
@@ -117,6 +120,16 @@ SPECS = (
     Spec('max_gap_s', 0.1,
          'Largest gap (seconds, header stamps) of a stream across which poses are '
          'interpolated; nothing is paired across a longer gap.', low=0.001, high=10.0),
+    Spec('max_stamp_offset_s', 30.0,
+         'Pose messages whose header stamp is farther than this (seconds) from the node clock '
+         '(with use_sim_time: /clock) are skipped and counted; 0 turns the check off.',
+         low=0.0, high=1e6),
+    Spec('link_frame_id', '',
+         'header.frame_id that link_pose messages must carry (the robot base frame); others '
+         "are skipped and counted. '' accepts any.", allow_empty=True),
+    Spec('sensor_frame_id', '',
+         "header.frame_id that sensor_pose messages must carry (the sensor's frame); others "
+         "are skipped and counted. '' accepts any.", allow_empty=True),
     Spec('pairs', 'all',
          'Motions from all pairs of samples (more information) or consecutive ones only.',
          choices=PAIRS),
@@ -125,6 +138,23 @@ SPECS = (
          'search; false for plain least squares.'),
     Spec('result_file', DEFAULT_RESULT_FILE,
          'Where ~/save writes the result YAML (~ is expanded; written atomically).'),
+    Spec('easy_handeye2_file', '',
+         "~/save also writes the result here in easy_handeye2's calibration layout "
+         '(parameters + transform; ~ is expanded; written atomically), e.g. '
+         "~/.ros2/easy_handeye2/calibrations/NAME.calib. '' does not write it.",
+         allow_empty=True),
+    Spec('publish_tf', False,
+         'true: broadcast the result (link_frame -> sensor_frame) on /tf_static after every '
+         'estimate, with tf2_ros (a ROS 2 install); without tf2_ros the node warns and '
+         'reports it in /diagnostics. The result is on ~/transform either way.'),
+    Spec('samples_file', DEFAULT_SAMPLES_FILE,
+         'Journal of the captured samples (samples CSV with a header comment; ~ is expanded): '
+         "each sample is appended and fsync'd as it is captured, ~/reset starts a new one, "
+         'and the old one is moved aside with a timestamp, never deleted.', read_only=True),
+    Spec('resume', False,
+         'true: continue the session in samples_file (reload its samples and re-estimate); '
+         'false: move an existing samples_file aside with a timestamp and start afresh.',
+         read_only=True),
     Spec('diagnostics_period_s', 1.0,
          'Period (seconds, node clock) of the status published on /diagnostics.',
          low=0.1, high=60.0, read_only=True),
@@ -147,9 +177,16 @@ class NodeConfig:
     min_motion_deg: float = 5.0
     pairing_tolerance_s: float = 0.001
     max_gap_s: float = 0.1
+    max_stamp_offset_s: float = 30.0
+    link_frame_id: str = ''
+    sensor_frame_id: str = ''
     pairs: str = 'all'
     robust: bool = True
     result_file: str = DEFAULT_RESULT_FILE
+    easy_handeye2_file: str = ''
+    publish_tf: bool = False
+    samples_file: str = DEFAULT_SAMPLES_FILE
+    resume: bool = False
     diagnostics_period_s: float = 1.0
 
     @staticmethod
@@ -235,6 +272,13 @@ def session_config(config):
                 min_motion_deg=config.min_motion_deg))
     except ValueError as error:
         raise ConfigError(f'inconsistent parameters: {error}') from None
+
+
+def check_config(config):
+    """Return the message_checks.CheckConfig of `config` (what pose messages must satisfy)."""
+    return CheckConfig(max_stamp_offset_ns=_ns(config.max_stamp_offset_s),
+                       link_frame_id=config.link_frame_id,
+                       sensor_frame_id=config.sensor_frame_id)
 
 
 def _ns(seconds):

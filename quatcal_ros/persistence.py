@@ -154,11 +154,24 @@ def read_result_yaml(path):
     Read a result YAML back.
 
     :return: the document (dict) with 'quaternion_xyzw' added as a numpy array (x, y, z, w).
-    :raises ValueError: when the file is not a result YAML (the message names the file).
+    :raises ValueError: when the file is not a result YAML (the message names the file),
+        including YAML that asks for objects (python/... tags): the file is data, read with
+        the safe loader, which builds only mappings, lists, strings and numbers.
     """
     path = Path(path).expanduser()
-    with open(path, encoding='utf-8') as stream:
-        document = yaml.safe_load(stream)
+    try:
+        with open(path, encoding='utf-8') as stream:
+            document = yaml.safe_load(stream)
+    except yaml.constructor.ConstructorError as error:
+        mark = error.problem_mark
+        where = f', line {mark.line + 1}' if mark is not None else ''
+        raise ValueError(f'{path}{where}: refused: not plain data ({error.problem}); a result '
+                         'file holds only mappings, lists, strings and numbers') from None
+    except (yaml.YAMLError, UnicodeDecodeError) as error:
+        raise ValueError(f'{path}: not a quatcal_ros result file (not readable YAML: '
+                         f'{str(error).splitlines()[0]})') from None
+    if not isinstance(document, dict):
+        raise ValueError(f'{path}: not a quatcal_ros result file (no mapping at the top)')
     try:
         rotation = document['rotation']
         q = np.array([rotation[k] for k in ('x', 'y', 'z', 'w')], dtype=float)

@@ -5,8 +5,9 @@ The samples CSV of DESIGN.md contract 2: one still sample per row.
     sensor_x,sensor_y,sensor_z,sensor_qx,sensor_qy,sensor_qz,sensor_qw
 
 stamp in seconds, positions in metres, quaternions (x, y, z, w) as in ROS (converted to the
-core's (w, x, y, z) here, by column name).  Errors name the file, the row (line number in the
-file) and the field.
+core's (w, x, y, z) here, by column name).  Lines starting with '#' before the header row are
+comments (the samples journal of the live node, journal.py, starts with one, so `solve` reads
+it as it is).  Errors name the file, the row (line number in the file) and the field.
 """
 
 import csv
@@ -21,6 +22,8 @@ COLUMNS = ('stamp',
            'sensor_x', 'sensor_y', 'sensor_z', 'sensor_qx', 'sensor_qy', 'sensor_qz', 'sensor_qw')
 # A quaternion whose norm differs from 1 by more than this is bad input, not rounding.
 QUATERNION_NORM_TOLERANCE = 1e-2
+# Stamps are integer nanoseconds in the core (int64, as rosbag2 stores them).
+MAX_STAMP_S = 2 ** 63 / 1e9
 
 
 class BadInputError(ValueError):
@@ -41,7 +44,16 @@ def read_samples(path):
 def parse_samples(stream, name='<samples>'):
     """Parse samples from an open text stream of the samples CSV format."""
     reader = csv.reader(stream)
+    try:
+        return _parse_rows(reader, name)
+    except csv.Error as error:   # a field over the csv module's size limit, ...
+        raise BadInputError(f'{name}, row {reader.line_num}: not a CSV row: {error}') from None
+
+
+def _parse_rows(reader, name):
     header = next(reader, None)
+    while header is not None and header and header[0].lstrip().startswith('#'):
+        header = next(reader, None)   # a comment line before the header row
     if header is None:
         raise BadInputError(f'{name}: empty file: expected the header row {",".join(COLUMNS)}')
     header = [column.strip() for column in header]
@@ -71,6 +83,9 @@ def _sample_from_row(row, index, name, line):
         if not math.isfinite(value):
             raise BadInputError(f'{where}: {row[i].strip()} is not a finite number')
         values[column] = value
+    if not abs(values['stamp']) < MAX_STAMP_S:
+        raise BadInputError(f'{name}, row {line}, field stamp: {values["stamp"]:g} s is out of '
+                            f'range (seconds, at most {MAX_STAMP_S:.3g} in magnitude)')
     return Sample(
         stamp_ns=int(round(values['stamp'] * 1e9)),
         link=_pose(values, 'link', name, line),
@@ -89,11 +104,16 @@ def _pose(values, prefix, name, line):
     return Pose.create(position, wxyz_from_xyzw(xyzw))
 
 
-def format_samples(samples):
-    """Format `samples` (list of pose.Sample) as samples CSV text, full float precision."""
+def format_samples(samples, header=True):
+    """
+    Format `samples` (list of pose.Sample) as samples CSV text, full float precision.
+
+    header=False gives the rows only (one line per sample, each ending with a newline).
+    """
     out = io.StringIO()
     writer = csv.writer(out, lineterminator='\n')
-    writer.writerow(COLUMNS)
+    if header:
+        writer.writerow(COLUMNS)
     for s in samples:
         row = [f'{s.stamp_ns / 1e9:.9f}']
         for pose in (s.link, s.sensor):

@@ -12,6 +12,19 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 
+@pytest.fixture(autouse=True)
+def private_home(tmp_path_factory, monkeypatch):
+    """
+    Give every test (and the processes it starts) a HOME of its own.
+
+    The calibrator node writes ~/.ros/quatcal/samples.csv (its samples journal) by default and
+    moves an earlier one aside: tests must not touch the user's files.  Returns the directory.
+    """
+    home = tmp_path_factory.mktemp('home')
+    monkeypatch.setenv('HOME', str(home))
+    return home
+
+
 @pytest.fixture(scope='session')
 def repo_root():
     """Return the repository root (the package directory), as a pathlib.Path."""

@@ -52,7 +52,7 @@ def test_descriptors_have_descriptions_ranges_and_read_only():
         if spec.choices:
             assert all(choice in descriptor.additional_constraints for choice in spec.choices)
     read_only = {spec.name for spec in SPECS if spec.descriptor().read_only}
-    assert read_only == {'pose_type', 'diagnostics_period_s'}
+    assert read_only == {'pose_type', 'diagnostics_period_s', 'samples_file', 'resume'}
 
 
 def test_session_config_gets_plain_numbers_in_nanoseconds():

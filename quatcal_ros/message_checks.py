@@ -1,0 +1,240 @@
+"""
+Checks of incoming pose messages: numbers in, verdicts out (no rclpy, no messages).
+
+The live node skips every pose message it cannot use, counts it under (stream, reason),
+and logs it (throttled per stream and reason) with the topic and the reason.  The reasons
+(REASONS, codes used as /diagnostics keys such as bad_link_pose_zero_stamp) come from three
+places, each checked once:
+
+- this module: a zero header stamp, a stamp farther than max_stamp_offset_ns from the node
+  clock (with use_sim_time that clock is /clock), a header frame_id other than the expected
+  one of its stream;
+- conversions (BadPoseError, whose `reason` is one of these codes): NaN or inf, a zero
+  quaternion, a quaternion whose norm is far from 1 (one slightly off is renormalised), a
+  stamp whose nanosec is out of range;
+- the session (session.Rejected, whose `code` is one of these codes): a stamp older than the
+  previous one of its stream, or the same stamp again.
+
+`StreamStats` keeps the counts, when each stream was last heard (node clock) and when it last
+gave a usable pose, so the node can say which stream is stale.  Bad messages cost one
+counter update each; the text of a reason is built only when it is logged.  Stamps are
+integer nanoseconds.
+"""
+
+from collections import Counter
+from dataclasses import dataclass
+
+NS_PER_S = 1_000_000_000
+LINK, SENSOR = 'link_pose', 'sensor_pose'
+STREAMS = (LINK, SENSOR)
+# A stream not heard (or without a usable pose) for this long, node clock, is stale.
+STALE_AFTER_S = 3.0
+# Each (stream, reason) is logged at most once per this many seconds (steady clock).
+LOG_THROTTLE_S = 5.0
+
+REASONS = {
+    'non_finite': 'NaN or inf in the pose',
+    'zero_quaternion': 'zero quaternion',
+    'non_unit_quaternion': 'quaternion norm far from 1',
+    'malformed': 'not a pose (wrong fields or values)',
+    'bad_stamp': 'header stamp out of range',
+    'zero_stamp': 'zero header stamp',
+    'stamp_in_future': 'header stamp far in the future of the node clock',
+    'stamp_in_past': 'header stamp far in the past of the node clock',
+    'duplicate_stamp': 'same header stamp as the previous message',
+    'out_of_order': 'header stamp older than the previous message',
+    'wrong_frame_id': 'header.frame_id is not the configured frame',
+}
+
+
+@dataclass(frozen=True)
+class CheckConfig:
+    """
+    What the node accepts; durations in integer nanoseconds.
+
+    max_stamp_offset_ns: largest distance of a header stamp from the node clock; 0: any.
+    link_frame_id, sensor_frame_id: the header.frame_id each stream must carry; '': any.
+    """
+
+    max_stamp_offset_ns: int = 30 * NS_PER_S
+    link_frame_id: str = ''
+    sensor_frame_id: str = ''
+
+    def __post_init__(self):
+        if self.max_stamp_offset_ns < 0:
+            raise ValueError(f'max_stamp_offset_ns must be >= 0, not {self.max_stamp_offset_ns}')
+
+    def frame_id(self, stream):
+        """Return the header.frame_id expected on `stream` ('' accepts any)."""
+        return self.link_frame_id if stream == LINK else self.sensor_frame_id
+
+
+def stamp_reason(stamp_ns, now_ns, max_offset_ns):
+    """
+    Return why a header stamp cannot be used, or None when it can.
+
+    'zero_stamp' for 0 (the publisher left it unset); 'stamp_in_future' or 'stamp_in_past'
+    when it is more than max_offset_ns from now_ns (the node clock).  No clock check when
+    max_offset_ns is 0 or the node clock has not started (now_ns <= 0: use_sim_time before
+    the first /clock message).
+    """
+    if stamp_ns == 0:
+        return 'zero_stamp'
+    if max_offset_ns and now_ns > 0:
+        if stamp_ns - now_ns > max_offset_ns:
+            return 'stamp_in_future'
+        if now_ns - stamp_ns > max_offset_ns:
+            return 'stamp_in_past'
+    return None
+
+
+def frame_reason(frame_id, expected):
+    """Return 'wrong_frame_id' when `expected` is set and `frame_id` differs, else None."""
+    if not expected or frame_id == expected:
+        return None
+    # tf2 frame ids have no leading slash; ROS 1 habits add one.
+    if frame_id.lstrip('/') == expected.lstrip('/'):
+        return None
+    return 'wrong_frame_id'
+
+
+def check(stream, stamp_ns, frame_id, now_ns, config):
+    """Return why a message of `stream` with this stamp and frame is bad, or None (cheap)."""
+    reason = stamp_reason(stamp_ns, now_ns, config.max_stamp_offset_ns)
+    if reason is None:
+        reason = frame_reason(frame_id, config.frame_id(stream))
+    return reason
+
+
+def describe(reason, stream, stamp_ns=None, frame_id=None, now_ns=None, config=None):
+    """
+    Return the sentence logged for a bad message of `stream` that `check` refused.
+
+    Built only when the throttled log is due: it says what was wrong and what to do.
+    """
+    if reason == 'zero_stamp':
+        return 'header stamp is zero: the publisher must stamp its messages (exposure time)'
+    if reason in ('stamp_in_future', 'stamp_in_past'):
+        offset_s = (stamp_ns - now_ns) / NS_PER_S
+        side = 'ahead of' if offset_s > 0 else 'behind'
+        return (f'header stamp {stamp_ns / NS_PER_S:.3f} s is {abs(offset_s):.3g} s {side} the '
+                f'node clock (limit {config.max_stamp_offset_ns / NS_PER_S:g} s, parameter '
+                'max_stamp_offset_s): are the clocks synchronised? For a bag, play it with '
+                '--clock and set use_sim_time; 0 turns the check off')
+    if reason == 'wrong_frame_id':
+        parameter = 'link_frame_id' if stream == LINK else 'sensor_frame_id'
+        return (f'header.frame_id {frame_id!r} is not {config.frame_id(stream)!r} (parameter '
+                f'{parameter}): is the topic remapped to the right source?')
+    return REASONS.get(reason, reason)
+
+
+def pose_error_reason(error):
+    """Return the reason code of a conversions.BadPoseError (its `reason`, else 'malformed')."""
+    reason = getattr(error, 'reason', '')
+    return reason if reason in REASONS else 'malformed'
+
+
+def rejected_reason(event):
+    """Return the reason code of a session.Rejected pose (its `code`, else 'malformed')."""
+    code = getattr(event, 'code', '')
+    return code if code in REASONS else 'malformed'
+
+
+def diagnostic_key(stream, reason):
+    """Return the /diagnostics key of a bad-message count, e.g. bad_link_pose_zero_stamp."""
+    return f'bad_{stream}_{reason}'
+
+
+class StreamStats:
+    """
+    Messages per stream: received, usable, bad per reason; when last heard; log throttling.
+
+    Times: node clock (now_ns) for staleness, steady clock (steady_ns) for log throttling.
+    Every received message is either good (`note_good`) or bad (`note_bad`) exactly once,
+    so received == good + bad for each stream.
+    """
+
+    def __init__(self, throttle_s=LOG_THROTTLE_S):
+        self.received = Counter()
+        self.good = Counter()
+        self.bad = Counter()                # (stream, reason): count
+        self.first_ns = None
+        self.last_ns = {}
+        self.last_good_ns = {}
+        self.last_bad = {}                  # stream: reason of its latest bad message
+        self._throttle_ns = int(throttle_s * NS_PER_S)
+        self._log_due_ns = {}
+        self._unlogged = Counter()
+
+    def note(self, stream, now_ns):
+        """Count a message received on `stream` at node time now_ns."""
+        self.received[stream] += 1
+        self.last_ns[stream] = now_ns
+        if self.first_ns is None:
+            self.first_ns = now_ns
+
+    def note_good(self, stream, now_ns):
+        """Count a message of `stream` that reached the session."""
+        self.good[stream] += 1
+        self.last_good_ns[stream] = now_ns
+
+    def note_bad(self, stream, reason, steady_ns):
+        """
+        Count a skipped message; return how many to report when a log line is due, else None.
+
+        The first bad message of a (stream, reason) is logged at once, later ones at most
+        every throttle_s: the number returned counts them all since the previous log line.
+        """
+        key = (stream, reason)
+        self.bad[key] += 1
+        self.last_bad[stream] = reason
+        self._unlogged[key] += 1
+        due = self._log_due_ns.get(key)
+        if due is not None and steady_ns < due:
+            return None
+        self._log_due_ns[key] = steady_ns + self._throttle_ns
+        count, self._unlogged[key] = self._unlogged[key], 0
+        return count
+
+    @property
+    def bad_total(self):
+        """Return the number of bad messages on all streams."""
+        return sum(self.bad.values())
+
+    def bad_of(self, stream):
+        """Return the number of bad messages on `stream`."""
+        return sum(n for (s, _), n in self.bad.items() if s == stream)
+
+    def stale(self, now_ns, after_s=STALE_AFTER_S):
+        """Streams not heard for after_s (node clock) since the first message of either."""
+        return [stream for stream, _ in self.stale_reasons(now_ns, after_s)]
+
+    def stale_reasons(self, now_ns, after_s=STALE_AFTER_S):
+        """
+        Return [(stream, 'sensor_pose stale: no message for 4.2 s'), ...] (node clock).
+
+        A stream is stale when it has sent nothing, or nothing usable, for after_s; before
+        the first message of either stream nothing is stale.
+        """
+        if self.first_ns is None:
+            return []
+        limit = now_ns - int(after_s * NS_PER_S)
+        out = []
+        for stream in STREAMS:
+            last = self.last_ns.get(stream)
+            if last is None:
+                age_s = (now_ns - self.first_ns) / NS_PER_S
+                if self.first_ns < limit:
+                    out.append((stream, f'{stream} stale: no message at all in {age_s:.1f} s'))
+                continue
+            if last < limit:
+                out.append((stream, f'{stream} stale: no message for '
+                                    f'{(now_ns - last) / NS_PER_S:.1f} s'))
+                continue
+            last_good = self.last_good_ns.get(stream, self.first_ns)
+            if last_good < limit:
+                reason = self.last_bad.get(stream, '')
+                out.append((stream, f'{stream} stale: no usable message for '
+                                    f'{(now_ns - last_good) / NS_PER_S:.1f} s (bad messages '
+                                    f'only, latest: {REASONS.get(reason, reason)})'))
+        return out

@@ -1,0 +1,94 @@
+"""Tests of quatcal_ros.drift: noticing a marker or sensor that moved during a session."""
+
+import numpy as np
+import pytest
+from quatcal_ros import calibration
+from quatcal_ros import drift
+from quatcal_ros import quaternion as quat
+from quatcal_ros import simulation
+from quatcal_ros.pose import Pose, Sample
+
+
+def cell_and_samples(seed, n, noise_deg=0.2, outlier_fraction=0.0):
+    rng = np.random.default_rng(seed)
+    cell = simulation.random_cell(rng)
+    samples, _ = simulation.samples(rng, cell, n, rotation_noise_deg=noise_deg,
+                                    translation_noise_m=0.001,
+                                    outlier_fraction=outlier_fraction)
+    return cell, samples
+
+
+def marker_moved(cell, samples, first, angle_deg, axis=(0.3, 0.5, 0.8)):
+    """Return the samples as seen when the object turned by angle_deg from sample `first` on."""
+    turn = Pose(np.zeros(3), quat.from_axis_angle(np.asarray(axis) / np.linalg.norm(axis),
+                                                  np.radians(angle_deg)))
+    moved = []
+    for i, s in enumerate(samples):
+        if i >= first:
+            base_sensor = s.link @ cell.mounting
+            s = Sample(s.stamp_ns, s.link, base_sensor.inverse() @ (turn @ base_sensor @ s.sensor))
+        moved.append(s)
+    return moved
+
+
+def sensor_slipped(cell, samples, first, angle_deg):
+    """Return the samples as seen when the sensor turned on its mount from sample `first` on."""
+    slip = Pose(np.zeros(3), quat.from_axis_angle([1.0, 0.0, 0.0], np.radians(angle_deg)))
+    return [s if i < first else Sample(s.stamp_ns, s.link, slip.inverse() @ s.sensor)
+            for i, s in enumerate(samples)]
+
+
+@pytest.mark.parametrize('seed', range(8))
+def test_no_move_in_good_sessions_even_with_bad_detections(seed):
+    cell, samples = cell_and_samples(seed, 40, noise_deg=0.3, outlier_fraction=0.1)
+    result = calibration.calibrate(samples)
+    assert drift.find_move(samples, result.quaternion) is None
+
+
+@pytest.mark.parametrize('count', [3, 4, 20])
+def test_a_moved_marker_is_found_where_it_moved(count):
+    cell, samples = cell_and_samples(3, 12 + count)
+    moved = marker_moved(cell, samples, 12, 3.0)
+    result = calibration.calibrate(moved)
+    move = drift.find_move(moved, result.quaternion)
+    assert move is not None and move.first == 12 and move.samples == count
+    assert move.before_deg < 0.6 and 2.0 < move.after_deg < 4.0
+    assert move.text().startswith(f'the residual rose from {move.before_deg:.2f} to '
+                                  f'{move.after_deg:.2f} deg over the last {count} samples')
+    assert 'has the marker or the sensor moved? call ~/reset and recollect' in move.text()
+
+
+def test_two_moved_samples_are_not_yet_a_move():
+    cell, samples = cell_and_samples(3, 14)
+    moved = marker_moved(cell, samples, 12, 3.0)
+    assert drift.find_move(moved, calibration.calibrate(moved).quaternion) is None
+
+
+def test_the_robust_estimate_alone_hides_a_move():
+    """Why the check exists: the moved samples are rejected, the residual stays low."""
+    cell, samples = cell_and_samples(3, 16)
+    moved = marker_moved(cell, samples, 12, 3.0)
+    result = calibration.calibrate(moved)
+    assert result.residual_rms_deg < 1.0          # below the node's high-residual warning
+    assert {e['sample'] for e in result.rejected if 'sample' in e} >= {12, 13, 14, 15}
+    assert drift.find_move(moved, result.quaternion).first == 12
+
+
+def test_a_slipped_sensor_and_noise_free_data():
+    cell, samples = cell_and_samples(5, 15, noise_deg=0.2)
+    slipped = sensor_slipped(cell, samples, 11, 4.0)
+    assert drift.find_move(slipped, calibration.calibrate(slipped).quaternion).first == 11
+    cell, clean = cell_and_samples(6, 12, noise_deg=0.0)
+    result = calibration.calibrate(clean)
+    assert drift.find_move(clean, result.quaternion) is None
+    moved = marker_moved(cell, clean, 8, 0.5)
+    assert drift.find_move(moved, calibration.calibrate(moved).quaternion).first == 8
+
+
+def test_first_limits_the_change_points_examined():
+    cell, samples = cell_and_samples(3, 20)
+    moved = marker_moved(cell, samples, 12, 3.0)
+    q = calibration.calibrate(moved).quaternion
+    assert drift.find_move(moved[:15], q, first=12).first == 12
+    assert drift.find_move(moved, q, first=18) is None      # no change point left (k <= 17)
+    assert drift.find_move(moved, q, first=13).first == 13  # all after 13 moved too

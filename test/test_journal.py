@@ -1,0 +1,343 @@
+"""
+Tests of quatcal_ros.journal: the crash-safe samples journal (no ROS).
+
+A journal must give back every sample appended to it, survive a crash at any byte (losing at
+most the line being written), and never overwrite or delete a file that holds data: corrupt
+or foreign files and journals that are not resumed are moved aside with a timestamp.
+"""
+
+import errno
+import os
+from pathlib import Path
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+import numpy as np
+from numpy.testing import assert_allclose
+import pytest
+from quatcal_ros import cli
+from quatcal_ros import journal
+from quatcal_ros import simulation
+from quatcal_ros.journal import JournalError, JournalHeader, JournalRefused
+from quatcal_ros.samples_csv import COLUMNS, format_samples
+
+HEADER = JournalHeader('eye_in_hand', 'tool0', 'camera')
+NOW = 1_700_000_000.0   # a fixed wall time for the moved-aside names
+
+
+def make_samples(n, seed=1):
+    rng = np.random.default_rng(seed)
+    cell = simulation.random_cell(rng)
+    samples, _ = simulation.samples(rng, cell, n, rotation_noise_deg=0.1,
+                                    translation_noise_m=0.001)
+    return samples
+
+
+def assert_same_samples(got, expected):
+    assert len(got) == len(expected)
+    for a, b in zip(got, expected):
+        assert abs(a.stamp_ns - b.stamp_ns) < 1000       # the CSV stamp is float seconds
+        assert_allclose(a.link.position, b.link.position, rtol=0, atol=0)
+        assert_allclose(a.sensor.position, b.sensor.position, rtol=0, atol=0)
+        assert_allclose(a.link.quaternion, b.link.quaternion, rtol=0, atol=1e-15)
+        assert_allclose(a.sensor.quaternion, b.sensor.quaternion, rtol=0, atol=1e-15)
+
+
+def started(path, header=HEADER, resume=False):
+    opened, report = journal.start(path, header, resume, now=NOW)
+    return opened, report
+
+
+def written_journal(path, samples, header=HEADER):
+    opened, _ = started(path, header)
+    for sample in samples:
+        opened.append(sample)
+    opened.close()
+    return path.read_bytes()
+
+
+def aside_files(directory, tag):
+    return sorted(p for p in Path(directory).iterdir() if f'.{tag}-' in p.name)
+
+
+# --- format -----------------------------------------------------------------------------------
+
+def test_header_line_round_trip_and_odd_frame_names():
+    header = JournalHeader('eye_to_hand', 'base link,1', 'cam/optical=x%')
+    line = header.line()
+    assert line.startswith('# quatcal_ros samples journal v1 setup=eye_to_hand ')
+    assert ',' not in line and line.count('=') == 3
+    assert JournalHeader.parse(line) == header
+    assert HEADER.line() == ('# quatcal_ros samples journal v1 setup=eye_in_hand '
+                             'link_frame=tool0 sensor_frame=camera')
+
+
+@pytest.mark.parametrize('line, words', [
+    ('stamp,link_x', 'not a quatcal_ros samples journal'),
+    ('# quatcal_ros samples journal v2 setup=eye_in_hand', "version 'v2'"),
+    ('# quatcal_ros samples journal v1 setup=eye_in_hand link_frame=tool0', 'sensor_frame'),
+    ('# quatcal_ros samples journal v1 setup=a link_frame=b sensor_frame=c colour=red',
+     'colour'),
+])
+def test_bad_header_lines_are_refused(line, words):
+    with pytest.raises(JournalError, match=words):
+        JournalHeader.parse(line, 'f.csv')
+
+
+def test_appended_samples_read_back_exactly(tmp_path):
+    samples = make_samples(7)
+    path = tmp_path / 'a' / 'b' / 'samples.csv'          # parent directories are made
+    data = written_journal(path, samples)
+    lines = data.decode().splitlines()
+    assert lines[0] == HEADER.line()
+    assert lines[1] == ','.join(COLUMNS)
+    assert len(lines) == 2 + len(samples)
+    contents = journal.read_journal(path)
+    assert contents.header == HEADER and contents.notices == []
+    assert_same_samples(contents.samples, samples)
+    assert contents.intact_bytes == contents.size_bytes == len(data)
+
+
+def test_solve_reads_a_journal_as_a_samples_csv(tmp_path, capsys):
+    path = tmp_path / 'samples.csv'
+    written_journal(path, make_samples(8))
+    assert cli.solve_main([str(path)]) == 0
+    assert '"samples": 8' in capsys.readouterr().out
+
+
+def test_every_append_is_fsynced(tmp_path, monkeypatch):
+    opened, _ = started(tmp_path / 'samples.csv')
+    calls = []
+    real_fsync = os.fsync
+    monkeypatch.setattr(journal.os, 'fsync', lambda fd: calls.append(fd) or real_fsync(fd))
+    for sample in make_samples(3):
+        opened.append(sample)
+    assert len(calls) == 3
+    opened.close()
+
+
+# --- crashes ----------------------------------------------------------------------------------
+
+def test_a_torn_last_line_is_dropped_with_a_notice(tmp_path):
+    samples = make_samples(5)
+    path = tmp_path / 'samples.csv'
+    data = written_journal(path, samples)
+    path.write_bytes(data[:-40])        # the last row lost its end (a write cut short)
+    contents = journal.read_journal(path)
+    assert_same_samples(contents.samples, samples[:4])
+    (notice,) = contents.notices
+    assert 'without an end of line' in notice and str(path) in notice
+    assert contents.intact_bytes < contents.size_bytes
+
+
+def test_a_last_line_with_too_few_fields_is_dropped(tmp_path):
+    samples = make_samples(4)
+    path = tmp_path / 'samples.csv'
+    data = written_journal(path, samples)
+    last = data[:-1].rfind(b'\n') + 1
+    path.write_bytes(data[:last] + b'1700000003.0,0.5,0.1\n')
+    contents = journal.read_journal(path)
+    assert_same_samples(contents.samples, samples[:3])
+    (notice,) = contents.notices
+    assert 'row 6' in notice and '3 of 15 fields' in notice
+
+
+@settings(max_examples=60, deadline=None)
+@given(cut=st.floats(min_value=0.0, max_value=1.0))
+def test_a_crash_at_any_byte_loses_at_most_the_line_being_written(tmp_path_factory, cut):
+    samples = make_samples(5, seed=3)
+    path = tmp_path_factory.mktemp('crash') / 'samples.csv'
+    data = written_journal(path, samples)
+    header_bytes = data.index(b'\n', data.index(b'\n') + 1) + 1   # written atomically
+    size = header_bytes + int(round(cut * (len(data) - header_bytes)))
+    path.write_bytes(data[:size])
+    contents = journal.read_journal(path)
+    complete = data[header_bytes:size].count(b'\n')
+    assert_same_samples(contents.samples, samples[:complete])
+    assert len(contents.notices) == (0 if data[:size].endswith(b'\n') else 1)
+
+
+def test_resume_cuts_the_torn_line_and_appends_cleanly(tmp_path):
+    samples = make_samples(6)
+    path = tmp_path / 'samples.csv'
+    data = written_journal(path, samples[:5])
+    path.write_bytes(data[:-25])
+    opened, report = started(path, resume=True)
+    assert_same_samples(report.samples, samples[:4])
+    assert [level for level, _ in report.messages] == ['warning', 'info']
+    assert 'resumed 4 samples' in report.messages[-1][1]
+    opened.append(samples[5])
+    opened.close()
+    contents = journal.read_journal(path)
+    assert contents.notices == []
+    assert_same_samples(contents.samples, samples[:4] + [samples[5]])
+
+
+def test_a_failed_write_is_retried_without_a_gap_or_a_torn_line(tmp_path, monkeypatch):
+    samples = make_samples(4)
+    opened, _ = started(tmp_path / 'samples.csv')
+    opened.append(samples[0])
+    real_write = os.write
+
+    def disk_full(fd, data):   # half the line reaches the file, then the disk is full
+        real_write(fd, data[:len(data) // 2])
+        raise OSError(errno.ENOSPC, 'No space left on device')
+
+    monkeypatch.setattr(journal.os, 'write', disk_full)
+    with pytest.raises(OSError, match='No space'):
+        opened.append(samples[1])
+    with pytest.raises(OSError):
+        opened.append(samples[2])
+    assert opened.unwritten == 2 and opened.count == 3
+    monkeypatch.setattr(journal.os, 'write', real_write)
+    opened.append(samples[3])
+    assert opened.unwritten == 0
+    opened.close()
+    contents = journal.read_journal(tmp_path / 'samples.csv')
+    assert contents.notices == []
+    assert_same_samples(contents.samples, samples)
+
+
+# --- corrupt and foreign files ----------------------------------------------------------------
+
+def test_a_bad_row_in_the_middle_is_corrupt(tmp_path):
+    path = tmp_path / 'samples.csv'
+    data = written_journal(path, make_samples(4))
+    lines = data.decode().splitlines(keepends=True)
+    lines[3] = lines[3].replace(',', ',abc', 1)
+    path.write_text(''.join(lines))
+    with pytest.raises(JournalError, match=r'row 4, field link_x: .*not a number'):
+        journal.read_journal(path)
+
+
+@pytest.mark.parametrize('content, words', [
+    (b'format: quatcal_ros/rotation\nrotation: {x: 0, y: 0, z: 0, w: 1}\n',
+     'not a quatcal_ros samples journal'),
+    (b'', 'empty file'),
+    (b'\x89PNG\r\n\x1a\n\x00\x00', 'not a text file'),
+    (','.join(COLUMNS).encode() + b'\n', 'not a quatcal_ros samples journal'),
+    (HEADER.line().encode() + b'\n', 'ends before its column row'),
+])
+def test_corrupt_or_foreign_files_are_moved_aside_and_reported(tmp_path, content, words):
+    path = tmp_path / 'samples.csv'
+    path.write_bytes(content)
+    for resume in (True, False):
+        opened, report = started(path, resume=resume)
+        opened.close()
+        (level, text), = report.messages
+        assert level == 'error' and words in text and str(report.moved_to) in text
+        assert report.moved_to.read_bytes() == content           # kept as it was
+        assert report.moved_to.name.startswith('samples.csv.corrupt-')
+        assert report.samples == []
+        assert journal.read_journal(path).samples == []          # a new journal
+        path.unlink()
+        report.moved_to.rename(path)
+    assert len(aside_files(tmp_path, 'corrupt')) == 0
+
+
+def test_resume_false_moves_an_earlier_session_aside(tmp_path):
+    path = tmp_path / 'samples.csv'
+    data = written_journal(path, make_samples(3))
+    opened, report = started(path, resume=False)
+    opened.close()
+    (level, text), = report.messages
+    assert level == 'warning' and 'held 3 samples' in text and 'resume:=true' in text
+    (aside,) = aside_files(tmp_path, 'previous')
+    assert aside == report.moved_to and aside.read_bytes() == data
+    assert str(aside) in text
+    assert journal.read_journal(path).samples == []
+    # A journal without samples is simply replaced: nothing to keep.
+    opened, report = started(path, resume=False)
+    opened.close()
+    assert report.moved_to is None and len(aside_files(tmp_path, 'previous')) == 1
+
+
+def test_resume_refuses_another_setup_or_other_frames(tmp_path):
+    path = tmp_path / 'samples.csv'
+    data = written_journal(path, make_samples(3))
+    for other, words in ((JournalHeader('eye_to_hand', 'tool0', 'camera'), 'setup'),
+                         (JournalHeader('eye_in_hand', 'flange', 'camera'), 'link_frame')):
+        with pytest.raises(JournalRefused, match=f'resume:=true refused: .*{words}'):
+            started(path, other, resume=True)
+        assert path.read_bytes() == data                       # untouched
+    assert aside_files(tmp_path, 'previous') == aside_files(tmp_path, 'corrupt') == []
+    # The lock was released: the right parameters resume it.
+    opened, report = started(path, resume=True)
+    assert len(report.samples) == 3
+    opened.close()
+
+
+def test_resume_without_a_journal_starts_one(tmp_path):
+    opened, report = started(tmp_path / 'samples.csv', resume=True)
+    opened.close()
+    (level, text), = report.messages
+    assert level == 'warning' and 'nothing to resume' in text
+    assert journal.read_journal(tmp_path / 'samples.csv').header == HEADER
+
+
+def test_moving_aside_never_overwrites(tmp_path):
+    path = tmp_path / 'samples.csv'
+    path.write_text('one')
+    taken = journal.aside_path(path, 'previous', NOW)
+    taken.write_text('older')
+    moved = journal.move_aside(path, 'previous', NOW)
+    assert moved != taken and moved.name == taken.name + '-2'
+    assert taken.read_text() == 'older' and moved.read_text() == 'one'
+    assert not path.exists()
+
+
+def test_a_directory_or_a_journal_in_use_is_refused(tmp_path):
+    (tmp_path / 'dir').mkdir()
+    with pytest.raises(JournalRefused, match='directory'):
+        started(tmp_path / 'dir')
+    opened, _ = started(tmp_path / 'samples.csv')
+    with pytest.raises(JournalRefused, match='in use by another running calibrator'):
+        started(tmp_path / 'samples.csv', resume=True)
+    opened.close()
+    started(tmp_path / 'samples.csv', resume=True)[0].close()
+    with pytest.raises(FileExistsError):
+        journal.Journal.create(tmp_path / 'samples.csv', HEADER)
+
+
+# --- while running ----------------------------------------------------------------------------
+
+def test_restart_moves_the_old_journal_aside(tmp_path):
+    samples = make_samples(4)
+    path = tmp_path / 'samples.csv'
+    opened, _ = started(path)
+    for sample in samples[:3]:
+        opened.append(sample)
+    old = path.read_bytes()
+    moved = opened.restart(now=NOW)
+    assert moved.read_bytes() == old and moved.name.startswith('samples.csv.previous-')
+    assert opened.count == 0 and journal.read_journal(path).samples == []
+    opened.append(samples[3])
+    assert opened.restart(now=NOW) is not None
+    assert opened.restart(now=NOW) is None          # nothing to keep: no new file aside
+    assert len(aside_files(tmp_path, 'previous')) == 2
+    opened.close()
+
+
+def test_set_header_keeps_the_sample_lines(tmp_path):
+    samples = make_samples(3)
+    path = tmp_path / 'samples.csv'
+    opened, _ = started(path)
+    for sample in samples[:2]:
+        opened.append(sample)
+    before = path.read_bytes()
+    other = JournalHeader('eye_to_hand', 'base_link', 'camera')
+    opened.set_header(other)
+    opened.append(samples[2])
+    opened.close()
+    after = path.read_bytes()
+    assert after.split(b'\n', 1)[1].startswith(before.split(b'\n', 1)[1])
+    contents = journal.read_journal(path)
+    assert contents.header == other
+    assert_same_samples(contents.samples, samples)
+
+
+def test_journal_rows_are_the_samples_csv_rows(tmp_path):
+    samples = make_samples(3)
+    path = tmp_path / 'samples.csv'
+    data = written_journal(path, samples).decode()
+    assert data.split('\n', 1)[1] == format_samples(samples)

@@ -1,0 +1,436 @@
+"""
+Tests of bad pose messages: the core checks (message_checks) and the node that applies them.
+
+Core tests run on plain numbers.  Node tests build the calibrator in a private Context and
+publish through the middleware (ROS_DOMAIN_ID 60): every kind of bad message is counted under
+its stream and reason in /diagnostics, logged with the topic and the reason (throttled per
+both), and skipped, and good data afterwards is still used.  A flood of bad messages on a
+live node is tested in test_soak.py.
+"""
+
+import re
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+import numpy as np
+import pytest
+from quatcal_ros import conversions
+from quatcal_ros import message_checks as mc
+from quatcal_ros import quaternion as quat
+from quatcal_ros import simulation
+from quatcal_ros.node import CalibratorNode
+from quatcal_ros.node import DIAGNOSTIC_NAME
+from quatcal_ros.pose import Pose
+from quatcal_ros.session import Notice
+from quatcal_ros.session import Rejected
+from quatcal_ros.session import Session
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile
+from rclpy.qos import ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+
+DOMAIN_ID = 60
+NS = mc.NS_PER_S
+MS = 1_000_000
+RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+
+
+# --- the core checks -------------------------------------------------------------------------
+
+def test_stamp_reason():
+    now = 1_800_000_000 * NS
+    limit = 30 * NS
+    assert mc.stamp_reason(now, now, limit) is None
+    assert mc.stamp_reason(now + limit, now, limit) is None
+    assert mc.stamp_reason(now - limit, now, limit) is None
+    assert mc.stamp_reason(0, now, limit) == 'zero_stamp'
+    assert mc.stamp_reason(0, now, 0) == 'zero_stamp'
+    assert mc.stamp_reason(now + limit + 1, now, limit) == 'stamp_in_future'
+    assert mc.stamp_reason(now - limit - 1, now, limit) == 'stamp_in_past'
+    assert mc.stamp_reason(-5 * NS, now, limit) == 'stamp_in_past'
+    # 0 turns the clock check off; so does a node clock that has not started (use_sim_time).
+    assert mc.stamp_reason(now - 10 ** 6 * NS, now, 0) is None
+    assert mc.stamp_reason(now, 0, limit) is None
+
+
+def test_frame_reason_and_check():
+    assert mc.frame_reason('anything', '') is None
+    assert mc.frame_reason('camera', 'camera') is None
+    assert mc.frame_reason('/camera', 'camera') is None
+    assert mc.frame_reason('camera_optical', 'camera') == 'wrong_frame_id'
+    assert mc.frame_reason('', 'camera') == 'wrong_frame_id'
+    config = mc.CheckConfig(max_stamp_offset_ns=NS, link_frame_id='base',
+                            sensor_frame_id='camera')
+    now = 100 * NS
+    assert mc.check(mc.LINK, now, 'base', now, config) is None
+    assert mc.check(mc.LINK, now, 'camera', now, config) == 'wrong_frame_id'
+    assert mc.check(mc.SENSOR, now, 'camera', now, config) is None
+    # The stamp is checked first.
+    assert mc.check(mc.SENSOR, 0, 'base', now, config) == 'zero_stamp'
+    with pytest.raises(ValueError, match='max_stamp_offset_ns'):
+        mc.CheckConfig(max_stamp_offset_ns=-1)
+
+
+def test_describe_says_what_to_do():
+    config = mc.CheckConfig(max_stamp_offset_ns=30 * NS, sensor_frame_id='camera')
+    now = 1_000 * NS
+    text = mc.describe('stamp_in_future', mc.SENSOR, now + 45 * NS, 'camera', now, config)
+    assert '45 s ahead of the node clock' in text and 'max_stamp_offset_s' in text
+    text = mc.describe('stamp_in_past', mc.SENSOR, now - 45 * NS, 'camera', now, config)
+    assert '45 s behind the node clock' in text and 'use_sim_time' in text
+    text = mc.describe('wrong_frame_id', mc.SENSOR, now, 'world', now, config)
+    assert "'world' is not 'camera'" in text and 'sensor_frame_id' in text
+    assert 'stamp' in mc.describe('zero_stamp', mc.LINK)
+    assert mc.diagnostic_key(mc.LINK, 'zero_stamp') == 'bad_link_pose_zero_stamp'
+
+
+def _msg(position=(0.0, 0.0, 0.0), xyzw=(0.0, 0.0, 0.0, 1.0), sec=10, nanosec=0,
+         frame_id='base'):
+    msg = PoseStamped()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+    msg.header.frame_id = frame_id
+    p, q = msg.pose.position, msg.pose.orientation
+    p.x, p.y, p.z = position
+    q.x, q.y, q.z, q.w = xyzw
+    return msg
+
+
+@pytest.mark.parametrize('position, xyzw, reason', [
+    ((float('nan'), 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), 'non_finite'),
+    ((0.0, 0.0, float('-inf')), (0.0, 0.0, 0.0, 1.0), 'non_finite'),
+    ((0.0, 0.0, 0.0), (0.0, float('inf'), 0.0, 1.0), 'non_finite'),
+    ((1e308, 1e308, 0.0), (0.0, 0.0, 0.0, 1.0), None),     # huge but finite: a pose
+    ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0), 'zero_quaternion'),
+    ((0.0, 0.0, 0.0), (1e-9, 0.0, 0.0, 0.0), 'zero_quaternion'),
+    ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 2.0), 'non_unit_quaternion'),
+    ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.99), 'non_unit_quaternion'),
+    ((0.0, 0.0, 0.0), (1e200, 1e200, 0.0, 0.0), 'non_unit_quaternion'),
+])
+def test_bad_poses_carry_their_reason(position, xyzw, reason):
+    if reason is None:
+        assert conversions.pose_from_msg(_msg(position, xyzw)).position[0] == 1e308
+        return
+    with pytest.raises(conversions.BadPoseError) as error:
+        conversions.pose_from_msg(_msg(position, xyzw))
+    assert mc.pose_error_reason(error.value) == reason
+    assert error.value.field.startswith('pose.')
+
+
+def test_slightly_off_quaternion_is_renormalised():
+    s = 1.0 + 0.5 * conversions.DEFAULT_NORM_TOLERANCE
+    pose = conversions.pose_from_msg(_msg(xyzw=(0.0, 0.6 * s, 0.0, 0.8 * s)))
+    np.testing.assert_allclose(pose.quaternion, [0.8, 0.0, 0.6, 0.0], atol=1e-15)
+    assert np.linalg.norm(pose.quaternion) == pytest.approx(1.0, abs=1e-15)
+
+
+def test_fast_and_slow_paths_agree():
+    rng = np.random.default_rng(8)
+    for _ in range(200):
+        q = rng.normal(size=4)
+        q *= rng.uniform(0.998, 1.002) / np.linalg.norm(q)
+        p = rng.normal(size=3) * 10.0
+        try:
+            got = conversions.validate_pose_numbers(p, q)
+        except conversions.BadPoseError:
+            got = None
+        try:
+            slow = conversions._validate_slowly(p, q, conversions.DEFAULT_NORM_TOLERANCE,
+                                                'position', 'orientation')
+        except conversions.BadPoseError:
+            slow = None
+        assert (got is None) == (slow is None)
+        if got is not None:
+            np.testing.assert_allclose(got[0], slow[0], rtol=0, atol=0)
+            np.testing.assert_allclose(got[1], slow[1], rtol=1e-15, atol=1e-15)
+
+
+def test_session_rejections_carry_their_reason():
+    session = Session()
+    pose = Pose.identity()
+    assert session.add_link_pose(10 * MS, pose) == []
+    (duplicate,) = session.add_link_pose(10 * MS, pose)
+    (late,) = session.add_link_pose(5 * MS, pose)
+    (nan,) = session.add_sensor_pose(10 * MS, Pose(np.full(3, np.nan), quat.IDENTITY.copy()))
+    assert [mc.rejected_reason(e) for e in (duplicate, late, nan)] == [
+        'duplicate_stamp', 'out_of_order', 'non_finite']
+    assert mc.rejected_reason(Rejected('link_pose', 'why')) == 'malformed'
+
+
+def test_pairing_notice_with_an_unknown_rate():
+    # Found by test_fuzz: stamps jumping ahead and back leave a stream with too few poses
+    # for a rate when the first pair forms; the notice used to fail formatting None.
+    session = Session()
+    events = []
+    for stream, stamp_ms in (('l', 0), ('l', 10), ('s', 3002), ('s', 15), ('l', 40), ('s', 50),
+                             ('l', 60), ('l', 70), ('s', 3008)):
+        add = session.add_link_pose if stream == 'l' else session.add_sensor_pose
+        events += add(stamp_ms * MS, Pose.identity())
+    assert any(isinstance(e, Notice) and 'rate unknown' in e.text for e in events)
+
+
+def test_stream_stats_count_and_throttle():
+    stats = mc.StreamStats(throttle_s=5.0)
+    t = 1_000 * NS
+    # The first message of a (stream, reason) is reported at once, then once per 5 s with
+    # the number since the previous report.
+    assert stats.note_bad(mc.SENSOR, 'non_finite', t) == 1
+    assert [stats.note_bad(mc.SENSOR, 'non_finite', t + k * MS) for k in range(1, 100)] == \
+        [None] * 99
+    assert stats.note_bad(mc.SENSOR, 'zero_stamp', t + 100 * MS) == 1    # another reason
+    assert stats.note_bad(mc.LINK, 'non_finite', t + 100 * MS) == 1      # another stream
+    assert stats.note_bad(mc.SENSOR, 'non_finite', t + 5 * NS) == 100
+    assert stats.note_bad(mc.SENSOR, 'non_finite', t + 6 * NS) is None
+    assert stats.bad[mc.SENSOR, 'non_finite'] == 102
+    assert stats.bad_total == 104
+    assert stats.bad_of(mc.SENSOR) == 103
+
+
+def test_stale_streams_are_named():
+    stats = mc.StreamStats()
+    t0 = 1_000 * NS
+    assert stats.stale_reasons(t0 + 100 * NS) == []        # nothing received yet
+    stats.note(mc.LINK, t0)
+    stats.note_good(mc.LINK, t0)
+    assert stats.stale_reasons(t0 + 2 * NS) == []
+    assert stats.stale_reasons(t0 + 4 * NS) == [
+        (mc.LINK, 'link_pose stale: no message for 4.0 s'),
+        (mc.SENSOR, 'sensor_pose stale: no message at all in 4.0 s')]
+    stats.note(mc.LINK, t0 + 4 * NS)
+    stats.note_good(mc.LINK, t0 + 4 * NS)
+    stats.note(mc.SENSOR, t0 + int(0.2 * NS))
+    stats.note_good(mc.SENSOR, t0 + int(0.2 * NS))
+    assert stats.stale(t0 + int(4.4 * NS)) == [mc.SENSOR]
+    assert stats.stale_reasons(t0 + int(4.4 * NS))[0][1] == \
+        'sensor_pose stale: no message for 4.2 s'
+    # A stream that sends only bad messages is stale too, and says why.
+    for k in range(50):
+        stats.note(mc.SENSOR, t0 + 4 * NS + k * 10 * MS)
+        stats.note_bad(mc.SENSOR, 'non_finite', k)
+    ((stream, text),) = stats.stale_reasons(t0 + int(4.4 * NS))
+    assert stream == mc.SENSOR
+    assert text == ('sensor_pose stale: no usable message for 4.2 s (bad messages only, '
+                    'latest: NaN or inf in the pose)')
+
+
+# --- the node --------------------------------------------------------------------------------
+
+class Harness:
+    """A calibrator node and a driver node in one private context and executor."""
+
+    def __init__(self, overrides=()):
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.node = CalibratorNode(context=self.context, parameter_overrides=list(overrides))
+        self.driver = rclpy.create_node('checks_driver', context=self.context)
+        self.pubs = {stream: self.driver.create_publisher(PoseStamped, stream, RELIABLE)
+                     for stream in mc.STREAMS}
+        self.clock_pub = self.driver.create_publisher(Clock, '/clock', 10)
+        self.diagnostics = []
+        self.driver.create_subscription(
+            DiagnosticArray, '/diagnostics',
+            lambda msg: self.diagnostics.extend(
+                s for s in msg.status if s.name == DIAGNOSTIC_NAME), 10)
+        self.sent = dict.fromkeys(mc.STREAMS, 0)
+        for node in (self.node, self.driver):
+            self.executor.add_node(node)
+        self.spin_until(lambda: all(p.get_subscription_count() for p in self.pubs.values()),
+                        what='discovery')
+
+    def close(self):
+        self.executor.shutdown()
+        self.driver.destroy_node()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+    def spin_until(self, condition, timeout=10.0, what='condition'):
+        deadline = time.monotonic() + timeout
+        while not condition():
+            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def publish(self, stream, msg):
+        self.pubs[stream].publish(msg)
+        self.sent[stream] += 1
+
+    def publish_pose(self, stream, stamp_ns, pose, frame_id=''):
+        self.publish(stream, conversions.pose_stamped_msg(pose, stamp_ns, frame_id))
+
+    def wait_received(self):
+        received = self.node.stats.received
+        self.spin_until(lambda: all(received[s] >= self.sent[s] for s in mc.STREAMS),
+                        what='the node to receive every message')
+
+    def fresh_status(self):
+        """Wait for the next /diagnostics status; return it and its values."""
+        self.diagnostics.clear()
+        self.spin_until(lambda: self.diagnostics, what='a /diagnostics status')
+        status = self.diagnostics[-1]
+        return status, {kv.key: kv.value for kv in status.values}
+
+    def consistent(self):
+        """Every message received was counted once, as good or as bad."""
+        stats = self.node.stats
+        for stream in mc.STREAMS:
+            assert stats.received[stream] == stats.good[stream] + stats.bad_of(stream)
+
+
+@pytest.fixture
+def harness_factory():
+    made = []
+
+    def make(overrides=()):
+        made.append(Harness(overrides))
+        return made[-1]
+    yield make
+    for harness in made:
+        harness.close()
+
+
+def still_stream(cell, link, start_ns, duration_s=0.8, rate_hz=25.0, frames=('', '')):
+    """Both streams at rate_hz holding one link pose (noise-free sensor): (stream, msg)."""
+    sensor = cell.sensor_pose(link)
+    out = []
+    for i in range(int(duration_s * rate_hz)):
+        stamp = start_ns + int(i * NS / rate_hz)
+        out += [(mc.LINK, conversions.pose_stamped_msg(link, stamp, frames[0])),
+                (mc.SENSOR, conversions.pose_stamped_msg(sensor, stamp, frames[1]))]
+    return out
+
+
+def test_every_kind_of_bad_message_is_counted_logged_and_skipped(harness_factory, capfd):
+    h = harness_factory([Parameter('link_frame_id', value='base'),
+                         Parameter('sensor_frame_id', value='camera'),
+                         Parameter('diagnostics_period_s', value=0.2)])
+    now = h.node.now_ns()
+    t0 = now - 3 * NS
+    identity = Pose.identity()
+
+    def numbers(stamp_ns, position=(0.0, 0.0, 0.0), xyzw=(0.0, 0.0, 0.0, 1.0)):
+        sec, nanosec = divmod(stamp_ns, NS)
+        return _msg(position, xyzw, sec, nanosec, 'base')
+
+    bad = {   # reason: link_pose message
+        'duplicate_stamp': conversions.pose_stamped_msg(identity, t0, 'base'),
+        'out_of_order': conversions.pose_stamped_msg(identity, t0 - 5 * MS, 'base'),
+        'zero_stamp': conversions.pose_stamped_msg(identity, 0, 'base'),
+        'stamp_in_future': conversions.pose_stamped_msg(identity, now + 60 * NS, 'base'),
+        'stamp_in_past': conversions.pose_stamped_msg(identity, now - 60 * NS, 'base'),
+        'wrong_frame_id': conversions.pose_stamped_msg(identity, t0 + MS, 'world'),
+        'non_finite': numbers(t0 + 2 * MS, position=(0.0, float('nan'), 0.0)),
+        'zero_quaternion': numbers(t0 + 3 * MS, xyzw=(0.0, 0.0, 0.0, 0.0)),
+        'non_unit_quaternion': numbers(t0 + 4 * MS, xyzw=(0.0, 0.0, 0.0, 1.5)),
+        'bad_stamp': _msg(sec=t0 // NS, nanosec=1_500_000_000, frame_id='base'),
+    }
+    h.publish(mc.LINK, conversions.pose_stamped_msg(identity, t0, 'base'))   # good
+    for msg in bad.values():
+        h.publish(mc.LINK, msg)
+    # Slightly off the unit norm: renormalised and used.
+    h.publish(mc.LINK, numbers(t0 + 6 * MS, xyzw=(0.0, 0.0, 0.0, 1.0005)))
+    h.wait_received()
+    stats = h.node.stats
+    assert dict(stats.bad) == {(mc.LINK, reason): 1 for reason in bad}
+    assert stats.good[mc.LINK] == 2
+    h.consistent()
+    status, values = h.fresh_status()
+    for reason in bad:
+        assert values[f'bad_link_pose_{reason}'] == '1', reason
+    assert values['bad_messages'] == str(len(bad))
+    assert values['link_messages'] == str(len(bad) + 2)
+    # One warning per reason, naming the topic and the reason.
+    logged = capfd.readouterr().err
+    for reason in bad:
+        assert len(re.findall(rf'/link_pose: bad message skipped \({reason}, 1 so far',
+                              logged)) == 1, (reason, logged)
+    assert "header.frame_id 'world' is not 'base' (parameter link_frame_id)" in logged
+
+    # Good data afterwards is used: a still sample.
+    cell = simulation.random_cell(np.random.default_rng(4))
+    for stream, msg in still_stream(cell, cell.home, t0 + 10 * MS, frames=('base', 'camera')):
+        h.publish(stream, msg)
+    h.wait_received()
+    h.spin_until(lambda: len(h.node.session.samples) == 1, what='a sample after bad input')
+    assert stats.bad_total == len(bad)
+    h.consistent()
+
+
+def test_logs_are_throttled_per_stream_and_reason(harness_factory, capfd):
+    h = harness_factory()
+    now = h.node.now_ns()
+    nan_pose = Pose(np.array([np.nan, 0.0, 0.0]), quat.IDENTITY.copy())
+    for k in range(300):
+        msg = conversions.pose_stamped_msg(Pose.identity(), now + k * MS, '')
+        msg.pose.position.x = nan_pose.position[0]
+        h.publish(mc.SENSOR, msg)
+        h.publish(mc.LINK, conversions.pose_stamped_msg(Pose.identity(), 0, ''))
+        if k % 50 == 49:   # the sensor subscription is best effort, depth 100
+            h.wait_received()
+    stats = h.node.stats
+    assert stats.bad[mc.SENSOR, 'non_finite'] == 300
+    assert stats.bad[mc.LINK, 'zero_stamp'] == 300
+    h.consistent()
+    logged = capfd.readouterr().err
+    assert logged.count('/sensor_pose: bad message skipped (non_finite') == 1
+    assert logged.count('/link_pose: bad message skipped (zero_stamp') == 1
+    status, values = h.fresh_status()
+    assert values['bad_sensor_pose_non_finite'] == '300'
+    assert status.message.startswith('waiting for poses (600 bad messages skipped')
+
+
+def test_sim_time_clock_checks_and_stale_stream(harness_factory):
+    # With use_sim_time the node clock is /clock: stamps are checked against it, and a
+    # stream is stale when /clock has run on without it.
+    h = harness_factory([Parameter('use_sim_time', value=True),
+                         Parameter('max_stamp_offset_s', value=10.0),
+                         Parameter('diagnostics_period_s', value=0.1)])
+    start = 500 * NS     # a bag recorded long ago
+
+    def set_clock(ns):
+        sec, nanosec = divmod(ns, NS)
+        msg = Clock()
+        msg.clock.sec, msg.clock.nanosec = sec, nanosec
+        h.clock_pub.publish(msg)
+        h.spin_until(lambda: h.node.now_ns() == ns, what='the node clock to follow /clock')
+
+    set_clock(start)
+    cell = simulation.random_cell(np.random.default_rng(9))
+    for stream, msg in still_stream(cell, cell.home, start - NS):
+        h.publish(stream, msg)
+    h.publish_pose(mc.SENSOR, start + 20 * NS, cell.sensor_pose(cell.home))    # future
+    h.wait_received()
+    assert h.node.stats.bad == {(mc.SENSOR, 'stamp_in_future'): 1}
+    h.spin_until(lambda: len(h.node.session.samples) == 1, what='a sample at sim time')
+
+    # /clock runs on 4.2 s; only the link stream goes on.
+    set_clock(start + int(4.2 * NS))
+    h.publish_pose(mc.LINK, start + 4 * NS, cell.home)
+    h.wait_received()
+    # The diagnostics timer runs on the simulated clock too: build the status directly.
+    status = h.node.diagnostic_status()
+    values = {kv.key: kv.value for kv in status.values}
+    assert values['stale'] == 'sensor_pose'
+    assert status.level == status.WARN
+    assert 'sensor_pose stale: no message for 4.2 s' in status.message
+    h.consistent()
+
+
+def test_frame_and_offset_parameters_change_at_runtime(harness_factory):
+    h = harness_factory()
+    node = h.node
+    result = node.set_parameters_atomically([Parameter('sensor_frame_id', value='camera'),
+                                             Parameter('max_stamp_offset_s', value=0.0)])
+    assert result.successful
+    assert node.checks == mc.CheckConfig(max_stamp_offset_ns=0, sensor_frame_id='camera')
+    for parameter, words in ((Parameter('max_stamp_offset_s', value=-1.0), 'out of range'),
+                             (Parameter('link_frame_id', value='  '), 'empty')):
+        (result,) = node.set_parameters([parameter])
+        assert not result.successful and words in result.reason, result.reason
+    assert node.checks.max_stamp_offset_ns == 0
+    h.publish_pose(mc.SENSOR, 5 * NS, Pose.identity(), 'camera_optical')
+    h.publish_pose(mc.SENSOR, 6 * NS, Pose.identity(), 'camera')
+    h.wait_received()
+    assert dict(node.stats.bad) == {(mc.SENSOR, 'wrong_frame_id'): 1}

@@ -1,0 +1,301 @@
+"""
+The node's result outputs for the ROS ecosystem, over real DDS (in-process, rclpy style).
+
+~/transform (TransformStamped link_frame -> sensor_frame, latched), the /diagnostics values
+of the full result, publish_tf (tf2_ros present or not), and ~/save's easy_handeye2 file and
+static_transform_publisher line.  Samples are handed to the node's session the way a resumed
+samples journal is (session.add_samples, then handle_events); the pose-topic input path is
+tested in test_node.py.  ROS_DOMAIN_ID 101 keeps these tests apart from the other files.
+"""
+
+import sys
+import time
+import types
+
+from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import TransformStamped
+import numpy as np
+import pytest
+from quatcal_ros import quaternion as quat
+from quatcal_ros import simulation
+from quatcal_ros.node import CalibratorNode
+from quatcal_ros.node import DIAGNOSTIC_NAME
+from quatcal_ros.node import TF2_ROS_MISSING
+from rcl_interfaces.msg import Log
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy
+from rclpy.qos import QoSProfile
+from rclpy.qos import ReliabilityPolicy
+from std_srvs.srv import Trigger
+import yaml
+
+DOMAIN_ID = 101
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+ROSOUT = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class Harness:
+    """A calibrator node and a driver node (rosout, diagnostics, services) in one context."""
+
+    def __init__(self, tmp_path, overrides=()):
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.driver = rclpy.create_node('transform_test_driver', context=self.context)
+        self.logs = []
+        self.diagnostics = []
+        self.driver.create_subscription(Log, '/rosout', self.logs.append, ROSOUT)
+        self.driver.create_subscription(DiagnosticArray, '/diagnostics',
+                                        self.diagnostics.append, 10)
+        overrides = [Parameter('max_stamp_offset_s', value=0.0),
+                     Parameter('diagnostics_period_s', value=0.2),
+                     Parameter('samples_file', value=str(tmp_path / 'journal.csv')),
+                     Parameter('result_file', value=str(tmp_path / 'result.yaml')),
+                     *overrides]
+        self.node = CalibratorNode(context=self.context, parameter_overrides=overrides)
+        self.save = self.driver.create_client(Trigger, '/calibrator/save')
+        for node in (self.node, self.driver):
+            self.executor.add_node(node)
+        self.spin_until(self.save.service_is_ready, what='the ~/save service')
+
+    def close(self):
+        self.executor.shutdown()
+        self.driver.destroy_node()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+    def spin_until(self, condition, timeout=10.0, what='condition'):
+        deadline = time.monotonic() + timeout
+        while not condition():
+            if time.monotonic() > deadline:
+                raise AssertionError(f'timed out after {timeout} s waiting for {what}')
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def add_samples(self, samples):
+        """Hand samples to the node's session and let it publish, as a resumed journal does."""
+        self.node.handle_events(self.node.session.add_samples(samples))
+
+    def call_save(self):
+        future = self.save.call_async(Trigger.Request())
+        self.spin_until(future.done, what='~/save')
+        return future.result()
+
+    def subscribe_transform(self):
+        """Subscribe ~/transform late (latched QoS); return the list of messages received."""
+        received = []
+        self.driver.create_subscription(TransformStamped, '/calibrator/transform',
+                                        received.append, LATCHED)
+        return received
+
+    def node_logs(self, level=None, text=''):
+        return [log.msg for log in self.logs if log.name == 'calibrator'
+                and (level is None or log.level == level) and text in log.msg]
+
+    def next_status(self, condition=lambda status: True):
+        """Return the next DiagnosticStatus of the calibrator that satisfies `condition`."""
+        self.diagnostics.clear()
+        found = []
+
+        def seen():
+            found.extend(s for a in self.diagnostics for s in a.status
+                         if s.name == DIAGNOSTIC_NAME and condition(s))
+            self.diagnostics.clear()
+            return found
+        self.spin_until(seen, what='a matching /diagnostics status')
+        return found[-1]
+
+
+@pytest.fixture
+def make_harness(tmp_path):
+    made = []
+
+    def make(overrides=()):
+        made.append(Harness(tmp_path, overrides))
+        return made[-1]
+    yield make
+    for harness in made:
+        harness.close()
+
+
+@pytest.fixture(scope='module')
+def cell_and_samples():
+    rng = np.random.default_rng(81)
+    cell = simulation.random_cell(rng)
+    samples, _ = simulation.samples(rng, cell, 12, rotation_noise_deg=0.1,
+                                    translation_noise_m=0.0005)
+    return cell, samples
+
+
+def rotation_wxyz(transform):
+    q = transform.rotation
+    return np.array([q.w, q.x, q.y, q.z])
+
+
+def translation(transform):
+    t = transform.translation
+    return np.array([t.x, t.y, t.z])
+
+
+def values_of(status):
+    return {kv.key: kv.value for kv in status.values}
+
+
+def test_transform_is_latched_with_frames_and_values(make_harness, cell_and_samples,
+                                                     tmp_path):
+    cell, samples = cell_and_samples
+    calib = tmp_path / 'calibrations' / 'arm.calib'
+    h = make_harness([Parameter('link_frame', value='flange'),
+                      Parameter('sensor_frame', value='cam'),
+                      Parameter('link_frame_id', value='base_link'),
+                      Parameter('easy_handeye2_file', value=str(calib))])
+    h.add_samples(samples)
+    result = h.node.session.result
+    assert result is not None and result.method == 'refined'
+
+    # Published before anyone listened: a late joiner gets it (reliable + transient local).
+    received = h.subscribe_transform()
+    h.spin_until(lambda: received, what='the latched ~/transform')
+    msg = received[-1]
+    assert msg.header.frame_id == 'flange' and msg.child_frame_id == 'cam'
+    np.testing.assert_allclose(translation(msg.transform), result.translation, atol=1e-12)
+    assert quat.angle_between(rotation_wxyz(msg.transform), result.quaternion) < 1e-9
+    assert np.linalg.norm(translation(msg.transform) - cell.mounting.position) < 0.003
+    assert np.degrees(quat.angle_between(rotation_wxyz(msg.transform),
+                                         cell.mounting.quaternion)) < 0.3
+
+    status = h.next_status(lambda s: values_of(s).get('samples') == '12')
+    values = values_of(status)
+    assert values['method'] == 'refined'
+    np.testing.assert_allclose([float(v) for v in values['translation_xyz_m'].split()],
+                               result.translation, atol=1e-6)
+    assert float(values['translation_uncertainty_mm']) == pytest.approx(
+        result.translation_uncertainty_mm, rel=1e-5)
+    assert values['tf_static'] == 'off (publish_tf is false)'
+
+    saved = h.call_save()
+    assert saved.success, saved.message
+    assert str(tmp_path / 'result.yaml') in saved.message and str(calib) in saved.message
+    document = yaml.safe_load(calib.read_text())
+    assert document['parameters']['name'] == 'arm'
+    assert document['parameters']['calibration_type'] == 'eye_in_hand'
+    assert document['parameters']['robot_effector_frame'] == 'flange'
+    assert document['parameters']['robot_base_frame'] == 'base_link'
+    assert document['parameters']['tracking_base_frame'] == 'cam'
+    t = [document['transform']['translation'][k] for k in 'xyz']
+    q = quat.wxyz_from_xyzw([document['transform']['rotation'][k] for k in 'xyzw'])
+    np.testing.assert_allclose(t, result.translation, atol=1e-15)
+    assert quat.angle_between(q, result.quaternion) < 1e-9
+    h.spin_until(lambda: h.node_logs(Log.INFO, 'ros2 run tf2_ros static_transform_publisher'),
+                 what='the static_transform_publisher line in the log')
+    (line,) = h.node_logs(Log.INFO, 'ros2 run tf2_ros static_transform_publisher')
+    assert line.endswith('--frame-id flange --child-frame-id cam')
+    assert f'--x {t[0]:.10f}'.rstrip('0') in line
+
+
+def test_a_new_estimate_replaces_the_latched_transform(make_harness, cell_and_samples):
+    _, samples = cell_and_samples
+    h = make_harness()
+    received = h.subscribe_transform()
+    h.add_samples(samples[:8])
+    h.spin_until(lambda: received, what='the first ~/transform')
+    first = h.node.session.result
+    h.add_samples(samples[8:])
+    h.spin_until(lambda: len(received) >= 2, what='the second ~/transform')
+    np.testing.assert_allclose(translation(received[-1].transform),
+                               h.node.session.result.translation, atol=1e-12)
+    assert not np.allclose(first.translation, h.node.session.result.translation, atol=1e-9)
+    assert received[-1].header.frame_id == 'tool0' and received[-1].child_frame_id == 'camera'
+
+
+def test_publish_tf_without_tf2_ros_warns_once_and_says_so(make_harness, cell_and_samples,
+                                                           monkeypatch):
+    _, samples = cell_and_samples
+    monkeypatch.setitem(sys.modules, 'tf2_ros', None)   # `import tf2_ros` fails, as here
+    h = make_harness([Parameter('publish_tf', value=True)])
+    h.spin_until(lambda: h.node_logs(Log.WARN, TF2_ROS_MISSING), what='the warning')
+    assert TF2_ROS_MISSING == ('publish_tf is true but tf2_ros is not installed: the result '
+                               'is not broadcast on /tf_static (it is still on ~/transform)')
+    received = h.subscribe_transform()
+    h.add_samples(samples)
+    h.spin_until(lambda: received, what='~/transform')
+    # Turning it off and on again does not repeat the warning.
+    for value in (False, True):
+        (done,) = h.node.set_parameters([Parameter('publish_tf', value=value)])
+        assert done.successful
+    h.add_samples(samples[:3])   # a new estimate: still published, no crash
+    status = h.next_status(lambda s: values_of(s).get('samples') == '15')
+    assert status.level == DiagnosticStatus.WARN
+    assert TF2_ROS_MISSING in status.message
+    assert values_of(status)['tf_static'] == 'not broadcast: tf2_ros is not installed'
+    assert len(h.node_logs(Log.WARN, TF2_ROS_MISSING)) == 1
+    # With publish_tf false the problem is no longer reported.
+    (done,) = h.node.set_parameters([Parameter('publish_tf', value=False)])
+    status = h.next_status()
+    assert TF2_ROS_MISSING not in status.message
+    assert values_of(status)['tf_static'] == 'off (publish_tf is false)'
+
+
+def fake_tf2_ros():
+    """Return a tf2_ros stand-in whose StaticTransformBroadcaster records what it sends."""
+    module = types.ModuleType('tf2_ros')
+    module.sent = []
+
+    class StaticTransformBroadcaster:
+        def __init__(self, node):
+            module.node = node
+
+        def sendTransform(self, transform):   # noqa: N802 (tf2_ros's name)
+            module.sent.append(transform)
+    module.StaticTransformBroadcaster = StaticTransformBroadcaster
+    return module
+
+
+def test_publish_tf_broadcasts_every_estimate_with_tf2_ros(make_harness, cell_and_samples,
+                                                           monkeypatch):
+    _, samples = cell_and_samples
+    tf2_ros = fake_tf2_ros()
+    monkeypatch.setitem(sys.modules, 'tf2_ros', tf2_ros)
+    h = make_harness([Parameter('publish_tf', value=True)])
+    assert tf2_ros.node is h.node and tf2_ros.sent == []
+    h.add_samples(samples[:8])
+    h.add_samples(samples[8:])
+    assert len(tf2_ros.sent) == 2
+    last = tf2_ros.sent[-1]
+    assert last.header.frame_id == 'tool0' and last.child_frame_id == 'camera'
+    np.testing.assert_allclose(translation(last.transform), h.node.session.result.translation,
+                               atol=1e-12)
+    assert values_of(h.node.diagnostic_status())['tf_static'] == 'broadcast'
+    assert not h.node_logs(Log.WARN, TF2_ROS_MISSING)
+
+
+def test_publish_tf_turned_on_at_runtime_sends_the_current_estimate(
+        make_harness, cell_and_samples, monkeypatch):
+    _, samples = cell_and_samples
+    tf2_ros = fake_tf2_ros()
+    monkeypatch.setitem(sys.modules, 'tf2_ros', tf2_ros)
+    h = make_harness([Parameter('sensor_frame', value='cam')])
+    h.add_samples(samples)
+    assert tf2_ros.sent == []
+    (done,) = h.node.set_parameters([Parameter('publish_tf', value=True)])
+    assert done.successful
+    assert len(tf2_ros.sent) == 1 and tf2_ros.sent[0].child_frame_id == 'cam'
+    assert len(h.node.session.samples) == len(samples)   # presentation only: no re-estimate
+
+
+def test_save_reports_an_unwritable_easy_handeye2_file(make_harness, cell_and_samples,
+                                                       tmp_path):
+    _, samples = cell_and_samples
+    blocker = tmp_path / 'not_a_directory'
+    blocker.write_text('')
+    h = make_harness([Parameter('easy_handeye2_file', value=str(blocker / 'x.calib'))])
+    h.add_samples(samples)
+    saved = h.call_save()
+    assert not saved.success
+    assert 'could not write easy_handeye2_file' in saved.message
+    assert (tmp_path / 'result.yaml').exists()   # the main result file is written first

@@ -1,0 +1,628 @@
+"""
+Crash safety and resuming of the calibrator node, and what it says when things go wrong.
+
+Issue 5, points 3, 5 and 6 (docs/what_happens_when.md), mostly over real DDS.
+
+The main test kills the node process with SIGKILL in the middle of a session fed by a
+stop-and-go stream, checks that the samples journal holds every sample the node reported, and
+restarts it with resume:=true: same sample count, the estimate of calibrate() on the journal's
+samples (to 1e-9), and more samples taken as the stream goes on.  The other tests build the
+node in-process (rclpy style) and read its log with capfd.  ROS_DOMAIN_ID 81 (in-process) and
+82 (processes) keep these tests apart from the other test files.
+"""
+
+import ast
+import os
+from pathlib import Path
+import re
+import signal
+import subprocess
+import sys
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import QuaternionStamped
+import numpy as np
+from numpy.testing import assert_allclose
+import pytest
+from quatcal_ros import calibration
+from quatcal_ros import conversions
+from quatcal_ros import journal
+from quatcal_ros import node_config
+from quatcal_ros import persistence
+from quatcal_ros import quaternion as quat
+from quatcal_ros import simulation
+from quatcal_ros.journal import JournalHeader
+from quatcal_ros.node import CalibratorNode
+from quatcal_ros.node import DIAGNOSTIC_NAME
+from quatcal_ros.node import NODE_NAME
+from quatcal_ros.node_config import ConfigError
+from quatcal_ros.node_config import NodeConfig
+from quatcal_ros.pose import Pose
+from quatcal_ros.session import SampleCaptured
+from quatcal_ros.session import Session
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.logging import LoggingSeverity
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy
+from rclpy.qos import QoSProfile
+from rclpy.qos import ReliabilityPolicy
+from std_srvs.srv import Trigger
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+DOMAIN_ID = 81
+PROCESS_DOMAIN_ID = 82
+NS = simulation.NS_PER_S
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+HEADER = JournalHeader('eye_in_hand', 'tool0', 'camera')
+SAMPLE_LOG = re.compile(r'sample (\d+) captured at stamp ([0-9.]+) s')
+
+
+def canonical(q_wxyz):
+    q = np.asarray(q_wxyz, dtype=float)
+    return q if q[0] >= 0 else -q
+
+
+def rotation_of(msg):
+    q = msg.quaternion
+    return canonical([q.w, q.x, q.y, q.z])
+
+
+def status_values(status):
+    return {kv.key: kv.value for kv in status.values}
+
+
+def synthetic_samples(n, seed=1, noise_deg=0.1):
+    rng = np.random.default_rng(seed)
+    cell = simulation.random_cell(rng)
+    samples, _ = simulation.samples(rng, cell, n, rotation_noise_deg=noise_deg,
+                                    translation_noise_m=0.001)
+    return cell, samples
+
+
+def write_journal(path, samples, header=HEADER):
+    opened, _ = journal.start(path, header, resume=False)
+    for sample in samples:
+        opened.append(sample)
+    opened.close()
+    return path.read_bytes()
+
+
+def aside_files(directory, tag):
+    return sorted(p for p in Path(directory).iterdir() if f'.{tag}-' in p.name)
+
+
+def stream_events(streams):
+    """(delivery ns, topic, header stamp ns, pose) of both streams in delivery order."""
+    events = [(stamp, 0, 'link_pose', stamp, pose) for stamp, pose in streams.link]
+    events += [(delivery, 1, 'sensor_pose', stamp, pose) for delivery, (stamp, pose)
+               in zip(streams.sensor_delivery_ns, streams.sensor)]
+    return [(e[0],) + e[2:] for e in sorted(events, key=lambda e: e[:2])]
+
+
+# --- in-process ------------------------------------------------------------------------------
+
+class Rig:
+    """A calibrator node and a driver node in one private context and executor."""
+
+    def __init__(self, overrides):
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        # The synthetic stamps are in 2023: no check against the node clock.
+        overrides = [Parameter('max_stamp_offset_s', value=0.0)] + overrides
+        try:
+            self.node = CalibratorNode(context=self.context, parameter_overrides=overrides)
+        except Exception:
+            rclpy.try_shutdown(context=self.context)
+            raise
+        self.driver = rclpy.create_node('resume_test_driver', context=self.context)
+        self.publishers = {name: self.driver.create_publisher(PoseStamped, name, RELIABLE)
+                           for name in ('link_pose', 'sensor_pose')}
+        self.rotations = []
+        self.driver.create_subscription(QuaternionStamped, '/calibrator/rotation',
+                                        self.rotations.append, LATCHED)
+        self.clients = {name: self.driver.create_client(Trigger, f'/calibrator/{name}')
+                        for name in ('reset', 'save')}
+        for node in (self.node, self.driver):
+            self.executor.add_node(node)
+        self.spin_until(lambda: all(p.get_subscription_count() for p in self.publishers.values())
+                        and all(c.service_is_ready() for c in self.clients.values()),
+                        what='discovery')
+
+    def close(self):
+        self.executor.shutdown()
+        self.driver.destroy_node()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+    def spin_until(self, condition, timeout=15.0, what='condition'):
+        deadline = time.monotonic() + timeout
+        while not condition():
+            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def call(self, name):
+        future = self.clients[name].call_async(Trigger.Request())
+        self.spin_until(future.done, what=f'the {name} service')
+        return future.result()
+
+    def still(self, link, sensor, start_ns, duration_s=0.8, rate_hz=25.0):
+        """Publish both streams holding one pose pair; wait until the node has them."""
+        before = dict(self.node.stats.received)
+        count = int(duration_s * rate_hz)
+        for i in range(count):
+            stamp = start_ns + int(i * NS / rate_hz)
+            for name, pose in (('link_pose', link), ('sensor_pose', sensor)):
+                self.publishers[name].publish(conversions.pose_stamped_msg(pose, stamp, 'f'))
+        self.spin_until(lambda: all(self.node.stats.received[name] >= before.get(name, 0) + count
+                                    for name in self.publishers), what='the poses')
+
+
+@pytest.fixture(autouse=True)
+def calibrator_info_logs():
+    """Show the calibrator's INFO lines (another test may have raised its level)."""
+    rclpy.logging.set_logger_level(NODE_NAME, LoggingSeverity.INFO)
+
+
+@pytest.fixture
+def rig_factory():
+    made = []
+
+    def make(*overrides):
+        made.append(Rig(list(overrides)))
+        return made[-1]
+    yield make
+    for rig in made:
+        rig.close()
+
+
+def random_stops(rng, cell, n):
+    """Return n link poses around the cell's home, each turned ~40 deg about a random axis."""
+    return [Pose(cell.home.position + rng.uniform(-0.05, 0.05, 3),
+                 quat.normalize(quat.multiply(quat.from_rotation_vector(rng.normal(size=3) * 0.4),
+                                              cell.home.quaternion))) for _ in range(n)]
+
+
+def make_node(*overrides):
+    """Make a calibrator node without a driver (start-up behaviour); the caller closes it."""
+    context = Context()
+    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    try:
+        return CalibratorNode(context=context, parameter_overrides=list(overrides)), context
+    except Exception:
+        rclpy.try_shutdown(context=context)
+        raise
+
+
+def close_node(node, context):
+    node.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
+@pytest.mark.parametrize('torn', [False, True])
+def test_resume_reloads_the_journal_and_publishes_its_estimate(rig_factory, tmp_path, capfd,
+                                                               torn):
+    _, samples = synthetic_samples(10)
+    path = tmp_path / 'samples.csv'
+    before = write_journal(path, samples)
+    if torn:    # the node died while writing the last line
+        path.write_bytes(before[:-30])
+        before = before[:before[:-1].rfind(b'\n') + 1]
+    rig = rig_factory(Parameter('samples_file', value=str(path)),
+                      Parameter('resume', value=True))
+    n = 9 if torn else 10
+    assert len(rig.node.session.samples) == n and rig.node.journal.count == n
+    expected = calibration.calibrate(journal.read_journal(path).samples)
+    rig.spin_until(lambda: rig.rotations, what='the resumed estimate on ~/rotation')
+    assert_allclose(rotation_of(rig.rotations[-1]), canonical(expected.quaternion), atol=1e-12)
+    values = status_values(rig.node.diagnostic_status())
+    assert values['samples'] == str(n) and values['state'] == 'estimating'
+    assert path.read_bytes() == before                # resumed (torn line cut), not rewritten
+    assert aside_files(tmp_path, 'previous') == []
+    log = capfd.readouterr().err
+    assert f'resumed {n} samples from {path}' in log
+    assert ('being written when the node stopped: dropped' in log) == torn
+
+
+def test_start_moves_an_earlier_journal_aside_and_says_so(tmp_path, capfd):
+    _, samples = synthetic_samples(4)
+    path = tmp_path / 'samples.csv'
+    before = write_journal(path, samples)
+    node, context = make_node(Parameter('samples_file', value=str(path)))
+    try:
+        assert node.session.samples == [] and node.journal.count == 0
+    finally:
+        close_node(node, context)
+    (aside,) = aside_files(tmp_path, 'previous')
+    assert aside.read_bytes() == before
+    log = capfd.readouterr().err
+    assert f'held 4 samples of an earlier session: moved to {aside}' in log
+    assert 'resume:=true would have continued it' in log
+
+
+@pytest.mark.parametrize('content, words', [
+    (None, 'row 4, field sensor_qw'),                        # a damaged row: corrupt
+    (b'format: quatcal_ros/rotation\nrotation: {x: 0, y: 0, z: 0, w: 1}\n',
+     'not a quatcal_ros samples journal'),                   # a YAML file: foreign
+])
+def test_corrupt_or_foreign_journal_is_moved_aside_and_reported(tmp_path, capfd, content,
+                                                                words):
+    path = tmp_path / 'samples.csv'
+    if content is None:
+        _, samples = synthetic_samples(4)
+        lines = write_journal(path, samples).decode().splitlines(keepends=True)
+        lines[3] = lines[3].rsplit(',', 1)[0] + ',NaN-ish\n'
+        content = ''.join(lines).encode()
+    path.write_bytes(content)
+    node, context = make_node(Parameter('samples_file', value=str(path)),
+                              Parameter('resume', value=True))
+    try:
+        assert node.session.samples == []
+        assert journal.read_journal(path).samples == []       # a new, empty journal
+    finally:
+        close_node(node, context)
+    (aside,) = aside_files(tmp_path, 'corrupt')
+    assert aside.read_bytes() == content                      # kept as it was
+    log = capfd.readouterr().err
+    assert '[ERROR]' in log and words in log and f'moved to {aside}' in log
+    assert 'nothing resumed' in log
+
+
+def test_resume_is_refused_for_another_setup_or_frames(tmp_path):
+    _, samples = synthetic_samples(4)
+    path = tmp_path / 'samples.csv'
+    before = write_journal(path, samples, JournalHeader('eye_to_hand', 'base_link', 'camera'))
+    for extra in ([], [Parameter('setup', value='eye_to_hand')]):
+        with pytest.raises(ConfigError, match='resume:=true refused') as error:
+            make_node(Parameter('samples_file', value=str(path)),
+                      Parameter('resume', value=True), *extra)
+        assert 'link_frame' in str(error.value)
+        assert ("setup 'eye_to_hand' (parameters: 'eye_in_hand')" in str(error.value)) \
+            == (not extra)
+    assert path.read_bytes() == before
+    assert aside_files(tmp_path, 'previous') == aside_files(tmp_path, 'corrupt') == []
+
+
+def test_a_second_node_on_the_same_samples_file_is_refused(tmp_path):
+    path = tmp_path / 'samples.csv'
+    node, context = make_node(Parameter('samples_file', value=str(path)))
+    try:
+        with pytest.raises(ConfigError, match='in use by another running calibrator'):
+            make_node(Parameter('samples_file', value=str(path)))
+    finally:
+        close_node(node, context)
+    node, context = make_node(Parameter('samples_file', value=str(path)))   # lock released
+    close_node(node, context)
+
+
+def test_samples_are_journaled_reset_moves_the_journal_aside(rig_factory, tmp_path):
+    rng = np.random.default_rng(8)
+    cell = simulation.random_cell(rng)
+    path = tmp_path / 'samples.csv'
+    rig = rig_factory(Parameter('samples_file', value=str(path)),
+                      Parameter('still_window_s', value=0.3))
+    stops = random_stops(rng, cell, 4)
+    start = simulation.DEFAULT_START_NS
+    for k, link in enumerate(stops):
+        rig.still(link, cell.sensor_pose(link), start + k * NS)
+        rig.spin_until(lambda: len(rig.node.session.samples) == k + 1, what=f'sample {k}')
+        saved = journal.read_journal(path).samples
+        assert len(saved) == k + 1          # on disk as soon as it is captured
+    assert_allclose(saved[-1].link.position, rig.node.session.samples[-1].link.position,
+                    rtol=0, atol=0)
+    # A runtime change of setup is recorded in the journal's header line.
+    (changed,) = rig.node.set_parameters([Parameter('sensor_frame', value='camera_optical')])
+    assert changed.successful
+    assert journal.read_journal(path).header.sensor_frame == 'camera_optical'
+    before = path.read_bytes()
+    reset = rig.call('reset')
+    assert reset.success
+    (aside,) = aside_files(tmp_path, 'previous')
+    assert f'the old samples journal was moved to {aside}' in reset.message
+    assert aside.read_bytes() == before
+    assert journal.read_journal(path).samples == [] and rig.node.journal.count == 0
+    rig.still(stops[0], cell.sensor_pose(stops[0]), start + 10 * NS)
+    rig.spin_until(lambda: len(rig.node.session.samples) == 1, what='a sample after reset')
+    assert len(journal.read_journal(path).samples) == 1
+
+
+def test_a_moved_marker_makes_the_node_warn_and_suggest_a_reset(rig_factory, tmp_path, capfd):
+    rng = np.random.default_rng(12)
+    cell = simulation.random_cell(rng)
+    rig = rig_factory(Parameter('samples_file', value=str(tmp_path / 'samples.csv')),
+                      Parameter('still_window_s', value=0.3))
+    stops = random_stops(rng, cell, 10)
+    turn = Pose(np.zeros(3), quat.from_axis_angle([0.0, 0.6, 0.8], np.radians(3.0)))
+    start = simulation.DEFAULT_START_NS
+    for k, link in enumerate(stops):
+        sensor = cell.sensor_pose(link)
+        if k >= 7:    # the marker was bumped before the eighth stop
+            base_sensor = link @ cell.mounting
+            sensor = base_sensor.inverse() @ turn @ base_sensor @ sensor
+        rig.still(link, sensor, start + k * NS)
+        rig.spin_until(lambda: len(rig.node.session.samples) == k + 1, what=f'sample {k}')
+        status = rig.node.diagnostic_status()
+        moved = 'has the marker or the sensor moved? call ~/reset and recollect'
+        assert (moved in status.message) == (k >= 9), (k, status.message)
+    assert status.level == status.WARN
+    rise = re.search(r'the residual rose from ([0-9.]+) to ([0-9.]+) deg over the last 3 '
+                     r'samples \(from sample 7 on\)', status.message)
+    assert rise and float(rise[1]) < 0.5 and 2.0 < float(rise[2]) < 4.0, status.message
+    log = capfd.readouterr().err
+    assert log.count(moved) == 1 and '[WARN]' in log
+    assert rig.call('reset').success
+    assert moved not in rig.node.diagnostic_status().message
+
+
+def test_save_keeps_the_old_result_when_the_write_fails(rig_factory, tmp_path, monkeypatch):
+    _, samples = synthetic_samples(6)
+    path = tmp_path / 'samples.csv'
+    write_journal(path, samples)
+    result_file = tmp_path / 'calibration.yaml'
+    rig = rig_factory(Parameter('samples_file', value=str(path)),
+                      Parameter('resume', value=True),
+                      Parameter('result_file', value=str(result_file)))
+    assert rig.call('save').success
+    old = result_file.read_bytes()
+    assert persistence.read_result_yaml(result_file)['quality']['samples'] == 6
+
+    def failing_fsync(fd):   # the temporary file cannot be made durable: the write fails
+        raise OSError(5, 'Input/output error')
+
+    monkeypatch.setattr(persistence.os, 'fsync', failing_fsync)
+    refused = rig.call('save')
+    assert not refused.success and 'Input/output error' in refused.message
+    assert result_file.read_bytes() == old
+    assert sorted(p.name for p in tmp_path.iterdir()
+                  if 'calibration' in p.name) == ['calibration.yaml']   # no temporary left
+
+
+def test_a_stalled_stream_makes_no_sample_from_stale_data():
+    """The sensor stalls from the middle of one stop to the middle of the next."""
+    rng = np.random.default_rng(4)
+    cell = simulation.random_cell(rng)
+    streams = simulation.stop_and_go_streams(
+        rng, cell, n_stops=8, link_rate_hz=100.0, sensor_rate_hz=30.0, still_s=1.0,
+        move_s=1.0, rotation_noise_deg=0.1)
+    stall = [sum(streams.stills[k]) // 2 for k in (3, 4)]
+    session = Session()
+    captured = []
+    for _, name, stamp, pose in stream_events(streams):
+        if name == 'sensor_pose' and stall[0] < stamp < stall[1]:
+            continue
+        add = session.add_link_pose if name == 'link_pose' else session.add_sensor_pose
+        captured += [e.sample for e in add(stamp, pose) if isinstance(e, SampleCaptured)]
+    assert len(captured) == 8          # every stop, the stalled ones from their fresh halves
+    for sample in captured:            # each at a real stop: no sample spans the motion
+        assert min(quat.angle_between(sample.link.quaternion, stop.quaternion)
+                   for stop in streams.stops) < np.radians(0.05)
+    assert quat.angle_between(session.result.quaternion, cell.mounting.quaternion) \
+        < np.radians(3 * session.result.uncertainty_deg)
+    assert streams.stills[3][0] < captured[3].stamp_ns < stall[0]
+    assert stall[1] < captured[4].stamp_ns < streams.stills[4][1]
+
+
+# --- point 5: files are data -----------------------------------------------------------------
+
+def test_result_reader_refuses_python_tags(tmp_path):
+    path = tmp_path / 'calibration.yaml'
+    path.write_text('format: quatcal_ros/rotation\n'
+                    'rotation: !!python/object/apply:os.system ["touch pwned"]\n')
+    with pytest.raises(ValueError, match=r'calibration.yaml, line 2: refused: not plain data'):
+        persistence.read_result_yaml(path)
+    assert not (tmp_path / 'pwned').exists() and not Path('pwned').exists()
+    path.write_text('rotation: {x: 0, y: 0\n')
+    with pytest.raises(ValueError, match='not readable YAML'):
+        persistence.read_result_yaml(path)
+    path.write_text('- 1\n- 2\n')
+    with pytest.raises(ValueError, match='no mapping'):
+        persistence.read_result_yaml(path)
+
+
+def unsafe_calls(tree):
+    """Yield (line, what) for each construct of `tree` (ast) that can run code from data."""
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            names = [alias.name for alias in node.names] + [getattr(node, 'module', '') or '']
+            for name in names:
+                if name.split('.')[0] in ('pickle', 'cPickle', 'dill', 'marshal', 'shelve'):
+                    yield node.lineno, f'import {name}'
+        elif isinstance(node, ast.Call):
+            func = node.func
+            name = func.id if isinstance(func, ast.Name) else getattr(func, 'attr', '')
+            owner = getattr(getattr(func, 'value', None), 'id', '')
+            if name in ('eval', 'exec', 'unsafe_load', 'full_load', 'system', 'popen') or (
+                    owner == 'yaml' and name in ('load', 'load_all')):
+                yield node.lineno, f'{owner + "." if owner else ""}{name}()'
+            for keyword in node.keywords:
+                if keyword.arg in ('shell', 'allow_pickle') and getattr(
+                        keyword.value, 'value', False) is True:
+                    yield node.lineno, f'{keyword.arg}=True'
+
+
+def test_unsafe_calls_are_found():
+    code = ('import pickle\nimport yaml\nyaml.load(s)\neval(t)\n'
+            'subprocess.run(c, shell=True)\nnp.load(f, allow_pickle=True)\n')
+    assert [line for line, _ in unsafe_calls(ast.parse(code))] == [1, 3, 4, 5, 6]
+
+
+def test_no_code_from_data_in_the_package():
+    """Point 5: no pickle, eval, exec, unsafe YAML or shell in the package's code."""
+    hits = []
+    for source in sorted((REPO_ROOT / 'quatcal_ros').glob('*.py')):
+        tree = ast.parse(source.read_text(), str(source))
+        hits += [f'{source.name}:{line}: {what}' for line, what in unsafe_calls(tree)]
+    assert hits == []
+
+
+# --- as processes: SIGKILL in the middle of a session ---------------------------------------
+
+def _process_env(home):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(PROCESS_DOMAIN_ID),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1',
+               HOME=str(home))
+    env['PYTHONPATH'] = os.pathsep.join(
+        [str(REPO_ROOT)] + [p for p in [env.get('PYTHONPATH')] if p])
+    return env
+
+
+def _calibrator_command(*ros_args):
+    return [sys.executable, '-m', 'quatcal_ros', 'calibrator', '--ros-args', *ros_args]
+
+
+class Feeder:
+    """Publishes the stream to the calibrator process and listens to its outputs."""
+
+    def __init__(self, events):
+        self.events = events
+        self.next = 0
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=PROCESS_DOMAIN_ID)
+        self.node = rclpy.create_node('resume_test_feeder', context=self.context)
+        self.publishers = {name: self.node.create_publisher(PoseStamped, name, RELIABLE)
+                           for name in ('link_pose', 'sensor_pose')}
+        self.rotations, self.statuses = [], []
+        self.node.create_subscription(QuaternionStamped, '/calibrator/rotation',
+                                      self.rotations.append, LATCHED)
+        self.node.create_subscription(
+            DiagnosticArray, '/diagnostics',
+            lambda msg: self.statuses.extend(s for s in msg.status if s.name == DIAGNOSTIC_NAME),
+            10)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+    def spin_until(self, condition, timeout, what, process):
+        deadline = time.monotonic() + timeout
+        while not condition():
+            assert process.poll() is None, f'the calibrator exited with {process.returncode}'
+            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def connect(self, process):
+        self.spin_until(lambda: all(p.get_subscription_count()
+                                    for p in self.publishers.values()),
+                        60.0, 'the calibrator to subscribe', process)
+        settle = time.monotonic() + 0.5    # and for the other side to match ours
+        while time.monotonic() < settle:
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def feed_until(self, condition, process, speed=4.0, timeout=60.0):
+        """Publish the events in delivery order at `speed` x real time until condition()."""
+        wall0, stream0 = time.monotonic(), self.events[self.next][0]
+        deadline = wall0 + timeout
+        while not condition():
+            assert process.poll() is None, f'the calibrator exited with {process.returncode}'
+            assert self.next < len(self.events), 'the stream ended first'
+            assert time.monotonic() < deadline, 'timed out feeding the stream'
+            due = stream0 + (time.monotonic() - wall0) * speed * NS
+            while self.next < len(self.events) and self.events[self.next][0] <= due:
+                _, name, stamp, pose = self.events[self.next]
+                self.publishers[name].publish(conversions.pose_stamped_msg(pose, stamp, 'f'))
+                self.next += 1
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def samples_reported(self):
+        return int(status_values(self.statuses[-1])['samples']) if self.statuses else None
+
+
+def journal_count(path):
+    try:
+        return len(journal.read_journal(path).samples)
+    except (FileNotFoundError, journal.JournalError):
+        return 0
+
+
+def test_sigkill_mid_session_loses_no_sample_and_resume_continues(tmp_path):
+    rng = np.random.default_rng(21)
+    cell = simulation.random_cell(rng)
+    streams = simulation.stop_and_go_streams(
+        rng, cell, n_stops=24, link_rate_hz=50.0, sensor_rate_hz=30.0, still_s=0.7,
+        move_s=0.4, rotation_noise_deg=0.1, translation_noise_m=0.0005,
+        rotation_spread_deg=40.0)
+    samples_file = tmp_path / 'journal' / 'samples.csv'
+    ros_args = ['-p', f'samples_file:={samples_file}', '-p', 'still_window_s:=0.3',
+                '-p', 'diagnostics_period_s:=0.2', '-p', 'max_stamp_offset_s:=0.0']
+    feeder = Feeder(stream_events(streams))
+    env = _process_env(tmp_path)
+    first_log, second_log = tmp_path / 'first.log', tmp_path / 'second.log'
+    process = subprocess.Popen(_calibrator_command(*ros_args), env=env, cwd=tmp_path,
+                               stdout=first_log.open('w'), stderr=subprocess.STDOUT)
+    try:
+        feeder.connect(process)
+        # Killed as soon as the sixth sample is on disk, with more poses in flight.
+        feeder.feed_until(lambda: journal_count(samples_file) >= 6, process)
+        process.send_signal(signal.SIGKILL)
+        assert process.wait(timeout=10) == -signal.SIGKILL
+
+        # No sample the node reported captured is missing from the journal.
+        logged = [(int(i), float(stamp)) for i, stamp in SAMPLE_LOG.findall(
+            first_log.read_text())]
+        contents = journal.read_journal(samples_file)
+        kept = contents.samples
+        assert [i for i, _ in logged] == list(range(len(logged)))
+        assert len(kept) >= 6
+        # Written before it is logged: at most one sample on disk but not yet reported.
+        assert len(logged) <= len(kept) <= len(logged) + 1
+        for i, stamp in logged:
+            assert abs(kept[i].stamp_ns * 1e-9 - stamp) < 6e-4
+        assert len(contents.notices) <= 1                    # a torn last line at most
+        intact = samples_file.read_bytes()[:contents.intact_bytes]
+
+        # Restart with resume:=true: same samples, the estimate of calibrate() on them.
+        options = node_config.session_config(NodeConfig(still_window_s=0.3)).calibration
+        expected = calibration.calibrate(kept, options)
+        feeder.rotations.clear()
+        feeder.statuses.clear()
+        process = subprocess.Popen(_calibrator_command(*ros_args, '-p', 'resume:=true'),
+                                   env=env, cwd=tmp_path, stdout=second_log.open('w'),
+                                   stderr=subprocess.STDOUT)
+        feeder.spin_until(lambda: feeder.rotations and feeder.statuses, 60.0,
+                          'the resumed estimate and diagnostics', process)
+        assert_allclose(rotation_of(feeder.rotations[-1]), canonical(expected.quaternion),
+                        rtol=0, atol=1e-9)
+        assert feeder.samples_reported() == len(kept)
+        assert f'resumed {len(kept)} samples from {samples_file}' in second_log.read_text()
+
+        # The stream goes on: new samples are taken and appended after the resumed ones.
+        feeder.connect(process)
+        feeder.feed_until(lambda: journal_count(samples_file) >= len(kept) + 3, process)
+        feeder.spin_until(lambda: feeder.samples_reported() == journal_count(samples_file),
+                          10.0, 'diagnostics to count the journal', process)
+    finally:
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+        code = process.wait(timeout=20)
+        feeder.close()
+    assert code == 0, second_log.read_text()
+    final = journal.read_journal(samples_file)
+    assert final.notices == []
+    assert samples_file.read_bytes().startswith(intact)
+    log = second_log.read_text()
+    assert f'sample {len(kept)} captured' in log
+    assert aside_files(samples_file.parent, 'previous') == []
+    assert aside_files(samples_file.parent, 'corrupt') == []
+
+
+def test_process_refuses_to_resume_another_setup_with_exit_2(tmp_path):
+    _, samples = synthetic_samples(4)
+    path = tmp_path / 'samples.csv'
+    before = write_journal(path, samples, JournalHeader('eye_to_hand', 'tool0', 'camera'))
+    done = subprocess.run(
+        _calibrator_command('-p', f'samples_file:={path}', '-p', 'resume:=true'),
+        env=_process_env(tmp_path), cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    output = done.stdout + done.stderr
+    assert done.returncode == 2, output
+    assert 'resume:=true refused' in output and "setup 'eye_to_hand'" in output
+    assert 'resume:=false to move it aside' in output
+    assert path.read_bytes() == before
