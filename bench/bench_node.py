@@ -1,0 +1,356 @@
+#!/usr/bin/env python3
+"""
+The live node under load (issue 5, point 4): CPU time per message and estimate latency.
+
+Two processes listen to the same streams over Fast DDS: the calibrator (`python -m
+quatcal_ros calibrator`) and the floor, an rclpy node with the same subscriptions (same QoS,
+same executor) whose callbacks only count.  This script publishes a simulated stop-and-go
+run in real time, stamped on the wall clock (link pose 1 kHz, sensor pose 60 Hz, 30 ms camera
+latency), and reads each process's CPU time (utime + stime of /proc/PID/stat) before and
+after: CPU time per message received.  Target: the calibrator under 3x the floor.
+
+The calibrator starts from 100 samples of the same simulated cell (its samples journal,
+resume:=true).  Latency first, at samples 101-112: for each of the next stops, the message
+that completes the still sample is found beforehand (the node's session, offline, on the same
+messages), the stream pauses before it until the node is idle, and the time from publishing
+it to receiving the new estimate on ~/rotation is measured.  Target: under 5 ms at 100
+samples.  Then the CPU run (30 s, the calibrator at about 113-138 samples).
+
+Run: python bench/bench_node.py [--seconds 30] [--latency-stops 12]
+(ROS_DOMAIN_ID 68 unless set; discovery on this machine only.)
+"""
+
+import argparse
+import os
+from pathlib import Path
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+NS = 1_000_000_000
+TICK_S = 0.004
+
+
+def run_empty_subscriber():
+    """Run the floor: the node's subscriptions with callbacks that only count."""
+    from quatcal_ros.node import LINK_QOS, SENSOR_QOS
+    from geometry_msgs.msg import PoseStamped
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from std_msgs.msg import UInt64
+
+    rclpy.init()
+    node = rclpy.create_node('bench_empty')
+    count = [0]
+
+    def on_message(msg):
+        count[0] += 1
+
+    node.create_subscription(PoseStamped, 'link_pose', on_message, LINK_QOS)
+    node.create_subscription(PoseStamped, 'sensor_pose', on_message, SENSOR_QOS)
+    publisher = node.create_publisher(UInt64, '~/count', 10)
+    node.create_timer(1.0, lambda: publisher.publish(UInt64(data=count[0])))
+    try:
+        rclpy.spin(node, executor=SingleThreadedExecutor())
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def cpu_s(pid):
+    """Return the CPU time (user + system) of process `pid` so far, in seconds."""
+    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+
+
+def rss_mb(pid, field='VmHWM'):
+    for line in Path(f'/proc/{pid}/status').read_text().splitlines():
+        if line.startswith(field + ':'):
+            return int(line.split()[1]) / 1024
+    return float('nan')
+
+
+class Bench:
+    """The two processes under test and the publishing/listening node of this script."""
+
+    def __init__(self, workdir, preload, cell):
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseStamped, QuaternionStamped
+        from quatcal_ros.node import DIAGNOSTIC_NAME
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from std_msgs.msg import UInt64
+        from quatcal_ros import journal
+        from quatcal_ros.samples_csv import format_samples
+
+        self.workdir = workdir
+        samples_file = workdir / 'samples.csv'
+        samples_file.write_text(journal.JournalHeader('eye_in_hand', 'tool0', 'camera').line()
+                                + '\n' + format_samples(preload))
+        env = dict(os.environ, PYTHONUNBUFFERED='1', HOME=str(workdir))
+        env['PYTHONPATH'] = os.pathsep.join([str(REPO_ROOT)] + [p for p in
+                                                                [env.get('PYTHONPATH')] if p])
+        self.logs = [(workdir / name).open('w') for name in ('calibrator.log', 'empty.log')]
+        self.calibrator = subprocess.Popen(
+            [sys.executable, '-m', 'quatcal_ros', 'calibrator', '--ros-args',
+             '-p', 'resume:=true', '-p', f'samples_file:={samples_file}',
+             '-p', 'still_window_s:=0.3', '-p', f'result_file:={workdir / "result.yaml"}'],
+            env=env, cwd=REPO_ROOT, stdout=self.logs[0], stderr=subprocess.STDOUT)
+        self.empty = subprocess.Popen(
+            [sys.executable, str(Path(__file__).resolve()), '--empty-subscriber'],
+            env=env, cwd=REPO_ROOT, stdout=self.logs[1], stderr=subprocess.STDOUT)
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node('bench_driver', context=self.context)
+        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.pubs = {'link': self.node.create_publisher(PoseStamped, 'link_pose', qos),
+                     'sensor': self.node.create_publisher(PoseStamped, 'sensor_pose', qos)}
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.rotations = []     # (perf_counter at arrival, msg)
+        self.node.create_subscription(
+            QuaternionStamped, '/calibrator/rotation',
+            lambda msg: self.rotations.append((time.perf_counter(), msg)), latched)
+        self.status = {}
+        self.node.create_subscription(
+            DiagnosticArray, '/diagnostics',
+            lambda msg: self.status.update(
+                {kv.key: kv.value for s in msg.status if s.name == DIAGNOSTIC_NAME
+                 for kv in s.values}), 10)
+        self.empty_count = None
+        self.node.create_subscription(UInt64, '/bench_empty/count',
+                                      lambda msg: setattr(self, 'empty_count', msg.data), 10)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def close(self):
+        import rclpy
+        for process in (self.calibrator, self.empty):
+            if process.poll() is None:
+                process.send_signal(signal.SIGINT)
+        for process in (self.calibrator, self.empty):
+            try:
+                process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                process.kill()
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        for log in self.logs:
+            log.close()
+
+    def spin(self, seconds=0.0):
+        deadline = time.monotonic() + seconds
+        while True:
+            self.executor.spin_once(timeout_sec=max(0.0, min(0.01, deadline - time.monotonic())))
+            if time.monotonic() >= deadline:
+                return
+
+    def wait(self, condition, timeout, what):
+        deadline = time.monotonic() + timeout
+        while not condition():
+            for process in (self.calibrator, self.empty):
+                if process.poll() is not None:
+                    raise SystemExit(f'{process.args[:4]} exited: see {self.workdir}')
+            if time.monotonic() > deadline:
+                raise SystemExit(f'timed out waiting for {what} (logs in {self.workdir})')
+            self.spin(0.02)
+
+    def publish(self, stream, stamp_ns, pose):
+        from quatcal_ros import conversions
+        frame = 'base' if stream == 'link' else 'camera'
+        self.pubs[stream].publish(conversions.pose_stamped_msg(pose, stamp_ns, frame))
+
+    def received(self):
+        return int(self.status.get('link_messages', 0)) + int(self.status.get('sensor_messages',
+                                                                              0))
+
+
+def delivery_order(streams):
+    """Return [(due ns, stream, stamp ns, pose)] in publishing order."""
+    events = [(stamp, 0, 'link', stamp, pose) for stamp, pose in streams.link]
+    events += [(due, 1, 'sensor', stamp, pose)
+               for due, (stamp, pose) in zip(streams.sensor_delivery_ns, streams.sensor)]
+    events.sort(key=lambda e: e[:2])
+    return [(due, stream, stamp, pose) for due, _, stream, stamp, pose in events]
+
+
+def completing_messages(events, preload, still_window_s):
+    """Return the indices of the messages that complete a still sample (the node's session)."""
+    from quatcal_ros import node_config
+    from quatcal_ros.session import SampleCaptured, Session
+    config = node_config.NodeConfig(still_window_s=still_window_s)
+    session = Session(node_config.session_config(config))
+    session.add_samples(preload)
+    out = []
+    for index, (_, stream, stamp, pose) in enumerate(events):
+        add = session.add_link_pose if stream == 'link' else session.add_sensor_pose
+        if any(isinstance(e, SampleCaptured) for e in add(stamp, pose)):
+            out.append(index)
+    return out
+
+
+def simulate(seed, seconds, start_ns, still_s=0.6, move_s=0.6):
+    from quatcal_ros import simulation
+    rng = np.random.default_rng(seed)
+    cell = simulation.random_cell(rng)
+    preload, _ = simulation.samples(rng, cell, 100, rotation_noise_deg=0.05,
+                                    translation_noise_m=0.0005, rotation_spread_deg=40.0)
+    streams = simulation.stop_and_go_streams(
+        rng, cell, n_stops=int(np.ceil(seconds / (still_s + move_s))), link_rate_hz=1000.0,
+        sensor_rate_hz=60.0, still_s=still_s, move_s=move_s, rotation_noise_deg=0.2,
+        translation_noise_m=0.001, latency_s=0.03, drop_probability=0.0,
+        rotation_spread_deg=40.0, start_ns=start_ns)
+    return cell, preload, streams
+
+
+class Pacer:
+    """Publishes events at their due times (wall clock), shifted by the pauses taken."""
+
+    def __init__(self, bench, events):
+        self.bench = bench
+        self.events = events
+        self.i = 0
+        self.shift_ns = 0
+
+    def resume_now(self):
+        """Continue from the next event as if it were due now (after a pause)."""
+        if self.i < len(self.events):
+            self.shift_ns = max(0, time.time_ns() - self.events[self.i][0])
+
+    def publish_until(self, stop):
+        """Publish events up to (not including) index `stop` in real time."""
+        while self.i < stop:
+            now = time.time_ns()
+            while self.i < stop and self.events[self.i][0] + self.shift_ns <= now:
+                self.bench.publish(*self.events[self.i][1:])
+                self.i += 1
+            self.bench.spin()
+            time.sleep(max(0.0, TICK_S - (time.time_ns() - now) / NS))
+
+    def publish_next(self):
+        self.bench.publish(*self.events[self.i][1:])
+        self.i += 1
+
+
+def latency_phase(bench, pacer, completing, samples_before):
+    """Return [(samples after, latency s)] for the completing messages (indices of events)."""
+    out = []
+    for target in completing:
+        pacer.publish_until(target)              # real time up to the completing message
+        bench.spin(0.15)                         # the node is idle now
+        seen = len(bench.rotations)
+        published = time.perf_counter()
+        pacer.publish_next()
+        deadline = time.monotonic() + 5.0
+        while len(bench.rotations) == seen and time.monotonic() < deadline:
+            bench.executor.spin_once(timeout_sec=0.001)
+        if len(bench.rotations) > seen:
+            out.append((samples_before + len(out) + 1, bench.rotations[seen][0] - published))
+        pacer.resume_now()
+    return out
+
+
+def cpu_phase(bench, pacer, stop):
+    """Publish up to index `stop` in real time; return {process: (CPU s, messages)}, wall s."""
+    bench.spin(1.5)   # both idle, and the counters up to date
+    before = {'calibrator': cpu_s(bench.calibrator.pid), 'empty': cpu_s(bench.empty.pid)}
+    counts_before = {'calibrator': bench.received(), 'empty': bench.empty_count}
+    first = pacer.i
+    start = time.monotonic()
+    pacer.resume_now()
+    pacer.publish_until(stop)
+    wall = time.monotonic() - start
+    sent = stop - first
+    bench.wait(lambda: (bench.received() - counts_before['calibrator'] >= sent
+                        and bench.empty_count - counts_before['empty'] >= sent - 5),
+               15.0, 'both processes to receive every message')
+    bench.spin(1.2)   # the counters are published once per second
+    after = {'calibrator': cpu_s(bench.calibrator.pid), 'empty': cpu_s(bench.empty.pid)}
+    counts = {'calibrator': bench.received() - counts_before['calibrator'],
+              'empty': bench.empty_count - counts_before['empty']}
+    return {name: (after[name] - before[name], counts[name]) for name in after}, wall
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--seconds', type=float, default=30.0,
+                        help='length of the CPU measurement (default 30 s)')
+    parser.add_argument('--latency-stops', type=int, default=12,
+                        help='samples whose latency is measured (default 12)')
+    parser.add_argument('--empty-subscriber', action='store_true', help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    os.environ.setdefault('ROS_DOMAIN_ID', '68')
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    if args.empty_subscriber:
+        return run_empty_subscriber()
+
+    workdir = Path(tempfile.mkdtemp(prefix='bench_node_'))
+    latency_s = args.latency_stops * 1.2 + 1.0
+    cell, preload, streams = simulate(5, args.seconds + latency_s, time.time_ns() + 8 * NS)
+    events = delivery_order(streams)
+    split = next(k for k, e in enumerate(events) if e[0] - events[0][0] >= latency_s * NS)
+    completing = [k for k in completing_messages(events, preload, 0.3) if k < split]
+    completing = completing[:args.latency_stops]
+    bench = Bench(workdir, preload, cell)
+    try:
+        bench.wait(lambda: (bench.pubs['link'].get_subscription_count() >= 2
+                            and bench.pubs['sensor'].get_subscription_count() >= 2
+                            and bench.rotations and bench.empty_count is not None
+                            and bench.status),
+                   60.0, 'both processes and the resumed estimate')
+        pacer = Pacer(bench, events)
+        while time.time_ns() < events[0][0]:
+            bench.spin(0.02)
+        latencies = latency_phase(bench, pacer, completing, len(preload))
+        pacer.publish_until(split)
+        start_samples = int(bench.status['samples'])
+        cpu, wall = cpu_phase(bench, pacer, len(events))
+        end_samples = int(bench.status['samples'])
+        peak = rss_mb(bench.calibrator.pid)
+    finally:
+        bench.close()
+
+    sent = len(events) - split
+    per_msg = {name: 1e6 * seconds / count for name, (seconds, count) in cpu.items()}
+    ratio = per_msg['calibrator'] / per_msg['empty']
+    print(f'Live node under load: {sent} messages in {wall:.1f} s (link 1 kHz, sensor 60 Hz), '
+          f'calibrator at {start_samples} -> {end_samples} samples; peak RSS {peak:.0f} MB\n')
+    print('| process | messages received | CPU time (s) | CPU per message (us) | vs floor |')
+    print('|---|---|---|---|---|')
+    for name, label in (('empty', 'rclpy subscriber, empty callbacks (floor)'),
+                        ('calibrator', 'calibrator node')):
+        seconds, count = cpu[name]
+        print(f'| {label} | {count} | {seconds:.2f} | {per_msg[name]:.1f} | '
+              f'{per_msg[name] / per_msg["empty"]:.2f}x |')
+    print(f'\nTarget: under 3x the floor per message: {"met" if ratio < 3 else "NOT met"} '
+          f'({ratio:.2f}x).\n')
+    if latencies:
+        ms = np.array([s for _, s in latencies]) * 1e3
+        samples = [n for n, _ in latencies]
+        print('| latency: completing message -> new ~/rotation | median (ms) | 90th pct (ms) | '
+              'max (ms) | samples |')
+        print('|---|---|---|---|---|')
+        print(f'| {len(ms)} new samples | {np.median(ms):.1f} | {np.percentile(ms, 90):.1f} | '
+              f'{ms.max():.1f} | {min(samples)}-{max(samples)} |')
+        print(f'\nTarget: under 5 ms at 100 samples: '
+              f'{"met" if np.median(ms) < 5 else "NOT met"} (median {np.median(ms):.1f} ms; '
+              f'each: {", ".join(f"{v:.1f}" for v in ms)})')
+    else:
+        print('latency: no estimate arrived after a completing message')
+    shutil.rmtree(workdir, ignore_errors=True)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
