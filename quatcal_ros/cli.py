@@ -22,7 +22,8 @@ from quatcal_ros.pairing import PairingConfig
 from quatcal_ros.persistence import atomic_write_text, write_result_yaml
 from quatcal_ros.progress import Progress
 from quatcal_ros.samples_csv import BadInputError, format_samples
-from quatcal_ros.session import Session, SessionConfig
+from quatcal_ros.session import Session, session_config_from_settings, SessionConfig
+from quatcal_ros.time_offset import find_time_offset
 
 EXIT_BAD_INPUT = 2
 EXIT_UNDETERMINED = 3
@@ -138,13 +139,13 @@ def _write_easy_handeye2(prog, path, result, frames, setup, named):
     return 0
 
 
-def print_result(prog, session, where='', warnings=(), frames=None):
+def print_result(prog, session, where='', warnings=(), frames=None, extra=None):
     """
     Print the session's result as JSON (exit 0) or why there is none (exit 2 or 3).
 
     warnings: sentences added to the result's own "warnings" (what the input lacked).
     frames: (parent, child) of the "static_transform_publisher" line; default
-    exports.default_frames of the result's setup.
+    exports.default_frames of the result's setup. extra: more keys for the JSON object.
     """
     if len(session.samples) < 3:
         return fail(prog, f'{where}{len(session.samples)} sample(s); at least 3 are needed',
@@ -157,6 +158,7 @@ def print_result(prog, session, where='', warnings=(), frames=None):
     parent, child = frames or exports.default_frames(result.setup)
     document['static_transform_publisher'] = exports.static_transform_publisher_command(
         result, parent, child)
+    document.update(extra or {})
     print(json.dumps(document, indent=2))
     return 0
 
@@ -220,6 +222,14 @@ def add_capture_arguments(parser):
                        default=_seconds(pairing.tolerance_ns),
                        help='without an interpolation bracket, a pose this close is paired '
                             'as it is (default %(default)g)')
+    offset = group.add_mutually_exclusive_group()
+    offset.add_argument('--sensor-time-offset', type=float, default=0.0, metavar='S',
+                        help='seconds added to every sensor stamp, e.g. -0.03 for a camera '
+                             'that stamps its frames 30 ms late (default 0)')
+    offset.add_argument('--estimate-time-offset', action='store_true',
+                        help='estimate the sensor time offset from the recording (angular '
+                             'speed cross-correlation refined by the residual), apply it and '
+                             'report it with the residual with and without it')
 
 
 # Options that must be positive numbers (--pairing-tolerance-s may also be 0).
@@ -243,29 +253,15 @@ def replay_session_config(args):
         if not (math.isfinite(value) and low_ok):
             need = 'a number >= 0' if name == 'pairing_tolerance_s' else 'a positive number'
             raise ValueError(f'--{name.replace("_", "-")} must be {need}, not {value:g}')
-    default_capture, default_pairing = CaptureConfig(), PairingConfig()
-
-    def ns(seconds):
-        return int(round(seconds * NS_PER_S))
-
-    max_gap_ns = ns(args.max_gap_s)
-    step = args.min_motion_deg if args.continuous_step_deg is None else args.continuous_step_deg
-    return SessionConfig(
-        pairing=PairingConfig(
-            tolerance_ns=ns(args.pairing_tolerance_s), max_gap_ns=max_gap_ns,
-            window_ns=max(default_pairing.window_ns, 2 * max_gap_ns)),
-        capture=CaptureConfig(
-            mode=args.capture, window_ns=ns(args.still_window_s),
-            rotation_band_deg=args.still_rotation_deg,
-            translation_band_m=args.still_translation_m,
-            sensor_rotation_band_deg=args.sensor_still_rotation_deg,
-            sensor_translation_band_m=args.sensor_still_translation_m,
-            min_motion_deg=max(default_capture.min_motion_deg, 2.0 * args.still_rotation_deg),
-            min_motion_m=max(default_capture.min_motion_m, 2.0 * args.still_translation_m),
-            min_still_pairs=args.min_still_pairs,
-            recent_ns=max(default_capture.recent_ns, 2 * ns(args.still_window_s)),
-            continuous_step_deg=step),
-        calibration=estimator_options(args))
+    return session_config_from_settings(
+        estimator_options(args), capture_mode=args.capture,
+        still_window_s=args.still_window_s, still_rotation_deg=args.still_rotation_deg,
+        still_translation_m=args.still_translation_m, min_motion_deg=args.min_motion_deg,
+        pairing_tolerance_s=args.pairing_tolerance_s, max_gap_s=args.max_gap_s,
+        continuous_step_deg=args.continuous_step_deg, sensor_offset_s=args.sensor_time_offset,
+        sensor_rotation_band_deg=args.sensor_still_rotation_deg,
+        sensor_translation_band_m=args.sensor_still_translation_m,
+        min_still_pairs=args.min_still_pairs)
 
 
 def replay_parser():
@@ -327,7 +323,12 @@ def replay_main(argv=None):
     try:
         with bag.Bag(args.bag) as recording:
             replay = bag.Replay(recording, link, sensor, tuple(args.tf_topics))
-            session, report, notes = _replay(replay, config, args)
+            time_offset = None
+            if args.estimate_time_offset:
+                session, report, notes, time_offset = _replay_with_time_offset(
+                    replay, config, args)
+            else:
+                session, report, notes = _replay(replay, config, args)
     except bag.BagError as error:
         return fail(prog, error, EXIT_BAD_INPUT)
     except KeyboardInterrupt:
@@ -352,7 +353,8 @@ def replay_main(argv=None):
         status = _write_result(prog, args, final, warnings, report, link, sensor)
         if status:
             return status
-    return print_result(prog, final, where, warnings, frames=_replay_frames(args, report))
+    return print_result(prog, final, where, warnings, frames=_replay_frames(args, report),
+                        extra={'time_offset': time_offset} if time_offset else None)
 
 
 def _streaming(config):
@@ -367,6 +369,42 @@ def _streaming(config):
     if getattr(options, 'method', 'closed-form') != 'closed-form':
         config = replace(config, calibration=replace(options, method='closed-form'))
     return config
+
+
+class _StreamRecorder:
+    """Stand-in for a Session that keeps both pose streams (for the time-offset search)."""
+
+    def __init__(self):
+        self.link, self.sensor = [], []
+        self.counters = {}
+
+    def add_link_pose(self, stamp_ns, pose):
+        self.link.append((stamp_ns, pose))
+        return []
+
+    def add_sensor_pose(self, stamp_ns, pose):
+        self.sensor.append((stamp_ns, pose))
+        return []
+
+
+def _replay_with_time_offset(replay, config, args):
+    """Read both streams, find the sensor time offset, replay with it applied."""
+    from quatcal_ros import bag   # rosbags is needed by the replay only
+    recorder = _StreamRecorder()
+    report = replay.run(recorder)
+    try:
+        found, session = find_time_offset(recorder.link, recorder.sensor, _streaming(config))
+    except ValueError as error:
+        raise bag.BagError(f'cannot estimate the time offset: {error}') from None
+    report.counters = session.counters
+    notes = [f'time offset: sensor stamps shifted by {found.offset_ns / NS_PER_S * 1e3:+.1f} ms '
+             f'(speed correlation {found.correlation:.2f}); RMS residual '
+             f'{found.residual_without_deg:.3f} deg without it, '
+             f'{found.residual_with_deg:.3f} deg with it']
+    return session, report, notes, {
+        'sensor_offset_s': found.offset_ns / NS_PER_S, 'correlation': found.correlation,
+        'residual_without_deg': found.residual_without_deg,
+        'residual_with_deg': found.residual_with_deg}
 
 
 def _replay(replay, config, args):

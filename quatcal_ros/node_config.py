@@ -13,10 +13,8 @@ from dataclasses import asdict, dataclass, fields
 import math
 
 from quatcal_ros.calibration import CalibrationOptions
-from quatcal_ros.capture import CaptureConfig
 from quatcal_ros.message_checks import CheckConfig
-from quatcal_ros.pairing import PairingConfig
-from quatcal_ros.session import SessionConfig
+from quatcal_ros.session import session_config_from_settings
 from rcl_interfaces.msg import FloatingPointRange
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
@@ -120,6 +118,10 @@ SPECS = (
     Spec('max_gap_s', 0.1,
          'Largest gap (seconds, header stamps) of a stream across which poses are '
          'interpolated; nothing is paired across a longer gap.', low=0.001, high=10.0),
+    Spec('sensor_time_offset_s', 0.0,
+         'Seconds added to every sensor_pose header stamp: a known latency of the sensor '
+         'clock, e.g. -0.03 for a camera that stamps its frames 30 ms late (`replay '
+         '--estimate-time-offset` measures it from a recording).', low=-1.0, high=1.0),
     Spec('max_stamp_offset_s', 30.0,
          'Pose messages whose header stamp is farther than this (seconds) from the node clock '
          '(with use_sim_time: /clock) are skipped and counted; 0 turns the check off.',
@@ -177,6 +179,7 @@ class NodeConfig:
     min_motion_deg: float = 5.0
     pairing_tolerance_s: float = 0.001
     max_gap_s: float = 0.1
+    sensor_time_offset_s: float = 0.0
     max_stamp_offset_s: float = 30.0
     link_frame_id: str = ''
     sensor_frame_id: str = ''
@@ -250,26 +253,15 @@ def session_config(config):
     (and CaptureConfig's own minimum) away from the previous sample.
     :raises ConfigError: when the core refuses the combination.
     """
-    max_gap_ns = _ns(config.max_gap_s)
-    default_capture = CaptureConfig()
     try:
-        return SessionConfig(
-            pairing=PairingConfig(
-                tolerance_ns=_ns(config.pairing_tolerance_s), max_gap_ns=max_gap_ns,
-                window_ns=max(PairingConfig().window_ns, 2 * max_gap_ns)),
-            capture=CaptureConfig(
-                mode=config.capture_mode, window_ns=_ns(config.still_window_s),
-                rotation_band_deg=config.still_rotation_deg,
-                translation_band_m=config.still_translation_m,
-                min_motion_deg=max(default_capture.min_motion_deg,
-                                   2.0 * config.still_rotation_deg),
-                min_motion_m=max(default_capture.min_motion_m,
-                                 2.0 * config.still_translation_m),
-                recent_ns=max(default_capture.recent_ns, 2 * _ns(config.still_window_s)),
-                continuous_step_deg=config.min_motion_deg),
-            calibration=CalibrationOptions(
-                setup=config.setup, pairs=config.pairs, robust=bool(config.robust),
-                min_motion_deg=config.min_motion_deg))
+        return session_config_from_settings(
+            CalibrationOptions(setup=config.setup, pairs=config.pairs,
+                               robust=bool(config.robust), min_motion_deg=config.min_motion_deg),
+            capture_mode=config.capture_mode, still_window_s=config.still_window_s,
+            still_rotation_deg=config.still_rotation_deg,
+            still_translation_m=config.still_translation_m,
+            min_motion_deg=config.min_motion_deg, pairing_tolerance_s=config.pairing_tolerance_s,
+            max_gap_s=config.max_gap_s, sensor_offset_s=config.sensor_time_offset_s)
     except ValueError as error:
         raise ConfigError(f'inconsistent parameters: {error}') from None
 

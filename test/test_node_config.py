@@ -82,6 +82,7 @@ def test_session_config_gets_plain_numbers_in_nanoseconds():
     ('still_window_s', -1.0, 'between'),
     ('still_window_s', math.nan, 'between'),
     ('max_gap_s', 100.0, 'between'),
+    ('sensor_time_offset_s', 2.0, 'between'),
     ('min_motion_deg', 'five', 'number'),
     ('robust', 1, 'true or false'),
     ('link_frame', '', 'empty'),
@@ -157,3 +158,9 @@ def test_params_file_loads_through_rcl(repo_root):
     finally:
         rclpy.try_shutdown(context=ctx)
     assert config == NodeConfig()
+
+
+def test_sensor_time_offset_reaches_the_session():
+    config = NodeConfig.from_values({**DEFAULTS, 'sensor_time_offset_s': -0.03})
+    assert node_config.session_config(config).sensor_offset_ns == -30_000_000
+

@@ -223,6 +223,23 @@ def test_eth_real_recording_replays_in_continuous_mode(repo_root, eth_bag):
     assert 'Traceback' not in strict.stderr
 
 
+def test_eth_time_offset_is_estimated_applied_and_reported(repo_root, eth_bag):
+    done = run_replay(repo_root, eth_bag, '--link-topic', '/link', '--sensor-topic', '/camera',
+                      '--invert-sensor', '--capture', 'continuous', '--estimate-time-offset')
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    found = out['time_offset']
+    # Measured on this recording (test_time_offset.py): the camera stamps are ~22 ms late.
+    assert -0.040 < found['sensor_offset_s'] < -0.005
+    assert found['residual_with_deg'] < found['residual_without_deg']
+    assert any(w.startswith('time offset: sensor stamps shifted by') for w in out['warnings'])
+    fixed = run_replay(repo_root, eth_bag, '--link-topic', '/link', '--sensor-topic', '/camera',
+                       '--invert-sensor', '--capture', 'continuous',
+                       '--sensor-time-offset', str(found['sensor_offset_s']))
+    assert fixed.returncode == 0, fixed.stderr
+    assert_allclose(rotation(json.loads(fixed.stdout)), rotation(out), atol=1e-9)
+
+
 def test_malformed_messages_are_skipped_and_reported(repo_root, streams, tmp_path):
     messages = topic_messages(streams, POSE_STAMPED)
     sensor = [m for m in messages if m[0] == '/sensor_pose']
