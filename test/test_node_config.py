@@ -163,4 +163,3 @@ def test_params_file_loads_through_rcl(repo_root):
 def test_sensor_time_offset_reaches_the_session():
     config = NodeConfig.from_values({**DEFAULTS, 'sensor_time_offset_s': -0.03})
     assert node_config.session_config(config).sensor_offset_ns == -30_000_000
-
