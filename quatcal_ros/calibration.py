@@ -27,7 +27,7 @@ from quatcal_ros import quality
 from quatcal_ros import quaternion as quat
 from quatcal_ros.leastsq import least_squares_rotation, MotionSystem
 from quatcal_ros.motions import Motions, pair_indices, SampleRotations
-from quatcal_ros.refine import refine
+from quatcal_ros.refine import refine, refine_from
 from quatcal_ros.solver import DegenerateMotionError, solve_two_motions
 from quatcal_ros.translation import SamplePositions, solve_translation
 
@@ -174,6 +174,7 @@ class _Solution:
     outlier_threshold: float     # radians, sample residual test
     motion_count: int            # motions formed from the samples
     rejected: list
+    refinement: object = None    # refine.Refinement, the start of warm-started updates
 
 
 def _solve(samples, options):
@@ -210,13 +211,13 @@ def _solve(samples, options):
     warnings = convention_warnings(samples, options) if _suspicious(fit, q_z) else []
     rejected = (_rejected_motions(motions, usable, sample_ok, limit, options)
                 + _rejected_samples(rotations, q_z, sample_ok, motions))
-    result = _result(samples, rotations, q_z, fit, info, sample_ok, len(motions), rejected,
-                     warnings, options)
+    result, refinement = _result(samples, rotations, q_z, fit, info, sample_ok, len(motions),
+                                 rejected, warnings, options)
     threshold = (_outlier_threshold(np.linalg.norm(
         quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok], axis=1))
         if options.robust else np.inf)
     return _Solution(result, rotations, fit, system, sample_ok, limit, threshold,
-                     len(motions), rejected)
+                     len(motions), rejected, refinement)
 
 
 def _suspicious(fit, q_z):
@@ -370,22 +371,31 @@ def _parent_frame(options):
 
 
 def _result(samples, rotations, q_z, fit, info, sample_ok, motion_count, rejected, warnings,
-            options):
+            options, previous_refinement=None):
+    """
+    Return (CalibrationResult, refine.Refinement or None) for an estimated rotation q_z.
+
+    The translation follows in closed form; the joint refinement starts from the closed form,
+    or, given previous_refinement, takes warm-started steps from it (incremental updates).
+    """
     residuals = quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok]
     sigma = quality.noise_sigma(residuals)
     covariance = info.covariance(sigma)
     ratio, axis = info.excitation()
     positions = SamplePositions.from_samples(samples, rotations)
-    translation = solve_translation(rotations, positions, q_z, info, fit.i, fit.j, sample_ok,
-                                    covariance)
+    translation = solve_translation(rotations, positions, q_z, info, sample_ok, covariance)
     closed = Estimate(q_z, translation.translation, quality.uncertainty_deg(covariance),
                       translation.uncertainty_mm)
-    refined, noise_deg, noise_mm = None, np.degrees(sigma), 1e3 * translation.noise_m
+    refined, refinement = None, None
+    noise_deg, noise_mm = np.degrees(sigma), 1e3 * translation.noise_m
     warnings = list(warnings)
     if options.method == 'refined' and np.sum(sample_ok) >= MIN_REFINE_SAMPLES:
-        refinement = refine(rotations.link[sample_ok], positions.link[sample_ok],
-                            rotations.sensor[sample_ok], positions.sensor[sample_ok],
-                            q_z, translation.translation)
+        arrays = (rotations.link[sample_ok], positions.link[sample_ok],
+                  rotations.sensor[sample_ok], positions.sensor[sample_ok])
+        if previous_refinement is None:
+            refinement = refine(*arrays, q_z, translation.translation)
+        else:
+            refinement = refine_from(previous_refinement, *arrays)
         if _plausible(refinement, closed):
             refined = Estimate(refinement.quaternion, refinement.translation,
                                refinement.uncertainty_deg,
@@ -395,6 +405,7 @@ def _result(samples, rotations, q_z, fit, info, sample_ok, motion_count, rejecte
             warnings.append('the joint refinement did not converge to a plausible answer: '
                             'the closed-form estimate is published instead')
     published = refined or closed
+    refinement = refinement if refined else None
     motion_residuals = np.degrees(fit.residual_angles(published.quaternion))
     return CalibrationResult(
         quaternion=published.quaternion, matrix=quat.matrix_from_quaternion(published.quaternion),
@@ -408,7 +419,7 @@ def _result(samples, rotations, q_z, fit, info, sample_ok, motion_count, rejecte
         motion_residuals_deg=motion_residuals, translation=published.translation,
         translation_uncertainty_mm=published.translation_uncertainty_mm,
         translation_noise_mm=float(noise_mm), method='refined' if refined else 'closed-form',
-        closed_form=closed, refined=refined)
+        closed_form=closed, refined=refined), refinement
 
 
 def _plausible(refinement, closed):
@@ -550,12 +561,12 @@ class Calibrator:
             fit = Motions.concatenate(fit, new)
         info = quality.Information.of(quat.matrix_from_quaternion(rotations.link), fit.i, fit.j)
         motion_count = old.motion_count + (k if self.options.pairs == 'all' else 1)
-        result = _result(self.samples, rotations, q_z, fit, info, sample_ok, motion_count,
-                         rejected,
-                         old.result.warnings, self.options)
+        result, refinement = _result(self.samples, rotations, q_z, fit, info, sample_ok,
+                                     motion_count, rejected, old.result.warnings, self.options,
+                                     previous_refinement=old.refinement)
         self._solution = replace(old, result=result, rotations=rotations, fit=fit,
                                  system=system, sample_ok=sample_ok, motion_count=motion_count,
-                                 rejected=rejected)
+                                 rejected=rejected, refinement=refinement)
         self.result = result
         return messages + [self._describe()]
 

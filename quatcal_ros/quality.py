@@ -48,22 +48,28 @@ def noise_sigma(residuals):
 
 @dataclass(frozen=True)
 class Information:
-    """The normal matrix H (3x3) of a motion set and the sandwich middle term G."""
+    """
+    The normal matrix H (3x3) of a motion set, the per-sample sums C_i and G = sum C_i C_i^T.
+
+    C_i = sum of D_k^T over the motions ending at sample i minus those starting there; the
+    translation's right-hand side and its sensitivity to the rotation are sums over C_i too
+    (translation.py), so everything per motion is summed once, here.
+    """
 
     H: np.ndarray
     G: np.ndarray
+    C: np.ndarray     # (N, 3, 3)
 
     @staticmethod
     def of(link_matrices, i, j):
-        """H and G for motions (i[k], j[k]) given the link rotation matrices (N, 3, 3)."""
+        """H, C and G for motions (i[k], j[k]) given the link rotation matrices (N, 3, 3)."""
+        n = len(link_matrices)
         D = link_matrices[j] - link_matrices[i]
         H = np.einsum('kji,kjl->il', D, D)
-        C = np.zeros((len(link_matrices), 3, 3))
-        Dt = np.transpose(D, (0, 2, 1))
-        np.add.at(C, j, Dt)
-        np.add.at(C, i, -Dt)
-        G = np.einsum('nij,nkj->ik', C, C)
-        return Information(H, G)
+        Dt = np.transpose(D, (0, 2, 1)).reshape(-1, 9)
+        C = np.stack([np.bincount(j, Dt[:, e], n) - np.bincount(i, Dt[:, e], n)
+                      for e in range(9)], axis=-1).reshape(n, 3, 3)
+        return Information(H, np.einsum('nij,nkj->ik', C, C), C)
 
     def covariance(self, sigma):
         """cov(delta) (3x3, rad^2) for per-axis sample noise sigma (radians)."""

@@ -85,16 +85,61 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
         converged = converged and fit.success
         sigma_r, sigma_t = _noise(*residuals(link_q, link_t, sensor_q, sensor_t,
                                              *_unpack(x, x_q, x_t, o_q, o_t)), n)
-    covariance = _covariance(fit.jac)
-    X_q, X_t, O_q, O_t = _unpack(x, x_q, x_t, o_q, o_t)
+    return _refinement(link_q, link_t, sensor_q, sensor_t,
+                       *_unpack(x, x_q, x_t, o_q, o_t), sigma_r, sigma_t, converged)
+
+
+def refine_from(previous, link_q, link_t, sensor_q, sensor_t, steps=2):
+    """
+    Update a Refinement after samples were added: a few warm-started Gauss-Newton steps.
+
+    The mounting, the object pose and the noise levels of `previous` are the start; each step
+    solves the normal equations of the whitened residuals with the soft-L1 loss as iteratively
+    reweighted least squares. Cheap (no line search, no noise re-estimation loop): what the
+    live calibrator runs after each new sample between full solves.
+    """
+    x_q, x_t = previous.quaternion, previous.translation
+    o_q, o_t = previous.object_quaternion, previous.object_translation
+    sigma_r = max(np.radians(previous.rotation_noise_deg), MIN_ROTATION_NOISE)
+    sigma_t = max(previous.translation_noise_mm / 1e3, MIN_TRANSLATION_NOISE)
+    for _ in range(steps):
+        r, t = residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t)
+        whitened = np.concatenate([(r / sigma_r).ravel(), (t / sigma_t).ravel()])
+        J = _jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t)
+        weights = _soft_l1_weights(whitened)
+        step = -np.linalg.lstsq(J.T @ (weights[:, None] * J), J.T @ (weights * whitened),
+                                rcond=None)[0]
+        x_q, x_t, o_q, o_t = _unpack(step, x_q, x_t, o_q, o_t)
+    return _refinement(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r,
+                       sigma_t, bool(np.all(np.isfinite(x_q))))
+
+
+def _refinement(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t,
+                converged):
+    """
+    Return the Refinement at (X, O): noise re-estimated, covariance from the weighted J.
+
+    The covariance is (J^T W J)^-1 of the whitened problem with the soft-L1 weights W at the
+    solution (whitened with the noise levels the fit used).
+    """
+    r, t = residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t)
+    whitened = np.concatenate([(r / sigma_r).ravel(), (t / sigma_t).ravel()])
+    J = _jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t)
+    covariance = np.linalg.pinv(J.T @ (_soft_l1_weights(whitened)[:, None] * J))
+    noise_r, noise_t = _noise(r, t, len(link_q))
     return Refinement(
-        quaternion=quat.canonical(X_q), translation=X_t, object_quaternion=O_q,
-        object_translation=O_t, rotation_noise_deg=float(np.degrees(sigma_r)),
-        translation_noise_mm=float(1e3 * sigma_t),
+        quaternion=quat.canonical(x_q), translation=x_t, object_quaternion=o_q,
+        object_translation=o_t, rotation_noise_deg=float(np.degrees(noise_r)),
+        translation_noise_mm=float(1e3 * noise_t),
         uncertainty_deg=float(np.degrees(np.sqrt(max(np.trace(covariance[:3, :3]), 0.0)))),
         translation_uncertainty_mm=float(
             1e3 * np.sqrt(max(np.trace(covariance[3:6, 3:6]), 0.0))),
         converged=bool(converged))
+
+
+def _soft_l1_weights(whitened):
+    """Return the IRLS weights rho'(z) = 1 / sqrt(1 + z) of the soft-L1 loss, z = (r / f)^2."""
+    return 1.0 / np.sqrt(1.0 + (whitened / ROBUST_SCALE) ** 2)
 
 
 def _unpack(p, x_q, x_t, o_q, o_t):
@@ -140,8 +185,3 @@ def _noise(rotation, translation, n):
     dof = max(3 * n - 6, 1)
     return (max(float(np.sqrt(np.sum(rotation ** 2) / dof)), MIN_ROTATION_NOISE),
             max(float(np.sqrt(np.sum(translation ** 2) / dof)), MIN_TRANSLATION_NOISE))
-
-
-def _covariance(jacobian):
-    """Return the Gauss-Newton covariance (J^T J)^-1 of the whitened problem."""
-    return np.linalg.pinv(jacobian.T @ jacobian)

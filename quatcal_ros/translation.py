@@ -59,32 +59,28 @@ def object_position_offsets(rotations, positions, q_z):
     return positions.link + quat.rotate(rotations.link, sensor_in_link)
 
 
-def solve_translation(rotations, positions, q_z, info, i, j, sample_ok,
-                      rotation_covariance=None):
+def solve_translation(rotations, positions, q_z, info, sample_ok, rotation_covariance=None):
     """
-    Least-squares t_z over the motions (i[k], j[k]) given the rotation q_z.
+    Least-squares t_z over the motions summarised in `info` given the rotation q_z.
 
-    info: quality.Information of the same motions (H, G); sample_ok: the samples used.
+    info: quality.Information of the motions the rotation used (H, G and the per-sample sums
+    C_n, so that sum_k D_k^T (c_i - c_j) = -sum_n C_n c_n); sample_ok: the samples used.
     The covariance adds the effect of the rotation's own error (rotation_covariance, rad^2,
     in the parent frame), which the sample scatter cannot show: a rotation error delta moves
-    each prediction by -R(link_i) [R_z t(sensor_i)]x R(link_i)^T ... propagated through H^-1.
+    sample n's prediction by F_n delta, F_n = -R(link_n) skew(R_z t(sensor_n)).
     """
     link_R = quat.matrix_from_quaternion(rotations.link)
     c = object_position_offsets(rotations, positions, q_z)
-    D = link_R[j] - link_R[i]
-    rhs = np.einsum('kji,kj->i', D, c[i] - c[j])
     H_inv = np.linalg.pinv(info.H)
-    t_z = H_inv @ rhs
+    t_z = -H_inv @ np.einsum('nij,nj->i', info.C, c)
     predictions = c + np.einsum('nij,j->ni', link_R, t_z)
     residuals = predictions - predictions[sample_ok].mean(axis=0)
     dof = 3 * int(np.sum(sample_ok)) - 6
     noise = float(np.sqrt(np.sum(residuals[sample_ok] ** 2) / dof)) if dof > 0 else np.nan
     covariance = noise * noise * H_inv @ info.G @ H_inv
     if rotation_covariance is not None:
-        # d c_i / d delta = -R(link_i) skew(R_z t(sensor_i)) for q_z <- exp(delta) q_z, delta
-        # in the parent frame, so d t_z / d delta = H^-1 sum_k D_k^T (F_i - F_j).
         lever = quat.rotate(q_z, positions.sensor)
         F = -np.einsum('nij,njk->nik', link_R, quat.skew(lever))
-        J = H_inv @ np.einsum('kji,kjl->il', D, F[i] - F[j])
+        J = -H_inv @ np.einsum('nij,njk->ik', info.C, F)
         covariance = covariance + J @ rotation_covariance @ J.T
     return TranslationEstimate(t_z, covariance, noise, residuals)
