@@ -12,6 +12,7 @@ only rosbags is installed.
 """
 
 import math
+from operator import attrgetter
 
 import numpy as np
 
@@ -115,6 +116,9 @@ def _pose_fields(msg):
                     f'TransformStamped, got {type(msg).__name__}')
 
 
+_LAYOUTS = {}   # message class -> getters of its position and orientation, their names
+
+
 def pose_from_msg(msg, norm_tolerance=DEFAULT_NORM_TOLERANCE):
     """
     Pose (quaternion (w, x, y, z)) of a geometry_msgs Pose, PoseStamped, Transform, ...
@@ -123,7 +127,25 @@ def pose_from_msg(msg, norm_tolerance=DEFAULT_NORM_TOLERANCE):
     position/orientation or translation/rotation with x, y, z (, w) fields.  Raises
     BadPoseError naming the field for NaN, inf or a non-unit quaternion (validate_pose_numbers).
     """
-    position, orientation, position_name, orientation_name = _pose_fields(msg)
+    layout = _LAYOUTS.get(type(msg))
+    if layout is None:   # found once per message class
+        _, _, position_name, orientation_name = _pose_fields(msg)
+        layout = _LAYOUTS[type(msg)] = (attrgetter(position_name), attrgetter(orientation_name),
+                                        position_name, orientation_name)
+    get_position, get_orientation, position_name, orientation_name = layout
+    position, orientation = get_position(msg), get_orientation(msg)
+    # Fast path, as in validate_pose_numbers, building (w, x, y, z) directly.
+    try:
+        x, y, z = float(position.x), float(position.y), float(position.z)
+        qx, qy = float(orientation.x), float(orientation.y)
+        qz, qw = float(orientation.z), float(orientation.w)
+    except (TypeError, ValueError):
+        x = math.nan   # not numbers: validate_pose_numbers names the field
+    else:
+        norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+        if math.isfinite(x + y + z) and abs(norm - 1.0) <= norm_tolerance:   # NaN fails
+            return Pose(np.array((x, y, z)),
+                        np.array((qw / norm, qx / norm, qy / norm, qz / norm)))
     p, q_xyzw = validate_pose_numbers(
         (position.x, position.y, position.z),
         (orientation.x, orientation.y, orientation.z, orientation.w),

@@ -126,8 +126,10 @@ class _StampedPoses:
 
     def trim(self, window_ns, max_length):
         """Forget samples older than window_ns before the newest, and all but max_length."""
-        if not self.stamps:
-            return
+        stamps = self.stamps
+        if not stamps or (stamps[self.start] >= stamps[-1] - window_ns
+                          and len(stamps) - self.start <= max_length):
+            return   # nothing to forget: no bisection
         oldest_kept = bisect.bisect_left(self.stamps, self.stamps[-1] - window_ns, self.start)
         self.start = max(oldest_kept, len(self.stamps) - max_length)
         if self.start >= COMPACT_AFTER and 2 * self.start >= len(self.stamps):
@@ -148,6 +150,7 @@ class Pairer:
         self._faster = None
         self._resolved_until_ns = None
         self.unpaired = Counter()   # unpaired slower-stream stamps by reason
+        self.unpaired_total = 0     # their sum
         self.last_unpaired = ''     # why the latest one was not paired
 
     @property
@@ -182,10 +185,13 @@ class Pairer:
         """Add a pose of stream 'link' or 'sensor'; raises OutOfOrderStamp, see module doc."""
         stamp_ns = int(stamp_ns)
         stream = self._streams[stream_name]
-        if len(stream) and stamp_ns <= stream.last:
-            raise OutOfOrderStamp(stream_name, stamp_ns, stream.last)
-        stream.append(stamp_ns, pose)
-        self._update_roles()
+        stamps = stream.stamps
+        if len(stamps) > stream.start and stamp_ns <= stamps[-1]:
+            raise OutOfOrderStamp(stream_name, stamp_ns, stamps[-1])
+        stamps.append(stamp_ns)
+        stream.poses.append(pose)
+        if stream_name != self._faster:   # roles change only when the slower stream speeds up
+            self._update_roles()
         pairs = self._resolve_pending() if self._faster else []
         stream.trim(self.config.window_ns, self.config.max_length)
         return pairs
@@ -207,6 +213,9 @@ class Pairer:
         """Pair every slower-stream stamp the faster stream has now reached, in order."""
         fast = self._streams[self._faster]
         slow = self._streams[self._slower]
+        if not slow.stamps or (self._resolved_until_ns is not None
+                               and slow.stamps[-1] <= self._resolved_until_ns):
+            return []   # nothing waits (most faster-stream messages)
         first = slow.start
         if self._resolved_until_ns is not None:
             first = slow.first_after(self._resolved_until_ns)
@@ -256,6 +265,7 @@ class Pairer:
 
     def _unpaired(self, reason, text):
         self.unpaired[reason] += 1
+        self.unpaired_total += 1
         self.last_unpaired = text
         return None
 

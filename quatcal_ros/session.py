@@ -279,7 +279,7 @@ class Session:
     # --- internals -----------------------------------------------------------------------
 
     def _add_pose(self, stream, stamp_ns, pose):
-        events = self.pop_events()
+        events = self.pop_events() if self._pending else []
         self._counts[stream] += 1
         if not _finite(pose):
             return events + [self._reject(TOPICS[stream], 'non-finite numbers in the pose',
@@ -291,7 +291,8 @@ class Session:
                 return events + [self._reject(TOPICS[stream], *_late_reason(error))]
             events.append(self._new_timeline(error))
             pairs = self._pairer.add(stream, stamp_ns, pose)
-        events += self._unpaired_notice(bool(pairs))
+        if pairs or self._pairer.unpaired_total != self._unpaired_seen:
+            events += self._unpaired_notice(bool(pairs))   # (a no-op otherwise)
         if pairs and not self._counts['pairs']:
             events.append(self._pairing_notice())
         for pair in pairs:
@@ -361,7 +362,7 @@ class Session:
 
     def _unpaired_notice(self, paired):
         """Return a Notice when UNPAIRED_NOTICE_AFTER poses in a row could not be paired."""
-        total = sum(self._pairer.unpaired.values())
+        total = self._pairer.unpaired_total
         before = 0 if paired else self._unpaired_streak
         self._unpaired_streak = before + total - self._unpaired_seen
         self._unpaired_seen = total
