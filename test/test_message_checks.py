@@ -9,7 +9,6 @@ live node is tested in test_soak.py.
 """
 
 import re
-import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
@@ -31,6 +30,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
 from rclpy.qos import ReliabilityPolicy
+from ros_harness import SpinMixin
 from rosgraph_msgs.msg import Clock
 
 DOMAIN_ID = 60
@@ -218,8 +218,10 @@ def test_stale_streams_are_named():
 
 # --- the node --------------------------------------------------------------------------------
 
-class Harness:
+class Harness(SpinMixin):
     """A calibrator node and a driver node in one private context and executor."""
+
+    spin_step = 0.02
 
     def __init__(self, overrides=()):
         self.context = Context()
@@ -240,18 +242,6 @@ class Harness:
             self.executor.add_node(node)
         self.spin_until(lambda: all(p.get_subscription_count() for p in self.pubs.values()),
                         what='discovery')
-
-    def close(self):
-        self.executor.shutdown()
-        self.driver.destroy_node()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-
-    def spin_until(self, condition, timeout=10.0, what='condition'):
-        deadline = time.monotonic() + timeout
-        while not condition():
-            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
-            self.executor.spin_once(timeout_sec=0.02)
 
     def publish(self, stream, msg):
         self.pubs[stream].publish(msg)

@@ -36,6 +36,7 @@ from rclpy.qos import DurabilityPolicy
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.qos import QoSProfile
 from rclpy.qos import ReliabilityPolicy
+from ros_harness import SpinMixin
 from std_srvs.srv import Trigger
 import yaml
 
@@ -59,7 +60,7 @@ def rotation_of(msg):
     return np.array([q.w, q.x, q.y, q.z])
 
 
-class Harness:
+class Harness(SpinMixin):
     """A calibrator node and a driver node in one private context and executor."""
 
     def __init__(self, overrides=(), sensor_qos=RELIABLE, message_type=PoseStamped):
@@ -89,24 +90,6 @@ class Harness:
                         and self.sensor_pub.get_subscription_count()
                         and all(c.service_is_ready() for c in self.clients.values()),
                         what='discovery of the calibrator')
-
-    def close(self):
-        self.executor.shutdown()
-        self.driver.destroy_node()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-
-    def spin_until(self, condition, timeout=10.0, what='condition'):
-        deadline = time.monotonic() + timeout
-        while not condition():
-            if time.monotonic() > deadline:
-                raise AssertionError(f'timed out after {timeout} s waiting for {what}')
-            self.executor.spin_once(timeout_sec=0.05)
-
-    def spin_for(self, seconds):
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=0.05)
 
     def call(self, name):
         future = self.clients[name].call_async(Trigger.Request())

@@ -9,7 +9,6 @@ tested in test_node.py.  ROS_DOMAIN_ID 101 keeps these tests apart from the othe
 """
 
 import sys
-import time
 import types
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -30,6 +29,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy
 from rclpy.qos import QoSProfile
 from rclpy.qos import ReliabilityPolicy
+from ros_harness import SpinMixin
 from std_srvs.srv import Trigger
 import yaml
 
@@ -40,7 +40,7 @@ ROSOUT = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
-class Harness:
+class Harness(SpinMixin):
     """A calibrator node and a driver node (rosout, diagnostics, services) in one context."""
 
     def __init__(self, tmp_path, overrides=()):
@@ -63,19 +63,6 @@ class Harness:
         for node in (self.node, self.driver):
             self.executor.add_node(node)
         self.spin_until(self.save.service_is_ready, what='the ~/save service')
-
-    def close(self):
-        self.executor.shutdown()
-        self.driver.destroy_node()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-
-    def spin_until(self, condition, timeout=10.0, what='condition'):
-        deadline = time.monotonic() + timeout
-        while not condition():
-            if time.monotonic() > deadline:
-                raise AssertionError(f'timed out after {timeout} s waiting for {what}')
-            self.executor.spin_once(timeout_sec=0.05)
 
     def add_samples(self, samples):
         """Hand samples to the node's session and let it publish, as a resumed journal does."""

@@ -50,6 +50,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy
 from rclpy.qos import QoSProfile
 from rclpy.qos import ReliabilityPolicy
+from ros_harness import SpinMixin
 from std_srvs.srv import Trigger
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -107,8 +108,10 @@ def stream_events(streams):
 
 # --- in-process ------------------------------------------------------------------------------
 
-class Rig:
+class Rig(SpinMixin):
     """A calibrator node and a driver node in one private context and executor."""
+
+    spin_timeout = 15.0
 
     def __init__(self, overrides):
         self.context = Context()
@@ -134,18 +137,6 @@ class Rig:
         self.spin_until(lambda: all(p.get_subscription_count() for p in self.publishers.values())
                         and all(c.service_is_ready() for c in self.clients.values()),
                         what='discovery')
-
-    def close(self):
-        self.executor.shutdown()
-        self.driver.destroy_node()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-
-    def spin_until(self, condition, timeout=15.0, what='condition'):
-        deadline = time.monotonic() + timeout
-        while not condition():
-            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
-            self.executor.spin_once(timeout_sec=0.05)
 
     def call(self, name):
         future = self.clients[name].call_async(Trigger.Request())
