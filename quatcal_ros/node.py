@@ -222,13 +222,23 @@ class CalibratorNode(Node):
     # --- session events --------------------------------------------------------------------
 
     def handle_events(self, events):
-        """Log the session's events and publish each new estimate."""
+        """
+        Journal new samples, publish each new estimate, then log the session's events.
+
+        The journal comes first (a sample is on disk before anything reports it), the
+        publication next (its latency is what users wait for), the log lines last.
+        """
         for event in events:
             if isinstance(event, SampleCaptured):
-                self._journal_sample(event)   # on disk before it is reported captured
+                self._journal_sample(event)
+        for event in events:
+            if isinstance(event, EstimateUpdated):
+                self.publish_estimate(event.result)
+        for event in events:
+            if isinstance(event, SampleCaptured):
                 self._log_sample(event)
             elif isinstance(event, EstimateUpdated):
-                self.publish_estimate(event.result)
+                self.log_estimate(event.result)
             elif isinstance(event, Rejected):
                 self._log_rejection(event)
             elif isinstance(event, Notice):
@@ -248,7 +258,7 @@ class CalibratorNode(Node):
             self.get_logger().info(text, throttle_duration_sec=LOG_THROTTLE_S)
 
     def publish_estimate(self, result):
-        """Publish `result` on ~/rotation and ~/transform (with publish_tf, /tf_static); log."""
+        """Publish `result` on ~/rotation and ~/transform (and, with publish_tf, /tf_static)."""
         msg = conversions.quaternion_stamped_msg(
             result.quaternion, self.now_ns(), self.config.link_frame)
         self.rotation_publisher.publish(msg)
@@ -256,6 +266,9 @@ class CalibratorNode(Node):
         self.transform_publisher.publish(transform)
         if self.config.publish_tf and self._tf_broadcaster is not None:
             self._tf_broadcaster.sendTransform(transform)
+
+    def log_estimate(self, result):
+        """Log a new estimate, its rejected samples and warnings; check for a moved marker."""
         self.get_logger().info(describe_result(result))
         self._log_rejected_samples(result)
         for warning in result.warnings:
