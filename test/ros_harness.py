@@ -1,5 +1,7 @@
 """The spin-and-wait helpers every in-process ROS test harness shares."""
 
+import signal
+import subprocess
 import time
 
 import rclpy
@@ -36,3 +38,15 @@ class SpinMixin:
         deadline = time.monotonic() + seconds
         while time.monotonic() < deadline:
             self.executor.spin_once(timeout_sec=self.spin_step)
+
+
+def stop_process(process, sig=signal.SIGINT, timeout=15.0):
+    """Send `sig`, then wait; return the exit status (None when it had to be killed)."""
+    if process.poll() is None:
+        process.send_signal(sig)
+    try:
+        return process.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+        return None

@@ -37,6 +37,7 @@ from rclpy.qos import qos_profile_sensor_data
 from rclpy.qos import QoSProfile
 from rclpy.qos import ReliabilityPolicy
 from ros_harness import SpinMixin
+from ros_harness import stop_process
 from std_srvs.srv import Trigger
 import yaml
 
@@ -397,17 +398,6 @@ def _start(tool, *ros_args, log_path):
                             stdout=log_path.open('w'), stderr=subprocess.STDOUT)
 
 
-def _stop(process, sig, timeout=15.0):
-    if process.poll() is None:
-        process.send_signal(sig)
-    try:
-        return process.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
-        return None
-
-
 class Listener:
     """A node in the test process that listens to the processes' outputs."""
 
@@ -463,7 +453,7 @@ def test_processes_converge_to_the_ground_truth_and_exit_cleanly(tmp_path):
         assert listener.rotations[-1].header.frame_id == 'tool0'
         assert angle_deg(estimate, truth) < 3.0 * uncertainty + 0.05
     finally:
-        codes = [_stop(process, signal.SIGINT) for process in processes]
+        codes = [stop_process(process, signal.SIGINT) for process in processes]
         listener.close()
     logs = (tmp_path / 'calib.log').read_text()
     assert codes == [0, 0], logs
@@ -481,4 +471,4 @@ def test_process_exits_cleanly_on_sigterm_and_refuses_bad_parameters(tmp_path):
     while 'calibrating' not in (tmp_path / 'calib.log').read_text():
         assert calibrator.poll() is None and time.monotonic() < deadline
         time.sleep(0.1)
-    assert _stop(calibrator, signal.SIGTERM) == 0
+    assert stop_process(calibrator, signal.SIGTERM) == 0

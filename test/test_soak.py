@@ -20,7 +20,6 @@ ROS_DOMAIN_ID 63.
 
 import os
 from pathlib import Path
-import signal
 import subprocess
 import sys
 import time
@@ -39,6 +38,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy
 from rclpy.qos import QoSProfile
 from rclpy.qos import ReliabilityPolicy
+from ros_harness import stop_process
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DOMAIN_ID = 63
@@ -74,18 +74,6 @@ def start_calibrator(tmp_path, *parameters):
     log = (tmp_path / 'calibrator.log').open('w')
     return subprocess.Popen([sys.executable, '-m', 'quatcal_ros', 'calibrator', *ros_args],
                             env=env, cwd=REPO_ROOT, stdout=log, stderr=subprocess.STDOUT)
-
-
-def stop(process, timeout=20.0):
-    """SIGINT, then wait; return the exit status (None when it had to be killed)."""
-    if process.poll() is None:
-        process.send_signal(signal.SIGINT)
-    try:
-        return process.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
-        return None
 
 
 class Driver:
@@ -225,7 +213,7 @@ def test_soak_1khz_link_60hz_sensor(tmp_path):
         peak_kb = proc_status_kb(process.pid, 'VmHWM')
         values = driver.latest()
     finally:
-        status = stop(process)
+        status = stop_process(process, timeout=20.0)
         driver.close()
     log = (tmp_path / 'calibrator.log').read_text()
     assert status == 0, log[-3000:]
@@ -285,7 +273,7 @@ def test_flood_of_bad_messages_does_not_starve_good_ones(tmp_path):
                         10.0, 'the calibrator to catch up', process)
         values = driver.latest()
     finally:
-        status = stop(process)
+        status = stop_process(process, timeout=20.0)
         driver.close()
     log = (tmp_path / 'calibrator.log').read_text()
     assert status == 0, log[-3000:]
