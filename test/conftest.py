@@ -3,7 +3,10 @@
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
+from quatcal_ros.pose import Pose
+from quatcal_ros.quaternion import wxyz_from_xyzw
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -46,3 +49,20 @@ def shared_dir():
         pytest.skip('shared data not found: %s has no datasets/ (%s); set QUATCAL_SHARED to '
                     'the shared/ directory to run this test' % (candidate, how))
     return candidate.resolve()
+
+
+@pytest.fixture(scope='session')
+def eth_streams(shared_dir):
+    """
+    Return the ETH robot-arm recording as (link, camera) lists of (stamp_ns, Pose).
+
+    Link: sr300_hinge in base_link, ~50 Hz. Camera: the IR camera in the target frame, ~30 Hz
+    (SOURCE.md: the inverse of T_sensor_obj, so solve it with invert_sensor).
+    """
+    folder = shared_dir / 'datasets' / 'ethz_robot_arm_real'
+
+    def load(name):
+        rows = np.loadtxt(folder / name, delimiter=',')
+        stamps = np.rint(rows[:, 0] * 1e9).astype(np.int64)
+        return [(int(s), Pose(r[1:4], wxyz_from_xyzw(r[4:8]))) for s, r in zip(stamps, rows)]
+    return load('link_hinge_in_base.csv'), load('ir_camera_in_target.csv')

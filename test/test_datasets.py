@@ -1,23 +1,18 @@
 """Real recordings of other groups (../shared/datasets): consistency and published references."""
 
-import json
-
 import numpy as np
 import pytest
-
 from quatcal_ros import quaternion as quat
 from quatcal_ros.calibration import calibrate, CalibrationOptions
+from quatcal_ros.importers import read_moveit_json_samples
 from quatcal_ros.motions import Motions, pair_indices, SampleRotations
-from quatcal_ros.pose import Pose, Sample
 
 
 @pytest.fixture(scope='module')
 def moveit_samples(shared_dir):
     """50 stop-and-go samples, eye-to-hand: [eef_wrt_world, obj_wrt_sensor] 4x4 matrices."""
-    with open(shared_dir / 'datasets' / 'moveit_pose_samples' / 'pose_samples.json') as f:
-        entries = json.load(f)
-    return [Sample(i, Pose.from_matrix(eef), Pose.from_matrix(obj))
-            for i, (eef, obj) in enumerate(entries)]
+    return read_moveit_json_samples(
+        shared_dir / 'datasets' / 'moveit_pose_samples' / 'pose_samples.json')
 
 
 def test_moveit_motions_have_consistent_rotation_angles(moveit_samples):

@@ -186,18 +186,12 @@ def test_tf_bag_with_static_frames_in_both_chains(repo_root, streams, tmp_path):
 
 
 @pytest.fixture(scope='module')
-def eth_bag(shared_dir, tmp_path_factory):
+def eth_bag(eth_streams, tmp_path_factory):
     """Convert the ETH robot-arm recording to a bag: link 50 Hz, camera in target 30 Hz."""
-    folder = shared_dir / 'datasets' / 'ethz_robot_arm_real'
-    messages = []
-    for name, topic, frame in (('link_hinge_in_base.csv', '/link', 'base_link'),
-                               ('ir_camera_in_target.csv', '/camera', 'target')):
-        with open(folder / name) as stream:
-            for row in csv.reader(stream):
-                t, x, y, z, qx, qy, qz, qw = (float(v) for v in row)
-                stamp = int(round(t * 1e9))
-                pose = Pose.create([x, y, z], quat.wxyz_from_xyzw([qx, qy, qz, qw]))
-                messages.append((topic, stamp, msg(POSE_STAMPED, pose, stamp, frame)))
+    messages = [(topic, stamp, msg(POSE_STAMPED, pose, stamp, frame))
+                for (topic, frame), recorded in zip((('/link', 'base_link'),
+                                                     ('/camera', 'target')), eth_streams)
+                for stamp, pose in recorded]
     path = tmp_path_factory.mktemp('eth') / 'eth'
     write_bag(path, {'/link': POSE_STAMPED, '/camera': POSE_STAMPED},
               sorted(messages, key=lambda m: m[1]))

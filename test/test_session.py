@@ -216,16 +216,12 @@ def test_unpairable_streams_are_explained_once():
     assert session.counters['pairs'] == 0 and session.state == 'waiting for poses'
 
 
-def eth_session(shared_dir, sensor_offset_ns=0, invert_sensor=True):
+def eth_session(eth_streams, sensor_offset_ns=0, invert_sensor=True):
     """Replay the ETH recording (continuous motion) through a session in continuous mode."""
-    folder = shared_dir / 'datasets' / 'ethz_robot_arm_real'
     messages = []
-    for stream, name, offset in ((LINK, 'link_hinge_in_base.csv', 0),
-                                 (SENSOR, 'ir_camera_in_target.csv', sensor_offset_ns)):
-        rows = np.loadtxt(folder / name, delimiter=',')
-        poses = [Pose(row[1:4], quat.wxyz_from_xyzw(row[4:8])) for row in rows]
-        stamps = np.rint(rows[:, 0] * 1e9).astype(np.int64) + offset
-        messages += [(int(s), stream, int(s), p) for s, p in zip(stamps, poses)]
+    for stream, recorded, offset in ((LINK, eth_streams[0], 0),
+                                     (SENSOR, eth_streams[1], sensor_offset_ns)):
+        messages += [(s + offset, stream, s + offset, p) for s, p in recorded]
     messages.sort(key=lambda m: m[:2])
     # SOURCE.md: the file holds the camera in the target frame, the inverse of T_sensor_obj.
     session = Session(SessionConfig(
@@ -235,8 +231,8 @@ def eth_session(shared_dir, sensor_offset_ns=0, invert_sensor=True):
     return session
 
 
-def test_eth_continuous_recording(shared_dir):
-    session = eth_session(shared_dir)
+def test_eth_continuous_recording(eth_streams):
+    session = eth_session(eth_streams)
     counters = session.counters
     # The camera starts 0.5 s before the link: its first 15 frames have no link pose.
     assert counters['pairs'] == 1688 and counters['unpaired'] == 15
@@ -245,12 +241,12 @@ def test_eth_continuous_recording(shared_dir):
     # SOURCE.md: about 0.9 deg RMS with link interpolation (another sampling); the ETH
     # authors report that a 0.1 s time offset doubles the residual, so check both.
     assert result.residual_rms_deg < 1.0 and not result.warnings
-    shifted = eth_session(shared_dir, sensor_offset_ns=100 * MS).result
+    shifted = eth_session(eth_streams, sensor_offset_ns=100 * MS).result
     assert shifted.residual_rms_deg > 1.5 * result.residual_rms_deg
 
 
-def test_eth_recording_with_the_documented_convention_names_the_fix(shared_dir):
+def test_eth_recording_with_the_documented_convention_names_the_fix(eth_streams):
     # Solved as if the file held T_sensor_obj, the motions fit badly: the tool must say so.
-    session = eth_session(shared_dir, invert_sensor=False)
+    session = eth_session(eth_streams, invert_sensor=False)
     said = ' '.join(session.result.warnings) if session.result else session.last_error
     assert '--invert-sensor' in said

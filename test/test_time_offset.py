@@ -2,11 +2,9 @@
 
 import numpy as np
 import pytest
-from quatcal_ros import quaternion as quat
 from quatcal_ros import simulation
 from quatcal_ros.calibration import CalibrationOptions
 from quatcal_ros.capture import CaptureConfig
-from quatcal_ros.pose import Pose
 from quatcal_ros.session import SessionConfig
 from quatcal_ros.time_offset import estimate_time_offset
 from quatcal_ros.time_offset import find_time_offset
@@ -49,17 +47,10 @@ def test_too_short_an_overlap_is_refused(streams):
         estimate_time_offset(link_stamps, link_q, sensor_stamps, sensor_q)
 
 
-def test_eth_recording_offset_and_residuals(shared_dir):
-    folder = shared_dir / 'datasets' / 'ethz_robot_arm_real'
-
-    def load(name):
-        rows = np.loadtxt(folder / name, delimiter=',')
-        stamps = np.rint(rows[:, 0] * 1e9).astype(np.int64)
-        return [(int(s), Pose(r[1:4], quat.wxyz_from_xyzw(r[4:8]))) for s, r in zip(stamps, rows)]
+def test_eth_recording_offset_and_residuals(eth_streams):
     config = SessionConfig(capture=CaptureConfig(mode='continuous', continuous_step_deg=10.0),
                            calibration=CalibrationOptions(invert_sensor=True))
-    report, session = find_time_offset(load('link_hinge_in_base.csv'),
-                                       load('ir_camera_in_target.csv'), config)
+    report, session = find_time_offset(*eth_streams, config)
     # Measured here: the camera stamps are about 22 ms late (offset -22 ms), and applying the
     # offset lowers the RMS residual from 0.82 to 0.74 deg.
     assert -40 * MS < report.offset_ns < -5 * MS
