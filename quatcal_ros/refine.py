@@ -78,7 +78,8 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
             return np.concatenate([(r / sigma_r).ravel(), (t / sigma_t).ravel()])
 
         def jacobian(p, sigma_r=sigma_r, sigma_t=sigma_t):
-            return _jacobian(link_q, link_t, *_unpack(p, x_q, x_t, o_q, o_t), sigma_r, sigma_t)
+            return whitened_jacobian(link_q, link_t, *_unpack(p, x_q, x_t, o_q, o_t),
+                                     sigma_r, sigma_t)
         fit = least_squares(cost, x, jac=jacobian, loss='soft_l1', f_scale=ROBUST_SCALE,
                             x_scale='jac')
         x = fit.x
@@ -105,7 +106,7 @@ def refine_from(previous, link_q, link_t, sensor_q, sensor_t, steps=2):
     for _ in range(steps):
         r, t = residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t)
         whitened = np.concatenate([(r / sigma_r).ravel(), (t / sigma_t).ravel()])
-        J = _jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t)
+        J = whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t)
         weights = _soft_l1_weights(whitened)
         step = -np.linalg.lstsq(J.T @ (weights[:, None] * J), J.T @ (weights * whitened),
                                 rcond=None)[0]
@@ -124,7 +125,7 @@ def _refinement(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r,
     """
     r, t = residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t)
     whitened = np.concatenate([(r / sigma_r).ravel(), (t / sigma_t).ravel()])
-    J = _jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t)
+    J = whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t)
     covariance = np.linalg.pinv(J.T @ (_soft_l1_weights(whitened)[:, None] * J))
     noise_r, noise_t = _noise(r, t, len(link_q))
     return Refinement(
@@ -148,7 +149,7 @@ def _unpack(p, x_q, x_t, o_q, o_t):
             quat.multiply(quat.from_rotation_vector(p[6:9]), o_q), o_t + p[9:12])
 
 
-def _jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t):
+def whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t):
     """
     Return the whitened residual Jacobian (6N x 12) for left perturbations a, b of X, O.
 
