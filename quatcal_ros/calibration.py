@@ -169,6 +169,8 @@ class _Solution:
     rotations: SampleRotations
     fit: Motions                 # the motions of the final least squares
     system: MotionSystem         # their normal matrix
+    info: quality.Information    # their information (H, G, C)
+    positions: SamplePositions
     sample_ok: np.ndarray        # bool per sample
     mismatch_limit: float        # radians, |theta_a - theta_b| screen
     outlier_threshold: float     # radians, sample residual test
@@ -211,13 +213,14 @@ def _solve(samples, options):
     warnings = convention_warnings(samples, options) if _suspicious(fit, q_z) else []
     rejected = (_rejected_motions(motions, usable, sample_ok, limit, options)
                 + _rejected_samples(rotations, q_z, sample_ok, motions))
-    result, refinement = _result(samples, rotations, q_z, fit, info, sample_ok, len(motions),
+    positions = SamplePositions.from_samples(samples, rotations)
+    result, refinement = _result(rotations, positions, q_z, fit, info, sample_ok, len(motions),
                                  rejected, warnings, options)
     threshold = (_outlier_threshold(np.linalg.norm(
         quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok], axis=1))
         if options.robust else np.inf)
-    return _Solution(result, rotations, fit, system, sample_ok, limit, threshold,
-                     len(motions), rejected, refinement)
+    return _Solution(result, rotations, fit, system, info, positions, sample_ok, limit,
+                     threshold, len(motions), rejected, refinement)
 
 
 def _suspicious(fit, q_z):
@@ -354,7 +357,7 @@ def _require_motions(fit, options):
 
 def _check_excitation(rotations, fit, options):
     """Information of the fitted motions; Case 1 (all axes parallel) is refused."""
-    info = quality.Information.of(quat.matrix_from_quaternion(rotations.link), fit.i, fit.j)
+    info = quality.Information.of(rotations.link_matrices, fit.i, fit.j)
     ratio, axis = info.excitation()
     if ratio < np.sin(np.radians(options.min_axis_spread_deg)) ** 2:
         frame = _parent_frame(options)
@@ -370,7 +373,7 @@ def _parent_frame(options):
     return 'link' if options.setup == 'eye_in_hand' else 'base'
 
 
-def _result(samples, rotations, q_z, fit, info, sample_ok, motion_count, rejected, warnings,
+def _result(rotations, positions, q_z, fit, info, sample_ok, motion_count, rejected, warnings,
             options, previous_refinement=None):
     """
     Return (CalibrationResult, refine.Refinement or None) for an estimated rotation q_z.
@@ -382,7 +385,6 @@ def _result(samples, rotations, q_z, fit, info, sample_ok, motion_count, rejecte
     sigma = quality.noise_sigma(residuals)
     covariance = info.covariance(sigma)
     ratio, axis = info.excitation()
-    positions = SamplePositions.from_samples(samples, rotations)
     translation = solve_translation(rotations, positions, q_z, info, sample_ok, covariance)
     closed = Estimate(q_z, translation.translation, quality.uncertainty_deg(covariance),
                       translation.uncertainty_mm)
@@ -406,7 +408,8 @@ def _result(samples, rotations, q_z, fit, info, sample_ok, motion_count, rejecte
                             'the closed-form estimate is published instead')
     published = refined or closed
     refinement = refinement if refined else None
-    motion_residuals = np.degrees(fit.residual_angles(published.quaternion))
+    motion_residuals = np.degrees(quality.motion_residual_angles(
+        rotations, published.quaternion, fit.i, fit.j))
     return CalibrationResult(
         quaternion=published.quaternion, matrix=quat.matrix_from_quaternion(published.quaternion),
         samples=len(rotations), motions=motion_count, inliers=len(fit),
@@ -532,43 +535,50 @@ class Calibrator:
     def _add_incrementally(self, sample):
         old = self._solution
         rotations = old.rotations.appended(sample)
+        positions = old.positions.appended(sample, rotations)
         k = len(rotations) - 1
         q_z = old.result.quaternion
         Z = rotations.object_orientations(q_z)
         angle = quat.angle_between(Z[k], quat.average(Z[:k][old.sample_ok]))
         rejected = list(old.rejected)
         messages = []
-        fit, system = old.fit, old.system
+        fit, system, info = old.fit, old.system, old.info
         if angle > old.outlier_threshold:
             sample_ok = np.append(old.sample_ok, False)
             spoiled = int(np.sum(old.sample_ok)) if self.options.pairs == 'all' else 1
             rejected.append(_sample_rejection(k, np.degrees(angle),
                                               np.degrees(old.outlier_threshold), spoiled))
             messages.append(f'sample {k} rejected: {rejected[-1]["reason"]}')
+            info = info.extended(rotations.link_matrices, [], [])
         else:
             sample_ok = np.append(old.sample_ok, True)
-            partners = np.flatnonzero(old.sample_ok)
-            if self.options.pairs == 'consecutive':
-                partners = partners[-1:]
-            new = Motions.between(rotations, partners, np.full(len(partners), k))
-            good = (np.minimum(new.angle_a, new.angle_b)
-                    >= np.radians(self.options.min_motion_deg))
-            good &= np.abs(new.angle_a - new.angle_b) <= old.mismatch_limit
-            new = new.subset(good)
+            new = self._new_motions(rotations, old, q_z)
             system = system.copy()
             system.add(new.q_a, new.q_b, reference=q_z)
             q_z = system.solve()[0]
             fit = Motions.concatenate(fit, new)
-        info = quality.Information.of(quat.matrix_from_quaternion(rotations.link), fit.i, fit.j)
+            info = info.extended(rotations.link_matrices, new.i, new.j)
         motion_count = old.motion_count + (k if self.options.pairs == 'all' else 1)
-        result, refinement = _result(self.samples, rotations, q_z, fit, info, sample_ok,
+        result, refinement = _result(rotations, positions, q_z, fit, info, sample_ok,
                                      motion_count, rejected, old.result.warnings, self.options,
                                      previous_refinement=old.refinement)
         self._solution = replace(old, result=result, rotations=rotations, fit=fit,
-                                 system=system, sample_ok=sample_ok, motion_count=motion_count,
+                                 system=system, info=info, positions=positions,
+                                 sample_ok=sample_ok, motion_count=motion_count,
                                  rejected=rejected, refinement=refinement)
         self.result = result
         return messages + [self._describe()]
+
+    def _new_motions(self, rotations, old, q_z):
+        """Return the screened motions from the good samples so far to the newest sample."""
+        k = len(rotations) - 1
+        partners = np.flatnonzero(old.sample_ok)
+        if self.options.pairs == 'consecutive':
+            partners = partners[-1:]
+        new = Motions.between(rotations, partners, np.full(len(partners), k))
+        good = np.minimum(new.angle_a, new.angle_b) >= np.radians(self.options.min_motion_deg)
+        good &= np.abs(new.angle_a - new.angle_b) <= old.mismatch_limit
+        return new.subset(good)
 
     def _describe(self):
         r = self.result

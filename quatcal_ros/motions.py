@@ -28,13 +28,19 @@ class SampleRotations:
     The orientations of a sample set, in the form the motions need.
 
     link: (N, 4) link rotations, inverted for eye-to-hand so that every setup reads
-        A_a = inv(link_i) link_j;  sensor: (N, 4) sensor rotations (object in sensor frame).
+        A_a = inv(link_i) link_j;  sensor: (N, 4) sensor rotations (object in sensor frame);
+    link_matrices: (N, 3, 3) the link rotations as matrices (computed when not given).
     """
 
     link: np.ndarray
     sensor: np.ndarray
     link_inverted: bool = False
     sensor_inverted: bool = False
+    link_matrices: np.ndarray = None
+
+    def __post_init__(self):
+        if self.link_matrices is None:
+            object.__setattr__(self, 'link_matrices', quat.matrix_from_quaternion(self.link))
 
     @staticmethod
     def from_samples(samples, setup='eye_in_hand', invert_sensor=False):
@@ -61,8 +67,10 @@ class SampleRotations:
             link = quat.conjugate(link)
         if self.sensor_inverted:
             sensor = quat.conjugate(sensor)
-        return SampleRotations(np.vstack([self.link, link]), np.vstack([self.sensor, sensor]),
-                               self.link_inverted, self.sensor_inverted)
+        return SampleRotations(
+            np.vstack([self.link, link]), np.vstack([self.sensor, sensor]),
+            self.link_inverted, self.sensor_inverted,
+            np.concatenate([self.link_matrices, quat.matrix_from_quaternion(link)]))
 
     def object_orientations(self, q_z):
         """

@@ -63,13 +63,18 @@ class Information:
     @staticmethod
     def of(link_matrices, i, j):
         """H, C and G for motions (i[k], j[k]) given the link rotation matrices (N, 3, 3)."""
-        n = len(link_matrices)
-        D = link_matrices[j] - link_matrices[i]
-        H = np.einsum('kji,kjl->il', D, D)
-        Dt = np.transpose(D, (0, 2, 1)).reshape(-1, 9)
-        C = np.stack([np.bincount(j, Dt[:, e], n) - np.bincount(i, Dt[:, e], n)
-                      for e in range(9)], axis=-1).reshape(n, 3, 3)
+        H, C = _motion_sums(link_matrices, i, j)
         return Information(H, np.einsum('nij,nkj->ik', C, C), C)
+
+    def extended(self, link_matrices, i, j):
+        """
+        Return the Information with motions (i[k], j[k]) added: O(new motions + samples).
+
+        link_matrices: those of all samples, including the ones new since this was made.
+        """
+        H, C = _motion_sums(link_matrices, i, j)
+        C[:len(self.C)] += self.C
+        return Information(self.H + H, np.einsum('nij,nkj->ik', C, C), C)
 
     def covariance(self, sigma):
         """cov(delta) (3x3, rad^2) for per-axis sample noise sigma (radians)."""
@@ -84,6 +89,36 @@ class Information:
         axis = vectors[:, 0]
         axis = axis if axis[np.argmax(np.abs(axis))] > 0 else -axis
         return float(max(values[0], 0.0) / values[-1]), axis
+
+
+def _motion_sums(link_matrices, i, j):
+    """Return H = sum_k D_k^T D_k and C (N, 3, 3) of the motions (i[k], j[k])."""
+    n = len(link_matrices)
+    i, j = np.asarray(i, dtype=int), np.asarray(j, dtype=int)
+    D = link_matrices[j] - link_matrices[i]
+    H = np.einsum('kji,kjl->il', D, D)
+    Dt = np.transpose(D, (0, 2, 1)).reshape(-1, 9)
+    C = np.stack([np.bincount(j, Dt[:, e], n) - np.bincount(i, Dt[:, e], n)
+                  for e in range(9)], axis=-1).reshape(n, 3, 3)
+    return H, C.astype(float, copy=False)   # (bincount of no motions is integer)
+
+
+def motion_residual_angles(rotations, q_z, i, j):
+    """
+    Angles (radians) by which motions (i[k], j[k]) violate eq. (38) for the estimate q_z.
+
+    The same numbers as motions.Motions.residual_angles, from the samples: p_a (x) p_z and
+    p_z (x) p_b differ by the rotation between Z_i and Z_j (module docstring), so one
+    product per motion suffices.
+    """
+    Z = rotations.object_orientations(q_z)
+    a, b = Z[i], Z[j]
+    # For unit a, b: conj(a) (x) b = [a . b, v] with |v| = |b - (a . b) a|, the part of b
+    # orthogonal to a (4-D), which keeps tiny angles exact (atan2, as rotation_angle does).
+    cosine = np.einsum('ki,ki->k', a, b)
+    orthogonal = b - cosine[:, None] * a
+    return 2.0 * np.arctan2(np.sqrt(np.einsum('ki,ki->k', orthogonal, orthogonal)),
+                            np.abs(cosine))
 
 
 def uncertainty_deg(covariance):

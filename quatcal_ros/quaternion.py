@@ -30,11 +30,11 @@ def xyzw_from_wxyz(q_wxyz):
 def skew(v):
     """Return the cross-product matrix of eq. (9): its product with b is the cross product."""
     v = np.asarray(v, dtype=float)
-    x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    zero = np.zeros_like(x)
-    return np.stack([np.stack([zero, -z, y], -1),
-                     np.stack([z, zero, -x], -1),
-                     np.stack([-y, x, zero], -1)], -2)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
 
 
 def multiply(a, b):
@@ -77,8 +77,8 @@ def minus_matrix(b):
 def normalize(q):
     """Scale q to unit length; raise ValueError for a zero quaternion."""
     q = np.asarray(q, dtype=float)
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    if np.any(norm < 1e-12):
+    norm = np.sqrt(np.sum(q * q, axis=-1, keepdims=True))
+    if (norm < 1e-12).any():
         raise ValueError('cannot normalise a zero quaternion')
     return q / norm
 
@@ -107,13 +107,15 @@ def matrix_from_quaternion(p):
 
     A = (e0^2 - e.e) I + 2 (e e^T + e0 skew(e)); p is normalised first.
     """
-    p = normalize(p)
-    e0 = p[..., 0, None, None]
-    e = p[..., 1:]
-    outer = e[..., :, None] * e[..., None, :]
-    skew_e = skew(e)
-    dot = np.sum(e * e, axis=-1)[..., None, None]
-    return (e0 * e0 - dot) * np.eye(3) + 2.0 * (outer + e0 * skew_e)
+    w, x, y, z = np.moveaxis(normalize(p), -1, 0)
+    out = np.empty(w.shape + (3, 3))
+    out[..., 0, 0] = w * w + x * x - y * y - z * z
+    out[..., 1, 1] = w * w - x * x + y * y - z * z
+    out[..., 2, 2] = w * w - x * x - y * y + z * z
+    out[..., 0, 1], out[..., 1, 0] = 2.0 * (x * y - w * z), 2.0 * (x * y + w * z)
+    out[..., 0, 2], out[..., 2, 0] = 2.0 * (x * z + w * y), 2.0 * (x * z - w * y)
+    out[..., 1, 2], out[..., 2, 1] = 2.0 * (y * z - w * x), 2.0 * (y * z + w * x)
+    return out
 
 
 def quaternion_from_matrix(A):
@@ -219,9 +221,17 @@ def slerp(p, q, fraction):
 def rotate(q, v):
     """Rotate vector(s) v (..., 3) by unit quaternion(s) q (w, x, y, z) (..., 4), eq. (19)."""
     q = np.asarray(q, dtype=float)
+    v = np.asarray(v, dtype=float)
     w, u = q[..., :1], q[..., 1:]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
+    t = 2.0 * _cross(u, v)
+    return v + w * t + _cross(u, t)
+
+
+def _cross(a, b):
+    """Return the cross product over the last axis (np.cross without its axis bookkeeping)."""
+    ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
+    bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
 
 
 def average(quaternions, weights=None):

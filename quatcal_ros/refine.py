@@ -67,6 +67,7 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
     """
     o_q, o_t = _object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t)
     n = len(link_q)
+    link_R = quat.matrix_from_quaternion(link_q)
     sigma_r, sigma_t = _noise(*residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q,
                                          o_t), n)
     x = np.zeros(12)
@@ -79,7 +80,7 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
 
         def jacobian(p, sigma_r=sigma_r, sigma_t=sigma_t):
             return whitened_jacobian(link_q, link_t, *_unpack(p, x_q, x_t, o_q, o_t),
-                                     sigma_r, sigma_t)
+                                     sigma_r, sigma_t, link_R)
         fit = least_squares(cost, x, jac=jacobian, loss='soft_l1', f_scale=ROBUST_SCALE,
                             x_scale='jac')
         x = fit.x
@@ -87,47 +88,65 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
         sigma_r, sigma_t = _noise(*residuals(link_q, link_t, sensor_q, sensor_t,
                                              *_unpack(x, x_q, x_t, o_q, o_t)), n)
     return _refinement(link_q, link_t, sensor_q, sensor_t,
-                       *_unpack(x, x_q, x_t, o_q, o_t), sigma_r, sigma_t, converged)
+                       *_unpack(x, x_q, x_t, o_q, o_t), sigma_r, sigma_t, converged, link_R)
 
 
-def refine_from(previous, link_q, link_t, sensor_q, sensor_t, steps=2):
+def refine_from(previous, link_q, link_t, sensor_q, sensor_t, steps=1):
     """
-    Update a Refinement after samples were added: a few warm-started Gauss-Newton steps.
+    Update a Refinement after samples were added: warm-started Gauss-Newton steps.
 
     The mounting, the object pose and the noise levels of `previous` are the start; each step
     solves the normal equations of the whitened residuals with the soft-L1 loss as iteratively
     reweighted least squares. Cheap (no line search, no noise re-estimation loop): what the
-    live calibrator runs after each new sample between full solves.
+    live calibrator runs after each new sample between full solves. One step suffices there:
+    a new sample moves the optimum by a fraction of its uncertainty, and Gauss-Newton from
+    that close is within a few percent of the uncertainty after one step (test_calibration).
     """
-    x_q, x_t = previous.quaternion, previous.translation
-    o_q, o_t = previous.object_quaternion, previous.object_translation
+    model = (previous.quaternion, previous.translation, previous.object_quaternion,
+             previous.object_translation)
     sigma_r = max(np.radians(previous.rotation_noise_deg), MIN_ROTATION_NOISE)
     sigma_t = max(previous.translation_noise_mm / 1e3, MIN_TRANSLATION_NOISE)
+    link_R = quat.matrix_from_quaternion(link_q)
     for _ in range(steps):
-        r, t = residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t)
-        whitened = np.concatenate([(r / sigma_r).ravel(), (t / sigma_t).ravel()])
-        J = whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t)
-        weights = _soft_l1_weights(whitened)
-        step = -np.linalg.lstsq(J.T @ (weights[:, None] * J), J.T @ (weights * whitened),
-                                rcond=None)[0]
-        x_q, x_t, o_q, o_t = _unpack(step, x_q, x_t, o_q, o_t)
-    return _refinement(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r,
-                       sigma_t, bool(np.all(np.isfinite(x_q))))
+        whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t,
+                                  link_R)
+        model = _unpack(_irls_step(whitened, J), *model)
+    return _refinement(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t,
+                       bool(np.all(np.isfinite(model[0]))), link_R)
+
+
+def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t,
+                link_R=None):
+    """Return the whitened residuals (6N: rotations, then translations) and their Jacobian."""
+    r, t = residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t)
+    whitened = np.concatenate([(r / sigma_r).ravel(), (t / sigma_t).ravel()])
+    return whitened, whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t,
+                                       link_R)
+
+
+def _irls_step(whitened, J):
+    """Return the Gauss-Newton step of the soft-L1 weighted residuals (12 parameters)."""
+    weights = _soft_l1_weights(whitened)
+    normal, gradient = J.T @ (weights[:, None] * J), J.T @ (weights * whitened)
+    try:
+        return -np.linalg.solve(normal, gradient)
+    except np.linalg.LinAlgError:   # degenerate samples: the minimum-norm step
+        return -np.linalg.lstsq(normal, gradient, rcond=None)[0]
 
 
 def _refinement(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t,
-                converged):
+                converged, link_R=None):
     """
     Return the Refinement at (X, O): noise re-estimated, covariance from the weighted J.
 
     The covariance is (J^T W J)^-1 of the whitened problem with the soft-L1 weights W at the
     solution (whitened with the noise levels the fit used).
     """
-    r, t = residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t)
-    whitened = np.concatenate([(r / sigma_r).ravel(), (t / sigma_t).ravel()])
-    J = whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t)
+    whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r,
+                              sigma_t, link_R)
     covariance = np.linalg.pinv(J.T @ (_soft_l1_weights(whitened)[:, None] * J))
-    noise_r, noise_t = _noise(r, t, len(link_q))
+    n = len(link_q)
+    noise_r, noise_t = _noise(whitened[:3 * n] * sigma_r, whitened[3 * n:] * sigma_t, n)
     return Refinement(
         quaternion=quat.canonical(x_q), translation=x_t, object_quaternion=o_q,
         object_translation=o_t, rotation_noise_deg=float(np.degrees(noise_r)),
@@ -149,9 +168,11 @@ def _unpack(p, x_q, x_t, o_q, o_t):
             quat.multiply(quat.from_rotation_vector(p[6:9]), o_q), o_t + p[9:12])
 
 
-def whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t):
+def whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t, link_R=None):
     """
     Return the whitened residual Jacobian (6N x 12) for left perturbations a, b of X, O.
+
+    link_R: the link rotation matrices, when the caller has them (else from link_q).
 
     With M = inv(L) O and w = R_L^T (t_O - t_L) - t_X (the object seen from the link, minus
     the mounting offset), to first order:
@@ -159,18 +180,16 @@ def whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t):
         translation residual:  d/da = -R_X^T skew(w),  d/dt_X = R_X^T,  d/dt_O = -R_X^T R_L^T
     """
     n = len(link_q)
-    R_L = quat.matrix_from_quaternion(link_q)
+    R_L = quat.matrix_from_quaternion(link_q) if link_R is None else link_R
     R_X = quat.matrix_from_quaternion(x_q)
     R_O = quat.matrix_from_quaternion(o_q)
-    w = np.einsum('nji,nj->ni', R_L, o_t - link_t) - x_t
+    w = np.einsum('nji,nj->ni', R_L, o_t - link_t) - x_t   # R_L^T (t_O - t_L) - t_X
     J = np.zeros((2, n, 3, 12))
-    J[0, :, :, 0:3] = np.einsum('ji,njk->nik', R_O, R_L)
-    J[0, :, :, 6:9] = -R_O.T
-    J[1, :, :, 0:3] = -np.einsum('ji,njk->nik', R_X, quat.skew(w))
-    J[1, :, :, 3:6] = R_X.T
-    J[1, :, :, 9:12] = -np.einsum('ji,nkj->nik', R_X, R_L)
-    J[0] /= sigma_r
-    J[1] /= sigma_t
+    J[0, :, :, 0:3] = R_O.T @ R_L / sigma_r
+    J[0, :, :, 6:9] = -R_O.T / sigma_r
+    J[1, :, :, 0:3] = -R_X.T @ quat.skew(w) / sigma_t
+    J[1, :, :, 3:6] = R_X.T / sigma_t
+    J[1, :, :, 9:12] = -R_X.T @ np.transpose(R_L, (0, 2, 1)) / sigma_t
     return J.reshape(6 * n, 12)
 
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from quatcal_ros import quaternion as quat
+from quatcal_ros.motions import SampleRotations
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,14 @@ class SamplePositions:
         if rotations.sensor_inverted:
             sensor = -quat.rotate(rotations.sensor, sensor)
         return SamplePositions(link, sensor)
+
+    def appended(self, sample, rotations):
+        """Return these positions and one more sample's (`rotations` includes it)."""
+        more = SamplePositions.from_samples([sample], SampleRotations(
+            rotations.link[-1:], rotations.sensor[-1:], rotations.link_inverted,
+            rotations.sensor_inverted, rotations.link_matrices[-1:]))
+        return SamplePositions(np.vstack([self.link, more.link]),
+                               np.vstack([self.sensor, more.sensor]))
 
 
 @dataclass(frozen=True)
@@ -69,7 +78,7 @@ def solve_translation(rotations, positions, q_z, info, sample_ok, rotation_covar
     in the parent frame), which the sample scatter cannot show: a rotation error delta moves
     sample n's prediction by F_n delta, F_n = -R(link_n) skew(R_z t(sensor_n)).
     """
-    link_R = quat.matrix_from_quaternion(rotations.link)
+    link_R = rotations.link_matrices
     c = object_position_offsets(rotations, positions, q_z)
     H_inv = np.linalg.pinv(info.H)
     t_z = -H_inv @ np.einsum('nij,nj->i', info.C, c)
