@@ -21,6 +21,7 @@ Times come from header stamps and the node clock (so use_sim_time and bag replay
 """
 
 from dataclasses import replace
+import gc
 import signal
 import time
 
@@ -643,6 +644,10 @@ def main(args=None):
         return 2
     if node is None:
         return None
+    # Everything made so far (modules, the resumed session) lives as long as the process:
+    # keep it out of the cyclic collector, whose full passes over it took ~0.1 s and could
+    # land on the callback that completes a sample.
+    gc.freeze()
     try:
         # An explicit executor: rclpy.spin's global one cannot be made once a signal has
         # shut the context down.

@@ -75,8 +75,8 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
     for _ in range(NOISE_ITERATIONS):
         def cost(p, sigma_r=sigma_r, sigma_t=sigma_t):
             model = _unpack(p, x_q, x_t, o_q, o_t)
-            r, t = residuals(link_q, link_t, sensor_q, sensor_t, *model)
-            return np.concatenate([(r / sigma_r).ravel(), (t / sigma_t).ravel()])
+            return _whitened(*residuals(link_q, link_t, sensor_q, sensor_t, *model), sigma_r,
+                             sigma_t)
 
         def jacobian(p, sigma_r=sigma_r, sigma_t=sigma_t):
             return whitened_jacobian(link_q, link_t, *_unpack(p, x_q, x_t, o_q, o_t),
@@ -87,65 +87,72 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
         converged = converged and fit.success
         sigma_r, sigma_t = _noise(*residuals(link_q, link_t, sensor_q, sensor_t,
                                              *_unpack(x, x_q, x_t, o_q, o_t)), n)
-    return _refinement(link_q, link_t, sensor_q, sensor_t,
-                       *_unpack(x, x_q, x_t, o_q, o_t), sigma_r, sigma_t, converged, link_R)
+    model = _unpack(x, x_q, x_t, o_q, o_t)
+    whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t)
+    return _refinement(model, whitened, _normal_matrix(whitened, J), sigma_r, sigma_t,
+                       converged)
 
 
-def refine_from(previous, link_q, link_t, sensor_q, sensor_t, steps=1):
+def refine_from(previous, link_q, link_t, sensor_q, sensor_t):
     """
-    Update a Refinement after samples were added: warm-started Gauss-Newton steps.
+    Update a Refinement after samples were added: one warm-started Gauss-Newton step.
 
-    The mounting, the object pose and the noise levels of `previous` are the start; each step
+    The mounting, the object pose and the noise levels of `previous` are the start; the step
     solves the normal equations of the whitened residuals with the soft-L1 loss as iteratively
-    reweighted least squares. Cheap (no line search, no noise re-estimation loop): what the
-    live calibrator runs after each new sample between full solves. One step suffices there:
-    a new sample moves the optimum by a fraction of its uncertainty, and Gauss-Newton from
-    that close is within a few percent of the uncertainty after one step (test_calibration).
+    reweighted least squares. Cheap (one linearisation, no line search, no noise
+    re-estimation loop): what the live calibrator runs after each new sample between full
+    solves. A new sample moves the optimum by a fraction of its uncertainty, and one step
+    from that close lands within a few percent of the uncertainty (test_incremental.py). The
+    covariance and the noise levels come from the same linearisation (the residuals the step
+    predicts), which differs from one at the new point only to second order in the step.
     """
     model = (previous.quaternion, previous.translation, previous.object_quaternion,
              previous.object_translation)
     sigma_r = max(np.radians(previous.rotation_noise_deg), MIN_ROTATION_NOISE)
     sigma_t = max(previous.translation_noise_mm / 1e3, MIN_TRANSLATION_NOISE)
-    link_R = quat.matrix_from_quaternion(link_q)
-    for _ in range(steps):
-        whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t,
-                                  link_R)
-        model = _unpack(_irls_step(whitened, J), *model)
-    return _refinement(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t,
-                       bool(np.all(np.isfinite(model[0]))), link_R)
+    whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t)
+    normal = _normal_matrix(whitened, J)
+    step = _gauss_newton_step(normal, J.T @ (_soft_l1_weights(whitened) * whitened))
+    return _refinement(_unpack(step, *model), whitened + J @ step, normal, sigma_r, sigma_t,
+                       bool(np.all(np.isfinite(step))))
 
 
-def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t,
-                link_R=None):
+def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t):
     """Return the whitened residuals (6N: rotations, then translations) and their Jacobian."""
-    r, t = residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t)
-    whitened = np.concatenate([(r / sigma_r).ravel(), (t / sigma_t).ravel()])
-    return whitened, whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t,
-                                       link_R)
+    whitened = _whitened(*residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t),
+                         sigma_r, sigma_t)
+    return whitened, whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t)
 
 
-def _irls_step(whitened, J):
-    """Return the Gauss-Newton step of the soft-L1 weighted residuals (12 parameters)."""
-    weights = _soft_l1_weights(whitened)
-    normal, gradient = J.T @ (weights[:, None] * J), J.T @ (weights * whitened)
+def _whitened(rotation, translation, sigma_r, sigma_t):
+    """Return the residuals divided by their noise levels, rotations first, as one vector."""
+    return np.concatenate([(rotation / sigma_r).ravel(), (translation / sigma_t).ravel()])
+
+
+def _normal_matrix(whitened, J):
+    """Return J^T W J with the soft-L1 weights W of the whitened residuals."""
+    return J.T @ (_soft_l1_weights(whitened)[:, None] * J)
+
+
+def _gauss_newton_step(normal, gradient):
+    """Return the step -normal^-1 gradient (12 parameters)."""
     try:
         return -np.linalg.solve(normal, gradient)
     except np.linalg.LinAlgError:   # degenerate samples: the minimum-norm step
         return -np.linalg.lstsq(normal, gradient, rcond=None)[0]
 
 
-def _refinement(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t,
-                converged, link_R=None):
+def _refinement(model, whitened, normal, sigma_r, sigma_t, converged):
     """
-    Return the Refinement at (X, O): noise re-estimated, covariance from the weighted J.
+    Return the Refinement of model (X, O) with its whitened residuals and normal matrix.
 
-    The covariance is (J^T W J)^-1 of the whitened problem with the soft-L1 weights W at the
-    solution (whitened with the noise levels the fit used).
+    The noise levels are re-estimated from the residuals; the covariance is (J^T W J)^-1 of
+    the whitened problem with the soft-L1 weights W (whitened with the noise levels the fit
+    used).
     """
-    whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r,
-                              sigma_t, link_R)
-    covariance = np.linalg.pinv(J.T @ (_soft_l1_weights(whitened)[:, None] * J))
-    n = len(link_q)
+    x_q, x_t, o_q, o_t = model
+    covariance = np.linalg.pinv(normal)
+    n = len(whitened) // 6
     noise_r, noise_t = _noise(whitened[:3 * n] * sigma_r, whitened[3 * n:] * sigma_t, n)
     return Refinement(
         quaternion=quat.canonical(x_q), translation=x_t, object_quaternion=o_q,
