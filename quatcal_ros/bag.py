@@ -8,6 +8,13 @@ nav_msgs/Odometry, or from two frames of the transform tree of tf2_msgs/TFMessag
 (/tf, /tf_static): T_target_source at each stamp at which a dynamic transform on the chain
 arrived (tf_tree.FramePoses).  Static transforms are read first, wherever they are in the bag.
 
+Messages are read ahead a window at a time.  PoseStamped and TransformStamped topics take a
+fast path: the window's messages of such a topic are decoded together straight from the raw
+bytes (cdr.py), and each run of consecutive messages of the topic goes to the session at once
+(Session.add_poses).  What that decoder does not vouch for, and every other type, is
+deserialised by rosbags and handed over one message at a time.  Both give the same poses in
+the bag's order, so the session sees exactly what it would see message by message.
+
 Bad input raises BagError naming the file or topic.  A message that cannot be used (NaN,
 zero quaternion, undecodable bytes) is counted and skipped; `ReplayReport.warnings()` says
 how many, where and why.
@@ -15,8 +22,12 @@ how many, where and why.
 
 from collections import Counter
 from dataclasses import dataclass, field
+from itertools import groupby
 from pathlib import Path
 
+import numpy as np
+
+from quatcal_ros import cdr
 from quatcal_ros.conversions import BadPoseError, pose_from_msg, stamp_ns_from_header
 from quatcal_ros.session import Rejected
 from quatcal_ros.tf_tree import FramePoses, normalize_frame, TransformTree, TreeError
@@ -34,7 +45,7 @@ TF_MAX_GAP_NS = 500_000_000
 # Dynamic transforms kept per edge (the stretch of stamps): enough for publishers' latencies,
 # small enough for robots with many joints at 1 kHz.
 TF_CACHE_NS = 2_000_000_000
-# The progress callback runs every this many messages.
+# Messages are read ahead (and the progress callback runs) this many at a time.
 PROGRESS_EVERY = 512
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 
@@ -287,17 +298,86 @@ class Replay:
             count += 1
             run.on_tf(connection.topic, raw, static=True)
         connections = self.bag.connections(self.topics - static)
-        handlers = {connection.id: run.handler(connection.topic) for connection in connections}
-        messages = enumerate(self.bag.messages(connections), count + 1)
-        if on_progress is None:
-            for count, (connection, _, raw) in messages:
-                handlers[connection.id](raw)
-        else:
-            for count, (connection, _, raw) in messages:
-                handlers[connection.id](raw)
-                if not count % PROGRESS_EVERY:
+        feeds = {connection.id: run.feed_of(connection.topic) for connection in connections}
+        window = []   # the feed of each message read ahead
+        for count, (connection, _, raw) in enumerate(self.bag.messages(connections), count + 1):
+            feed = feeds[connection.id]
+            feed.add(raw)
+            window.append(feed)
+            if not count % PROGRESS_EVERY:
+                _feed_window(window)
+                if on_progress is not None:
                     on_progress(count)
+        _feed_window(window)
         return run.finish(count)
+
+
+def _feed_window(window):
+    """Feed the messages read ahead in their order (`window`: the feed of each); clear it."""
+    feeds = set(window)
+    for feed in feeds:
+        feed.prepare()
+    for feed, messages in groupby(window):
+        feed.take(len(list(messages)))
+    for feed in feeds:
+        feed.clear()
+    window.clear()
+
+
+class _Feed:
+    """The raw messages of one topic read ahead (`add`), fed one by one (`on_raw`) in runs."""
+
+    def __init__(self, on_raw):
+        self.raws = []
+        self.add = self.raws.append
+        self.on_raw = on_raw
+        self.taken = 0
+
+    def prepare(self):
+        """Make ready to feed the messages added (nothing to do here)."""
+
+    def take(self, count):
+        """Feed the next `count` messages added."""
+        start, self.taken = self.taken, self.taken + count
+        for raw in self.raws[start:self.taken]:
+            self.on_raw(raw)
+
+    def clear(self):
+        """Forget the messages fed."""
+        self.raws.clear()
+        self.taken = 0
+
+
+class _PoseFeed(_Feed):
+    """A PoseStamped or TransformStamped topic: its messages are decoded together (cdr.py)."""
+
+    def __init__(self, on_raw, on_rows, msgtype):
+        super().__init__(on_raw)
+        self.on_rows = on_rows   # (raws, cdr.DecodedPoses, start, stop) of decoded rows
+        self.msgtype = msgtype
+        self.decoded = None
+
+    def prepare(self):
+        """Decode the messages added."""
+        self.decoded = cdr.decode_poses(self.raws, self.msgtype)
+
+    def take(self, count):
+        """Feed the next `count` messages: decoded rows together, the others by on_raw."""
+        start, self.taken = self.taken, self.taken + count
+        for first, stop, ok in _stretches(self.decoded.ok[start:self.taken]):
+            if ok:
+                self.on_rows(self.raws, self.decoded, start + first, start + stop)
+            else:
+                for raw in self.raws[start + first:start + stop]:
+                    self.on_raw(raw)
+
+
+def _stretches(flags):
+    """Return [(start, stop, flag)] of the stretches of equal flags of a non-empty bool array."""
+    if flags.all():
+        return [(0, len(flags), True)]
+    bounds = [0, *(np.flatnonzero(flags[1:] != flags[:-1]) + 1).tolist(), len(flags)]
+    return [(start, stop, bool(flags[start])) for start, stop in zip(bounds, bounds[1:])]
 
 
 class _Run:
@@ -317,19 +397,22 @@ class _Run:
                 self.report.tf_dropped[stream] = frames
                 self.report.frames[stream] = tuple(source.frames)
 
-    def handler(self, topic):
-        """Return the function that takes a raw message of `topic`."""
+    def feed_of(self, topic):
+        """Return the _Feed that takes the raw messages of `topic`."""
         if topic in self.replay.tf_topics:
-            return lambda raw: self.on_tf(topic, raw, static=False)
+            return _Feed(lambda raw: self.on_tf(topic, raw, static=False))
         stream = next(s for s, source in self.replay.inputs.items() if source.topic == topic)
-        return self._pose_handler(topic, stream)
+        on_pose = self._pose_handler(topic, stream)
+        msgtype = self.replay.msgtypes[topic]
+        if msgtype not in cdr.STRINGS_BEFORE_POSE:
+            return _Feed(on_pose)
+        return _PoseFeed(on_pose, lambda *rows: self._on_rows(stream, msgtype, *rows), msgtype)
 
     def _pose_handler(self, topic, stream):
-        """Return the function that takes a raw pose message (the hot path)."""
+        """Return the function that takes one raw pose message (rosbags deserialises it)."""
         msgtype = self.replay.msgtypes[topic]
         deserialize = TYPESTORE.deserialize_cdr
         add = self.adders[stream]
-        span = self.report.stamps[stream]
 
         def on_pose(raw):
             try:
@@ -343,20 +426,33 @@ class _Run:
             except (BadPoseError, ValueError) as error:
                 self._skip(topic, error)
                 return
-            if span[0] is None:
-                span[0] = stamp_ns
+            if self._track(stream, stamp_ns, stamp_ns):
                 self.report.frames[stream] = _frame_ids(msg)
-            span[1] = stamp_ns
             events = add(stamp_ns, pose)
             if events:
                 self._note(events)
         return on_pose
 
-    def _feed(self, stream, stamp_ns, pose):
+    def _on_rows(self, stream, msgtype, raws, decoded, start, stop):
+        """Take the decoded poses of raws[start:stop] (cdr.DecodedPoses rows) at once."""
+        stamps = decoded.stamps_ns[start:stop].tolist()
+        if self._track(stream, stamps[0], stamps[-1]):
+            self.report.frames[stream] = _frame_ids(
+                TYPESTORE.deserialize_cdr(raws[start], msgtype))
+        self._note(self.session.add_poses(stream, stamps, decoded.positions[start:stop],
+                                          decoded.quaternions[start:stop]))
+
+    def _track(self, stream, first_ns, last_ns):
+        """Note the stamps of poses fed on `stream`; return whether they are its first."""
         span = self.report.stamps[stream]
-        if span[0] is None:
-            span[0] = stamp_ns
-        span[1] = stamp_ns
+        first = span[0] is None
+        if first:
+            span[0] = first_ns
+        span[1] = last_ns
+        return first
+
+    def _feed(self, stream, stamp_ns, pose):
+        self._track(stream, stamp_ns, stamp_ns)
         events = self.adders[stream](stamp_ns, pose)
         if events:
             self._note(events)

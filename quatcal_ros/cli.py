@@ -20,6 +20,7 @@ from quatcal_ros.calibration import CalibrationOptions
 from quatcal_ros.capture import CaptureConfig
 from quatcal_ros.pairing import PairingConfig
 from quatcal_ros.persistence import atomic_write_text, write_result_yaml
+from quatcal_ros.pose import Pose
 from quatcal_ros.progress import Progress
 from quatcal_ros.samples_csv import BadInputError, format_samples
 from quatcal_ros.session import Session, session_config_from_settings, SessionConfig
@@ -344,31 +345,16 @@ def replay_main(argv=None):
     if len(session.samples) < 3:
         return fail(prog, where + _too_few_samples(session, report, link, sensor),
                     EXIT_BAD_INPUT)
-    # The answer is the full solve over all samples, exactly what `solve` computes from the
-    # --samples-out file (the streaming session's estimates are not used: _streaming).
-    final = Session(replace(session.config, calibration=config.calibration))
-    final.add_samples(session.samples)
+    # The session collected the samples without estimating (defer_estimates): one full solve
+    # over all of them, exactly what `solve` computes from the --samples-out file.
+    session.estimate()
     warnings = notes + report.warnings()
-    if final.result is not None and args.result_out:
-        status = _write_result(prog, args, final, warnings, report, link, sensor)
+    if session.result is not None and args.result_out:
+        status = _write_result(prog, args, session, warnings, report, link, sensor)
         if status:
             return status
-    return print_result(prog, final, where, warnings, frames=_replay_frames(args, report),
+    return print_result(prog, session, where, warnings, frames=_replay_frames(args, report),
                         extra={'time_offset': time_offset} if time_offset else None)
-
-
-def _streaming(config):
-    """
-    Return the config of the streaming pass: the same capture, the cheapest estimator.
-
-    The pass only collects samples: the answer is the final full solve.  Capture does not
-    depend on the estimates, so the closed-form estimator gives the same samples as the
-    refined one, many times faster (it runs after every sample).
-    """
-    options = config.calibration
-    if getattr(options, 'method', 'closed-form') != 'closed-form':
-        config = replace(config, calibration=replace(options, method='closed-form'))
-    return config
 
 
 class _StreamRecorder:
@@ -386,14 +372,22 @@ class _StreamRecorder:
         self.sensor.append((stamp_ns, pose))
         return []
 
+    def add_poses(self, stream, stamps_ns, positions, quaternions_wxyz):
+        getattr(self, stream).extend(zip(stamps_ns, map(Pose, positions, quaternions_wxyz)))
+        return []
+
 
 def _replay_with_time_offset(replay, config, args):
     """Read both streams, find the sensor time offset, replay with it applied."""
     from quatcal_ros import bag   # rosbags is needed by the replay only
     recorder = _StreamRecorder()
     report = replay.run(recorder)
+    # Candidate offsets are scored by the closed-form estimate's residual: many solves, each
+    # far cheaper than the refinement's.
+    scoring = replace(config.calibration, method='closed-form')
     try:
-        found, session = find_time_offset(recorder.link, recorder.sensor, _streaming(config))
+        found, session = find_time_offset(recorder.link, recorder.sensor,
+                                          _collecting(config), residual_options=scoring)
     except ValueError as error:
         raise bag.BagError(f'cannot estimate the time offset: {error}') from None
     report.counters = session.counters
@@ -407,9 +401,14 @@ def _replay_with_time_offset(replay, config, args):
         'residual_with_deg': found.residual_with_deg}
 
 
+def _collecting(config):
+    """Return the config of a session that only collects samples (estimated once, at the end)."""
+    return replace(config, defer_estimates=True)
+
+
 def _replay(replay, config, args):
     """Run the replay; in auto mode without any still sample, again in continuous mode."""
-    config = _streaming(config)
+    config = _collecting(config)
     session, report = _run(replay, config, args, 'replay')
     notes = []
     capture = config.capture
@@ -492,7 +491,7 @@ def _replay_frames(args, report):
             args.child_frame or seen[1] or child_default)
 
 
-def _write_result(prog, args, final, warnings, report, link, sensor):
+def _write_result(prog, args, session, warnings, report, link, sensor):
     from quatcal_ros.bag import result_frames
     seen = result_frames(report, args.setup, args.invert_sensor)
     parent, child = _replay_frames(args, report)
@@ -502,9 +501,9 @@ def _write_result(prog, args, final, warnings, report, link, sensor):
             print(f'{prog}: note: the messages do not name the frame that {option} sets: '
                   f'{default!r} written to {args.result_out}', file=sys.stderr)
     source = {'bag': str(args.bag), 'link': str(link), 'sensor': str(sensor),
-              'capture': final.config.capture.mode}
+              'capture': session.config.capture.mode}
     try:
-        write_result_yaml(args.result_out, with_warnings(final.result, warnings), parent,
+        write_result_yaml(args.result_out, with_warnings(session.result, warnings), parent,
                           child, setup=args.setup, extra={'source': source})
     except OSError as error:
         return fail(prog, f'{args.result_out}: cannot write: {error}', EXIT_BAD_INPUT)

@@ -16,11 +16,14 @@ must have strictly increasing stamps: an older or repeated stamp raises `OutOfOr
 and leaves the pairer unchanged; the caller decides between dropping it and `reset()`.
 
 Cost per message: an append, an O(log n) bisection and amortised O(1) trimming.
+`add_many` takes a run of the faster stream at once (an offline replay), with the result of
+adding its poses one by one.
 """
 
 import bisect
 from collections import Counter
 from dataclasses import dataclass
+from itertools import repeat
 from typing import NamedTuple
 
 from quatcal_ros import quaternion as quat
@@ -90,11 +93,21 @@ def interpolate_pose(pose0, pose1, fraction):
     return Pose(position, rotation)
 
 
+def _increasing_prefix(stamps_ns):
+    """Return the length of the leading strictly increasing part of a list of stamps."""
+    for index in range(1, len(stamps_ns)):
+        if stamps_ns[index] <= stamps_ns[index - 1]:
+            return index
+    return len(stamps_ns)
+
+
 class _StampedPoses:
     """
     One stream's recent poses, oldest first: O(log n) lookup, amortised O(1) trimming.
 
-    Plain lists with a moving head index `start` (a deque would make bisection O(n)).
+    Plain lists with a moving head index `start` (a deque would make bisection O(n)).  Poses
+    added as rows of arrays (`extend`) stay (positions, quaternions, row) until `pose(index)`
+    first needs them: most poses of the faster stream are never looked at.
     """
 
     def __init__(self):
@@ -112,6 +125,19 @@ class _StampedPoses:
     def append(self, stamp_ns, pose):
         self.stamps.append(stamp_ns)
         self.poses.append(pose)
+
+    def extend(self, stamps_ns, positions, quaternions):
+        """Append the poses of rows of positions (n, 3) and quaternions (n, 4)."""
+        self.stamps.extend(stamps_ns)
+        self.poses.extend(zip(repeat(positions), repeat(quaternions), range(len(stamps_ns))))
+
+    def pose(self, index):
+        """Return the Pose at `index` (of the lists)."""
+        pose = self.poses[index]
+        if type(pose) is tuple:   # a row added by extend(), not yet needed
+            positions, quaternions, row = pose
+            pose = self.poses[index] = Pose(positions[row], quaternions[row])
+        return pose
 
     def rate_hz(self):
         """Mean rate over the kept samples, or None with too few of them."""
@@ -192,9 +218,44 @@ class Pairer:
         stream.poses.append(pose)
         if stream_name != self._faster:   # roles change only when the slower stream speeds up
             self._update_roles()
+        return self._settle(stream)
+
+    def add_many(self, stream_name, stamps_ns, positions, quaternions):
+        """
+        Add the leading poses of a run of one stream at once; return (how many, their Pairs).
+
+        The same as add() for each of them: the run's longest part of strictly increasing
+        stamps, newer than the stream's newest, that ends at the first pose reaching a stamp
+        the other stream waits at (a Pairs-completing pose comes last).  Only the faster
+        stream is taken this way: otherwise, or when the first stamp is not newer, nothing is
+        added and (0, []) is returned, and add() takes that pose (and raises, or changes roles).
+        stamps_ns: ints; positions (n, 3), quaternions (n, 4) (w, x, y, z): the poses' rows.
+        """
+        stream = self._streams[stream_name]
+        if stream_name != self._faster or not stamps_ns or stamps_ns[0] <= stream.last:
+            return 0, []
+        count = _increasing_prefix(stamps_ns)
+        waiting_ns = self._first_pending_ns()
+        if waiting_ns is not None:
+            count = min(count, bisect.bisect_left(stamps_ns, waiting_ns, 0, count) + 1)
+        stream.extend(stamps_ns[:count], positions, quaternions)
+        # Poses before the last reach no waiting stamp, so add() would pair nothing at them
+        # (nor give up on one: the other stream, whose newest stamp decides that, did not move).
+        return count, self._settle(stream)
+
+    def _settle(self, stream):
+        """Pair what the poses just added to `stream` complete, then trim it; return the Pairs."""
         pairs = self._resolve_pending() if self._faster else []
         stream.trim(self.config.window_ns, self.config.max_length)
         return pairs
+
+    def _first_pending_ns(self):
+        """Return the oldest slower-stream stamp not yet resolved, or None."""
+        slow = self._streams[self._slower]
+        first = slow.start
+        if self._resolved_until_ns is not None:
+            first = slow.first_after(self._resolved_until_ns)
+        return slow.stamps[first] if first < len(slow.stamps) else None
 
     @property
     def _slower(self):
@@ -232,7 +293,7 @@ class Pairer:
                 break
             self._resolved_until_ns = stamp_ns
             if fast_pose is not None:
-                pairs.append(self._pair(stamp_ns, slow.poses[index], fast_pose))
+                pairs.append(self._pair(stamp_ns, slow.pose(index), fast_pose))
         return pairs
 
     def _fast_pose_at(self, fast, stamp_ns):
@@ -240,18 +301,18 @@ class Pairer:
         after = bisect.bisect_left(fast.stamps, stamp_ns, fast.start)
         after_ns = fast.stamps[after]
         if after_ns == stamp_ns:
-            return fast.poses[after]
+            return fast.pose(after)
         before = after - 1
         if before >= fast.start:
             before_ns = fast.stamps[before]
             if after_ns - before_ns <= self.config.max_gap_ns:
                 fraction = (stamp_ns - before_ns) / (after_ns - before_ns)
-                return interpolate_pose(fast.poses[before], fast.poses[after], fraction)
+                return interpolate_pose(fast.pose(before), fast.pose(after), fraction)
             nearest = before if stamp_ns - before_ns < after_ns - stamp_ns else after
         else:
             nearest = after
         if abs(fast.stamps[nearest] - stamp_ns) <= self.config.tolerance_ns:
-            return fast.poses[nearest]
+            return fast.pose(nearest)
         if before < fast.start:
             return self._unpaired(
                 'outside', f'{self._slower} stamp {stamp_ns} ns is '

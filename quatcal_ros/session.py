@@ -10,6 +10,11 @@ and publish (EstimateUpdated carries the new calibration.CalibrationResult):
     SampleCaptured(index, sample), EstimateUpdated(result), Rejected(what, reason),
     Notice(text)
 
+`add_poses` takes many poses of one stream at once (an offline replay) with the result, events
+included, of adding them one by one.  With `SessionConfig.defer_estimates` the session only
+collects samples, and `estimate()` estimates once from all of them (an offline replay, whose
+answer is that of `solve` on its samples); the live node estimates after every sample.
+
 Time that goes backwards on a stream by more than `time_jump_ns` (a bag played again, a clock
 reset) starts a new timeline: the pairing buffers are cleared, the samples are kept.  Smaller
 steps back are late messages and are rejected.  After such a jump, a still sample at the stamp
@@ -18,14 +23,18 @@ the same data played again (`ros2 bag play --loop`): it is not added, so that it
 count as new evidence, and a Notice says so.
 """
 
+import bisect
 from collections import Counter
 from dataclasses import dataclass, field
 import math
+
+import numpy as np
 
 from quatcal_ros.calibration import CalibrationOptions, Calibrator
 from quatcal_ros.capture import Capture, CaptureConfig, pose_change
 from quatcal_ros.motions import motion_count
 from quatcal_ros.pairing import LINK, OutOfOrderStamp, Pairer, PairingConfig, SENSOR
+from quatcal_ros.pose import Pose
 
 STATES = ('waiting for poses', 'collecting', 'estimating')
 TOPICS = {LINK: 'link_pose', SENSOR: 'sensor_pose'}
@@ -44,6 +53,8 @@ class SessionConfig:
     # Added to every sensor stamp: a known latency of the sensor's clock (time_offset.py
     # estimates it from a recording); -0.03 s for a camera stamping frames 30 ms late.
     sensor_offset_ns: int = 0
+    # Collect samples without estimating until estimate() (module docstring).
+    defer_estimates: bool = False
 
     def __post_init__(self):
         if self.time_jump_ns < 0:
@@ -131,6 +142,12 @@ def _finite(*poses):
     return all(math.isfinite(p.position.sum() + p.quaternion.sum()) for p in poses)
 
 
+def _finite_rows(positions, quaternions):
+    """Return _finite of each row's pose, (n,) bool: the same sums, vectorised."""
+    with np.errstate(over='ignore', invalid='ignore'):
+        return np.isfinite(positions.sum(axis=1) + quaternions.sum(axis=1))
+
+
 def _late_reason(error):
     """Return (text, code) of a stamp that is not newer than the previous one."""
     if error.jump_ns == 0:
@@ -145,6 +162,7 @@ class Session:
     def __init__(self, config=SessionConfig()):
         self.config = config
         self._calibrator = Calibrator(config.calibration)
+        self._deferred = []   # samples not yet given to the calibrator (defer_estimates)
         self._start_streams()
 
     def _start_streams(self):
@@ -165,6 +183,36 @@ class Session:
         """Add a sensor pose T_sensor_obj at header stamp stamp_ns (int); return the events."""
         return self._add_pose(SENSOR, stamp_ns + self.config.sensor_offset_ns, pose)
 
+    def add_poses(self, stream, stamps_ns, positions, quaternions_wxyz):
+        """
+        Add many poses of stream 'link' or 'sensor', in arrival order; return the events.
+
+        The same as add_link_pose / add_sensor_pose for each (the same events, in the same
+        order), faster: in-order runs of the faster stream go to the pairer at once.
+        stamps_ns: header stamps (a list of ints); positions (n, 3); quaternions_wxyz (n, 4).
+        """
+        events = self.pop_events()
+        if stream == SENSOR:
+            stamps_ns = [stamp + self.config.sensor_offset_ns for stamp in stamps_ns]
+        # Each non-finite pose goes through _add_pose, which rejects it.
+        stops = np.flatnonzero(~_finite_rows(positions, quaternions_wxyz)).tolist()
+        stops.append(len(stamps_ns))
+        start = 0
+        while start < len(stamps_ns):
+            stop = stops[bisect.bisect_left(stops, start)]
+            taken, pairs = self._pairer.add_many(stream, stamps_ns[start:stop],
+                                                 positions[start:stop],
+                                                 quaternions_wxyz[start:stop])
+            if taken:
+                self._counts[stream] += taken
+                events += self._paired(pairs)
+            else:
+                pose = Pose(positions[start], quaternions_wxyz[start])
+                events += self._add_pose(stream, stamps_ns[start], pose)
+                taken = 1
+            start += taken
+        return events
+
     def capture(self, now_ns):
         """
         Capture a sample now from the latest still window (manual mode, or any mode).
@@ -182,7 +230,7 @@ class Session:
             return False, (f'this still repeats sample {repeated} (the same data played '
                            'again): not added twice')
         self._pending += self._store(sample)
-        return True, f'sample {len(self._calibrator.samples) - 1} captured: {reason}'
+        return True, f'sample {self._sample_count() - 1} captured: {reason}'
 
     def add_sample(self, sample):
         """Add a ready sample (pose.Sample: CSV row, resumed session); return the events."""
@@ -202,15 +250,28 @@ class Session:
             else:
                 events.append(self._reject('sample', 'non-finite numbers in a pose',
                                            'non_finite'))
-        first = len(self._calibrator.samples)
-        messages = self._calibrator.add_samples(good)
+        first, previous = self._sample_count(), self.result
+        if self.config.defer_estimates:
+            self._deferred += good
+            messages = []
+        else:
+            messages = self._calibrator.add_samples(good)
         if good:
             self._capture.note_sample(good[-1])   # the next still sample needs a motion first
         events += [SampleCaptured(first + k, sample) for k, sample in enumerate(good)]
-        events += [Notice(text) for text in messages]
-        if self.result is not None:
-            events.append(EstimateUpdated(self.result))
-        return events
+        return events + self._estimated(messages, previous)
+
+    def estimate(self):
+        """
+        Estimate once from the samples that defer_estimates held back; return the events.
+
+        All of them go to the estimator at once, as add_samples gives them (so the answer is
+        that of `solve` on the same samples).  Nothing to do when none are held back.
+        """
+        deferred, self._deferred = self._deferred, []
+        if not deferred:
+            return []
+        return self._estimated(self._calibrator.add_samples(deferred))
 
     def pop_events(self):
         """Events not yet returned (those of capture()); each event is returned once."""
@@ -220,6 +281,7 @@ class Session:
     def reset(self):
         """Start over: forget the streams, the samples, the estimate and the counters."""
         self._calibrator.reset()
+        self._deferred = []
         self._start_streams()
 
     # --- what the shells show ------------------------------------------------------------
@@ -227,7 +289,7 @@ class Session:
     @property
     def samples(self):
         """Return the samples so far (list of pose.Sample), in the estimator's order."""
-        return list(self._calibrator.samples)
+        return self._calibrator.samples + self._deferred
 
     @property
     def result(self):
@@ -244,7 +306,7 @@ class Session:
         """Return the state: 'waiting for poses', 'collecting' or 'estimating'."""
         if self.result is not None:
             return STATES[2]
-        if self._counts['pairs'] or self._calibrator.samples:
+        if self._counts['pairs'] or self._sample_count():
             return STATES[1]
         return STATES[0]
 
@@ -258,7 +320,7 @@ class Session:
         rejected: messages and samples not used; time_jumps: new timelines started;
         repeated_samples: samples not added because they repeat earlier ones (module doc).
         """
-        samples = len(self._calibrator.samples)
+        samples = self._sample_count()
         return {
             'link_messages': self._counts[LINK],
             'sensor_messages': self._counts[SENSOR],
@@ -278,6 +340,9 @@ class Session:
 
     # --- internals -----------------------------------------------------------------------
 
+    def _sample_count(self):
+        return len(self._calibrator.samples) + len(self._deferred)
+
     def _add_pose(self, stream, stamp_ns, pose):
         events = self.pop_events() if self._pending else []
         self._counts[stream] += 1
@@ -291,8 +356,13 @@ class Session:
                 return events + [self._reject(TOPICS[stream], *_late_reason(error))]
             events.append(self._new_timeline(error))
             pairs = self._pairer.add(stream, stamp_ns, pose)
-        if pairs or self._pairer.unpaired_total != self._unpaired_seen:
-            events += self._unpaired_notice(bool(pairs))   # (a no-op otherwise)
+        return events + self._paired(pairs)
+
+    def _paired(self, pairs):
+        """Return the events of the Pairs that one pose completed (notices, samples)."""
+        if not pairs and self._pairer.unpaired_total == self._unpaired_seen:
+            return []   # most poses: nothing happened
+        events = self._unpaired_notice(bool(pairs))
         if pairs and not self._counts['pairs']:
             events.append(self._pairing_notice())
         for pair in pairs:
@@ -322,7 +392,7 @@ class Session:
         if not self._counts['time_jumps']:
             return None
         capture = self.config.capture
-        for index, old in enumerate(self._calibrator.samples):
+        for index, old in enumerate(self.samples):
             if abs(old.stamp_ns - sample.stamp_ns) <= capture.window_ns:
                 angle, distance = pose_change(sample.link, old.link)
                 if (angle <= capture.rotation_band_deg
@@ -332,10 +402,18 @@ class Session:
 
     def _store(self, sample):
         previous = self._calibrator.result
-        messages = self._calibrator.add_sample(sample)
+        if self.config.defer_estimates:
+            self._deferred.append(sample)
+            messages = []
+        else:
+            messages = self._calibrator.add_sample(sample)
         self._capture.note_sample(sample)
-        events = [SampleCaptured(len(self._calibrator.samples) - 1, sample)]
-        events += [Notice(text) for text in messages]
+        events = [SampleCaptured(self._sample_count() - 1, sample)]
+        return events + self._estimated(messages, previous)
+
+    def _estimated(self, messages, previous=None):
+        """Return the events of an estimator update: its messages, then the new estimate."""
+        events = [Notice(text) for text in messages]
         if self.result is not None and self.result is not previous:
             events.append(EstimateUpdated(self.result))
         return events

@@ -152,15 +152,18 @@ class OffsetReport:
     residual_with_deg: float
 
 
-def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000):
+def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
+                     residual_options=None):
     """
     Estimate the sensor offset of two recorded streams and refine it by the residual.
 
     The cross-correlation estimate selects the samples once (replay_streams); the refinement
     then keeps those sensor frames and re-interpolates the link at each shifted stamp, so
-    the residual is a smooth function of the offset alone. Returns (OffsetReport, the Session
-    replayed with the refined offset applied).
+    the residual is a smooth function of the offset alone. residual_options: the
+    CalibrationOptions whose RMS residual scores an offset (default config.calibration).
+    Returns (OffsetReport, the Session replayed with the refined offset applied).
     """
+    residual_options = residual_options or config.calibration
     coarse = estimate_time_offset(
         [s for s, _ in link], [p.quaternion for _, p in link],
         [s for s, _ in sensor], [p.quaternion for _, p in sensor], max_offset_s)
@@ -173,7 +176,7 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000)
                    for stamp, pose in frames]
         samples = [s for s in samples if s.link is not None]
         try:
-            return calibrate(samples, config.calibration).residual_rms_deg
+            return calibrate(samples, residual_options).residual_rms_deg
         except DegenerateMotionError:
             return np.inf
     offset = refine_time_offset(residual, coarse.offset_ns, span_ns)

@@ -4,7 +4,7 @@ import numpy as np
 from numpy.testing import assert_allclose
 import pytest
 
-from quatcal_ros import bag, conversions
+from quatcal_ros import bag, cdr, conversions
 from quatcal_ros import quaternion as quat
 from quatcal_ros import simulation as sim
 from quatcal_ros.bag import Bag, BagError, PoseInput, Replay, TYPESTORE, write_bag
@@ -16,6 +16,7 @@ POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
 TRANSFORM_STAMPED = 'geometry_msgs/msg/TransformStamped'
 TOPICS = {'/link': POSE_STAMPED, '/sensor': POSE_STAMPED}
 MS = 1_000_000
+DECODE_POSES = cdr.decode_poses
 
 
 @pytest.fixture(scope='module')
@@ -226,3 +227,75 @@ def test_damaged_storage_is_a_bag_error(tmp_path, pose_bag, streams):
     with pytest.raises(BagError, match=str(path)):
         with Bag(path) as recording:
             Replay(recording, PoseInput('/link'), PoseInput('/sensor')).run(Session())
+
+
+def awkward_bag(path, streams, link_type):
+    """Both streams with bad, odd and late messages among the good ones; frame ids change."""
+    messages = pose_messages(streams, link_type)
+    links = [i for i, m in enumerate(messages) if m[0] == '/link']
+    sensors = [i for i, m in enumerate(messages) if m[0] == '/sensor']
+    link_pose = 'pose' if link_type == POSE_STAMPED else 'transform'
+    position = 'position' if link_type == POSE_STAMPED else 'translation'
+    getattr(getattr(messages[links[10]][2], link_pose), position).x = float('nan')
+    getattr(getattr(messages[links[11]][2], link_pose), position).y = 1e308   # sum overflows
+    getattr(getattr(messages[links[11]][2], link_pose), position).z = 1e308
+    messages[links[30]][2].header.stamp.nanosec = 2_000_000_000
+    messages[links[32]][2].header.stamp = messages[links[31]][2].header.stamp   # repeated
+    messages[links[40]][2].header.frame_id = 'bäse'
+    for i in links[200:300]:
+        messages[i][2].header.frame_id = 'base_link'
+    messages[sensors[3]][2].pose.position.y = float('inf')
+    types = {'/link': link_type, '/sensor': POSE_STAMPED}
+    with Writer(path, version=8) as writer:
+        connections = {topic: writer.add_connection(topic, msgtype, typestore=TYPESTORE)
+                       for topic, msgtype in types.items()}
+        for k, (topic, log_ns, msg) in enumerate(messages):
+            data = TYPESTORE.serialize_cdr(msg, types[topic], little_endian=k % 50 != 7)
+            writer.write(connections[topic], log_ns, data)
+            if k == links[60]:
+                writer.write(connections[topic], log_ns, b'\x00\x01not a message')
+
+
+def decoder_keeping(share, kept):
+    """Return cdr.decode_poses that leaves all but `share` of its rows to rosbags."""
+    rng = np.random.default_rng(8)
+
+    def decode(raws, msgtype):
+        decoded = DECODE_POSES(raws, msgtype)
+        ok = decoded.ok & (rng.random(len(raws)) < share)
+        kept.append(int(ok.sum()))
+        return decoded._replace(ok=ok)
+    return decode
+
+
+# The one-message path sums the 1e308 coordinates (and numpy warns) to find them non-finite.
+@pytest.mark.filterwarnings('ignore:overflow encountered:RuntimeWarning')
+@pytest.mark.parametrize('link_type, share', [(POSE_STAMPED, 1.0), (POSE_STAMPED, 0.7),
+                                              (TRANSFORM_STAMPED, 1.0),
+                                              (TRANSFORM_STAMPED, 0.7)])
+def test_decoded_poses_give_what_one_message_at_a_time_gives(tmp_path, streams, monkeypatch,
+                                                             link_type, share):
+    """Rows decoded from the bytes, fed in runs, are the messages rosbags reads, fed singly."""
+    awkward_bag(tmp_path / 'b', streams, link_type)
+    kept = []
+    monkeypatch.setattr(bag.cdr, 'decode_poses', decoder_keeping(share, kept))
+    fast, fast_report = replay(tmp_path / 'b')
+    assert sum(kept) > 0.9 * share * len(streams.link)
+    monkeypatch.setattr(bag.cdr, 'decode_poses', decoder_keeping(0.0, []))
+    slow, slow_report = replay(tmp_path / 'b')
+    assert fast.counters == slow.counters and fast.counters['samples'] == 6
+    for ours, theirs in zip(fast.samples, slow.samples, strict=True):
+        assert ours.stamp_ns == theirs.stamp_ns
+        for pose, other in ((ours.link, theirs.link), (ours.sensor, theirs.sensor)):
+            assert np.array_equal(pose.position, other.position)
+            assert np.array_equal(pose.quaternion, other.quaternion)
+    assert fast_report.warnings() == slow_report.warnings()
+    assert (fast_report.messages, fast_report.stamps, fast_report.frames) == \
+        (slow_report.messages, slow_report.stamps, slow_report.frames)
+    assert fast_report.skipped == {
+        ('/link', 'message', 'non_finite, ' + ('pose.position.x' if link_type == POSE_STAMPED
+                                               else 'transform.translation.x')): 1,
+        ('/link', 'message', 'bad_stamp'): 1, ('/link', 'message', 'undecodable'): 1,
+        ('/sensor', 'message', 'non_finite, pose.position.y'): 1}
+    assert fast_report.rejected == {('link_pose', 'non_finite'): 1,
+                                    ('link_pose', 'duplicate_stamp'): 1}

@@ -249,3 +249,104 @@ def test_config_is_checked():
         PairingConfig(max_gap_ns=0)
     with pytest.raises(ValueError):
         PairingConfig(window_ns=10, max_gap_ns=100)
+
+
+def delivered_runs(messages):
+    """Split (stream, stamp, Pose) messages into runs of one stream: [(stream, [messages])]."""
+    runs = []
+    for message in messages:
+        if runs and runs[-1][0] == message[0]:
+            runs[-1][1].append(message)
+        else:
+            runs.append((message[0], [message]))
+    return runs
+
+
+def add_one_by_one(pairer, messages):
+    """add() each (stream, stamp, Pose); return [(message index, Pair)] and the refused."""
+    pairs, refused = [], []
+    for index, (stream, stamp, pose) in enumerate(messages):
+        try:
+            pairs += [(index, pair) for pair in pairer.add(stream, stamp, pose)]
+        except OutOfOrderStamp:
+            refused.append(index)
+    return pairs, refused
+
+
+def add_in_runs(pairer, messages):
+    """add_many() each run, add() what it does not take; as add_one_by_one returns."""
+    pairs, refused, index = [], [], 0
+    for stream, run in delivered_runs(messages):
+        stamps_ns = [stamp for _, stamp, _ in run]
+        positions = np.array([pose.position for _, _, pose in run])
+        quaternions = np.array([pose.quaternion for _, _, pose in run])
+        start = 0
+        while start < len(run):
+            taken, new = pairer.add_many(stream, stamps_ns[start:], positions[start:],
+                                         quaternions[start:])
+            if not taken:
+                try:
+                    new = pairer.add(stream, *run[start][1:])
+                except OutOfOrderStamp:
+                    refused.append(index + start)
+                taken = 1
+            pairs += [(index + start + taken - 1, pair) for pair in new]
+            start += taken
+        index += len(run)
+    return pairs, refused
+
+
+def assert_same_pairs(ours, theirs):
+    assert [(index, pair.stamp_ns) for index, pair in ours] == \
+        [(index, pair.stamp_ns) for index, pair in theirs]
+    for (_, a), (_, b) in zip(ours, theirs):
+        for pose, other in ((a.link, b.link), (a.sensor, b.sensor)):
+            assert np.array_equal(pose.position, other.position)
+            assert np.array_equal(pose.quaternion, other.quaternion)
+
+
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**32 - 1), link_hz=st.floats(20.0, 1000.0),
+       sensor_hz=st.floats(5.0, 200.0), latency_ms=st.integers(-50, 300),
+       max_length=st.integers(20, 400), disorder=st.floats(0.0, 0.05))
+def test_add_many_is_add_one_by_one(seed, link_hz, sensor_hz, latency_ms, max_length,
+                                    disorder):
+    """Runs of either stream, either faster, late or early, gaps, repeated and old stamps."""
+    rng = np.random.default_rng(seed)
+    truth = ConstantTwist(rng, 60.0, 0.3)
+    link = [(s, truth.at(s)) for s in stamps(link_hz, 3.0) if rng.random() > 0.1]
+    sensor = [(s, marker(s)) for s in stamps(sensor_hz, 3.0, int(rng.integers(NS)) // 10)
+              if rng.random() > 0.1]
+    delivery = sorted([(s, 0, 'link', s, p) for s, p in link]
+                      + [(s + latency_ms * 1_000_000, 1, 'sensor', s, p) for s, p in sensor])
+    messages = [(stream, stamp, pose) for _, _, stream, stamp, pose in delivery]
+    for k in np.flatnonzero(rng.random(len(messages)) < disorder):   # repeats, old stamps
+        stream, stamp, pose = messages[k]
+        messages[k] = (stream, stamp - int(rng.integers(0, 2)) * 7_000_000 - 10, pose)
+    config = PairingConfig(window_ns=NS // 2, max_length=max_length)
+    one_by_one, in_runs = Pairer(config), Pairer(config)
+    expected, refused = add_one_by_one(one_by_one, messages)
+    pairs, refused_in_runs = add_in_runs(in_runs, messages)
+    assert refused_in_runs == refused
+    assert_same_pairs(pairs, expected)
+    assert in_runs.faster == one_by_one.faster
+    assert in_runs.buffered() == one_by_one.buffered()
+    assert in_runs.rates_hz() == one_by_one.rates_hz()
+    assert (in_runs.unpaired, in_runs.last_unpaired) == \
+        (one_by_one.unpaired, one_by_one.last_unpaired)
+
+
+def test_add_many_stops_at_the_pose_that_completes_pairs():
+    pairer = Pairer()
+    link = [(s, Pose.identity()) for s in stamps(1000.0, 0.1)]
+    assert len(feed(pairer, link, [(s, marker(s)) for s in stamps(30.0, 0.1)])) == 3
+    late = START_NS + 120_500_000   # a camera frame ahead of the link stream
+    assert pairer.add_sensor(late, marker(late)) == []
+    more = stamps(1000.0, 0.05, offset_ns=100_000_000)
+    rows = np.zeros((len(more), 3)), np.tile(quat.IDENTITY, (len(more), 1))
+    taken, pairs = pairer.add_many('link', more, *rows)
+    assert more[taken - 2] < late <= more[taken - 1]
+    assert [pair.stamp_ns for pair in pairs] == [late]
+    assert pairer.add_many('link', more[taken:], *rows) == (len(more) - taken, [])
+    assert pairer.add_many('sensor', [late + 1], *rows) == (0, [])     # the slower stream
+    assert pairer.add_many('link', [more[-1]], *rows) == (0, [])       # not newer

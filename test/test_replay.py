@@ -118,7 +118,7 @@ def test_pose_stamped_bag_gives_the_mounting_and_the_samples_solve_agrees(
 
 
 def test_samples_are_those_of_the_session_fed_by_hand(bags, streams, tmp_path, capsys):
-    """The streaming pass (closed-form estimates) captures what the node's session would."""
+    """The replay (collecting, then one estimate) captures what the node's session would."""
     status = replay_main([str(bags / 'pose'), '--link-topic', '/link_pose', '--sensor-topic',
                           '/sensor_pose', '--samples-out', str(tmp_path / 's.csv'), '--quiet'])
     assert status == 0

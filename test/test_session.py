@@ -250,3 +250,116 @@ def test_eth_recording_with_the_documented_convention_names_the_fix(eth_streams)
     session = eth_session(eth_streams, invert_sensor=False)
     said = ' '.join(session.result.warnings) if session.result else session.last_error
     assert '--invert-sensor' in said
+
+
+def comparable(events):
+    """Events as plain tuples (samples and results hold arrays, which == cannot compare)."""
+    out = []
+    for event in events:
+        if isinstance(event, SampleCaptured):
+            sample = event.sample
+            out.append(('sample', event.index, sample.stamp_ns,
+                        *(tuple(array) for pose in (sample.link, sample.sensor)
+                          for array in (pose.position, pose.quaternion))))
+        elif isinstance(event, EstimateUpdated):
+            out.append(('estimate', tuple(event.result.quaternion), event.result.samples))
+        elif isinstance(event, Rejected):
+            out.append(('rejected', event.what, event.reason, event.code))
+        else:
+            out.append(event)
+    return out
+
+
+def feed_in_runs(session, messages):
+    """Deliver each run of one stream's messages with add_poses; return all events."""
+    events, start = [], 0
+    while start < len(messages):
+        stream = messages[start][1]
+        stop = start
+        while stop < len(messages) and messages[stop][1] == stream:
+            stop += 1
+        run = messages[start:stop]
+        events += session.add_poses(
+            'link' if stream == LINK else 'sensor', [stamp for _, _, stamp, _ in run],
+            np.array([pose.position for *_, pose in run]),
+            np.array([pose.quaternion for *_, pose in run]))
+        start = stop
+    return events
+
+
+def awkward_messages(rng, link_rate_hz=500.0, sensor_rate_hz=30.0):
+    """Make a stop-and-go run with NaN poses, repeated and old stamps, then played again."""
+    cell = sim.random_cell(rng)
+    streams = sim.stop_and_go_streams(
+        rng, cell, 4, link_rate_hz=link_rate_hz, sensor_rate_hz=sensor_rate_hz,
+        rotation_noise_deg=0.2, translation_noise_m=0.001, latency_s=0.02,
+        drop_probability=0.1)
+    messages = [(stamp, LINK, stamp, pose) for stamp, pose in streams.link]
+    messages += [(delivered, SENSOR, stamp, pose) for (stamp, pose), delivered
+                 in zip(streams.sensor, streams.sensor_delivery_ns)]
+    messages.sort(key=lambda m: m[:2])
+    broken = Pose(np.array([np.nan, 0.0, 0.0]), quat.IDENTITY.copy())
+    for k in sorted(rng.choice(len(messages), 12, replace=False), reverse=True):
+        delivered, stream, stamp, pose = messages[k]
+        messages.insert(k + 1, [(delivered, stream, stamp, broken),
+                                (delivered, stream, stamp, pose),
+                                (delivered, stream, stamp - MS, pose)][k % 3])
+    return messages + messages[:len(messages) // 2]
+
+
+@pytest.mark.parametrize('seed, link_hz, sensor_hz', [(26, 500.0, 30.0), (27, 1000.0, 15.0),
+                                                      (28, 20.0, 90.0)])
+def test_add_poses_is_adding_them_one_by_one(seed, link_hz, sensor_hz):
+    """The same events in the same order, samples, counters and estimate, faster or not."""
+    messages = awkward_messages(np.random.default_rng(seed), link_hz, sensor_hz)
+    config = SessionConfig(sensor_offset_ns=-7 * MS)
+    one_by_one, in_runs = Session(config), Session(config)
+    expected = comparable(feed(one_by_one, messages))
+    assert comparable(feed_in_runs(in_runs, messages)) == expected
+    assert in_runs.counters == one_by_one.counters
+    assert in_runs.counters['samples'] >= 3 and in_runs.counters['time_jumps'] == 1
+    assert in_runs.counters['rejected'] >= 12
+    assert np.array_equal(in_runs.result.quaternion, one_by_one.result.quaternion)
+
+
+def test_deferred_estimates_collect_the_same_samples_and_estimate_once():
+    rng = np.random.default_rng(29)
+    _, messages = stop_and_go_messages(rng, n_stops=8)
+    live, collecting = Session(), Session(SessionConfig(defer_estimates=True))
+    feed(live, messages)
+    events = feed(collecting, messages)
+    assert of_type(events, EstimateUpdated) == [] and collecting.result is None
+    assert [e.index for e in of_type(events, SampleCaptured)] == list(range(8))
+    assert comparable(of_type(events, SampleCaptured)) == comparable(
+        SampleCaptured(k, s) for k, s in enumerate(live.samples))
+    assert collecting.counters == live.counters and collecting.state == 'collecting'
+    estimated = collecting.estimate()
+    assert [type(e) for e in estimated] == [Notice, EstimateUpdated]
+    assert estimated[-1].result is collecting.result
+    # One solve over all samples: what `solve` does with them (and so the old replay, which
+    # solved them in a fresh session after streaming with the closed-form estimator).
+    solved = Session()
+    solved.add_samples(live.samples)
+    assert comparable([EstimateUpdated(collecting.result)]) == \
+        comparable([EstimateUpdated(solved.result)])
+    assert collecting.result.residual_rms_deg == solved.result.residual_rms_deg
+    assert collecting.estimate() == [] and collecting.state == 'estimating'
+
+
+def test_deferred_samples_of_every_source_wait_for_estimate():
+    rng = np.random.default_rng(30)
+    cell = sim.random_cell(rng)
+    samples, _ = sim.samples(rng, cell, 8, rotation_noise_deg=0.05)
+    session = Session(SessionConfig(defer_estimates=True))
+    events = session.add_samples(samples[:4]) + session.add_sample(samples[4])
+    assert [type(e) for e in events] == [SampleCaptured] * 5 and session.result is None
+    session.estimate()
+    first = session.result
+    assert first.samples == 5
+    # After an estimate, new samples wait again; the next estimate covers all of them.
+    assert [type(e) for e in session.add_samples(samples[5:])] == [SampleCaptured] * 3
+    assert session.result is first and len(session.samples) == 8
+    session.estimate()
+    assert session.result.samples == 8
+    session.reset()
+    assert session.samples == [] and session.estimate() == [] and session.result is None
