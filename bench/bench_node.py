@@ -167,9 +167,13 @@ class Bench:
             self.spin(0.02)
 
     def publish(self, stream, stamp_ns, pose):
+        self.pubs[stream].publish(self.message(stream, stamp_ns, pose))
+
+    @staticmethod
+    def message(stream, stamp_ns, pose):
         from quatcal_ros import conversions
         frame = 'base' if stream == 'link' else 'camera'
-        self.pubs[stream].publish(conversions.pose_stamped_msg(pose, stamp_ns, frame))
+        return conversions.pose_stamped_msg(pose, stamp_ns, frame)
 
     def received(self):
         return int(self.status.get('link_messages', 0)) + int(self.status.get('sensor_messages',
@@ -239,8 +243,13 @@ class Pacer:
             time.sleep(max(0.0, TICK_S - (time.time_ns() - now) / NS))
 
     def publish_next(self):
-        self.bench.publish(*self.events[self.i][1:])
+        """Publish the next event; return the time of the publish call (message made before)."""
+        stream, stamp_ns, pose = self.events[self.i][1:]
+        message = self.bench.message(stream, stamp_ns, pose)
         self.i += 1
+        published = time.perf_counter()
+        self.bench.pubs[stream].publish(message)
+        return published
 
 
 def latency_phase(bench, pacer, completing, samples_before):
@@ -250,8 +259,7 @@ def latency_phase(bench, pacer, completing, samples_before):
         pacer.publish_until(target)              # real time up to the completing message
         bench.spin(0.15)                         # the node is idle now
         seen = len(bench.rotations)
-        published = time.perf_counter()
-        pacer.publish_next()
+        published = pacer.publish_next()
         deadline = time.monotonic() + 5.0
         while len(bench.rotations) == seen and time.monotonic() < deadline:
             bench.executor.spin_once(timeout_sec=0.001)

@@ -20,6 +20,8 @@ T_base_sensor (eye-to-hand).
 """
 
 from dataclasses import dataclass, field, replace
+from functools import cache, cached_property
+from typing import Callable
 
 import numpy as np
 
@@ -151,6 +153,25 @@ def _finite_or_none(value):
     return float(value) if np.isfinite(value) else None
 
 
+@dataclass(frozen=True)
+class Update:
+    """
+    A new estimate: what to publish at once, and its full CalibrationResult on first use.
+
+    The live node publishes `estimate` (rotation and translation) as soon as it exists; the
+    quality figures of `result` (residuals, closed-form translation, excitation, hint) are
+    computed when something first asks for them, after the publication.
+    """
+
+    estimate: Estimate          # the published mounting (refined, or the closed form)
+    report: Callable = field(repr=False, compare=False)
+
+    @cached_property
+    def result(self):
+        """Return the CalibrationResult of this estimate (computed once)."""
+        return self.report()
+
+
 def calibrate(samples, options=CalibrationOptions()):
     """
     Estimate A_z from still samples (list of pose.Sample); see the module docstring.
@@ -158,14 +179,15 @@ def calibrate(samples, options=CalibrationOptions()):
     Raises DegenerateMotionError (a ValueError) with the reason and the motion that would
     help when the samples cannot determine the rotation.
     """
-    return _solve(samples, options).result
+    return _solve(samples, options).update.result
 
 
 @dataclass(frozen=True)
 class _Solution:
-    """A result and the state an incremental update continues from."""
+    """An estimate and the state an incremental update continues from."""
 
-    result: CalibrationResult
+    update: Update
+    warnings: list               # the frame-convention warnings of the last full solve
     rotations: SampleRotations
     fit: Motions                 # the motions of the final least squares
     system: MotionSystem         # their normal matrix
@@ -214,12 +236,12 @@ def _solve(samples, options):
     rejected = (_rejected_motions(motions, usable, sample_ok, limit, options)
                 + _rejected_samples(rotations, q_z, sample_ok, motions))
     positions = SamplePositions.from_samples(samples, rotations)
-    result, refinement = _result(rotations, positions, q_z, fit, info, sample_ok, len(motions),
+    update, refinement = _update(rotations, positions, q_z, fit, info, sample_ok, len(motions),
                                  rejected, warnings, options)
     threshold = (_outlier_threshold(np.linalg.norm(
         quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok], axis=1))
         if options.robust else np.inf)
-    return _Solution(result, rotations, fit, system, info, positions, sample_ok, limit,
+    return _Solution(update, warnings, rotations, fit, system, info, positions, sample_ok, limit,
                      threshold, len(motions), rejected, refinement)
 
 
@@ -373,41 +395,62 @@ def _parent_frame(options):
     return 'link' if options.setup == 'eye_in_hand' else 'base'
 
 
-def _result(rotations, positions, q_z, fit, info, sample_ok, motion_count, rejected, warnings,
+def _update(rotations, positions, q_z, fit, info, sample_ok, motion_count, rejected, warnings,
             options, previous_refinement=None):
     """
-    Return (CalibrationResult, refine.Refinement or None) for an estimated rotation q_z.
+    Return (Update, refine.Refinement or None) for an estimated rotation q_z.
 
-    The translation follows in closed form; the joint refinement starts from the closed form,
-    or, given previous_refinement, takes warm-started steps from it (incremental updates).
+    What is published comes first: the joint refinement starts from the closed form, or, given
+    previous_refinement, takes a warm-started step from it (incremental updates), and is
+    checked against the closed form's rotation. The report (_report) follows on demand.
     """
     residuals = quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok]
     sigma = quality.noise_sigma(residuals)
     covariance = info.covariance(sigma)
-    ratio, axis = info.excitation()
-    translation = solve_translation(rotations, positions, q_z, info, sample_ok, covariance)
-    closed = Estimate(q_z, translation.translation, quality.uncertainty_deg(covariance),
-                      translation.uncertainty_mm)
-    refined, refinement = None, None
-    noise_deg, noise_mm = np.degrees(sigma), 1e3 * translation.noise_m
+    closed_uncertainty = quality.uncertainty_deg(covariance)
     warnings = list(warnings)
+    refined, refinement, translation = None, None, None
     if options.method == 'refined' and np.sum(sample_ok) >= MIN_REFINE_SAMPLES:
         arrays = (rotations.link[sample_ok], positions.link[sample_ok],
                   rotations.sensor[sample_ok], positions.sensor[sample_ok])
         if previous_refinement is None:
+            translation = solve_translation(rotations, positions, q_z, info, sample_ok,
+                                            covariance)   # the refinement's starting point
             refinement = refine(*arrays, q_z, translation.translation)
         else:
-            refinement = refine_from(previous_refinement, *arrays)
-        if _plausible(refinement, closed):
+            refinement = refine_from(previous_refinement, *arrays,
+                                     rotations.link_matrices[sample_ok])
+        if _plausible(refinement, q_z, closed_uncertainty):
             refined = Estimate(refinement.quaternion, refinement.translation,
                                refinement.uncertainty_deg,
                                refinement.translation_uncertainty_mm)
-            noise_deg, noise_mm = refinement.rotation_noise_deg, refinement.translation_noise_mm
         else:
+            refinement = None
             warnings.append('the joint refinement did not converge to a plausible answer: '
                             'the closed-form estimate is published instead')
+
+    @cache
+    def closed_form():
+        found = translation or solve_translation(rotations, positions, q_z, info, sample_ok,
+                                                 covariance)
+        return found, Estimate(q_z, found.translation, closed_uncertainty, found.uncertainty_mm)
+
+    def report():
+        found, closed = closed_form()
+        noise = ((refinement.rotation_noise_deg, refinement.translation_noise_mm) if refined
+                 else (np.degrees(sigma), 1e3 * found.noise_m))
+        return _report(rotations, fit, info, sample_ok, motion_count, rejected, warnings,
+                       options, closed, refined, noise)
+
+    published = refined or closed_form()[1]
+    return Update(published, report), refinement
+
+
+def _report(rotations, fit, info, sample_ok, motion_count, rejected, warnings, options, closed,
+            refined, noise):
+    """Return the CalibrationResult: the published estimate with its quality figures."""
     published = refined or closed
-    refinement = refinement if refined else None
+    ratio, axis = info.excitation()
     motion_residuals = np.degrees(quality.motion_residual_angles(
         rotations, published.quaternion, fit.i, fit.j))
     return CalibrationResult(
@@ -416,19 +459,19 @@ def _result(rotations, positions, q_z, fit, info, sample_ok, motion_count, rejec
         inlier_samples=int(np.sum(sample_ok)),
         residual_rms_deg=float(np.sqrt(np.mean(motion_residuals ** 2))),
         uncertainty_deg=published.uncertainty_deg,
-        noise_deg=float(noise_deg), excitation=ratio, weakest_axis=axis,
+        noise_deg=float(noise[0]), excitation=ratio, weakest_axis=axis,
         hint=quality.next_motion_hint(ratio, axis, _parent_frame(options)),
         setup=options.setup, pairs=options.pairs, rejected=rejected, warnings=warnings,
         motion_residuals_deg=motion_residuals, translation=published.translation,
         translation_uncertainty_mm=published.translation_uncertainty_mm,
-        translation_noise_mm=float(noise_mm), method='refined' if refined else 'closed-form',
-        closed_form=closed, refined=refined), refinement
+        translation_noise_mm=float(noise[1]), method='refined' if refined else 'closed-form',
+        closed_form=closed, refined=refined)
 
 
-def _plausible(refinement, closed):
+def _plausible(refinement, q_closed, closed_uncertainty_deg):
     """Whether the refinement converged near the closed form (within 10 of its sigmas)."""
-    moved = np.degrees(quat.angle_between(refinement.quaternion, closed.quaternion))
-    limit = 10.0 * max(closed.uncertainty_deg, 0.01) + 1.0
+    moved = np.degrees(quat.angle_between(refinement.quaternion, q_closed))
+    limit = 10.0 * max(closed_uncertainty_deg, 0.01) + 1.0
     return bool(refinement.converged and np.all(np.isfinite(refinement.quaternion))
                 and moved < limit)
 
@@ -488,7 +531,8 @@ class Calibrator:
     A new sample is tested against the current estimate, its motions screened and added to the
     least-squares system (O(1) per motion), and the estimate re-solved: cheap enough for the
     live node.  Every `full_solve_every` samples (and while there are few) the full robust
-    pipeline of `calibrate` runs again, so an early misjudgement cannot persist.
+    pipeline of `calibrate` runs again, so an early misjudgement cannot persist.  `update`
+    holds the latest estimate at once and its report (`result`) on first use (Update).
     """
 
     def __init__(self, options=CalibrationOptions(), full_solve_every=10, small=12):
@@ -500,9 +544,18 @@ class Calibrator:
     def reset(self):
         """Forget all samples and the estimate."""
         self.samples = []
-        self.result = None
         self.last_error = 'no samples yet'
         self._solution = None
+
+    @property
+    def update(self):
+        """Return the latest Update, or None before two usable motions."""
+        return self._solution.update if self._solution else None
+
+    @property
+    def result(self):
+        """Return the latest CalibrationResult, or None before two usable motions."""
+        return self._solution.update.result if self._solution else None
 
     def add_sample(self, sample):
         """Add one still sample and re-estimate; returns messages describing what changed."""
@@ -526,18 +579,17 @@ class Calibrator:
         try:
             self._solution = _solve(self.samples, self.options)
         except DegenerateMotionError as error:
-            self.result = self._solution = None
+            self._solution = None
             self.last_error = str(error)
             return [f'no estimate yet: {error}']
-        self.result = self._solution.result
-        return [self._describe()]
+        return []
 
     def _add_incrementally(self, sample):
         old = self._solution
         rotations = old.rotations.appended(sample)
         positions = old.positions.appended(sample, rotations)
         k = len(rotations) - 1
-        q_z = old.result.quaternion
+        q_z = old.update.estimate.quaternion
         Z = rotations.object_orientations(q_z)
         angle = quat.angle_between(Z[k], quat.average(Z[:k][old.sample_ok]))
         rejected = list(old.rejected)
@@ -550,6 +602,7 @@ class Calibrator:
                                               np.degrees(old.outlier_threshold), spoiled))
             messages.append(f'sample {k} rejected: {rejected[-1]["reason"]}')
             info = info.extended(rotations.link_matrices, [], [])
+            q_z = system.solve()[0]   # the closed form, as before this sample
         else:
             sample_ok = np.append(old.sample_ok, True)
             new = self._new_motions(rotations, old, q_z)
@@ -559,15 +612,14 @@ class Calibrator:
             fit = Motions.concatenate(fit, new)
             info = info.extended(rotations.link_matrices, new.i, new.j)
         motion_count = old.motion_count + (k if self.options.pairs == 'all' else 1)
-        result, refinement = _result(rotations, positions, q_z, fit, info, sample_ok,
-                                     motion_count, rejected, old.result.warnings, self.options,
+        update, refinement = _update(rotations, positions, q_z, fit, info, sample_ok,
+                                     motion_count, rejected, old.warnings, self.options,
                                      previous_refinement=old.refinement)
-        self._solution = replace(old, result=result, rotations=rotations, fit=fit,
+        self._solution = replace(old, update=update, rotations=rotations, fit=fit,
                                  system=system, info=info, positions=positions,
                                  sample_ok=sample_ok, motion_count=motion_count,
                                  rejected=rejected, refinement=refinement)
-        self.result = result
-        return messages + [self._describe()]
+        return messages
 
     def _new_motions(self, rotations, old, q_z):
         """Return the screened motions from the good samples so far to the newest sample."""
@@ -579,8 +631,3 @@ class Calibrator:
         good = np.minimum(new.angle_a, new.angle_b) >= np.radians(self.options.min_motion_deg)
         good &= np.abs(new.angle_a - new.angle_b) <= old.mismatch_limit
         return new.subset(good)
-
-    def _describe(self):
-        r = self.result
-        return (f'estimate from {r.samples} samples, {r.inliers} motions: residual '
-                f'{r.residual_rms_deg:.3f} deg RMS, uncertainty {r.uncertainty_deg:.3f} deg')

@@ -69,8 +69,15 @@ def _translation(result):
 
 
 def _rotation_xyzw(result):
-    """(x, y, z, w) of the result's unit quaternion (w, x, y, z), w >= 0."""
-    q = quat.normalize(np.asarray(result.quaternion, dtype=float).reshape(4))
+    """
+    (x, y, z, w) of the result's unit quaternion (w, x, y, z), w >= 0.
+
+    A quaternion that is unit to rounding is written as it is, so that every output of one
+    result (this file, the JSON, the log) shows the same digits.
+    """
+    q = np.asarray(result.quaternion, dtype=float).reshape(4)
+    if abs(np.linalg.norm(q) - 1.0) > 1e-12:
+        q = quat.normalize(q)
     if q[0] < 0.0:
         q = -q
     return quat.xyzw_from_wxyz(q)

@@ -234,7 +234,7 @@ class CalibratorNode(Node):
                 self._journal_sample(event)
         for event in events:
             if isinstance(event, EstimateUpdated):
-                self.publish_estimate(event.result)
+                self.publish_estimate(event.estimate)   # the report is not needed for it
         for event in events:
             if isinstance(event, SampleCaptured):
                 self._log_sample(event)
@@ -259,7 +259,11 @@ class CalibratorNode(Node):
             self.get_logger().info(text, throttle_duration_sec=LOG_THROTTLE_S)
 
     def publish_estimate(self, result):
-        """Publish `result` on ~/rotation and ~/transform (and, with publish_tf, /tf_static)."""
+        """
+        Publish `result` on ~/rotation and ~/transform (and, with publish_tf, /tf_static).
+
+        result: anything with `quaternion` and `translation` (a CalibrationResult, Estimate).
+        """
         msg = conversions.quaternion_stamped_msg(
             result.quaternion, self.now_ns(), self.config.link_frame)
         self.rotation_publisher.publish(msg)

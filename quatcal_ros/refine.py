@@ -43,19 +43,26 @@ class Refinement:
     converged: bool
 
 
-def predicted_sensor_poses(link_q, link_t, x_q, x_t, o_q, o_t):
-    """Return S_i = inv(X) inv(L_i) O as (N, 4) quaternions and (N, 3) positions."""
-    q = quat.multiply(quat.conjugate(link_q), o_q)
-    t = quat.rotate(quat.conjugate(link_q), o_t - link_t)
-    return (quat.multiply(quat.conjugate(x_q), q),
-            quat.rotate(quat.conjugate(x_q), t - x_t))
+def residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, link_R=None):
+    """
+    Compare measured and predicted sensor poses: rotation (rad) and position (m) errors.
+
+    The prediction is S_i = inv(X) inv(L_i) O (module docstring). The rotation error is the
+    rotation vector of inv(q_pred) (x) q_meas = inv(O) (x) L_i (x) X (x) S_i, whose fixed
+    factors act as one 4x4 matrix (eq. (11)-(12)); the position error is t_meas minus
+    R_X^T w_i, w_i = R_L^T (t_O - t_L) - t_X. link_R: the link rotation matrices, when the
+    caller has them (else from link_q).
+    """
+    fixed = quat.plus_matrix(quat.conjugate(o_q)) @ quat.minus_matrix(x_q)
+    rotation = quat.rotation_vector(quat.multiply(link_q @ fixed.T, sensor_q))
+    R_X = quat.matrix_from_quaternion(x_q)
+    return rotation, sensor_t - _lever(link_q, link_t, x_t, o_t, link_R) @ R_X
 
 
-def residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t):
-    """Compare measured and predicted sensor poses: rotation (rad) and position (m) errors."""
-    pred_q, pred_t = predicted_sensor_poses(link_q, link_t, x_q, x_t, o_q, o_t)
-    rotation = quat.rotation_vector(quat.multiply(quat.conjugate(pred_q), sensor_q))
-    return rotation, sensor_t - pred_t
+def _lever(link_q, link_t, x_t, o_t, link_R=None):
+    """Return w_i = R_L^T (t_O - t_L) - t_X: the object seen from the link, minus X's offset."""
+    R_L = quat.matrix_from_quaternion(link_q) if link_R is None else link_R
+    return np.einsum('nji,nj->ni', R_L, o_t - link_t) - x_t
 
 
 def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
@@ -75,8 +82,8 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
     for _ in range(NOISE_ITERATIONS):
         def cost(p, sigma_r=sigma_r, sigma_t=sigma_t):
             model = _unpack(p, x_q, x_t, o_q, o_t)
-            return _whitened(*residuals(link_q, link_t, sensor_q, sensor_t, *model), sigma_r,
-                             sigma_t)
+            return _whitened(*residuals(link_q, link_t, sensor_q, sensor_t, *model, link_R),
+                             sigma_r, sigma_t)
 
         def jacobian(p, sigma_r=sigma_r, sigma_t=sigma_t):
             return whitened_jacobian(link_q, link_t, *_unpack(p, x_q, x_t, o_q, o_t),
@@ -93,7 +100,7 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
                        converged)
 
 
-def refine_from(previous, link_q, link_t, sensor_q, sensor_t):
+def refine_from(previous, link_q, link_t, sensor_q, sensor_t, link_R=None):
     """
     Update a Refinement after samples were added: one warm-started Gauss-Newton step.
 
@@ -105,23 +112,28 @@ def refine_from(previous, link_q, link_t, sensor_q, sensor_t):
     from that close lands within a few percent of the uncertainty (test_incremental.py). The
     covariance and the noise levels come from the same linearisation (the residuals the step
     predicts), which differs from one at the new point only to second order in the step.
+    link_R: the link rotation matrices, when the caller has them.
     """
     model = (previous.quaternion, previous.translation, previous.object_quaternion,
              previous.object_translation)
     sigma_r = max(np.radians(previous.rotation_noise_deg), MIN_ROTATION_NOISE)
     sigma_t = max(previous.translation_noise_mm / 1e3, MIN_TRANSLATION_NOISE)
-    whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t)
+    whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t,
+                              link_R)
     normal = _normal_matrix(whitened, J)
     step = _gauss_newton_step(normal, J.T @ (_soft_l1_weights(whitened) * whitened))
     return _refinement(_unpack(step, *model), whitened + J @ step, normal, sigma_r, sigma_t,
                        bool(np.all(np.isfinite(step))))
 
 
-def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t):
+def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t,
+                link_R=None):
     """Return the whitened residuals (6N: rotations, then translations) and their Jacobian."""
-    whitened = _whitened(*residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t),
-                         sigma_r, sigma_t)
-    return whitened, whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t)
+    link_R = quat.matrix_from_quaternion(link_q) if link_R is None else link_R
+    whitened = _whitened(*residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t,
+                                    link_R), sigma_r, sigma_t)
+    return whitened, whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t,
+                                       link_R)
 
 
 def _whitened(rotation, translation, sigma_r, sigma_t):
@@ -190,7 +202,7 @@ def whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t, link
     R_L = quat.matrix_from_quaternion(link_q) if link_R is None else link_R
     R_X = quat.matrix_from_quaternion(x_q)
     R_O = quat.matrix_from_quaternion(o_q)
-    w = np.einsum('nji,nj->ni', R_L, o_t - link_t) - x_t   # R_L^T (t_O - t_L) - t_X
+    w = _lever(link_q, link_t, x_t, o_t, R_L)
     J = np.zeros((2, n, 3, 12))
     J[0, :, :, 0:3] = R_O.T @ R_L / sigma_r
     J[0, :, :, 6:9] = -R_O.T / sigma_r

@@ -5,9 +5,10 @@ The live node, the bag replay and the CSV tool all drive this one object, so the
 answer on the same data.  Streams come in as (header stamp in integer nanoseconds, Pose):
 link poses T_base_link and sensor poses T_sensor_obj; CSV rows and resumed samples come in as
 pose.Sample.  Every call returns what happened as small event objects, which the shells log
-and publish (EstimateUpdated carries the new calibration.CalibrationResult):
+and publish (EstimateUpdated carries the new calibration.Update: the estimate to publish at
+once, its CalibrationResult on first use):
 
-    SampleCaptured(index, sample), EstimateUpdated(result), Rejected(what, reason),
+    SampleCaptured(index, sample), EstimateUpdated(update), Rejected(what, reason),
     Notice(text)
 
 `add_poses` takes many poses of one stream at once (an offline replay) with the result, events
@@ -111,9 +112,24 @@ class SampleCaptured:
 
 @dataclass(frozen=True)
 class EstimateUpdated:
-    """A new estimate (calibration.CalibrationResult) exists: publish it."""
+    """
+    A new estimate exists: publish `estimate`, then report `result`.
 
-    result: object
+    update: calibration.Update; `estimate` (rotation, translation) is there at once, `result`
+    (the CalibrationResult with the quality figures) is computed on first use.
+    """
+
+    update: object
+
+    @property
+    def estimate(self):
+        """Return the published calibration.Estimate."""
+        return self.update.estimate
+
+    @property
+    def result(self):
+        """Return the calibration.CalibrationResult of the estimate."""
+        return self.update.result
 
 
 @dataclass(frozen=True)
@@ -250,7 +266,7 @@ class Session:
             else:
                 events.append(self._reject('sample', 'non-finite numbers in a pose',
                                            'non_finite'))
-        first, previous = self._sample_count(), self.result
+        first, previous = self._sample_count(), self._calibrator.update
         if self.config.defer_estimates:
             self._deferred += good
             messages = []
@@ -304,7 +320,7 @@ class Session:
     @property
     def state(self):
         """Return the state: 'waiting for poses', 'collecting' or 'estimating'."""
-        if self.result is not None:
+        if self._calibrator.update is not None:
             return STATES[2]
         if self._counts['pairs'] or self._sample_count():
             return STATES[1]
@@ -401,7 +417,7 @@ class Session:
         return None
 
     def _store(self, sample):
-        previous = self._calibrator.result
+        previous = self._calibrator.update
         if self.config.defer_estimates:
             self._deferred.append(sample)
             messages = []
@@ -414,8 +430,9 @@ class Session:
     def _estimated(self, messages, previous=None):
         """Return the events of an estimator update: its messages, then the new estimate."""
         events = [Notice(text) for text in messages]
-        if self.result is not None and self.result is not previous:
-            events.append(EstimateUpdated(self.result))
+        update = self._calibrator.update
+        if update is not None and update is not previous:
+            events.append(EstimateUpdated(update))
         return events
 
     def _reject(self, what, reason, code=''):
