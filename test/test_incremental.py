@@ -116,3 +116,18 @@ def test_incremental_result_matches_a_full_solve_of_the_same_samples():
     assert a.translation_uncertainty_mm == pytest.approx(b.translation_uncertainty_mm, rel=0.05)
     np.testing.assert_allclose(a.closed_form.translation, b.closed_form.translation, atol=1e-4)
     assert a.excitation == pytest.approx(b.excitation, rel=1e-6)
+
+
+def test_an_update_publishes_before_its_report_is_computed():
+    """The estimate is there at once; the quality figures only when first asked for, once."""
+    _, samples = synthetic(8, 16, rotation_noise_deg=0.3, translation_noise_m=0.001)
+    calibrator = Calibrator(full_solve_every=100, small=12)
+    for sample in samples:
+        calibrator.add_sample(sample)
+    update = calibrator.update
+    assert 'result' not in vars(update)            # not computed by the update itself
+    result = update.result
+    assert update.result is result and calibrator.result is result
+    np.testing.assert_array_equal(update.estimate.quaternion, result.quaternion)
+    np.testing.assert_array_equal(update.estimate.translation, result.translation)
+    assert result.method == 'refined' and result.samples == 16
