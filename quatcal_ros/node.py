@@ -602,20 +602,23 @@ def _number_text(value):
     return f'{float(value):.6g}' if np.isfinite(value) else 'nan'
 
 
-def _install_sigterm_handler():
+def _install_stop_handlers():
     """
-    SIGTERM ends the node like Ctrl-C: rclpy shuts down, spin returns, exit status 0.
+    SIGINT and SIGTERM end the node cleanly: rclpy shuts down, spin returns, exit status 0.
 
-    rclpy's own handler (installed by rclpy.init after this one, and chaining to it) wakes
-    the executor; this one also covers a SIGTERM that comes before rclpy.init. Returns the
-    list that records the signals received.
+    No KeyboardInterrupt is raised: one raised while rclpy converts a message in C++ comes out
+    as a RuntimeError from take_message (seen once in CI), not as KeyboardInterrupt. rclpy's
+    own handlers (installed by rclpy.init after these, and chaining to them) wake the
+    executor; these also cover a signal that comes before rclpy.init. Returns the list that
+    records the signals received.
     """
     received = []
 
-    def on_sigterm(signum, frame):
+    def on_signal(signum, frame):
         received.append(signum)
         rclpy.try_shutdown()
-    signal.signal(signal.SIGTERM, on_sigterm)
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, on_signal)
     return received
 
 
@@ -636,7 +639,7 @@ def _start_node():
 
 def main(args=None):
     """Run the calibrator node; return 2 (after logging the reason) for invalid parameters."""
-    terminated = _install_sigterm_handler()
+    terminated = _install_stop_handlers()
     rclpy.init(args=args)
     if terminated:
         rclpy.try_shutdown()
