@@ -616,7 +616,10 @@ def _install_stop_handlers():
 
     def on_signal(signum, frame):
         received.append(signum)
-        rclpy.try_shutdown()
+        try:
+            rclpy.try_shutdown()
+        except RuntimeError:   # RCLError: rclpy's own handler shut the context down meanwhile
+            pass
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, on_signal)
     return received
