@@ -266,16 +266,25 @@ def _near_half_turns(motions):
 def _screen(motions, options):
     """Motions usable for the estimate (bool mask) and the |theta_a - theta_b| limit."""
     angle_a, angle_b = motions.angle_a, motions.angle_b
-    usable = np.minimum(angle_a, angle_b) >= np.radians(options.min_motion_deg)
-    mismatch = np.abs(angle_a - angle_b)
+    large = _usable(angle_a, angle_b, options.min_motion_deg, np.inf)
     limit = np.inf
-    if options.robust and np.any(usable[:MISMATCH_SCALE_MOTIONS]):
+    if options.robust and np.any(large[:MISMATCH_SCALE_MOTIONS]):
         # |theta_a - theta_b| of a good motion is Gaussian: 5 robust sigmas, within bounds.
-        sigma = np.median(mismatch[:MISMATCH_SCALE_MOTIONS][usable[:MISMATCH_SCALE_MOTIONS]]) \
-            / 0.6745
+        mismatch = np.abs(angle_a - angle_b)[:MISMATCH_SCALE_MOTIONS]
+        sigma = np.median(mismatch[large[:MISMATCH_SCALE_MOTIONS]]) / 0.6745
         limit = np.clip(5.0 * sigma, np.radians(0.1), np.radians(options.max_angle_mismatch_deg))
-        usable &= mismatch <= limit
-    return usable, limit
+    return _usable(angle_a, angle_b, options.min_motion_deg, limit), limit
+
+
+def _usable(angle_a, angle_b, min_motion_deg, limit):
+    """
+    Return which motions are large enough (min_motion_deg) with angles within `limit`.
+
+    angle_a, angle_b: the motions' rotation angles of link and sensor (radians); the smaller
+    must reach min_motion_deg, and they may differ by at most `limit` (radians).
+    """
+    return ((np.minimum(angle_a, angle_b) >= np.radians(min_motion_deg))
+            & (np.abs(angle_a - angle_b) <= limit))
 
 
 def _rejected_motions(motions, usable, sample_ok, limit, options):
@@ -628,6 +637,5 @@ class Calibrator:
         if self.options.pairs == 'consecutive':
             partners = partners[-1:]
         new = Motions.between(rotations, partners, np.full(len(partners), k))
-        good = np.minimum(new.angle_a, new.angle_b) >= np.radians(self.options.min_motion_deg)
-        good &= np.abs(new.angle_a - new.angle_b) <= old.mismatch_limit
-        return new.subset(good)
+        return new.subset(_usable(new.angle_a, new.angle_b, self.options.min_motion_deg,
+                                  old.mismatch_limit))

@@ -95,7 +95,8 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
         sigma_r, sigma_t = _noise(*residuals(link_q, link_t, sensor_q, sensor_t,
                                              *_unpack(x, x_q, x_t, o_q, o_t)), n)
     model = _unpack(x, x_q, x_t, o_q, o_t)
-    whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t)
+    whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t,
+                              link_R)
     return _refinement(model, whitened, _normal_matrix(whitened, J), sigma_r, sigma_t,
                        converged)
 

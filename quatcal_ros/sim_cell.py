@@ -124,6 +124,15 @@ def read_config(node):
     return SimCellConfig(**values)
 
 
+
+def _due_times(next_index, until_ns, rate_hz):
+    """Return the grid times (ns) from sample `next_index` up to until_ns, or None if none."""
+    last = simulation.last_grid_index(until_ns, rate_hz)
+    if last < next_index:
+        return None
+    return simulation.grid_times_ns(np.arange(next_index, last + 1), rate_hz)
+
+
 class SimCell(Node):
     """Publishes link and sensor poses of a simulated cell, and its ground truth."""
 
@@ -195,12 +204,10 @@ class SimCell(Node):
 
     def _publish_link(self, t_ns):
         """Publish every link sample due at trajectory time t_ns (all of them if behind)."""
-        rate = self.config.link_rate_hz
-        last = simulation.last_grid_index(t_ns, rate)
-        if last < self._next_link:
+        times = _due_times(self._next_link, t_ns, self.config.link_rate_hz)
+        if times is None:
             return
-        times = simulation.grid_times_ns(np.arange(self._next_link, last + 1), rate)
-        self._next_link = last + 1
+        self._next_link += len(times)
         positions, quaternions = self._trajectory.link_poses(times)
         for t, p, q in zip(times.tolist(), positions, quaternions):
             self._link_pub.publish(conversions.pose_stamped_msg(
@@ -208,12 +215,10 @@ class SimCell(Node):
 
     def _publish_frames(self, exposed_before_ns):
         """Publish the frames exposed up to exposed_before_ns (now minus the latency)."""
-        rate = self.config.sensor_rate_hz
-        last = simulation.last_grid_index(exposed_before_ns, rate)
-        if last < self._next_frame:
+        times = _due_times(self._next_frame, exposed_before_ns, self.config.sensor_rate_hz)
+        if times is None:
             return
-        times = simulation.grid_times_ns(np.arange(self._next_frame, last + 1), rate)
-        self._next_frame = last + 1
+        self._next_frame += len(times)
         true_p, true_q = self.cell.sensor_poses(*self._trajectory.link_poses(times))
         positions, quaternions, kept, _ = self._sensor.observe(true_p, true_q)
         for t, p, q in zip(times[kept].tolist(), positions[kept], quaternions[kept]):

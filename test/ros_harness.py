@@ -4,7 +4,19 @@ import signal
 import subprocess
 import time
 
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import QuaternionStamped
+from quatcal_ros.node import DIAGNOSTIC_NAME
 import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy
+from rclpy.qos import QoSProfile
+from rclpy.qos import ReliabilityPolicy
+
+# The QoS of the calibrator's ~/rotation and ~/transform.
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class SpinMixin:
@@ -38,6 +50,45 @@ class SpinMixin:
         deadline = time.monotonic() + seconds
         while time.monotonic() < deadline:
             self.executor.spin_once(timeout_sec=self.spin_step)
+
+
+class ProcessWatcher:
+    """
+    A node of its own (private context on `domain_id`) that watches calibrator processes.
+
+    It collects /calibrator/rotation messages in `rotations` and the calibrator's
+    /diagnostics statuses in `statuses`; subclasses add publishers and subscriptions to
+    `self.node` after calling this constructor.
+    """
+
+    def __init__(self, name, domain_id):
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.rotations, self.statuses = [], []
+        self.node.create_subscription(QuaternionStamped, '/calibrator/rotation',
+                                      self.rotations.append, LATCHED)
+        self.node.create_subscription(
+            DiagnosticArray, '/diagnostics',
+            lambda msg: self.statuses.extend(s for s in msg.status if s.name == DIAGNOSTIC_NAME),
+            10)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def spin_until(self, condition, timeout, what, processes=()):
+        """Spin until condition() holds; fail when a process exits or after `timeout` s."""
+        deadline = time.monotonic() + timeout
+        while not condition():
+            for process in processes:
+                assert process.poll() is None, f'{process.args} exited with {process.returncode}'
+            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def close(self):
+        """Stop spinning, destroy the node and shut the private context down."""
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
 
 
 def stop_process(process, sig=signal.SIGINT, timeout=15.0):

@@ -8,10 +8,11 @@ or foreign files and journals that are not resumed are moved aside with a timest
 
 import errno
 import os
-from pathlib import Path
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from journal_files import aside_files
+from journal_files import write_journal
 import numpy as np
 from numpy.testing import assert_allclose
 import pytest
@@ -49,15 +50,7 @@ def started(path, header=HEADER, resume=False):
 
 
 def written_journal(path, samples, header=HEADER):
-    opened, _ = started(path, header)
-    for sample in samples:
-        opened.append(sample)
-    opened.close()
-    return path.read_bytes()
-
-
-def aside_files(directory, tag):
-    return sorted(p for p in Path(directory).iterdir() if f'.{tag}-' in p.name)
+    return write_journal(path, samples, header, now=NOW)
 
 
 # --- format -----------------------------------------------------------------------------------

@@ -32,10 +32,11 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.qos import QoSProfile
 from rclpy.qos import ReliabilityPolicy
+from ros_harness import LATCHED
+from ros_harness import ProcessWatcher
 from ros_harness import SpinMixin
 from ros_harness import stop_process
 from std_srvs.srv import Trigger
@@ -45,8 +46,6 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 DOMAIN_ID = 53
 PROCESS_DOMAIN_ID = 54
 NS = simulation.NS_PER_S
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
 
@@ -398,37 +397,14 @@ def _start(tool, *ros_args, log_path):
                             stdout=log_path.open('w'), stderr=subprocess.STDOUT)
 
 
-class Listener:
+class Listener(ProcessWatcher):
     """A node in the test process that listens to the processes' outputs."""
 
     def __init__(self):
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=PROCESS_DOMAIN_ID)
-        self.node = rclpy.create_node('test_listener', context=self.context)
-        self.rotations, self.truths, self.statuses = [], [], []
-        self.node.create_subscription(QuaternionStamped, '/calibrator/rotation',
-                                      self.rotations.append, LATCHED)
+        super().__init__('test_listener', PROCESS_DOMAIN_ID)
+        self.truths = []
         self.node.create_subscription(TransformStamped, '/sim_cell/ground_truth',
                                       self.truths.append, LATCHED)
-        self.node.create_subscription(
-            DiagnosticArray, '/diagnostics',
-            lambda msg: self.statuses.extend(s for s in msg.status if s.name == DIAGNOSTIC_NAME),
-            10)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-
-    def spin_until(self, condition, timeout, what, processes=()):
-        deadline = time.monotonic() + timeout
-        while not condition():
-            for process in processes:
-                assert process.poll() is None, f'{process.args} exited with {process.returncode}'
-            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
-            self.executor.spin_once(timeout_sec=0.05)
-
-    def close(self):
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
 
 
 def test_processes_converge_to_the_ground_truth_and_exit_cleanly(tmp_path):

@@ -20,9 +20,10 @@ import subprocess
 import sys
 import time
 
-from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from geometry_msgs.msg import QuaternionStamped
+from journal_files import aside_files
+from journal_files import write_journal
 import numpy as np
 from numpy.testing import assert_allclose
 import pytest
@@ -35,7 +36,6 @@ from quatcal_ros import quaternion as quat
 from quatcal_ros import simulation
 from quatcal_ros.journal import JournalHeader
 from quatcal_ros.node import CalibratorNode
-from quatcal_ros.node import DIAGNOSTIC_NAME
 from quatcal_ros.node import NODE_NAME
 from quatcal_ros.node_config import ConfigError
 from quatcal_ros.node_config import NodeConfig
@@ -47,9 +47,10 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.logging import LoggingSeverity
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy
 from rclpy.qos import QoSProfile
 from rclpy.qos import ReliabilityPolicy
+from ros_harness import LATCHED
+from ros_harness import ProcessWatcher
 from ros_harness import SpinMixin
 from std_srvs.srv import Trigger
 
@@ -57,8 +58,6 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 DOMAIN_ID = 81
 PROCESS_DOMAIN_ID = 82
 NS = simulation.NS_PER_S
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 HEADER = JournalHeader('eye_in_hand', 'tool0', 'camera')
 SAMPLE_LOG = re.compile(r'sample (\d+) captured at stamp ([0-9.]+) s')
@@ -84,18 +83,6 @@ def synthetic_samples(n, seed=1, noise_deg=0.1):
     samples, _ = simulation.samples(rng, cell, n, rotation_noise_deg=noise_deg,
                                     translation_noise_m=0.001)
     return cell, samples
-
-
-def write_journal(path, samples, header=HEADER):
-    opened, _ = journal.start(path, header, resume=False)
-    for sample in samples:
-        opened.append(sample)
-    opened.close()
-    return path.read_bytes()
-
-
-def aside_files(directory, tag):
-    return sorted(p for p in Path(directory).iterdir() if f'.{tag}-' in p.name)
 
 
 def stream_events(streams):
@@ -467,43 +454,20 @@ def _calibrator_command(*ros_args):
     return [sys.executable, '-m', 'quatcal_ros', 'calibrator', '--ros-args', *ros_args]
 
 
-class Feeder:
+class Feeder(ProcessWatcher):
     """Publishes the stream to the calibrator process and listens to its outputs."""
 
     def __init__(self, events):
+        super().__init__('resume_test_feeder', PROCESS_DOMAIN_ID)
         self.events = events
         self.next = 0
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=PROCESS_DOMAIN_ID)
-        self.node = rclpy.create_node('resume_test_feeder', context=self.context)
         self.publishers = {name: self.node.create_publisher(PoseStamped, name, RELIABLE)
                            for name in ('link_pose', 'sensor_pose')}
-        self.rotations, self.statuses = [], []
-        self.node.create_subscription(QuaternionStamped, '/calibrator/rotation',
-                                      self.rotations.append, LATCHED)
-        self.node.create_subscription(
-            DiagnosticArray, '/diagnostics',
-            lambda msg: self.statuses.extend(s for s in msg.status if s.name == DIAGNOSTIC_NAME),
-            10)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-
-    def close(self):
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-
-    def spin_until(self, condition, timeout, what, process):
-        deadline = time.monotonic() + timeout
-        while not condition():
-            assert process.poll() is None, f'the calibrator exited with {process.returncode}'
-            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
-            self.executor.spin_once(timeout_sec=0.05)
 
     def connect(self, process):
         self.spin_until(lambda: all(p.get_subscription_count()
                                     for p in self.publishers.values()),
-                        60.0, 'the calibrator to subscribe', process)
+                        60.0, 'the calibrator to subscribe', (process,))
         settle = time.monotonic() + 0.5    # and for the other side to match ours
         while time.monotonic() < settle:
             self.executor.spin_once(timeout_sec=0.05)
@@ -579,7 +543,7 @@ def test_sigkill_mid_session_loses_no_sample_and_resume_continues(tmp_path):
                                    env=env, cwd=tmp_path, stdout=second_log.open('w'),
                                    stderr=subprocess.STDOUT)
         feeder.spin_until(lambda: feeder.rotations and feeder.statuses, 60.0,
-                          'the resumed estimate and diagnostics', process)
+                          'the resumed estimate and diagnostics', (process,))
         assert_allclose(rotation_of(feeder.rotations[-1]), canonical(expected.quaternion),
                         rtol=0, atol=1e-9)
         assert feeder.samples_reported() == len(kept)
@@ -589,7 +553,7 @@ def test_sigkill_mid_session_loses_no_sample_and_resume_continues(tmp_path):
         feeder.connect(process)
         feeder.feed_until(lambda: journal_count(samples_file) >= len(kept) + 3, process)
         feeder.spin_until(lambda: feeder.samples_reported() == journal_count(samples_file),
-                          10.0, 'diagnostics to count the journal', process)
+                          10.0, 'diagnostics to count the journal', (process,))
     finally:
         if process.poll() is None:
             process.send_signal(signal.SIGINT)
