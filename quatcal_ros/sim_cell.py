@@ -124,7 +124,6 @@ def read_config(node):
     return SimCellConfig(**values)
 
 
-
 def _due_times(next_index, until_ns, rate_hz):
     """Return the grid times (ns) from sample `next_index` up to until_ns, or None if none."""
     last = simulation.last_grid_index(until_ns, rate_hz)
