@@ -413,10 +413,13 @@ def _update(rotations, positions, q_z, fit, info, sample_ok, motion_count, rejec
     previous_refinement, takes a warm-started step from it (incremental updates), and is
     checked against the closed form's rotation. The report (_report) follows on demand.
     """
-    residuals = quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok]
-    sigma = quality.noise_sigma(residuals)
-    covariance = info.covariance(sigma)
-    closed_uncertainty = quality.uncertainty_deg(covariance)
+    @cache
+    def closed_rotation():   # (noise sigma, covariance, uncertainty) of the closed form q_z
+        residuals = quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok]
+        sigma = quality.noise_sigma(residuals)
+        covariance = info.covariance(sigma)
+        return sigma, covariance, quality.uncertainty_deg(covariance)
+
     warnings = list(warnings)
     refined, refinement, translation = None, None, None
     if options.method == 'refined' and np.sum(sample_ok) >= MIN_REFINE_SAMPLES:
@@ -424,12 +427,12 @@ def _update(rotations, positions, q_z, fit, info, sample_ok, motion_count, rejec
                   rotations.sensor[sample_ok], positions.sensor[sample_ok])
         if previous_refinement is None:
             translation = solve_translation(rotations, positions, q_z, info, sample_ok,
-                                            covariance)   # the refinement's starting point
+                                            closed_rotation()[1])   # the starting point
             refinement = refine(*arrays, q_z, translation.translation)
         else:
             refinement = refine_from(previous_refinement, *arrays,
                                      rotations.link_matrices[sample_ok])
-        if _plausible(refinement, q_z, closed_uncertainty):
+        if _plausible(refinement, q_z, lambda: closed_rotation()[2]):
             refined = Estimate(refinement.quaternion, refinement.translation,
                                refinement.uncertainty_deg,
                                refinement.translation_uncertainty_mm)
@@ -440,14 +443,15 @@ def _update(rotations, positions, q_z, fit, info, sample_ok, motion_count, rejec
 
     @cache
     def closed_form():
+        sigma, covariance, uncertainty = closed_rotation()
         found = translation or solve_translation(rotations, positions, q_z, info, sample_ok,
                                                  covariance)
-        return found, Estimate(q_z, found.translation, closed_uncertainty, found.uncertainty_mm)
+        return found, Estimate(q_z, found.translation, uncertainty, found.uncertainty_mm)
 
     def report():
         found, closed = closed_form()
         noise = ((refinement.rotation_noise_deg, refinement.translation_noise_mm) if refined
-                 else (np.degrees(sigma), 1e3 * found.noise_m))
+                 else (np.degrees(closed_rotation()[0]), 1e3 * found.noise_m))
         return _report(rotations, fit, info, sample_ok, motion_count, rejected, warnings,
                        options, closed, refined, noise)
 
@@ -478,11 +482,21 @@ def _report(rotations, fit, info, sample_ok, motion_count, rejected, warnings, o
 
 
 def _plausible(refinement, q_closed, closed_uncertainty_deg):
-    """Whether the refinement converged near the closed form (within 10 of its sigmas)."""
+    """
+    Whether the refinement converged near the closed form (within 10 of its sigmas + 1 deg).
+
+    closed_uncertainty_deg: a function that returns the closed form's uncertainty, called
+    only when the refinement moved farther than the smallest limit (1.1 deg).
+    """
+    if not (refinement.converged and np.all(np.isfinite(refinement.quaternion))):
+        return False
     moved = np.degrees(quat.angle_between(refinement.quaternion, q_closed))
-    limit = 10.0 * max(closed_uncertainty_deg, 0.01) + 1.0
-    return bool(refinement.converged and np.all(np.isfinite(refinement.quaternion))
-                and moved < limit)
+    return bool(moved < _plausible_limit(0.0)
+                or moved < _plausible_limit(closed_uncertainty_deg()))
+
+
+def _plausible_limit(closed_uncertainty_deg):
+    return 10.0 * max(closed_uncertainty_deg, 0.01) + 1.0
 
 
 # --- frame-convention check -------------------------------------------------------------
@@ -540,8 +554,9 @@ class Calibrator:
     A new sample is tested against the current estimate, its motions screened and added to the
     least-squares system (O(1) per motion), and the estimate re-solved: cheap enough for the
     live node.  Every `full_solve_every` samples (and while there are few) the full robust
-    pipeline of `calibrate` runs again, so an early misjudgement cannot persist.  `update`
-    holds the latest estimate at once and its report (`result`) on first use (Update).
+    pipeline of `calibrate` runs again, so an early misjudgement cannot persist; the live node
+    has it run after the quick update instead (add_sample(full_solve_later=True), finish()).
+    `update` holds the latest estimate at once and its report (`result`) on first use (Update).
     """
 
     def __init__(self, options=CalibrationOptions(), full_solve_every=10, small=12):
@@ -555,6 +570,7 @@ class Calibrator:
         self.samples = []
         self.last_error = 'no samples yet'
         self._solution = None
+        self.full_solve_due = False   # left for finish() by add_sample(full_solve_later=True)
 
     @property
     def update(self):
@@ -566,13 +582,29 @@ class Calibrator:
         """Return the latest CalibrationResult, or None before two usable motions."""
         return self._solution.update.result if self._solution else None
 
-    def add_sample(self, sample):
-        """Add one still sample and re-estimate; returns messages describing what changed."""
+    def add_sample(self, sample, full_solve_later=False):
+        """
+        Add one still sample and re-estimate; returns messages describing what changed.
+
+        With full_solve_later, a full solve that falls due on this sample waits for finish():
+        the quick incremental update comes first (the live node publishes it in between). A
+        full solve still due from the previous sample runs before anything else.
+        """
+        messages = self.finish()
         self.samples.append(sample)
         n = len(self.samples)
-        if self._solution is None or n <= self.small or n % self.full_solve_every == 0:
-            return self._full_solve()
-        return self._add_incrementally(sample)
+        due = n % self.full_solve_every == 0
+        if self._solution is None or n <= self.small or (due and not full_solve_later):
+            return messages + self._full_solve()
+        messages += self._add_incrementally(sample)
+        self.full_solve_due = due
+        return messages
+
+    def finish(self):
+        """Run the full solve that add_sample left due, if any; return its messages."""
+        if not self.full_solve_due:
+            return []
+        return self._full_solve()
 
     def add_samples(self, samples):
         """Add many samples (a file, a resumed session) and estimate once."""
@@ -585,6 +617,7 @@ class Calibrator:
         return self._full_solve()
 
     def _full_solve(self):
+        self.full_solve_due = False
         try:
             self._solution = _solve(self.samples, self.options)
         except DegenerateMotionError as error:

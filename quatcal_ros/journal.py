@@ -13,7 +13,8 @@ percent-encoded (urllib.parse.quote) when they hold anything but letters, digits
 
 Crash safety: the two header lines are written with persistence.atomic_write_text (temporary
 file, fsync, rename), so a journal either exists whole or not at all.  Each sample is then
-appended as one line with a single write and an fsync before the caller reports it captured,
+appended as one line with a single write and an fsync before the caller reports it captured
+(the live node publishes the estimate between the two: `append(sample, sync=False)`, `sync()`),
 so a crash (even SIGKILL or a power cut) loses at most the line being written.  Reading
 tolerates exactly that: a last line without its end of line, or a last line with too few
 fields, is an interrupted write and is dropped with a notice.  Anything else that does not
@@ -238,6 +239,7 @@ class Journal:
         self._lock_fd = lock_fd
         self._fd = None
         self._unwritten = []
+        self._unsynced = False
         self._open()
 
     def _open(self):
@@ -264,19 +266,22 @@ class Journal:
         """Return the number of samples not yet on disk (after a failed write)."""
         return len(self._unwritten)
 
-    def append(self, sample):
+    def append(self, sample, sync=True):
         """
         Append one sample (pose.Sample) and fsync; return when it is on disk.
 
+        With sync=False the line is written (so it survives the process, SIGKILL included)
+        but not fsync'd: call sync() to have it survive a power cut too. The live node
+        publishes the new estimate in between.
         :raises OSError: when it cannot be written; the sample is kept and written before the
             next one, and any partial line is cut off first.
         """
         self._unwritten.append(format_samples([sample], header=False).encode('utf-8'))
         self.count += 1
-        self.flush()
+        self.flush(sync)
 
-    def flush(self):
-        """Write the samples not yet on disk (see append); raise OSError on failure."""
+    def flush(self, sync=True):
+        """Write the samples not yet in the file (see append), fsync'd unless sync=False."""
         while self._unwritten:
             data = self._unwritten[0]
             if os.fstat(self._fd).st_size != self._size:
@@ -284,9 +289,17 @@ class Journal:
             written = 0
             while written < len(data):
                 written += os.write(self._fd, data[written:])
-            os.fsync(self._fd)
+            self._unsynced = True
             self._size += len(data)
             self._unwritten.pop(0)
+        if sync:
+            self.sync()
+
+    def sync(self):
+        """Fsync the lines written since the last sync; raise OSError on failure."""
+        if self._unsynced:
+            os.fsync(self._fd)
+            self._unsynced = False
 
     def set_header(self, header):
         """
@@ -322,13 +335,18 @@ class Journal:
             self.path.unlink()    # no samples: nothing to keep
         self.count = 0
         self._unwritten = []
+        self._unsynced = False
         _write_empty(self.path, self.header)
         self._open()
         return moved
 
     def close(self, unlock=True):
-        """Close the file (and release the lock unless unlock=False)."""
+        """Close the file, fsync'd (and release the lock unless unlock=False)."""
         if self._fd is not None:
+            try:
+                self.sync()
+            except OSError:
+                pass   # shutting down: the lines are written, only a power cut loses them
             os.close(self._fd)
             self._fd = None
         if unlock and self._lock_fd is not None:

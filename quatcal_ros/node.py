@@ -226,15 +226,19 @@ class CalibratorNode(Node):
         """
         Journal new samples, publish each new estimate, then log the session's events.
 
-        The journal comes first (a sample is on disk before anything reports it), the
-        publication next (its latency is what users wait for), the log lines last.
+        The journal comes first: a sample is in the file (safe from a crash of the process)
+        before the estimate is published, and fsync'd (safe from a power cut) before it is
+        reported captured. The publication comes as early as that allows (its latency is what
+        users wait for), the log lines last.
         """
-        for event in events:
-            if isinstance(event, SampleCaptured):
-                self._journal_sample(event)
+        captured = [event for event in events if isinstance(event, SampleCaptured)]
+        for event in captured:
+            self._write_journal('append', event.sample, sync=False)
         for event in events:
             if isinstance(event, EstimateUpdated):
                 self.publish_estimate(event.estimate)   # the report is not needed for it
+        if captured:
+            self._write_journal('sync')
         for event in events:
             if isinstance(event, SampleCaptured):
                 self._log_sample(event)
@@ -244,6 +248,11 @@ class CalibratorNode(Node):
                 self._log_rejection(event)
             elif isinstance(event, Notice):
                 self.get_logger().info(event.text)
+        # A full robust solve that fell due on a new sample runs now, after the sample's quick
+        # estimate is out (SessionConfig.early_estimates), and its estimate follows.
+        later = self.session.finish()
+        if later:
+            self.handle_events(later)
 
     def _log_sample(self, event):
         link = event.sample.link
@@ -371,18 +380,24 @@ class CalibratorNode(Node):
                                        f'{self.session.last_error}')
         return opened
 
-    def _journal_sample(self, event):
-        """Append a captured sample to samples_file (fsync'd); a failure is kept in view."""
+    def _write_journal(self, method, *args, **kwargs):
+        """Call the samples_file Journal's `method`; a failure is kept in view."""
         if self.journal is None:
             return
         try:
-            self.journal.append(event.sample)
+            getattr(self.journal, method)(*args, **kwargs)
             self._journal_error = None
         except OSError as error:
-            self._journal_error = (
-                f'{self.journal.unwritten} captured samples not yet saved to '
-                f'{self.journal.path} ({error.strerror or error}): they are kept and written '
-                'with the next sample')
+            reason = error.strerror or error
+            if self.journal.unwritten:
+                self._journal_error = (
+                    f'{self.journal.unwritten} captured samples not yet saved to '
+                    f'{self.journal.path} ({reason}): they are kept and written with the next '
+                    'sample')
+            else:
+                self._journal_error = (
+                    f'could not fsync {self.journal.path} ({reason}): the samples are in the '
+                    'file but may not survive a power cut; tried again with the next sample')
             self.get_logger().error(self._journal_error)
 
     def _restart_journal(self):

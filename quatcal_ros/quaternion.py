@@ -41,12 +41,19 @@ def multiply(a, b):
     """Hamilton product a (x) b of eq. (6)-(8), (w, x, y, z), broadcasting over leading axes."""
     a = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float)
+    if a.ndim == 1 and b.ndim == 1:   # two quaternions: the same arithmetic on plain floats
+        return np.array(_product(*a.tolist(), *b.tolist()))
     aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
     bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz,
-                     aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw], axis=-1)
+    return np.stack(_product(aw, ax, ay, az, bw, bx, by, bz), axis=-1)
+
+
+def _product(aw, ax, ay, az, bw, bx, by, bz):
+    """Return the components of the Hamilton product (eq. (8)) of a and b, as a list."""
+    return [aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw]
 
 
 def conjugate(q):
@@ -107,15 +114,22 @@ def matrix_from_quaternion(p):
 
     A = (e0^2 - e.e) I + 2 (e e^T + e0 skew(e)); p is normalised first.
     """
-    w, x, y, z = np.moveaxis(normalize(p), -1, 0)
+    p = normalize(p)
+    if p.ndim == 1:   # one quaternion: the same arithmetic on plain floats
+        return np.array(_matrix_rows(*p.tolist()))
+    w, x, y, z = np.moveaxis(p, -1, 0)
     out = np.empty(w.shape + (3, 3))
-    out[..., 0, 0] = w * w + x * x - y * y - z * z
-    out[..., 1, 1] = w * w - x * x + y * y - z * z
-    out[..., 2, 2] = w * w - x * x - y * y + z * z
-    out[..., 0, 1], out[..., 1, 0] = 2.0 * (x * y - w * z), 2.0 * (x * y + w * z)
-    out[..., 0, 2], out[..., 2, 0] = 2.0 * (x * z + w * y), 2.0 * (x * z - w * y)
-    out[..., 1, 2], out[..., 2, 1] = 2.0 * (y * z - w * x), 2.0 * (y * z + w * x)
+    for row, entries in enumerate(_matrix_rows(w, x, y, z)):
+        for column, entry in enumerate(entries):
+            out[..., row, column] = entry
     return out
+
+
+def _matrix_rows(w, x, y, z):
+    """Return the rows of the rotation matrix (eq. (20)) of the unit quaternion (w, x, y, z)."""
+    return [[w * w + x * x - y * y - z * z, 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
+            [2.0 * (x * y + w * z), w * w - x * x + y * y - z * z, 2.0 * (y * z - w * x)],
+            [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), w * w - x * x - y * y + z * z]]
 
 
 def quaternion_from_matrix(A):

@@ -53,10 +53,15 @@ def residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, link_R=Non
     R_X^T w_i, w_i = R_L^T (t_O - t_L) - t_X. link_R: the link rotation matrices, when the
     caller has them (else from link_q).
     """
+    return _residuals(link_q, sensor_q, sensor_t, x_q, o_q, quat.matrix_from_quaternion(x_q),
+                      _lever(link_q, link_t, x_t, o_t, link_R))
+
+
+def _residuals(link_q, sensor_q, sensor_t, x_q, o_q, R_X, lever):
+    """Return `residuals` given X's rotation matrix and the levers w_i."""
     fixed = quat.plus_matrix(quat.conjugate(o_q)) @ quat.minus_matrix(x_q)
     rotation = quat.rotation_vector(quat.multiply(link_q @ fixed.T, sensor_q))
-    R_X = quat.matrix_from_quaternion(x_q)
-    return rotation, sensor_t - _lever(link_q, link_t, x_t, o_t, link_R) @ R_X
+    return rotation, sensor_t - lever @ R_X
 
 
 def _lever(link_q, link_t, x_t, o_t, link_R=None):
@@ -97,8 +102,8 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
     model = _unpack(x, x_q, x_t, o_q, o_t)
     whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t,
                               link_R)
-    return _refinement(model, whitened, _normal_matrix(whitened, J), sigma_r, sigma_t,
-                       converged)
+    covariance = _inverse(_normal_matrix(J, _soft_l1_weights(whitened)))
+    return _refinement(model, whitened, covariance, sigma_r, sigma_t, converged)
 
 
 def refine_from(previous, link_q, link_t, sensor_q, sensor_t, link_R=None):
@@ -121,20 +126,23 @@ def refine_from(previous, link_q, link_t, sensor_q, sensor_t, link_R=None):
     sigma_t = max(previous.translation_noise_mm / 1e3, MIN_TRANSLATION_NOISE)
     whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t,
                               link_R)
-    normal = _normal_matrix(whitened, J)
-    step = _gauss_newton_step(normal, J.T @ (_soft_l1_weights(whitened) * whitened))
-    return _refinement(_unpack(step, *model), whitened + J @ step, normal, sigma_r, sigma_t,
-                       bool(np.all(np.isfinite(step))))
+    weights = _soft_l1_weights(whitened)
+    covariance = _inverse(_normal_matrix(J, weights))
+    step = -covariance @ (J.T @ (weights * whitened))   # the Gauss-Newton step
+    return _refinement(_unpack(step, *model), whitened + J @ step, covariance, sigma_r,
+                       sigma_t, bool(np.all(np.isfinite(step))))
 
 
 def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t,
                 link_R=None):
     """Return the whitened residuals (6N: rotations, then translations) and their Jacobian."""
-    link_R = quat.matrix_from_quaternion(link_q) if link_R is None else link_R
-    whitened = _whitened(*residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t,
-                                    link_R), sigma_r, sigma_t)
-    return whitened, whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t,
-                                       link_R)
+    R_L = quat.matrix_from_quaternion(link_q) if link_R is None else link_R
+    R_X = quat.matrix_from_quaternion(x_q)
+    lever = _lever(link_q, link_t, x_t, o_t, R_L)
+    whitened = _whitened(*_residuals(link_q, sensor_q, sensor_t, x_q, o_q, R_X, lever),
+                         sigma_r, sigma_t)
+    return whitened, _whitened_jacobian(R_L, R_X, quat.matrix_from_quaternion(o_q), lever,
+                                        sigma_r, sigma_t)
 
 
 def _whitened(rotation, translation, sigma_r, sigma_t):
@@ -142,29 +150,28 @@ def _whitened(rotation, translation, sigma_r, sigma_t):
     return np.concatenate([(rotation / sigma_r).ravel(), (translation / sigma_t).ravel()])
 
 
-def _normal_matrix(whitened, J):
-    """Return J^T W J with the soft-L1 weights W of the whitened residuals."""
-    return J.T @ (_soft_l1_weights(whitened)[:, None] * J)
+def _normal_matrix(J, weights):
+    """Return J^T W J with W = diag(weights) (the soft-L1 weights of the residuals)."""
+    return J.T @ (weights[:, None] * J)
 
 
-def _gauss_newton_step(normal, gradient):
-    """Return the step -normal^-1 gradient (12 parameters)."""
+def _inverse(normal):
+    """Return the inverse of a normal matrix; the pseudo-inverse when it is singular."""
     try:
-        return -np.linalg.solve(normal, gradient)
-    except np.linalg.LinAlgError:   # degenerate samples: the minimum-norm step
-        return -np.linalg.lstsq(normal, gradient, rcond=None)[0]
+        return np.linalg.inv(normal)
+    except np.linalg.LinAlgError:   # degenerate samples: minimum-norm steps
+        return np.linalg.pinv(normal)
 
 
-def _refinement(model, whitened, normal, sigma_r, sigma_t, converged):
+def _refinement(model, whitened, covariance, sigma_r, sigma_t, converged):
     """
-    Return the Refinement of model (X, O) with its whitened residuals and normal matrix.
+    Return the Refinement of model (X, O) with its whitened residuals and covariance.
 
     The noise levels are re-estimated from the residuals; the covariance is (J^T W J)^-1 of
     the whitened problem with the soft-L1 weights W (whitened with the noise levels the fit
     used).
     """
     x_q, x_t, o_q, o_t = model
-    covariance = np.linalg.pinv(normal)
     n = len(whitened) // 6
     noise_r, noise_t = _noise(whitened[:3 * n] * sigma_r, whitened[3 * n:] * sigma_t, n)
     return Refinement(
@@ -199,11 +206,15 @@ def whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t, link
         rotation residual:     d/da = R_M^T,  d/db = -R_O^T
         translation residual:  d/da = -R_X^T skew(w),  d/dt_X = R_X^T,  d/dt_O = -R_X^T R_L^T
     """
-    n = len(link_q)
     R_L = quat.matrix_from_quaternion(link_q) if link_R is None else link_R
-    R_X = quat.matrix_from_quaternion(x_q)
-    R_O = quat.matrix_from_quaternion(o_q)
-    w = _lever(link_q, link_t, x_t, o_t, R_L)
+    return _whitened_jacobian(R_L, quat.matrix_from_quaternion(x_q),
+                              quat.matrix_from_quaternion(o_q),
+                              _lever(link_q, link_t, x_t, o_t, R_L), sigma_r, sigma_t)
+
+
+def _whitened_jacobian(R_L, R_X, R_O, w, sigma_r, sigma_t):
+    """Return `whitened_jacobian` given the rotation matrices and the levers w_i."""
+    n = len(R_L)
     J = np.zeros((2, n, 3, 12))
     J[0, :, :, 0:3] = R_O.T @ R_L / sigma_r
     J[0, :, :, 6:9] = -R_O.T / sigma_r

@@ -15,6 +15,10 @@ once, its CalibrationResult on first use):
 included, of adding them one by one.  With `SessionConfig.defer_estimates` the session only
 collects samples, and `estimate()` estimates once from all of them (an offline replay, whose
 answer is that of `solve` on its samples); the live node estimates after every sample.
+Every tenth sample or so the estimator re-runs its full robust solve (calibration.Calibrator);
+with `SessionConfig.early_estimates` that waits for `finish()`, so the sample's quick
+(incremental) estimate comes out first, and the live node publishes it before calling finish().
+The next input runs a full solve still due.
 
 Time that goes backwards on a stream by more than `time_jump_ns` (a bag played again, a clock
 reset) starts a new timeline: the pairing buffers are cleared, the samples are kept.  Smaller
@@ -56,6 +60,9 @@ class SessionConfig:
     sensor_offset_ns: int = 0
     # Collect samples without estimating until estimate() (module docstring).
     defer_estimates: bool = False
+    # Quick estimates first (the live node): a full solve that falls due on a sample waits
+    # for finish() (module docstring).
+    early_estimates: bool = False
 
     def __post_init__(self):
         if self.time_jump_ns < 0:
@@ -289,6 +296,13 @@ class Session:
             return []
         return self._estimated(self._calibrator.add_samples(deferred))
 
+    def finish(self):
+        """Run the full solve that an early estimate left due; return the events (or [])."""
+        if not self._calibrator.full_solve_due:
+            return []
+        previous = self._calibrator.update
+        return self._estimated(self._calibrator.finish(), previous)
+
     def pop_events(self):
         """Events not yet returned (those of capture()); each event is returned once."""
         events, self._pending = self._pending, []
@@ -422,7 +436,8 @@ class Session:
             self._deferred.append(sample)
             messages = []
         else:
-            messages = self._calibrator.add_sample(sample)
+            messages = self._calibrator.add_sample(
+                sample, full_solve_later=self.config.early_estimates)
         self._capture.note_sample(sample)
         events = [SampleCaptured(self._sample_count() - 1, sample)]
         return events + self._estimated(messages, previous)

@@ -131,3 +131,32 @@ def test_an_update_publishes_before_its_report_is_computed():
     np.testing.assert_array_equal(update.estimate.quaternion, result.quaternion)
     np.testing.assert_array_equal(update.estimate.translation, result.translation)
     assert result.method == 'refined' and result.samples == 16
+
+
+def test_a_full_solve_due_can_wait_for_finish_and_the_estimates_stay_the_same():
+    """Quick update first, full solve on finish(): the same estimates as solving at once."""
+    _, samples = synthetic(9, 24, rotation_noise_deg=0.3, translation_noise_m=0.001)
+    at_once, later, unfinished = (Calibrator(full_solve_every=5, small=12) for _ in range(3))
+    for calibrator in (at_once, later, unfinished):
+        calibrator.add_samples(samples[:12])
+    for n, sample in enumerate(samples[12:], start=13):
+        at_once.add_sample(sample)
+        later.add_sample(sample, full_solve_later=True)
+        unfinished.add_sample(sample, full_solve_later=True)
+        assert later.full_solve_due == (n % 5 == 0) and not at_once.full_solve_due
+        if later.full_solve_due:
+            quick = later.update
+            assert later.finish() == [] and not later.full_solve_due
+            assert later.update is not quick
+            # The quick update is close to the full solve it precedes.
+            full = later.update.estimate
+            assert (np.degrees(quat.angle_between(quick.estimate.quaternion, full.quaternion))
+                    < 0.1 * full.uncertainty_deg)
+        np.testing.assert_array_equal(later.update.estimate.quaternion,
+                                      at_once.update.estimate.quaternion)
+        np.testing.assert_array_equal(later.update.estimate.translation,
+                                      at_once.update.estimate.translation)
+        if n % 5 != 0:   # a full solve left due runs first on the next sample
+            np.testing.assert_array_equal(unfinished.update.estimate.quaternion,
+                                          at_once.update.estimate.quaternion)
+    assert later.finish() == []   # nothing due

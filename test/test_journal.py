@@ -109,6 +109,25 @@ def test_every_append_is_fsynced(tmp_path, monkeypatch):
     opened.close()
 
 
+def test_append_without_sync_is_in_the_file_and_sync_makes_it_durable(tmp_path, monkeypatch):
+    path = tmp_path / 'samples.csv'
+    opened, _ = started(path)
+    samples = make_samples(3)
+    calls = []
+    real_fsync = os.fsync
+    monkeypatch.setattr(journal.os, 'fsync', lambda fd: calls.append(fd) or real_fsync(fd))
+    opened.append(samples[0], sync=False)
+    assert calls == []
+    assert_same_samples(journal.read_journal(path).samples, samples[:1])   # a crash keeps it
+    opened.sync()
+    opened.sync()                    # nothing new written: no second fsync
+    assert len(calls) == 1
+    opened.append(samples[1], sync=False)
+    opened.close()                   # closing makes the last line durable too
+    assert len(calls) == 2
+    assert_same_samples(journal.read_journal(path).samples, samples[:2])
+
+
 # --- crashes ----------------------------------------------------------------------------------
 
 def test_a_torn_last_line_is_dropped_with_a_notice(tmp_path):

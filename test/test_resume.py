@@ -12,6 +12,8 @@ node in-process (rclpy style) and read its log with capfd.  ROS_DOMAIN_ID 81 (in
 """
 
 import ast
+import contextlib
+import errno
 import os
 from pathlib import Path
 import re
@@ -183,6 +185,18 @@ def close_node(node, context):
     rclpy.try_shutdown(context=context)
 
 
+@contextlib.contextmanager
+def resumed_node(path, samples):
+    """Yield a calibrator node that resumed a journal of `samples` at `path`; close it."""
+    write_journal(path, samples)
+    node, context = make_node(Parameter('samples_file', value=str(path)),
+                              Parameter('resume', value=True))
+    try:
+        yield node
+    finally:
+        close_node(node, context)
+
+
 @pytest.mark.parametrize('torn', [False, True])
 def test_resume_reloads_the_journal_and_publishes_its_estimate(rig_factory, tmp_path, capfd,
                                                                torn):
@@ -308,6 +322,58 @@ def test_samples_are_journaled_reset_moves_the_journal_aside(rig_factory, tmp_pa
     rig.still(stops[0], cell.sensor_pose(stops[0]), start + 10 * NS)
     rig.spin_until(lambda: len(rig.node.session.samples) == 1, what='a sample after reset')
     assert len(journal.read_journal(path).samples) == 1
+
+
+def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before_its_log(
+        tmp_path, monkeypatch):
+    _, samples = synthetic_samples(8)
+    path = tmp_path / 'samples.csv'
+    with resumed_node(path, samples[:7]) as node:
+        steps = []
+        real_write, real_fsync = os.write, os.fsync
+        monkeypatch.setattr(journal.os, 'write',
+                            lambda fd, data: steps.append('write') or real_write(fd, data))
+        monkeypatch.setattr(journal.os, 'fsync',
+                            lambda fd: steps.append('fsync') or real_fsync(fd))
+        publish = node.rotation_publisher.publish
+        monkeypatch.setattr(node.rotation_publisher, 'publish',
+                            lambda msg: steps.append('publish') or publish(msg))
+        log_sample = node._log_sample
+        monkeypatch.setattr(node, '_log_sample',
+                            lambda event: steps.append('log') or log_sample(event))
+        node.handle_events(node.session.add_sample(samples[7]))
+        assert steps == ['write', 'publish', 'fsync', 'log']
+        assert len(journal.read_journal(path).samples) == 8
+
+        # An fsync that fails is reported (the sample is in the file) and tried again.
+        def failing_fsync(fd):
+            raise OSError(errno.EIO, 'Input/output error')
+        monkeypatch.setattr(journal.os, 'fsync', failing_fsync)
+        node.handle_events(node.session.add_sample(samples[6]))
+        assert 'could not fsync' in node.diagnostic_status().message
+        assert 'Input/output error' in node.diagnostic_status().message
+        monkeypatch.setattr(journal.os, 'fsync', lambda fd: steps.append('fsync again'))
+        node.handle_events(node.session.add_sample(samples[5]))
+        assert steps[-2:] == ['fsync again', 'log']
+        assert 'could not fsync' not in node.diagnostic_status().message
+        assert len(journal.read_journal(path).samples) == 10
+
+
+def test_a_due_full_solve_publishes_after_the_quick_estimate(tmp_path, monkeypatch):
+    _, samples = synthetic_samples(20, seed=4)
+    path = tmp_path / 'samples.csv'
+    with resumed_node(path, samples[:19]) as node:
+        published = []
+        publish = node.rotation_publisher.publish
+        monkeypatch.setattr(node.rotation_publisher, 'publish',
+                            lambda msg: published.append(rotation_of(msg)) or publish(msg))
+        quick = node.session.add_sample(samples[19])   # the 20th: a full solve falls due
+        node.handle_events(quick)
+        assert len(published) == 2
+        assert_allclose(published[0], canonical(quick[-1].estimate.quaternion), atol=1e-12)
+        expected = calibration.calibrate(journal.read_journal(path).samples)
+        assert_allclose(published[1], canonical(expected.quaternion), atol=1e-12)
+        assert node.session.finish() == []
 
 
 def test_a_moved_marker_makes_the_node_warn_and_suggest_a_reset(rig_factory, tmp_path, capfd):

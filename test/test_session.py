@@ -362,3 +362,27 @@ def test_deferred_samples_of_every_source_wait_for_estimate():
     assert session.result.samples == 8
     session.reset()
     assert session.samples == [] and session.estimate() == [] and session.result is None
+
+
+def test_early_estimates_give_the_quick_estimate_first_and_the_full_solve_on_finish():
+    rng = np.random.default_rng(31)
+    cell = sim.random_cell(rng)
+    samples, _ = sim.samples(rng, cell, 21, rotation_noise_deg=0.2, translation_noise_m=0.001)
+    at_once, early = Session(), Session(SessionConfig(early_estimates=True))
+    at_once.add_samples(samples[:18])
+    early.add_samples(samples[:18])
+    for sample in samples[18:]:
+        expected = at_once.add_sample(sample)
+        events = early.add_sample(sample)
+        assert [type(e) for e in events] == [SampleCaptured, EstimateUpdated]
+        finished = early.finish()
+        if len(early.samples) % 10 == 0:   # a full solve was due (calibration.Calibrator)
+            assert [type(e) for e in finished] == [EstimateUpdated]
+            assert finished[0].result is early.result
+            assert not np.array_equal(events[-1].estimate.quaternion,
+                                      finished[0].estimate.quaternion)
+        else:
+            assert finished == []
+        assert comparable(of_type(events + finished, EstimateUpdated)[-1:]) == comparable(
+            of_type(expected, EstimateUpdated))
+    assert early.finish() == []
