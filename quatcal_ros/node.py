@@ -8,11 +8,14 @@ A thin shell around session.Session:
   logged, throttled, with the topic and the reason;
 - publishes `~/rotation` (QuaternionStamped, reliable + transient local, depth 1, frame_id =
   link_frame) and `~/transform` (TransformStamped link_frame -> sensor_frame, same QoS) on
-  each new estimate, and a status on `/diagnostics` at diagnostics_period_s;
+  each new estimate, and a status on `/diagnostics` at diagnostics_period_s; a sample's quick
+  estimate goes out first, and the full robust re-solve due every tenth sample or so follows
+  (SessionConfig.early_estimates);
 - with publish_tf:=true, broadcasts the estimate on /tf_static (tf2_ros, when installed);
 - serves `~/capture`, `~/reset` and `~/save` (std_srvs/Trigger); ~/save also writes
   easy_handeye2_file and logs the static_transform_publisher line;
-- appends every captured sample, fsync'd, to samples_file (journal.py) before logging it;
+- appends every captured sample to samples_file (journal.py) before publishing its estimate,
+  fsync'd before logging it;
   resume:=true continues the session in it after a crash or restart, ~/reset moves it aside;
 - warns when the newest samples disagree with the earlier ones (a moved marker, drift.py).
 
