@@ -20,7 +20,7 @@ T_base_sensor (eye-to-hand).
 """
 
 from dataclasses import dataclass, field, replace
-from functools import cache, cached_property
+from functools import cache, cached_property, partial
 from typing import Callable
 
 import numpy as np
@@ -29,7 +29,7 @@ from quatcal_ros import quality
 from quatcal_ros import quaternion as quat
 from quatcal_ros.leastsq import least_squares_rotation, MotionSystem
 from quatcal_ros.motions import Motions, pair_indices, SampleRotations
-from quatcal_ros.refine import refine, refine_from
+from quatcal_ros.refine import refine, refine_from, step_sums
 from quatcal_ros.solver import DegenerateMotionError, solve_two_motions
 from quatcal_ros.translation import SamplePositions, solve_translation
 
@@ -184,14 +184,21 @@ def calibrate(samples, options=CalibrationOptions()):
 
 @dataclass(frozen=True)
 class _Solution:
-    """An estimate and the state an incremental update continues from."""
+    """
+    An estimate and the state an incremental update continues from.
+
+    `fit` and `info` are functions that compute their value on the first call (an incremental
+    update defers them: only the report and the next update need them); `prepare` computes
+    them and everything else the next incremental update needs that no new sample changes,
+    so that the live node can do that after the estimate is out.
+    """
 
     update: Update
     warnings: list               # the frame-convention warnings of the last full solve
     rotations: SampleRotations
-    fit: Motions                 # the motions of the final least squares
+    fit: Callable                # () -> Motions: the motions of the final least squares
     system: MotionSystem         # their normal matrix
-    info: quality.Information    # their information (H, G, C)
+    info: Callable               # () -> quality.Information: their H, G, C
     positions: SamplePositions
     sample_ok: np.ndarray        # bool per sample
     mismatch_limit: float        # radians, |theta_a - theta_b| screen
@@ -199,6 +206,36 @@ class _Solution:
     motion_count: int            # motions formed from the samples
     rejected: list
     refinement: object = None    # refine.Refinement, the start of warm-started updates
+
+    @cached_property
+    def object_mean(self):
+        """Return the mean object orientation of the good samples under the estimate."""
+        Z = self.rotations.object_orientations(self.update.estimate.quaternion)
+        return quat.average(Z[self.sample_ok])
+
+    @cached_property
+    def step_sums(self):
+        """Return refine.StepSums of the good samples at the refinement (None without one)."""
+        if self.refinement is None:
+            return None
+        ok = self.sample_ok
+        return step_sums(self.refinement, self.rotations.link[ok], self.positions.link[ok],
+                         self.rotations.sensor[ok], self.positions.sensor[ok],
+                         self.rotations.link_matrices[ok])
+
+    def prepare(self):
+        """Compute now the parts of this solution that the next incremental update needs."""
+        return self.object_mean, self.step_sums, self.fit(), self.info()
+
+
+def _now(value):
+    """Return a function that returns `value` (a _Solution part computed at once)."""
+    return lambda: value
+
+
+def _later(function, *args):
+    """Return a function that computes function(*args) on its first call, and remembers it."""
+    return cache(partial(function, *args))
 
 
 def _solve(samples, options):
@@ -236,13 +273,13 @@ def _solve(samples, options):
     rejected = (_rejected_motions(motions, usable, sample_ok, limit, options)
                 + _rejected_samples(rotations, q_z, sample_ok, motions))
     positions = SamplePositions.from_samples(samples, rotations)
-    update, refinement = _update(rotations, positions, q_z, fit, info, sample_ok, len(motions),
-                                 rejected, warnings, options)
+    update, refinement = _update(rotations, positions, q_z, _now(fit), _now(info), sample_ok,
+                                 len(motions), rejected, warnings, options)
     threshold = (_outlier_threshold(np.linalg.norm(
         quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok], axis=1))
         if options.robust else np.inf)
-    return _Solution(update, warnings, rotations, fit, system, info, positions, sample_ok, limit,
-                     threshold, len(motions), rejected, refinement)
+    return _Solution(update, warnings, rotations, _now(fit), system, _now(info), positions,
+                     sample_ok, limit, threshold, len(motions), rejected, refinement)
 
 
 def _suspicious(fit, q_z):
@@ -405,19 +442,21 @@ def _parent_frame(options):
 
 
 def _update(rotations, positions, q_z, fit, info, sample_ok, motion_count, rejected, warnings,
-            options, previous_refinement=None):
+            options, previous_refinement=None, prepared=None):
     """
     Return (Update, refine.Refinement or None) for an estimated rotation q_z.
 
     What is published comes first: the joint refinement starts from the closed form, or, given
-    previous_refinement, takes a warm-started step from it (incremental updates), and is
-    checked against the closed form's rotation. The report (_report) follows on demand.
+    previous_refinement, takes a warm-started step from it (incremental updates; prepared:
+    the refine.StepSums of the samples it had), and is checked against the closed form's
+    rotation. The report (_report) follows on demand. fit, info: functions that return the
+    motions of the estimate and their quality.Information (_Solution).
     """
     @cache
     def closed_rotation():   # (noise sigma, covariance, uncertainty) of the closed form q_z
         residuals = quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok]
         sigma = quality.noise_sigma(residuals)
-        covariance = info.covariance(sigma)
+        covariance = info().covariance(sigma)
         return sigma, covariance, quality.uncertainty_deg(covariance)
 
     warnings = list(warnings)
@@ -426,12 +465,12 @@ def _update(rotations, positions, q_z, fit, info, sample_ok, motion_count, rejec
         arrays = (rotations.link[sample_ok], positions.link[sample_ok],
                   rotations.sensor[sample_ok], positions.sensor[sample_ok])
         if previous_refinement is None:
-            translation = solve_translation(rotations, positions, q_z, info, sample_ok,
+            translation = solve_translation(rotations, positions, q_z, info(), sample_ok,
                                             closed_rotation()[1])   # the starting point
             refinement = refine(*arrays, q_z, translation.translation)
         else:
             refinement = refine_from(previous_refinement, *arrays,
-                                     rotations.link_matrices[sample_ok])
+                                     rotations.link_matrices[sample_ok], prepared)
         if _plausible(refinement, q_z, lambda: closed_rotation()[2]):
             refined = Estimate(refinement.quaternion, refinement.translation,
                                refinement.uncertainty_deg,
@@ -444,7 +483,7 @@ def _update(rotations, positions, q_z, fit, info, sample_ok, motion_count, rejec
     @cache
     def closed_form():
         sigma, covariance, uncertainty = closed_rotation()
-        found = translation or solve_translation(rotations, positions, q_z, info, sample_ok,
+        found = translation or solve_translation(rotations, positions, q_z, info(), sample_ok,
                                                  covariance)
         return found, Estimate(q_z, found.translation, uncertainty, found.uncertainty_mm)
 
@@ -452,7 +491,7 @@ def _update(rotations, positions, q_z, fit, info, sample_ok, motion_count, rejec
         found, closed = closed_form()
         noise = ((refinement.rotation_noise_deg, refinement.translation_noise_mm) if refined
                  else (np.degrees(closed_rotation()[0]), 1e3 * found.noise_m))
-        return _report(rotations, fit, info, sample_ok, motion_count, rejected, warnings,
+        return _report(rotations, fit(), info(), sample_ok, motion_count, rejected, warnings,
                        options, closed, refined, noise)
 
     published = refined or closed_form()[1]
@@ -590,7 +629,7 @@ class Calibrator:
         the quick incremental update comes first (the live node publishes it in between). A
         full solve still due from the previous sample runs before anything else.
         """
-        messages = self.finish()
+        messages = self._full_solve() if self.full_solve_due else []
         self.samples.append(sample)
         n = len(self.samples)
         due = n % self.full_solve_every == 0
@@ -601,10 +640,17 @@ class Calibrator:
         return messages
 
     def finish(self):
-        """Run the full solve that add_sample left due, if any; return its messages."""
-        if not self.full_solve_due:
-            return []
-        return self._full_solve()
+        """
+        Run the full solve that add_sample left due, if any; return its messages.
+
+        Then compute what the next incremental update needs and no new sample changes
+        (_Solution.prepare): done here, after the estimate is out, it is off the next
+        sample's path.
+        """
+        messages = self._full_solve() if self.full_solve_due else []
+        if self._solution is not None:
+            self._solution.prepare()
+        return messages
 
     def add_samples(self, samples):
         """Add many samples (a file, a resumed session) and estimate once."""
@@ -632,18 +678,18 @@ class Calibrator:
         positions = old.positions.appended(sample, rotations)
         k = len(rotations) - 1
         q_z = old.update.estimate.quaternion
-        Z = rotations.object_orientations(q_z)
-        angle = quat.angle_between(Z[k], quat.average(Z[:k][old.sample_ok]))
+        newest = quat.multiply(quat.multiply(rotations.link[k], q_z), rotations.sensor[k])
+        angle = quat.angle_between(newest, old.object_mean)   # Z_k against the mean Z
         rejected = list(old.rejected)
         messages = []
-        fit, system, info = old.fit, old.system, old.info
+        fit, system = old.fit, old.system
         if angle > old.outlier_threshold:
             sample_ok = np.append(old.sample_ok, False)
             spoiled = int(np.sum(old.sample_ok)) if self.options.pairs == 'all' else 1
             rejected.append(_sample_rejection(k, np.degrees(angle),
                                               np.degrees(old.outlier_threshold), spoiled))
             messages.append(f'sample {k} rejected: {rejected[-1]["reason"]}')
-            info = info.extended(rotations.link_matrices, [], [])
+            info = _later(old.info().extended, rotations.link_matrices, [], [])
             q_z = system.solve()[0]   # the closed form, as before this sample
         else:
             sample_ok = np.append(old.sample_ok, True)
@@ -651,12 +697,12 @@ class Calibrator:
             system = system.copy()
             system.add(new.q_a, new.q_b, reference=q_z)
             q_z = system.solve()[0]
-            fit = Motions.concatenate(fit, new)
-            info = info.extended(rotations.link_matrices, new.i, new.j)
+            fit = _later(Motions.concatenate, old.fit(), new)
+            info = _later(old.info().extended, rotations.link_matrices, new.i, new.j)
         motion_count = old.motion_count + (k if self.options.pairs == 'all' else 1)
         update, refinement = _update(rotations, positions, q_z, fit, info, sample_ok,
                                      motion_count, rejected, old.warnings, self.options,
-                                     previous_refinement=old.refinement)
+                                     old.refinement, old.step_sums)
         self._solution = replace(old, update=update, rotations=rotations, fit=fit,
                                  system=system, info=info, positions=positions,
                                  sample_ok=sample_ok, motion_count=motion_count,

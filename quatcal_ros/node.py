@@ -251,8 +251,8 @@ class CalibratorNode(Node):
                 self._log_rejection(event)
             elif isinstance(event, Notice):
                 self.get_logger().info(event.text)
-        # A full robust solve that fell due on a new sample runs now, after the sample's quick
-        # estimate is out (SessionConfig.early_estimates), and its estimate follows.
+        # Now that the estimate is out: the full robust solve that fell due on a new sample, if
+        # any (its estimate follows), and the groundwork of the next quick estimate.
         later = self.session.finish()
         if later:
             self.handle_events(later)

@@ -103,10 +103,52 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
     whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t,
                               link_R)
     covariance = _inverse(_normal_matrix(J, _soft_l1_weights(whitened)))
-    return _refinement(model, whitened, covariance, sigma_r, sigma_t, converged)
+    blocks = whitened.reshape(2, -1)
+    return _refinement(model, np.einsum('bk,bk->b', blocks, blocks), n, covariance, sigma_r,
+                       sigma_t, converged)
 
 
-def refine_from(previous, link_q, link_t, sensor_q, sensor_t, link_R=None):
+@dataclass(frozen=True)
+class StepSums:
+    """
+    What one Gauss-Newton step of refine_from needs from a set of samples, at one model.
+
+    With the whitened residuals r of the samples, their Jacobian J and soft-L1 weights W:
+    normal = J^T W J and gradient = J^T W r; and for the rotation and the translation rows
+    (b = 0, 1) gram[b] = J_b^T J_b, cross[b] = J_b^T r_b and squares[b] = r_b^T r_b, which give
+    the sums of squares of the residuals r + J step a step predicts without the rows. Sums
+    over different samples add up (+), so the live calibrator makes those of its samples
+    after an estimate is out, and a new sample only adds its own.
+    """
+
+    count: int                # samples summed
+    normal: np.ndarray        # (12, 12)
+    gradient: np.ndarray      # (12,)
+    gram: np.ndarray          # (2, 12, 12)
+    cross: np.ndarray         # (2, 12)
+    squares: np.ndarray       # (2,)
+
+    def __add__(self, other):
+        """Return the sums over the samples of both."""
+        return StepSums(self.count + other.count, self.normal + other.normal,
+                        self.gradient + other.gradient, self.gram + other.gram,
+                        self.cross + other.cross, self.squares + other.squares)
+
+
+def step_sums(previous, link_q, link_t, sensor_q, sensor_t, link_R=None):
+    """Return the StepSums of these samples at the model and noise levels of `previous`."""
+    model, sigma_r, sigma_t = _start(previous)
+    whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t,
+                              link_R)
+    weights = _soft_l1_weights(whitened)
+    blocks, rows = J.reshape(2, -1, 12), whitened.reshape(2, -1, 1)
+    transposed = blocks.transpose(0, 2, 1)
+    return StepSums(len(link_q), _normal_matrix(J, weights), J.T @ (weights * whitened),
+                    transposed @ blocks, (transposed @ rows)[..., 0],
+                    np.sum(rows[..., 0] ** 2, axis=1))
+
+
+def refine_from(previous, link_q, link_t, sensor_q, sensor_t, link_R=None, prepared=None):
     """
     Update a Refinement after samples were added: one warm-started Gauss-Newton step.
 
@@ -118,19 +160,31 @@ def refine_from(previous, link_q, link_t, sensor_q, sensor_t, link_R=None):
     from that close lands within a few percent of the uncertainty (test_incremental.py). The
     covariance and the noise levels come from the same linearisation (the residuals the step
     predicts), which differs from one at the new point only to second order in the step.
-    link_R: the link rotation matrices, when the caller has them.
+    link_R: the link rotation matrices, when the caller has them. prepared: the StepSums of
+    the first prepared.count samples at `previous` (step_sums), when made beforehand; only
+    the samples after them are linearised then.
     """
+    model, sigma_r, sigma_t = _start(previous)
+    first = 0 if prepared is None else prepared.count
+    sums = prepared
+    if first < len(link_q):
+        rest = step_sums(previous, link_q[first:], link_t[first:], sensor_q[first:],
+                         sensor_t[first:], None if link_R is None else link_R[first:])
+        sums = rest if prepared is None else prepared + rest
+    covariance = _inverse(sums.normal)
+    step = -covariance @ sums.gradient   # the Gauss-Newton step
+    # Sums of squares of the predicted residuals r + J step, per block.
+    squares = sums.squares + (2.0 * sums.cross + sums.gram @ step) @ step
+    return _refinement(_unpack(step, *model), squares, sums.count, covariance, sigma_r,
+                       sigma_t, bool(np.all(np.isfinite(step))))
+
+
+def _start(previous):
+    """Return the model (X, O) and the noise levels (floored) of a Refinement."""
     model = (previous.quaternion, previous.translation, previous.object_quaternion,
              previous.object_translation)
-    sigma_r = max(np.radians(previous.rotation_noise_deg), MIN_ROTATION_NOISE)
-    sigma_t = max(previous.translation_noise_mm / 1e3, MIN_TRANSLATION_NOISE)
-    whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t,
-                              link_R)
-    weights = _soft_l1_weights(whitened)
-    covariance = _inverse(_normal_matrix(J, weights))
-    step = -covariance @ (J.T @ (weights * whitened))   # the Gauss-Newton step
-    return _refinement(_unpack(step, *model), whitened + J @ step, covariance, sigma_r,
-                       sigma_t, bool(np.all(np.isfinite(step))))
+    return (model, max(np.radians(previous.rotation_noise_deg), MIN_ROTATION_NOISE),
+            max(previous.translation_noise_mm / 1e3, MIN_TRANSLATION_NOISE))
 
 
 def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t,
@@ -163,17 +217,17 @@ def _inverse(normal):
         return np.linalg.pinv(normal)
 
 
-def _refinement(model, whitened, covariance, sigma_r, sigma_t, converged):
+def _refinement(model, squares, n, covariance, sigma_r, sigma_t, converged):
     """
-    Return the Refinement of model (X, O) with its whitened residuals and covariance.
+    Return the Refinement of model (X, O) of n samples, with its residuals and covariance.
 
-    The noise levels are re-estimated from the residuals; the covariance is (J^T W J)^-1 of
-    the whitened problem with the soft-L1 weights W (whitened with the noise levels the fit
-    used).
+    squares: the sums of squares of the whitened rotation and translation residuals, from
+    which the noise levels are re-estimated; the covariance is (J^T W J)^-1 of the whitened
+    problem with the soft-L1 weights W (whitened with the noise levels the fit used).
     """
     x_q, x_t, o_q, o_t = model
-    n = len(whitened) // 6
-    noise_r, noise_t = _noise(whitened[:3 * n] * sigma_r, whitened[3 * n:] * sigma_t, n)
+    noise_r, noise_t = _noise_of_squares(sigma_r * sigma_r * squares[0],
+                                         sigma_t * sigma_t * squares[1], n)
     return Refinement(
         quaternion=quat.canonical(x_q), translation=x_t, object_quaternion=o_q,
         object_translation=o_t, rotation_noise_deg=float(np.degrees(noise_r)),
@@ -233,6 +287,11 @@ def _object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
 
 def _noise(rotation, translation, n):
     """Return per-axis noise estimates: 3N residuals each, 12 unknowns shared between them."""
+    return _noise_of_squares(np.sum(rotation ** 2), np.sum(translation ** 2), n)
+
+
+def _noise_of_squares(rotation_squares, translation_squares, n):
+    """Return `_noise` given the sums of squares of the rotation and translation residuals."""
     dof = max(3 * n - 6, 1)
-    return (max(float(np.sqrt(np.sum(rotation ** 2) / dof)), MIN_ROTATION_NOISE),
-            max(float(np.sqrt(np.sum(translation ** 2) / dof)), MIN_TRANSLATION_NOISE))
+    return (max(float(np.sqrt(max(rotation_squares, 0.0) / dof)), MIN_ROTATION_NOISE),
+            max(float(np.sqrt(max(translation_squares, 0.0) / dof)), MIN_TRANSLATION_NOISE))

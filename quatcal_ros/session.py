@@ -17,8 +17,8 @@ collects samples, and `estimate()` estimates once from all of them (an offline r
 answer is that of `solve` on its samples); the live node estimates after every sample.
 Every tenth sample or so the estimator re-runs its full robust solve (calibration.Calibrator);
 with `SessionConfig.early_estimates` that waits for `finish()`, so the sample's quick
-(incremental) estimate comes out first, and the live node publishes it before calling finish().
-The next input runs a full solve still due.
+(incremental) estimate comes out first, and the live node publishes it before calling finish(),
+which also prepares the next quick estimate. The next input runs a full solve still due.
 
 Time that goes backwards on a stream by more than `time_jump_ns` (a bag played again, a clock
 reset) starts a new timeline: the pairing buffers are cleared, the samples are kept.  Smaller
@@ -297,9 +297,12 @@ class Session:
         return self._estimated(self._calibrator.add_samples(deferred))
 
     def finish(self):
-        """Run the full solve that an early estimate left due; return the events (or [])."""
-        if not self._calibrator.full_solve_due:
-            return []
+        """
+        Do the estimator's work that can wait until the latest estimate is out; return events.
+
+        That is the full solve an early estimate left due (its events), and the groundwork
+        of the next sample's quick estimate (calibration.Calibrator.finish).
+        """
         previous = self._calibrator.update
         return self._estimated(self._calibrator.finish(), previous)
 

@@ -7,6 +7,8 @@ batch function on the same data; the whole update is compared with a full solve 
 test_calibration.py.
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -15,7 +17,7 @@ from quatcal_ros import quaternion as quat
 from quatcal_ros import simulation
 from quatcal_ros.calibration import Calibrator
 from quatcal_ros.motions import Motions, pair_indices, SampleRotations
-from quatcal_ros.refine import refine, refine_from
+from quatcal_ros.refine import refine, refine_from, step_sums
 from quatcal_ros.translation import SamplePositions
 
 
@@ -97,6 +99,46 @@ def test_one_warm_step_lands_within_a_small_fraction_of_the_uncertainty():
         assert moved < 0.05 * full.uncertainty_deg
         assert (1e3 * np.linalg.norm(stepped.translation - full.translation)
                 < 0.05 * full.translation_uncertainty_mm)
+
+
+@pytest.mark.parametrize('added', [3, 1, 0])
+def test_a_step_from_prepared_sums_equals_the_step_over_all_samples(added):
+    """Sums made beforehand for the first samples: the same step as linearising all."""
+    cell, samples = synthetic(12, 30, rotation_noise_deg=0.3, translation_noise_m=0.001)
+    rotations = SampleRotations.from_samples(samples)
+    positions = SamplePositions.from_samples(samples, rotations)
+    arrays = (rotations.link, positions.link, rotations.sensor, positions.sensor)
+    kept = 30 - added
+    previous = refine(*(a[:kept] for a in arrays), cell.mounting.quaternion,
+                      cell.mounting.position)
+    prepared = step_sums(previous, *(a[:kept] for a in arrays))
+    assert prepared.count == kept
+    at_once = refine_from(previous, *arrays)
+    stepped = refine_from(previous, *arrays, prepared=prepared)
+    for name in ('quaternion', 'translation', 'object_quaternion', 'object_translation'):
+        np.testing.assert_allclose(getattr(stepped, name), getattr(at_once, name), rtol=0,
+                                   atol=1e-13)
+    for name in ('rotation_noise_deg', 'translation_noise_mm', 'uncertainty_deg',
+                 'translation_uncertainty_mm'):
+        assert getattr(stepped, name) == pytest.approx(getattr(at_once, name), rel=1e-9)
+
+
+def test_prepared_updates_equal_unprepared_ones():
+    """Calibrator.finish() only moves work earlier: the estimates stay the same."""
+    _, samples = synthetic(13, 30, rotation_noise_deg=0.3, translation_noise_m=0.001)
+    samples[20] = replace(samples[20], sensor=samples[3].sensor)   # rejected on arrival
+    prepared, plain = Calibrator(full_solve_every=100), Calibrator(full_solve_every=100)
+    for calibrator in (prepared, plain):
+        calibrator.add_samples(samples[:13])
+    for sample in samples[13:]:
+        assert prepared.finish() == []
+        prepared.add_sample(sample)
+        plain.add_sample(sample)
+        np.testing.assert_allclose(prepared.update.estimate.quaternion,
+                                   plain.update.estimate.quaternion, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(prepared.update.estimate.translation,
+                                   plain.update.estimate.translation, rtol=0, atol=1e-13)
+    assert len(prepared.result.rejected) == len(plain.result.rejected) >= 1
 
 
 def test_incremental_result_matches_a_full_solve_of_the_same_samples():
