@@ -106,8 +106,12 @@ class Receiver:
         self.thread.start()
 
     def _spin(self):
-        while self.context.ok():
-            self.executor.spin_once(timeout_sec=0.1)
+        from rclpy.executors import ExternalShutdownException
+        try:
+            while self.context.ok():
+                self.executor.spin_once(timeout_sec=0.1)
+        except ExternalShutdownException:   # close() shut the context down meanwhile
+            pass
 
     def first_after(self, start):
         """Return the first arrival after perf_counter time `start`, or None."""
