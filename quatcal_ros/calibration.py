@@ -20,7 +20,7 @@ T_base_sensor (eye-to-hand).
 """
 
 from dataclasses import dataclass, field, replace
-from functools import cache, cached_property, partial
+from functools import cache, cached_property
 from typing import Callable
 
 import numpy as np
@@ -234,8 +234,20 @@ def _now(value):
 
 
 def _later(function, *args):
-    """Return a function that computes function(*args) on its first call, and remembers it."""
-    return cache(partial(function, *args))
+    """
+    Return a function that computes function(*args) on its first call, and remembers it.
+
+    The arguments (the previous motion set, say) are let go once the value exists.
+    """
+    value = []
+
+    def get():
+        nonlocal function, args
+        if not value:
+            value.append(function(*args))
+            function = args = None
+        return value[0]
+    return get
 
 
 def _solve(samples, options):

@@ -8,6 +8,8 @@ test_calibration.py.
 """
 
 from dataclasses import replace
+import gc
+import weakref
 
 import numpy as np
 import pytest
@@ -202,3 +204,16 @@ def test_a_full_solve_due_can_wait_for_finish_and_the_estimates_stay_the_same():
             np.testing.assert_array_equal(unfinished.update.estimate.quaternion,
                                           at_once.update.estimate.quaternion)
     assert later.finish() == []   # nothing due
+
+
+def test_an_update_lets_the_previous_motion_set_go_once_its_own_exists():
+    """The deferred motion set holds the previous one only until it is computed."""
+    _, samples = synthetic(14, 14, rotation_noise_deg=0.3, translation_noise_m=0.001)
+    calibrator = Calibrator(full_solve_every=100)
+    calibrator.add_samples(samples[:13])
+    previous = weakref.ref(calibrator._solution.fit())
+    calibrator.add_sample(samples[13])
+    calibrator.finish()
+    gc.collect()
+    assert previous() is None
+    assert len(calibrator._solution.fit()) == calibrator.result.inliers
