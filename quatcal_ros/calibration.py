@@ -641,7 +641,7 @@ class Calibrator:
         the quick incremental update comes first (the live node publishes it in between). A
         full solve still due from the previous sample runs before anything else.
         """
-        messages = self._full_solve() if self.full_solve_due else []
+        messages = self._due_full_solve()
         self.samples.append(sample)
         n = len(self.samples)
         due = n % self.full_solve_every == 0
@@ -659,10 +659,14 @@ class Calibrator:
         (_Solution.prepare): done here, after the estimate is out, it is off the next
         sample's path.
         """
-        messages = self._full_solve() if self.full_solve_due else []
+        messages = self._due_full_solve()
         if self._solution is not None:
             self._solution.prepare()
         return messages
+
+    def _due_full_solve(self):
+        """Run the full solve left due by add_sample(full_solve_later=True); its messages."""
+        return self._full_solve() if self.full_solve_due else []
 
     def add_samples(self, samples):
         """Add many samples (a file, a resumed session) and estimate once."""
