@@ -564,6 +564,20 @@ def journal_count(path):
         return 0
 
 
+def test_a_shutdown_between_executor_steps_ends_the_spin_quietly(monkeypatch):
+    """The RCLError of a step on a context a signal shut down is a stop, not a crash."""
+    from quatcal_ros import node as node_module
+
+    def spin_on_a_dead_context(node, executor):
+        raise RuntimeError('failed to initialize wait set: the given context is not valid')
+    monkeypatch.setattr(node_module.rclpy, 'spin', spin_on_a_dead_context)
+    monkeypatch.setattr(node_module.rclpy, 'ok', lambda: False)
+    node_module._spin(None, None)                 # returns: the context is down
+    monkeypatch.setattr(node_module.rclpy, 'ok', lambda: True)
+    with pytest.raises(RuntimeError, match='context is not valid'):
+        node_module._spin(None, None)             # a live context: a real error
+
+
 def test_sigkill_mid_session_loses_no_sample_and_resume_continues(tmp_path):
     rng = np.random.default_rng(21)
     cell = simulation.random_cell(rng)
