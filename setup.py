@@ -34,10 +34,11 @@ setup(
     license='BSD-3-Clause',
     entry_points={
         'console_scripts': [
-            'calibrator = quatcal_ros.node:main',
-            'sim_cell = quatcal_ros.sim_cell:main',
-            'solve = quatcal_ros.cli:solve_main',
-            'replay = quatcal_ros.cli:replay_main',
+            'calibrator = quatcal_ros.ros.node:main',
+            'sim_cell = quatcal_ros.ros.sim_cell:main',
+            'solve = quatcal_ros.tools.cli:solve_main',
+            'replay = quatcal_ros.tools.cli:replay_main',
+            'demo = quatcal_ros.tools.demo:main',
         ],
     },
 )

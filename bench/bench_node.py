@@ -42,7 +42,7 @@ TICK_S = 0.004
 
 def run_empty_subscriber():
     """Run the floor: the node's subscriptions with callbacks that only count."""
-    from quatcal_ros.node import LINK_QOS, SENSOR_QOS
+    from quatcal_ros.ros.node import LINK_QOS, SENSOR_QOS
     from geometry_msgs.msg import PoseStamped
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -132,13 +132,13 @@ class Bench:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
-        from quatcal_ros.node import DIAGNOSTIC_NAME
+        from quatcal_ros.ros.node import DIAGNOSTIC_NAME
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from std_msgs.msg import UInt64
-        from quatcal_ros import journal
-        from quatcal_ros.samples_csv import format_samples
+        from quatcal_ros.files import journal
+        from quatcal_ros.files.samples_csv import format_samples
 
         self.workdir = workdir
         samples_file = workdir / 'samples.csv'
@@ -214,7 +214,7 @@ class Bench:
 
     @staticmethod
     def message(stream, stamp_ns, pose):
-        from quatcal_ros import conversions
+        from quatcal_ros.ros import conversions
         frame = 'base' if stream == 'link' else 'camera'
         return conversions.pose_stamped_msg(pose, stamp_ns, frame)
 
@@ -234,8 +234,8 @@ def delivery_order(streams):
 
 def completing_messages(events, preload, still_window_s):
     """Return the indices of the messages that complete a still sample (the node's session)."""
-    from quatcal_ros import node_config
-    from quatcal_ros.session import SampleCaptured, Session
+    from quatcal_ros.ros import node_config
+    from quatcal_ros.stream.session import SampleCaptured, Session
     config = node_config.NodeConfig(still_window_s=still_window_s)
     session = Session(node_config.session_config(config))
     session.add_samples(preload)
@@ -248,7 +248,7 @@ def completing_messages(events, preload, still_window_s):
 
 
 def simulate(seed, seconds, start_ns, still_s=0.6, move_s=0.6):
-    from quatcal_ros import simulation
+    from quatcal_ros.sim import simulation
     rng = np.random.default_rng(seed)
     cell = simulation.random_cell(rng)
     preload, _ = simulation.samples(rng, cell, 100, rotation_noise_deg=0.05,

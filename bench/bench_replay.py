@@ -22,9 +22,10 @@ import time
 
 import numpy as np
 
-from quatcal_ros import conversions, simulation
-from quatcal_ros.bag import TYPESTORE, write_bag
-from quatcal_ros.cli import replay_main
+from quatcal_ros.ros import conversions
+from quatcal_ros.ros.bag import TYPESTORE, write_bag
+from quatcal_ros.sim import simulation
+from quatcal_ros.tools.cli import replay_main
 
 LINK_RATE_HZ = 1000.0
 SENSOR_RATE_HZ = 30.0

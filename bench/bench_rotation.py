@@ -2,12 +2,12 @@
 """
 Mounting accuracy and speed against OpenCV's calibrateHandEye, on the same synthetic cells.
 
-Every row draws `--trials` eye-in-hand cells (quatcal_ros.simulation) with the given number of
+Every row draws `--trials` eye-in-hand cells (quatcal_ros.sim.simulation) with the given number of
 samples, sensor rotation noise (per axis, degrees), 1 mm sensor translation noise and an
 optional 10 % of flipped-marker outliers; each method solves the same samples.  Printed: the
 median and 95th percentile of the rotation error (degrees), the same of the translation error
 (millimetres), the median time per solve, and for the outlier-free rows the refined estimate
-beside the Cramer-Rao bound (quatcal_ros.bounds) and issue 6's targets.
+beside the Cramer-Rao bound (quatcal_ros.core.bounds) and issue 6's targets.
 Run: python bench/bench_rotation.py [--trials N] [--quick]
 """
 
@@ -17,10 +17,10 @@ import time
 import cv2
 import numpy as np
 
-from quatcal_ros import bounds
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation
-from quatcal_ros.calibration import calibrate, CalibrationOptions
+from quatcal_ros.core import bounds
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.calibration import calibrate, CalibrationOptions
+from quatcal_ros.sim import simulation
 
 OPENCV_METHODS = {
     'TSAI': cv2.CALIB_HAND_EYE_TSAI,

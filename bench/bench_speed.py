@@ -16,10 +16,10 @@ import time
 import cv2
 import numpy as np
 
-from quatcal_ros import simulation
-from quatcal_ros.calibration import calibrate, CalibrationOptions, Calibrator
-from quatcal_ros.leastsq import MotionSystem
-from quatcal_ros.motions import Motions, pair_indices, SampleRotations
+from quatcal_ros.core.calibration import calibrate, CalibrationOptions, Calibrator
+from quatcal_ros.core.leastsq import MotionSystem
+from quatcal_ros.core.motions import Motions, pair_indices, SampleRotations
+from quatcal_ros.sim import simulation
 
 
 def median_ms(function, repeats):

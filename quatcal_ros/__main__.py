@@ -8,12 +8,12 @@ import importlib
 import sys
 
 TOOLS = {
-    'solve': ('quatcal_ros.cli', 'solve_main', 'rotation from a samples CSV (prints JSON)'),
-    'replay': ('quatcal_ros.cli', 'replay_main', 'rotation from a rosbag2 recording'),
-    'calibrator': ('quatcal_ros.node', 'main', 'the live calibration node'),
-    'sim_cell': ('quatcal_ros.sim_cell', 'main', 'a simulated robot cell (ROS node)'),
-    'demo': ('quatcal_ros.demo', 'main', 'calibrator against the simulated cell, until '
-                                         'it converges'),
+    'solve': ('quatcal_ros.tools.cli', 'solve_main', 'rotation from a samples CSV (prints JSON)'),
+    'replay': ('quatcal_ros.tools.cli', 'replay_main', 'rotation from a rosbag2 recording'),
+    'calibrator': ('quatcal_ros.ros.node', 'main', 'the live calibration node'),
+    'sim_cell': ('quatcal_ros.ros.sim_cell', 'main', 'a simulated robot cell (ROS node)'),
+    'demo': ('quatcal_ros.tools.demo', 'main',
+             'calibrator against the simulated cell, until it converges'),
 }
 
 

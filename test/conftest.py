@@ -5,8 +5,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from quatcal_ros.pose import Pose
-from quatcal_ros.quaternion import wxyz_from_xyzw
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.quaternion import wxyz_from_xyzw
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 

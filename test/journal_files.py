@@ -2,8 +2,8 @@
 
 from pathlib import Path
 
-from quatcal_ros import journal
-from quatcal_ros.journal import JournalHeader
+from quatcal_ros.files import journal
+from quatcal_ros.files.journal import JournalHeader
 
 HEADER = JournalHeader('eye_in_hand', 'tool0', 'camera')
 

@@ -1,15 +1,15 @@
-"""Tests of quatcal_ros.bag: reading rosbag2 recordings and replaying them into a Session."""
+"""Tests of quatcal_ros.ros.bag: reading rosbag2 recordings and replaying them into a Session."""
 
 import numpy as np
 from numpy.testing import assert_allclose
 import pytest
 
-from quatcal_ros import bag, cdr, conversions
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation as sim
-from quatcal_ros.bag import Bag, BagError, PoseInput, Replay, TYPESTORE, write_bag
-from quatcal_ros.pose import Pose
-from quatcal_ros.session import Session
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.ros import bag, cdr, conversions
+from quatcal_ros.ros.bag import Bag, BagError, PoseInput, Replay, TYPESTORE, write_bag
+from quatcal_ros.sim import simulation as sim
+from quatcal_ros.stream.session import Session
 from rosbags.rosbag2 import Writer
 
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'

@@ -2,11 +2,11 @@
 
 import numpy as np
 import pytest
-from quatcal_ros import bounds
-from quatcal_ros import quaternion as quat
-from quatcal_ros import refine
-from quatcal_ros import simulation
-from quatcal_ros.calibration import calibrate, CalibrationOptions
+from quatcal_ros.core import bounds
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core import refine
+from quatcal_ros.core.calibration import calibrate, CalibrationOptions
+from quatcal_ros.sim import simulation
 
 # Monte-Carlo check: CELLS eye-in-hand cells of SAMPLES samples per noise level. An efficient
 # estimator's squared error in cell k has mean tr(C_k) and variance 2 tr(C_k^2) (C_k: that

@@ -8,13 +8,13 @@ method='closed-form' (CLOSED); the joint refinement is tested at the end with tr
 import numpy as np
 import pytest
 
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation
-from quatcal_ros.calibration import calibrate, CalibrationOptions, Calibrator
-from quatcal_ros.leastsq import MotionSystem
-from quatcal_ros.motions import Motions, pair_indices, SampleRotations
-from quatcal_ros.pose import Pose, Sample
-from quatcal_ros.solver import DegenerateMotionError
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.calibration import calibrate, CalibrationOptions, Calibrator
+from quatcal_ros.core.leastsq import MotionSystem
+from quatcal_ros.core.motions import Motions, pair_indices, SampleRotations
+from quatcal_ros.core.pose import Pose, Sample
+from quatcal_ros.core.solver import DegenerateMotionError
+from quatcal_ros.sim import simulation
 
 
 CLOSED = CalibrationOptions(method='closed-form')

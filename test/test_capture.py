@@ -1,14 +1,14 @@
-"""Tests of quatcal_ros.capture: still detection, averaging, manual refusals, continuous mode."""
+"""Tests of stream.capture: still detection, averaging, manual refusals, continuous mode."""
 
 import numpy as np
 from numpy.testing import assert_allclose
 import pytest
 
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation as sim
-from quatcal_ros.capture import Capture, CaptureConfig, pose_change
-from quatcal_ros.pairing import Pair
-from quatcal_ros.pose import Pose
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.sim import simulation as sim
+from quatcal_ros.stream.capture import Capture, CaptureConfig, pose_change
+from quatcal_ros.stream.pairing import Pair
 
 START_NS = sim.DEFAULT_START_NS
 MS = 1_000_000

@@ -1,4 +1,4 @@
-"""Tests of quatcal_ros.cdr: poses from raw CDR bytes equal rosbags' and conversions' own."""
+"""Tests of quatcal_ros.ros.cdr: poses from raw CDR bytes equal rosbags' and conversions' own."""
 
 import struct
 
@@ -7,9 +7,9 @@ from hypothesis import strategies as st
 import numpy as np
 import pytest
 
-from quatcal_ros import cdr, conversions
-from quatcal_ros.bag import TYPESTORE
-from quatcal_ros.pose import Pose
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.ros import cdr, conversions
+from quatcal_ros.ros.bag import TYPESTORE
 
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
 TRANSFORM_STAMPED = 'geometry_msgs/msg/TransformStamped'

@@ -8,10 +8,10 @@ import sys
 import numpy as np
 import pytest
 
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation
-from quatcal_ros.pose import Pose, Sample
-from quatcal_ros.samples_csv import COLUMNS, format_samples
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose, Sample
+from quatcal_ros.files.samples_csv import COLUMNS, format_samples
+from quatcal_ros.sim import simulation
 
 
 def run_solve(repo_root, *args):

@@ -1,4 +1,4 @@
-"""Tests of quatcal_ros.conversions with rclpy's geometry_msgs and with rosbags' classes."""
+"""Tests of quatcal_ros.ros.conversions with rclpy's geometry_msgs and with rosbags' classes."""
 
 import subprocess
 import sys
@@ -9,10 +9,10 @@ from geometry_msgs.msg import Transform, Vector3
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
 import pytest
-from quatcal_ros import conversions as conv
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation as sim
-from quatcal_ros.pose import Pose
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.ros import conversions as conv
+from quatcal_ros.sim import simulation as sim
 from rclpy.serialization import deserialize_message, serialize_message
 
 STAMPS = [0, 1, 999_999_999, 1_000_000_000, sim.DEFAULT_START_NS + 123_456_789,
@@ -186,7 +186,7 @@ def test_other_messages_are_a_type_error():
 
 
 def test_module_does_not_import_ros_messages_until_asked(repo_root):
-    code = ('import sys, quatcal_ros.conversions; '
+    code = ('import sys, quatcal_ros.ros.conversions; '
             'bad = [m for m in sys.modules if m.split(".")[0] in '
             '("rclpy", "geometry_msgs", "std_msgs", "builtin_interfaces")]; '
             'sys.exit(str(bad) if bad else 0)')

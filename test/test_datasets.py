@@ -2,10 +2,10 @@
 
 import numpy as np
 import pytest
-from quatcal_ros import quaternion as quat
-from quatcal_ros.calibration import calibrate, CalibrationOptions
-from quatcal_ros.importers import read_moveit_json_samples
-from quatcal_ros.motions import Motions, pair_indices, SampleRotations
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.calibration import calibrate, CalibrationOptions
+from quatcal_ros.core.motions import Motions, pair_indices, SampleRotations
+from quatcal_ros.files.importers import read_moveit_json_samples
 
 
 @pytest.fixture(scope='module')

@@ -1,4 +1,4 @@
-"""Tests of `python -m quatcal_ros demo` (quatcal_ros.demo), on ROS_DOMAIN_ID 52."""
+"""Tests of `python -m quatcal_ros demo` (quatcal_ros.tools.demo), on ROS_DOMAIN_ID 52."""
 
 import os
 from pathlib import Path
@@ -8,9 +8,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from quatcal_ros import demo
-from quatcal_ros import quaternion as quat
-from quatcal_ros.pose import Pose
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.tools import demo
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DOMAIN_ID = '52'

@@ -1,12 +1,12 @@
-"""Tests of quatcal_ros.drift: noticing a marker or sensor that moved during a session."""
+"""Tests of quatcal_ros.core.drift: noticing a marker or sensor that moved during a session."""
 
 import numpy as np
 import pytest
-from quatcal_ros import calibration
-from quatcal_ros import drift
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation
-from quatcal_ros.pose import Pose, Sample
+from quatcal_ros.core import calibration
+from quatcal_ros.core import drift
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose, Sample
+from quatcal_ros.sim import simulation
 
 
 def cell_and_samples(seed, n, noise_deg=0.2, outlier_fraction=0.0):

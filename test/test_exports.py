@@ -16,12 +16,12 @@ import sys
 
 import numpy as np
 import pytest
-from quatcal_ros import exports
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation
-from quatcal_ros.calibration import calibrate, CalibrationOptions
-from quatcal_ros.pose import Pose
-from quatcal_ros.samples_csv import format_samples
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.calibration import calibrate, CalibrationOptions
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.files import exports
+from quatcal_ros.files.samples_csv import format_samples
+from quatcal_ros.sim import simulation
 import yaml
 
 # Fields of easy_handeye2_msgs/HandeyeCalibrationParameters, in message order.
@@ -221,9 +221,9 @@ def test_solve_reports_an_unwritable_easy_handeye2_file(repo_root, solved, tmp_p
 
 
 def test_replay_prints_the_line_with_the_frames_of_the_messages(tmp_path, capsys):
-    from quatcal_ros import conversions
-    from quatcal_ros.bag import TYPESTORE, write_bag
-    from quatcal_ros.cli import replay_main
+    from quatcal_ros.ros import conversions
+    from quatcal_ros.ros.bag import TYPESTORE, write_bag
+    from quatcal_ros.tools.cli import replay_main
     rng = np.random.default_rng(63)
     cell = simulation.random_cell(rng)
     streams = simulation.stop_and_go_streams(rng, cell, 8, link_rate_hz=100.0,

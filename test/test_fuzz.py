@@ -28,23 +28,23 @@ from hypothesis import settings
 from hypothesis import strategies as st
 import numpy as np
 import pytest
-from quatcal_ros import cli
-from quatcal_ros import conversions
-from quatcal_ros import message_checks as mc
-from quatcal_ros import node_config
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation
-from quatcal_ros.bag import Bag
-from quatcal_ros.bag import BagError
-from quatcal_ros.bag import TYPESTORE
-from quatcal_ros.bag import write_bag
-from quatcal_ros.node import CalibratorNode
-from quatcal_ros.samples_csv import BadInputError
-from quatcal_ros.samples_csv import COLUMNS
-from quatcal_ros.samples_csv import format_samples
-from quatcal_ros.samples_csv import parse_samples
-from quatcal_ros.samples_csv import read_samples
-from quatcal_ros.session import STATES
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.files.samples_csv import BadInputError
+from quatcal_ros.files.samples_csv import COLUMNS
+from quatcal_ros.files.samples_csv import format_samples
+from quatcal_ros.files.samples_csv import parse_samples
+from quatcal_ros.files.samples_csv import read_samples
+from quatcal_ros.ros import conversions
+from quatcal_ros.ros import node_config
+from quatcal_ros.ros.bag import Bag
+from quatcal_ros.ros.bag import BagError
+from quatcal_ros.ros.bag import TYPESTORE
+from quatcal_ros.ros.bag import write_bag
+from quatcal_ros.ros.node import CalibratorNode
+from quatcal_ros.sim import simulation
+from quatcal_ros.stream import message_checks as mc
+from quatcal_ros.stream.session import STATES
+from quatcal_ros.tools import cli
 from rcl_interfaces.msg import SetParametersResult
 import rclpy
 from rclpy.context import Context

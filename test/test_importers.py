@@ -2,7 +2,7 @@
 Samples saved by easy_handeye2 and moveit_calibration, read by `solve`.
 
 The files are written here from simulated cells, field by field as those tools write them
-(independently of quatcal_ros.importers' own writers): easy_handeye2's .samples is the YAML of
+(independently of files.importers' own writers): easy_handeye2's .samples is the YAML of
 easy_handeye2_msgs/SampleList (robot = tf lookup base -> effector for eye_in_hand, effector ->
 base for eye_on_base; tracking = tracking_base -> marker); moveit_calibration's samples YAML
 is a list of {effector_wrt_world, object_wrt_sensor}, each 16 numbers of a 4x4 matrix in
@@ -16,10 +16,10 @@ import sys
 
 import numpy as np
 import pytest
-from quatcal_ros import importers
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation
-from quatcal_ros.samples_csv import BadInputError, format_samples
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.files import importers
+from quatcal_ros.files.samples_csv import BadInputError, format_samples
+from quatcal_ros.sim import simulation
 import yaml
 
 

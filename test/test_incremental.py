@@ -14,13 +14,13 @@ import weakref
 import numpy as np
 import pytest
 
-from quatcal_ros import quality
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation
-from quatcal_ros.calibration import Calibrator
-from quatcal_ros.motions import Motions, pair_indices, SampleRotations
-from quatcal_ros.refine import refine, refine_from, step_sums
-from quatcal_ros.translation import SamplePositions
+from quatcal_ros.core import quality
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.calibration import Calibrator
+from quatcal_ros.core.motions import Motions, pair_indices, SampleRotations
+from quatcal_ros.core.refine import refine, refine_from, step_sums
+from quatcal_ros.core.translation import SamplePositions
+from quatcal_ros.sim import simulation
 
 
 def synthetic(seed, n, setup='eye_in_hand', **noise):

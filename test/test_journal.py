@@ -1,5 +1,5 @@
 """
-Tests of quatcal_ros.journal: the crash-safe samples journal (no ROS).
+Tests of quatcal_ros.files.journal: the crash-safe samples journal (no ROS).
 
 A journal must give back every sample appended to it, survive a crash at any byte (losing at
 most the line being written), and never overwrite or delete a file that holds data: corrupt
@@ -16,11 +16,11 @@ from journal_files import write_journal
 import numpy as np
 from numpy.testing import assert_allclose
 import pytest
-from quatcal_ros import cli
-from quatcal_ros import journal
-from quatcal_ros import simulation
-from quatcal_ros.journal import JournalError, JournalHeader, JournalRefused
-from quatcal_ros.samples_csv import COLUMNS, format_samples
+from quatcal_ros.files import journal
+from quatcal_ros.files.journal import JournalError, JournalHeader, JournalRefused
+from quatcal_ros.files.samples_csv import COLUMNS, format_samples
+from quatcal_ros.sim import simulation
+from quatcal_ros.tools import cli
 
 HEADER = JournalHeader('eye_in_hand', 'tool0', 'camera')
 NOW = 1_700_000_000.0   # a fixed wall time for the moved-aside names

@@ -40,17 +40,17 @@ from geometry_msgs.msg import QuaternionStamped
 import numpy as np
 from numpy.testing import assert_allclose
 import pytest
-from quatcal_ros import conversions as conv
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation as sim
-from quatcal_ros.capture import CaptureConfig
-from quatcal_ros.node import CalibratorNode
-from quatcal_ros.node import DIAGNOSTIC_NAME
-from quatcal_ros.session import EstimateUpdated
-from quatcal_ros.session import Notice
-from quatcal_ros.session import Rejected
-from quatcal_ros.session import Session
-from quatcal_ros.session import SessionConfig
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.ros import conversions as conv
+from quatcal_ros.ros.node import CalibratorNode
+from quatcal_ros.ros.node import DIAGNOSTIC_NAME
+from quatcal_ros.sim import simulation as sim
+from quatcal_ros.stream.capture import CaptureConfig
+from quatcal_ros.stream.session import EstimateUpdated
+from quatcal_ros.stream.session import Notice
+from quatcal_ros.stream.session import Rejected
+from quatcal_ros.stream.session import Session
+from quatcal_ros.stream.session import SessionConfig
 from rcl_interfaces.msg import Log
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
@@ -117,7 +117,7 @@ def recording():
 @pytest.fixture(scope='module')
 def offline(recording, repo_root, tmp_path_factory):
     """Write the recording to a rosbag2 bag, run `replay` on it: (JSON, sample stamps s)."""
-    from quatcal_ros.bag import TYPESTORE, write_bag
+    from quatcal_ros.ros.bag import TYPESTORE, write_bag
     frames = {LINK_TOPIC: 'base', SENSOR_TOPIC: 'camera'}
     folder = tmp_path_factory.mktemp('live_replay')
     write_bag(folder / 'recording', {LINK_TOPIC: POSE_STAMPED, SENSOR_TOPIC: POSE_STAMPED},

@@ -14,16 +14,16 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 import numpy as np
 import pytest
-from quatcal_ros import conversions
-from quatcal_ros import message_checks as mc
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation
-from quatcal_ros.node import CalibratorNode
-from quatcal_ros.node import DIAGNOSTIC_NAME
-from quatcal_ros.pose import Pose
-from quatcal_ros.session import Notice
-from quatcal_ros.session import Rejected
-from quatcal_ros.session import Session
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.ros import conversions
+from quatcal_ros.ros.node import CalibratorNode
+from quatcal_ros.ros.node import DIAGNOSTIC_NAME
+from quatcal_ros.sim import simulation
+from quatcal_ros.stream import message_checks as mc
+from quatcal_ros.stream.session import Notice
+from quatcal_ros.stream.session import Rejected
+from quatcal_ros.stream.session import Session
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor

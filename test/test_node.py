@@ -21,13 +21,13 @@ from geometry_msgs.msg import QuaternionStamped
 from geometry_msgs.msg import TransformStamped
 import numpy as np
 import pytest
-from quatcal_ros import conversions
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation
-from quatcal_ros.node import CalibratorNode
-from quatcal_ros.node import DIAGNOSTIC_NAME
-from quatcal_ros.node_config import ConfigError
-from quatcal_ros.pose import Pose
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.ros import conversions
+from quatcal_ros.ros.node import CalibratorNode
+from quatcal_ros.ros.node import DIAGNOSTIC_NAME
+from quatcal_ros.ros.node_config import ConfigError
+from quatcal_ros.sim import simulation
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -379,7 +379,7 @@ def test_bad_messages_are_counted_not_fatal(harness_factory):
 def _tool_command(tool):
     if (REPO_ROOT / 'quatcal_ros' / '__main__.py').exists():
         return [sys.executable, '-m', 'quatcal_ros', tool]
-    module = {'calibrator': 'quatcal_ros.node', 'sim_cell': 'quatcal_ros.sim_cell'}[tool]
+    module = {'calibrator': 'quatcal_ros.ros.node', 'sim_cell': 'quatcal_ros.ros.sim_cell'}[tool]
     return [sys.executable, '-c', f'import sys; from {module} import main; sys.exit(main())']
 
 

@@ -1,11 +1,11 @@
-"""Tests of quatcal_ros.node_config: declarations, checks, and the frozen config."""
+"""Tests of quatcal_ros.ros.node_config: declarations, checks, and the frozen config."""
 
 from dataclasses import fields
 import math
 
 import pytest
-from quatcal_ros import node_config
-from quatcal_ros.node_config import ConfigError, NodeConfig, SPECS
+from quatcal_ros.ros import node_config
+from quatcal_ros.ros.node_config import ConfigError, NodeConfig, SPECS
 import rclpy
 from rclpy.context import Context
 from rclpy.node import Node

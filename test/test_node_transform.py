@@ -16,11 +16,11 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import TransformStamped
 import numpy as np
 import pytest
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation
-from quatcal_ros.node import CalibratorNode
-from quatcal_ros.node import DIAGNOSTIC_NAME
-from quatcal_ros.node import TF2_ROS_MISSING
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.ros.node import CalibratorNode
+from quatcal_ros.ros.node import DIAGNOSTIC_NAME
+from quatcal_ros.ros.node import TF2_ROS_MISSING
+from quatcal_ros.sim import simulation
 from rcl_interfaces.msg import Log
 import rclpy
 from rclpy.context import Context

@@ -135,7 +135,7 @@ def test_ros2_run_calibrator_starts_and_stops_on_sigint(workspace, monkeypatch):
 def test_installed_copy_is_imported(workspace):
     """The installed tools import the installed package, not the working tree."""
     prefix = workspace / PKG
-    code = 'import quatcal_ros.node as m; print(m.__file__)'
+    code = 'import quatcal_ros.ros.node as m; print(m.__file__)'
     # cwd outside the repo: `python -c` puts the cwd first on sys.path.
     proc = subprocess.run([sys.executable, '-c', code], env=_run_env(prefix, 0),
                           cwd=workspace, stdin=subprocess.DEVNULL, capture_output=True,

@@ -1,4 +1,4 @@
-"""Tests of quatcal_ros.pairing: interpolation, gaps, bounded buffers, stamp order."""
+"""Tests of quatcal_ros.stream.pairing: interpolation, gaps, bounded buffers, stamp order."""
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -6,9 +6,9 @@ import numpy as np
 from numpy.testing import assert_allclose
 import pytest
 
-from quatcal_ros import quaternion as quat
-from quatcal_ros.pairing import interpolate_pose, OutOfOrderStamp, Pairer, PairingConfig
-from quatcal_ros.pose import Pose
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.stream.pairing import interpolate_pose, OutOfOrderStamp, Pairer, PairingConfig
 
 START_NS = 1_700_000_000 * 10**9   # a realistic epoch: float64 cannot hold it to the ns
 NS = 10**9

@@ -1,4 +1,4 @@
-"""Tests of quatcal_ros.persistence: atomic writes and the result YAML."""
+"""Tests of quatcal_ros.files.persistence: atomic writes and the result YAML."""
 
 import os
 from types import SimpleNamespace
@@ -6,10 +6,10 @@ from types import SimpleNamespace
 import numpy as np
 from numpy.testing import assert_allclose
 import pytest
-from quatcal_ros import calibration
-from quatcal_ros import persistence
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation
+from quatcal_ros.core import calibration
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.files import persistence
+from quatcal_ros.sim import simulation
 import yaml
 
 

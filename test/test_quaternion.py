@@ -6,7 +6,7 @@ import numpy as np
 from numpy.testing import assert_allclose
 import pytest
 
-from quatcal_ros import quaternion as quat
+from quatcal_ros.core import quaternion as quat
 
 # Rounding of a few float64 operations on unit-size numbers.
 TIGHT = 1e-12

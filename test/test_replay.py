@@ -13,16 +13,16 @@ import numpy as np
 from numpy.testing import assert_allclose
 import pytest
 
-from quatcal_ros import conversions
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation as sim
-from quatcal_ros.bag import TF_TYPE, TYPESTORE, write_bag
-from quatcal_ros.cli import replay_main
-from quatcal_ros.persistence import read_result_yaml
-from quatcal_ros.pose import Pose
-from quatcal_ros.progress import Progress
-from quatcal_ros.samples_csv import read_samples
-from quatcal_ros.session import Session
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.files.persistence import read_result_yaml
+from quatcal_ros.files.samples_csv import read_samples
+from quatcal_ros.ros import conversions
+from quatcal_ros.ros.bag import TF_TYPE, TYPESTORE, write_bag
+from quatcal_ros.sim import simulation as sim
+from quatcal_ros.stream.session import Session
+from quatcal_ros.tools.cli import replay_main
+from quatcal_ros.tools.progress import Progress
 
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
 TRANSFORM_STAMPED = 'geometry_msgs/msg/TransformStamped'

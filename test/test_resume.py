@@ -29,21 +29,21 @@ from journal_files import write_journal
 import numpy as np
 from numpy.testing import assert_allclose
 import pytest
-from quatcal_ros import calibration
-from quatcal_ros import conversions
-from quatcal_ros import journal
-from quatcal_ros import node_config
-from quatcal_ros import persistence
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation
-from quatcal_ros.journal import JournalHeader
-from quatcal_ros.node import CalibratorNode
-from quatcal_ros.node import NODE_NAME
-from quatcal_ros.node_config import ConfigError
-from quatcal_ros.node_config import NodeConfig
-from quatcal_ros.pose import Pose
-from quatcal_ros.session import SampleCaptured
-from quatcal_ros.session import Session
+from quatcal_ros.core import calibration
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.files import journal
+from quatcal_ros.files import persistence
+from quatcal_ros.files.journal import JournalHeader
+from quatcal_ros.ros import conversions
+from quatcal_ros.ros import node_config
+from quatcal_ros.ros.node import CalibratorNode
+from quatcal_ros.ros.node import NODE_NAME
+from quatcal_ros.ros.node_config import ConfigError
+from quatcal_ros.ros.node_config import NodeConfig
+from quatcal_ros.sim import simulation
+from quatcal_ros.stream.session import SampleCaptured
+from quatcal_ros.stream.session import Session
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -566,7 +566,7 @@ def journal_count(path):
 
 def test_a_shutdown_between_executor_steps_ends_the_spin_quietly(monkeypatch):
     """The RCLError of a step on a context a signal shut down is a stop, not a crash."""
-    from quatcal_ros import node as node_module
+    from quatcal_ros.ros import node as node_module
 
     def spin_on_a_dead_context(node, executor):
         raise RuntimeError('failed to initialize wait set: the given context is not valid')

@@ -1,4 +1,4 @@
-"""Tests of quatcal_ros.session: streams in, samples and the estimate out (real Calibrator)."""
+"""Tests of stream.session: streams in, samples and the estimate out (real Calibrator)."""
 
 import bisect
 import re
@@ -6,13 +6,13 @@ import re
 import numpy as np
 import pytest
 
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation as sim
-from quatcal_ros.calibration import CalibrationOptions
-from quatcal_ros.capture import CaptureConfig
-from quatcal_ros.pose import Pose, Sample
-from quatcal_ros.session import (EstimateUpdated, Notice, Rejected, SampleCaptured, Session,
-                                 SessionConfig)
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.calibration import CalibrationOptions
+from quatcal_ros.core.pose import Pose, Sample
+from quatcal_ros.sim import simulation as sim
+from quatcal_ros.stream.capture import CaptureConfig
+from quatcal_ros.stream.session import (EstimateUpdated, Notice, Rejected, SampleCaptured, Session,
+                                        SessionConfig)
 
 MS = 1_000_000
 LINK, SENSOR = 0, 1

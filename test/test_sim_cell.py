@@ -11,11 +11,11 @@ from geometry_msgs.msg import PoseStamped, TransformStamped
 import numpy as np
 from numpy.testing import assert_allclose
 import pytest
-from quatcal_ros import conversions as conv
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation as sim
-from quatcal_ros.pose import Pose
-from quatcal_ros.sim_cell import SimCell
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.ros import conversions as conv
+from quatcal_ros.ros.sim_cell import SimCell
+from quatcal_ros.sim import simulation as sim
 import rclpy
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import SingleThreadedExecutor
@@ -256,7 +256,7 @@ def test_program_logs_the_truth_and_stops_cleanly_on_ctrl_c(repo_root):
     env = dict(os.environ, ROS_DOMAIN_ID=str(PROGRAM_DOMAIN_ID),
                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
     process = subprocess.Popen(
-        [sys.executable, '-m', 'quatcal_ros.sim_cell', '--ros-args', '-p', 'n_stops:=2',
+        [sys.executable, '-m', 'quatcal_ros.ros.sim_cell', '--ros-args', '-p', 'n_stops:=2',
          '-p', 'still_s:=0.2', '-p', 'move_s:=0.3'],
         cwd=repo_root, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -274,7 +274,7 @@ def test_program_logs_the_truth_and_stops_cleanly_on_ctrl_c(repo_root):
 def test_program_exits_2_on_bad_parameters(repo_root):
     env = dict(os.environ, ROS_DOMAIN_ID=str(PROGRAM_DOMAIN_ID))
     result = subprocess.run(
-        [sys.executable, '-m', 'quatcal_ros.sim_cell', '--ros-args', '-p', 'setup:=sideways'],
+        [sys.executable, '-m', 'quatcal_ros.ros.sim_cell', '--ros-args', '-p', 'setup:=sideways'],
         cwd=repo_root, env=env, capture_output=True, text=True, timeout=30)
     assert result.returncode == 2
     assert 'sideways' in result.stderr + result.stdout

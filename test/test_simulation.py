@@ -1,4 +1,4 @@
-"""Tests of quatcal_ros.simulation: known answers, noise statistics, outliers, streams."""
+"""Tests of quatcal_ros.sim.simulation: known answers, noise statistics, outliers, streams."""
 
 import subprocess
 import sys
@@ -7,9 +7,9 @@ import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
 import pytest
 
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation as sim
-from quatcal_ros.pose import Pose
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.sim import simulation as sim
 
 # Composing a handful of double-precision transforms loses a few ulps: 1e-12 is ~1000x that.
 EXACT = 1e-12
@@ -332,7 +332,7 @@ def test_streams_for_ten_minutes_at_one_kilohertz():
 
 
 def test_core_module_imports_no_ros(repo_root):
-    code = ('import sys, quatcal_ros.simulation; '
+    code = ('import sys, quatcal_ros.sim.simulation; '
             'bad = [m for m in sys.modules if m.split(".")[0] in '
             '("rclpy", "geometry_msgs", "std_msgs", "builtin_interfaces")]; '
             'sys.exit(str(bad) if bad else 0)')

@@ -28,10 +28,10 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from geometry_msgs.msg import QuaternionStamped
 import numpy as np
-from quatcal_ros import conversions
-from quatcal_ros import quaternion as quat
-from quatcal_ros import simulation
-from quatcal_ros.node import DIAGNOSTIC_NAME
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.ros import conversions
+from quatcal_ros.ros.node import DIAGNOSTIC_NAME
+from quatcal_ros.sim import simulation
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor

@@ -4,9 +4,9 @@ import numpy as np
 from numpy.testing import assert_allclose
 import pytest
 
-from quatcal_ros import quaternion as quat
-from quatcal_ros.solver import (AngleMismatchError, DegenerateMotionError, NoRotationError,
-                                null_space_basis, ParallelAxesError, solve_two_motions)
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.solver import (AngleMismatchError, DegenerateMotionError, NoRotationError,
+                                     null_space_basis, ParallelAxesError, solve_two_motions)
 
 # Section 6 prints eight digits: a value rounded to 8 decimals is within 5e-9 of the true one;
 # the inputs (75)-(79) are rounded too, which propagates to ~1e-8.  The issue asks 1e-7.

@@ -1,4 +1,4 @@
-"""Tests of quatcal_ros.tf_tree: chains through the tree, interpolation, FramePoses streams."""
+"""Tests of stream.tf_tree: chains through the tree, interpolation, FramePoses streams."""
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -6,9 +6,9 @@ import numpy as np
 from numpy.testing import assert_allclose
 import pytest
 
-from quatcal_ros import quaternion as quat
-from quatcal_ros.pose import Pose
-from quatcal_ros.tf_tree import FramePoses, NEVER, READY, TransformTree, TreeError, WAIT
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.stream.tf_tree import FramePoses, NEVER, READY, TransformTree, TreeError, WAIT
 
 START_NS = 1_700_000_000 * 10**9
 MS = 10**6

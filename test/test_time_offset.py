@@ -2,13 +2,13 @@
 
 import numpy as np
 import pytest
-from quatcal_ros import simulation
-from quatcal_ros.calibration import CalibrationOptions
-from quatcal_ros.capture import CaptureConfig
-from quatcal_ros.session import SessionConfig
-from quatcal_ros.time_offset import estimate_time_offset
-from quatcal_ros.time_offset import find_time_offset
-from quatcal_ros.time_offset import refine_time_offset
+from quatcal_ros.core.calibration import CalibrationOptions
+from quatcal_ros.sim import simulation
+from quatcal_ros.stream.capture import CaptureConfig
+from quatcal_ros.stream.session import SessionConfig
+from quatcal_ros.stream.time_offset import estimate_time_offset
+from quatcal_ros.stream.time_offset import find_time_offset
+from quatcal_ros.stream.time_offset import refine_time_offset
 
 MS = 1_000_000
 

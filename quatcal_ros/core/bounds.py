@@ -1,0 +1,44 @@
+"""
+Cramer-Rao bound of the mounting: the smallest covariance any unbiased estimator can reach.
+
+The model is refine.py's: for sample i, S_i = inv(X) inv(L_i) O, with link poses L_i exact
+(inverted for eye-to-hand, as refine gets them) and sensor poses S_i noisy. The noise is
+simulation.add_pose_noise's: the measured orientation is exp(r) (x) q with r a rotation
+vector of std sigma_r (radians) per axis, and the measured position is p + t with t of std
+sigma_t (metres) per axis, all independent Gaussians. The residual refine compares,
+log(inv(q_pred) (x) q_meas), is then R^T r, which is again isotropic with std sigma_r per axis;
+so the whitened Jacobian of refine, evaluated at the true X and O with the true sigmas, gives
+the Fisher information J^T J, and its inverse is the bound. The 12 parameters are ordered as
+in refine.whitened_jacobian: X's rotation (left perturbation, radians), X's translation
+(metres), O's rotation, O's translation. O is a nuisance parameter the estimator must fit too.
+"""
+
+import numpy as np
+from quatcal_ros.core.refine import whitened_jacobian
+
+
+def cramer_rao_covariance(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t):
+    """
+    Return the 12 x 12 Cramer-Rao covariance (J^T J)^-1 at the true mounting and object pose.
+
+    link_q (N, 4), link_t (N, 3): the link poses as refine gets them (T_base_link for
+    eye-in-hand, inverted for eye-to-hand). x_q, x_t: the true mounting X; o_q, o_t: the true
+    object pose O (T_base_obj for eye-in-hand, T_link_obj for eye-to-hand). sigma_r: the
+    sensor orientation noise, radians per axis of the rotation vector; sigma_t: the sensor
+    position noise, metres per axis.
+    """
+    J = whitened_jacobian(np.asarray(link_q, dtype=float), np.asarray(link_t, dtype=float),
+                          np.asarray(x_q, dtype=float), np.asarray(x_t, dtype=float),
+                          np.asarray(o_q, dtype=float), np.asarray(o_t, dtype=float),
+                          sigma_r, sigma_t)
+    return np.linalg.inv(J.T @ J)
+
+
+def rotation_rms_deg(covariance):
+    """Return the bound's RMS error angle of X's rotation, degrees: sqrt(trace) of its block."""
+    return float(np.degrees(np.sqrt(np.trace(covariance[0:3, 0:3]))))
+
+
+def translation_rms_mm(covariance):
+    """Return the bound's RMS error of X's translation, millimetres (Euclidean norm)."""
+    return float(1e3 * np.sqrt(np.trace(covariance[3:6, 3:6])))

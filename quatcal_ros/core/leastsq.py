@@ -1,0 +1,112 @@
+"""
+Least squares over many motions: the stacked system of eq. (41), solved incrementally.
+
+Each motion k gives B_k p_z = 0 with B_k = P+(p_ak) - P-(p_bk) (eq. (39)-(41), erratum 2),
+where p_bk takes the sign that makes it describe the same rotation as p_ak (erratum 3).
+Unlike eq. (45) this full-quaternion form never divides by sin(theta/2), so small and
+half-turn motions need no special case: they enter with weight ~ sin^2(theta/2).
+With noise, p_z minimises sum_k |B_k p_z|^2 subject to |p_z| = 1: the eigenvector of the
+smallest eigenvalue of M = sum_k B_k^T B_k.  Adding a motion adds one 4x4 block: O(1).
+
+For samples paired 'all' ways this is the maximum-likelihood estimate under isotropic
+rotation noise on each sample: |B_ij p| = |Z_j - Z_i| with Z_i the object orientation in
+the base frame (motions.SampleRotations.object_orientations), and the sum over all pairs
+of |Z_j - Z_i|^2 is N times the scatter of the Z_i about their mean.
+"""
+
+import numpy as np
+
+from quatcal_ros.core import quaternion as quat
+
+
+def plus_matrices(q):
+    """P+ of eq. (11) for each row of q (K, 4) -> (K, 4, 4)."""
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([w, -x, -y, -z], axis=-1),
+        np.stack([x, w, -z, y], axis=-1),
+        np.stack([y, z, w, -x], axis=-1),
+        np.stack([z, -y, x, w], axis=-1),
+    ], axis=1)
+
+
+def minus_matrices(q):
+    """P- of eq. (12) for each row of q (K, 4) -> (K, 4, 4)."""
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([w, -x, -y, -z], axis=-1),
+        np.stack([x, w, z, -y], axis=-1),
+        np.stack([y, -z, w, x], axis=-1),
+        np.stack([z, y, -x, w], axis=-1),
+    ], axis=1)
+
+
+def aligned_b(q_a, q_b, reference=None):
+    """
+    q_b with the sign of erratum 3: a0 * b0 >= 0.
+
+    Near half turns (a0 ~ b0 ~ 0) that rule is decided by noise; given a `reference`
+    estimate of p_z, the sign that makes p_a (x) p_z closest to p_z (x) p_b is used instead.
+    """
+    q_a = np.asarray(q_a, dtype=float).reshape(-1, 4)
+    q_b = np.asarray(q_b, dtype=float).reshape(-1, 4)
+    if reference is None:
+        sign = np.where(q_a[:, 0] * q_b[:, 0] < 0.0, -1.0, 1.0)
+    else:
+        left = quat.multiply(q_a, reference)
+        right = quat.multiply(reference, q_b)
+        sign = np.where(np.sum(left * right, axis=1) < 0.0, -1.0, 1.0)
+    return q_b * sign[:, None]
+
+
+def b_matrices(q_a, q_b, reference=None):
+    """B_k = P+(p_ak) - P-(p_bk) of eq. (41) for each motion, (K, 4, 4)."""
+    q_a = np.asarray(q_a, dtype=float).reshape(-1, 4)
+    return plus_matrices(q_a) - minus_matrices(aligned_b(q_a, q_b, reference))
+
+
+# P+(e_i)^T P-(e_j) for the unit quaternions e_i: P+(a)^T P-(b) is bilinear in a and b.
+_CROSS_TERMS = np.array([[plus_matrices(np.eye(4)[i:i + 1])[0].T
+                          @ minus_matrices(np.eye(4)[j:j + 1])[0]
+                          for j in range(4)] for i in range(4)])
+
+
+class MotionSystem:
+    """
+    Incremental normal matrix M = sum_k B_k^T B_k and its minimum-eigenvector solution.
+
+    For unit p_a, p_b the plus and minus matrices are orthogonal, so
+    B^T B = 2 I - (P+(p_a)^T P-(p_b) + its transpose), and the sum over motions needs only
+    C = sum_k p_ak p_bk^T (4x4): adding K motions costs one K x 4 x 4 product.
+    """
+
+    def __init__(self):
+        self.normal_matrix = np.zeros((4, 4))
+        self.count = 0
+
+    def add(self, q_a, q_b, reference=None):
+        """Add one motion (or a (K, 4) batch of motions): O(1) per motion."""
+        q_a = np.asarray(q_a, dtype=float).reshape(-1, 4)
+        C = q_a.T @ aligned_b(q_a, q_b, reference)
+        S = np.einsum('ij,ijkl->kl', C, _CROSS_TERMS)
+        self.normal_matrix += 2.0 * len(q_a) * np.eye(4) - S - S.T
+        self.count += len(q_a)
+
+    def copy(self):
+        """Return an independent duplicate: the system is mutable."""
+        other = MotionSystem()
+        other.normal_matrix = self.normal_matrix.copy()
+        other.count = self.count
+        return other
+
+    def solve(self):
+        """(p_z (w, x, y, z) with w >= 0, eigenvalues of M ascending)."""
+        values, vectors = np.linalg.eigh(self.normal_matrix)
+        return quat.canonical(vectors[:, 0]), values
+
+
+def least_squares_rotation(q_a, q_b, reference=None):
+    """p_z minimising sum_k |B_k p_z|^2 over the motions (q_a, q_b) (K, 4) each."""
+    system = MotionSystem()
+    system.add(q_a, q_b, reference)
+    return system.solve()[0]

@@ -1,0 +1,152 @@
+"""
+Motions (A_a, A_b) from still samples, eq. (35)-(36), vectorised over sample pairs.
+
+Eye-in-hand (sensor on the link): with link poses L_i = T_base_link and sensor poses
+S_i = T_sensor_obj, the motion between samples i and j is
+    A_a = inv(L_i) L_j   (eq. (35), the link's motion in the link frame)
+    A_b = S_i inv(S_j)   (eq. (36), the same motion seen in the sensor frame)
+and A_a A_z = A_z A_b with A_z the rotation of T_link_sensor.
+Eye-to-hand (sensor fixed, object on the link) is the same problem with every link pose
+inverted; the answer is then the rotation of T_base_sensor.
+
+Quaternions are (w, x, y, z).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from quatcal_ros.core import quaternion as quat
+
+SETUPS = ('eye_in_hand', 'eye_to_hand')
+PAIRINGS = ('all', 'consecutive')
+
+
+@dataclass(frozen=True)
+class SampleRotations:
+    """
+    The orientations of a sample set, in the form the motions need.
+
+    link: (N, 4) link rotations, inverted for eye-to-hand so that every setup reads
+        A_a = inv(link_i) link_j;  sensor: (N, 4) sensor rotations (object in sensor frame);
+    link_matrices: (N, 3, 3) the link rotations as matrices (computed when not given).
+    """
+
+    link: np.ndarray
+    sensor: np.ndarray
+    link_inverted: bool = False
+    sensor_inverted: bool = False
+    link_matrices: np.ndarray = None
+
+    def __post_init__(self):
+        if self.link_matrices is None:
+            object.__setattr__(self, 'link_matrices', quat.matrix_from_quaternion(self.link))
+
+    @staticmethod
+    def from_samples(samples, setup='eye_in_hand', invert_sensor=False):
+        """Collect the orientations of `samples` for `setup` (see module docstring)."""
+        if setup not in SETUPS:
+            raise ValueError(f'setup must be one of {SETUPS}, not {setup!r}')
+        link = np.array([s.link.quaternion for s in samples], dtype=float).reshape(-1, 4)
+        sensor = np.array([s.sensor.quaternion for s in samples], dtype=float).reshape(-1, 4)
+        eye_to_hand = setup == 'eye_to_hand'
+        if eye_to_hand:
+            link = quat.conjugate(link)
+        if invert_sensor:
+            sensor = quat.conjugate(sensor)
+        return SampleRotations(link, sensor, eye_to_hand, bool(invert_sensor))
+
+    def __len__(self):
+        return len(self.link)
+
+    def appended(self, sample):
+        """Return these rotations and those of one more sample (same setup, inversion)."""
+        link = np.asarray(sample.link.quaternion, dtype=float)[None, :]
+        sensor = np.asarray(sample.sensor.quaternion, dtype=float)[None, :]
+        if self.link_inverted:
+            link = quat.conjugate(link)
+        if self.sensor_inverted:
+            sensor = quat.conjugate(sensor)
+        return SampleRotations(
+            np.vstack([self.link, link]), np.vstack([self.sensor, sensor]),
+            self.link_inverted, self.sensor_inverted,
+            np.concatenate([self.link_matrices, quat.matrix_from_quaternion(link)]))
+
+    def object_orientations(self, q_z):
+        """
+        Z_i = link_i (x) q_z (x) sensor_i: the object's orientation in the base frame.
+
+        Constant for noise-free data; the spread of Z_i measures each sample's error.
+        """
+        return quat.multiply(quat.multiply(self.link, q_z), self.sensor)
+
+
+def pair_indices(n, pairing='all'):
+    """Return index arrays (i, j), i < j, of the motions formed from n samples."""
+    if pairing == 'consecutive':
+        first = np.arange(max(n - 1, 0))
+        return first, first + 1
+    if pairing == 'all':
+        return np.triu_indices(n, k=1)
+    raise ValueError(f'pairing must be one of {PAIRINGS}, not {pairing!r}')
+
+
+def motion_count(n, pairing='all'):
+    """Return how many motions n samples form (the length of pair_indices(n, pairing))."""
+    return n * (n - 1) // 2 if pairing == 'all' else max(n - 1, 0)
+
+
+@dataclass(frozen=True)
+class Motions:
+    """Motions k = (i[k], j[k]) with their quaternions q_a, q_b (K, 4), eq. (35)-(36)."""
+
+    i: np.ndarray
+    j: np.ndarray
+    q_a: np.ndarray
+    q_b: np.ndarray
+
+    @staticmethod
+    def between(rotations, i, j):
+        """Form the motions from sample i[k] to sample j[k]."""
+        i = np.asarray(i, dtype=int)
+        j = np.asarray(j, dtype=int)
+        q_a = quat.multiply(quat.conjugate(rotations.link[i]), rotations.link[j])
+        q_b = quat.multiply(rotations.sensor[i], quat.conjugate(rotations.sensor[j]))
+        return Motions(i, j, q_a, q_b)
+
+    def __len__(self):
+        return len(self.i)
+
+    @staticmethod
+    def concatenate(first, second):
+        """Join the motions of `first` and those of `second`."""
+        return Motions(*(np.concatenate([a, b]) for a, b in zip(
+            (first.i, first.j, first.q_a, first.q_b),
+            (second.i, second.j, second.q_a, second.q_b))))
+
+    def subset(self, mask):
+        """Select the motions where `mask` (bool or index array) says."""
+        return Motions(self.i[mask], self.j[mask], self.q_a[mask], self.q_b[mask])
+
+    @property
+    def angle_a(self):
+        """Rotation angles of A_a (radians, in [0, pi])."""
+        return quat.rotation_angle(self.q_a)
+
+    @property
+    def angle_b(self):
+        """Rotation angles of A_b (radians, in [0, pi])."""
+        return quat.rotation_angle(self.q_b)
+
+    @property
+    def axis_a(self):
+        """Return the unit rotation axes of A_a in the link frame, (K, 3), sign of w >= 0."""
+        v = np.where(self.q_a[:, :1] < 0.0, -self.q_a, self.q_a)[:, 1:]
+        norm = np.linalg.norm(v, axis=1, keepdims=True)
+        return v / np.where(norm > 0.0, norm, 1.0)
+
+    def residual_angles(self, q_z):
+        """Angle (radians) by which each motion violates p_a (x) p_z = p_z (x) p_b, eq. (38)."""
+        left = quat.multiply(self.q_a, q_z)
+        right = quat.multiply(q_z, self.q_b)
+        return quat.angle_between(left, right)

@@ -1,0 +1,144 @@
+"""
+How good an estimate is: sample residuals, uncertainty, excitation and the next-motion hint.
+
+The quality figures come from a linear model of the samples.  For the estimate p_z let
+Z_i = link_i (x) p_z (x) sensor_i be the object's orientation in the base frame
+(motions.SampleRotations.object_orientations); for the true p_z all Z_i are equal.  A small
+error delta of p_z, expressed in the frame A_z maps into (the link frame eye-in-hand), rotates
+Z_i by R(link_i) delta, so the residual of sample i is
+    eps_i = R(link_i) delta - eta + n_i          (rotation vectors, base frame)
+with eta the error of the mean object orientation and n_i the sample's own noise, taken
+isotropic with variance sigma^2 per axis.  A motion (i, j) sees eps_j - eps_i, so the
+least-squares estimate over a motion set K has
+    H = sum_k D_k^T D_k,  D_k = R(link_j) - R(link_i),
+    cov(delta) = sigma^2 H^-1 (sum_i C_i C_i^T) H^-1,  C_i = sum of +-D_k^T over motions of i,
+a sandwich that stays honest when motions share samples (all pairs, consecutive pairs).
+D_k^T D_k = 4 sin^2(theta_k / 2) (I - u_k u_k^T): a motion informs every direction except
+its own axis u_k, which is why two non-parallel axes are needed (Case 1 of Section 5).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from quatcal_ros.core import quaternion as quat
+
+AXIS_NAMES = ('x', 'y', 'z')
+
+
+def sample_residuals(rotations, q_z, inliers=None):
+    """
+    Rotation vectors eps_i (N, 3), radians, base frame, of each Z_i about the mean Z.
+
+    The mean is taken over `inliers` (bool mask or None for all samples).
+    """
+    Z = rotations.object_orientations(q_z)
+    mean = quat.average(Z if inliers is None else Z[inliers])
+    return quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean)))
+
+
+def noise_sigma(residuals):
+    """Per-axis rotation noise (radians) from sample residuals: 3N values, 6 unknowns."""
+    dof = 3 * len(residuals) - 6
+    if dof <= 0:
+        return float('nan')
+    centred = residuals - residuals.mean(axis=0)
+    return float(np.sqrt(np.sum(centred ** 2) / dof))
+
+
+@dataclass(frozen=True)
+class Information:
+    """
+    The normal matrix H (3x3) of a motion set, the per-sample sums C_i and G = sum C_i C_i^T.
+
+    C_i = sum of D_k^T over the motions ending at sample i minus those starting there; the
+    translation's right-hand side and its sensitivity to the rotation are sums over C_i too
+    (translation.py), so everything per motion is summed once, here.
+    """
+
+    H: np.ndarray
+    G: np.ndarray
+    C: np.ndarray     # (N, 3, 3)
+
+    @staticmethod
+    def of(link_matrices, i, j):
+        """H, C and G for motions (i[k], j[k]) given the link rotation matrices (N, 3, 3)."""
+        H, C = _motion_sums(link_matrices, i, j)
+        return Information(H, np.einsum('nij,nkj->ik', C, C), C)
+
+    def extended(self, link_matrices, i, j):
+        """
+        Return the Information with motions (i[k], j[k]) added: O(new motions + samples).
+
+        link_matrices: those of all samples, including the ones new since this was made.
+        """
+        H, C = _motion_sums(link_matrices, i, j)
+        C[:len(self.C)] += self.C
+        return Information(self.H + H, np.einsum('nij,nkj->ik', C, C), C)
+
+    def covariance(self, sigma):
+        """cov(delta) (3x3, rad^2) for per-axis sample noise sigma (radians)."""
+        H_inv = np.linalg.pinv(self.H)
+        return sigma * sigma * H_inv @ self.G @ H_inv
+
+    def excitation(self):
+        """(ratio of weakest to strongest eigenvalue of H in [0, 1], weakest unit axis)."""
+        values, vectors = np.linalg.eigh(self.H)
+        if values[-1] <= 0.0:
+            return 0.0, np.array([0.0, 0.0, 1.0])
+        axis = vectors[:, 0]
+        axis = axis if axis[np.argmax(np.abs(axis))] > 0 else -axis
+        return float(max(values[0], 0.0) / values[-1]), axis
+
+
+def _motion_sums(link_matrices, i, j):
+    """Return H = sum_k D_k^T D_k and C (N, 3, 3) of the motions (i[k], j[k])."""
+    n = len(link_matrices)
+    i, j = np.asarray(i, dtype=int), np.asarray(j, dtype=int)
+    D = link_matrices[j] - link_matrices[i]
+    H = np.einsum('kji,kjl->il', D, D)
+    Dt = np.transpose(D, (0, 2, 1)).reshape(-1, 9)
+    C = np.stack([np.bincount(j, Dt[:, e], n) - np.bincount(i, Dt[:, e], n)
+                  for e in range(9)], axis=-1).reshape(n, 3, 3)
+    return H, C.astype(float, copy=False)   # (bincount of no motions is integer)
+
+
+def motion_residual_angles(rotations, q_z, i, j):
+    """
+    Angles (radians) by which motions (i[k], j[k]) violate eq. (38) for the estimate q_z.
+
+    The same numbers as motions.Motions.residual_angles, from the samples: p_a (x) p_z and
+    p_z (x) p_b differ by the rotation between Z_i and Z_j (module docstring), so one
+    product per motion suffices.
+    """
+    Z = rotations.object_orientations(q_z)
+    a, b = Z[i], Z[j]
+    # For unit a, b: conj(a) (x) b = [a . b, v] with |v| = |b - (a . b) a|, the part of b
+    # orthogonal to a (4-D), which keeps tiny angles exact (atan2, as rotation_angle does).
+    cosine = np.einsum('ki,ki->k', a, b)
+    orthogonal = b - cosine[:, None] * a
+    return 2.0 * np.arctan2(np.sqrt(np.einsum('ki,ki->k', orthogonal, orthogonal)),
+                            np.abs(cosine))
+
+
+def uncertainty_deg(covariance):
+    """Return the expected RMS error angle (degrees): sqrt(trace(cov))."""
+    return float(np.degrees(np.sqrt(max(np.trace(covariance), 0.0))))
+
+
+def nearest_axis_name(axis, frame='link'):
+    """'link z' style name of the coordinate axis closest to `axis` (sign ignored)."""
+    return f'{frame} {AXIS_NAMES[int(np.argmax(np.abs(axis)))]}'
+
+
+def next_motion_hint(ratio, weakest_axis, frame='link', good_ratio=0.2):
+    """Words for the operator: which motion would improve the estimate most."""
+    name = nearest_axis_name(weakest_axis, frame)
+    others = [f'{frame} {a}' for a in AXIS_NAMES if f'{frame} {a}' != name]
+    vector = ', '.join(f'{c:.2f}' for c in weakest_axis)
+    if ratio < good_ratio:
+        return (f'the rotation about the {name} axis ([{vector}]) is least determined: '
+                f'rotate the {frame} about axes perpendicular to it, e.g. tilt about '
+                f'{others[0]} or {others[1]}, by 20-40 degrees')
+    return ('motions excite all axes; more samples about varied axes reduce the '
+            f'uncertainty (weakest: {name})')

@@ -1,0 +1,95 @@
+"""
+Closed-form translation of the mounting once its rotation is known.
+
+The translational half of H_a H_z = H_z H_b (eq. (34)) reads, per motion,
+    (R_a - I) t_z = R_z t_b - t_a.
+Expressed in the base frame (multiplied by R(link_i)) the motion (i, j) of the samples becomes
+    (R(link_j) - R(link_i)) t_z = c_i - c_j,   c_i = t(link_i) + R(link_i) R_z t(sensor_i),
+where c_i + R(link_i) t_z is sample i's prediction of the object's position in the base frame.
+This is the rotation's design matrix D_k again (quality.Information), so least squares over
+the motions the rotation used, t_z = H^-1 sum_k D_k^T d_k, shares H and the sandwich term G;
+over all pairs it is the maximum-likelihood estimate for isotropic position noise.
+
+Link poses are inverted for eye-to-hand, as for the rotation (motions.py); positions in metres.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.motions import SampleRotations
+
+
+@dataclass(frozen=True)
+class SamplePositions:
+    """Positions of a sample set with the link inversion of motions.SampleRotations."""
+
+    link: np.ndarray      # (N, 3) t(link_i), inverted links for eye-to-hand
+    sensor: np.ndarray    # (N, 3) t(sensor_i), inverted sensors with invert_sensor
+
+    @staticmethod
+    def from_samples(samples, rotations):
+        """Collect positions matching `rotations` (a motions.SampleRotations of `samples`)."""
+        link = np.array([s.link.position for s in samples], dtype=float).reshape(-1, 3)
+        sensor = np.array([s.sensor.position for s in samples], dtype=float).reshape(-1, 3)
+        if rotations.link_inverted:      # t(inv(T)) = -R^T t, with R^T = the stored rotation
+            link = -quat.rotate(rotations.link, link)
+        if rotations.sensor_inverted:
+            sensor = -quat.rotate(rotations.sensor, sensor)
+        return SamplePositions(link, sensor)
+
+    def appended(self, sample, rotations):
+        """Return these positions and one more sample's (`rotations` includes it)."""
+        more = SamplePositions.from_samples([sample], SampleRotations(
+            rotations.link[-1:], rotations.sensor[-1:], rotations.link_inverted,
+            rotations.sensor_inverted, rotations.link_matrices[-1:]))
+        return SamplePositions(np.vstack([self.link, more.link]),
+                               np.vstack([self.sensor, more.sensor]))
+
+
+@dataclass(frozen=True)
+class TranslationEstimate:
+    """The closed-form translation and its quality."""
+
+    translation: np.ndarray       # (3,) metres
+    covariance: np.ndarray        # (3, 3) m^2
+    noise_m: float                # per-axis scatter of the object position predictions
+    residuals: np.ndarray         # (N, 3) metres, each sample's object position minus mean
+
+    @property
+    def uncertainty_mm(self):
+        """Return the expected RMS error of the translation (mm), sqrt(trace(cov))."""
+        return float(1e3 * np.sqrt(max(np.trace(self.covariance), 0.0)))
+
+
+def object_position_offsets(rotations, positions, q_z):
+    """Return c_i (N, 3): sample i predicts the object position c_i + R(link_i) t_z."""
+    sensor_in_link = quat.rotate(q_z, positions.sensor)
+    return positions.link + quat.rotate(rotations.link, sensor_in_link)
+
+
+def solve_translation(rotations, positions, q_z, info, sample_ok, rotation_covariance=None):
+    """
+    Least-squares t_z over the motions summarised in `info` given the rotation q_z.
+
+    info: quality.Information of the motions the rotation used (H, G and the per-sample sums
+    C_n, so that sum_k D_k^T (c_i - c_j) = -sum_n C_n c_n); sample_ok: the samples used.
+    The covariance adds the effect of the rotation's own error (rotation_covariance, rad^2,
+    in the parent frame), which the sample scatter cannot show: a rotation error delta moves
+    sample n's prediction by F_n delta, F_n = -R(link_n) skew(R_z t(sensor_n)).
+    """
+    link_R = rotations.link_matrices
+    c = object_position_offsets(rotations, positions, q_z)
+    H_inv = np.linalg.pinv(info.H)
+    t_z = -H_inv @ np.einsum('nij,nj->i', info.C, c)
+    predictions = c + np.einsum('nij,j->ni', link_R, t_z)
+    residuals = predictions - predictions[sample_ok].mean(axis=0)
+    dof = 3 * int(np.sum(sample_ok)) - 6
+    noise = float(np.sqrt(np.sum(residuals[sample_ok] ** 2) / dof)) if dof > 0 else np.nan
+    covariance = noise * noise * H_inv @ info.G @ H_inv
+    if rotation_covariance is not None:
+        lever = quat.rotate(q_z, positions.sensor)
+        F = -np.einsum('nij,njk->nik', link_R, quat.skew(lever))
+        J = -H_inv @ np.einsum('nij,njk->ik', info.C, F)
+        covariance = covariance + J @ rotation_covariance @ J.T
+    return TranslationEstimate(t_z, covariance, noise, residuals)

@@ -1,0 +1,421 @@
+"""
+Samples saved by other hand-eye tools, read as the core's still samples (pose.Sample).
+
+Formats (each checked against the tool's source):
+
+- easy_handeye2 (ROS 2) `.samples`: the YAML of easy_handeye2_msgs/SampleList, written by its
+  handeye_sampler (rosidl_runtime_py.message_to_yaml):
+
+      parameters: {name, calibration_type, robot_base_frame, ...}   # often left empty
+      samples:
+      - robot:    {translation: {x, y, z}, rotation: {x, y, z, w}}
+        tracking: {translation: {x, y, z}, rotation: {x, y, z, w}}
+
+  `tracking` is tf2's lookup_transform(tracking_base_frame, tracking_marker_frame): the marker
+  in the sensor frame, T_sensor_obj, our sensor pose.  `robot` is lookup_transform(
+  robot_base_frame, robot_effector_frame) = T_base_effector for eye_in_hand, but the inverse,
+  lookup_transform(robot_effector_frame, robot_base_frame) = T_effector_base, for eye_on_base
+  (easy_handeye2 inverts it so that OpenCV's eye-in-hand solver returns T_base_camera).  Those
+  are turned back into T_base_effector here, so the setup must be known: from the file's
+  calibration_type when it names one, else from the caller.
+- moveit_calibration samples YAML (handeye_control_widget "Save samples"): a list of
+  `{effector_wrt_world: [16 numbers], object_wrt_sensor: [16 numbers]}`, each a 4x4
+  homogeneous matrix in row-major order: T_base_eef and T_sensor_obj, for both setups.
+- moveit_calibration's solver test data (pose_samples.json, ../shared/datasets): a JSON list
+  of `[eef_wrt_world, obj_wrt_sensor]` pairs of nested 4x4 row-major matrices.
+
+The files hold no time stamps: sample i gets the stamp i seconds.  YAML is read with
+yaml.safe_load only (plain data, never objects).  Errors are samples_csv.BadInputError naming
+the file, the entry and the field, e.g. `cell.samples, entry samples[3], field
+robot.rotation.w: 'abc' is not a number`.
+"""
+
+from dataclasses import dataclass, field
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+from quatcal_ros.core.pose import Pose, Sample
+from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw
+from quatcal_ros.files.samples_csv import BadInputError, QUATERNION_NORM_TOLERANCE, read_samples
+import yaml
+
+NS_PER_S = 1_000_000_000
+FORMATS = ('csv', 'easy_handeye2', 'moveit', 'moveit-json')
+# easy_handeye2's calibration_type -> our setup.
+EASY_HANDEYE2_SETUPS = {'eye_in_hand': 'eye_in_hand', 'eye_on_base': 'eye_to_hand'}
+# A 4x4 matrix whose rotation block is farther than this from orthonormal (max |R^T R - I|)
+# is not a pose.
+ROTATION_TOLERANCE = 1e-3
+SUFFIX_FORMATS = {'.csv': 'csv', '.samples': 'easy_handeye2', '.json': 'moveit-json'}
+
+
+@dataclass(frozen=True)
+class ImportedSamples:
+    """
+    Samples read from a file, and what the file says about them.
+
+    file_format: one of FORMATS.  setup: the setup the file names (easy_handeye2's
+    calibration_type), or None.  frames: frame names the file names, by easy_handeye2
+    parameter name ('robot_base_frame', ...), empty ones left out.  warnings: sentences for
+    the result's warnings (what the file left open).
+    """
+
+    samples: list
+    file_format: str
+    setup: str = None
+    frames: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
+
+
+# --- reading files ---------------------------------------------------------------------------
+
+def _read_text(path):
+    try:
+        with open(path, encoding='utf-8') as stream:
+            return stream.read()
+    except OSError as error:
+        raise BadInputError(f'{path}: cannot read: {error.strerror}') from None
+    except UnicodeDecodeError:
+        raise BadInputError(f'{path}: not a text file (UTF-8 expected)') from None
+
+
+def _load_yaml(text, name):
+    """Plain data of YAML text (safe loader); BadInputError with the line for bad YAML."""
+    try:
+        return yaml.safe_load(text)
+    except yaml.constructor.ConstructorError as error:
+        mark = error.problem_mark
+        where = f', line {mark.line + 1}' if mark is not None else ''
+        raise BadInputError(f'{name}{where}: refused: not plain data ({error.problem}); a '
+                            'samples file holds only mappings, lists, strings and '
+                            'numbers') from None
+    except yaml.YAMLError as error:
+        mark = getattr(error, 'problem_mark', None)
+        where = f', line {mark.line + 1}' if mark is not None else ''
+        problem = getattr(error, 'problem', None) or str(error).splitlines()[0]
+        raise BadInputError(f'{name}{where}: not readable YAML: {problem}') from None
+
+
+def _load_json(text, name):
+    try:
+        return json.loads(text)
+    except ValueError as error:
+        line = getattr(error, 'lineno', None)
+        where = f', line {line}' if line else ''
+        raise BadInputError(f'{name}{where}: not readable JSON: '
+                            f'{getattr(error, "msg", error)}') from None
+
+
+# --- numbers and poses -----------------------------------------------------------------------
+
+def _number(value, where):
+    if isinstance(value, bool) or value is None:
+        raise BadInputError(f'{where}: {value!r} is not a number')
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise BadInputError(f'{where}: {value!r} is not a number') from None
+    if not math.isfinite(number):
+        raise BadInputError(f'{where}: {value} is not a finite number')
+    return number
+
+
+def _mapping(value, where, keys):
+    if not isinstance(value, dict):
+        raise BadInputError(f'{where}: expected a mapping with {", ".join(keys)}, got '
+                            f'{type(value).__name__} {_short(value)}')
+    missing = [key for key in keys if key not in value]
+    if missing:
+        raise BadInputError(f'{where}: missing {", ".join(missing)}')
+    return value
+
+
+def _short(value, limit=40):
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + '...'
+
+
+def _transform(value, where, field_name):
+    """Pose of a geometry_msgs/Transform-shaped mapping (translation, rotation x, y, z, w)."""
+    prefix = f'{where}, field {field_name}'
+    value = _mapping(value, prefix, ('translation', 'rotation'))
+    translation = _mapping(value['translation'], f'{prefix}.translation', 'xyz')
+    rotation = _mapping(value['rotation'], f'{prefix}.rotation', 'xyzw')
+    position = [_number(translation[axis], f'{prefix}.translation.{axis}') for axis in 'xyz']
+    xyzw = [_number(rotation[axis], f'{prefix}.rotation.{axis}') for axis in 'xyzw']
+    norm = math.sqrt(sum(v * v for v in xyzw))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise BadInputError(f'{prefix}.rotation: the quaternion has norm {norm:.4g}, not 1 '
+                            f'(tolerance {QUATERNION_NORM_TOLERANCE:g}); quaternions are '
+                            'x, y, z, w')
+    return Pose.create(position, wxyz_from_xyzw(xyzw))
+
+
+def _matrix_pose(value, where, field_name):
+    """Pose of a 4x4 homogeneous matrix: 16 numbers row-major, or 4 rows of 4."""
+    prefix = f'{where}, field {field_name}'
+    if not isinstance(value, (list, tuple)):
+        raise BadInputError(f'{prefix}: expected a 4x4 matrix (16 numbers, row-major), got '
+                            f'{type(value).__name__} {_short(value)}')
+    if len(value) == 4 and all(isinstance(row, (list, tuple)) for row in value):
+        if any(len(row) != 4 for row in value):
+            raise BadInputError(f'{prefix}: expected 4 rows of 4 numbers, got rows of '
+                                f'{", ".join(str(len(row)) for row in value)}')
+        flat = [v for row in value for v in row]
+    else:
+        flat = list(value)
+        if len(flat) != 16:
+            raise BadInputError(f'{prefix}: expected 16 numbers (a 4x4 matrix, row-major), '
+                                f'got {len(flat)}')
+    numbers = [_number(v, f'{prefix}[{k // 4}][{k % 4}]') for k, v in enumerate(flat)]
+    H = np.array(numbers).reshape(4, 4)
+    if not np.allclose(H[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        raise BadInputError(f'{prefix}: the last row is {H[3].tolist()}, not [0, 0, 0, 1]: '
+                            'not a homogeneous transform')
+    R = H[:3, :3]
+    error = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if error > ROTATION_TOLERANCE or np.linalg.det(R) < 0.0:
+        raise BadInputError(f'{prefix}: the upper-left 3x3 block is not a rotation matrix '
+                            f'(|R^T R - I| = {error:.3g}, det {np.linalg.det(R):.3g}); is the '
+                            'matrix transposed or scaled?')
+    # Project onto the nearest rotation (rounding in the file), as a unit quaternion.
+    return Pose.create(H[:3, 3], quaternion_from_matrix(R))
+
+
+def _stamp(index):
+    return index * NS_PER_S
+
+
+def _check_setup(setup):
+    if setup not in (None, 'eye_in_hand', 'eye_to_hand'):
+        raise ValueError(f'setup must be eye_in_hand or eye_to_hand, not {setup!r}')
+
+
+# --- easy_handeye2 ---------------------------------------------------------------------------
+
+def parse_easy_handeye2_samples(document, name='<easy_handeye2 samples>', setup=None):
+    """
+    Read the samples of a parsed easy_handeye2 SampleList document (see module docstring).
+
+    :param setup: 'eye_in_hand' or 'eye_to_hand' when the caller knows it; None: from the
+        file's calibration_type, else eye_in_hand.  A file that names the other setup is bad
+        input (its robot transforms point the other way).
+    :return: ImportedSamples (format 'easy_handeye2').
+    """
+    _check_setup(setup)
+    document = _mapping(document, f'{name}: the top level', ('samples',))
+    parameters = document.get('parameters') or {}
+    if not isinstance(parameters, dict):
+        raise BadInputError(f'{name}, field parameters: expected a mapping, got '
+                            f'{type(parameters).__name__}')
+    calibration_type = str(parameters.get('calibration_type') or '').strip()
+    file_setup = None
+    if calibration_type:
+        file_setup = EASY_HANDEYE2_SETUPS.get(calibration_type)
+        if file_setup is None:
+            raise BadInputError(f'{name}, field parameters.calibration_type: '
+                                f'{calibration_type!r} is not eye_in_hand or eye_on_base')
+        if setup is not None and setup != file_setup:
+            raise BadInputError(
+                f'{name}, field parameters.calibration_type: the file was recorded as '
+                f'{calibration_type} ({file_setup}) but --setup {setup} was given; '
+                'easy_handeye2 stores the robot transform the other way round for '
+                'eye_on_base, so the setup must match the recording')
+    use_setup = setup or file_setup or 'eye_in_hand'
+    warnings = []
+    if not calibration_type and setup is None:
+        # robot = T_effector_base (eye_on_base) turns eye_in_hand's motions inv(L_i) L_j into
+        # eye_to_hand's L_i inv(L_j): both setups fit equally well, the data cannot tell.
+        warnings.append(
+            f'{name} does not name its calibration_type (easy_handeye2 leaves it empty): '
+            'solved as eye_in_hand; if it was recorded as eye_on_base, pass --setup '
+            'eye_to_hand (the numbers are the same, the frames are the base and the camera)')
+    entries = document['samples']
+    if entries is None:
+        entries = []
+    if not isinstance(entries, list):
+        raise BadInputError(f'{name}, field samples: expected a list of samples, got '
+                            f'{type(entries).__name__}')
+    samples = []
+    for i, entry in enumerate(entries):
+        where = f'{name}, entry samples[{i}]'
+        entry = _mapping(entry, where, ('robot', 'tracking'))
+        robot = _transform(entry['robot'], where, 'robot')
+        tracking = _transform(entry['tracking'], where, 'tracking')
+        link = robot if use_setup == 'eye_in_hand' else robot.inverse()
+        samples.append(Sample(_stamp(i), link, tracking))
+    frames = {key: str(parameters[key]) for key in (
+        'robot_base_frame', 'robot_effector_frame', 'tracking_base_frame',
+        'tracking_marker_frame') if parameters.get(key)}
+    return ImportedSamples(samples, 'easy_handeye2', file_setup, frames, warnings)
+
+
+def read_easy_handeye2_samples(path, setup=None):
+    """
+    Read an easy_handeye2 `.samples` file as a list of pose.Sample.
+
+    Link poses are T_base_effector (turned back from easy_handeye2's T_effector_base for
+    eye_on_base), sensor poses T_tracking_marker.  See parse_easy_handeye2_samples for
+    `setup`; raises BadInputError naming the file, entry and field.
+    """
+    return load_samples(path, 'easy_handeye2', setup).samples
+
+
+# --- moveit_calibration ----------------------------------------------------------------------
+
+def parse_moveit_samples(document, name='<moveit samples>'):
+    """Read a parsed moveit_calibration samples YAML (list of 16-number matrices)."""
+    if not isinstance(document, list):
+        raise BadInputError(f'{name}: expected a list of samples with effector_wrt_world and '
+                            f'object_wrt_sensor, got {type(document).__name__}')
+    samples = []
+    for i, entry in enumerate(document):
+        where = f'{name}, entry [{i}]'
+        entry = _mapping(entry, where, ('effector_wrt_world', 'object_wrt_sensor'))
+        samples.append(Sample(_stamp(i),
+                              _matrix_pose(entry['effector_wrt_world'], where,
+                                           'effector_wrt_world'),
+                              _matrix_pose(entry['object_wrt_sensor'], where,
+                                           'object_wrt_sensor')))
+    return ImportedSamples(samples, 'moveit')
+
+
+def read_moveit_samples(path):
+    """
+    Read a moveit_calibration samples YAML as a list of pose.Sample.
+
+    Link poses are effector_wrt_world (T_base_eef), sensor poses object_wrt_sensor
+    (T_sensor_obj), for eye-in-hand and eye-to-hand alike; raises BadInputError naming the
+    file, entry and field.
+    """
+    return load_samples(path, 'moveit').samples
+
+
+def parse_moveit_json_samples(document, name='<moveit json samples>'):
+    """Read a parsed moveit_calibration pose_samples.json: [[eef_wrt_world, obj_wrt_sensor]]."""
+    if not isinstance(document, list):
+        raise BadInputError(f'{name}: expected a list of [eef_wrt_world, obj_wrt_sensor] '
+                            f'pairs, got {type(document).__name__}')
+    samples = []
+    for i, entry in enumerate(document):
+        where = f'{name}, entry [{i}]'
+        if not isinstance(entry, list) or len(entry) != 2:
+            raise BadInputError(f'{where}: expected a pair [eef_wrt_world, obj_wrt_sensor] '
+                                f'of 4x4 matrices, got {_short(entry)}')
+        samples.append(Sample(_stamp(i), _matrix_pose(entry[0], where, 'eef_wrt_world'),
+                              _matrix_pose(entry[1], where, 'obj_wrt_sensor')))
+    return ImportedSamples(samples, 'moveit-json')
+
+
+def read_moveit_json_samples(path):
+    """Read moveit_calibration's pose_samples.json layout as a list of pose.Sample."""
+    return load_samples(path, 'moveit-json').samples
+
+
+# --- any samples file ------------------------------------------------------------------------
+
+def _is_csv(text):
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped and not stripped.startswith('#'):
+            return stripped.startswith('stamp') and ',' in stripped
+    return False
+
+
+def detect_format(document):
+    """Return the format of parsed YAML/JSON content, or None when it is none of ours."""
+    if isinstance(document, dict) and 'samples' in document:
+        return 'easy_handeye2'
+    if isinstance(document, list) and document:
+        first = document[0]
+        if isinstance(first, dict) and ('effector_wrt_world' in first
+                                        or 'object_wrt_sensor' in first):
+            return 'moveit'
+        if isinstance(first, list) and len(first) == 2:
+            return 'moveit-json'
+    return None
+
+
+def load_samples(path, file_format='auto', setup=None):
+    """
+    Read still samples from a samples CSV or another tool's samples file.
+
+    :param path: the file.
+    :param file_format: 'auto' (by the extension, then by the content) or one of FORMATS.
+    :param setup: the setup, when known (easy_handeye2 files depend on it; see
+        parse_easy_handeye2_samples); other formats ignore it.
+    :return: ImportedSamples.
+    :raises BadInputError: naming the file, entry and field.
+    """
+    if file_format != 'auto' and file_format not in FORMATS:
+        raise ValueError(f'format must be auto or one of {", ".join(FORMATS)}, not '
+                         f'{file_format!r}')
+    _check_setup(setup)
+    name = str(path)
+    suffix = Path(name).suffix.lower()
+    if file_format == 'auto':
+        file_format = SUFFIX_FORMATS.get(suffix, 'auto')
+    if file_format == 'csv':
+        return ImportedSamples(read_samples(path), 'csv')
+    text = _read_text(path)
+    if file_format == 'auto' and _is_csv(text):
+        return ImportedSamples(read_samples(path), 'csv')
+    if not text.strip():
+        raise BadInputError(f'{name}: empty file')
+    document = (_load_json(text, name) if file_format == 'moveit-json' or suffix == '.json'
+                else _load_yaml(text, name))
+    if file_format == 'auto':
+        file_format = detect_format(document)
+        if file_format is None:
+            raise BadInputError(
+                f'{name}: not a samples file this tool knows: expected a samples CSV, an '
+                'easy_handeye2 .samples YAML (parameters, samples: [{robot, tracking}]), a '
+                'moveit_calibration samples YAML ([{effector_wrt_world, object_wrt_sensor}]) '
+                'or a moveit pose_samples.json ([[eef_wrt_world, obj_wrt_sensor]]); pass '
+                '--format to say which')
+    if file_format == 'easy_handeye2':
+        return parse_easy_handeye2_samples(document, name, setup)
+    if file_format == 'moveit':
+        return parse_moveit_samples(document, name)
+    return parse_moveit_json_samples(document, name)
+
+
+# --- writers (tests, and moving samples to those tools) -------------------------------------
+
+def _transform_dict(pose):
+    w, x, y, z = (float(v) for v in pose.quaternion)
+    return {'translation': dict(zip('xyz', (float(v) for v in pose.position))),
+            'rotation': {'x': x, 'y': y, 'z': z, 'w': w}}
+
+
+def format_easy_handeye2_samples(samples, setup='eye_in_hand', parameters=None):
+    """
+    Return easy_handeye2 `.samples` YAML of `samples` (list of pose.Sample), as it saves them.
+
+    For eye_to_hand the robot transform is written as T_effector_base, as easy_handeye2 does.
+    parameters: values for the `parameters` mapping (calibration_type is set from `setup`
+    unless given; easy_handeye2 itself leaves them empty).
+    """
+    _check_setup(setup)
+    params = {'name': '', 'calibration_type': '', 'robot_base_frame': '',
+              'robot_effector_frame': '', 'tracking_base_frame': '',
+              'tracking_marker_frame': '', 'freehand_robot_movement': False,
+              'move_group_namespace': '/', 'move_group': 'manipulator'}
+    params.update(parameters or {})
+    entries = []
+    for sample in samples:
+        robot = sample.link if setup == 'eye_in_hand' else sample.link.inverse()
+        entries.append({'robot': _transform_dict(robot),
+                        'tracking': _transform_dict(sample.sensor)})
+    return yaml.safe_dump({'parameters': params, 'samples': entries}, sort_keys=False,
+                          default_flow_style=False)
+
+
+def format_moveit_samples(samples):
+    """Return moveit_calibration samples YAML of `samples`: 16 numbers row-major each."""
+    entries = [{'effector_wrt_world': [float(v) for v in s.link.as_matrix().ravel()],
+                'object_wrt_sensor': [float(v) for v in s.sensor.as_matrix().ravel()]}
+               for s in samples]
+    return yaml.safe_dump(entries, sort_keys=False, default_flow_style=None)

@@ -1,0 +1,478 @@
+"""
+The samples journal: every captured sample on disk the moment it is taken, for resuming.
+
+The journal is the samples CSV of DESIGN.md contract 2 (samples_csv) preceded by one comment
+line that says what the file is and how its samples were taken:
+
+    # quatcal_ros samples journal v1 setup=eye_in_hand link_frame=tool0 sensor_frame=camera
+    stamp,link_x,link_y,link_z,link_qx,link_qy,link_qz,link_qw,sensor_x,...,sensor_qw
+    1700000001.500000000,0.41,...
+
+so `python -m quatcal_ros solve JOURNAL` reads it as it is.  Header values are
+percent-encoded (urllib.parse.quote) when they hold anything but letters, digits and _/.:-.
+
+Crash safety: the two header lines are written with persistence.atomic_write_text (temporary
+file, fsync, rename), so a journal either exists whole or not at all.  Each sample is then
+appended as one line with a single write and an fsync before the caller reports it captured
+(the live node publishes the estimate between the two: `append(sample, sync=False)`, `sync()`),
+so a crash (even SIGKILL or a power cut) loses at most the line being written.  Reading
+tolerates exactly that: a last line without its end of line, or a last line with too few
+fields, is an interrupted write and is dropped with a notice.  Anything else that does not
+read (a bad row in the middle, a wrong first line, another format, a newer version) makes the
+file corrupt or foreign: `start` reports it and moves it aside as NAME.corrupt-YYYYmmdd-HHMMSS
+beside it.  A valid journal that is not resumed is moved aside as NAME.previous-YYYYmmdd-HHMMSS.
+Nothing here deletes or overwrites a file that holds samples.
+
+Only the paths given are touched: the journal, files beside it (the moved-aside ones, the
+temporary file of the atomic write, and `.NAME.lock`, which a running journal holds locked with
+flock so that two nodes configured with the same samples_file do not write into one journal).
+The file is data: it is parsed as numbers, never evaluated.  No rclpy here.
+"""
+
+from dataclasses import dataclass, field
+import errno
+import io
+import os
+from pathlib import Path
+import time
+from urllib.parse import quote, unquote
+
+from quatcal_ros.files.persistence import atomic_write_text
+from quatcal_ros.files.samples_csv import BadInputError, COLUMNS, format_samples, parse_samples
+
+try:   # POSIX; elsewhere journals are not locked
+    import fcntl
+except ImportError:   # pragma: no cover
+    fcntl = None
+
+MAGIC = '# quatcal_ros samples journal'
+VERSION = 1
+HEADER_KEYS = ('setup', 'link_frame', 'sensor_frame')
+SAFE_CHARACTERS = '/_.:-'
+CORRUPT = 'corrupt'     # tag of a moved-aside file that is corrupt or foreign
+PREVIOUS = 'previous'   # tag of a moved-aside journal of an earlier session
+# A file this large cannot be a journal of one calibration (a sample is ~400 bytes).
+MAX_BYTES = 256 * 1024 * 1024
+
+
+class JournalError(ValueError):
+    """A file that is not a readable samples journal (corrupt or foreign); says why."""
+
+
+class JournalRefused(ValueError):
+    """The journal cannot be used as asked (in use, other setup, not a file); says why."""
+
+
+@dataclass(frozen=True)
+class JournalHeader:
+    """How the samples of a journal were taken: the setup and the frames."""
+
+    setup: str
+    link_frame: str
+    sensor_frame: str
+
+    def line(self):
+        """Return the first line of the journal (without its end of line)."""
+        values = ' '.join(f'{key}={quote(getattr(self, key), safe=SAFE_CHARACTERS)}'
+                          for key in HEADER_KEYS)
+        return f'{MAGIC} v{VERSION} {values}'
+
+    @staticmethod
+    def parse(line, name='<journal>'):
+        """
+        Read a header line; raise JournalError when it is not a version-1 journal header.
+
+        :param line: the first line of the file (without its end of line).
+        :param name: the file name, for messages.
+        """
+        shown = line if len(line) <= 80 else line[:77] + '...'
+        if not line.startswith(MAGIC + ' '):
+            raise JournalError(
+                f'{name}: not a quatcal_ros samples journal (its first line is {shown!r}, '
+                f'expected {MAGIC!r} ...)')
+        version, *items = line[len(MAGIC) + 1:].split()
+        if version != f'v{VERSION}':
+            raise JournalError(
+                f'{name}: samples journal version {version!r}; this quatcal_ros reads '
+                f'v{VERSION} only')
+        values = {}
+        for item in items:
+            key, sep, value = item.partition('=')
+            if not sep or key not in HEADER_KEYS or key in values:
+                raise JournalError(f'{name}, row 1: unexpected {item!r} in the journal header')
+            values[key] = unquote(value)
+        missing = [key for key in HEADER_KEYS if not values.get(key)]
+        if missing:
+            raise JournalError(
+                f'{name}, row 1: the journal header lacks {", ".join(missing)}')
+        return JournalHeader(**values)
+
+    def differences(self, other):
+        """Return 'key: mine vs other' for each field that differs from `other`."""
+        return [f'{key} {getattr(self, key)!r} (parameters: {getattr(other, key)!r})'
+                for key in HEADER_KEYS if getattr(self, key) != getattr(other, key)]
+
+
+@dataclass(frozen=True)
+class JournalContents:
+    """What a journal file holds: header, samples (pose.Sample), and notices about the tail."""
+
+    header: JournalHeader
+    samples: list
+    notices: list = field(default_factory=list)
+    intact_bytes: int = 0       # length of the part that reads (the rest is a torn last line)
+    size_bytes: int = 0
+
+
+def read_journal(path):
+    """
+    Read a samples journal, tolerating a torn last line (see the module docstring).
+
+    :return: JournalContents.
+    :raises FileNotFoundError: when there is no file.
+    :raises JournalError: when the file is corrupt or foreign (the message says where and why).
+    :raises OSError: when it cannot be read.
+    """
+    path = Path(path).expanduser()
+    name = str(path)
+    if not path.is_file():
+        if path.exists():
+            raise JournalError(f'{name}: not a regular file')
+        raise FileNotFoundError(errno.ENOENT, 'no samples journal', name)
+    size = path.stat().st_size
+    if size > MAX_BYTES:
+        raise JournalError(f'{name}: {size} bytes, far too large for a samples journal')
+    data = path.read_bytes()
+    if not data:
+        raise JournalError(f'{name}: empty file (a journal starts with {MAGIC!r})')
+    end = data.rfind(b'\n') + 1
+    intact, tail = data[:end], data[end:]
+    try:
+        text = intact.decode('utf-8')
+    except UnicodeDecodeError as error:
+        raise JournalError(f'{name}: not a text file (byte {error.start} is not UTF-8)') \
+            from None
+    lines = text.split('\n')[:-1]     # the text ends with a newline (or is empty)
+    if len(lines) < 2:
+        first = lines[0] if lines else data[:80].decode('utf-8', 'replace')
+        JournalHeader.parse(first.rstrip('\r'), name)   # a foreign file says so here
+        raise JournalError(f'{name}: the journal ends before its column row')
+    header = JournalHeader.parse(lines[0].rstrip('\r'), name)
+    notices = []
+    if tail:
+        notices.append(f'{name}: the last line ({len(tail)} bytes without an end of line) was '
+                       'being written when the node stopped: dropped')
+    if len(lines) > 2 and lines[-1].count(',') < len(COLUMNS) - 1:
+        notices.append(f'{name}, row {len(lines)}: the last line has '
+                       f'{lines[-1].count(",") + 1} of {len(COLUMNS)} fields, an interrupted '
+                       'write: dropped')
+        end -= len(lines[-1].encode('utf-8')) + 1
+        text = intact[:end].decode('utf-8')
+    try:
+        samples = parse_samples(io.StringIO(text, newline=''), name)
+    except BadInputError as error:
+        raise JournalError(str(error)) from None
+    return JournalContents(header, samples, notices, end, size)
+
+
+def aside_path(path, tag, now=None):
+    """
+    Return a free name NAME.TAG-YYYYmmdd-HHMMSS beside `path` (with -2, -3, ... if taken).
+
+    :param now: seconds since the epoch (time.time() by default); local time in the name.
+    """
+    path = Path(path)
+    stamp = time.strftime('%Y%m%d-%H%M%S', time.localtime(time.time() if now is None else now))
+    candidate = path.with_name(f'{path.name}.{tag}-{stamp}')
+    counter = 2
+    while candidate.exists() or candidate.is_symlink():
+        candidate = path.with_name(f'{path.name}.{tag}-{stamp}-{counter}')
+        counter += 1
+    return candidate
+
+
+def move_aside(path, tag, now=None):
+    """
+    Rename `path` to aside_path(path, tag) without ever replacing an existing file.
+
+    :return: the new path.
+    :raises OSError: when the file cannot be renamed (it then stays where it was).
+    """
+    path = Path(path)
+    while True:
+        target = aside_path(path, tag, now)
+        try:
+            os.link(path, target)       # fails if target exists: never overwrites
+        except FileExistsError:
+            continue                    # taken meanwhile: find the next free name
+        except OSError:                 # no hard links here (some file systems)
+            if target.exists():
+                continue
+            os.rename(path, target)
+            return target
+        os.unlink(path)
+        return target
+
+
+@dataclass
+class StartReport:
+    """What `start` did: samples to resume and the messages to log, as (level, text)."""
+
+    samples: list = field(default_factory=list)
+    messages: list = field(default_factory=list)
+    moved_to: Path = None
+
+
+class Journal:
+    """
+    An open samples journal that appends one fsync'd line per sample.
+
+    Made by `start` (the node's start-up policy) or `Journal.create`; `count` is the number of
+    samples it holds.  Samples that could not be written (disk full) are kept and written, in
+    order, before the next sample, so the file never has a gap.
+    """
+
+    def __init__(self, path, header, count=0, lock_fd=None):
+        self.path = absolute(path)
+        self.header = header
+        self.count = count
+        self._lock_fd = lock_fd
+        self._fd = None
+        self._unwritten = []
+        self._unsynced = False
+        self._open()
+
+    def _open(self):
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+        self._size = os.fstat(self._fd).st_size
+
+    # --- making one -----------------------------------------------------------------------
+
+    @staticmethod
+    def create(path, header, lock_fd=None):
+        """
+        Write a new, empty journal at `path` (atomically; parent directories are made).
+
+        :raises FileExistsError: when `path` exists (move it aside first).
+        :raises OSError: when the file cannot be written.
+        """
+        _write_empty(path, header)
+        return Journal(path, header, 0, lock_fd)
+
+    # --- writing --------------------------------------------------------------------------
+
+    @property
+    def unwritten(self):
+        """Return the number of samples not yet on disk (after a failed write)."""
+        return len(self._unwritten)
+
+    def append(self, sample, sync=True):
+        """
+        Append one sample (pose.Sample) and fsync; return when it is on disk.
+
+        With sync=False the line is written (so it survives the process, SIGKILL included)
+        but not fsync'd: call sync() to have it survive a power cut too. The live node
+        publishes the new estimate in between.
+        :raises OSError: when it cannot be written; the sample is kept and written before the
+            next one, and any partial line is cut off first.
+        """
+        self._unwritten.append(format_samples([sample], header=False).encode('utf-8'))
+        self.count += 1
+        self.flush(sync)
+
+    def flush(self, sync=True):
+        """Write the samples not yet in the file (see append), fsync'd unless sync=False."""
+        while self._unwritten:
+            data = self._unwritten[0]
+            if os.fstat(self._fd).st_size != self._size:
+                os.ftruncate(self._fd, self._size)   # a partial line of a failed write
+            written = 0
+            while written < len(data):
+                written += os.write(self._fd, data[written:])
+            self._unsynced = True
+            self._size += len(data)
+            self._unwritten.pop(0)
+        if sync:
+            self.sync()
+
+    def sync(self):
+        """Fsync the lines written since the last sync; raise OSError on failure."""
+        if self._unsynced:
+            os.fsync(self._fd)
+            self._unsynced = False
+
+    def set_header(self, header):
+        """
+        Rewrite the first line (setup or frames changed at runtime), atomically.
+
+        The sample lines stay byte for byte; raise OSError when the file cannot be replaced.
+        """
+        if header == self.header:
+            return
+        self.flush()
+        data = self.path.read_bytes()
+        rest = data[data.index(b'\n'):]
+        atomic_write_text(self.path, header.line() + rest.decode('utf-8'))
+        self.header = header
+        os.close(self._fd)
+        self._open()
+
+    def restart(self, now=None):
+        """
+        Start an empty journal at the same path (~/reset).
+
+        The old one, if it holds samples, is moved aside as NAME.previous-TIMESTAMP; samples
+        not yet written are dropped with it (the session forgets them too).
+        :return: the path the old journal was moved to, or None when it held no sample.
+        :raises OSError: when the old file cannot be moved or the new one written.
+        """
+        os.close(self._fd)
+        self._fd = None
+        moved = None
+        if self.count and self.path.exists():
+            moved = move_aside(self.path, PREVIOUS, now)
+        elif self.path.exists():
+            self.path.unlink()    # no samples: nothing to keep
+        self.count = 0
+        self._unwritten = []
+        self._unsynced = False
+        _write_empty(self.path, self.header)
+        self._open()
+        return moved
+
+    def close(self, unlock=True):
+        """Close the file, fsync'd (and release the lock unless unlock=False)."""
+        if self._fd is not None:
+            try:
+                self.sync()
+            except OSError:
+                pass   # shutting down: the lines are written, only a power cut loses them
+            os.close(self._fd)
+            self._fd = None
+        if unlock and self._lock_fd is not None:
+            os.close(self._lock_fd)    # closing releases the flock
+            self._lock_fd = None
+
+
+def _write_empty(path, header):
+    """Write the two header lines of a new journal atomically; never replace a file."""
+    path = absolute(path)
+    if path.exists() or path.is_symlink():
+        raise FileExistsError(errno.EEXIST, 'refusing to overwrite', str(path))
+    atomic_write_text(path, f'{header.line()}\n{",".join(COLUMNS)}\n')
+
+
+def absolute(path):
+    """Expand ~ in `path` and make it absolute; nothing else (no variables, no globbing)."""
+    return Path(path).expanduser().absolute()
+
+
+def lock_path(path):
+    """Return the lock file of the journal `path`: .NAME.lock beside it."""
+    path = absolute(path)
+    return path.with_name(f'.{path.name}.lock')
+
+
+def lock(path):
+    """
+    Lock the journal `path` for this process (flock on lock_path(path)); return the lock fd.
+
+    :raises JournalRefused: when another process (or node) holds it.
+    :raises OSError: when the directory cannot be made or the lock file opened.
+    """
+    if fcntl is None:   # pragma: no cover
+        return None
+    lock_file = lock_path(path)
+    lock_file.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as error:
+        os.close(fd)
+        if error.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise JournalRefused(
+                f'{absolute(path)} is in use by another running calibrator (locked through '
+                f'{lock_file}): give each node a samples_file of its own') from None
+        raise
+    return fd
+
+
+def start(path, header, resume, now=None):
+    """
+    Open the journal at `path` for a node starting up; the policy of the module docstring.
+
+    - No file: a new journal.
+    - A corrupt or foreign file: reported (level 'error'), moved aside as NAME.corrupt-..., a
+      new journal; nothing is resumed.
+    - A journal, resume=True: its samples are returned for resuming (a torn last line is cut
+      off, with a 'warning'), and new samples are appended to it.  Refused (JournalRefused)
+      when its setup or frames differ from `header`, so data of two set-ups never mix.
+    - A journal with samples, resume=False: moved aside as NAME.previous-... (a 'warning' that
+      says where, and that resume:=true would have continued it), a new journal.
+
+    :param path: the samples_file parameter (~ is expanded).
+    :param header: JournalHeader of the node's parameters.
+    :param resume: the resume parameter.
+    :return: (Journal, StartReport).
+    :raises JournalRefused: in use by another process, setup or frames differ (resume), or
+        the path is a directory.
+    :raises OSError: when the directory or the file cannot be written.
+    """
+    path = absolute(path)
+    if path.is_dir():
+        raise JournalRefused(f'{path} is a directory; samples_file must name a file')
+    lock_fd = lock(path)
+    try:
+        return _start_locked(path, header, resume, lock_fd, now)
+    except BaseException:
+        if lock_fd is not None:
+            os.close(lock_fd)
+        raise
+
+
+def _start_locked(path, header, resume, lock_fd, now):
+    report = StartReport()
+    try:
+        contents = read_journal(path)
+    except FileNotFoundError:
+        if resume:
+            report.messages.append(
+                ('warning', f'resume:=true, but there is no samples journal at {path} yet: '
+                            'nothing to resume, starting a new one'))
+        else:
+            report.messages.append(('info', f'captured samples are saved to {path}'))
+        return Journal.create(path, header, lock_fd), report
+    except JournalError as error:
+        report.moved_to = move_aside(path, CORRUPT, now)
+        report.messages.append(
+            ('error', f'{error}; this file is corrupt or not a samples journal: moved to '
+                      f'{report.moved_to}, not used{", nothing resumed" if resume else ""}; '
+                      f'starting a new journal at {path}'))
+        return Journal.create(path, header, lock_fd), report
+    if resume:
+        differences = contents.header.differences(header)
+        if differences:
+            raise JournalRefused(
+                f'resume:=true refused: {path} was recorded with {", ".join(differences)}; '
+                'resuming would mix samples of another setup or other frames. Start with the '
+                "journal's values to resume it, or with resume:=false to move it aside and "
+                'start over')
+        for notice in contents.notices:
+            report.messages.append(('warning', notice))
+        if contents.intact_bytes < contents.size_bytes:
+            os.truncate(path, contents.intact_bytes)   # cut the torn line before appending
+        report.samples = list(contents.samples)
+        report.messages.append(
+            ('info', f'resumed {len(report.samples)} samples from {path}; new samples are '
+                     'appended to it'))
+        return Journal(path, contents.header, len(report.samples), lock_fd), report
+    if contents.samples or contents.notices:
+        report.moved_to = move_aside(path, PREVIOUS, now)
+        report.messages.append(
+            ('warning', f'{path} held {len(contents.samples)} samples of an earlier session: '
+                        f'moved to {report.moved_to} (resume:=true would have continued it); '
+                        'starting a new journal'))
+    else:
+        path.unlink()    # a journal without samples: nothing to keep
+        report.messages.append(('info', f'captured samples are saved to {path}'))
+    return Journal.create(path, header, lock_fd), report

@@ -1,0 +1,533 @@
+"""
+Replay a rosbag2 recording (sqlite3 or mcap) into a session.Session, as the live node would.
+
+Read with the pure-Python `rosbags` library (types of ROS 2 Jazzy), in the bag's order (log
+time); poses always carry their header stamps.  A pose stream (`PoseInput`) comes from a
+topic of geometry_msgs/PoseStamped, TransformStamped, PoseWithCovarianceStamped or
+nav_msgs/Odometry, or from two frames of the transform tree of tf2_msgs/TFMessage topics
+(/tf, /tf_static): T_target_source at each stamp at which a dynamic transform on the chain
+arrived (tf_tree.FramePoses).  Static transforms are read first, wherever they are in the bag.
+
+Messages are read ahead a window at a time.  PoseStamped and TransformStamped topics take a
+fast path: the window's messages of such a topic are decoded together straight from the raw
+bytes (cdr.py), and each run of consecutive messages of the topic goes to the session at once
+(Session.add_poses).  What that decoder does not vouch for, and every other type, is
+deserialised by rosbags and handed over one message at a time.  Both give the same poses in
+the bag's order, so the session sees exactly what it would see message by message.
+
+Bad input raises BagError naming the file or topic.  A message that cannot be used (NaN,
+zero quaternion, undecodable bytes) is counted and skipped; `ReplayReport.warnings()` says
+how many, where and why.
+"""
+
+from collections import Counter
+from dataclasses import dataclass, field
+from itertools import groupby
+from pathlib import Path
+
+import numpy as np
+
+from quatcal_ros.ros import cdr
+from quatcal_ros.ros.conversions import BadPoseError, pose_from_msg, stamp_ns_from_header
+from quatcal_ros.stream.session import Rejected
+from quatcal_ros.stream.tf_tree import FramePoses, normalize_frame, TransformTree, TreeError
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import get_typestore, Stores
+
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+POSE_TYPES = ('geometry_msgs/msg/PoseStamped', 'geometry_msgs/msg/TransformStamped',
+              'geometry_msgs/msg/PoseWithCovarianceStamped', 'nav_msgs/msg/Odometry')
+TF_TYPE = 'tf2_msgs/msg/TFMessage'
+DEFAULT_TF_TOPICS = ('/tf', '/tf_static')
+# Dynamic transforms are interpolated across gaps up to this long (a slow publisher of a fixed
+# frame on /tf still works); the pairing applies its own gap limit to the composed poses.
+TF_MAX_GAP_NS = 500_000_000
+# Dynamic transforms kept per edge (the stretch of stamps): enough for publishers' latencies,
+# small enough for robots with many joints at 1 kHz.
+TF_CACHE_NS = 2_000_000_000
+# Messages are read ahead (and the progress callback runs) this many at a time.
+PROGRESS_EVERY = 512
+STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
+
+
+class BagError(ValueError):
+    """A recording or topic that cannot be replayed; the message names the file or topic."""
+
+
+def is_static_tf_topic(topic):
+    """Whether a TFMessage topic holds static transforms (/tf_static, /robot/tf_static)."""
+    return topic.rstrip('/').endswith('tf_static')
+
+
+def _frame_ids(msg):
+    """
+    Return (header.frame_id, child_frame_id or None) of a stamped pose or transform message.
+
+    The one read of geometry_msgs fields outside conversions (which has no frame accessor yet).
+    """
+    child = getattr(msg, 'child_frame_id', None)
+    return normalize_frame(msg.header.frame_id), None if child is None else normalize_frame(child)
+
+
+# --- the recording ---------------------------------------------------------------------------
+
+class Bag:
+    """An open rosbag2 recording: its topics, and raw messages in log-time order."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self._reader = _open_reader(self.path)
+        try:
+            self.topics = {name: (info.msgtype, info.msgcount)
+                           for name, info in self._reader.topics.items()}
+            self.message_count = self._reader.message_count
+        except Exception as error:   # noqa: B902 - whatever a damaged bag raises
+            self.close()
+            raise BagError(f"{self.path}: cannot read the bag's index: {error}") from None
+
+    def close(self):
+        """Close the files."""
+        if self._reader.is_open:
+            self._reader.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc_info):
+        self.close()
+        return False
+
+    def describe_topics(self):
+        """List the topics as 'name (type, N messages)', one per line, for messages."""
+        if not self.topics:
+            return '  (none)'
+        return '\n'.join(f'  {name} ({msgtype or "several types"}, {count} messages)'
+                         for name, (msgtype, count) in sorted(self.topics.items()))
+
+    def topic_type(self, topic, allowed, role):
+        """Return the message type of `topic`; BagError when missing, empty or not allowed."""
+        if topic not in self.topics:
+            raise BagError(f'{self.path}: no topic {topic} ({role}) in the bag; its topics:\n'
+                           f'{self.describe_topics()}')
+        msgtype, count = self.topics[topic]
+        if msgtype not in allowed:
+            raise BagError(f'{self.path}: topic {topic} ({role}) has type '
+                           f'{msgtype or "(several types)"}, which the replay cannot read as '
+                           f'{role}; supported: {", ".join(allowed)}')
+        if count == 0:
+            raise BagError(f'{self.path}: topic {topic} ({role}) has no messages')
+        return msgtype
+
+    def connections(self, topics):
+        """Return the connections of `topics`."""
+        return [c for c in self._reader.connections if c.topic in topics]
+
+    def messages(self, connections):
+        """Yield (connection, log time ns, raw bytes); BagError when the storage is damaged."""
+        if not connections:
+            return   # rosbags reads every topic when given none
+        read = 0
+        try:
+            for item in self._reader.messages(connections):
+                read += 1
+                yield item
+        except Exception as error:   # noqa: B902 - sqlite, mcap and zstd errors alike
+            raise BagError(f'{self.path}: the recording is damaged after {read} messages: '
+                           f'{type(error).__name__}: {error}') from None
+
+
+def _open_reader(path):
+    if not path.exists():
+        raise BagError(f'{path}: no such file or directory')
+    if path.is_dir() and not (path / 'metadata.yaml').is_file():
+        raise BagError(f'{path}: not a rosbag2 directory (no metadata.yaml in it); if the '
+                       'recorder was killed, `ros2 bag reindex` can rebuild it')
+    if path.is_file() and path.suffix not in ('.db3', '.mcap'):
+        raise BagError(f'{path}: not a rosbag2 directory (nor a .db3 or .mcap file)')
+    try:
+        reader = Reader(path)
+        reader.open()
+    except Exception as error:   # noqa: B902 - rosbags, yaml, sqlite and mcap errors alike
+        raise BagError(f'{path}: cannot open the bag: {error}') from None
+    return reader
+
+
+def write_bag(path, topics, messages, storage='sqlite3'):
+    """
+    Write a rosbag2 directory (tests, benchmarks, dataset conversion).
+
+    topics: {name: message type}; messages: iterable of (topic, log time ns, message built
+    with TYPESTORE's classes); storage: 'sqlite3' or 'mcap'.  Returns the number written.
+    """
+    count = 0
+    with Writer(Path(path), version=8, storage_plugin=STORAGES[storage]) as writer:
+        connections = {name: writer.add_connection(name, msgtype, typestore=TYPESTORE)
+                       for name, msgtype in topics.items()}
+        for topic, log_ns, msg in messages:
+            connection = connections[topic]
+            writer.write(connection, int(log_ns),
+                         TYPESTORE.serialize_cdr(msg, connection.msgtype))
+            count += 1
+    return count
+
+
+# --- what to replay --------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class PoseInput:
+    """Where a pose stream comes from: a pose `topic`, or `frames` (target, source) of TF."""
+
+    topic: str = None
+    frames: tuple = None
+
+    def __post_init__(self):
+        if (self.topic is None) == (self.frames is None):
+            raise ValueError('a pose input is a topic or a pair of frames, not both or none')
+
+    def __str__(self):
+        if self.topic is not None:
+            return self.topic
+        return f'TF {self.frames[0]} -> {self.frames[1]}'
+
+
+@dataclass
+class ReplayReport:
+    """What a replay read and what it could not use."""
+
+    messages: int = 0
+    stamps: dict = field(default_factory=dict)             # stream: [first, last] pose stamp
+    frames: dict = field(default_factory=dict)             # stream: (frame_id, child frame)
+    skipped: Counter = field(default_factory=Counter)      # (topic, item, why): count
+    skipped_example: dict = field(default_factory=dict)    # (topic, item, why): first text
+    rejected: Counter = field(default_factory=Counter)     # (session's what, code): count
+    rejected_example: dict = field(default_factory=dict)
+    tf_dropped: dict = field(default_factory=dict)         # stream: its tf_tree.FramePoses
+    tf_stale: int = 0
+    tf_frames: tuple = ()                                  # every frame the TF tree knew
+    counters: dict = field(default_factory=dict)           # the session's, at the end
+
+    def warnings(self):
+        """Return what was not used, as sentences for the JSON "warnings"."""
+        out = []
+        for key, count in sorted(self.skipped.items()):
+            topic, item, why = key
+            out.append(f'{topic}: {count} {item}(s) skipped ({why}): '
+                       f'{self.skipped_example[key]}')
+        for key, count in sorted(self.rejected.items()):
+            what, code = key
+            out.append(f'{count} {what} message(s) rejected{f" ({code})" if code else ""}, '
+                       f'e.g. {self.rejected_example[key]}')
+        for stream, frames in sorted(self.tf_dropped.items()):
+            if sum(frames.dropped.values()):
+                reasons = ', '.join(f'{n} {why}' for why, n in sorted(frames.dropped.items()))
+                out.append(f'{stream} pose {frames.target} -> {frames.source}: stamps not '
+                           f'evaluated ({reasons}); last: {frames.last_dropped}')
+        if self.tf_stale:
+            out.append(f'{self.tf_stale} transform(s) older than the TF buffer ignored')
+        jumps = self.counters.get('time_jumps', 0)
+        if jumps:
+            out.append(f'time jumped back {jumps} time(s) (a bag played twice?): pairing '
+                       'restarted each time')
+        repeated = self.counters.get('repeated_samples', 0)
+        if repeated:
+            out.append(f'{repeated} still sample(s) repeat earlier ones (the same data played '
+                       'again) and were not added')
+        unpaired = self.counters.get('unpaired', 0)
+        if unpaired:
+            out.append(f'{unpaired} pose stamp(s) of the slower stream could not be paired '
+                       '(gaps in the faster stream, or stamps outside its range)')
+        return out
+
+
+class Replay:
+    """
+    Feeds one recording into a session: link and sensor poses in the bag's order.
+
+    Inputs are checked against the bag when built (BagError); `run(session)` can be called
+    more than once (for instance again in another capture mode).
+    """
+
+    def __init__(self, bag, link, sensor, tf_topics=DEFAULT_TF_TOPICS,
+                 tf_max_gap_ns=TF_MAX_GAP_NS):
+        self.bag = bag
+        self.inputs = {'link': link, 'sensor': sensor}
+        self.tf_max_gap_ns = tf_max_gap_ns
+        if bag.message_count == 0:
+            raise BagError(f'{bag.path}: the bag holds no messages')
+        if link.topic is not None and link.topic == sensor.topic:
+            raise BagError(f'{bag.path}: the link and sensor poses cannot both come from topic '
+                           f'{link.topic}')
+        self.msgtypes = {}
+        for stream, source in self.inputs.items():
+            if source.topic is not None:
+                self.msgtypes[source.topic] = self._pose_topic_type(stream, source.topic)
+        self.tf_topics = ()
+        if any(source.frames for source in self.inputs.values()):
+            self.tf_topics = tuple(t for t in tf_topics if t in bag.topics)
+            self._check_tf_topics(tf_topics)
+        self.topics = set(self.msgtypes) | set(self.tf_topics)
+        self.total = sum(bag.topics[topic][1] for topic in self.topics)
+
+    def _pose_topic_type(self, stream, topic):
+        role = f'{stream} poses'
+        if self.bag.topics.get(topic, (None,))[0] == TF_TYPE:
+            raise BagError(f'{self.bag.path}: topic {topic} ({role}) holds tf2_msgs/TFMessage: '
+                           f'give --{stream}-frames PARENT CHILD instead of --{stream}-topic')
+        return self.bag.topic_type(topic, POSE_TYPES, role)
+
+    def _check_tf_topics(self, wanted):
+        if not self.tf_topics:
+            raise BagError(f'{self.bag.path}: no TF topic ({", ".join(wanted)}) in the bag; '
+                           f'its topics:\n{self.bag.describe_topics()}')
+        for topic in self.tf_topics:
+            msgtype = self.bag.topics[topic][0]
+            if msgtype != TF_TYPE:
+                raise BagError(f'{self.bag.path}: topic {topic} has type {msgtype}, not '
+                               f'{TF_TYPE}')
+
+    def run(self, session, on_progress=None):
+        """
+        Replay the whole bag into `session`; return a ReplayReport.
+
+        on_progress(messages read) is called every PROGRESS_EVERY messages.
+        """
+        run = _Run(self, session)
+        static = {topic for topic in self.tf_topics if is_static_tf_topic(topic)}
+        count = 0
+        for connection, _, raw in self.bag.messages(self.bag.connections(static)):
+            count += 1
+            run.on_tf(connection.topic, raw, static=True)
+        connections = self.bag.connections(self.topics - static)
+        feeds = {connection.id: run.feed_of(connection.topic) for connection in connections}
+        window = []   # the feed of each message read ahead
+        for count, (connection, _, raw) in enumerate(self.bag.messages(connections), count + 1):
+            feed = feeds[connection.id]
+            feed.add(raw)
+            window.append(feed)
+            if not count % PROGRESS_EVERY:
+                _feed_window(window)
+                if on_progress is not None:
+                    on_progress(count)
+        _feed_window(window)
+        return run.finish(count)
+
+
+def _feed_window(window):
+    """Feed the messages read ahead in their order (`window`: the feed of each); clear it."""
+    feeds = set(window)
+    for feed in feeds:
+        feed.prepare()
+    for feed, messages in groupby(window):
+        feed.take(len(list(messages)))
+    for feed in feeds:
+        feed.clear()
+    window.clear()
+
+
+class _Feed:
+    """The raw messages of one topic read ahead (`add`), fed one by one (`on_raw`) in runs."""
+
+    def __init__(self, on_raw):
+        self.raws = []
+        self.add = self.raws.append
+        self.on_raw = on_raw
+        self.taken = 0
+
+    def prepare(self):
+        """Make ready to feed the messages added (nothing to do here)."""
+
+    def take(self, count):
+        """Feed the next `count` messages added."""
+        start, self.taken = self.taken, self.taken + count
+        for raw in self.raws[start:self.taken]:
+            self.on_raw(raw)
+
+    def clear(self):
+        """Forget the messages fed."""
+        self.raws.clear()
+        self.taken = 0
+
+
+class _PoseFeed(_Feed):
+    """A PoseStamped or TransformStamped topic: its messages are decoded together (cdr.py)."""
+
+    def __init__(self, on_raw, on_rows, msgtype):
+        super().__init__(on_raw)
+        self.on_rows = on_rows   # (raws, cdr.DecodedPoses, start, stop) of decoded rows
+        self.msgtype = msgtype
+        self.decoded = None
+
+    def prepare(self):
+        """Decode the messages added."""
+        self.decoded = cdr.decode_poses(self.raws, self.msgtype)
+
+    def take(self, count):
+        """Feed the next `count` messages: decoded rows together, the others by on_raw."""
+        start, self.taken = self.taken, self.taken + count
+        for first, stop, ok in _stretches(self.decoded.ok[start:self.taken]):
+            if ok:
+                self.on_rows(self.raws, self.decoded, start + first, start + stop)
+            else:
+                for raw in self.raws[start + first:start + stop]:
+                    self.on_raw(raw)
+
+
+def _stretches(flags):
+    """Return [(start, stop, flag)] of the stretches of equal flags of a non-empty bool array."""
+    if flags.all():
+        return [(0, len(flags), True)]
+    bounds = [0, *(np.flatnonzero(flags[1:] != flags[:-1]) + 1).tolist(), len(flags)]
+    return [(start, stop, bool(flags[start])) for start, stop in zip(bounds, bounds[1:])]
+
+
+class _Run:
+    """The state of one replay: the transform tree, the report, the message handlers."""
+
+    def __init__(self, replay, session):
+        self.replay = replay
+        self.session = session
+        self.report = ReplayReport(stamps={'link': [None, None], 'sensor': [None, None]})
+        self.tree = TransformTree(cache_ns=TF_CACHE_NS, max_gap_ns=replay.tf_max_gap_ns)
+        self.adders = {'link': session.add_link_pose, 'sensor': session.add_sensor_pose}
+        self.watchers = []
+        for stream, source in replay.inputs.items():
+            if source.frames is not None:
+                frames = FramePoses(self.tree, *source.frames)
+                self.watchers.append((stream, frames))
+                self.report.tf_dropped[stream] = frames
+                self.report.frames[stream] = tuple(source.frames)
+
+    def feed_of(self, topic):
+        """Return the _Feed that takes the raw messages of `topic`."""
+        if topic in self.replay.tf_topics:
+            return _Feed(lambda raw: self.on_tf(topic, raw, static=False))
+        stream = next(s for s, source in self.replay.inputs.items() if source.topic == topic)
+        on_pose = self._pose_handler(topic, stream)
+        msgtype = self.replay.msgtypes[topic]
+        if msgtype not in cdr.STRINGS_BEFORE_POSE:
+            return _Feed(on_pose)
+        return _PoseFeed(on_pose, lambda *rows: self._on_rows(stream, msgtype, *rows), msgtype)
+
+    def _pose_handler(self, topic, stream):
+        """Return the function that takes one raw pose message (rosbags deserialises it)."""
+        msgtype = self.replay.msgtypes[topic]
+        deserialize = TYPESTORE.deserialize_cdr
+        add = self.adders[stream]
+
+        def on_pose(raw):
+            try:
+                msg = deserialize(raw, msgtype)
+            except Exception as error:   # noqa: B902 - whatever rosbags raises on bad bytes
+                self._undecodable(topic, error)
+                return
+            try:
+                stamp_ns = stamp_ns_from_header(msg.header)
+                pose = pose_from_msg(msg)
+            except (BadPoseError, ValueError) as error:
+                self._skip(topic, error)
+                return
+            if self._track(stream, stamp_ns, stamp_ns):
+                self.report.frames[stream] = _frame_ids(msg)
+            events = add(stamp_ns, pose)
+            if events:
+                self._note(events)
+        return on_pose
+
+    def _on_rows(self, stream, msgtype, raws, decoded, start, stop):
+        """Take the decoded poses of raws[start:stop] (cdr.DecodedPoses rows) at once."""
+        stamps = decoded.stamps_ns[start:stop].tolist()
+        if self._track(stream, stamps[0], stamps[-1]):
+            self.report.frames[stream] = _frame_ids(
+                TYPESTORE.deserialize_cdr(raws[start], msgtype))
+        self._note(self.session.add_poses(stream, stamps, decoded.positions[start:stop],
+                                          decoded.quaternions[start:stop]))
+
+    def _track(self, stream, first_ns, last_ns):
+        """Note the stamps of poses fed on `stream`; return whether they are its first."""
+        span = self.report.stamps[stream]
+        first = span[0] is None
+        if first:
+            span[0] = first_ns
+        span[1] = last_ns
+        return first
+
+    def _feed(self, stream, stamp_ns, pose):
+        self._track(stream, stamp_ns, stamp_ns)
+        events = self.adders[stream](stamp_ns, pose)
+        if events:
+            self._note(events)
+
+    def _note(self, events):
+        report = self.report
+        for event in events:
+            if isinstance(event, Rejected):
+                key = (event.what, getattr(event, 'code', ''))
+                report.rejected[key] += 1
+                report.rejected_example.setdefault(key, event.reason)
+
+    def on_tf(self, topic, raw, static):
+        """Take a raw TFMessage: update the tree, then feed the poses it completes."""
+        try:
+            msg = TYPESTORE.deserialize_cdr(raw, TF_TYPE)
+        except Exception as error:   # noqa: B902 - whatever rosbags raises on bad bytes
+            self._undecodable(topic, error)
+            return
+        changed = []
+        for transform in msg.transforms:
+            try:
+                stamp_ns = stamp_ns_from_header(transform.header)
+                pose = pose_from_msg(transform)
+                parent, child = _frame_ids(transform)
+                stored = self.tree.set_transform(parent, child, stamp_ns, pose, static)
+            except (BadPoseError, ValueError) as error:   # TreeError is a ValueError
+                self._skip(topic, error, 'transform')
+                continue
+            if stored and not static:
+                changed.append((child, stamp_ns))
+        for stream, frames in self.watchers:
+            for child, stamp_ns in changed:
+                frames.note(child, stamp_ns)
+            for stamp_ns, pose in frames.ready():
+                self._feed(stream, stamp_ns, pose)
+
+    def _undecodable(self, topic, error):
+        key = (topic, 'message', 'undecodable')
+        self.report.skipped[key] += 1
+        self.report.skipped_example.setdefault(key, f'{type(error).__name__}: {error}')
+
+    def _skip(self, topic, error, item='message'):
+        """Count a message (or a transform of a TFMessage) that cannot be used."""
+        if isinstance(error, TreeError):
+            why = 'breaks_tree'
+        elif isinstance(error, BadPoseError):
+            # The codes of message_checks.REASONS, as the node counts them.
+            why = getattr(error, 'reason', 'malformed')
+            why = f'{why}, {error.field}' if error.field else why
+        else:
+            why = 'bad_stamp' if 'stamp' in str(error) else 'malformed'
+        key = (topic, item, why)
+        self.report.skipped[key] += 1
+        self.report.skipped_example.setdefault(key, str(error))
+
+    def finish(self, count):
+        for _, frames in self.watchers:
+            frames.finish()
+        self.report.messages = count
+        self.report.tf_stale = sum(self.tree.stale.values())
+        self.report.tf_frames = tuple(sorted(self.tree.frames))
+        self.report.counters = self.session.counters
+        return self.report
+
+
+def result_frames(report, setup='eye_in_hand', invert_sensor=False):
+    """
+    Return (parent, child) frames of the result from what the replay saw; None when unknown.
+
+    Parent: the link frame (eye_in_hand) or the base frame (eye_to_hand); child: the sensor
+    frame, the header frame of T_sensor_obj (its child frame with invert_sensor).
+    """
+    base, link = report.frames.get('link', (None, None))
+    sensor_parent, sensor_child = report.frames.get('sensor', (None, None))
+    parent = link if setup == 'eye_in_hand' else base
+    child = sensor_child if invert_sensor else sensor_parent
+    return parent or None, child or None

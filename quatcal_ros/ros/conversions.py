@@ -1,0 +1,231 @@
+"""
+Conversions between geometry_msgs messages and the core's plain numbers.
+
+The only module that reads or writes geometry_msgs fields.  Messages hold quaternions as
+(x, y, z, w); the core as (w, x, y, z): fields are read and written by name, never by position.
+Times are integer nanoseconds (header stamps).
+
+Reading is duck-typed, so the message classes of rclpy (geometry_msgs.msg) and those of the
+pure-Python `rosbags` library (same field names) work alike.  Builders import geometry_msgs
+only when called, or build rosbags classes from a typestore, so this module also imports where
+only rosbags is installed.
+"""
+
+import math
+from operator import attrgetter
+
+import numpy as np
+
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
+
+NS_PER_S = 1_000_000_000
+# Quaternions whose norm is within this of 1 are renormalised; farther ones are rejected.
+DEFAULT_NORM_TOLERANCE = 1e-3
+# A quaternion with a smaller norm is a zero quaternion (reason 'zero_quaternion').
+ZERO_NORM = 1e-6
+_INT32_MIN, _INT32_MAX = -2 ** 31, 2 ** 31 - 1
+
+
+class BadPoseError(ValueError):
+    """
+    A pose holds numbers that are not a pose; the message names the field.
+
+    `field` is the offending field ('pose.position.x', 'pose.orientation', ...); `reason`
+    one of 'non_finite', 'zero_quaternion', 'non_unit_quaternion', 'malformed' (the codes of
+    message_checks.REASONS).
+    """
+
+    def __init__(self, message, field='', reason='malformed'):
+        super().__init__(message)
+        self.field = field
+        self.reason = reason
+
+
+# --- reading ---------------------------------------------------------------------------------
+
+def _number(value, name):
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise BadPoseError(f'{name} is not a number ({value!r})', name) from None
+
+
+def validate_pose_numbers(position, quaternion_xyzw, norm_tolerance=DEFAULT_NORM_TOLERANCE,
+                          position_name='position', orientation_name='orientation'):
+    """
+    Check a position (3,) and a quaternion (x, y, z, w); return them as arrays, unit q.
+
+    Raises BadPoseError naming the field: a NaN or infinite component ('position.x is nan'),
+    or a quaternion whose norm is farther than norm_tolerance from 1 ('orientation has norm
+    0.00').  A quaternion within the tolerance is renormalised.
+    """
+    if norm_tolerance < 0.0:
+        raise ValueError(f'norm_tolerance must be >= 0, not {norm_tolerance}')
+    # Fast path (every message of a live stream): plain floats, no names formatted.
+    try:
+        px, py, pz = position
+        qx, qy, qz, qw = quaternion_xyzw
+        values = (float(px), float(py), float(pz), float(qx), float(qy), float(qz), float(qw))
+    except (TypeError, ValueError):
+        values = None
+    if values is not None and math.isfinite(sum(values)):
+        norm = math.hypot(*values[3:])
+        if abs(norm - 1.0) <= norm_tolerance:
+            return np.array(values[:3]), np.array(values[3:]) / norm
+    return _validate_slowly(position, quaternion_xyzw, norm_tolerance, position_name,
+                            orientation_name)
+
+
+def _validate_slowly(position, quaternion_xyzw, norm_tolerance, position_name,
+                     orientation_name):
+    """validate_pose_numbers field by field, raising BadPoseError with the field's name."""
+    position, quaternion_xyzw = list(position), list(quaternion_xyzw)
+    if len(position) != 3 or len(quaternion_xyzw) != 4:
+        raise BadPoseError(f'expected 3 position and 4 quaternion components, got '
+                           f'{len(position)} and {len(quaternion_xyzw)}')
+    fields = ([(f'{position_name}.{axis}', v) for axis, v in zip('xyz', position)]
+              + [(f'{orientation_name}.{axis}', v) for axis, v in zip('xyzw', quaternion_xyzw)])
+    values = [_number(v, name) for name, v in fields]
+    for (name, _), v in zip(fields, values):
+        if not math.isfinite(v):
+            raise BadPoseError(f'{name} is {v}', name, 'non_finite')
+    q = np.array(values[3:])
+    norm = math.hypot(*values[3:])   # no overflow for huge components
+    if abs(norm - 1.0) > norm_tolerance:
+        shown = f'{norm:.2f}' if abs(norm - 1.0) >= 0.01 else f'{norm:.6f}'
+        raise BadPoseError(
+            f'{orientation_name} has norm {shown}; a rotation quaternion has norm 1 '
+            f'(accepted within {norm_tolerance:g})', orientation_name,
+            'zero_quaternion' if norm < ZERO_NORM else 'non_unit_quaternion')
+    return np.array(values[:3]), q / norm
+
+
+def _pose_fields(msg):
+    """(position, orientation, their names) of a Pose/PoseStamped/Transform(Stamped)-like msg."""
+    obj, path = msg, ''
+    while hasattr(obj, 'pose'):   # PoseStamped, PoseWithCovariance(Stamped), Odometry
+        obj, path = obj.pose, path + 'pose.'
+    if hasattr(obj, 'transform'):
+        obj, path = obj.transform, path + 'transform.'
+    for linear, angular in (('position', 'orientation'), ('translation', 'rotation')):
+        if hasattr(obj, linear) and hasattr(obj, angular):
+            return (getattr(obj, linear), getattr(obj, angular),
+                    path + linear, path + angular)
+    raise TypeError(f'expected a geometry_msgs Pose, PoseStamped, Transform or '
+                    f'TransformStamped, got {type(msg).__name__}')
+
+
+_LAYOUTS = {}   # message class -> getters of its position and orientation, their names
+
+
+def pose_from_msg(msg, norm_tolerance=DEFAULT_NORM_TOLERANCE):
+    """
+    Pose (quaternion (w, x, y, z)) of a geometry_msgs Pose, PoseStamped, Transform, ...
+
+    Duck-typed: anything with .pose (descended repeatedly) or .transform, holding
+    position/orientation or translation/rotation with x, y, z (, w) fields.  Raises
+    BadPoseError naming the field for NaN, inf or a non-unit quaternion (validate_pose_numbers).
+    """
+    layout = _LAYOUTS.get(type(msg))
+    if layout is None:   # found once per message class
+        _, _, position_name, orientation_name = _pose_fields(msg)
+        layout = _LAYOUTS[type(msg)] = (attrgetter(position_name), attrgetter(orientation_name),
+                                        position_name, orientation_name)
+    get_position, get_orientation, position_name, orientation_name = layout
+    position, orientation = get_position(msg), get_orientation(msg)
+    # Fast path, as in validate_pose_numbers, building (w, x, y, z) directly.
+    try:
+        x, y, z = float(position.x), float(position.y), float(position.z)
+        qx, qy = float(orientation.x), float(orientation.y)
+        qz, qw = float(orientation.z), float(orientation.w)
+    except (TypeError, ValueError):
+        x = math.nan   # not numbers: validate_pose_numbers names the field
+    else:
+        norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+        if math.isfinite(x + y + z) and abs(norm - 1.0) <= norm_tolerance:   # NaN fails
+            return Pose(np.array((x, y, z)),
+                        np.array((qw / norm, qx / norm, qy / norm, qz / norm)))
+    p, q_xyzw = validate_pose_numbers(
+        (position.x, position.y, position.z),
+        (orientation.x, orientation.y, orientation.z, orientation.w),
+        norm_tolerance, position_name, orientation_name)
+    return Pose(p, quat.wxyz_from_xyzw(q_xyzw))
+
+
+def stamp_ns_from_header(header):
+    """Integer nanoseconds of a std_msgs/Header (or a builtin_interfaces/Time) stamp."""
+    stamp = getattr(header, 'stamp', header)
+    nanosec = int(stamp.nanosec)
+    if not 0 <= nanosec < NS_PER_S:
+        raise ValueError(f'stamp.nanosec must be in [0, 1e9), not {nanosec}')
+    return int(stamp.sec) * NS_PER_S + nanosec
+
+
+# --- building --------------------------------------------------------------------------------
+
+def _msg_class(name, typestore):
+    """Message class 'pkg/msg/Name': from rclpy's Python packages, or a rosbags typestore."""
+    if typestore is not None:
+        return typestore.types[name]
+    package, _, type_name = name.split('/')
+    if package == 'geometry_msgs':
+        import geometry_msgs.msg as module
+    elif package == 'std_msgs':
+        import std_msgs.msg as module
+    else:
+        import builtin_interfaces.msg as module
+    return getattr(module, type_name)
+
+
+def time_msg(stamp_ns, typestore=None):
+    """builtin_interfaces/Time of integer nanoseconds (sec may be negative, nanosec >= 0)."""
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+    if not _INT32_MIN <= sec <= _INT32_MAX:
+        raise ValueError(f'stamp {stamp_ns} ns does not fit builtin_interfaces/Time (int32 sec)')
+    return _msg_class('builtin_interfaces/msg/Time', typestore)(sec=sec, nanosec=nanosec)
+
+
+def _header(stamp_ns, frame_id, typestore):
+    return _msg_class('std_msgs/msg/Header', typestore)(
+        stamp=time_msg(stamp_ns, typestore), frame_id=str(frame_id))
+
+
+def _quaternion_msg(q_wxyz, typestore):
+    w, x, y, z = (float(v) for v in quat.normalize(q_wxyz))
+    return _msg_class('geometry_msgs/msg/Quaternion', typestore)(x=x, y=y, z=z, w=w)
+
+
+def _vector(cls_name, position, typestore):
+    x, y, z = (float(v) for v in position)
+    return _msg_class(cls_name, typestore)(x=x, y=y, z=z)
+
+
+def pose_msg(pose, typestore=None):
+    """geometry_msgs/Pose of a Pose."""
+    return _msg_class('geometry_msgs/msg/Pose', typestore)(
+        position=_vector('geometry_msgs/msg/Point', pose.position, typestore),
+        orientation=_quaternion_msg(pose.quaternion, typestore))
+
+
+def pose_stamped_msg(pose, stamp_ns, frame_id, typestore=None):
+    """geometry_msgs/PoseStamped of a Pose (typestore: build rosbags classes instead)."""
+    return _msg_class('geometry_msgs/msg/PoseStamped', typestore)(
+        header=_header(stamp_ns, frame_id, typestore), pose=pose_msg(pose, typestore))
+
+
+def transform_stamped_msg(pose, stamp_ns, frame_id, child_frame_id, typestore=None):
+    """geometry_msgs/TransformStamped of a Pose T_frame_child."""
+    transform = _msg_class('geometry_msgs/msg/Transform', typestore)(
+        translation=_vector('geometry_msgs/msg/Vector3', pose.position, typestore),
+        rotation=_quaternion_msg(pose.quaternion, typestore))
+    return _msg_class('geometry_msgs/msg/TransformStamped', typestore)(
+        header=_header(stamp_ns, frame_id, typestore), child_frame_id=str(child_frame_id),
+        transform=transform)
+
+
+def quaternion_stamped_msg(q_wxyz, stamp_ns, frame_id, typestore=None):
+    """geometry_msgs/QuaternionStamped of a quaternion (w, x, y, z), normalised."""
+    return _msg_class('geometry_msgs/msg/QuaternionStamped', typestore)(
+        header=_header(stamp_ns, frame_id, typestore),
+        quaternion=_quaternion_msg(q_wxyz, typestore))

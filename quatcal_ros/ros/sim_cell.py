@@ -1,0 +1,255 @@
+"""
+ROS 2 node `sim_cell`: a simulated hand-eye cell whose answer is known.
+
+A robot stops at random poses and moves between them (simulation.StopAndGo); the node
+publishes, with stamps from its own clock (so use_sim_time works):
+
+- `link_pose` (geometry_msgs/PoseStamped): T_base_link, frame_id = base_frame, at link_rate_hz;
+- `sensor_pose` (PoseStamped): T_sensor_obj, frame_id = sensor_frame, as a camera would
+  (simulation.SensorModel): sensor_rate_hz, noise, header stamp = exposure time, published
+  latency_s after it, frames dropped with drop_probability, marker flips with outlier_fraction;
+- `~/ground_truth` (TransformStamped, reliable + transient local, depth 1): the mounting,
+  link_frame -> sensor_frame (eye_in_hand) or base_frame -> sensor_frame (eye_to_hand),
+  stamped with the start of the trajectory (link sample 0).  It is also logged at start.
+
+With seed S, the poses are those of simulation.stop_and_go_streams() for the same rng, cell
+and start: rng = default_rng(S); cell = random_cell(rng, setup[, mounting]); streams(rng, ...).
+"""
+
+from dataclasses import dataclass
+
+from geometry_msgs.msg import PoseStamped, TransformStamped
+import numpy as np
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.ros import conversions
+from quatcal_ros.sim import simulation
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+import rclpy
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+NODE_NAME = 'sim_cell'
+# A clock step larger than this (or backwards) pauses the motion instead of replaying it.
+MAX_CLOCK_STEP_NS = 2 * simulation.NS_PER_S
+STREAM_QOS_DEPTH = 100
+
+# name: (default, description, (min, max) or None); read once at start (read-only).
+PARAMETERS = {
+    'seed': (0, 'seed of the random cell, stops, noise and drops', (0, 2 ** 31 - 1)),
+    'setup': ('eye_in_hand', "'eye_in_hand' (sensor on the link) or 'eye_to_hand' "
+              '(sensor fixed in the cell, object on the link)', None),
+    'link_rate_hz': (500.0, 'rate of link_pose (Hz)', (1.0, 2000.0)),
+    'sensor_rate_hz': (30.0, 'rate of sensor exposures (Hz)', (0.1, 1000.0)),
+    'rotation_noise_deg': (0.2, 'sensor rotation noise, std per axis (deg)', (0.0, 10.0)),
+    'translation_noise_m': (0.001, 'sensor translation noise, std per axis (m)', (0.0, 0.1)),
+    'latency_s': (0.03, 'delay from exposure (header stamp) to publication (s)', (0.0, 2.0)),
+    'drop_probability': (0.05, 'probability that a sensor frame is dropped', (0.0, 1.0)),
+    'outlier_fraction': (0.0, 'probability that a frame is a marker flip', (0.0, 1.0)),
+    'still_s': (1.5, 'time the robot stands still at each stop (s)', (0.0, 60.0)),
+    'move_s': (2.0, 'time of each move between stops (s)', (0.1, 60.0)),
+    'rotation_spread_deg': (30.0, 'largest rotation of a stop from home (deg)', (0.0, 90.0)),
+    'n_stops': (0, 'number of stops, then hold the last one; 0 = forever', (0, 1_000_000)),
+    'mounting_xyz': (Parameter.Type.DOUBLE_ARRAY,
+                     'mounting translation x, y, z (m); empty = random from seed', None),
+    'mounting_rpy_deg': (Parameter.Type.DOUBLE_ARRAY,
+                         'mounting roll, pitch, yaw (deg, R = Rz Ry Rx); empty = random', None),
+    'base_frame': ('base_link', 'frame_id of link_pose (robot base)', None),
+    'link_frame': ('tool0', 'the link the sensor is mounted on (eye_in_hand)', None),
+    'sensor_frame': ('camera', 'frame_id of sensor_pose', None),
+}
+
+
+@dataclass(frozen=True)
+class SimCellConfig:
+    """The node's parameters, checked, as plain numbers."""
+
+    seed: int
+    setup: str
+    link_rate_hz: float
+    sensor_rate_hz: float
+    rotation_noise_deg: float
+    translation_noise_m: float
+    latency_s: float
+    drop_probability: float
+    outlier_fraction: float
+    still_s: float
+    move_s: float
+    rotation_spread_deg: float
+    n_stops: int
+    mounting: object    # Pose, or None for a random one
+    base_frame: str
+    link_frame: str
+    sensor_frame: str
+
+
+def _descriptor(description, limits):
+    descriptor = ParameterDescriptor(description=description, read_only=True)
+    if limits is not None:
+        low, high = limits
+        if isinstance(low, int):
+            descriptor.integer_range = [IntegerRange(from_value=low, to_value=high, step=1)]
+        else:
+            descriptor.floating_point_range = [FloatingPointRange(from_value=low, to_value=high)]
+    return descriptor
+
+
+def mounting_from_parameters(xyz, rpy_deg):
+    """Mounting Pose from the two array parameters; None when both are empty (random)."""
+    xyz, rpy_deg = list(xyz or []), list(rpy_deg or [])
+    if not xyz and not rpy_deg:
+        return None
+    if len(xyz) != 3 or len(rpy_deg) != 3 or not np.all(np.isfinite(xyz + rpy_deg)):
+        raise ValueError(
+            f'mounting_xyz {xyz} and mounting_rpy_deg {rpy_deg}: give both, 3 finite numbers '
+            'each (metres; degrees), or leave both empty for a random mounting')
+    roll, pitch, yaw = np.radians(rpy_deg)
+    return Pose.create(xyz, simulation.quaternion_wxyz_from_rpy(roll, pitch, yaw))
+
+
+def read_config(node):
+    """Declare the node's parameters (PARAMETERS) and return them as a SimCellConfig."""
+    values = {}
+    for name, (default, description, limits) in PARAMETERS.items():
+        parameter = node.declare_parameter(name, default, _descriptor(description, limits))
+        values[name] = parameter.value
+    if values['setup'] not in simulation.SETUPS:
+        setup = values['setup']
+        raise ValueError(f'parameter setup must be one of {simulation.SETUPS}, not {setup!r}')
+    values['mounting'] = mounting_from_parameters(values.pop('mounting_xyz'),
+                                                  values.pop('mounting_rpy_deg'))
+    return SimCellConfig(**values)
+
+
+def _due_times(next_index, until_ns, rate_hz):
+    """Return the grid times (ns) from sample `next_index` up to until_ns, or None if none."""
+    last = simulation.last_grid_index(until_ns, rate_hz)
+    if last < next_index:
+        return None
+    return simulation.grid_times_ns(np.arange(next_index, last + 1), rate_hz)
+
+
+class SimCell(Node):
+    """Publishes link and sensor poses of a simulated cell, and its ground truth."""
+
+    def __init__(self, **kwargs):
+        super().__init__(NODE_NAME, **kwargs)
+        self.config = config = read_config(self)
+        rng = np.random.default_rng(config.seed)
+        self.cell = simulation.random_cell(rng, config.setup, mounting=config.mounting)
+        self._trajectory = simulation.StopAndGo(
+            rng, self.cell, config.still_s, config.move_s, config.n_stops,
+            config.rotation_spread_deg)
+        self._sensor = simulation.SensorModel(
+            rng, config.rotation_noise_deg, config.translation_noise_m,
+            config.drop_probability, config.outlier_fraction)
+        self._latency_ns = int(round(config.latency_s * simulation.NS_PER_S))
+        stream_qos = QoSProfile(depth=STREAM_QOS_DEPTH)
+        latched_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self._link_pub = self.create_publisher(PoseStamped, 'link_pose', stream_qos)
+        self._sensor_pub = self.create_publisher(PoseStamped, 'sensor_pose', stream_qos)
+        self._truth_pub = self.create_publisher(TransformStamped, '~/ground_truth', latched_qos)
+        self._origin_ns = None      # clock time of trajectory time 0
+        self._last_now_ns = None
+        self._next_link = 0         # index of the next link sample to publish
+        self._next_frame = 0        # index of the next sensor exposure to publish
+        self._finished = False
+        self._log_truth()
+        period_s = 1.0 / max(config.link_rate_hz, config.sensor_rate_hz)
+        self._timer = self.create_timer(period_s, self._on_tick)
+
+    @property
+    def truth_frames(self):
+        """(parent, child) frame ids of the ground truth transform."""
+        parent = (self.config.link_frame if self.config.setup == 'eye_in_hand'
+                  else self.config.base_frame)
+        return parent, self.config.sensor_frame
+
+    def _log_truth(self):
+        parent, child = self.truth_frames
+        x, y, z, w = quat.xyzw_from_wxyz(self.cell.mounting.quaternion)
+        tx, ty, tz = self.cell.mounting.position
+        self.get_logger().info(
+            f'ground truth {self.config.setup} {parent} -> {child}: quaternion (x, y, z, w) = '
+            f'({x:.6f}, {y:.6f}, {z:.6f}, {w:.6f}), translation = ({tx:.4f}, {ty:.4f}, '
+            f'{tz:.4f}) m; seed {self.config.seed}')
+
+    def _start(self, now_ns):
+        self._origin_ns = now_ns
+        parent, child = self.truth_frames
+        self._truth_pub.publish(conversions.transform_stamped_msg(
+            self.cell.mounting, now_ns, parent, child))
+
+    def _on_tick(self):
+        now_ns = self.get_clock().now().nanoseconds
+        if now_ns <= 0:
+            return   # ROS time not started (use_sim_time before the first /clock)
+        if self._origin_ns is None:
+            self._start(now_ns)
+        elif not 0 <= now_ns - self._last_now_ns <= MAX_CLOCK_STEP_NS:
+            step = now_ns - self._last_now_ns
+            self._origin_ns += step
+            self.get_logger().warning(
+                f'clock jumped by {step / 1e9:.3f} s; the robot continues from where it was')
+        self._last_now_ns = now_ns
+        t_ns = now_ns - self._origin_ns
+        self._publish_link(t_ns)
+        self._publish_frames(t_ns - self._latency_ns)
+        self._check_finished(t_ns)
+
+    def _publish_link(self, t_ns):
+        """Publish every link sample due at trajectory time t_ns (all of them if behind)."""
+        times = _due_times(self._next_link, t_ns, self.config.link_rate_hz)
+        if times is None:
+            return
+        self._next_link += len(times)
+        positions, quaternions = self._trajectory.link_poses(times)
+        for t, p, q in zip(times.tolist(), positions, quaternions):
+            self._link_pub.publish(conversions.pose_stamped_msg(
+                Pose(p, q), self._origin_ns + t, self.config.base_frame))
+
+    def _publish_frames(self, exposed_before_ns):
+        """Publish the frames exposed up to exposed_before_ns (now minus the latency)."""
+        times = _due_times(self._next_frame, exposed_before_ns, self.config.sensor_rate_hz)
+        if times is None:
+            return
+        self._next_frame += len(times)
+        true_p, true_q = self.cell.sensor_poses(*self._trajectory.link_poses(times))
+        positions, quaternions, kept, _ = self._sensor.observe(true_p, true_q)
+        for t, p, q in zip(times[kept].tolist(), positions[kept], quaternions[kept]):
+            self._sensor_pub.publish(conversions.pose_stamped_msg(
+                Pose(p, q), self._origin_ns + t, self.config.sensor_frame))
+
+    def _check_finished(self, t_ns):
+        duration = self._trajectory.duration_ns
+        if not self._finished and duration is not None and t_ns >= duration:
+            self._finished = True
+            self.get_logger().info(
+                f'visited all {self.config.n_stops} stops; holding the last pose')
+
+
+def main(args=None):
+    """Run the sim_cell node until Ctrl-C or shutdown; 2 on bad parameters."""
+    rclpy.init(args=args)
+    try:
+        node = SimCell()
+    except (ValueError, ParameterException) as error:
+        rclpy.logging.get_logger(NODE_NAME).fatal(f'bad parameters: {error}')
+        rclpy.try_shutdown()
+        return 2
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,246 @@
+"""
+Samples from the paired pose stream: still captures (auto, manual) or rotation steps.
+
+Modes:
+- 'auto': when the link and sensor poses have both stayed within their bands for a window of
+  stamps, take one sample, the average of the window (quaternion.average for rotations, the
+  mean for positions), which beats the noise of a single frame.  The next sample comes only
+  after a real motion (the link has moved more than min_motion_deg or min_motion_m away from
+  the last sample) and a new still window.
+- 'manual': a sample only on request (`capture_now`), from the latest still window; refused,
+  with the reason, while the robot moves, when no recent pair exists, or before a motion.
+- 'continuous': for recordings without stops, the single pair at which the link has rotated
+  at least continuous_step_deg since the last sample; no averaging.
+
+"Still for a window" means: every pair from the last one at least window_ns older than the
+newest up to the newest lies within the bands of the newest pose, so a gap in the stream
+cannot hide a motion.  Quaternions are (w, x, y, z); stamps are integer nanoseconds.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose, Sample
+
+MODES = ('auto', 'manual', 'continuous')
+
+
+@dataclass(frozen=True)
+class CaptureConfig:
+    """
+    How samples are taken; angles in degrees, lengths in metres, durations in ns (stamps).
+
+    rotation_band_deg, translation_band_m: how much the link may move and still be still.
+    sensor_rotation_band_deg, sensor_translation_band_m: the same for the sensor pose, whose
+        detection noise is larger.
+    min_motion_deg, min_motion_m: how far the link must move away from the last sample before
+        the next still capture (either suffices).
+    min_still_pairs: fewest pairs a still window must hold.
+    recent_ns: a manual capture needs a pair at most this old.
+    continuous_step_deg: link rotation between two samples in 'continuous' mode.
+    """
+
+    mode: str = 'auto'
+    window_ns: int = 500_000_000
+    rotation_band_deg: float = 0.2
+    translation_band_m: float = 0.001
+    sensor_rotation_band_deg: float = 1.0
+    sensor_translation_band_m: float = 0.005
+    min_motion_deg: float = 2.0
+    min_motion_m: float = 0.02
+    min_still_pairs: int = 3
+    recent_ns: int = 1_000_000_000
+    continuous_step_deg: float = 5.0
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise ValueError(f'capture mode must be one of {MODES}, not {self.mode!r}')
+        numbers = [getattr(self, name) for name in self.__dataclass_fields__ if name != 'mode']
+        if not all(np.isfinite(numbers)) or min(numbers) <= 0:
+            raise ValueError(f'capture settings must be positive and finite: {self}')
+        if self.min_motion_deg <= self.rotation_band_deg:
+            raise ValueError(f'min_motion_deg ({self.min_motion_deg}) must exceed '
+                             f'rotation_band_deg ({self.rotation_band_deg})')
+        if self.min_motion_m <= self.translation_band_m:
+            raise ValueError(f'min_motion_m ({self.min_motion_m}) must exceed '
+                             f'translation_band_m ({self.translation_band_m})')
+
+
+def _short(number):
+    """Format a number for a message: at most two decimals, no exponent."""
+    return f'{round(float(number), 2):g}'
+
+
+def pose_change(pose, reference):
+    """Rotation (deg) and translation (m) between two poses."""
+    angle = float(np.degrees(quat.angle_between(pose.quaternion, reference.quaternion)))
+    return angle, float(np.linalg.norm(pose.position - reference.position))
+
+
+class _PairWindow:
+    """The latest pairs as numpy arrays, trimmed to the still-window check (module doc)."""
+
+    def __init__(self, window_ns):
+        self.window_ns = window_ns
+        self.stamps = np.zeros(64, dtype=np.int64)
+        self.quaternions = np.zeros((64, 2, 4))   # [:, 0] link, [:, 1] sensor
+        self.positions = np.zeros((64, 2, 3))
+        self.start = 0
+        self.end = 0
+
+    def __len__(self):
+        return self.end - self.start
+
+    def clear(self):
+        self.start = self.end = 0
+
+    def append(self, pair):
+        if self.end == len(self.stamps):
+            self._make_room()
+        self.stamps[self.end] = pair.stamp_ns
+        self.quaternions[self.end] = pair.link.quaternion, pair.sensor.quaternion
+        self.positions[self.end] = pair.link.position, pair.sensor.position
+        self.end += 1
+        self._trim()
+
+    def _make_room(self):
+        count = len(self)
+        if 2 * count > len(self.stamps):
+            grow = len(self.stamps)
+            self.stamps = np.concatenate([self.stamps, np.zeros(grow, dtype=np.int64)])
+            self.quaternions = np.concatenate([self.quaternions, np.zeros((grow, 2, 4))])
+            self.positions = np.concatenate([self.positions, np.zeros((grow, 2, 3))])
+        for array in (self.stamps, self.quaternions, self.positions):
+            array[:count] = array[self.start:self.end]
+        self.start, self.end = 0, count
+
+    def _trim(self):
+        """Keep the last pair >= window_ns old (if not > 2 window_ns old) and all newer."""
+        newest = self.stamps[self.end - 1]
+        stamps = self.stamps[self.start:self.end]
+        boundary = np.searchsorted(stamps, newest - self.window_ns, side='right') - 1
+        too_old = np.searchsorted(stamps, newest - 2 * self.window_ns, side='left')
+        self.start += max(boundary, too_old, 0)
+
+    @property
+    def span_ns(self):
+        return int(self.stamps[self.end - 1] - self.stamps[self.start]) if len(self) else 0
+
+    def spread(self):
+        """Largest rotation (deg) and translation (m) from the newest pose: (2,) each."""
+        q = self.quaternions[self.start:self.end]
+        p = self.positions[self.start:self.end]
+        angles = np.degrees(quat.angle_between(q, q[-1]))
+        distances = np.linalg.norm(p - p[-1], axis=-1)
+        return angles.max(axis=0), distances.max(axis=0)
+
+    def average_sample(self):
+        """One Sample: the mean of the kept pairs, stamped at the middle of their span."""
+        q = self.quaternions[self.start:self.end]
+        p = self.positions[self.start:self.end].mean(axis=0)
+        stamp = int(self.stamps[self.start]) + self.span_ns // 2
+        return Sample(stamp, Pose(p[0], quat.average(q[:, 0])), Pose(p[1], quat.average(q[:, 1])))
+
+
+class Capture:
+    """Takes samples from the paired stream in one of the MODES (module docstring)."""
+
+    def __init__(self, config=CaptureConfig()):
+        self.config = config
+        self._window = _PairWindow(config.window_ns)
+        self._newest = None
+        self._last_sample = None
+        self._moved = True
+
+    def reset(self):
+        """Forget the recent pairs and the last sample."""
+        self.clear_window()
+        self._last_sample = None
+        self._moved = True
+
+    def clear_window(self):
+        """Forget the recent pairs only (time jumped); the next capture still needs a motion."""
+        self._window.clear()
+        self._newest = None
+
+    def note_sample(self, sample):
+        """Record a sample taken elsewhere (CSV, resume): the next one needs a motion from it."""
+        self._last_sample = sample
+        self._moved = False
+
+    def add_pair(self, pair):
+        """Add the next Pair (stamps increasing); return the Sample it completes, or None."""
+        self._window.append(pair)
+        self._newest = pair
+        if self.config.mode == 'continuous':
+            return self._continuous_sample(pair)
+        if not self._moved:
+            angle, distance = pose_change(pair.link, self._last_sample.link)
+            self._moved = (angle > self.config.min_motion_deg
+                           or distance > self.config.min_motion_m)
+        if self.config.mode == 'auto' and self._moved and self._still_reason() is None:
+            return self._take(self._window.average_sample())
+        return None
+
+    def capture_now(self, now_ns):
+        """Sample from the latest still window: (Sample, description) or (None, refusal)."""
+        if self._newest is None or self._newest.stamp_ns < now_ns - self.config.recent_ns:
+            return None, (f'no paired poses in the last {self.config.recent_ns * 1e-9:.1f} s: '
+                          'check that both topics publish and that their stamps use the same '
+                          'clock')
+        refusal = self._still_reason() or self._motion_reason()
+        if refusal:
+            return None, refusal
+        sample = self._take(self._window.average_sample())
+        return sample, (f'averaged {len(self._window)} pairs over '
+                        f'{self._window.span_ns * 1e-9:.2g} s')
+
+    def _take(self, sample):
+        self.note_sample(sample)
+        return sample
+
+    def _continuous_sample(self, pair):
+        if self._last_sample is not None:
+            angle, _ = pose_change(pair.link, self._last_sample.link)
+            if angle < self.config.continuous_step_deg:
+                return None
+        return self._take(Sample(pair.stamp_ns, pair.link, pair.sensor))
+
+    def _still_reason(self):
+        """Why the latest window is not still, or None when it is."""
+        config = self.config
+        window = self._window
+        span_s = window.span_ns * 1e-9
+        if window.span_ns < config.window_ns:
+            return (f'paired poses cover only {span_s:.2g} s of the {config.window_ns * 1e-9:.2g}'
+                    ' s still window: wait and try again')
+        if len(window) < config.min_still_pairs:
+            return (f'only {len(window)} paired poses in the last {span_s:.2g} s (need '
+                    f'{config.min_still_pairs}): is the sensor dropping frames?')
+        (link_deg, sensor_deg), (link_m, sensor_m) = window.spread()
+        if link_deg > config.rotation_band_deg:
+            return (f'robot is moving: link rotated {_short(link_deg)} deg in the last '
+                    f'{span_s:.2g} s (band {_short(config.rotation_band_deg)} deg)')
+        if link_m > config.translation_band_m:
+            return (f'robot is moving: link moved {_short(link_m * 1e3)} mm in the last '
+                    f'{span_s:.2g} s (band {_short(config.translation_band_m * 1e3)} mm)')
+        if sensor_deg > config.sensor_rotation_band_deg or \
+                sensor_m > config.sensor_translation_band_m:
+            return (f'sensor pose is not steady: {_short(sensor_deg)} deg, '
+                    f'{_short(sensor_m * 1e3)} mm in the last {span_s:.2g} s (bands '
+                    f'{_short(config.sensor_rotation_band_deg)} deg, '
+                    f'{_short(config.sensor_translation_band_m * 1e3)} mm): is the object '
+                    'fixed and detected reliably?')
+        return None
+
+    def _motion_reason(self):
+        """Why the link has not moved enough since the last sample, or None when it has."""
+        if self._moved:
+            return None
+        angle, distance = pose_change(self._newest.link, self._last_sample.link)
+        config = self.config
+        return (f'no motion since the last sample (link {_short(angle)} deg, '
+                f'{_short(distance * 1e3)} mm away; need {_short(config.min_motion_deg)} deg or '
+                f'{_short(config.min_motion_m * 1e3)} mm): move the robot first')

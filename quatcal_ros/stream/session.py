@@ -1,0 +1,485 @@
+"""
+One calibration session: pose streams -> pairing -> capture -> Calibrator -> estimate.
+
+The live node, the bag replay and the CSV tool all drive this one object, so they give the same
+answer on the same data.  Streams come in as (header stamp in integer nanoseconds, Pose):
+link poses T_base_link and sensor poses T_sensor_obj; CSV rows and resumed samples come in as
+pose.Sample.  Every call returns what happened as small event objects, which the shells log
+and publish (EstimateUpdated carries the new calibration.Update: the estimate to publish at
+once, its CalibrationResult on first use):
+
+    SampleCaptured(index, sample), EstimateUpdated(update), Rejected(what, reason),
+    Notice(text)
+
+`add_poses` takes many poses of one stream at once (an offline replay) with the result, events
+included, of adding them one by one.  With `SessionConfig.defer_estimates` the session only
+collects samples, and `estimate()` estimates once from all of them (an offline replay, whose
+answer is that of `solve` on its samples); the live node estimates after every sample.
+Every tenth sample or so the estimator re-runs its full robust solve (calibration.Calibrator);
+with `SessionConfig.early_estimates` that waits for `finish()`, so the sample's quick
+(incremental) estimate comes out first, and the live node publishes it before calling finish(),
+which also prepares the next quick estimate. The next input runs a full solve still due.
+
+Time that goes backwards on a stream by more than `time_jump_ns` (a bag played again, a clock
+reset) starts a new timeline: the pairing buffers are cleared, the samples are kept.  Smaller
+steps back are late messages and are rejected.  After such a jump, a still sample at the stamp
+(within the still window) and the link pose (within the still bands) of an earlier sample is
+the same data played again (`ros2 bag play --loop`): it is not added, so that it does not
+count as new evidence, and a Notice says so.
+"""
+
+import bisect
+from collections import Counter
+from dataclasses import dataclass, field
+import math
+
+import numpy as np
+
+from quatcal_ros.core.calibration import CalibrationOptions, Calibrator
+from quatcal_ros.core.motions import motion_count
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.stream.capture import Capture, CaptureConfig, pose_change
+from quatcal_ros.stream.pairing import LINK, OutOfOrderStamp, Pairer, PairingConfig, SENSOR
+
+STATES = ('waiting for poses', 'collecting', 'estimating')
+TOPICS = {LINK: 'link_pose', SENSOR: 'sensor_pose'}
+# After this many poses in a row could not be paired, a Notice says why.
+UNPAIRED_NOTICE_AFTER = 30
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """Everything a session needs, as plain numbers (durations in ns on header stamps)."""
+
+    pairing: PairingConfig = field(default_factory=PairingConfig)
+    capture: CaptureConfig = field(default_factory=CaptureConfig)
+    calibration: CalibrationOptions = field(default_factory=CalibrationOptions)
+    time_jump_ns: int = 500_000_000
+    # Added to every sensor stamp: a known latency of the sensor's clock (time_offset.py
+    # estimates it from a recording); -0.03 s for a camera stamping frames 30 ms late.
+    sensor_offset_ns: int = 0
+    # Collect samples without estimating until estimate() (module docstring).
+    defer_estimates: bool = False
+    # Quick estimates first (the live node): a full solve that falls due on a sample waits
+    # for finish() (module docstring).
+    early_estimates: bool = False
+
+    def __post_init__(self):
+        if self.time_jump_ns < 0:
+            raise ValueError(f'time_jump_ns must be >= 0, not {self.time_jump_ns}')
+
+
+NS_PER_S = 1_000_000_000
+
+
+def session_config_from_settings(calibration, capture_mode='auto', still_window_s=0.5,
+                                 still_rotation_deg=0.2, still_translation_m=0.001,
+                                 min_motion_deg=5.0, pairing_tolerance_s=0.001, max_gap_s=0.1,
+                                 continuous_step_deg=None, sensor_offset_s=0.0,
+                                 **capture_overrides):
+    """
+    Return the SessionConfig of the user-facing settings (seconds, degrees, metres).
+
+    The node's parameters and the replay's options both go through here, so the live node
+    and the offline replay derive the same session. min_motion_deg is also the step of
+    'continuous' capture unless continuous_step_deg is given; an automatic still capture
+    needs the link to move at least twice the still bands (and CaptureConfig's own minimum)
+    away from the previous sample. capture_overrides go to CaptureConfig as they are
+    (sensor_rotation_band_deg, sensor_translation_band_m, min_still_pairs). Raises ValueError
+    from the core's checks for inconsistent values.
+    """
+    def ns(seconds):
+        return int(round(seconds * NS_PER_S))
+    default_capture, default_pairing = CaptureConfig(), PairingConfig()
+    max_gap_ns = ns(max_gap_s)
+    step = min_motion_deg if continuous_step_deg is None else continuous_step_deg
+    return SessionConfig(
+        pairing=PairingConfig(
+            tolerance_ns=ns(pairing_tolerance_s), max_gap_ns=max_gap_ns,
+            window_ns=max(default_pairing.window_ns, 2 * max_gap_ns)),
+        capture=CaptureConfig(
+            mode=capture_mode, window_ns=ns(still_window_s),
+            rotation_band_deg=still_rotation_deg, translation_band_m=still_translation_m,
+            min_motion_deg=max(default_capture.min_motion_deg, 2.0 * still_rotation_deg),
+            min_motion_m=max(default_capture.min_motion_m, 2.0 * still_translation_m),
+            recent_ns=max(default_capture.recent_ns, 2 * ns(still_window_s)),
+            continuous_step_deg=step,
+            **{key: value for key, value in capture_overrides.items() if value is not None}),
+        calibration=calibration,
+        sensor_offset_ns=ns(sensor_offset_s))
+
+
+@dataclass(frozen=True)
+class SampleCaptured:
+    """A sample was added to the estimator as sample number `index`."""
+
+    index: int
+    sample: object
+
+
+@dataclass(frozen=True)
+class EstimateUpdated:
+    """
+    A new estimate exists: publish `estimate`, then report `result`.
+
+    update: calibration.Update; `estimate` (rotation, translation) is there at once, `result`
+    (the CalibrationResult with the quality figures) is computed on first use.
+    """
+
+    update: object
+
+    @property
+    def estimate(self):
+        """Return the published calibration.Estimate."""
+        return self.update.estimate
+
+    @property
+    def result(self):
+        """Return the calibration.CalibrationResult of the estimate."""
+        return self.update.result
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """
+    Input that was not used: `what` is 'link_pose', 'sensor_pose' or 'sample'.
+
+    `code` names the reason for counters ('non_finite', 'duplicate_stamp', 'out_of_order':
+    codes of message_checks.REASONS); it does not take part in comparisons.
+    """
+
+    what: str
+    reason: str
+    code: str = field(default='', compare=False)
+
+
+@dataclass(frozen=True)
+class Notice:
+    """Something the user should know (log it)."""
+
+    text: str
+
+
+def _finite(*poses):
+    # A sum is finite exactly when every term is (short of overflow past 1e308): fast.
+    return all(math.isfinite(p.position.sum() + p.quaternion.sum()) for p in poses)
+
+
+def _finite_rows(positions, quaternions):
+    """Return _finite of each row's pose, (n,) bool: the same sums, vectorised."""
+    with np.errstate(over='ignore', invalid='ignore'):
+        return np.isfinite(positions.sum(axis=1) + quaternions.sum(axis=1))
+
+
+def _late_reason(error):
+    """Return (text, code) of a stamp that is not newer than the previous one."""
+    if error.jump_ns == 0:
+        return 'same stamp as the previous message: dropped', 'duplicate_stamp'
+    return (f'stamp {error.jump_ns * 1e-6:.3g} ms older than the previous message '
+            '(out of order): dropped', 'out_of_order')
+
+
+class Session:
+    """Pairs the streams, captures samples and keeps the estimate (module docstring)."""
+
+    def __init__(self, config=SessionConfig()):
+        self.config = config
+        self._calibrator = Calibrator(config.calibration)
+        self._deferred = []   # samples not yet given to the calibrator (defer_estimates)
+        self._start_streams()
+
+    def _start_streams(self):
+        self._pairer = Pairer(self.config.pairing)
+        self._capture = Capture(self.config.capture)
+        self._counts = Counter()
+        self._unpaired_seen = 0
+        self._unpaired_streak = 0
+        self._pending = []
+
+    # --- inputs --------------------------------------------------------------------------
+
+    def add_link_pose(self, stamp_ns, pose):
+        """Add a link pose T_base_link at header stamp stamp_ns (int); return the events."""
+        return self._add_pose(LINK, stamp_ns, pose)
+
+    def add_sensor_pose(self, stamp_ns, pose):
+        """Add a sensor pose T_sensor_obj at header stamp stamp_ns (int); return the events."""
+        return self._add_pose(SENSOR, stamp_ns + self.config.sensor_offset_ns, pose)
+
+    def add_poses(self, stream, stamps_ns, positions, quaternions_wxyz):
+        """
+        Add many poses of stream 'link' or 'sensor', in arrival order; return the events.
+
+        The same as add_link_pose / add_sensor_pose for each (the same events, in the same
+        order), faster: in-order runs of the faster stream go to the pairer at once.
+        stamps_ns: header stamps (a list of ints); positions (n, 3); quaternions_wxyz (n, 4).
+        """
+        events = self.pop_events()
+        if stream == SENSOR:
+            stamps_ns = [stamp + self.config.sensor_offset_ns for stamp in stamps_ns]
+        # Each non-finite pose goes through _add_pose, which rejects it.
+        stops = np.flatnonzero(~_finite_rows(positions, quaternions_wxyz)).tolist()
+        stops.append(len(stamps_ns))
+        start = 0
+        while start < len(stamps_ns):
+            stop = stops[bisect.bisect_left(stops, start)]
+            taken, pairs = self._pairer.add_many(stream, stamps_ns[start:stop],
+                                                 positions[start:stop],
+                                                 quaternions_wxyz[start:stop])
+            if taken:
+                self._counts[stream] += taken
+                events += self._paired(pairs)
+            else:
+                pose = Pose(positions[start], quaternions_wxyz[start])
+                events += self._add_pose(stream, stamps_ns[start], pose)
+                taken = 1
+            start += taken
+        return events
+
+    def capture(self, now_ns):
+        """
+        Capture a sample now from the latest still window (manual mode, or any mode).
+
+        now_ns: the current time on the stamps' clock (the node's clock).  Returns (True,
+        description) or (False, the reason for refusing); the events of a capture come with
+        pop_events() or the next add_*() call.
+        """
+        sample, reason = self._capture.capture_now(int(now_ns))
+        if sample is None:
+            return False, reason
+        repeated = self._repeat_of(sample)
+        if repeated is not None:
+            self._counts['repeated_samples'] += 1
+            return False, (f'this still repeats sample {repeated} (the same data played '
+                           'again): not added twice')
+        self._pending += self._store(sample)
+        return True, f'sample {self._sample_count() - 1} captured: {reason}'
+
+    def add_sample(self, sample):
+        """Add a ready sample (pose.Sample: CSV row, resumed session); return the events."""
+        events = self.pop_events()
+        if not _finite(sample.link, sample.sensor):
+            return events + [self._reject('sample', 'non-finite numbers in a pose',
+                                          'non_finite')]
+        return events + self._store(sample)
+
+    def add_samples(self, samples):
+        """Add many ready samples (a CSV file, a resumed session), estimate once; return events."""
+        events = self.pop_events()
+        good = []
+        for sample in samples:
+            if _finite(sample.link, sample.sensor):
+                good.append(sample)
+            else:
+                events.append(self._reject('sample', 'non-finite numbers in a pose',
+                                           'non_finite'))
+        first, previous = self._sample_count(), self._calibrator.update
+        if self.config.defer_estimates:
+            self._deferred += good
+            messages = []
+        else:
+            messages = self._calibrator.add_samples(good)
+        if good:
+            self._capture.note_sample(good[-1])   # the next still sample needs a motion first
+        events += [SampleCaptured(first + k, sample) for k, sample in enumerate(good)]
+        return events + self._estimated(messages, previous)
+
+    def estimate(self):
+        """
+        Estimate once from the samples that defer_estimates held back; return the events.
+
+        All of them go to the estimator at once, as add_samples gives them (so the answer is
+        that of `solve` on the same samples).  Nothing to do when none are held back.
+        """
+        deferred, self._deferred = self._deferred, []
+        if not deferred:
+            return []
+        return self._estimated(self._calibrator.add_samples(deferred))
+
+    def finish(self):
+        """
+        Do the estimator's work that can wait until the latest estimate is out; return events.
+
+        That is the full solve an early estimate left due (its events), and the groundwork
+        of the next sample's quick estimate (calibration.Calibrator.finish).
+        """
+        previous = self._calibrator.update
+        return self._estimated(self._calibrator.finish(), previous)
+
+    def pop_events(self):
+        """Events not yet returned (those of capture()); each event is returned once."""
+        events, self._pending = self._pending, []
+        return events
+
+    def reset(self):
+        """Start over: forget the streams, the samples, the estimate and the counters."""
+        self._calibrator.reset()
+        self._deferred = []
+        self._start_streams()
+
+    # --- what the shells show ------------------------------------------------------------
+
+    @property
+    def samples(self):
+        """Return the samples so far (list of pose.Sample), in the estimator's order."""
+        return self._calibrator.samples + self._deferred
+
+    @property
+    def result(self):
+        """Return the latest calibration.CalibrationResult, or None before two usable motions."""
+        return self._calibrator.result
+
+    @property
+    def last_error(self):
+        """Return why there is no estimate (the estimator's last message)."""
+        return self._calibrator.last_error
+
+    @property
+    def state(self):
+        """Return the state: 'waiting for poses', 'collecting' or 'estimating'."""
+        if self._calibrator.update is not None:
+            return STATES[2]
+        if self._counts['pairs'] or self._sample_count():
+            return STATES[1]
+        return STATES[0]
+
+    @property
+    def counters(self):
+        """
+        Return the counts since the last reset.
+
+        link_messages, sensor_messages: poses received; pairs, unpaired: sensor (slower
+        stream) stamps paired or not; samples; motions: sample pairs the estimator forms;
+        rejected: messages and samples not used; time_jumps: new timelines started;
+        repeated_samples: samples not added because they repeat earlier ones (module doc).
+        """
+        samples = self._sample_count()
+        return {
+            'link_messages': self._counts[LINK],
+            'sensor_messages': self._counts[SENSOR],
+            'pairs': self._counts['pairs'],
+            'unpaired': self._unpaired_seen,
+            'samples': samples,
+            'motions': motion_count(samples, self._calibrator.options.pairs),
+            'rejected': self._counts['rejected'],
+            'time_jumps': self._counts['time_jumps'],
+            'repeated_samples': self._counts['repeated_samples'],
+        }
+
+    @property
+    def rates_hz(self):
+        """Observed rate of each stream, {'link': Hz or None, 'sensor': Hz or None}."""
+        return self._pairer.rates_hz()
+
+    # --- internals -----------------------------------------------------------------------
+
+    def _sample_count(self):
+        return len(self._calibrator.samples) + len(self._deferred)
+
+    def _add_pose(self, stream, stamp_ns, pose):
+        events = self.pop_events() if self._pending else []
+        self._counts[stream] += 1
+        if not _finite(pose):
+            return events + [self._reject(TOPICS[stream], 'non-finite numbers in the pose',
+                                          'non_finite')]
+        try:
+            pairs = self._pairer.add(stream, stamp_ns, pose)
+        except OutOfOrderStamp as error:
+            if error.jump_ns <= self.config.time_jump_ns:
+                return events + [self._reject(TOPICS[stream], *_late_reason(error))]
+            events.append(self._new_timeline(error))
+            pairs = self._pairer.add(stream, stamp_ns, pose)
+        return events + self._paired(pairs)
+
+    def _paired(self, pairs):
+        """Return the events of the Pairs that one pose completed (notices, samples)."""
+        if not pairs and self._pairer.unpaired_total == self._unpaired_seen:
+            return []   # most poses: nothing happened
+        events = self._unpaired_notice(bool(pairs))
+        if pairs and not self._counts['pairs']:
+            events.append(self._pairing_notice())
+        for pair in pairs:
+            self._counts['pairs'] += 1
+            sample = self._capture.add_pair(pair)
+            if sample is not None:
+                events += self._store_captured(sample)
+        return events
+
+    def _store_captured(self, sample):
+        """Store a sample taken from the streams, unless it repeats an earlier one."""
+        repeated = self._repeat_of(sample)
+        if repeated is None:
+            return self._store(sample)
+        self._counts['repeated_samples'] += 1
+        return [Notice(f'sample at stamp {sample.stamp_ns * 1e-9:.3f} s repeats sample '
+                       f'{repeated} (the same data played again): not added twice')]
+
+    def _repeat_of(self, sample):
+        """
+        Return the index of the earlier sample that `sample` repeats, or None.
+
+        Only after a time jump: stamps within the still window and link poses within the still
+        bands (a new sample needs a motion of twice the bands, so within one timeline no two
+        samples are this close).
+        """
+        if not self._counts['time_jumps']:
+            return None
+        capture = self.config.capture
+        for index, old in enumerate(self.samples):
+            if abs(old.stamp_ns - sample.stamp_ns) <= capture.window_ns:
+                angle, distance = pose_change(sample.link, old.link)
+                if (angle <= capture.rotation_band_deg
+                        and distance <= capture.translation_band_m):
+                    return index
+        return None
+
+    def _store(self, sample):
+        previous = self._calibrator.update
+        if self.config.defer_estimates:
+            self._deferred.append(sample)
+            messages = []
+        else:
+            messages = self._calibrator.add_sample(
+                sample, full_solve_later=self.config.early_estimates)
+        self._capture.note_sample(sample)
+        events = [SampleCaptured(self._sample_count() - 1, sample)]
+        return events + self._estimated(messages, previous)
+
+    def _estimated(self, messages, previous=None):
+        """Return the events of an estimator update: its messages, then the new estimate."""
+        events = [Notice(text) for text in messages]
+        update = self._calibrator.update
+        if update is not None and update is not previous:
+            events.append(EstimateUpdated(update))
+        return events
+
+    def _reject(self, what, reason, code=''):
+        self._counts['rejected'] += 1
+        return Rejected(what, reason, code)
+
+    def _pairing_notice(self):
+        faster = self._pairer.faster
+        slower = LINK if faster == SENSOR else SENSOR
+        # A rate is None when a stamp far ahead left too few poses in the window.
+        rates = {stream: 'rate unknown' if hz is None else f'{hz:.3g} Hz'
+                 for stream, hz in self._pairer.rates_hz().items()}
+        return Notice(f'pairing by header stamps: {faster} poses ({rates[faster]}) '
+                      f'interpolated at the {slower} stamps ({rates[slower]})')
+
+    def _new_timeline(self, error):
+        self._pairer.reset()
+        self._capture.clear_window()
+        self._counts['time_jumps'] += 1
+        return Notice(f'time jumped back by {error.jump_ns * 1e-9:.1f} s (bag replayed?): '
+                      'pairing buffers cleared, samples kept')
+
+    def _unpaired_notice(self, paired):
+        """Return a Notice when UNPAIRED_NOTICE_AFTER poses in a row could not be paired."""
+        total = self._pairer.unpaired_total
+        before = 0 if paired else self._unpaired_streak
+        self._unpaired_streak = before + total - self._unpaired_seen
+        self._unpaired_seen = total
+        if before < UNPAIRED_NOTICE_AFTER <= self._unpaired_streak:
+            return [Notice(f'{self._unpaired_streak} poses in a row could not be paired: '
+                           f'{self._pairer.last_unpaired}')]
+        return []

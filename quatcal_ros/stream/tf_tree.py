@@ -1,0 +1,340 @@
+"""
+A time-indexed tree of rigid transforms, as tf2 keeps one, and pose streams through it.
+
+Edges are parent -> child transforms T_parent_child (pose.Pose, quaternion (w, x, y, z));
+stamps are integer nanoseconds; each frame has at most one parent.  A static edge holds one
+transform valid at all times.  A dynamic edge buffers its stamped transforms (the last
+`cache_ns` of stamps, at most `max_length`) and is evaluated between the two stamps that
+bracket the requested one: position linearly, rotation by quaternion.slerp (pairing's
+interpolate_pose).  Never extrapolated, never across a gap longer than `max_gap_ns`.
+
+`TransformTree.chain(target, source)` finds the edges from `target` up to the common ancestor
+and down to `source`; `TransformTree.lookup(target, source, stamp_ns)` composes T_target_source.
+`FramePoses` turns the tree into a pose stream: T_target_source at each stamp at which a
+dynamic transform on the chain arrived, as soon as the whole chain can be evaluated there.
+
+A dynamic stamp more than `time_jump_ns` older than its edge's newest (a bag played again)
+clears every dynamic buffer, as tf2 does when time jumps back; static edges are kept.
+Core module: standard library and numpy only.
+"""
+
+import bisect
+from collections import Counter
+from typing import NamedTuple
+
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.stream.pairing import interpolate_pose
+
+NS_PER_S = 1_000_000_000
+# Lookup outcomes: evaluated; not yet (an edge has no transform at or after the stamp);
+# never (the stamp is older than a buffer, or inside a gap too long to interpolate across).
+READY, WAIT, NEVER = 'ready', 'wait', 'never'
+
+
+class TreeError(ValueError):
+    """A transform that would break the tree (a loop, or an edge from a frame to itself)."""
+
+
+class Chain(NamedTuple):
+    """
+    The edges between two frames: `steps` from target to source, each (child, inverted).
+
+    An edge is named by its child frame.  Composing the steps' transforms in order, each
+    inverted when `inverted`, gives T_target_source.
+    """
+
+    target: str
+    source: str
+    steps: tuple
+
+    @property
+    def children(self):
+        """Return the child frames of the chain's edges (a frozenset)."""
+        return frozenset(child for child, _ in self.steps)
+
+
+class _Edge:
+    """One parent -> child edge: a static transform, or a bounded buffer of stamped ones."""
+
+    def __init__(self, parent, static):
+        self.parent = parent
+        self.static = static
+        self.stamps = []
+        self.poses = []
+        self.start = 0    # head of the kept part of the lists (trimmed lazily)
+
+    def __len__(self):
+        return len(self.stamps) - self.start
+
+    def add(self, stamp_ns, pose, cache_ns, max_length):
+        """Insert a stamped transform (replacing one at the same stamp); False if too old."""
+        stamps = self.stamps
+        if not len(self) or stamp_ns > stamps[-1]:
+            stamps.append(stamp_ns)
+            self.poses.append(pose)
+        else:
+            index = bisect.bisect_left(stamps, stamp_ns, self.start)
+            if index < len(stamps) and stamps[index] == stamp_ns:
+                self.poses[index] = pose
+                return True
+            if index == self.start and len(self) and stamps[-1] - stamp_ns > cache_ns:
+                return False
+            stamps.insert(index, stamp_ns)
+            self.poses.insert(index, pose)
+        self._trim(cache_ns, max_length)
+        return True
+
+    def _trim(self, cache_ns, max_length):
+        stamps = self.stamps
+        oldest_kept = bisect.bisect_left(stamps, stamps[-1] - cache_ns, self.start)
+        self.start = max(oldest_kept, len(stamps) - max_length)
+        if self.start >= 256 and 2 * self.start >= len(stamps):
+            del stamps[:self.start]
+            del self.poses[:self.start]
+            self.start = 0
+
+    def clear(self):
+        self.stamps, self.poses, self.start = [], [], 0
+
+    def at(self, stamp_ns, max_gap_ns):
+        """(READY, pose) at stamp_ns, or (WAIT or NEVER, why)."""
+        if self.static:
+            return READY, self.poses[-1]
+        stamps = self.stamps
+        if not len(self) or stamp_ns > stamps[-1]:
+            return WAIT, 'no transform at or after the stamp yet'
+        after = bisect.bisect_left(stamps, stamp_ns, self.start)
+        if stamps[after] == stamp_ns:
+            return READY, self.poses[after]
+        if after == self.start:
+            return NEVER, 'stamp older than the buffered transforms'
+        before_ns, after_ns = stamps[after - 1], stamps[after]
+        if max_gap_ns is not None and after_ns - before_ns > max_gap_ns:
+            return NEVER, f'gap of {(after_ns - before_ns) / NS_PER_S:.3g} s'
+        fraction = (stamp_ns - before_ns) / (after_ns - before_ns)
+        return READY, interpolate_pose(self.poses[after - 1], self.poses[after], fraction)
+
+
+def normalize_frame(frame):
+    """Return a frame id without tf2's forbidden leading slash ('/base' -> 'base')."""
+    return str(frame).lstrip('/')
+
+
+class TransformTree:
+    """Static and buffered dynamic transforms between frames (module docstring)."""
+
+    def __init__(self, cache_ns=10 * NS_PER_S, max_gap_ns=None, max_length=100_000,
+                 time_jump_ns=NS_PER_S // 2):
+        if cache_ns <= 0 or max_length < 2 or time_jump_ns < 0:
+            raise ValueError('need cache_ns > 0, max_length >= 2 and time_jump_ns >= 0')
+        if max_gap_ns is not None and max_gap_ns <= 0:
+            raise ValueError(f'max_gap_ns must be positive (or None), not {max_gap_ns}')
+        self.cache_ns = int(cache_ns)
+        self.max_gap_ns = max_gap_ns
+        self.max_length = int(max_length)
+        self.time_jump_ns = int(time_jump_ns)
+        self._edges = {}          # child frame -> _Edge
+        self._chains = {}         # (target, source) -> Chain or None, while the tree holds
+        self.generation = 0       # counts the clears after time jumps
+        self.stale = Counter()    # transforms older than their buffer: not stored
+
+    @property
+    def frames(self):
+        """Return every frame the tree knows (a set)."""
+        return set(self._edges) | {edge.parent for edge in self._edges.values()}
+
+    def parent(self, frame):
+        """Return the parent of `frame`, or None for a root or an unknown frame."""
+        edge = self._edges.get(normalize_frame(frame))
+        return edge.parent if edge else None
+
+    def set_transform(self, parent, child, stamp_ns, pose, static=False):
+        """
+        Add T_parent_child (pose.Pose) at stamp_ns (int); return whether it was stored.
+
+        Raises TreeError for a loop.  A new parent for a known child replaces the edge.
+        """
+        parent, child = normalize_frame(parent), normalize_frame(child)
+        edge = self._edges.get(child)
+        if edge is None or edge.parent != parent or edge.static != static:
+            edge = self._new_edge(parent, child, static)
+        if static:
+            edge.stamps, edge.poses = [int(stamp_ns)], [pose]
+            return True
+        stamp_ns = int(stamp_ns)
+        if len(edge) and edge.stamps[-1] - stamp_ns > self.time_jump_ns:
+            self.clear_dynamic()
+        if edge.add(stamp_ns, pose, self.cache_ns, self.max_length):
+            return True
+        self.stale[child] += 1
+        return False
+
+    def _new_edge(self, parent, child, static):
+        if parent == child:
+            raise TreeError(f'transform from frame {child!r} to itself')
+        frame = parent
+        while frame is not None:
+            if frame == child:
+                raise TreeError(f'{parent!r} -> {child!r} would close a loop: {parent!r} '
+                                f'already descends from {child!r}')
+            frame = self.parent(frame)
+        edge = self._edges[child] = _Edge(parent, static)
+        self._chains.clear()
+        return edge
+
+    def clear_dynamic(self):
+        """Forget every dynamic transform (time jumped back); static ones stay."""
+        for edge in self._edges.values():
+            if not edge.static:
+                edge.clear()
+        self.generation += 1
+
+    def path_to_root(self, frame):
+        """Return [frame, its parent, ..., the root] (just [frame] for an unknown frame)."""
+        frame = normalize_frame(frame)
+        path = [frame]
+        while frame in self._edges:
+            frame = self._edges[frame].parent
+            path.append(frame)
+        return path
+
+    def chain(self, target, source):
+        """Return the Chain from frame `target` to frame `source`, or None if not connected."""
+        key = (normalize_frame(target), normalize_frame(source))
+        if key not in self._chains:
+            self._chains[key] = self._find_chain(*key)
+        return self._chains[key]
+
+    def _find_chain(self, target, source):
+        up_target = self.path_to_root(target)
+        up_source = self.path_to_root(source)
+        ancestors = set(up_target)
+        common = next((frame for frame in up_source if frame in ancestors), None)
+        if common is None:
+            return None
+        up = up_target[:up_target.index(common)]
+        down = up_source[:up_source.index(common)]
+        steps = [(frame, True) for frame in up] + [(frame, False) for frame in reversed(down)]
+        return Chain(target, source, tuple(steps))
+
+    def evaluate(self, chain, stamp_ns):
+        """(READY, T_target_source) at stamp_ns, or (WAIT or NEVER, why) naming the edge."""
+        result = None
+        waiting = None
+        for child, inverted in chain.steps:
+            edge = self._edges[child]
+            status, value = edge.at(stamp_ns, self.max_gap_ns)
+            if status == NEVER:
+                return NEVER, f'{edge.parent} -> {child}: {value}'
+            if status == WAIT:
+                waiting = waiting or f'{edge.parent} -> {child}: {value}'
+                continue
+            if waiting is None:
+                step = value.inverse() if inverted else value
+                result = step if result is None else result @ step
+        if waiting is not None:
+            return WAIT, waiting
+        return READY, Pose.identity() if result is None else result
+
+    def lookup(self, target, source, stamp_ns):
+        """
+        Return T_target_source (pose.Pose) at stamp_ns.
+
+        Raises LookupError saying why (frames not connected, no transform yet, gap, too old).
+        """
+        chain = self.chain(target, source)
+        if chain is None:
+            raise LookupError(f'frames {target!r} and {source!r} are not connected')
+        status, value = self.evaluate(chain, int(stamp_ns))
+        if status != READY:
+            raise LookupError(f'{target} -> {source} at {stamp_ns} ns: {value}')
+        return value
+
+
+class FramePoses:
+    """
+    T_target_source at the stamps where a dynamic transform on its chain arrived.
+
+    Call `note(child, stamp_ns)` after each dynamic TransformTree.set_transform, then `ready()`
+    for the poses that can now be evaluated, oldest first and with increasing stamps.  Stamps
+    that can never be evaluated are counted in `dropped` (by reason) with `last_dropped`, the
+    latest explanation; at most `max_pending` stamps wait.
+    """
+
+    def __init__(self, tree, target, source, max_pending=10_000):
+        self.tree = tree
+        self.target = normalize_frame(target)
+        self.source = normalize_frame(source)
+        self.max_pending = max_pending
+        self.dropped = Counter()
+        self.last_dropped = ''
+        self._pending = []
+        self._last_ns = None
+        self._generation = tree.generation
+
+    @property
+    def pending(self):
+        """Return the number of stamps waiting for transforms."""
+        return len(self._pending)
+
+    def note(self, child, stamp_ns):
+        """Record that edge `child` got a dynamic transform at stamp_ns."""
+        self._check_generation()
+        child = normalize_frame(child)
+        chain = self.tree.chain(self.target, self.source)
+        if chain is None:
+            # Count only transforms that lead towards one of the two frames.
+            if child in self.tree.path_to_root(self.target) + self.tree.path_to_root(self.source):
+                self._drop('frames not connected', f'{self.target} and {self.source} are not '
+                           'connected in the transform tree')
+            return
+        if child not in chain.children:
+            return
+        if self._last_ns is not None and stamp_ns <= self._last_ns:
+            return   # at or before a stamp already evaluated: nothing new
+        pending = self._pending
+        if not pending or stamp_ns > pending[-1]:
+            pending.append(stamp_ns)
+        else:
+            index = bisect.bisect_left(pending, stamp_ns)
+            if pending[index] != stamp_ns:
+                pending.insert(index, stamp_ns)
+        if len(pending) > self.max_pending:
+            self._drop('waiting too long', f'more than {self.max_pending} stamps waited for '
+                       f'transforms on {self.target} -> {self.source}')
+            del pending[0]
+
+    def ready(self):
+        """Return [(stamp_ns, T_target_source)] now evaluable, oldest first."""
+        self._check_generation()
+        out = []
+        chain = self.tree.chain(self.target, self.source)
+        pending = self._pending
+        while pending and chain is not None:
+            stamp_ns = pending[0]
+            status, value = self.tree.evaluate(chain, stamp_ns)
+            if status == WAIT:
+                break
+            del pending[0]
+            if status == NEVER:
+                self._drop('not evaluable', value)
+                continue
+            out.append((stamp_ns, value))
+            self._last_ns = stamp_ns
+        return out
+
+    def finish(self):
+        """Count the stamps still waiting (end of the recording) as dropped."""
+        for _ in self._pending:
+            self._drop('end of recording', 'transforms missing at the end of the recording')
+        self._pending = []
+
+    def _drop(self, reason, text):
+        self.dropped[reason] += 1
+        self.last_dropped = text
+
+    def _check_generation(self):
+        if self._generation != self.tree.generation:
+            self._generation = self.tree.generation
+            self._pending = []
+            self._last_ns = None

@@ -1,0 +1,199 @@
+"""
+Time offset between the link and sensor streams, estimated from the data.
+
+The rotation angle of a motion is the same for the link and the sensor (A_a and A_b are
+similar matrices, Lemma 4 of Shiu and Ahmad), in any frame convention. So the angular speed
+of the two streams is one signal seen twice, and the lag that best aligns the two speed curves
+is the offset between their clocks. This is the approach of ETH's hand_eye_calibration (Furrer
+et al. 2017). `estimate_time_offset` finds that lag by cross-correlation on a common time grid.
+`refine_time_offset` then minimises any residual function of the offset (the caller runs its
+calibration) by a golden-section search around it.
+
+Sign: the returned offset is added to the sensor stamps. A camera that stamps frames 30 ms too
+late needs an offset of -30 ms.
+"""
+
+import bisect
+from dataclasses import dataclass, replace
+import heapq
+
+import numpy as np
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.calibration import calibrate
+from quatcal_ros.core.pose import Sample
+from quatcal_ros.core.solver import DegenerateMotionError
+from quatcal_ros.stream.pairing import interpolate_pose
+from quatcal_ros.stream.session import Session
+
+NS_PER_S = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class TimeOffset:
+    """An estimated offset (add to sensor stamps) and how clear the alignment was."""
+
+    offset_ns: int
+    correlation: float      # normalised cross-correlation at the offset, in [-1, 1]
+
+
+def angular_speed(stamps_ns, quaternions, baseline_s=0.1):
+    """
+    Return (times in s, angular speed in rad/s) of a pose stream.
+
+    Each speed spans about `baseline_s`, which averages out single-frame orientation noise.
+    The times are relative to the first stamp of the stream (float seconds, exact enough for
+    differences).
+    """
+    stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+    t = (stamps_ns - stamps_ns[0]) / NS_PER_S
+    q = np.asarray(quaternions, dtype=float)
+    if len(t) < 3:
+        return t[:0], t[:0]
+    period = np.median(np.diff(t))
+    step = max(1, int(round(baseline_s / max(period, 1e-6))))
+    step = min(step, len(t) - 1)
+    dt = t[step:] - t[:-step]
+    angle = quat.angle_between(q[:-step], q[step:])
+    keep = dt > 0
+    return ((t[step:] + t[:-step])[keep] / 2.0), angle[keep] / dt[keep]
+
+
+def estimate_time_offset(link_stamps_ns, link_quaternions, sensor_stamps_ns,
+                         sensor_quaternions, max_offset_s=0.5, grid_hz=200.0):
+    """Cross-correlate the angular speeds of both streams; return a TimeOffset."""
+    origin = int(min(link_stamps_ns[0], sensor_stamps_ns[0]))
+    t_l, w_l = angular_speed(link_stamps_ns, link_quaternions)
+    t_s, w_s = angular_speed(sensor_stamps_ns, sensor_quaternions)
+    t_l = t_l + (int(link_stamps_ns[0]) - origin) / NS_PER_S
+    t_s = t_s + (int(sensor_stamps_ns[0]) - origin) / NS_PER_S
+    start, end = max(t_l[0], t_s[0]), min(t_l[-1], t_s[-1])
+    if end - start < 4 * max_offset_s:
+        raise ValueError(f'the streams overlap for only {end - start:.1f} s: at least '
+                         f'{4 * max_offset_s:.1f} s of common motion are needed')
+    grid = np.arange(start, end, 1.0 / grid_hz)
+    link = np.interp(grid, t_l, w_l)
+    sensor = np.interp(grid, t_s, w_s)
+    link = (link - link.mean()) / (link.std() or 1.0)
+    sensor = (sensor - sensor.mean()) / (sensor.std() or 1.0)
+    max_lag = int(round(max_offset_s * grid_hz))
+    lags = np.arange(-max_lag, max_lag + 1)
+    # correlation[k]: sensor shifted by lags[k] samples against the link.
+    correlation = np.array([_overlap_correlation(link, sensor, lag) for lag in lags])
+    best = int(np.argmax(correlation))
+    shift = float(lags[best])
+    if 0 < best < len(lags) - 1:     # parabola through the peak and its neighbours
+        a, b, c = correlation[best - 1:best + 2]
+        denominator = a - 2.0 * b + c
+        if denominator < 0.0:
+            shift += 0.5 * (a - c) / denominator
+    return TimeOffset(int(round(-shift / grid_hz * NS_PER_S)), float(correlation[best]))
+
+
+def _overlap_correlation(link, sensor, lag):
+    """Return the mean product of link(t) and sensor(t + lag) over their overlap."""
+    if lag >= 0:
+        a, b = link[:len(link) - lag], sensor[lag:]
+    else:
+        a, b = link[-lag:], sensor[:len(sensor) + lag]
+    return float(np.mean(a * b)) if len(a) else -np.inf
+
+
+def refine_time_offset(residual_of_offset, initial_ns, span_ns=50_000_000,
+                       tolerance_ns=1_000_000):
+    """
+    Return the offset (ns) within initial +- span that minimises residual_of_offset(ns).
+
+    A golden-section search: the residual (e.g. the calibration's RMS residual after pairing
+    with the shifted stamps) is assumed unimodal near the cross-correlation estimate.
+    """
+    ratio = (np.sqrt(5.0) - 1.0) / 2.0
+    low, high = initial_ns - span_ns, initial_ns + span_ns
+    x1 = high - ratio * (high - low)
+    x2 = low + ratio * (high - low)
+    f1, f2 = residual_of_offset(int(x1)), residual_of_offset(int(x2))
+    while high - low > tolerance_ns:
+        if f1 <= f2:
+            high, x2, f2 = x2, x1, f1
+            x1 = high - ratio * (high - low)
+            f1 = residual_of_offset(int(x1))
+        else:
+            low, x1, f1 = x1, x2, f2
+            x2 = low + ratio * (high - low)
+            f2 = residual_of_offset(int(x2))
+    return int(round((low + high) / 2.0))
+
+
+def replay_streams(link, sensor, config, sensor_offset_ns=0):
+    """
+    Feed two recorded streams to a new Session in stamp order; return the session.
+
+    link, sensor: lists of (stamp_ns, pose.Pose) sorted by stamp; the session shifts the
+    sensor stamps by sensor_offset_ns (SessionConfig.sensor_offset_ns), and the messages
+    arrive in the order of the shifted stamps.
+    """
+    session = Session(replace(config, sensor_offset_ns=sensor_offset_ns))
+    shifted = ((stamp + sensor_offset_ns, 1, stamp, pose) for stamp, pose in sensor)
+    merged = heapq.merge(((s, 0, s, p) for s, p in link), shifted, key=lambda m: m[:2])
+    for _, stream, stamp, pose in merged:
+        if stream == 0:
+            session.add_link_pose(stamp, pose)
+        else:
+            session.add_sensor_pose(stamp, pose)
+    return session
+
+
+@dataclass(frozen=True)
+class OffsetReport:
+    """What the time-offset search found, with the residual before and after."""
+
+    offset_ns: int
+    correlation: float
+    residual_without_deg: float
+    residual_with_deg: float
+
+
+def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
+                     residual_options=None):
+    """
+    Estimate the sensor offset of two recorded streams and refine it by the residual.
+
+    The cross-correlation estimate selects the samples once (replay_streams); the refinement
+    then keeps those sensor frames and re-interpolates the link at each shifted stamp, so
+    the residual is a smooth function of the offset alone. residual_options: the
+    CalibrationOptions whose RMS residual scores an offset (default config.calibration).
+    Returns (OffsetReport, the Session replayed with the refined offset applied).
+    """
+    residual_options = residual_options or config.calibration
+    coarse = estimate_time_offset(
+        [s for s, _ in link], [p.quaternion for _, p in link],
+        [s for s, _ in sensor], [p.quaternion for _, p in sensor], max_offset_s)
+    frames = [(sample.stamp_ns - coarse.offset_ns, sample.sensor)
+              for sample in replay_streams(link, sensor, config, coarse.offset_ns).samples]
+    link_at = _Interpolator(link)
+
+    def residual(offset_ns):
+        samples = [Sample(stamp + offset_ns, link_at(stamp + offset_ns), pose)
+                   for stamp, pose in frames]
+        samples = [s for s in samples if s.link is not None]
+        try:
+            return calibrate(samples, residual_options).residual_rms_deg
+        except DegenerateMotionError:
+            return np.inf
+    offset = refine_time_offset(residual, coarse.offset_ns, span_ns)
+    session = replay_streams(link, sensor, config, offset)
+    return OffsetReport(offset, coarse.correlation, residual(0), residual(offset)), session
+
+
+class _Interpolator:
+    """The pose of a recorded stream at any stamp inside it (pairing.interpolate_pose)."""
+
+    def __init__(self, stream):
+        self.stamps = [stamp for stamp, _ in stream]
+        self.poses = [pose for _, pose in stream]
+
+    def __call__(self, stamp_ns):
+        k = bisect.bisect_left(self.stamps, stamp_ns)
+        if k == 0 or k == len(self.stamps):
+            return None
+        t0, t1 = self.stamps[k - 1], self.stamps[k]
+        return interpolate_pose(self.poses[k - 1], self.poses[k], (stamp_ns - t0) / (t1 - t0))

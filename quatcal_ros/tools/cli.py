@@ -1,0 +1,514 @@
+"""
+Command-line tools of DESIGN.md contract 3 that run without ROS: `solve` and `replay`.
+
+Exit status: 0 success; 2 bad input or arguments (stderr names file, row and field, or bag
+and topic); 3 the data cannot determine the rotation (stderr says why and what motion would
+help).  `replay` drives the same session.Session as the live node, fed from a rosbag2
+recording by quatcal_ros.ros.bag.
+"""
+
+import argparse
+from dataclasses import replace
+import json
+import math
+import sys
+import time
+
+from quatcal_ros.core.calibration import CalibrationOptions
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.files import exports
+from quatcal_ros.files import importers
+from quatcal_ros.files.persistence import atomic_write_text, write_result_yaml
+from quatcal_ros.files.samples_csv import BadInputError, format_samples
+from quatcal_ros.stream.capture import CaptureConfig
+from quatcal_ros.stream.pairing import PairingConfig
+from quatcal_ros.stream.session import Session, session_config_from_settings, SessionConfig
+from quatcal_ros.stream.time_offset import find_time_offset
+from quatcal_ros.tools.progress import Progress
+
+EXIT_BAD_INPUT = 2
+EXIT_UNDETERMINED = 3
+EXIT_INTERRUPTED = 130
+NS_PER_S = 1_000_000_000
+
+
+def add_estimator_arguments(parser):
+    """Options shared by `solve` and `replay`: how samples become an estimate."""
+    parser.add_argument('--setup', choices=('eye_in_hand', 'eye_to_hand'),
+                        default='eye_in_hand',
+                        help='eye_in_hand: sensor on the link, answer link -> sensor; '
+                             'eye_to_hand: sensor fixed, answer base -> sensor')
+    parser.add_argument('--pairs', choices=('all', 'consecutive'), default='all',
+                        help='which sample pairs form motions (default: all pairs)')
+    parser.add_argument('--no-robust', action='store_true',
+                        help='plain least squares: no outlier screening or rejection')
+    parser.add_argument('--invert-sensor', action='store_true',
+                        help='the sensor poses are the sensor in the object frame '
+                             '(inverse of the usual detector output)')
+    parser.add_argument('--method', choices=('refined', 'closed-form'), default='refined',
+                        help='refined: joint maximum-likelihood refinement over rotations '
+                             'and translations (from 6 samples on); closed-form: the '
+                             'Chou-Kamel rotation and the closed-form translation. Both are '
+                             'reported')
+    parser.add_argument('--min-motion-deg', type=float, default=5.0,
+                        help='motions rotating less are not used (default 5)')
+
+
+def estimator_options(args):
+    """Build the CalibrationOptions of parsed arguments."""
+    return CalibrationOptions(setup=args.setup, pairs=args.pairs, robust=not args.no_robust,
+                              invert_sensor=args.invert_sensor,
+                              min_motion_deg=args.min_motion_deg, method=args.method)
+
+
+def solve_main(argv=None):
+    """`solve SAMPLES`: estimate the mounting from a samples file, print JSON."""
+    parser = argparse.ArgumentParser(
+        prog='solve', description='Hand-eye calibration (Chou-Kamel) from a samples file: '
+                                  'the samples CSV, or samples saved by easy_handeye2 or '
+                                  'moveit_calibration; prints one JSON object.')
+    parser.add_argument('samples', help='samples file: the samples CSV (DESIGN.md contract '
+                                        "2) or another tool's samples (see --format)")
+    add_estimator_arguments(parser)
+    # Unset unless given: an easy_handeye2 file may name the setup (else eye_in_hand).
+    parser.set_defaults(setup=None)
+    parser.add_argument(
+        '--format', choices=('auto',) + importers.FORMATS, default='auto',
+        help='format of the samples file. auto (default): .csv = samples CSV, .samples = '
+             'easy_handeye2, .json = moveit pose_samples.json, other names by content. '
+             'easy_handeye2: its .samples YAML (robot, tracking transforms); moveit: '
+             'moveit_calibration samples YAML (effector_wrt_world, object_wrt_sensor, 16 '
+             'numbers row-major); moveit-json: [[eef_wrt_world, obj_wrt_sensor], ...] 4x4')
+    add_frame_arguments(parser)
+    parser.add_argument('--easy-handeye2-out', metavar='FILE',
+                        help='also write the result in the easy_handeye2 calibration layout '
+                             '(e.g. ~/.ros2/easy_handeye2/calibrations/NAME.calib)')
+    args = parser.parse_args(argv)
+    try:
+        imported = importers.load_samples(args.samples, args.format, args.setup)
+    except BadInputError as error:
+        return fail(parser.prog, error, EXIT_BAD_INPUT)
+    args.setup = args.setup or imported.setup or 'eye_in_hand'
+    frames = solve_frames(args, imported.frames)
+    session = Session(SessionConfig(calibration=estimator_options(args)))
+    session.add_samples(imported.samples)
+    if session.result is not None and args.easy_handeye2_out:
+        status = _write_easy_handeye2(parser.prog, args.easy_handeye2_out, session.result,
+                                      frames, args.setup, imported.frames)
+        if status:
+            return status
+    return print_result(parser.prog, session, f'{args.samples}: ', imported.warnings,
+                        frames=frames)
+
+
+def add_frame_arguments(parser):
+    """--parent-frame and --child-frame of `solve`: the frames of the printed outputs."""
+    parser.add_argument('--parent-frame',
+                        help="the result's parent frame: the link (eye_in_hand, default "
+                             'tool0) or the robot base (eye_to_hand, default base_link), or '
+                             'as an easy_handeye2 file names it')
+    parser.add_argument('--child-frame',
+                        help='the sensor frame (default camera, or as an easy_handeye2 file '
+                             'names it)')
+
+
+def solve_frames(args, named=None):
+    """
+    Return (parent, child) frames of the outputs: the options, else the file's, else defaults.
+
+    named: frame names from the samples file, by easy_handeye2 parameter name.
+    """
+    named = named or {}
+    parent_default, child_default = exports.default_frames(args.setup)
+    named_parent = named.get('robot_effector_frame' if args.setup == 'eye_in_hand'
+                             else 'robot_base_frame')
+    return (args.parent_frame or named_parent or parent_default,
+            args.child_frame or named.get('tracking_base_frame') or child_default)
+
+
+def _write_easy_handeye2(prog, path, result, frames, setup, named):
+    """Write `result` to `path` in the easy_handeye2 layout; 0, or the exit status."""
+    other = ({'robot_base_frame': named.get('robot_base_frame', '')} if setup == 'eye_in_hand'
+             else {'robot_effector_frame': named.get('robot_effector_frame', '')})
+    try:
+        text = exports.easy_handeye2_yaml(
+            result, *frames, setup=setup, name=exports.easy_handeye2_name(path),
+            tracking_marker_frame=named.get('tracking_marker_frame', ''), **other)
+        atomic_write_text(path, text)
+    except OSError as error:
+        return fail(prog, f'{path}: cannot write: {error}', EXIT_BAD_INPUT)
+    return 0
+
+
+def print_result(prog, session, where='', warnings=(), frames=None, extra=None):
+    """
+    Print the session's result as JSON (exit 0) or why there is none (exit 2 or 3).
+
+    warnings: sentences added to the result's own "warnings" (what the input lacked).
+    frames: (parent, child) of the "static_transform_publisher" line; default
+    exports.default_frames of the result's setup. extra: more keys for the JSON object.
+    """
+    if len(session.samples) < 3:
+        return fail(prog, f'{where}{len(session.samples)} sample(s); at least 3 are needed',
+                    EXIT_BAD_INPUT)
+    if session.result is None:
+        return fail(prog, f'{where}the rotation cannot be determined: {session.last_error}',
+                    EXIT_UNDETERMINED)
+    result = with_warnings(session.result, warnings)
+    document = result.to_json_dict()
+    parent, child = frames or exports.default_frames(result.setup)
+    document['static_transform_publisher'] = exports.static_transform_publisher_command(
+        result, parent, child)
+    document.update(extra or {})
+    print(json.dumps(document, indent=2))
+    return 0
+
+
+def with_warnings(result, warnings):
+    """Return the CalibrationResult `result` with `warnings` appended to its own."""
+    if not warnings:
+        return result
+    return replace(result, warnings=[*result.warnings, *warnings])
+
+
+def fail(prog, message, status):
+    """Print `prog: error: message` on stderr and return `status`."""
+    print(f'{prog}: error: {message}', file=sys.stderr)
+    return status
+
+
+# --- replay ----------------------------------------------------------------------------------
+
+def _seconds(ns):
+    return ns / NS_PER_S
+
+
+def add_capture_arguments(parser):
+    """Options of how samples are taken from the paired streams (the node's parameters)."""
+    capture, pairing = CaptureConfig(), PairingConfig()
+    group = parser.add_argument_group('capture and pairing')
+    group.add_argument(
+        '--capture', choices=('auto', 'continuous'), default='auto',
+        help='auto: a sample at each stop (both poses still for --still-window-s after a '
+             'motion), falling back to continuous when the whole bag has no stop; continuous: '
+             'for recordings without stops, a sample each --continuous-step-deg of link '
+             'rotation (default auto)')
+    group.add_argument('--no-fallback', action='store_true',
+                       help='auto capture only, even when the bag has no still sample')
+    group.add_argument('--continuous-step-deg', type=float,
+                       help='link rotation between continuous samples (default: '
+                            '--min-motion-deg, as the node)')
+    group.add_argument('--still-window-s', type=float, default=_seconds(capture.window_ns),
+                       help='seconds both poses must stay still for a sample (default '
+                            '%(default)g)')
+    group.add_argument('--still-rotation-deg', type=float, default=capture.rotation_band_deg,
+                       help='largest link rotation within a still window (default '
+                            '%(default)g)')
+    group.add_argument('--still-translation-m', type=float,
+                       default=capture.translation_band_m,
+                       help='largest link translation within a still window (default '
+                            '%(default)g)')
+    group.add_argument('--sensor-still-rotation-deg', type=float,
+                       default=capture.sensor_rotation_band_deg,
+                       help='the same for the sensor pose (default %(default)g)')
+    group.add_argument('--sensor-still-translation-m', type=float,
+                       default=capture.sensor_translation_band_m,
+                       help='the same for the sensor pose (default %(default)g)')
+    group.add_argument('--min-still-pairs', type=int, default=capture.min_still_pairs,
+                       help='fewest paired poses in a still window (default %(default)d)')
+    group.add_argument('--max-gap-s', type=float, default=_seconds(pairing.max_gap_ns),
+                       help='longest gap of a stream interpolated across (default '
+                            '%(default)g)')
+    group.add_argument('--pairing-tolerance-s', type=float,
+                       default=_seconds(pairing.tolerance_ns),
+                       help='without an interpolation bracket, a pose this close is paired '
+                            'as it is (default %(default)g)')
+    offset = group.add_mutually_exclusive_group()
+    offset.add_argument('--sensor-time-offset', type=float, default=0.0, metavar='S',
+                        help='seconds added to every sensor stamp, e.g. -0.03 for a camera '
+                             'that stamps its frames 30 ms late (default 0)')
+    offset.add_argument('--estimate-time-offset', action='store_true',
+                        help='estimate the sensor time offset from the recording (angular '
+                             'speed cross-correlation refined by the residual), apply it and '
+                             'report it with the residual with and without it')
+
+
+# Options that must be positive numbers (--pairing-tolerance-s may also be 0).
+POSITIVE_OPTIONS = ('still_window_s', 'still_rotation_deg', 'still_translation_m',
+                    'sensor_still_rotation_deg', 'sensor_still_translation_m', 'min_still_pairs',
+                    'max_gap_s', 'continuous_step_deg', 'min_motion_deg')
+
+
+def replay_session_config(args):
+    """
+    Return the SessionConfig of parsed `replay` arguments, derived as the node derives it.
+
+    Raises ValueError naming the option for a value out of range, or from the core's checks
+    for inconsistent values.
+    """
+    for name in POSITIVE_OPTIONS + ('pairing_tolerance_s',):
+        value = getattr(args, name)
+        if value is None:   # --continuous-step-deg: from --min-motion-deg
+            continue
+        low_ok = value >= 0 if name == 'pairing_tolerance_s' else value > 0
+        if not (math.isfinite(value) and low_ok):
+            need = 'a number >= 0' if name == 'pairing_tolerance_s' else 'a positive number'
+            raise ValueError(f'--{name.replace("_", "-")} must be {need}, not {value:g}')
+    return session_config_from_settings(
+        estimator_options(args), capture_mode=args.capture,
+        still_window_s=args.still_window_s, still_rotation_deg=args.still_rotation_deg,
+        still_translation_m=args.still_translation_m, min_motion_deg=args.min_motion_deg,
+        pairing_tolerance_s=args.pairing_tolerance_s, max_gap_s=args.max_gap_s,
+        continuous_step_deg=args.continuous_step_deg, sensor_offset_s=args.sensor_time_offset,
+        sensor_rotation_band_deg=args.sensor_still_rotation_deg,
+        sensor_translation_band_m=args.sensor_still_translation_m,
+        min_still_pairs=args.min_still_pairs)
+
+
+def replay_parser():
+    """Return the argument parser of `replay`."""
+    parser = argparse.ArgumentParser(
+        prog='replay', description='Hand-eye rotation (Chou-Kamel) from a rosbag2 recording '
+                                   "(sqlite3 or mcap), through the live node's session; "
+                                   'prints one JSON object.')
+    parser.add_argument('bag', metavar='BAG_DIR', help='rosbag2 directory (or .db3/.mcap file)')
+    inputs = parser.add_argument_group(
+        'inputs', 'link poses T_base_link and sensor poses T_sensor_obj, each from a topic '
+                  '(geometry_msgs PoseStamped, TransformStamped, PoseWithCovarianceStamped, '
+                  'nav_msgs/Odometry) or from the TF tree')
+    link = inputs.add_mutually_exclusive_group(required=True)
+    link.add_argument('--link-topic', metavar='T', help='topic of the link poses')
+    link.add_argument('--link-frames', nargs=2, metavar=('BASE', 'LINK'),
+                      help='link pose T_BASE_LINK from the TF topics')
+    sensor = inputs.add_mutually_exclusive_group(required=True)
+    sensor.add_argument('--sensor-topic', metavar='T', help='topic of the sensor poses')
+    sensor.add_argument('--sensor-frames', nargs=2, metavar=('SENSOR', 'OBJECT'),
+                        help='sensor pose T_SENSOR_OBJECT from the TF topics')
+    inputs.add_argument('--tf-topics', nargs='+', metavar='T', default=['/tf', '/tf_static'],
+                        help='TFMessage topics read with --*-frames; names ending in '
+                             'tf_static hold static transforms (default: /tf /tf_static)')
+    add_estimator_arguments(parser)
+    add_capture_arguments(parser)
+    outputs = parser.add_argument_group('outputs')
+    outputs.add_argument('--samples-out', metavar='FILE.csv',
+                         help='write the captured samples (samples CSV, input of `solve`)')
+    outputs.add_argument('--result-out', metavar='FILE.yaml',
+                         help="write the result YAML (as the node's ~/save)")
+    outputs.add_argument('--parent-frame', help='parent frame in --result-out (default: the '
+                                                'link frame, or base frame for eye_to_hand, '
+                                                'as the messages name it)')
+    outputs.add_argument('--child-frame', help='child (sensor) frame in --result-out '
+                                               '(default: as the messages name it)')
+    outputs.add_argument('--quiet', action='store_true',
+                         help='no progress bar and no summary on stderr')
+    return parser
+
+
+def replay_main(argv=None):
+    """`replay BAG_DIR ...`: estimate the rotation from a rosbag2 recording, print JSON."""
+    parser = replay_parser()
+    args = parser.parse_args(argv)
+    prog = parser.prog
+    try:
+        config = replay_session_config(args)
+    except ValueError as error:
+        return fail(prog, f'bad option: {error}', EXIT_BAD_INPUT)
+    try:
+        from quatcal_ros.ros import bag   # rosbags is needed by the replay only
+    except ImportError as error:
+        return fail(prog, f'the replay needs the rosbags package ({error}): pip install '
+                          "'rosbags>=0.10,<0.12'", EXIT_BAD_INPUT)
+    link = bag.PoseInput(topic=args.link_topic, frames=args.link_frames)
+    sensor = bag.PoseInput(topic=args.sensor_topic, frames=args.sensor_frames)
+    start = time.monotonic()
+    try:
+        with bag.Bag(args.bag) as recording:
+            replay = bag.Replay(recording, link, sensor, tuple(args.tf_topics))
+            time_offset = None
+            if args.estimate_time_offset:
+                session, report, notes, time_offset = _replay_with_time_offset(
+                    replay, config, args)
+            else:
+                session, report, notes = _replay(replay, config, args)
+    except bag.BagError as error:
+        return fail(prog, error, EXIT_BAD_INPUT)
+    except KeyboardInterrupt:
+        return fail(prog, 'interrupted', EXIT_INTERRUPTED)
+    if not args.quiet:
+        _summary(prog, report, session, time.monotonic() - start)
+    where = f'{args.bag}: '
+    if args.samples_out:
+        try:
+            atomic_write_text(args.samples_out, format_samples(session.samples))
+        except OSError as error:
+            return fail(prog, f'{args.samples_out}: cannot write: {error}', EXIT_BAD_INPUT)
+    if len(session.samples) < 3:
+        return fail(prog, where + _too_few_samples(session, report, link, sensor),
+                    EXIT_BAD_INPUT)
+    # The session collected the samples without estimating (defer_estimates): one full solve
+    # over all of them, exactly what `solve` computes from the --samples-out file.
+    session.estimate()
+    warnings = notes + report.warnings()
+    if session.result is not None and args.result_out:
+        status = _write_result(prog, args, session, warnings, report, link, sensor)
+        if status:
+            return status
+    return print_result(prog, session, where, warnings, frames=_replay_frames(args, report),
+                        extra={'time_offset': time_offset} if time_offset else None)
+
+
+class _StreamRecorder:
+    """Stand-in for a Session that keeps both pose streams (for the time-offset search)."""
+
+    def __init__(self):
+        self.link, self.sensor = [], []
+        self.counters = {}
+
+    def add_link_pose(self, stamp_ns, pose):
+        self.link.append((stamp_ns, pose))
+        return []
+
+    def add_sensor_pose(self, stamp_ns, pose):
+        self.sensor.append((stamp_ns, pose))
+        return []
+
+    def add_poses(self, stream, stamps_ns, positions, quaternions_wxyz):
+        getattr(self, stream).extend(zip(stamps_ns, map(Pose, positions, quaternions_wxyz)))
+        return []
+
+
+def _replay_with_time_offset(replay, config, args):
+    """Read both streams, find the sensor time offset, replay with it applied."""
+    from quatcal_ros.ros import bag   # rosbags is needed by the replay only
+    recorder = _StreamRecorder()
+    report = replay.run(recorder)
+    # Candidate offsets are scored by the closed-form estimate's residual: many solves, each
+    # far cheaper than the refinement's.
+    scoring = replace(config.calibration, method='closed-form')
+    try:
+        found, session = find_time_offset(recorder.link, recorder.sensor,
+                                          _collecting(config), residual_options=scoring)
+    except ValueError as error:
+        raise bag.BagError(f'cannot estimate the time offset: {error}') from None
+    report.counters = session.counters
+    notes = [f'time offset: sensor stamps shifted by {found.offset_ns / NS_PER_S * 1e3:+.1f} ms '
+             f'(speed correlation {found.correlation:.2f}); RMS residual '
+             f'{found.residual_without_deg:.3f} deg without it, '
+             f'{found.residual_with_deg:.3f} deg with it']
+    return session, report, notes, {
+        'sensor_offset_s': found.offset_ns / NS_PER_S, 'correlation': found.correlation,
+        'residual_without_deg': found.residual_without_deg,
+        'residual_with_deg': found.residual_with_deg}
+
+
+def _collecting(config):
+    """Return the config of a session that only collects samples (estimated once, at the end)."""
+    return replace(config, defer_estimates=True)
+
+
+def _replay(replay, config, args):
+    """Run the replay; in auto mode without any still sample, again in continuous mode."""
+    config = _collecting(config)
+    session, report = _run(replay, config, args, 'replay')
+    notes = []
+    capture = config.capture
+    if (capture.mode == 'auto' and not session.samples and session.counters['pairs']
+            and not args.no_fallback):
+        notes.append(
+            f'no still samples in auto mode (the poses never stayed within the still bands '
+            f'for {_seconds(capture.window_ns):g} s): samples taken in continuous mode '
+            f'instead, one per {capture.continuous_step_deg:g} deg of link rotation; pass '
+            '--capture continuous to skip the auto pass')
+        config = replace(config, capture=replace(capture, mode='continuous'))
+        session, report = _run(replay, config, args, 'replay (continuous)')
+    return session, report, notes
+
+
+def _run(replay, config, args, label):
+    session = Session(config)
+    progress = Progress(replay.total, label, enabled=not args.quiet)
+
+    def extra():
+        counters = session.counters
+        return f'samples {counters["samples"]}, motions {counters["motions"]}'
+
+    on_progress = (lambda done: progress.update(done, extra)) if progress.enabled else None
+    try:
+        report = replay.run(session, on_progress)
+    finally:
+        progress.close(None, extra)
+    return session, report
+
+
+def _summary(prog, report, session, seconds):
+    counters = session.counters
+    print(f'{prog}: {report.messages} messages in {seconds:.1f} s: '
+          f'{counters["link_messages"]} link and {counters["sensor_messages"]} sensor poses, '
+          f'{counters["pairs"]} pairs, {counters["samples"]} samples '
+          f'({session.config.capture.mode} capture)', file=sys.stderr)
+
+
+def _too_few_samples(session, report, link, sensor):
+    """Say why fewer than 3 samples came out of the bag, and what to try."""
+    counters = report.counters
+    for stream, source in (('link', link), ('sensor', sensor)):
+        if counters[f'{stream}_messages']:
+            continue
+        why = f'no {stream} poses from {source}'
+        frames = report.tf_dropped.get(stream)
+        if frames is not None and frames.last_dropped:
+            why += f' ({frames.last_dropped})'
+        if frames is not None:
+            why += f'; frames in the TF topics: {", ".join(report.tf_frames) or "none"}'
+        skipped = [f'{n} skipped, {report.skipped_example[key]}'
+                   for key, n in report.skipped.items() if key[0] == source.topic]
+        return why + ('; ' + '; '.join(skipped) if skipped else '')
+    if not counters['pairs']:
+        (l0, l1), (s0, s1) = report.stamps['link'], report.stamps['sensor']
+        return (f'no link pose could be paired with a sensor pose: link stamps '
+                f'{l0 / NS_PER_S:.3f} to {l1 / NS_PER_S:.3f} s, sensor stamps '
+                f'{s0 / NS_PER_S:.3f} to {s1 / NS_PER_S:.3f} s (do they overlap? are both '
+                'stamped on the same clock?)')
+    count, pairs = len(session.samples), counters['pairs']
+    capture = session.config.capture
+    if capture.mode == 'continuous':
+        return (f'{count} sample(s) from {pairs} paired poses; at least 3 are needed: the '
+                f'link must turn by {capture.continuous_step_deg:g} deg between samples '
+                '(--continuous-step-deg)')
+    return (f'{count} still sample(s) from {pairs} paired poses; at least 3 are needed: '
+            f'the robot must stop for {_seconds(capture.window_ns):g} s (link within '
+            f'{capture.rotation_band_deg:g} deg and {capture.translation_band_m:g} m) after '
+            f'each motion of {capture.min_motion_deg:g} deg or more; for a recording without '
+            'stops use --capture continuous')
+
+
+def _replay_frames(args, report):
+    """Return (parent, child) of the outputs: the options, the messages' frames, defaults."""
+    from quatcal_ros.ros.bag import result_frames
+    seen = result_frames(report, args.setup, args.invert_sensor)
+    parent_default, child_default = exports.default_frames(args.setup)
+    return (args.parent_frame or seen[0] or parent_default,
+            args.child_frame or seen[1] or child_default)
+
+
+def _write_result(prog, args, session, warnings, report, link, sensor):
+    from quatcal_ros.ros.bag import result_frames
+    seen = result_frames(report, args.setup, args.invert_sensor)
+    parent, child = _replay_frames(args, report)
+    for option, given, default in (('--parent-frame', args.parent_frame or seen[0], parent),
+                                   ('--child-frame', args.child_frame or seen[1], child)):
+        if not given and not args.quiet:
+            print(f'{prog}: note: the messages do not name the frame that {option} sets: '
+                  f'{default!r} written to {args.result_out}', file=sys.stderr)
+    source = {'bag': str(args.bag), 'link': str(link), 'sensor': str(sensor),
+              'capture': session.config.capture.mode}
+    try:
+        write_result_yaml(args.result_out, with_warnings(session.result, warnings), parent,
+                          child, setup=args.setup, extra={'source': source})
+    except OSError as error:
+        return fail(prog, f'{args.result_out}: cannot write: {error}', EXIT_BAD_INPUT)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(solve_main())
