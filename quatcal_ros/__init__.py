@@ -1,0 +1,17 @@
+"""
+quatcal_ros: hand-eye calibration with the quaternion method of Chou and Kamel (1988).
+
+The subpackages are the rooms of the house; each may import only those below it
+(test/test_layers.py checks every module):
+
+    core    the mathematics: quaternions, the paper's solver, least squares, refinement,
+            uncertainty, the calibrator (numpy and scipy only)
+    sim     simulated cells with known answers (numpy)
+    stream  from pose streams to samples: pairing, still capture, message checks, the TF
+            tree, the time offset, and the Session that the node, the replay and the CSV
+            tool all drive
+    files   what is read and written on disk: samples CSV, the journal, result files,
+            other tools' formats (numpy, yaml)
+    ros     the ROS side: message conversions, bags, parameters, the nodes (rclpy, rosbags)
+    tools   the command-line tools: solve, replay, demo
+"""

@@ -6,6 +6,7 @@ from quatcal_ros.core import bounds
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core import refine
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions
+from quatcal_ros.core.units import SETUPS
 from quatcal_ros.sim import simulation
 
 # Monte-Carlo check: CELLS eye-in-hand cells of SAMPLES samples per noise level. An efficient
@@ -70,7 +71,7 @@ def test_rotation_only_closed_form_misses_the_bound():
     assert ratio > UPPER
 
 
-@pytest.mark.parametrize('setup', simulation.SETUPS)
+@pytest.mark.parametrize('setup', SETUPS)
 def test_the_truth_is_where_the_model_holds(setup):
     """The bound's X and O are a cell's mounting and target: refine's model fits them exactly."""
     rng = np.random.default_rng(5)

@@ -29,6 +29,7 @@ from hypothesis import strategies as st
 import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.files.samples_csv import BadInputError
 from quatcal_ros.files.samples_csv import COLUMNS
 from quatcal_ros.files.samples_csv import format_samples
@@ -52,7 +53,7 @@ from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
 DOMAIN_ID = 61
-NS = mc.NS_PER_S
+NS = NS_PER_S
 MS = 1_000_000
 FRAMES = {mc.LINK: 'base', mc.SENSOR: 'camera'}
 # Parameters naming files the node writes: fuzzed through the check only (never set, so that

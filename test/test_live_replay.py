@@ -41,6 +41,7 @@ import numpy as np
 from numpy.testing import assert_allclose
 import pytest
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.ros import conversions as conv
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.ros.node import DIAGNOSTIC_NAME
@@ -64,7 +65,7 @@ from rosgraph_msgs.msg import Clock
 from std_srvs.srv import Trigger
 
 DOMAIN_ID = 93
-NS = sim.NS_PER_S
+NS = NS_PER_S
 SEED = 93
 N_STOPS = 8
 # The player's clock step (ros2 bag play publishes /clock at a fixed rate; 10 Hz here).

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.units import MESSAGE_NORM_TOLERANCE, NS_PER_S
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.ros.node import DIAGNOSTIC_NAME
@@ -34,7 +35,7 @@ from ros_harness import SpinMixin
 from rosgraph_msgs.msg import Clock
 
 DOMAIN_ID = 60
-NS = mc.NS_PER_S
+NS = NS_PER_S
 MS = 1_000_000
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -121,7 +122,7 @@ def test_bad_poses_carry_their_reason(position, xyzw, reason):
 
 
 def test_slightly_off_quaternion_is_renormalised():
-    s = 1.0 + 0.5 * conversions.DEFAULT_NORM_TOLERANCE
+    s = 1.0 + 0.5 * MESSAGE_NORM_TOLERANCE
     pose = conversions.pose_from_msg(_msg(xyzw=(0.0, 0.6 * s, 0.0, 0.8 * s)))
     np.testing.assert_allclose(pose.quaternion, [0.8, 0.0, 0.6, 0.0], atol=1e-15)
     assert np.linalg.norm(pose.quaternion) == pytest.approx(1.0, abs=1e-15)
@@ -138,7 +139,7 @@ def test_fast_and_slow_paths_agree():
         except conversions.BadPoseError:
             got = None
         try:
-            slow = conversions._validate_slowly(p, q, conversions.DEFAULT_NORM_TOLERANCE,
+            slow = conversions._validate_slowly(p, q, MESSAGE_NORM_TOLERANCE,
                                                 'position', 'orientation')
         except conversions.BadPoseError:
             slow = None

@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.ros.node import DIAGNOSTIC_NAME
@@ -45,7 +46,7 @@ import yaml
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DOMAIN_ID = 53
 PROCESS_DOMAIN_ID = 54
-NS = simulation.NS_PER_S
+NS = NS_PER_S
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
 

@@ -32,6 +32,7 @@ import pytest
 from quatcal_ros.core import calibration
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.files import journal
 from quatcal_ros.files import persistence
 from quatcal_ros.files.journal import JournalHeader
@@ -59,7 +60,7 @@ from std_srvs.srv import Trigger
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DOMAIN_ID = 81
 PROCESS_DOMAIN_ID = 82
-NS = simulation.NS_PER_S
+NS = NS_PER_S
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 HEADER = JournalHeader('eye_in_hand', 'tool0', 'camera')
 SAMPLE_LOG = re.compile(r'sample (\d+) captured at stamp ([0-9.]+) s')

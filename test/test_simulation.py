@@ -9,6 +9,7 @@ import pytest
 
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.units import SETUPS
 from quatcal_ros.sim import simulation as sim
 
 # Composing a handful of double-precision transforms loses a few ulps: 1e-12 is ~1000x that.
@@ -37,7 +38,7 @@ def _same_samples(a, b):
             assert_array_equal(pose_x.quaternion, pose_y.quaternion)
 
 
-@pytest.mark.parametrize('setup', sim.SETUPS)
+@pytest.mark.parametrize('setup', SETUPS)
 def test_same_seed_same_data_other_seed_other_data(setup):
     def run(seed):
         rng = np.random.default_rng(seed)
@@ -53,7 +54,7 @@ def test_same_seed_same_data_other_seed_other_data(setup):
     assert not np.allclose(samples_a[0].link.position, samples_c[0].link.position)
 
 
-@pytest.mark.parametrize('setup', sim.SETUPS)
+@pytest.mark.parametrize('setup', SETUPS)
 @pytest.mark.parametrize('seed', range(5))
 def test_noise_free_samples_satisfy_the_hand_eye_relation_exactly(setup, seed):
     rng = np.random.default_rng(seed)
@@ -74,7 +75,7 @@ def test_stamps_are_integers_on_the_period():
     assert all(type(s.stamp_ns) is int for s in samples)
 
 
-@pytest.mark.parametrize('setup', sim.SETUPS)
+@pytest.mark.parametrize('setup', SETUPS)
 @pytest.mark.parametrize('seed', range(10))
 def test_random_cell_is_plausible(setup, seed):
     cell = sim.random_cell(np.random.default_rng(seed), setup)
@@ -90,7 +91,7 @@ def test_random_cell_is_plausible(setup, seed):
     assert 0.05 <= np.linalg.norm(offset.position) <= 0.15
 
 
-@pytest.mark.parametrize('setup', sim.SETUPS)
+@pytest.mark.parametrize('setup', SETUPS)
 def test_random_cell_keeps_a_given_mounting(setup):
     mounting = Pose.create([0.3, -0.2, 0.9], sim.quaternion_wxyz_from_rpy(0.1, 2.5, -1.0))
     cell = sim.random_cell(np.random.default_rng(3), setup, mounting=mounting)
@@ -105,7 +106,7 @@ def test_cell_rejects_an_unknown_setup():
         sim.random_cell(np.random.default_rng(0), 'eye_on_table')
 
 
-@pytest.mark.parametrize('setup', sim.SETUPS)
+@pytest.mark.parametrize('setup', SETUPS)
 def test_stop_poses_turn_about_the_pivot_and_excite_all_axes(setup):
     rng = np.random.default_rng(11)
     cell = sim.random_cell(rng, setup)
@@ -173,7 +174,7 @@ def test_link_noise_is_applied_to_the_link_poses():
     assert_array_equal(clean[3].sensor.quaternion, noisy[3].sensor.quaternion)
 
 
-@pytest.mark.parametrize('setup', sim.SETUPS)
+@pytest.mark.parametrize('setup', SETUPS)
 def test_outliers_are_flagged_and_only_they_break_the_relation(setup):
     rng = np.random.default_rng(21)
     cell = sim.random_cell(rng, setup)
@@ -276,7 +277,7 @@ def test_sensor_model_is_the_same_in_batches():
         assert_array_equal(np.concatenate([part[i] for part in parts]), whole_part)
 
 
-@pytest.mark.parametrize('setup', sim.SETUPS)
+@pytest.mark.parametrize('setup', SETUPS)
 def test_streams_timing_drops_and_exact_relation(setup):
     rng = np.random.default_rng(13)
     cell = sim.random_cell(rng, setup)

@@ -29,6 +29,7 @@ from geometry_msgs.msg import PoseStamped
 from geometry_msgs.msg import QuaternionStamped
 import numpy as np
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.node import DIAGNOSTIC_NAME
 from quatcal_ros.sim import simulation
@@ -42,7 +43,7 @@ from ros_harness import stop_process
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DOMAIN_ID = 63
-NS = simulation.NS_PER_S
+NS = NS_PER_S
 SOAK_S = float(os.environ.get('QUATCAL_SOAK_S', '60'))
 TICK_S = 0.004
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,

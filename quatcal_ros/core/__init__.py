@@ -1,0 +1,6 @@
+"""
+The mathematics of the calibration.
+
+Quaternions, the paper's two-motion solver, least squares, refinement, uncertainty and the
+Calibrator (numpy and scipy only).
+"""

@@ -19,28 +19,6 @@ import numpy as np
 from quatcal_ros.core import quaternion as quat
 
 
-def plus_matrices(q):
-    """P+ of eq. (11) for each row of q (K, 4) -> (K, 4, 4)."""
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([w, -x, -y, -z], axis=-1),
-        np.stack([x, w, -z, y], axis=-1),
-        np.stack([y, z, w, -x], axis=-1),
-        np.stack([z, -y, x, w], axis=-1),
-    ], axis=1)
-
-
-def minus_matrices(q):
-    """P- of eq. (12) for each row of q (K, 4) -> (K, 4, 4)."""
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([w, -x, -y, -z], axis=-1),
-        np.stack([x, w, z, -y], axis=-1),
-        np.stack([y, -z, w, x], axis=-1),
-        np.stack([z, y, -x, w], axis=-1),
-    ], axis=1)
-
-
 def aligned_b(q_a, q_b, reference=None):
     """
     q_b with the sign of erratum 3: a0 * b0 >= 0.
@@ -62,12 +40,12 @@ def aligned_b(q_a, q_b, reference=None):
 def b_matrices(q_a, q_b, reference=None):
     """B_k = P+(p_ak) - P-(p_bk) of eq. (41) for each motion, (K, 4, 4)."""
     q_a = np.asarray(q_a, dtype=float).reshape(-1, 4)
-    return plus_matrices(q_a) - minus_matrices(aligned_b(q_a, q_b, reference))
+    return quat.plus_matrix(q_a) - quat.minus_matrix(aligned_b(q_a, q_b, reference))
 
 
 # P+(e_i)^T P-(e_j) for the unit quaternions e_i: P+(a)^T P-(b) is bilinear in a and b.
-_CROSS_TERMS = np.array([[plus_matrices(np.eye(4)[i:i + 1])[0].T
-                          @ minus_matrices(np.eye(4)[j:j + 1])[0]
+_CROSS_TERMS = np.array([[quat.plus_matrix(np.eye(4)[i:i + 1])[0].T
+                          @ quat.minus_matrix(np.eye(4)[j:j + 1])[0]
                           for j in range(4)] for i in range(4)])
 
 

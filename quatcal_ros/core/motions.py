@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.units import SETUPS
 
-SETUPS = ('eye_in_hand', 'eye_to_hand')
 PAIRINGS = ('all', 'consecutive')
 
 

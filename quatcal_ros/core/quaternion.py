@@ -64,21 +64,27 @@ def conjugate(q):
 
 
 def plus_matrix(a):
-    """Return the 'plus' matrix of eq. (11), the left factor of a (x) b = P+(a) b."""
-    a0, x, y, z = a
-    return np.array([[a0, -x, -y, -z],
-                     [x, a0, -z, y],
-                     [y, z, a0, -x],
-                     [z, -y, x, a0]])
+    """
+    Return the 'plus' matrix of eq. (11), the left factor of a (x) b = P+(a) b.
+
+    a: (4,) or (..., 4), w first; the result is (4, 4) or (..., 4, 4).
+    """
+    a0, x, y, z = np.moveaxis(np.asarray(a, dtype=float), -1, 0)
+    return _rows([a0, -x, -y, -z], [x, a0, -z, y], [y, z, a0, -x], [z, -y, x, a0])
 
 
 def minus_matrix(b):
-    """Return the 'minus' matrix of eq. (12), the factor of a (x) b = P-(b) a."""
-    b0, x, y, z = b
-    return np.array([[b0, -x, -y, -z],
-                     [x, b0, z, -y],
-                     [y, -z, b0, x],
-                     [z, y, -x, b0]])
+    """
+    Return the 'minus' matrix of eq. (12), the factor of a (x) b = P-(b) a.
+
+    b: (4,) or (..., 4), w first; the result is (4, 4) or (..., 4, 4).
+    """
+    b0, x, y, z = np.moveaxis(np.asarray(b, dtype=float), -1, 0)
+    return _rows([b0, -x, -y, -z], [x, b0, z, -y], [y, -z, b0, x], [z, y, -x, b0])
+
+
+def _rows(*rows):
+    return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
 
 
 def normalize(q):

@@ -38,10 +38,11 @@ from pathlib import Path
 import numpy as np
 from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw
-from quatcal_ros.files.samples_csv import BadInputError, QUATERNION_NORM_TOLERANCE, read_samples
+from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, quaternion_norm_problem
+from quatcal_ros.files import plain_yaml
+from quatcal_ros.files.samples_csv import BadInputError, read_samples
 import yaml
 
-NS_PER_S = 1_000_000_000
 FORMATS = ('csv', 'easy_handeye2', 'moveit', 'moveit-json')
 # easy_handeye2's calibration_type -> our setup.
 EASY_HANDEYE2_SETUPS = {'eye_in_hand': 'eye_in_hand', 'eye_on_base': 'eye_to_hand'}
@@ -82,20 +83,7 @@ def _read_text(path):
 
 
 def _load_yaml(text, name):
-    """Plain data of YAML text (safe loader); BadInputError with the line for bad YAML."""
-    try:
-        return yaml.safe_load(text)
-    except yaml.constructor.ConstructorError as error:
-        mark = error.problem_mark
-        where = f', line {mark.line + 1}' if mark is not None else ''
-        raise BadInputError(f'{name}{where}: refused: not plain data ({error.problem}); a '
-                            'samples file holds only mappings, lists, strings and '
-                            'numbers') from None
-    except yaml.YAMLError as error:
-        mark = getattr(error, 'problem_mark', None)
-        where = f', line {mark.line + 1}' if mark is not None else ''
-        problem = getattr(error, 'problem', None) or str(error).splitlines()[0]
-        raise BadInputError(f'{name}{where}: not readable YAML: {problem}') from None
+    return plain_yaml.load(text, name, holds='a samples file')
 
 
 def _load_json(text, name):
@@ -145,11 +133,9 @@ def _transform(value, where, field_name):
     rotation = _mapping(value['rotation'], f'{prefix}.rotation', 'xyzw')
     position = [_number(translation[axis], f'{prefix}.translation.{axis}') for axis in 'xyz']
     xyzw = [_number(rotation[axis], f'{prefix}.rotation.{axis}') for axis in 'xyzw']
-    norm = math.sqrt(sum(v * v for v in xyzw))
-    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
-        raise BadInputError(f'{prefix}.rotation: the quaternion has norm {norm:.4g}, not 1 '
-                            f'(tolerance {QUATERNION_NORM_TOLERANCE:g}); quaternions are '
-                            'x, y, z, w')
+    problem = quaternion_norm_problem(xyzw, FILE_NORM_TOLERANCE)
+    if problem:
+        raise BadInputError(f'{prefix}.rotation: {problem}; quaternions are x, y, z, w')
     return Pose.create(position, wxyz_from_xyzw(xyzw))
 
 

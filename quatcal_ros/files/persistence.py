@@ -26,6 +26,7 @@ from pathlib import Path
 import tempfile
 
 import numpy as np
+from quatcal_ros.files import plain_yaml
 import yaml
 
 RESULT_FORMAT = 'quatcal_ros/rotation'
@@ -160,16 +161,10 @@ def read_result_yaml(path):
     """
     path = Path(path).expanduser()
     try:
-        with open(path, encoding='utf-8') as stream:
-            document = yaml.safe_load(stream)
-    except yaml.constructor.ConstructorError as error:
-        mark = error.problem_mark
-        where = f', line {mark.line + 1}' if mark is not None else ''
-        raise ValueError(f'{path}{where}: refused: not plain data ({error.problem}); a result '
-                         'file holds only mappings, lists, strings and numbers') from None
-    except (yaml.YAMLError, UnicodeDecodeError) as error:
-        raise ValueError(f'{path}: not a quatcal_ros result file (not readable YAML: '
-                         f'{str(error).splitlines()[0]})') from None
+        text = path.read_text(encoding='utf-8')
+    except UnicodeDecodeError:
+        raise ValueError(f'{path}: not a quatcal_ros result file (not UTF-8 text)') from None
+    document = plain_yaml.load(text, str(path), holds='a result file')
     if not isinstance(document, dict):
         raise ValueError(f'{path}: not a quatcal_ros result file (no mapping at the top)')
     try:

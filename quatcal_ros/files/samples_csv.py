@@ -16,12 +16,11 @@ import math
 
 from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.core.quaternion import wxyz_from_xyzw
+from quatcal_ros.core.units import FILE_NORM_TOLERANCE, quaternion_norm_problem
 
 COLUMNS = ('stamp',
            'link_x', 'link_y', 'link_z', 'link_qx', 'link_qy', 'link_qz', 'link_qw',
            'sensor_x', 'sensor_y', 'sensor_z', 'sensor_qx', 'sensor_qy', 'sensor_qz', 'sensor_qw')
-# A quaternion whose norm differs from 1 by more than this is bad input, not rounding.
-QUATERNION_NORM_TOLERANCE = 1e-2
 # Stamps are integer nanoseconds in the core (int64, as rosbag2 stores them).
 MAX_STAMP_S = 2 ** 63 / 1e9
 
@@ -94,12 +93,10 @@ def _sample_from_row(row, index, name, line):
 
 def _pose(values, prefix, name, line):
     xyzw = [values[f'{prefix}_q{axis}'] for axis in 'xyzw']
-    norm = math.sqrt(sum(v * v for v in xyzw))
-    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
-        raise BadInputError(
-            f'{name}, row {line}, fields {prefix}_qx..{prefix}_qw: the quaternion has norm '
-            f'{norm:.4g}, not 1 (tolerance {QUATERNION_NORM_TOLERANCE:g}); quaternions are '
-            'x, y, z, w')
+    problem = quaternion_norm_problem(xyzw, FILE_NORM_TOLERANCE)
+    if problem:
+        raise BadInputError(f'{name}, row {line}, fields {prefix}_qx..{prefix}_qw: {problem}; '
+                            'quaternions are x, y, z, w')
     position = [values[f'{prefix}_{axis}'] for axis in 'xyz']
     return Pose.create(position, wxyz_from_xyzw(xyzw))
 

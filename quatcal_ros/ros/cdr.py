@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from quatcal_ros.ros.conversions import DEFAULT_NORM_TOLERANCE, NS_PER_S
+from quatcal_ros.core.units import MESSAGE_NORM_TOLERANCE, NS_PER_S
 
 # Strings before the pose: header.frame_id (and child_frame_id), by message type.
 STRINGS_BEFORE_POSE = {'geometry_msgs/msg/PoseStamped': 1,
@@ -46,7 +46,7 @@ class DecodedPoses(NamedTuple):
     ok: np.ndarray
 
 
-def decode_poses(raws, msgtype, norm_tolerance=DEFAULT_NORM_TOLERANCE):
+def decode_poses(raws, msgtype, norm_tolerance=MESSAGE_NORM_TOLERANCE):
     """
     Decode raw CDR messages of type `msgtype` (a key of STRINGS_BEFORE_POSE); a DecodedPoses.
 

@@ -18,10 +18,8 @@ import numpy as np
 
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.units import MESSAGE_NORM_TOLERANCE, NS_PER_S
 
-NS_PER_S = 1_000_000_000
-# Quaternions whose norm is within this of 1 are renormalised; farther ones are rejected.
-DEFAULT_NORM_TOLERANCE = 1e-3
 # A quaternion with a smaller norm is a zero quaternion (reason 'zero_quaternion').
 ZERO_NORM = 1e-6
 _INT32_MIN, _INT32_MAX = -2 ** 31, 2 ** 31 - 1
@@ -51,7 +49,7 @@ def _number(value, name):
         raise BadPoseError(f'{name} is not a number ({value!r})', name) from None
 
 
-def validate_pose_numbers(position, quaternion_xyzw, norm_tolerance=DEFAULT_NORM_TOLERANCE,
+def validate_pose_numbers(position, quaternion_xyzw, norm_tolerance=MESSAGE_NORM_TOLERANCE,
                           position_name='position', orientation_name='orientation'):
     """
     Check a position (3,) and a quaternion (x, y, z, w); return them as arrays, unit q.
@@ -119,7 +117,7 @@ def _pose_fields(msg):
 _LAYOUTS = {}   # message class -> getters of its position and orientation, their names
 
 
-def pose_from_msg(msg, norm_tolerance=DEFAULT_NORM_TOLERANCE):
+def pose_from_msg(msg, norm_tolerance=MESSAGE_NORM_TOLERANCE):
     """
     Pose (quaternion (w, x, y, z)) of a geometry_msgs Pose, PoseStamped, Transform, ...
 

@@ -43,6 +43,7 @@ from quatcal_ros.files import journal
 from quatcal_ros.files import persistence
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros import node_config
+from quatcal_ros.ros.qos import LATCHED_QOS
 from quatcal_ros.stream import message_checks
 from quatcal_ros.stream.message_checks import StreamStats
 from quatcal_ros.stream.session import EstimateUpdated
@@ -55,7 +56,6 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy
 from rclpy.qos import HistoryPolicy
 from rclpy.qos import QoSProfile
 from rclpy.qos import ReliabilityPolicy
@@ -85,9 +85,6 @@ LINK_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
 # BEST_EFFORT matches reliable and best-effort (sensor data) publishers alike.
 SENSOR_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
                         reliability=ReliabilityPolicy.BEST_EFFORT)
-LATCHED_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
-                         reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 DIAGNOSTICS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
 

@@ -13,17 +13,16 @@ from dataclasses import asdict, dataclass, fields, replace
 import math
 
 from quatcal_ros.core.calibration import CalibrationOptions
+from quatcal_ros.core.units import ns_from_s, SETUPS
 from quatcal_ros.stream.message_checks import CheckConfig
 from quatcal_ros.stream.session import session_config_from_settings
 from rcl_interfaces.msg import FloatingPointRange
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
 
-NS_PER_S = 1_000_000_000
 DEFAULT_RESULT_FILE = '~/.ros/quatcal/calibration.yaml'
 DEFAULT_SAMPLES_FILE = '~/.ros/quatcal/samples.csv'
 POSE_TYPES = ('pose', 'transform')
-SETUPS = ('eye_in_hand', 'eye_to_hand')
 CAPTURE_MODES = ('auto', 'manual', 'continuous')
 PAIRS = ('all', 'consecutive')
 
@@ -270,10 +269,6 @@ def session_config(config):
 
 def check_config(config):
     """Return the message_checks.CheckConfig of `config` (what pose messages must satisfy)."""
-    return CheckConfig(max_stamp_offset_ns=_ns(config.max_stamp_offset_s),
+    return CheckConfig(max_stamp_offset_ns=ns_from_s(config.max_stamp_offset_s),
                        link_frame_id=config.link_frame_id,
                        sensor_frame_id=config.sensor_frame_id)
-
-
-def _ns(seconds):
-    return int(round(seconds * NS_PER_S))

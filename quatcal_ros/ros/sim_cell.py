@@ -22,7 +22,9 @@ from geometry_msgs.msg import PoseStamped, TransformStamped
 import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.units import ns_from_s, NS_PER_S, SETUPS
 from quatcal_ros.ros import conversions
+from quatcal_ros.ros.qos import LATCHED_QOS
 from quatcal_ros.sim import simulation
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
@@ -30,11 +32,11 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile
 
 NODE_NAME = 'sim_cell'
 # A clock step larger than this (or backwards) pauses the motion instead of replaying it.
-MAX_CLOCK_STEP_NS = 2 * simulation.NS_PER_S
+MAX_CLOCK_STEP_NS = 2 * NS_PER_S
 STREAM_QOS_DEPTH = 100
 
 # name: (default, description, (min, max) or None); read once at start (read-only).
@@ -116,9 +118,9 @@ def read_config(node):
     for name, (default, description, limits) in PARAMETERS.items():
         parameter = node.declare_parameter(name, default, _descriptor(description, limits))
         values[name] = parameter.value
-    if values['setup'] not in simulation.SETUPS:
+    if values['setup'] not in SETUPS:
         setup = values['setup']
-        raise ValueError(f'parameter setup must be one of {simulation.SETUPS}, not {setup!r}')
+        raise ValueError(f'parameter setup must be one of {SETUPS}, not {setup!r}')
     values['mounting'] = mounting_from_parameters(values.pop('mounting_xyz'),
                                                   values.pop('mounting_rpy_deg'))
     return SimCellConfig(**values)
@@ -146,13 +148,11 @@ class SimCell(Node):
         self._sensor = simulation.SensorModel(
             rng, config.rotation_noise_deg, config.translation_noise_m,
             config.drop_probability, config.outlier_fraction)
-        self._latency_ns = int(round(config.latency_s * simulation.NS_PER_S))
+        self._latency_ns = ns_from_s(config.latency_s)
         stream_qos = QoSProfile(depth=STREAM_QOS_DEPTH)
-        latched_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self._link_pub = self.create_publisher(PoseStamped, 'link_pose', stream_qos)
         self._sensor_pub = self.create_publisher(PoseStamped, 'sensor_pose', stream_qos)
-        self._truth_pub = self.create_publisher(TransformStamped, '~/ground_truth', latched_qos)
+        self._truth_pub = self.create_publisher(TransformStamped, '~/ground_truth', LATCHED_QOS)
         self._origin_ns = None      # clock time of trajectory time 0
         self._last_now_ns = None
         self._next_link = 0         # index of the next link sample to publish

@@ -22,9 +22,8 @@ import numpy as np
 
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose, Sample
+from quatcal_ros.core.units import ns_from_s, NS_PER_S, SETUPS
 
-SETUPS = ('eye_in_hand', 'eye_to_hand')
-NS_PER_S = 1_000_000_000
 # A realistic epoch (Nov 2023): float64 cannot hold it to the nanosecond, which catches code
 # that turns stamps into floats too early.
 DEFAULT_START_NS = 1_700_000_000 * NS_PER_S
@@ -399,8 +398,8 @@ class StopAndGo:
         if n_stops < 0:
             raise ValueError(f'n_stops must be >= 0 (0 = forever), not {n_stops}')
         self.cell = cell
-        self.still_ns = int(round(still_s * NS_PER_S))
-        self.move_ns = int(round(move_s * NS_PER_S))
+        self.still_ns = ns_from_s(still_s)
+        self.move_ns = ns_from_s(move_s)
         self.period_ns = self.still_ns + self.move_ns
         self.n_stops = int(n_stops)
         self.rotation_spread_deg = rotation_spread_deg
@@ -519,7 +518,7 @@ def stop_and_go_streams(rng, cell, n_stops, link_rate_hz=500.0, sensor_rate_hz=3
     sensor_p, sensor_q, kept, outlier = sensor.observe(true_p, true_q)
     start = int(start_ns)
     sensor_stamps = (exposure_t[kept] + start).tolist()
-    latency_ns = int(round(latency_s * NS_PER_S))
+    latency_ns = ns_from_s(latency_s)
     return Streams(
         cell=cell,
         link=list(zip((link_t + start).tolist(), poses_from_arrays(link_p, link_q))),

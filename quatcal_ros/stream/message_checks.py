@@ -24,7 +24,8 @@ integer nanoseconds.
 from collections import Counter
 from dataclasses import dataclass
 
-NS_PER_S = 1_000_000_000
+from quatcal_ros.core.units import NS_PER_S
+
 LINK, SENSOR = 'link_pose', 'sensor_pose'
 STREAMS = (LINK, SENSOR)
 # A stream not heard (or without a usable pose) for this long, node clock, is stale.

@@ -38,6 +38,7 @@ import numpy as np
 from quatcal_ros.core.calibration import CalibrationOptions, Calibrator
 from quatcal_ros.core.motions import motion_count
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.units import ns_from_s
 from quatcal_ros.stream.capture import Capture, CaptureConfig, pose_change
 from quatcal_ros.stream.pairing import LINK, OutOfOrderStamp, Pairer, PairingConfig, SENSOR
 
@@ -69,9 +70,6 @@ class SessionConfig:
             raise ValueError(f'time_jump_ns must be >= 0, not {self.time_jump_ns}')
 
 
-NS_PER_S = 1_000_000_000
-
-
 def session_config_from_settings(calibration, capture_mode='auto', still_window_s=0.5,
                                  still_rotation_deg=0.2, still_translation_m=0.001,
                                  min_motion_deg=5.0, pairing_tolerance_s=0.001, max_gap_s=0.1,
@@ -88,8 +86,7 @@ def session_config_from_settings(calibration, capture_mode='auto', still_window_
     (sensor_rotation_band_deg, sensor_translation_band_m, min_still_pairs). Raises ValueError
     from the core's checks for inconsistent values.
     """
-    def ns(seconds):
-        return int(round(seconds * NS_PER_S))
+    ns = ns_from_s
     default_capture, default_pairing = CaptureConfig(), PairingConfig()
     max_gap_ns = ns(max_gap_s)
     step = min_motion_deg if continuous_step_deg is None else continuous_step_deg

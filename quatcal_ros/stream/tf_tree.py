@@ -23,9 +23,9 @@ from collections import Counter
 from typing import NamedTuple
 
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.stream.pairing import interpolate_pose
 
-NS_PER_S = 1_000_000_000
 # Lookup outcomes: evaluated; not yet (an edge has no transform at or after the stamp);
 # never (the stamp is older than a buffer, or inside a gap too long to interpolate across).
 READY, WAIT, NEVER = 'ready', 'wait', 'never'

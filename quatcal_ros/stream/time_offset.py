@@ -22,10 +22,9 @@ from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate
 from quatcal_ros.core.pose import Sample
 from quatcal_ros.core.solver import DegenerateMotionError
+from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.stream.pairing import interpolate_pose
 from quatcal_ros.stream.session import Session
-
-NS_PER_S = 1_000_000_000
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,5 @@
+"""
+The command-line tools (python -m quatcal_ros TOOL).
+
+Solve, replay and demo.
+"""

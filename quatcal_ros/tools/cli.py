@@ -16,6 +16,7 @@ import time
 
 from quatcal_ros.core.calibration import CalibrationOptions
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.files import exports
 from quatcal_ros.files import importers
 from quatcal_ros.files.persistence import atomic_write_text, write_result_yaml
@@ -29,7 +30,6 @@ from quatcal_ros.tools.progress import Progress
 EXIT_BAD_INPUT = 2
 EXIT_UNDETERMINED = 3
 EXIT_INTERRUPTED = 130
-NS_PER_S = 1_000_000_000
 
 
 def add_estimator_arguments(parser):

@@ -22,19 +22,15 @@ import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.node import CalibratorNode
+from quatcal_ros.ros.qos import LATCHED_QOS
 from quatcal_ros.ros.sim_cell import SimCell
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.logging import LoggingSeverity
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy
-from rclpy.qos import QoSProfile
-from rclpy.qos import ReliabilityPolicy
 
 ERROR_FACTOR = 3.0   # the true error must be within this many reported uncertainties
-LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def parse_args(argv):

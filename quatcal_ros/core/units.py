@@ -1,0 +1,49 @@
+"""
+The project's vocabulary: units, the two setups, and the tolerances every reader shares.
+
+Times are header stamps in integer nanoseconds in the core (DESIGN.md, conventions); users
+speak seconds, degrees and metres.  A quaternion read from a message or a file is checked by
+`quaternion_norm_problem` against the tolerance of its kind of source.
+"""
+
+import math
+
+NS_PER_S = 1_000_000_000
+# eye_in_hand: the sensor rides on the link, the answer is T_link_sensor; eye_to_hand: the
+# sensor is fixed in the cell, the answer is T_base_sensor.
+SETUPS = ('eye_in_hand', 'eye_to_hand')
+# A pose message's quaternion is computed in floating point by a program: a norm off by more
+# than this is a bug upstream, not rounding (within it, the quaternion is renormalised).
+MESSAGE_NORM_TOLERANCE = 1e-3
+# A file's quaternion may have been rounded to a few digits (by hand or a spreadsheet).
+FILE_NORM_TOLERANCE = 1e-2
+
+
+def ns_from_s(seconds):
+    """Return `seconds` (float) as integer nanoseconds, rounded to the nearest."""
+    return int(round(seconds * NS_PER_S))
+
+
+def s_from_ns(nanoseconds):
+    """Return integer nanoseconds as float seconds."""
+    return nanoseconds / NS_PER_S
+
+
+def check_setup(setup):
+    """Raise ValueError naming the choices when `setup` is not one of SETUPS."""
+    if setup not in SETUPS:
+        raise ValueError(f'setup must be one of {", ".join(SETUPS)}, not {setup!r}')
+    return setup
+
+
+def quaternion_norm_problem(xyzw, tolerance):
+    """
+    Say why the quaternion `xyzw` (4 numbers, any order) is not a unit quaternion, or None.
+
+    The text is 'the quaternion has norm N, not 1 (tolerance T)'; callers put the field in
+    front of it.  NaN and inf give a norm that is not within the tolerance.
+    """
+    norm = math.sqrt(sum(float(v) * float(v) for v in xyzw))
+    if abs(norm - 1.0) <= tolerance:
+        return None
+    return f'the quaternion has norm {norm:.4g}, not 1 (tolerance {tolerance:g})'
