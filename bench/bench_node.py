@@ -132,7 +132,7 @@ class Bench:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
-        from quatcal_ros.ros.node import DIAGNOSTIC_NAME
+        from quatcal_ros.ros.diagnostics import DIAGNOSTIC_NAME
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -234,10 +234,10 @@ def delivery_order(streams):
 
 def completing_messages(events, preload, still_window_s):
     """Return the indices of the messages that complete a still sample (the node's session)."""
-    from quatcal_ros.ros import node_config
+    from quatcal_ros.stream import settings
     from quatcal_ros.stream.session import SampleCaptured, Session
-    config = node_config.NodeConfig(still_window_s=still_window_s)
-    session = Session(node_config.session_config(config))
+    config = settings.Settings(still_window_s=still_window_s)
+    session = Session(settings.session_config(config))
     session.add_samples(preload)
     out = []
     for index, (_, stream, stamp, pose) in enumerate(events):

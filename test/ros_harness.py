@@ -6,7 +6,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import QuaternionStamped
-from quatcal_ros.ros.node import DIAGNOSTIC_NAME
+from quatcal_ros.ros.diagnostics import DIAGNOSTIC_NAME
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor

@@ -99,7 +99,7 @@ def test_auto_needs_a_real_motion_before_the_next_sample():
     rng = np.random.default_rng(12)
     link = Pose.create([0.4, 0.0, 0.5], [0.0, 1.0, 0.0, 0.0])
     sensor = Pose.create([0.0, 0.0, 0.7], [0.0, 1.0, 0.0, 0.0])
-    capture = Capture(CaptureConfig(min_motion_deg=2.0, min_motion_m=0.02))
+    capture = Capture(CaptureConfig(min_departure_deg=2.0, min_departure_m=0.02))
     t = START_NS
 
     def stand(pose, seconds):
@@ -200,7 +200,7 @@ def test_continuous_mode_takes_pairs_spaced_by_rotation():
 def test_config_is_checked():
     with pytest.raises(ValueError, match='capture mode'):
         CaptureConfig(mode='sometimes')
-    with pytest.raises(ValueError, match='min_motion_deg'):
-        CaptureConfig(min_motion_deg=0.1, rotation_band_deg=0.2)
+    with pytest.raises(ValueError, match='min_departure_deg'):
+        CaptureConfig(min_departure_deg=0.1, rotation_band_deg=0.2)
     with pytest.raises(ValueError, match='positive'):
         CaptureConfig(window_ns=0)

@@ -36,7 +36,6 @@ from quatcal_ros.files.samples_csv import format_samples
 from quatcal_ros.files.samples_csv import parse_samples
 from quatcal_ros.files.samples_csv import read_samples
 from quatcal_ros.ros import conversions
-from quatcal_ros.ros import node_config
 from quatcal_ros.ros.bag import Bag
 from quatcal_ros.ros.bag import BagError
 from quatcal_ros.ros.bag import TYPESTORE
@@ -44,6 +43,7 @@ from quatcal_ros.ros.bag import write_bag
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.sim import simulation
 from quatcal_ros.stream import message_checks as mc
+from quatcal_ros.stream import settings as table
 from quatcal_ros.stream.session import STATES
 from quatcal_ros.tools import cli
 from rcl_interfaces.msg import SetParametersResult
@@ -58,7 +58,7 @@ MS = 1_000_000
 FRAMES = {mc.LINK: 'base', mc.SENSOR: 'camera'}
 # Parameters naming files the node writes: fuzzed through the check only (never set, so that
 # no file is written at an arbitrary path).
-FILE_PARAMETERS = [spec.name for spec in node_config.SPECS
+FILE_PARAMETERS = [spec.name for spec in table.SETTINGS
                    if spec.name.endswith('_file') and spec.name != 'easy_handeye2_file']
 
 settings.register_profile(
@@ -191,7 +191,7 @@ def nodes(context, tmp_path_factory):
 def restart(node):
     """Start a fresh session and fresh counts on `node`."""
     node._on_reset(Trigger.Request(), Trigger.Response())
-    node.stats = mc.StreamStats()
+    node.poses.stats = mc.StreamStats()
 
 
 def deliver(node, stream, msg):
@@ -295,7 +295,7 @@ def test_good_data_after_bad_still_calibrates(nodes, message_type):
 
 # --- the parameter callback ------------------------------------------------------------------
 
-PARAMETER_NAMES = [spec.name for spec in node_config.SPECS]
+PARAMETER_NAMES = [spec.name for spec in table.SETTINGS]
 parameter_values = st.one_of(
     st.none(), st.booleans(), st.integers(-2 ** 63, 2 ** 63 - 1), any_float,
     st.text(max_size=20), st.sampled_from(['pose', 'transform', 'eye_to_hand', 'manual',
@@ -315,7 +315,7 @@ def _parameter_value(parameter):
 
 def test_parameter_callback_never_raises(nodes):
     node = nodes[PoseStamped]
-    defaults = [Parameter(spec.name, value=spec.default) for spec in node_config.SPECS
+    defaults = [Parameter(spec.name, value=spec.default) for spec in table.SETTINGS
                 if not spec.read_only and not spec.name.endswith('_file')]
 
     @examples(300)
@@ -331,7 +331,7 @@ def test_parameter_callback_never_raises(nodes):
                     if node.has_parameter(p.name) and not p.name.endswith('_file')]
         for outcome in node.set_parameters(declared):
             assert outcome.successful or outcome.reason
-        assert node.config == node_config.NodeConfig.from_values(
+        assert node.config == table.Settings.from_values(
             {name: node.get_parameter(name).value for name in PARAMETER_NAMES})
 
     try:

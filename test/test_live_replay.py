@@ -43,8 +43,8 @@ import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.ros import conversions as conv
+from quatcal_ros.ros.diagnostics import DIAGNOSTIC_NAME
 from quatcal_ros.ros.node import CalibratorNode
-from quatcal_ros.ros.node import DIAGNOSTIC_NAME
 from quatcal_ros.sim import simulation as sim
 from quatcal_ros.stream.capture import CaptureConfig
 from quatcal_ros.stream.session import EstimateUpdated

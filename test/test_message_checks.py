@@ -18,8 +18,8 @@ from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.units import MESSAGE_NORM_TOLERANCE, NS_PER_S
 from quatcal_ros.ros import conversions
+from quatcal_ros.ros.diagnostics import DIAGNOSTIC_NAME
 from quatcal_ros.ros.node import CalibratorNode
-from quatcal_ros.ros.node import DIAGNOSTIC_NAME
 from quatcal_ros.sim import simulation
 from quatcal_ros.stream import message_checks as mc
 from quatcal_ros.stream.session import Notice

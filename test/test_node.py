@@ -25,10 +25,10 @@ from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.ros import conversions
+from quatcal_ros.ros.diagnostics import DIAGNOSTIC_NAME
 from quatcal_ros.ros.node import CalibratorNode
-from quatcal_ros.ros.node import DIAGNOSTIC_NAME
-from quatcal_ros.ros.node_config import ConfigError
 from quatcal_ros.sim import simulation
+from quatcal_ros.stream.settings import ConfigError
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor

@@ -37,14 +37,14 @@ from quatcal_ros.files import journal
 from quatcal_ros.files import persistence
 from quatcal_ros.files.journal import JournalHeader
 from quatcal_ros.ros import conversions
-from quatcal_ros.ros import node_config
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.ros.node import NODE_NAME
-from quatcal_ros.ros.node_config import ConfigError
-from quatcal_ros.ros.node_config import NodeConfig
 from quatcal_ros.sim import simulation
+from quatcal_ros.stream import settings
 from quatcal_ros.stream.session import SampleCaptured
 from quatcal_ros.stream.session import Session
+from quatcal_ros.stream.settings import ConfigError
+from quatcal_ros.stream.settings import Settings
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -567,16 +567,25 @@ def journal_count(path):
 
 def test_a_shutdown_between_executor_steps_ends_the_spin_quietly(monkeypatch):
     """The RCLError of a step on a context a signal shut down is a stop, not a crash."""
-    from quatcal_ros.ros import node as node_module
+    from quatcal_ros.ros import spin
+
+    class Stub:
+        destroyed = 0
+
+        def destroy_node(self):
+            self.destroyed += 1
 
     def spin_on_a_dead_context(node, executor):
         raise RuntimeError('failed to initialize wait set: the given context is not valid')
-    monkeypatch.setattr(node_module.rclpy, 'spin', spin_on_a_dead_context)
-    monkeypatch.setattr(node_module.rclpy, 'ok', lambda: False)
-    node_module._spin(None, None)                 # returns: the context is down
-    monkeypatch.setattr(node_module.rclpy, 'ok', lambda: True)
+    monkeypatch.setattr(spin.rclpy, 'spin', spin_on_a_dead_context)
+    monkeypatch.setattr(spin.rclpy, 'try_shutdown', lambda: None)
+    monkeypatch.setattr(spin.rclpy, 'ok', lambda: False)
+    stub = Stub()
+    spin.spin_until_stopped(stub, None)           # returns: the context is down
+    monkeypatch.setattr(spin.rclpy, 'ok', lambda: True)
     with pytest.raises(RuntimeError, match='context is not valid'):
-        node_module._spin(None, None)             # a live context: a real error
+        spin.spin_until_stopped(stub, None)       # a live context: a real error
+    assert stub.destroyed == 2                    # the node is destroyed either way
 
 
 def test_sigkill_mid_session_loses_no_sample_and_resume_continues(tmp_path):
@@ -616,7 +625,7 @@ def test_sigkill_mid_session_loses_no_sample_and_resume_continues(tmp_path):
         intact = samples_file.read_bytes()[:contents.intact_bytes]
 
         # Restart with resume:=true: same samples, the estimate of calibrate() on them.
-        options = node_config.session_config(NodeConfig(still_window_s=0.3)).calibration
+        options = settings.session_config(Settings(still_window_s=0.3)).calibration
         expected = calibration.calibrate(kept, options)
         feeder.rotations.clear()
         feeder.statuses.clear()

@@ -31,7 +31,7 @@ import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.ros import conversions
-from quatcal_ros.ros.node import DIAGNOSTIC_NAME
+from quatcal_ros.ros.diagnostics import DIAGNOSTIC_NAME
 from quatcal_ros.sim import simulation
 import rclpy
 from rclpy.context import Context

@@ -58,6 +58,20 @@ def default_frames(setup):
                          f'{setup!r}') from None
 
 
+def choose_frames(setup, *candidates):
+    """
+    Return the (parent, child) frames of the result: the first name given of each, in order.
+
+    candidates: (parent, child) pairs, most wanted first (the user's options, then what the
+    input names), each name possibly None or ''; default_frames(setup) when none names one.
+    """
+    chosen = []
+    for index, default in enumerate(default_frames(setup)):
+        names = [pair[index] for pair in candidates if pair is not None and pair[index]]
+        chosen.append(names[0] if names else default)
+    return tuple(chosen)
+
+
 def _translation(result):
     translation = getattr(result, 'translation', None)
     if translation is None:

@@ -282,6 +282,10 @@ class Journal:
 
     def flush(self, sync=True):
         """Write the samples not yet in the file (see append), fsync'd unless sync=False."""
+        if self._fd is None and self._unwritten:   # a restart that failed: try it again
+            if not self.path.exists():
+                _write_empty(self.path, self.header)
+            self._open()
         while self._unwritten:
             data = self._unwritten[0]
             if os.fstat(self._fd).st_size != self._size:

@@ -29,7 +29,9 @@ import numpy as np
 
 from quatcal_ros.ros import cdr
 from quatcal_ros.ros.conversions import BadPoseError, pose_from_msg, stamp_ns_from_header
-from quatcal_ros.stream.session import Rejected
+from quatcal_ros.ros.pose_screen import PoseScreen
+from quatcal_ros.stream import message_checks
+from quatcal_ros.stream.message_checks import CheckConfig, LINK, SENSOR
 from quatcal_ros.stream.tf_tree import FramePoses, normalize_frame, TransformTree, TreeError
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
@@ -192,15 +194,21 @@ class PoseInput:
 
 @dataclass
 class ReplayReport:
-    """What a replay read and what it could not use."""
+    """
+    What a replay read and what it could not use.
+
+    `bad` counts the messages skipped as the live node counts them (pose_screen.PoseScreen,
+    message_checks.REASONS), by (where, reason): `where` is a pose stream (link_pose,
+    sensor_pose) or a TF topic, whose items are transforms; `examples` holds the first
+    explanation of each; `sources` names each stream's topic or frames.
+    """
 
     messages: int = 0
     stamps: dict = field(default_factory=dict)             # stream: [first, last] pose stamp
     frames: dict = field(default_factory=dict)             # stream: (frame_id, child frame)
-    skipped: Counter = field(default_factory=Counter)      # (topic, item, why): count
-    skipped_example: dict = field(default_factory=dict)    # (topic, item, why): first text
-    rejected: Counter = field(default_factory=Counter)     # (session's what, code): count
-    rejected_example: dict = field(default_factory=dict)
+    bad: Counter = field(default_factory=Counter)          # (where, reason): count
+    examples: dict = field(default_factory=dict)           # (where, reason): first text
+    sources: dict = field(default_factory=dict)            # stream: topic or TF frames
     tf_dropped: dict = field(default_factory=dict)         # stream: its tf_tree.FramePoses
     tf_stale: int = 0
     tf_frames: tuple = ()                                  # every frame the TF tree knew
@@ -209,14 +217,11 @@ class ReplayReport:
     def warnings(self):
         """Return what was not used, as sentences for the JSON "warnings"."""
         out = []
-        for key, count in sorted(self.skipped.items()):
-            topic, item, why = key
-            out.append(f'{topic}: {count} {item}(s) skipped ({why}): '
-                       f'{self.skipped_example[key]}')
-        for key, count in sorted(self.rejected.items()):
-            what, code = key
-            out.append(f'{count} {what} message(s) rejected{f" ({code})" if code else ""}, '
-                       f'e.g. {self.rejected_example[key]}')
+        for key, count in sorted(self.bad.items()):
+            where, reason = key
+            item = 'message' if where in self.sources else 'transform'
+            out.append(f'{self.sources.get(where, where)}: {count} {item}(s) skipped '
+                       f'({reason}): {self.examples[key]}')
         for stream, frames in sorted(self.tf_dropped.items()):
             if sum(frames.dropped.values()):
                 reasons = ', '.join(f'{n} {why}' for why, n in sorted(frames.dropped.items()))
@@ -248,9 +253,10 @@ class Replay:
     """
 
     def __init__(self, bag, link, sensor, tf_topics=DEFAULT_TF_TOPICS,
-                 tf_max_gap_ns=TF_MAX_GAP_NS):
+                 tf_max_gap_ns=TF_MAX_GAP_NS, checks=CheckConfig()):
         self.bag = bag
         self.inputs = {'link': link, 'sensor': sensor}
+        self.checks = checks   # message_checks.CheckConfig, as the live node checks
         self.tf_max_gap_ns = tf_max_gap_ns
         if bag.message_count == 0:
             raise BagError(f'{bag.path}: the bag holds no messages')
@@ -351,15 +357,16 @@ class _Feed:
 class _PoseFeed(_Feed):
     """A PoseStamped or TransformStamped topic: its messages are decoded together (cdr.py)."""
 
-    def __init__(self, on_raw, on_rows, msgtype):
+    def __init__(self, on_raw, on_rows, msgtype, frame_id=''):
         super().__init__(on_raw)
         self.on_rows = on_rows   # (raws, cdr.DecodedPoses, start, stop) of decoded rows
         self.msgtype = msgtype
+        self.frame_id = frame_id   # the header frame the checks want ('' any)
         self.decoded = None
 
     def prepare(self):
         """Decode the messages added."""
-        self.decoded = cdr.decode_poses(self.raws, self.msgtype)
+        self.decoded = cdr.decode_poses(self.raws, self.msgtype, frame_id=self.frame_id)
 
     def take(self, count):
         """Feed the next `count` messages: decoded rows together, the others by on_raw."""
@@ -380,13 +387,20 @@ def _stretches(flags):
     return [(start, stop, bool(flags[start])) for start, stop in zip(bounds, bounds[1:])]
 
 
+# The replay's stream names are the live node's (message_checks), so counts read alike.
+STREAMS = {'link': LINK, 'sensor': SENSOR}
+
+
 class _Run:
-    """The state of one replay: the transform tree, the report, the message handlers."""
+    """The state of one replay: the transform tree, the message checks, the report."""
 
     def __init__(self, replay, session):
         self.replay = replay
         self.session = session
-        self.report = ReplayReport(stamps={'link': [None, None], 'sensor': [None, None]})
+        self.poses = PoseScreen(replay.checks)
+        self.report = ReplayReport(
+            stamps={'link': [None, None], 'sensor': [None, None]},
+            sources={STREAMS[stream]: str(source) for stream, source in replay.inputs.items()})
         self.tree = TransformTree(cache_ns=TF_CACHE_NS, max_gap_ns=replay.tf_max_gap_ns)
         self.adders = {'link': session.add_link_pose, 'sensor': session.add_sensor_pose}
         self.watchers = []
@@ -406,31 +420,30 @@ class _Run:
         msgtype = self.replay.msgtypes[topic]
         if msgtype not in cdr.STRINGS_BEFORE_POSE:
             return _Feed(on_pose)
-        return _PoseFeed(on_pose, lambda *rows: self._on_rows(stream, msgtype, *rows), msgtype)
+        frame_id = self.replay.checks.frame_id(STREAMS[stream])
+        return _PoseFeed(on_pose, lambda *rows: self._on_rows(stream, msgtype, *rows), msgtype,
+                         frame_id)
 
     def _pose_handler(self, topic, stream):
         """Return the function that takes one raw pose message (rosbags deserialises it)."""
         msgtype = self.replay.msgtypes[topic]
         deserialize = TYPESTORE.deserialize_cdr
         add = self.adders[stream]
+        checked = STREAMS[stream]
 
         def on_pose(raw):
             try:
                 msg = deserialize(raw, msgtype)
             except Exception as error:   # noqa: B902 - whatever rosbags raises on bad bytes
-                self._undecodable(topic, error)
+                self.poses.stats.note(checked, 0)
+                self.poses.bad(checked, 'undecodable', f'{type(error).__name__}: {error}')
                 return
-            try:
-                stamp_ns = stamp_ns_from_header(msg.header)
-                pose = pose_from_msg(msg)
-            except (BadPoseError, ValueError) as error:
-                self._skip(topic, error)
+            taken = self.poses.take(checked, msg)
+            if taken is None:
                 return
-            if self._track(stream, stamp_ns, stamp_ns):
+            if self._track(stream, taken[0], taken[0]):
                 self.report.frames[stream] = _frame_ids(msg)
-            events = add(stamp_ns, pose)
-            if events:
-                self._note(events)
+            self.poses.verdict(checked, add(*taken))
         return on_pose
 
     def _on_rows(self, stream, msgtype, raws, decoded, start, stop):
@@ -439,8 +452,11 @@ class _Run:
         if self._track(stream, stamps[0], stamps[-1]):
             self.report.frames[stream] = _frame_ids(
                 TYPESTORE.deserialize_cdr(raws[start], msgtype))
-        self._note(self.session.add_poses(stream, stamps, decoded.positions[start:stop],
-                                          decoded.quaternions[start:stop]))
+        checked = STREAMS[stream]
+        self.poses.take_rows(checked, len(stamps))
+        self.poses.verdict(checked, self.session.add_poses(
+            stream, stamps, decoded.positions[start:stop], decoded.quaternions[start:stop]),
+            count=len(stamps))
 
     def _track(self, stream, first_ns, last_ns):
         """Note the stamps of poses fed on `stream`; return whether they are its first."""
@@ -452,25 +468,18 @@ class _Run:
         return first
 
     def _feed(self, stream, stamp_ns, pose):
+        """Feed one pose composed from the TF tree."""
         self._track(stream, stamp_ns, stamp_ns)
-        events = self.adders[stream](stamp_ns, pose)
-        if events:
-            self._note(events)
-
-    def _note(self, events):
-        report = self.report
-        for event in events:
-            if isinstance(event, Rejected):
-                key = (event.what, getattr(event, 'code', ''))
-                report.rejected[key] += 1
-                report.rejected_example.setdefault(key, event.reason)
+        checked = STREAMS[stream]
+        self.poses.take_rows(checked, 1)
+        self.poses.verdict(checked, self.adders[stream](stamp_ns, pose))
 
     def on_tf(self, topic, raw, static):
         """Take a raw TFMessage: update the tree, then feed the poses it completes."""
         try:
             msg = TYPESTORE.deserialize_cdr(raw, TF_TYPE)
         except Exception as error:   # noqa: B902 - whatever rosbags raises on bad bytes
-            self._undecodable(topic, error)
+            self.poses.bad(topic, 'undecodable', f'{type(error).__name__}: {error}')
             return
         changed = []
         for transform in msg.transforms:
@@ -479,8 +488,14 @@ class _Run:
                 pose = pose_from_msg(transform)
                 parent, child = _frame_ids(transform)
                 stored = self.tree.set_transform(parent, child, stamp_ns, pose, static)
-            except (BadPoseError, ValueError) as error:   # TreeError is a ValueError
-                self._skip(topic, error, 'transform')
+            except TreeError as error:
+                self.poses.bad(topic, 'breaks_tree', error)
+                continue
+            except BadPoseError as error:
+                self.poses.bad(topic, message_checks.pose_error_reason(error), error)
+                continue
+            except ValueError as error:   # nanosec out of range
+                self.poses.bad(topic, 'bad_stamp', error)
                 continue
             if stored and not static:
                 changed.append((child, stamp_ns))
@@ -490,33 +505,19 @@ class _Run:
             for stamp_ns, pose in frames.ready():
                 self._feed(stream, stamp_ns, pose)
 
-    def _undecodable(self, topic, error):
-        key = (topic, 'message', 'undecodable')
-        self.report.skipped[key] += 1
-        self.report.skipped_example.setdefault(key, f'{type(error).__name__}: {error}')
-
-    def _skip(self, topic, error, item='message'):
-        """Count a message (or a transform of a TFMessage) that cannot be used."""
-        if isinstance(error, TreeError):
-            why = 'breaks_tree'
-        elif isinstance(error, BadPoseError):
-            # The codes of message_checks.REASONS, as the node counts them.
-            why = getattr(error, 'reason', 'malformed')
-            why = f'{why}, {error.field}' if error.field else why
-        else:
-            why = 'bad_stamp' if 'stamp' in str(error) else 'malformed'
-        key = (topic, item, why)
-        self.report.skipped[key] += 1
-        self.report.skipped_example.setdefault(key, str(error))
-
     def finish(self, count):
+        """Close the TF watchers and return the completed ReplayReport."""
         for _, frames in self.watchers:
             frames.finish()
-        self.report.messages = count
-        self.report.tf_stale = sum(self.tree.stale.values())
-        self.report.tf_frames = tuple(sorted(self.tree.frames))
-        self.report.counters = self.session.counters
-        return self.report
+        report = self.report
+        stats = self.poses.stats
+        report.messages = count
+        report.bad = Counter(stats.bad)
+        report.examples = {key: stats.example(*key) for key in stats.bad}
+        report.tf_stale = sum(self.tree.stale.values())
+        report.tf_frames = tuple(sorted(self.tree.frames))
+        report.counters = self.session.counters
+        return report
 
 
 def result_frames(report, setup='eye_in_hand', invert_sensor=False):

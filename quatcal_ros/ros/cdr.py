@@ -46,11 +46,13 @@ class DecodedPoses(NamedTuple):
     ok: np.ndarray
 
 
-def decode_poses(raws, msgtype, norm_tolerance=MESSAGE_NORM_TOLERANCE):
+def decode_poses(raws, msgtype, norm_tolerance=MESSAGE_NORM_TOLERANCE, frame_id=''):
     """
     Decode raw CDR messages of type `msgtype` (a key of STRINGS_BEFORE_POSE); a DecodedPoses.
 
-    Rows not `ok` are left to rosbags' deserialisation and conversions (module docstring).
+    Rows not `ok` are left to rosbags' deserialisation, conversions and the message checks
+    (module docstring); so are zero stamps and, when `frame_id` is given, every header frame
+    other than exactly that one (the message checks decide what they are).
     """
     strings = STRINGS_BEFORE_POSE[msgtype]
     count = len(raws)
@@ -61,13 +63,13 @@ def decode_poses(raws, msgtype, norm_tolerance=MESSAGE_NORM_TOLERANCE):
     while left:
         rows, records = _records(raws, left, strings)
         if records is not None:
-            ok[rows] = _well_formed(records, strings)
+            ok[rows] = _well_formed(records, strings) & _frame_is(records, frame_id)
             stamps[rows] = records['sec'] * np.int64(NS_PER_S) + records['nanosec']
             values[rows] = records['pose']
         taken = set(rows)
         left = [row for row in left if row not in taken]
     positions, quaternions, usable = _pose_values(values, norm_tolerance)
-    return DecodedPoses(stamps, positions, quaternions, ok & usable)
+    return DecodedPoses(stamps, positions, quaternions, ok & usable & (stamps != 0))
 
 
 def _records(raws, rows, strings):
@@ -144,6 +146,17 @@ def _well_formed(records, strings):
         text = records[f'text{index}']
         ok &= (text[:, -1] == 0) & (text < 0x80).all(axis=1)
     return ok
+
+
+def _frame_is(records, frame_id):
+    """Return which records have header.frame_id `frame_id` exactly (all when it is '')."""
+    if not frame_id:
+        return np.ones(len(records), dtype=bool)
+    expected = np.frombuffer(frame_id.encode('utf-8') + b'\0', dtype=np.uint8)
+    text = records['text0']
+    if text.shape[1] != len(expected):
+        return np.zeros(len(records), dtype=bool)
+    return (text == expected).all(axis=1)
 
 
 def _pose_values(values, norm_tolerance):

@@ -23,13 +23,12 @@ import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.units import ns_from_s, NS_PER_S, SETUPS
-from quatcal_ros.ros import conversions
+from quatcal_ros.ros import conversions, spin
 from quatcal_ros.ros.qos import LATCHED_QOS
 from quatcal_ros.sim import simulation
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
@@ -233,21 +232,19 @@ class SimCell(Node):
 
 
 def main(args=None):
-    """Run the sim_cell node until Ctrl-C or shutdown; 2 on bad parameters."""
+    """Run the sim_cell node until SIGINT or SIGTERM (exit 0); 2 on bad parameters."""
+    stopped = spin.install_stop_handlers()
     rclpy.init(args=args)
+    if stopped:
+        rclpy.try_shutdown()
     try:
-        node = SimCell()
+        executor, node = spin.start(SimCell, refused=(ValueError, ParameterException))
     except (ValueError, ParameterException) as error:
         rclpy.logging.get_logger(NODE_NAME).fatal(f'bad parameters: {error}')
         rclpy.try_shutdown()
         return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    if node is not None:
+        spin.spin_until_stopped(node, executor)
     return 0
 
 

@@ -5,7 +5,7 @@ Modes:
 - 'auto': when the link and sensor poses have both stayed within their bands for a window of
   stamps, take one sample, the average of the window (quaternion.average for rotations, the
   mean for positions), which beats the noise of a single frame.  The next sample comes only
-  after a real motion (the link has moved more than min_motion_deg or min_motion_m away from
+  after a real motion (the link has departed more than min_departure_deg or min_departure_m from
   the last sample) and a new still window.
 - 'manual': a sample only on request (`capture_now`), from the latest still window; refused,
   with the reason, while the robot moves, when no recent pair exists, or before a motion.
@@ -35,7 +35,7 @@ class CaptureConfig:
     rotation_band_deg, translation_band_m: how much the link may move and still be still.
     sensor_rotation_band_deg, sensor_translation_band_m: the same for the sensor pose, whose
         detection noise is larger.
-    min_motion_deg, min_motion_m: how far the link must move away from the last sample before
+    min_departure_deg, min_departure_m: how far the link must move away from the last sample before
         the next still capture (either suffices).
     min_still_pairs: fewest pairs a still window must hold.
     recent_ns: a manual capture needs a pair at most this old.
@@ -48,8 +48,8 @@ class CaptureConfig:
     translation_band_m: float = 0.001
     sensor_rotation_band_deg: float = 1.0
     sensor_translation_band_m: float = 0.005
-    min_motion_deg: float = 2.0
-    min_motion_m: float = 0.02
+    min_departure_deg: float = 2.0
+    min_departure_m: float = 0.02
     min_still_pairs: int = 3
     recent_ns: int = 1_000_000_000
     continuous_step_deg: float = 5.0
@@ -60,11 +60,11 @@ class CaptureConfig:
         numbers = [getattr(self, name) for name in self.__dataclass_fields__ if name != 'mode']
         if not all(np.isfinite(numbers)) or min(numbers) <= 0:
             raise ValueError(f'capture settings must be positive and finite: {self}')
-        if self.min_motion_deg <= self.rotation_band_deg:
-            raise ValueError(f'min_motion_deg ({self.min_motion_deg}) must exceed '
+        if self.min_departure_deg <= self.rotation_band_deg:
+            raise ValueError(f'min_departure_deg ({self.min_departure_deg}) must exceed '
                              f'rotation_band_deg ({self.rotation_band_deg})')
-        if self.min_motion_m <= self.translation_band_m:
-            raise ValueError(f'min_motion_m ({self.min_motion_m}) must exceed '
+        if self.min_departure_m <= self.translation_band_m:
+            raise ValueError(f'min_departure_m ({self.min_departure_m}) must exceed '
                              f'translation_band_m ({self.translation_band_m})')
 
 
@@ -178,8 +178,8 @@ class Capture:
             return self._continuous_sample(pair)
         if not self._moved:
             angle, distance = pose_change(pair.link, self._last_sample.link)
-            self._moved = (angle > self.config.min_motion_deg
-                           or distance > self.config.min_motion_m)
+            self._moved = (angle > self.config.min_departure_deg
+                           or distance > self.config.min_departure_m)
         if self.config.mode == 'auto' and self._moved and self._still_reason() is None:
             return self._take(self._window.average_sample())
         return None
@@ -242,5 +242,6 @@ class Capture:
         angle, distance = pose_change(self._newest.link, self._last_sample.link)
         config = self.config
         return (f'no motion since the last sample (link {_short(angle)} deg, '
-                f'{_short(distance * 1e3)} mm away; need {_short(config.min_motion_deg)} deg or '
-                f'{_short(config.min_motion_m * 1e3)} mm): move the robot first')
+                f'{_short(distance * 1e3)} mm away; need '
+                f'{_short(config.min_departure_deg)} deg or '
+                f'{_short(config.min_departure_m * 1e3)} mm): move the robot first')

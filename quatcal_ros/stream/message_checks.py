@@ -45,6 +45,8 @@ REASONS = {
     'duplicate_stamp': 'same header stamp as the previous message',
     'out_of_order': 'header stamp older than the previous message',
     'wrong_frame_id': 'header.frame_id is not the configured frame',
+    'undecodable': 'recorded bytes that do not decode as the topic type',
+    'breaks_tree': 'a transform that would break the TF tree (a loop, a second parent)',
 }
 
 
@@ -141,6 +143,13 @@ def rejected_reason(event):
     return code if code in REASONS else 'malformed'
 
 
+def detail_text(detail):
+    """Return the text of a bad message's detail (text, exception, or function building it)."""
+    if detail is None:
+        return ''
+    return detail() if callable(detail) else str(detail)
+
+
 def diagnostic_key(stream, reason):
     """Return the /diagnostics key of a bad-message count, e.g. bad_link_pose_zero_stamp."""
     return f'bad_{stream}_{reason}'
@@ -163,31 +172,35 @@ class StreamStats:
         self.last_ns = {}
         self.last_good_ns = {}
         self.last_bad = {}                  # stream: reason of its latest bad message
+        self.first_detail = {}              # (stream, reason): detail of the first one
         self._throttle_ns = int(throttle_s * NS_PER_S)
         self._log_due_ns = {}
         self._unlogged = Counter()
 
-    def note(self, stream, now_ns):
-        """Count a message received on `stream` at node time now_ns."""
-        self.received[stream] += 1
+    def note(self, stream, now_ns, count=1):
+        """Count `count` messages received on `stream` at node time now_ns."""
+        self.received[stream] += count
         self.last_ns[stream] = now_ns
         if self.first_ns is None:
             self.first_ns = now_ns
 
-    def note_good(self, stream, now_ns):
-        """Count a message of `stream` that reached the session."""
-        self.good[stream] += 1
+    def note_good(self, stream, now_ns, count=1):
+        """Count `count` messages of `stream` that reached the session."""
+        self.good[stream] += count
         self.last_good_ns[stream] = now_ns
 
-    def note_bad(self, stream, reason, steady_ns):
+    def note_bad(self, stream, reason, steady_ns, detail=None):
         """
         Count a skipped message; return how many to report when a log line is due, else None.
 
         The first bad message of a (stream, reason) is logged at once, later ones at most
         every throttle_s: the number returned counts them all since the previous log line.
+        detail: its explanation (text, exception, or a function that builds it); the first
+        one of each (stream, reason) is kept (`example`).
         """
         key = (stream, reason)
         self.bad[key] += 1
+        self.first_detail.setdefault(key, detail)
         self.last_bad[stream] = reason
         self._unlogged[key] += 1
         due = self._log_due_ns.get(key)
@@ -196,6 +209,10 @@ class StreamStats:
         self._log_due_ns[key] = steady_ns + self._throttle_ns
         count, self._unlogged[key] = self._unlogged[key], 0
         return count
+
+    def example(self, stream, reason):
+        """Return the text of the first bad message of (stream, reason), or ''."""
+        return detail_text(self.first_detail.get((stream, reason)))
 
     @property
     def bad_total(self):

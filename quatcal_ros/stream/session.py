@@ -38,7 +38,6 @@ import numpy as np
 from quatcal_ros.core.calibration import CalibrationOptions, Calibrator
 from quatcal_ros.core.motions import motion_count
 from quatcal_ros.core.pose import Pose
-from quatcal_ros.core.units import ns_from_s
 from quatcal_ros.stream.capture import Capture, CaptureConfig, pose_change
 from quatcal_ros.stream.pairing import LINK, OutOfOrderStamp, Pairer, PairingConfig, SENSOR
 
@@ -68,42 +67,6 @@ class SessionConfig:
     def __post_init__(self):
         if self.time_jump_ns < 0:
             raise ValueError(f'time_jump_ns must be >= 0, not {self.time_jump_ns}')
-
-
-def session_config_from_settings(calibration, capture_mode='auto', still_window_s=0.5,
-                                 still_rotation_deg=0.2, still_translation_m=0.001,
-                                 min_motion_deg=5.0, pairing_tolerance_s=0.001, max_gap_s=0.1,
-                                 continuous_step_deg=None, sensor_offset_s=0.0,
-                                 **capture_overrides):
-    """
-    Return the SessionConfig of the user-facing settings (seconds, degrees, metres).
-
-    The node's parameters and the replay's options both go through here, so the live node
-    and the offline replay derive the same session. min_motion_deg is also the step of
-    'continuous' capture unless continuous_step_deg is given; an automatic still capture
-    needs the link to move at least twice the still bands (and CaptureConfig's own minimum)
-    away from the previous sample. capture_overrides go to CaptureConfig as they are
-    (sensor_rotation_band_deg, sensor_translation_band_m, min_still_pairs). Raises ValueError
-    from the core's checks for inconsistent values.
-    """
-    ns = ns_from_s
-    default_capture, default_pairing = CaptureConfig(), PairingConfig()
-    max_gap_ns = ns(max_gap_s)
-    step = min_motion_deg if continuous_step_deg is None else continuous_step_deg
-    return SessionConfig(
-        pairing=PairingConfig(
-            tolerance_ns=ns(pairing_tolerance_s), max_gap_ns=max_gap_ns,
-            window_ns=max(default_pairing.window_ns, 2 * max_gap_ns)),
-        capture=CaptureConfig(
-            mode=capture_mode, window_ns=ns(still_window_s),
-            rotation_band_deg=still_rotation_deg, translation_band_m=still_translation_m,
-            min_motion_deg=max(default_capture.min_motion_deg, 2.0 * still_rotation_deg),
-            min_motion_m=max(default_capture.min_motion_m, 2.0 * still_translation_m),
-            recent_ns=max(default_capture.recent_ns, 2 * ns(still_window_s)),
-            continuous_step_deg=step,
-            **{key: value for key, value in capture_overrides.items() if value is not None}),
-        calibration=calibration,
-        sensor_offset_ns=ns(sensor_offset_s))
 
 
 @dataclass(frozen=True)

@@ -10,21 +10,20 @@ recording by quatcal_ros.ros.bag.
 import argparse
 from dataclasses import replace
 import json
-import math
 import sys
 import time
 
-from quatcal_ros.core.calibration import CalibrationOptions
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.files import exports
 from quatcal_ros.files import importers
-from quatcal_ros.files.persistence import atomic_write_text, write_result_yaml
+from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import BadInputError, format_samples
-from quatcal_ros.stream.capture import CaptureConfig
-from quatcal_ros.stream.pairing import PairingConfig
-from quatcal_ros.stream.session import Session, session_config_from_settings, SessionConfig
+from quatcal_ros.files.session_record import save_result
+from quatcal_ros.stream.session import Session
+from quatcal_ros.stream.settings import check_config, ConfigError, session_config
 from quatcal_ros.stream.time_offset import find_time_offset
+from quatcal_ros.tools.options import add_setting_options, settings_of
 from quatcal_ros.tools.progress import Progress
 
 EXIT_BAD_INPUT = 2
@@ -32,33 +31,7 @@ EXIT_UNDETERMINED = 3
 EXIT_INTERRUPTED = 130
 
 
-def add_estimator_arguments(parser):
-    """Options shared by `solve` and `replay`: how samples become an estimate."""
-    parser.add_argument('--setup', choices=('eye_in_hand', 'eye_to_hand'),
-                        default='eye_in_hand',
-                        help='eye_in_hand: sensor on the link, answer link -> sensor; '
-                             'eye_to_hand: sensor fixed, answer base -> sensor')
-    parser.add_argument('--pairs', choices=('all', 'consecutive'), default='all',
-                        help='which sample pairs form motions (default: all pairs)')
-    parser.add_argument('--no-robust', action='store_true',
-                        help='plain least squares: no outlier screening or rejection')
-    parser.add_argument('--invert-sensor', action='store_true',
-                        help='the sensor poses are the sensor in the object frame '
-                             '(inverse of the usual detector output)')
-    parser.add_argument('--method', choices=('refined', 'closed-form'), default='refined',
-                        help='refined: joint maximum-likelihood refinement over rotations '
-                             'and translations (from 6 samples on); closed-form: the '
-                             'Chou-Kamel rotation and the closed-form translation. Both are '
-                             'reported')
-    parser.add_argument('--min-motion-deg', type=float, default=5.0,
-                        help='motions rotating less are not used (default 5)')
-
-
-def estimator_options(args):
-    """Build the CalibrationOptions of parsed arguments."""
-    return CalibrationOptions(setup=args.setup, pairs=args.pairs, robust=not args.no_robust,
-                              invert_sensor=args.invert_sensor,
-                              min_motion_deg=args.min_motion_deg, method=args.method)
+ESTIMATOR = ('setup', 'pairs', 'robust', 'invert_sensor', 'method', 'min_motion_deg')
 
 
 def solve_main(argv=None):
@@ -69,7 +42,7 @@ def solve_main(argv=None):
                                   'moveit_calibration; prints one JSON object.')
     parser.add_argument('samples', help='samples file: the samples CSV (DESIGN.md contract '
                                         "2) or another tool's samples (see --format)")
-    add_estimator_arguments(parser)
+    add_setting_options(parser, 'solve', ESTIMATOR)
     # Unset unless given: an easy_handeye2 file may name the setup (else eye_in_hand).
     parser.set_defaults(setup=None)
     parser.add_argument(
@@ -90,13 +63,17 @@ def solve_main(argv=None):
         return fail(parser.prog, error, EXIT_BAD_INPUT)
     args.setup = args.setup or imported.setup or 'eye_in_hand'
     frames = solve_frames(args, imported.frames)
-    session = Session(SessionConfig(calibration=estimator_options(args)))
+    session = Session(session_config(settings_of(args)))
     session.add_samples(imported.samples)
     if session.result is not None and args.easy_handeye2_out:
-        status = _write_easy_handeye2(parser.prog, args.easy_handeye2_out, session.result,
-                                      frames, args.setup, imported.frames)
-        if status:
-            return status
+        named = imported.frames or {}
+        keep = ('robot_base_frame' if args.setup == 'eye_in_hand' else 'robot_effector_frame',
+                'tracking_marker_frame')
+        saved = save_result(session.result, frames, args.setup,
+                            easy_handeye2_file=args.easy_handeye2_out,
+                            easy_handeye2_frames={key: named.get(key, '') for key in keep})
+        for _, target, error in saved.failed:
+            return fail(parser.prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)
     return print_result(parser.prog, session, f'{args.samples}: ', imported.warnings,
                         frames=frames)
 
@@ -119,25 +96,10 @@ def solve_frames(args, named=None):
     named: frame names from the samples file, by easy_handeye2 parameter name.
     """
     named = named or {}
-    parent_default, child_default = exports.default_frames(args.setup)
     named_parent = named.get('robot_effector_frame' if args.setup == 'eye_in_hand'
                              else 'robot_base_frame')
-    return (args.parent_frame or named_parent or parent_default,
-            args.child_frame or named.get('tracking_base_frame') or child_default)
-
-
-def _write_easy_handeye2(prog, path, result, frames, setup, named):
-    """Write `result` to `path` in the easy_handeye2 layout; 0, or the exit status."""
-    other = ({'robot_base_frame': named.get('robot_base_frame', '')} if setup == 'eye_in_hand'
-             else {'robot_effector_frame': named.get('robot_effector_frame', '')})
-    try:
-        text = exports.easy_handeye2_yaml(
-            result, *frames, setup=setup, name=exports.easy_handeye2_name(path),
-            tracking_marker_frame=named.get('tracking_marker_frame', ''), **other)
-        atomic_write_text(path, text)
-    except OSError as error:
-        return fail(prog, f'{path}: cannot write: {error}', EXIT_BAD_INPUT)
-    return 0
+    return exports.choose_frames(args.setup, (args.parent_frame, args.child_frame),
+                                 (named_parent, named.get('tracking_base_frame')))
 
 
 def print_result(prog, session, where='', warnings=(), frames=None, extra=None):
@@ -185,84 +147,22 @@ def _seconds(ns):
 
 def add_capture_arguments(parser):
     """Options of how samples are taken from the paired streams (the node's parameters)."""
-    capture, pairing = CaptureConfig(), PairingConfig()
-    group = parser.add_argument_group('capture and pairing')
-    group.add_argument(
-        '--capture', choices=('auto', 'continuous'), default='auto',
-        help='auto: a sample at each stop (both poses still for --still-window-s after a '
-             'motion), falling back to continuous when the whole bag has no stop; continuous: '
-             'for recordings without stops, a sample each --continuous-step-deg of link '
-             'rotation (default auto)')
+    group = parser.add_argument_group('capture, pairing and message checks')
+    add_setting_options(group, 'replay', CAPTURE)
     group.add_argument('--no-fallback', action='store_true',
                        help='auto capture only, even when the bag has no still sample')
-    group.add_argument('--continuous-step-deg', type=float,
-                       help='link rotation between continuous samples (default: '
-                            '--min-motion-deg, as the node)')
-    group.add_argument('--still-window-s', type=float, default=_seconds(capture.window_ns),
-                       help='seconds both poses must stay still for a sample (default '
-                            '%(default)g)')
-    group.add_argument('--still-rotation-deg', type=float, default=capture.rotation_band_deg,
-                       help='largest link rotation within a still window (default '
-                            '%(default)g)')
-    group.add_argument('--still-translation-m', type=float,
-                       default=capture.translation_band_m,
-                       help='largest link translation within a still window (default '
-                            '%(default)g)')
-    group.add_argument('--sensor-still-rotation-deg', type=float,
-                       default=capture.sensor_rotation_band_deg,
-                       help='the same for the sensor pose (default %(default)g)')
-    group.add_argument('--sensor-still-translation-m', type=float,
-                       default=capture.sensor_translation_band_m,
-                       help='the same for the sensor pose (default %(default)g)')
-    group.add_argument('--min-still-pairs', type=int, default=capture.min_still_pairs,
-                       help='fewest paired poses in a still window (default %(default)d)')
-    group.add_argument('--max-gap-s', type=float, default=_seconds(pairing.max_gap_ns),
-                       help='longest gap of a stream interpolated across (default '
-                            '%(default)g)')
-    group.add_argument('--pairing-tolerance-s', type=float,
-                       default=_seconds(pairing.tolerance_ns),
-                       help='without an interpolation bracket, a pose this close is paired '
-                            'as it is (default %(default)g)')
     offset = group.add_mutually_exclusive_group()
-    offset.add_argument('--sensor-time-offset', type=float, default=0.0, metavar='S',
-                        help='seconds added to every sensor stamp, e.g. -0.03 for a camera '
-                             'that stamps its frames 30 ms late (default 0)')
+    add_setting_options(offset, 'replay', ('sensor_time_offset_s',))
     offset.add_argument('--estimate-time-offset', action='store_true',
                         help='estimate the sensor time offset from the recording (angular '
                              'speed cross-correlation refined by the residual), apply it and '
                              'report it with the residual with and without it')
 
 
-# Options that must be positive numbers (--pairing-tolerance-s may also be 0).
-POSITIVE_OPTIONS = ('still_window_s', 'still_rotation_deg', 'still_translation_m',
-                    'sensor_still_rotation_deg', 'sensor_still_translation_m', 'min_still_pairs',
-                    'max_gap_s', 'continuous_step_deg', 'min_motion_deg')
-
-
-def replay_session_config(args):
-    """
-    Return the SessionConfig of parsed `replay` arguments, derived as the node derives it.
-
-    Raises ValueError naming the option for a value out of range, or from the core's checks
-    for inconsistent values.
-    """
-    for name in POSITIVE_OPTIONS + ('pairing_tolerance_s',):
-        value = getattr(args, name)
-        if value is None:   # --continuous-step-deg: from --min-motion-deg
-            continue
-        low_ok = value >= 0 if name == 'pairing_tolerance_s' else value > 0
-        if not (math.isfinite(value) and low_ok):
-            need = 'a number >= 0' if name == 'pairing_tolerance_s' else 'a positive number'
-            raise ValueError(f'--{name.replace("_", "-")} must be {need}, not {value:g}')
-    return session_config_from_settings(
-        estimator_options(args), capture_mode=args.capture,
-        still_window_s=args.still_window_s, still_rotation_deg=args.still_rotation_deg,
-        still_translation_m=args.still_translation_m, min_motion_deg=args.min_motion_deg,
-        pairing_tolerance_s=args.pairing_tolerance_s, max_gap_s=args.max_gap_s,
-        continuous_step_deg=args.continuous_step_deg, sensor_offset_s=args.sensor_time_offset,
-        sensor_rotation_band_deg=args.sensor_still_rotation_deg,
-        sensor_translation_band_m=args.sensor_still_translation_m,
-        min_still_pairs=args.min_still_pairs)
+CAPTURE = ('capture_mode', 'still_window_s', 'still_rotation_deg', 'still_translation_m',
+           'sensor_still_rotation_deg', 'sensor_still_translation_m', 'min_still_pairs',
+           'continuous_step_deg', 'max_gap_s', 'pairing_tolerance_s', 'link_frame_id',
+           'sensor_frame_id')
 
 
 def replay_parser():
@@ -287,7 +187,7 @@ def replay_parser():
     inputs.add_argument('--tf-topics', nargs='+', metavar='T', default=['/tf', '/tf_static'],
                         help='TFMessage topics read with --*-frames; names ending in '
                              'tf_static hold static transforms (default: /tf /tf_static)')
-    add_estimator_arguments(parser)
+    add_setting_options(parser, 'replay', ESTIMATOR)
     add_capture_arguments(parser)
     outputs = parser.add_argument_group('outputs')
     outputs.add_argument('--samples-out', metavar='FILE.csv',
@@ -310,9 +210,10 @@ def replay_main(argv=None):
     args = parser.parse_args(argv)
     prog = parser.prog
     try:
-        config = replay_session_config(args)
-    except ValueError as error:
+        chosen = settings_of(args)
+    except ConfigError as error:
         return fail(prog, f'bad option: {error}', EXIT_BAD_INPUT)
+    config = session_config(chosen)
     try:
         from quatcal_ros.ros import bag   # rosbags is needed by the replay only
     except ImportError as error:
@@ -323,7 +224,8 @@ def replay_main(argv=None):
     start = time.monotonic()
     try:
         with bag.Bag(args.bag) as recording:
-            replay = bag.Replay(recording, link, sensor, tuple(args.tf_topics))
+            replay = bag.Replay(recording, link, sensor, tuple(args.tf_topics),
+                                checks=check_config(chosen))
             time_offset = None
             if args.estimate_time_offset:
                 session, report, notes, time_offset = _replay_with_time_offset(
@@ -478,35 +380,33 @@ def _too_few_samples(session, report, link, sensor):
     return (f'{count} still sample(s) from {pairs} paired poses; at least 3 are needed: '
             f'the robot must stop for {_seconds(capture.window_ns):g} s (link within '
             f'{capture.rotation_band_deg:g} deg and {capture.translation_band_m:g} m) after '
-            f'each motion of {capture.min_motion_deg:g} deg or more; for a recording without '
+            f'each motion of {capture.min_departure_deg:g} deg or more; for a recording without '
             'stops use --capture continuous')
 
 
 def _replay_frames(args, report):
     """Return (parent, child) of the outputs: the options, the messages' frames, defaults."""
     from quatcal_ros.ros.bag import result_frames
-    seen = result_frames(report, args.setup, args.invert_sensor)
-    parent_default, child_default = exports.default_frames(args.setup)
-    return (args.parent_frame or seen[0] or parent_default,
-            args.child_frame or seen[1] or child_default)
+    return exports.choose_frames(args.setup, (args.parent_frame, args.child_frame),
+                                 result_frames(report, args.setup, args.invert_sensor))
 
 
 def _write_result(prog, args, session, warnings, report, link, sensor):
     from quatcal_ros.ros.bag import result_frames
     seen = result_frames(report, args.setup, args.invert_sensor)
-    parent, child = _replay_frames(args, report)
-    for option, given, default in (('--parent-frame', args.parent_frame or seen[0], parent),
-                                   ('--child-frame', args.child_frame or seen[1], child)):
+    frames = _replay_frames(args, report)
+    for option, given, chosen in zip(('--parent-frame', '--child-frame'),
+                                     (args.parent_frame or seen[0], args.child_frame or seen[1]),
+                                     frames):
         if not given and not args.quiet:
             print(f'{prog}: note: the messages do not name the frame that {option} sets: '
-                  f'{default!r} written to {args.result_out}', file=sys.stderr)
+                  f'{chosen!r} written to {args.result_out}', file=sys.stderr)
     source = {'bag': str(args.bag), 'link': str(link), 'sensor': str(sensor),
               'capture': session.config.capture.mode}
-    try:
-        write_result_yaml(args.result_out, with_warnings(session.result, warnings), parent,
-                          child, setup=args.setup, extra={'source': source})
-    except OSError as error:
-        return fail(prog, f'{args.result_out}: cannot write: {error}', EXIT_BAD_INPUT)
+    saved = save_result(with_warnings(session.result, warnings), frames, args.setup,
+                        result_file=args.result_out, extra={'source': source})
+    for _, target, error in saved.failed:
+        return fail(prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)
     return 0
 
 

@@ -1,0 +1,176 @@
+"""
+What a calibration session leaves behind, and the one warning that guards it.
+
+- `SamplesJournal`: the samples journal (journal.py) with its failures kept in view: a sample
+  that could not be written is an error to report until it is on disk.
+- `save_result`: the result YAML, the easy_handeye2 calibration file, or both, written
+  atomically; the live node's ~/save, `solve --easy-handeye2-out` and `replay --result-out`
+  all write through it.
+- `MoveWatch`: warns once when the newest samples show a moved marker or sensor (drift.py).
+
+The live node and the offline replay drive these alike; they log or print the (level, text)
+messages returned here.  No rclpy here.
+"""
+
+from dataclasses import dataclass, field, replace
+
+from quatcal_ros.core import drift
+from quatcal_ros.files import exports
+from quatcal_ros.files import journal
+from quatcal_ros.files import persistence
+
+
+class SamplesJournal:
+    """
+    The session's samples journal, or none (samples_file ''), with its state for the status.
+
+    `problem` says what is not saved while something is not (None when all is well).
+    """
+
+    def __init__(self, path, header, resume):
+        """
+        Open (or create) the journal at `path`; with resume, reload its samples.
+
+        `report` (journal.StartReport) holds the samples to resume and the messages to log.
+        :raises journal.JournalRefused: in use by another node, or recorded with another
+            setup or frames while resume is true.
+        :raises OSError: when the journal cannot be written.
+        """
+        self.problem = None
+        self.journal, self.report = journal.start(path, header, resume)
+
+    @property
+    def path(self):
+        """Return the journal's absolute path."""
+        return self.journal.path
+
+    @property
+    def count(self):
+        """Return the number of samples the journal holds."""
+        return self.journal.count
+
+    def append(self, samples):
+        """Write `samples` (in the file, not yet fsync'd: see sync); return errors to log."""
+        messages = []
+        for sample in samples:
+            messages += self._call(self.journal.append, sample, sync=False)
+        return messages
+
+    def sync(self):
+        """Fsync what append wrote; return errors to log."""
+        return self._call(self.journal.sync)
+
+    def restart(self):
+        """Start a new journal (~/reset); return what happened to the old one, as text."""
+        try:
+            moved = self.journal.restart()
+        except OSError as error:
+            self.problem = f'could not start a new samples journal: {error}'
+            return f'; {self.problem}'
+        self.problem = None
+        return f'; the old samples journal was moved to {moved}' if moved else ''
+
+    def set_header(self, header):
+        """Record a runtime change of setup or frames in the first line; errors to log."""
+        try:
+            self.journal.set_header(header)
+        except OSError as error:
+            return [('error', f'could not record the new setup or frames in {self.path}: '
+                              f'{error}')]
+        return []
+
+    def close(self):
+        """Close the journal and release its lock."""
+        self.journal.close()
+
+    def _call(self, method, *args, **kwargs):
+        try:
+            method(*args, **kwargs)
+        except OSError as error:
+            reason = error.strerror or error
+            if self.journal.unwritten:
+                self.problem = (
+                    f'{self.journal.unwritten} captured samples not yet saved to '
+                    f'{self.path} ({reason}): they are kept and written with the next sample')
+            else:
+                self.problem = (
+                    f'could not fsync {self.path} ({reason}): the samples are in the file '
+                    'but may not survive a power cut; tried again with the next sample')
+            return [('error', self.problem)]
+        if not self.journal.unwritten:
+            self.problem = None
+        return []
+
+
+@dataclass
+class Saved:
+    """What save_result wrote: [(what, path)], and what it could not: [(what, target, error)]."""
+
+    written: list = field(default_factory=list)
+    failed: list = field(default_factory=list)
+
+    @property
+    def ok(self):
+        """Return whether everything asked for was written."""
+        return not self.failed
+
+
+def save_result(result, frames, setup, result_file=None, easy_handeye2_file=None,
+                easy_handeye2_frames=None, extra=None):
+    """
+    Write `result` to the files given, each atomically (the old file stays when one fails).
+
+    :param frames: (parent, child) of the result (exports.choose_frames).
+    :param result_file: the result YAML (persistence.format_result_yaml), or None.
+    :param easy_handeye2_file: easy_handeye2's calibration file (exports.easy_handeye2_yaml),
+        or None.
+    :param easy_handeye2_frames: its other frame names {robot_base_frame, robot_effector_frame,
+        tracking_marker_frame: name}, those known.
+    :param extra: more top-level keys of the result YAML (the replay's source bag).
+    """
+    saved = Saved()
+    parent, child = frames
+    if result_file:
+        _write(saved, 'result', result_file, lambda: persistence.format_result_yaml(
+            result, parent, child, setup=setup, extra=extra))
+    if easy_handeye2_file:
+        _write(saved, 'easy_handeye2', easy_handeye2_file, lambda: exports.easy_handeye2_yaml(
+            result, parent, child, setup=setup,
+            name=exports.easy_handeye2_name(easy_handeye2_file),
+            **(easy_handeye2_frames or {})))
+    return saved
+
+
+def _write(saved, what, target, text):
+    try:
+        saved.written.append((what, persistence.atomic_write_text(target, text())))
+    except OSError as error:
+        saved.failed.append((what, target, error))
+
+
+@dataclass
+class MoveWatch:
+    """The moved-marker check over a session's samples: warns once, until reset."""
+
+    move: drift.Move = None
+    checked: int = 0     # samples the check has seen
+
+    def check(self, samples, q_z, setup, invert_sensor=False):
+        """Look at the samples not seen yet; return the warning when a move shows first."""
+        found = None
+        if self.move is None:
+            self.move = drift.find_move(samples, q_z, setup, invert_sensor,
+                                        first=max(0, self.checked - drift.RECENT + 1))
+            found = self.move.text() if self.move is not None else None
+        self.checked = len(samples)
+        return found
+
+    def warning(self, sample_count):
+        """Return the moved-marker warning with the current sample count, or None."""
+        if self.move is None:
+            return None
+        return replace(self.move, samples=sample_count - self.move.first).text()
+
+    def reset(self):
+        """Forget the samples seen (~/reset)."""
+        self.move, self.checked = None, 0

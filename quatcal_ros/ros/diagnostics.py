@@ -1,0 +1,90 @@
+"""
+The calibrator's status on /diagnostics: state, counts, quality, and every problem in words.
+
+`calibrator_status` builds one diagnostic_msgs/DiagnosticStatus from the session, the message
+counts (message_checks.StreamStats) and the problems the node knows of (a moved marker, a
+journal that cannot be written, publish_tf without tf2_ros).  The level is WARN when there is
+any problem: a stale stream, a high residual, the estimator's warnings, or those given.
+"""
+
+from diagnostic_msgs.msg import DiagnosticStatus
+from diagnostic_msgs.msg import KeyValue
+import numpy as np
+from quatcal_ros.stream import message_checks
+from quatcal_ros.stream.message_checks import LINK, SENSOR, STALE_AFTER_S
+
+DIAGNOSTIC_NAME = 'calibrator: hand-eye rotation'
+# An RMS motion residual above this (degrees) means inconsistent data: WARN.
+HIGH_RESIDUAL_DEG = 1.0
+
+
+def status_message(session, stats):
+    """Describe the state in operator words."""
+    result = session.result
+    if result is not None:
+        return f'estimating: uncertainty {result.uncertainty_deg:.2g} deg'
+    if session.state == 'waiting for poses':
+        missing = [s for s in (LINK, SENSOR) if not stats.received[s]]
+        if missing:
+            return f'waiting for poses (nothing on {" and ".join(missing)} yet)'
+        if stats.bad_total:
+            (stream, reason), _ = stats.bad.most_common(1)[0]
+            return (f'waiting for poses ({stats.bad_total} bad messages skipped, most for '
+                    f'{reason} on {stream})')
+        return 'waiting for poses (none paired yet: are both stamped on the same clock?)'
+    return f'collecting: {len(session.samples)} samples, need motions about 2 different axes'
+
+
+def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_static=''):
+    """
+    Return the DiagnosticStatus of the calibrator.
+
+    :param problems: further problems to name (texts); each makes the level WARN.
+    :param tf_static: the /tf_static broadcast state, in words.
+    """
+    result = session.result
+    counters = session.counters
+    stale = stats.stale_reasons(now_ns, STALE_AFTER_S)
+    found = [text for _, text in stale]
+    if result is not None and result.residual_rms_deg > HIGH_RESIDUAL_DEG:
+        found.append(f'high residual {result.residual_rms_deg:.2f} deg RMS: check the frame '
+                     'conventions and the time alignment of the streams')
+    if result is not None:
+        found += list(result.warnings)
+    found += [text for text in problems if text]
+    values = {
+        'state': session.state,
+        'samples': counters['samples'],
+        'motions': result.motions if result is not None else counters['motions'],
+        'inliers': result.inliers if result is not None else 0,
+        'residual_rms_deg': _number_text(result and result.residual_rms_deg),
+        'uncertainty_deg': _number_text(result and result.uncertainty_deg),
+        'method': result.method if result is not None else '',
+        'translation_xyz_m': (' '.join(f'{v:.6f}' for v in result.translation)
+                              if result is not None else ''),
+        'translation_uncertainty_mm': _number_text(result and result.translation_uncertainty_mm),
+        'tf_static': tf_static,
+        'hint': result.hint if result is not None else session.last_error,
+        'link_messages': stats.received[LINK],
+        'sensor_messages': stats.received[SENSOR],
+        'bad_messages': stats.bad_total,
+        'stale': ' '.join(stream for stream, _ in stale),
+        'paired_poses': counters['pairs'],
+        'rejected_messages': counters['rejected'],
+        # Clock jumps back (a bag played again): each restarted the pairing; stills that
+        # repeat earlier samples after one are not added twice.
+        'time_jumps': counters['time_jumps'],
+        'repeated_samples': counters['repeated_samples'],
+    }
+    for (stream, reason), count in sorted(stats.bad.items()):
+        values[message_checks.diagnostic_key(stream, reason)] = count
+    return DiagnosticStatus(
+        level=DiagnosticStatus.WARN if found else DiagnosticStatus.OK, name=DIAGNOSTIC_NAME,
+        message='; '.join([status_message(session, stats)] + found), hardware_id=hardware_id,
+        values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
+
+
+def _number_text(value):
+    if value is None or value is False:
+        return ''
+    return f'{float(value):.6g}' if np.isfinite(value) else 'nan'

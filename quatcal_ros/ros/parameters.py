@@ -1,0 +1,97 @@
+"""
+The calibrator node's parameters: the settings table (stream/settings.py) as ROS parameters.
+
+Every setting is declared with a ParameterDescriptor (description, range, read_only) made from
+its table row.  The values are checked together into a frozen `Settings`; the same checks run
+at startup (`declare_parameters`, which raises ConfigError with the reason) and at runtime
+(`updated`, used by the node's set-parameters callback).  `use_sim_time` is rclpy's own and is
+not declared here.  `params_file_text` renders config/calibrator.yaml from the table.
+"""
+
+import textwrap
+
+from quatcal_ros.stream.settings import ConfigError, NODE_NAME, SETTING_BY_NAME, SETTINGS
+from quatcal_ros.stream.settings import Settings
+from rcl_interfaces.msg import FloatingPointRange
+from rcl_interfaces.msg import IntegerRange
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.exceptions import ParameterException
+
+__all__ = ['ConfigError', 'declare_parameters', 'descriptor', 'params_file_text', 'updated']
+
+
+def descriptor(setting):
+    """Return the ParameterDescriptor declared with `setting`."""
+    result = ParameterDescriptor(
+        name=setting.name, description=setting.description,
+        additional_constraints=setting.constraints, read_only=setting.read_only)
+    if isinstance(setting.default, bool) or setting.low is None:
+        return result
+    if isinstance(setting.default, int):
+        result.integer_range = [IntegerRange(from_value=int(setting.low),
+                                             to_value=int(setting.high), step=0)]
+    else:
+        result.floating_point_range = [FloatingPointRange(
+            from_value=float(setting.low), to_value=float(setting.high), step=0.0)]
+    return result
+
+
+def declare_parameters(node):
+    """
+    Declare every setting on `node` as a parameter and return the checked Settings.
+
+    :raises ConfigError: with the reason, for a value of the wrong type, out of range, or not
+        one of the allowed choices (from parameter_overrides or --ros-args -p).
+    """
+    for setting in SETTINGS:
+        try:
+            node.declare_parameter(setting.name, setting.default, descriptor(setting))
+        except ParameterException as error:
+            raise ConfigError(f'parameter {setting.name}: {error}') from None
+    return Settings.from_values(
+        {setting.name: node.get_parameter(setting.name).value for setting in SETTINGS})
+
+
+def updated(settings, parameters):
+    """
+    Return the Settings after setting `parameters` (rclpy Parameter objects).
+
+    :raises ConfigError: when a new value is not allowed; `settings` stay as they were.
+    """
+    return settings.updated(**{p.name: p.value for p in parameters if p.name in SETTING_BY_NAME})
+
+
+def params_file_text():
+    """Return the text of config/calibrator.yaml: every parameter, its default and comment."""
+    lines = [
+        '# Parameters of the quatcal_ros calibrator node, with their defaults.',
+        '# Use: ros2 run quatcal_ros calibrator --ros-args --params-file calibrator.yaml',
+        '# Generated from the settings table (quatcal_ros/stream/settings.py):',
+        '#   python -m quatcal_ros.ros.parameters > config/calibrator.yaml',
+        '# Numbers that are floats must be written with a decimal point (1.0, not 1).',
+        '# read-only: set at startup only; every other parameter can be changed at runtime',
+        '# (ros2 param set), and the estimate is recomputed from the samples so far.',
+        f'{NODE_NAME}:',
+        '  ros__parameters:',
+    ]
+    for setting in SETTINGS:
+        notes = [setting.constraints] if setting.constraints else []
+        if setting.read_only:
+            notes.append('read-only')
+        text = setting.description + (f' ({"; ".join(notes)})' if notes else '')
+        lines += textwrap.wrap(text, 95, initial_indent='    # ', subsequent_indent='    # ')
+        lines.append(f'    {setting.name}: {_yaml_value(setting.default)}')
+    return '\n'.join(lines) + '\n'
+
+
+def _yaml_value(value):
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, str):
+        plain = value and not value.startswith('~') and ':' not in value
+        return value if plain else "'" + value.replace("'", "''") + "'"
+    return repr(value)
+
+
+if __name__ == '__main__':
+    print(params_file_text(), end='')

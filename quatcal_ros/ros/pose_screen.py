@@ -1,0 +1,87 @@
+"""
+Pose messages in: checked, converted and counted, one way for the live node and the replay.
+
+`PoseScreen.take(stream, msg, now_ns)` runs the checks of message_checks (header stamp, frame
+id) and of conversions (numbers, quaternion) on one stamped pose or transform message, cheapest
+first, and returns (stamp_ns, Pose) or None.  `verdict` takes the session's events for that
+pose and counts the session's own refusals (a stamp out of order or repeated).  Every message
+is counted exactly once, good or bad (`stats`, message_checks.StreamStats); a bad one is
+reported through `on_bad` when its throttled report is due, with the text built only then.
+The replay reports nothing while it runs (on_bad None) and lists the counts at the end.
+"""
+
+import time
+
+from quatcal_ros.ros.conversions import BadPoseError, pose_from_msg, stamp_ns_from_header
+from quatcal_ros.stream import message_checks
+from quatcal_ros.stream.message_checks import CheckConfig, StreamStats
+from quatcal_ros.stream.session import Rejected
+
+
+class PoseScreen:
+    """The checks and the counts of the pose messages of a session's streams."""
+
+    def __init__(self, config=CheckConfig(), on_bad=None,
+                 throttle_s=message_checks.LOG_THROTTLE_S):
+        """
+        Check against `config` and report bad messages to `on_bad`.
+
+        :param config: message_checks.CheckConfig, what the messages must satisfy.
+        :param on_bad: on_bad(stream, reason, count, detail) when a bad message's report is
+            due: count bad messages of (stream, reason) since the last report, detail the
+            explanation (text, an exception, or a function that builds it).
+        """
+        self.config = config
+        self.on_bad = on_bad
+        self.stats = StreamStats(throttle_s)
+
+    def take(self, stream, msg, now_ns=0):
+        """
+        Return (stamp_ns, Pose) of `msg` on `stream`, or None (then it is counted as bad).
+
+        now_ns: the node clock (0 offline: no clock check).
+        """
+        self.stats.note(stream, now_ns)
+        header = msg.header
+        try:
+            stamp_ns = stamp_ns_from_header(header)
+        except ValueError as error:   # nanosec out of range
+            self.bad(stream, 'bad_stamp', error)
+            return None
+        reason = message_checks.check(stream, stamp_ns, header.frame_id, now_ns, self.config)
+        if reason is not None:
+            config = self.config
+            self.bad(stream, reason, lambda: message_checks.describe(
+                reason, stream, stamp_ns, header.frame_id, now_ns, config))
+            return None
+        try:
+            return stamp_ns, pose_from_msg(msg)
+        except BadPoseError as error:
+            self.bad(stream, message_checks.pose_error_reason(error), error)
+            return None
+
+    def take_rows(self, stream, count, now_ns=0):
+        """Count `count` messages of `stream` that a fast decoder checked and found good."""
+        self.stats.note(stream, now_ns, count)
+
+    def verdict(self, stream, events, now_ns=0, count=1):
+        """
+        Count the session's verdict on `count` poses of `stream`; return the other events.
+
+        A Rejected of this stream (out of order, duplicate stamp) makes its pose bad; the
+        others are good.
+        """
+        refused = [e for e in events if isinstance(e, Rejected) and e.what == stream]
+        for event in refused:
+            self.bad(stream, message_checks.rejected_reason(event), event.reason)
+        if count > len(refused):
+            self.stats.note_good(stream, now_ns, count - len(refused))
+        if not refused:
+            return events
+        return [e for e in events if not (isinstance(e, Rejected) and e.what == stream)]
+
+    def bad(self, stream, reason, detail):
+        """Count a bad message of `stream`; report it through on_bad when that is due."""
+        count = self.stats.note_bad(stream, reason, time.monotonic_ns(), detail)
+        if count is not None and self.on_bad is not None:
+            self.on_bad(stream, reason, count, detail)

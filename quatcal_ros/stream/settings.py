@@ -1,0 +1,303 @@
+"""
+The one table of settings: every user-facing setting of the node, the replay and the solver.
+
+Each `Setting` has a name, a default, a unit, its allowed values (a range or choices), a
+description and whether it is read-only in the live node.  Everything else is made from it:
+
+- the node's parameters and their descriptors (ros/parameters.py),
+- the params file config/calibrator.yaml (`params_file_text`; a test keeps them equal),
+- the command-line options of `solve` and `replay` (tools/options.py),
+- the core's configuration: `session_config` (SessionConfig) and `check_config` (what pose
+  messages must satisfy).
+
+`Settings` holds one checked value per setting (plain Python numbers and strings); it is the
+only place where a default is written.  Names mean one thing everywhere: min_motion_deg is the
+smallest motion the calibration uses (and the step of continuous capture unless
+continuous_step_deg is set); how far the link must depart from the last sample before the
+next still capture is derived from the still bands (`session_config`).
+"""
+
+from dataclasses import asdict, dataclass, field, make_dataclass
+import math
+
+from quatcal_ros.core.calibration import CalibrationOptions, METHODS
+from quatcal_ros.core.units import ns_from_s, SETUPS
+from quatcal_ros.stream.capture import CaptureConfig, MODES as CAPTURE_MODES
+from quatcal_ros.stream.message_checks import CheckConfig
+from quatcal_ros.stream.pairing import PairingConfig
+from quatcal_ros.stream.session import SessionConfig
+
+DEFAULT_RESULT_FILE = '~/.ros/quatcal/calibration.yaml'
+DEFAULT_SAMPLES_FILE = '~/.ros/quatcal/samples.csv'
+POSE_TYPES = ('pose', 'transform')
+PAIRS = ('all', 'consecutive')
+NODE_NAME = 'calibrator'
+
+
+class ConfigError(ValueError):
+    """A setting value that cannot be used; the message names the setting and says why."""
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One setting: its default (whose type is the setting's type) and allowed values."""
+
+    name: str
+    default: object
+    description: str
+    unit: str = ''
+    choices: tuple = ()
+    low: float = None
+    high: float = None
+    read_only: bool = False
+    allow_empty: bool = False
+    # Also an option of these command-line tools (tools/options.py), beside the node.
+    tools: tuple = ()
+
+    @property
+    def constraints(self):
+        """Return the allowed values as text ('one of: a, b', '0.05 to 10 s')."""
+        if self.choices:
+            return 'one of: ' + ', '.join(self.choices)
+        if self.low is not None:
+            return f'{self.low:g} to {self.high:g}' + (f' {self.unit}' if self.unit else '')
+        return ''
+
+    def check(self, value):
+        """Return why `value` is not allowed, or None when it is."""
+        kind = type(self.default)
+        if kind is bool:
+            return None if isinstance(value, bool) else f'must be true or false, not {value!r}'
+        if kind is int:
+            if isinstance(value, bool) or not isinstance(value, int):
+                return f'must be a whole number, not {value!r}'
+            return self._check_range(value)
+        if kind is float:
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                return f'must be a number, not {value!r}'
+            return self._check_range(value)
+        if not isinstance(value, str):
+            return f'must be a string, not {value!r}'
+        if self.choices and value not in self.choices:
+            return f'must be one of {", ".join(self.choices)}, not {value!r}'
+        if not value.strip() and not (self.allow_empty and value == ''):
+            return 'must not be empty' + (" (or '' for any)" if self.allow_empty else '')
+        return None
+
+    def _check_range(self, value):
+        if not math.isfinite(value) or not self.low <= value <= self.high:
+            return f'must be between {self.low:g} and {self.high:g}, not {value!r}'
+        return None
+
+    def plain(self, value):
+        """Return `value` as the setting's type (an integer given for a float setting)."""
+        return float(value) if type(self.default) is float else value
+
+
+SOLVE, REPLAY = ('solve',), ('replay',)
+BOTH = SOLVE + REPLAY
+
+SETTINGS = (
+    Setting('link_frame', 'tool0',
+            'Frame of the robot link that carries the sensor (eye_in_hand) or of the robot '
+            'base (eye_to_hand): the parent frame of the result, header.frame_id of '
+            '~/rotation.'),
+    Setting('sensor_frame', 'camera', 'Frame of the sensor: the child frame of the result.'),
+    Setting('pose_type', 'pose',
+            'Message type of link_pose and sensor_pose: pose = geometry_msgs/PoseStamped, '
+            'transform = geometry_msgs/TransformStamped.', choices=POSE_TYPES, read_only=True),
+    Setting('setup', 'eye_in_hand',
+            'eye_in_hand: the sensor rides on the link, the answer is link -> sensor; '
+            'eye_to_hand: the sensor is fixed in the cell, the answer is base -> sensor.',
+            choices=SETUPS, tools=BOTH),
+    Setting('capture_mode', 'auto',
+            'auto: take a sample whenever both poses stay still for still_window_s after a '
+            'motion; manual: only on ~/capture; continuous: for runs without stops, a sample '
+            'each time the link has turned by continuous_step_deg (default min_motion_deg).',
+            choices=CAPTURE_MODES, tools=REPLAY),
+    Setting('still_window_s', 0.5,
+            'Seconds (header stamps) both poses must stay within the still bands for a '
+            'sample.', unit='s', low=0.05, high=10.0, tools=REPLAY),
+    Setting('still_rotation_deg', 0.2,
+            'Largest link rotation (degrees) within the still window that still counts as '
+            'still.', unit='deg', low=0.001, high=5.0, tools=REPLAY),
+    Setting('still_translation_m', 0.001,
+            'Largest link translation (metres) within the still window that counts as still.',
+            unit='m', low=1e-6, high=0.1, tools=REPLAY),
+    Setting('sensor_still_rotation_deg', 1.0,
+            'Largest sensor-pose rotation (degrees) within the still window that counts as '
+            'still (detections are noisier than the robot).', unit='deg', low=0.001,
+            high=30.0, tools=REPLAY),
+    Setting('sensor_still_translation_m', 0.005,
+            'Largest sensor-pose translation (metres) within the still window that counts as '
+            'still.', unit='m', low=1e-6, high=1.0, tools=REPLAY),
+    Setting('min_still_pairs', 3,
+            'Fewest paired poses a still window must hold for a sample.', low=1, high=10000,
+            tools=REPLAY),
+    Setting('min_motion_deg', 5.0,
+            'Motions between samples that rotate the link less than this (degrees) carry too '
+            'little information and are not used.', unit='deg', low=0.5, high=90.0,
+            tools=BOTH),
+    Setting('continuous_step_deg', 0.0,
+            'Link rotation (degrees) between two samples in continuous capture; 0: '
+            'min_motion_deg.', unit='deg', low=0.0, high=90.0, tools=REPLAY),
+    Setting('pairing_tolerance_s', 0.001,
+            'Without poses on both sides to interpolate between, a pose this close (seconds, '
+            'header stamps) to a stamp of the other stream is paired as it is.', unit='s',
+            low=0.0, high=1.0, tools=REPLAY),
+    Setting('max_gap_s', 0.1,
+            'Largest gap (seconds, header stamps) of a stream across which poses are '
+            'interpolated; nothing is paired across a longer gap.', unit='s', low=0.001,
+            high=10.0, tools=REPLAY),
+    Setting('sensor_time_offset_s', 0.0,
+            'Seconds added to every sensor_pose header stamp: a known latency of the sensor '
+            'clock, e.g. -0.03 for a camera that stamps its frames 30 ms late (`replay '
+            '--estimate-time-offset` measures it from a recording).', unit='s', low=-1.0,
+            high=1.0, tools=REPLAY),
+    Setting('max_stamp_offset_s', 30.0,
+            'Pose messages whose header stamp is farther than this (seconds) from the node '
+            'clock (with use_sim_time: /clock) are skipped and counted; 0 turns the check '
+            'off.', unit='s', low=0.0, high=1e6),
+    Setting('link_frame_id', '',
+            'header.frame_id that link_pose messages must carry (the robot base frame); '
+            "others are skipped and counted. '' accepts any.", allow_empty=True, tools=REPLAY),
+    Setting('sensor_frame_id', '',
+            "header.frame_id that sensor_pose messages must carry (the sensor's frame); others "
+            "are skipped and counted. '' accepts any.", allow_empty=True, tools=REPLAY),
+    Setting('pairs', 'all',
+            'Motions from all pairs of samples (more information) or consecutive ones only.',
+            choices=PAIRS, tools=BOTH),
+    Setting('robust', True,
+            'Reject bad detections (marker flips) and inconsistent motions by a consensus '
+            'search; false for plain least squares.', tools=BOTH),
+    Setting('invert_sensor', False,
+            'true: the sensor poses are the sensor in the object frame (the inverse of the '
+            'usual detector output).', tools=BOTH),
+    Setting('method', 'refined',
+            'refined: joint maximum-likelihood refinement over rotations and translations '
+            '(from 6 samples on); closed-form: the Chou-Kamel rotation and the closed-form '
+            'translation. Both are reported.', choices=METHODS, tools=BOTH),
+    Setting('result_file', DEFAULT_RESULT_FILE,
+            'Where ~/save writes the result YAML (~ is expanded; written atomically).'),
+    Setting('easy_handeye2_file', '',
+            "~/save also writes the result here in easy_handeye2's calibration layout "
+            '(parameters + transform; ~ is expanded; written atomically), e.g. '
+            "~/.ros2/easy_handeye2/calibrations/NAME.calib. '' does not write it.",
+            allow_empty=True),
+    Setting('publish_tf', False,
+            'true: broadcast the result (link_frame -> sensor_frame) on /tf_static after '
+            'every estimate, with tf2_ros (a ROS 2 install); without tf2_ros the node warns '
+            'and reports it in /diagnostics. The result is on ~/transform either way.'),
+    Setting('samples_file', DEFAULT_SAMPLES_FILE,
+            'Journal of the captured samples (samples CSV with a header comment; ~ is '
+            "expanded): each sample is appended and fsync'd as it is captured, ~/reset starts "
+            'a new one, and the old one is moved aside with a timestamp, never deleted.',
+            read_only=True),
+    Setting('resume', False,
+            'true: continue the session in samples_file (reload its samples and '
+            're-estimate); false: move an existing samples_file aside with a timestamp and '
+            'start afresh.', read_only=True),
+    Setting('diagnostics_period_s', 1.0,
+            'Period (seconds, node clock) of the status published on /diagnostics.',
+            unit='s', low=0.1, high=60.0, read_only=True),
+)
+SETTING_BY_NAME = {setting.name: setting for setting in SETTINGS}
+DEFAULTS = {setting.name: setting.default for setting in SETTINGS}
+# Settings that change only the presentation or the message checks: the node keeps its
+# session (and estimate) when only these change.
+PRESENTATION = ('link_frame', 'sensor_frame', 'result_file', 'max_stamp_offset_s',
+                'link_frame_id', 'sensor_frame_id', 'easy_handeye2_file', 'publish_tf')
+
+
+def _from_values(values):
+    """
+    Check a {name: value} mapping (every setting) and return the Settings.
+
+    :raises ConfigError: naming each value that is not allowed and why, or the core's
+        objection to the combination.
+    """
+    reasons = []
+    for setting in SETTINGS:
+        if setting.name not in values:
+            reasons.append(f'{setting.name} is missing')
+            continue
+        reason = setting.check(values[setting.name])
+        if reason:
+            reasons.append(f'parameter {setting.name} {reason}')
+    unknown = sorted(set(values) - set(SETTING_BY_NAME))
+    if unknown:
+        reasons.append(f'unknown setting(s) {", ".join(unknown)}')
+    if reasons:
+        raise ConfigError('; '.join(reasons))
+    settings = Settings(**{s.name: s.plain(values[s.name]) for s in SETTINGS})
+    session_config(settings)   # the core's own consistency checks
+    return settings
+
+
+def _as_dict(self):
+    """Return {name: value} of every setting."""
+    return asdict(self)
+
+
+def _updated(self, **changes):
+    """Return these settings with `changes` applied, checked; ConfigError when refused."""
+    return _from_values({**asdict(self), **changes})
+
+
+Settings = make_dataclass(
+    'Settings', [(s.name, type(s.default), field(default=s.default)) for s in SETTINGS],
+    frozen=True, namespace={
+        '__doc__': 'One checked value per setting of SETTINGS (plain Python types).',
+        '__module__': __name__,
+        'from_values': staticmethod(_from_values),
+        'as_dict': _as_dict,
+        'updated': _updated,
+    })
+
+
+def session_config(settings):
+    """
+    Return the core's SessionConfig for `settings` (durations in integer ns).
+
+    min_motion_deg is the calibration's smallest usable motion and, unless
+    continuous_step_deg is set, the step of continuous capture.  An automatic still capture
+    needs the link to depart at least twice the still bands (and CaptureConfig's own minimum)
+    from the previous sample; the pairing keeps at least two gaps of each stream; a manual
+    capture needs a pair from the last two still windows.
+    :raises ConfigError: when the core refuses the combination.
+    """
+    default_capture, default_pairing = CaptureConfig(), PairingConfig()
+    max_gap_ns = ns_from_s(settings.max_gap_s)
+    try:
+        return SessionConfig(
+            pairing=PairingConfig(
+                tolerance_ns=ns_from_s(settings.pairing_tolerance_s), max_gap_ns=max_gap_ns,
+                window_ns=max(default_pairing.window_ns, 2 * max_gap_ns)),
+            capture=CaptureConfig(
+                mode=settings.capture_mode, window_ns=ns_from_s(settings.still_window_s),
+                rotation_band_deg=settings.still_rotation_deg,
+                translation_band_m=settings.still_translation_m,
+                sensor_rotation_band_deg=settings.sensor_still_rotation_deg,
+                sensor_translation_band_m=settings.sensor_still_translation_m,
+                min_departure_deg=max(default_capture.min_departure_deg,
+                                      2.0 * settings.still_rotation_deg),
+                min_departure_m=max(default_capture.min_departure_m,
+                                    2.0 * settings.still_translation_m),
+                min_still_pairs=settings.min_still_pairs,
+                recent_ns=max(default_capture.recent_ns,
+                              2 * ns_from_s(settings.still_window_s)),
+                continuous_step_deg=settings.continuous_step_deg or settings.min_motion_deg),
+            calibration=CalibrationOptions(
+                setup=settings.setup, pairs=settings.pairs, robust=settings.robust,
+                invert_sensor=settings.invert_sensor, min_motion_deg=settings.min_motion_deg,
+                method=settings.method),
+            sensor_offset_ns=ns_from_s(settings.sensor_time_offset_s))
+    except ValueError as error:
+        raise ConfigError(f'inconsistent settings: {error}') from None
+
+
+def check_config(settings):
+    """Return the message_checks.CheckConfig of `settings` (what pose messages must satisfy)."""
+    return CheckConfig(max_stamp_offset_ns=ns_from_s(settings.max_stamp_offset_s),
+                       link_frame_id=settings.link_frame_id,
+                       sensor_frame_id=settings.sensor_frame_id)

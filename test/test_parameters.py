@@ -1,0 +1,226 @@
+"""Tests of the settings table (stream.settings) and the node's parameters made from it."""
+
+import argparse
+from dataclasses import fields
+import math
+
+import pytest
+from quatcal_ros.ros import parameters
+from quatcal_ros.stream import settings
+from quatcal_ros.stream.settings import ConfigError, SETTINGS, Settings
+from quatcal_ros.tools import options
+import rclpy
+from rclpy.context import Context
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+import yaml
+
+DOMAIN_ID = 56
+DEFAULTS = Settings().as_dict()
+
+
+@pytest.fixture
+def context():
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+def _declared(context, overrides=()):
+    node = Node('calibrator', context=context, parameter_overrides=list(overrides))
+    try:
+        return parameters.declare_parameters(node), node
+    except ConfigError:
+        node.destroy_node()
+        raise
+
+
+def test_table_rows_are_the_settings_fields_and_defaults():
+    assert [setting.name for setting in SETTINGS] == [f.name for f in fields(Settings)]
+    for setting in SETTINGS:
+        assert DEFAULTS[setting.name] == setting.default, setting.name
+        assert type(DEFAULTS[setting.name]) is type(setting.default), setting.name
+        assert setting.check(setting.default) is None, setting.name
+        assert len(setting.description) > 20, setting.name
+    assert 'use_sim_time' not in DEFAULTS
+
+
+def test_descriptors_have_descriptions_ranges_and_read_only():
+    for setting in SETTINGS:
+        descriptor = parameters.descriptor(setting)
+        assert descriptor.name == setting.name
+        assert descriptor.description == setting.description
+        if isinstance(setting.default, float):
+            (limits,) = descriptor.floating_point_range
+            assert limits.from_value <= setting.default <= limits.to_value
+        elif isinstance(setting.default, int) and not isinstance(setting.default, bool):
+            (limits,) = descriptor.integer_range
+            assert limits.from_value <= setting.default <= limits.to_value
+        if setting.choices:
+            assert all(c in descriptor.additional_constraints for c in setting.choices)
+    read_only = {s.name for s in SETTINGS if parameters.descriptor(s).read_only}
+    assert read_only == {'pose_type', 'diagnostics_period_s', 'samples_file', 'resume'}
+
+
+def test_session_config_gets_plain_numbers_in_nanoseconds():
+    config = Settings.from_values(dict(
+        DEFAULTS, still_window_s=0.25, max_gap_s=0.05, pairing_tolerance_s=0.002,
+        setup='eye_to_hand', pairs='consecutive', robust=False, capture_mode='manual',
+        min_motion_deg=8.0))
+    session = settings.session_config(config)
+    assert session.capture.window_ns == 250_000_000
+    assert isinstance(session.capture.window_ns, int)
+    assert session.capture.mode == 'manual'
+    assert session.capture.rotation_band_deg == config.still_rotation_deg
+    assert session.capture.continuous_step_deg == 8.0
+    assert session.pairing.max_gap_ns == 50_000_000
+    assert session.pairing.tolerance_ns == 2_000_000
+    assert session.calibration.setup == 'eye_to_hand'
+    assert session.calibration.pairs == 'consecutive'
+    assert session.calibration.robust is False
+    assert session.calibration.min_motion_deg == 8.0
+
+
+@pytest.mark.parametrize('name, value, words', [
+    ('setup', 'sideways', 'eye_in_hand'),
+    ('pose_type', 'odometry', 'transform'),
+    ('capture_mode', 'sometimes', 'continuous'),
+    ('pairs', 'some', 'consecutive'),
+    ('still_window_s', -1.0, 'between'),
+    ('still_window_s', math.nan, 'between'),
+    ('max_gap_s', 100.0, 'between'),
+    ('sensor_time_offset_s', 2.0, 'between'),
+    ('min_motion_deg', 'five', 'number'),
+    ('robust', 1, 'true or false'),
+    ('link_frame', '', 'empty'),
+    ('result_file', '  ', 'empty'),
+])
+def test_invalid_values_are_refused_with_the_reason(name, value, words):
+    with pytest.raises(ConfigError) as error:
+        Settings.from_values(dict(DEFAULTS, **{name: value}))
+    assert name in str(error.value) and words in str(error.value)
+
+
+def test_integers_for_floats_become_floats():
+    config = Settings.from_values(dict(DEFAULTS, still_window_s=1))
+    assert config.still_window_s == 1.0 and isinstance(config.still_window_s, float)
+
+
+def test_declare_parameters_with_overrides(context):
+    config, node = _declared(context, [
+        Parameter('setup', value='eye_to_hand'), Parameter('still_window_s', value=0.3),
+        Parameter('robust', value=False)])
+    try:
+        assert config.setup == 'eye_to_hand'
+        assert config.still_window_s == 0.3
+        assert config.robust is False
+        assert config.link_frame == 'tool0'
+        assert node.describe_parameter('pose_type').read_only
+        assert node.describe_parameter('still_window_s').floating_point_range
+        assert node.has_parameter('use_sim_time')
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.parametrize('override, words', [
+    (Parameter('still_window_s', value=100.0), 'still_window_s'),
+    (Parameter('still_window_s', value=1), 'still_window_s'),     # integer for a double
+    (Parameter('setup', value='sideways'), 'setup'),
+    (Parameter('robust', value='yes'), 'robust'),
+])
+def test_declare_refuses_invalid_overrides(context, override, words):
+    with pytest.raises(ConfigError, match=words):
+        _declared(context, [override])
+
+
+def test_updated_checks_runtime_changes():
+    config = Settings()
+    changed = parameters.updated(config, [Parameter('pairs', value='consecutive'),
+                                          Parameter('use_sim_time', value=True)])
+    assert changed.pairs == 'consecutive' and config.pairs == 'all'
+    with pytest.raises(ConfigError, match='min_motion_deg'):
+        parameters.updated(config, [Parameter('min_motion_deg', value=0.0)])
+
+
+def test_params_file_lists_every_parameter_with_its_default(repo_root):
+    path = repo_root / 'config' / 'calibrator.yaml'
+    text = path.read_text()
+    document = yaml.safe_load(text)
+    parameters = document['calibrator']['ros__parameters']
+    assert parameters == DEFAULTS
+    lines = text.splitlines()
+    for setting in SETTINGS:
+        (index,) = [i for i, line in enumerate(lines)
+                    if line.strip().startswith(setting.name + ':')]
+        assert lines[index - 1].strip().startswith('#'), f'{setting.name} has no comment'
+
+
+def test_params_file_loads_through_rcl(repo_root):
+    path = repo_root / 'config' / 'calibrator.yaml'
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID,
+               args=['calibrator', '--ros-args', '--params-file', str(path)])
+    try:
+        config, node = _declared(ctx)
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+    assert config == Settings()
+
+
+def test_sensor_time_offset_reaches_the_session():
+    config = Settings.from_values({**DEFAULTS, 'sensor_time_offset_s': -0.03})
+    assert settings.session_config(config).sensor_offset_ns == -30_000_000
+
+
+def test_params_file_is_the_table(repo_root):
+    path = repo_root / 'config' / 'calibrator.yaml'
+    assert path.read_text() == parameters.params_file_text(), \
+        'config/calibrator.yaml is out of date: python -m quatcal_ros.ros.parameters > ' \
+        'config/calibrator.yaml'
+
+
+def test_unknown_settings_and_choices_are_refused_with_the_choices_named():
+    with pytest.raises(ConfigError, match='unknown setting'):
+        Settings.from_values(dict(DEFAULTS, still_windows=1.0))
+    with pytest.raises(ConfigError, match='refined, closed-form'):
+        Settings.from_values(dict(DEFAULTS, method='refine'))
+
+
+def test_continuous_step_defaults_to_the_smallest_motion():
+    config = Settings.from_values(dict(DEFAULTS, min_motion_deg=8.0))
+    assert settings.session_config(config).capture.continuous_step_deg == 8.0
+    config = config.updated(continuous_step_deg=3.0)
+    assert settings.session_config(config).capture.continuous_step_deg == 3.0
+    assert settings.session_config(config).calibration.min_motion_deg == 8.0
+
+
+def _replay_options(argv):
+    parser = argparse.ArgumentParser(exit_on_error=False)
+    options.add_setting_options(parser, 'replay')
+    return parser.parse_args(argv)
+
+
+def test_command_line_options_are_the_table_rows():
+    args = _replay_options([])
+    assert options.settings_of(args) == Settings()
+    args = _replay_options(['--still-window-s', '0.25', '--no-robust', '--capture',
+                            'continuous', '--min-still-pairs', '5', '--sensor-time-offset',
+                            '-0.03'])
+    chosen = options.settings_of(args)
+    assert chosen.still_window_s == 0.25 and chosen.robust is False
+    assert chosen.capture_mode == 'continuous' and chosen.min_still_pairs == 5
+    assert chosen.sensor_time_offset_s == -0.03
+
+
+@pytest.mark.parametrize('argv, words', [
+    (['--still-window-s', '0.01'], 'between 0.05 and 10'),     # the node's range, offline too
+    (['--still-window-s', 'nan'], 'between'),
+    (['--max-gap-s', '0_1'], 'not a number'),                   # float() would accept it
+    (['--min-still-pairs', '2.5'], 'not a whole number'),
+    (['--capture', 'manual'], 'invalid choice'),               # no ~/capture offline
+])
+def test_command_line_values_out_of_the_table_are_refused(argv, words):
+    with pytest.raises(argparse.ArgumentError, match=words):
+        _replay_options(argv)

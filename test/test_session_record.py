@@ -1,0 +1,111 @@
+"""Tests of files.session_record: the journal's state, result files, the moved-marker watch."""
+
+from dataclasses import replace
+import errno
+
+import numpy as np
+import pytest
+from quatcal_ros.core import calibration
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.files import exports, journal, persistence
+from quatcal_ros.files.journal import JournalHeader
+from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
+from quatcal_ros.sim import simulation
+import yaml
+
+HEADER = JournalHeader('eye_in_hand', 'tool0', 'camera')
+
+
+def cell_samples(n, seed=3, noise_deg=0.05):
+    rng = np.random.default_rng(seed)
+    cell = simulation.random_cell(rng)
+    samples, _ = simulation.samples(rng, cell, n, rotation_noise_deg=noise_deg,
+                                    translation_noise_m=0.0005)
+    return cell, samples
+
+
+@pytest.fixture(scope='module')
+def result():
+    return calibration.calibrate(cell_samples(12)[1])
+
+
+def test_save_result_writes_every_file_asked_for(tmp_path, result):
+    saved = save_result(result, ('tool0', 'camera'), 'eye_in_hand',
+                        result_file=tmp_path / 'r.yaml', easy_handeye2_file=tmp_path / 'e.calib',
+                        easy_handeye2_frames={'robot_base_frame': 'base'},
+                        extra={'source': {'bag': 'b'}})
+    assert saved.ok and [what for what, _ in saved.written] == ['result', 'easy_handeye2']
+    document = persistence.read_result_yaml(tmp_path / 'r.yaml')
+    assert document['parent_frame'] == 'tool0' and document['source'] == {'bag': 'b'}
+    calib = yaml.safe_load((tmp_path / 'e.calib').read_text())
+    assert calib['parameters']['robot_base_frame'] == 'base'
+    assert calib['parameters']['name'] == 'e'
+
+
+def test_a_file_that_cannot_be_written_is_named_and_the_others_are_written(tmp_path, result):
+    blocked = tmp_path / 'not_a_dir'
+    blocked.write_text('a file where a directory should be')
+    saved = save_result(result, ('tool0', 'camera'), 'eye_in_hand',
+                        result_file=blocked / 'r.yaml', easy_handeye2_file=tmp_path / 'e.calib')
+    assert not saved.ok
+    ((what, target, error),) = saved.failed
+    assert what == 'result' and target == blocked / 'r.yaml' and isinstance(error, OSError)
+    assert saved.written == [('easy_handeye2', tmp_path / 'e.calib')]
+
+
+def test_choose_frames_takes_the_first_name_given_of_each():
+    assert exports.choose_frames('eye_in_hand') == ('tool0', 'camera')
+    assert exports.choose_frames('eye_to_hand', (None, ''), ('base', 'cam')) == ('base', 'cam')
+    assert exports.choose_frames('eye_in_hand', ('link', None), ('x', 'cam')) == ('link', 'cam')
+    assert exports.choose_frames('eye_in_hand', None, ('', 'cam')) == ('tool0', 'cam')
+
+
+def test_move_watch_warns_once_when_the_marker_moves():
+    cell, samples = cell_samples(16, seed=5, noise_deg=0.02)
+    bump = Pose.create([0.0, 0.0, 0.0], [np.cos(0.05), np.sin(0.05), 0.0, 0.0])  # ~5.7 deg
+    moved = samples[:10] + [replace(s, sensor=s.sensor @ bump) for s in samples[10:]]
+    q_z = cell.mounting.quaternion
+    watch = MoveWatch()
+    assert watch.check(moved[:10], q_z, 'eye_in_hand') is None
+    first = watch.check(moved, q_z, 'eye_in_hand')
+    assert first is not None and watch.move.first == 10
+    assert watch.check(moved, q_z, 'eye_in_hand') is None        # said once
+    assert watch.warning(len(moved)) is not None
+    watch.reset()
+    assert watch.move is None and watch.warning(len(moved)) is None
+
+
+def test_journal_problem_is_kept_until_the_samples_are_on_disk(tmp_path, monkeypatch):
+    _, samples = cell_samples(3)
+    record = SamplesJournal(tmp_path / 'samples.csv', HEADER, resume=False)
+    real_write = journal.os.write
+
+    def full_disk(fd, data):
+        raise OSError(errno.ENOSPC, 'No space left on device')
+    monkeypatch.setattr(journal.os, 'write', full_disk)
+    ((level, text),) = record.append(samples[:1])
+    assert level == 'error' and '1 captured samples not yet saved' in text
+    assert record.problem == text
+    monkeypatch.setattr(journal.os, 'write', real_write)
+    assert record.append(samples[1:2]) == [] and record.sync() == []
+    assert record.problem is None and record.count == 2
+    assert len(journal.read_journal(tmp_path / 'samples.csv').samples) == 2
+    record.close()
+
+
+def test_a_reset_that_failed_does_not_crash_the_next_sample(tmp_path, monkeypatch):
+    _, samples = cell_samples(2)
+    path = tmp_path / 'samples.csv'
+    record = SamplesJournal(path, HEADER, resume=False)
+    record.append(samples[:1])
+
+    def cannot_move(*args, **kwargs):
+        raise OSError(errno.EROFS, 'Read-only file system')
+    monkeypatch.setattr(journal, 'move_aside', cannot_move)
+    assert 'could not start a new samples journal' in record.restart()
+    assert record.problem is not None
+    monkeypatch.undo()
+    # The journal's file is still there: the next sample goes into it, nothing crashes.
+    assert record.append(samples[1:]) == [] and record.sync() == []
+    assert len(journal.read_journal(path).samples) == 2
+    record.close()
