@@ -15,6 +15,7 @@ import pytest
 
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.files import journal
 from quatcal_ros.files.persistence import read_result_yaml
 from quatcal_ros.files.samples_csv import read_samples
 from quatcal_ros.ros import conversions
@@ -115,6 +116,20 @@ def test_pose_stamped_bag_gives_the_mounting_and_the_samples_solve_agrees(
     assert document['quality']['samples'] == 10
     assert document['source']['link'] == '/link_pose'
     assert_allclose(document['quaternion_xyzw'], quat.xyzw_from_wxyz(rotation(out)))
+
+
+def test_the_replay_writes_a_journal_the_node_resumes(bags, tmp_path, capsys):
+    journal_path = tmp_path / 'samples.csv'
+    journal_path.write_text('an earlier file\n')
+    argv = [str(bags / 'pose'), '--link-topic', '/link_pose', '--sensor-topic', '/sensor_pose',
+            '--journal-out', str(journal_path), '--child-frame', 'camera_optical']
+    assert replay_main(argv) == 0
+    out = json.loads(capsys.readouterr().out)
+    contents = journal.read_journal(journal_path)
+    assert len(contents.samples) == out['samples'] == 10
+    assert contents.header == journal.JournalHeader('eye_in_hand', 'tool0', 'camera_optical')
+    (aside,) = [p for p in tmp_path.iterdir() if p.name.startswith('samples.csv.corrupt-')]
+    assert aside.read_text() == 'an earlier file\n'    # moved aside, never overwritten
 
 
 def test_samples_are_those_of_the_session_fed_by_hand(bags, streams, tmp_path, capsys):

@@ -17,9 +17,10 @@ from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.files import exports
 from quatcal_ros.files import importers
+from quatcal_ros.files.journal import JournalHeader, JournalRefused
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import BadInputError, format_samples
-from quatcal_ros.files.session_record import save_result
+from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
 from quatcal_ros.stream.session import Session
 from quatcal_ros.stream.settings import check_config, ConfigError, session_config
 from quatcal_ros.stream.time_offset import find_time_offset
@@ -192,6 +193,10 @@ def replay_parser():
     outputs = parser.add_argument_group('outputs')
     outputs.add_argument('--samples-out', metavar='FILE.csv',
                          help='write the captured samples (samples CSV, input of `solve`)')
+    outputs.add_argument('--journal-out', metavar='FILE.csv',
+                         help="write the captured samples as the live node's samples journal "
+                              '(samples_file; resume:=true continues it); an existing file is '
+                              'moved aside, never overwritten')
     outputs.add_argument('--result-out', metavar='FILE.yaml',
                          help="write the result YAML (as the node's ~/save)")
     outputs.add_argument('--parent-frame', help='parent frame in --result-out (default: the '
@@ -244,6 +249,10 @@ def replay_main(argv=None):
             atomic_write_text(args.samples_out, format_samples(session.samples))
         except OSError as error:
             return fail(prog, f'{args.samples_out}: cannot write: {error}', EXIT_BAD_INPUT)
+    if args.journal_out:
+        status = _write_journal(prog, args, session, report)
+        if status:
+            return status
     if len(session.samples) < 3:
         return fail(prog, where + _too_few_samples(session, report, link, sensor),
                     EXIT_BAD_INPUT)
@@ -251,6 +260,11 @@ def replay_main(argv=None):
     # over all of them, exactly what `solve` computes from the --samples-out file.
     session.estimate()
     warnings = notes + report.warnings()
+    if session.result is not None:   # the live node's moved-marker watch, over the whole bag
+        options = config.calibration
+        moved = MoveWatch().check(session.samples, session.result.quaternion, options.setup,
+                                  options.invert_sensor)
+        warnings += [moved] if moved else []
     if session.result is not None and args.result_out:
         status = _write_result(prog, args, session, warnings, report, link, sensor)
         if status:
@@ -389,6 +403,22 @@ def _replay_frames(args, report):
     from quatcal_ros.ros.bag import result_frames
     return exports.choose_frames(args.setup, (args.parent_frame, args.child_frame),
                                  result_frames(report, args.setup, args.invert_sensor))
+
+
+def _write_journal(prog, args, session, report):
+    """Write the samples as a samples journal (the node's samples_file, resume:=true reads it)."""
+    parent, child = _replay_frames(args, report)
+    try:
+        record = SamplesJournal(args.journal_out, JournalHeader(args.setup, parent, child),
+                                resume=False)
+    except (JournalRefused, OSError) as error:
+        return fail(prog, f'{args.journal_out}: cannot write: {error}', EXIT_BAD_INPUT)
+    messages = record.append(session.samples) + record.sync()
+    record.close()
+    for level, text in record.report.messages + messages:
+        if level != 'info' or not args.quiet:
+            print(f'{prog}: {level}: {text}', file=sys.stderr)
+    return EXIT_BAD_INPUT if messages else 0
 
 
 def _write_result(prog, args, session, warnings, report, link, sensor):
