@@ -123,3 +123,36 @@ def test_read_result_yaml_refuses_other_files(tmp_path):
     path.write_text('a: 1\n')
     with pytest.raises(ValueError, match='other.yaml'):
         persistence.read_result_yaml(path)
+
+
+def test_the_result_file_is_the_whole_mounting(tmp_path):
+    rng = np.random.default_rng(11)
+    cell = simulation.random_cell(rng)
+    samples, _ = simulation.samples(rng, cell, 12, rotation_noise_deg=0.1,
+                                    translation_noise_m=0.001)
+    result = calibration.calibrate(samples)
+    path = persistence.write_result_yaml(tmp_path / 'r.yaml', result, 'tool0', 'camera')
+    document = persistence.read_result_yaml(path)
+    assert (document['format'], document['format_version']) == ('quatcal_ros/mounting', 2)
+    assert document['method'] == 'refined'
+    assert_allclose(document['translation_xyz'], result.translation, atol=1e-15)
+    assert document['quality']['translation_uncertainty_mm'] == \
+        result.translation_uncertainty_mm
+    for name in ('closed_form', 'refined'):
+        estimate = document['estimates'][name]
+        assert estimate['uncertainty_deg'] > 0 and estimate['translation_uncertainty_mm'] > 0
+        assert set(estimate['translation']) == set('xyz')
+
+
+def test_version_1_files_still_read_and_unknown_versions_are_named(tmp_path):
+    old = tmp_path / 'old.yaml'
+    old.write_text('format: quatcal_ros/rotation\nformat_version: 1\nparent_frame: tool0\n'
+                   'rotation: {x: 0.0, y: 0.0, z: 0.0, w: 1.0}\n')
+    document = persistence.read_result_yaml(old)
+    assert_allclose(document['quaternion_xyzw'], [0, 0, 0, 1])
+    assert document['translation_xyz'] is None
+    future = tmp_path / 'future.yaml'
+    future.write_text('format: quatcal_ros/mounting\nformat_version: 9\n'
+                      'rotation: {x: 0.0, y: 0.0, z: 0.0, w: 1.0}\n')
+    with pytest.raises(ValueError, match='version 9 is not one this version reads'):
+        persistence.read_result_yaml(future)

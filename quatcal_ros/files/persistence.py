@@ -5,16 +5,25 @@ Files that must survive a crash: atomic writes and the calibration result YAML.
 fsync it, rename it over the target with os.replace and fsync the directory, so a reader sees
 either the old file or the new one, never a torn one.
 
-The result YAML (written by the live node's ~/save and by the bag replay) holds:
+The result YAML (written by the live node's ~/save and by the bag replay) is the whole
+mounting, format quatcal_ros/mounting version 2:
 
     parent_frame: tool0          # link frame (eye_in_hand) or base frame (eye_to_hand)
     child_frame: camera          # sensor frame
     setup: eye_in_hand
+    method: refined              # which estimate rotation/translation hold
     rotation: {x: .., y: .., z: .., w: ..}   # quaternion x, y, z, w (ROS order), parent -> child
+    translation: {x: .., y: .., z: ..}       # metres, the child's origin in the parent frame
     matrix: [[..], [..], [..]]               # rotation matrix, child coordinates -> parent
-    quality: {samples, motions, inliers, residual_rms_deg, uncertainty_deg}
+    quality: {samples, motions, inliers, residual_rms_deg, uncertainty_deg,
+              translation_uncertainty_mm}
+    estimates:                               # both, each with its own uncertainty
+      closed_form: {rotation, translation, uncertainty_deg, translation_uncertainty_mm}
+      refined: {..}                          # null when the refinement did not run
     hint: ..
     warnings: [..]
+
+Version 1 files (format quatcal_ros/rotation: the rotation alone) still read.
 
 The core's quaternions are (w, x, y, z); this file is the boundary where they become x, y, z, w.
 No rclpy here: the module is plain Python for every tool.
@@ -29,9 +38,12 @@ import numpy as np
 from quatcal_ros.files import plain_yaml
 import yaml
 
-RESULT_FORMAT = 'quatcal_ros/rotation'
-RESULT_FORMAT_VERSION = 1
-QUALITY_FIELDS = ('samples', 'motions', 'inliers', 'residual_rms_deg', 'uncertainty_deg')
+RESULT_FORMAT = 'quatcal_ros/mounting'
+RESULT_FORMAT_VERSION = 2
+# Formats read back: this one, and version 1 (the rotation alone).
+READABLE_FORMATS = {('quatcal_ros/rotation', 1), (RESULT_FORMAT, RESULT_FORMAT_VERSION)}
+QUALITY_FIELDS = ('samples', 'motions', 'inliers', 'residual_rms_deg', 'uncertainty_deg',
+                  'translation_uncertainty_mm')
 
 
 def atomic_write_bytes(path, data, mode=0o644):
@@ -113,15 +125,20 @@ def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extr
     w, x, y, z = (float(c) for c in np.asarray(result.quaternion, dtype=float).reshape(4))
     matrix = np.asarray(result.matrix, dtype=float).reshape(3, 3)
     quality = {name: _plain_number(getattr(result, name, None)) for name in QUALITY_FIELDS}
+    translation = getattr(result, 'translation', None)
     document = {
         'format': RESULT_FORMAT,
         'format_version': RESULT_FORMAT_VERSION,
         'parent_frame': str(parent_frame),
         'child_frame': str(child_frame),
         'setup': str(setup),
+        'method': str(getattr(result, 'method', '') or ''),
         'rotation': {'x': x, 'y': y, 'z': z, 'w': w},
+        'translation': None if translation is None else _xyz(translation),
         'matrix': [[float(v) for v in row] for row in matrix],
         'quality': quality,
+        'estimates': {name: _estimate(getattr(result, name, None))
+                      for name in ('closed_form', 'refined')},
         'hint': str(getattr(result, 'hint', '') or ''),
         'warnings': [str(text) for text in (getattr(result, 'warnings', None) or [])],
     }
@@ -130,12 +147,26 @@ def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extr
     return document
 
 
+def _xyz(vector):
+    return dict(zip('xyz', (float(v) for v in np.asarray(vector, dtype=float).reshape(3))))
+
+
+def _estimate(estimate):
+    """Return one calibration.Estimate as plain data (its JSON form), or None."""
+    if estimate is None:
+        return None
+    document = estimate.to_json_dict()
+    return {key: (_plain_number(value) if key.endswith(('_deg', '_mm')) else value)
+            for key, value in document.items()}
+
+
 def format_result_yaml(result, parent_frame, child_frame, setup='eye_in_hand', extra=None):
     """Return the result YAML text (see result_document for the arguments)."""
     document = result_document(result, parent_frame, child_frame, setup, extra)
-    header = ('# Hand-eye rotation calibration by quatcal_ros (Chou and Kamel 1988).\n'
-              '# rotation: quaternion x, y, z, w of the transform parent_frame -> child_frame;\n'
-              '# matrix maps child_frame coordinates to parent_frame coordinates.\n')
+    header = ('# Hand-eye calibration by quatcal_ros (Chou and Kamel 1988): the mounting.\n'
+              '# rotation (quaternion x, y, z, w) and translation (m) of the transform\n'
+              '# parent_frame -> child_frame; matrix maps child_frame coordinates to\n'
+              '# parent_frame coordinates.\n')
     return header + yaml.safe_dump(document, sort_keys=False, default_flow_style=None)
 
 
@@ -167,6 +198,11 @@ def read_result_yaml(path):
     document = plain_yaml.load(text, str(path), holds='a result file')
     if not isinstance(document, dict):
         raise ValueError(f'{path}: not a quatcal_ros result file (no mapping at the top)')
+    kind = (document.get('format'), document.get('format_version', 1))
+    if 'format' in document and kind not in READABLE_FORMATS:
+        raise ValueError(f'{path}: format {kind[0]} version {kind[1]} is not one this version '
+                         'reads (' + ', '.join(f'{f} {v}' for f, v in sorted(READABLE_FORMATS))
+                         + ')')
     try:
         rotation = document['rotation']
         q = np.array([rotation[k] for k in ('x', 'y', 'z', 'w')], dtype=float)
@@ -174,4 +210,7 @@ def read_result_yaml(path):
         raise ValueError(f'{path}: not a quatcal_ros result file (no rotation x, y, z, w: '
                          f'{error})') from None
     document['quaternion_xyzw'] = q
+    translation = document.get('translation')   # version 1: none
+    document['translation_xyz'] = None if translation is None else np.array(
+        [translation[k] for k in 'xyz'], dtype=float)
     return document
