@@ -102,6 +102,16 @@ def test_without_robustness_outliers_spoil_the_estimate():
     assert error_deg(plain, cell) > 5.0 * error_deg(robust, cell)
 
 
+@pytest.mark.parametrize('field, value, choices', [
+    ('method', 'refine', 'refined, closed-form'),
+    ('setup', 'eye-in-hand', 'eye_in_hand, eye_to_hand'),
+    ('pairs', 'consecutives', 'all, consecutive')])
+def test_options_refuse_unknown_choices_and_name_them(field, value, choices):
+    with pytest.raises(ValueError) as error:
+        CalibrationOptions(**{field: value})
+    assert str(error.value) == f'{field} must be one of {choices}, not {value!r}'
+
+
 def test_same_data_give_the_same_answer():
     _, samples, _ = synthetic(9000, 25, rotation_noise_deg=1.0, outlier_fraction=0.1)
     first = calibrate(samples).to_json_dict()

@@ -28,10 +28,11 @@ import numpy as np
 from quatcal_ros.core import quality
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.leastsq import least_squares_rotation, MotionSystem
-from quatcal_ros.core.motions import Motions, pair_indices, SampleRotations
+from quatcal_ros.core.motions import Motions, pair_indices, PAIRINGS, SampleRotations
 from quatcal_ros.core.refine import refine, refine_from, step_sums
 from quatcal_ros.core.solver import DegenerateMotionError, solve_two_motions
 from quatcal_ros.core.translation import SamplePositions, solve_translation
+from quatcal_ros.core.units import SETUPS
 
 # Quantile of the chi distribution with 3 degrees of freedom at 99.9 %: a sample whose residual
 # angle exceeds 4.03 sigma is an outlier with 0.1 % false alarms.
@@ -52,6 +53,9 @@ class InsufficientDataError(DegenerateMotionError):
     """Too few samples or usable motions to determine the rotation."""
 
 
+METHODS = ('refined', 'closed-form')
+
+
 @dataclass(frozen=True)
 class CalibrationOptions:
     """How to turn samples into an estimate (plain numbers; the node freezes its params here)."""
@@ -67,8 +71,14 @@ class CalibrationOptions:
     seed: int = 0                       # fixed, so the same data always give the same answer
     method: str = 'refined'             # or 'closed-form' (Chou-Kamel + closed-form translation)
 
+    def __post_init__(self):
+        """Refuse a value outside its choices (ValueError naming field, value and choices)."""
+        for name, choices in (('setup', SETUPS), ('pairs', PAIRINGS), ('method', METHODS)):
+            value = getattr(self, name)
+            if value not in choices:
+                raise ValueError(f'{name} must be one of {", ".join(choices)}, not {value!r}')
 
-METHODS = ('refined', 'closed-form')
+
 # The joint refinement needs enough samples to estimate both noise levels (6 unknowns each
 # for the mounting and the object, 6 residuals per sample).
 MIN_REFINE_SAMPLES = 6
