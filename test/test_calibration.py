@@ -144,13 +144,16 @@ def test_calibrator_estimates_from_the_first_two_non_parallel_motions():
     cell, samples, _ = synthetic(4, 6, rotation_noise_deg=0.1)
     calibrator = Calibrator()
     calibrator.add_sample(samples[0])
+    calibrator.estimate()
     assert calibrator.result is None
     calibrator.add_sample(samples[1])
+    calibrator.estimate()
     assert calibrator.result is None and 'at least 3' in calibrator.last_error
-    messages = calibrator.add_sample(samples[2])
-    assert messages == [] and calibrator.result.samples == 3
+    calibrator.add_sample(samples[2])
+    assert calibrator.estimate() == [] and calibrator.result.samples == 3
     for sample in samples[3:]:
         calibrator.add_sample(sample)
+        calibrator.estimate()
     assert error_deg(calibrator.result, cell) < 3 * calibrator.result.uncertainty_deg + 0.01
     calibrator.reset()
     assert calibrator.result is None and calibrator.samples == []
@@ -220,6 +223,7 @@ def test_incremental_updates_agree_with_the_full_solve_and_reject_flips():
     calibrator = Calibrator(full_solve_every=10, small=12)
     for k, sample in enumerate(samples):
         calibrator.add_sample(sample)
+        calibrator.estimate()
         if k < 14 or calibrator.result is None:
             continue
         full = calibrate(samples[:k + 1])

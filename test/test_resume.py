@@ -360,7 +360,7 @@ def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before
         assert len(journal.read_journal(path).samples) == 10
 
 
-def test_a_due_full_solve_publishes_after_the_quick_estimate(tmp_path, monkeypatch):
+def test_a_due_full_solve_is_the_one_estimate_the_node_publishes(tmp_path, monkeypatch):
     _, samples = synthetic_samples(20, seed=4)
     path = tmp_path / 'samples.csv'
     with resumed_node(path, samples[:19]) as node:
@@ -368,13 +368,12 @@ def test_a_due_full_solve_publishes_after_the_quick_estimate(tmp_path, monkeypat
         publish = node.rotation_publisher.publish
         monkeypatch.setattr(node.rotation_publisher, 'publish',
                             lambda msg: published.append(rotation_of(msg)) or publish(msg))
-        quick = node.session.add_sample(samples[19])   # the 20th: a full solve falls due
-        node.handle_events(quick)
-        assert len(published) == 2
-        assert_allclose(published[0], canonical(quick[-1].estimate.quaternion), atol=1e-12)
+        # The 20th sample: the node asks for its estimate, and a full solve falls due.
+        node.handle_events(node.session.add_sample(samples[19]))
         expected = calibration.calibrate(journal.read_journal(path).samples)
-        assert_allclose(published[1], canonical(expected.quaternion), atol=1e-12)
-        assert node.session.finish() == []
+        assert len(published) == 1
+        assert_allclose(published[0], canonical(expected.quaternion), atol=1e-12)
+        assert node.session.estimate() == []
 
 
 def test_a_moved_marker_makes_the_node_warn_and_suggest_a_reset(rig_factory, tmp_path, capfd):

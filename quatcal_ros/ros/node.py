@@ -8,9 +8,8 @@ A thin shell around session.Session:
   logged, throttled, with the topic and the reason;
 - publishes `~/rotation` (QuaternionStamped, reliable + transient local, depth 1, frame_id =
   link_frame) and `~/transform` (TransformStamped link_frame -> sensor_frame, same QoS) on
-  each new estimate, and a status on `/diagnostics` at diagnostics_period_s; a sample's quick
-  estimate goes out first, and the full robust re-solve due every tenth sample or so follows
-  (SessionConfig.early_estimates);
+  each new estimate (asked of the session after every new sample), and a status on
+  `/diagnostics` at diagnostics_period_s;
 - with publish_tf:=true, broadcasts the estimate on /tf_static (tf2_ros, when installed);
 - serves `~/capture`, `~/reset` and `~/save` (std_srvs/Trigger); ~/save also writes
   easy_handeye2_file and logs the static_transform_publisher line;
@@ -228,15 +227,15 @@ class CalibratorNode(Node):
 
         The journal comes first: a sample is in the file (safe from a crash of the process)
         before the estimate is published, and fsync'd (safe from a power cut) before it is
-        reported captured. The publication comes as early as that allows (its latency is what
-        users wait for), the log lines last.
+        reported captured. The log lines come last; then the session is asked for the estimate
+        of the new samples, whose events are handled the same way.
         """
         captured = [event for event in events if isinstance(event, SampleCaptured)]
         for event in captured:
             self._write_journal('append', event.sample, sync=False)
         for event in events:
             if isinstance(event, EstimateUpdated):
-                self.publish_estimate(event.estimate)   # the report is not needed for it
+                self.publish_estimate(event.result)
         if captured:
             self._write_journal('sync')
         for event in events:
@@ -248,9 +247,8 @@ class CalibratorNode(Node):
                 self._log_rejection(event)
             elif isinstance(event, Notice):
                 self.get_logger().info(event.text)
-        # Now that the estimate is out: the full robust solve that fell due on a new sample, if
-        # any (its estimate follows), and the groundwork of the next quick estimate.
-        later = self.session.finish()
+        # The estimate of new samples, if any (the session estimates when asked).
+        later = self.session.estimate()
         if later:
             self.handle_events(later)
 

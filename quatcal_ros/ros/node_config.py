@@ -9,7 +9,7 @@ values are checked together (ranges, enumerations, non-empty names) into a froze
 callback).  `use_sim_time` is rclpy's own and is not declared here.
 """
 
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, fields
 import math
 
 from quatcal_ros.core.calibration import CalibrationOptions
@@ -249,12 +249,11 @@ def session_config(config):
 
     min_motion_deg is the calibration's smallest usable motion and the step of 'continuous'
     capture; an automatic still capture needs the link to move at least twice the still bands
-    (and CaptureConfig's own minimum) away from the previous sample. Estimates come early
-    (the quick update of a sample before a full solve due on it, SessionConfig).
+    (and CaptureConfig's own minimum) away from the previous sample.
     :raises ConfigError: when the core refuses the combination.
     """
     try:
-        config = session_config_from_settings(
+        return session_config_from_settings(
             CalibrationOptions(setup=config.setup, pairs=config.pairs,
                                robust=bool(config.robust), min_motion_deg=config.min_motion_deg),
             capture_mode=config.capture_mode, still_window_s=config.still_window_s,
@@ -264,7 +263,6 @@ def session_config(config):
             max_gap_s=config.max_gap_s, sensor_offset_s=config.sensor_time_offset_s)
     except ValueError as error:
         raise ConfigError(f'inconsistent parameters: {error}') from None
-    return replace(config, early_estimates=True)
 
 
 def check_config(config):
