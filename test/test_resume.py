@@ -343,7 +343,8 @@ def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before
         monkeypatch.setattr(node, '_log_sample',
                             lambda event: steps.append('log') or log_sample(event))
         node.handle_events(node.session.add_sample(samples[7]))
-        assert steps == ['write', 'publish', 'fsync', 'log']
+        # The sample's events first (journal, log), then the estimate the node asks for.
+        assert steps == ['write', 'fsync', 'log', 'publish']
         assert len(journal.read_journal(path).samples) == 8
 
         # An fsync that fails is reported (the sample is in the file) and tried again.
@@ -355,7 +356,7 @@ def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before
         assert 'Input/output error' in node.diagnostic_status().message
         monkeypatch.setattr(journal.os, 'fsync', lambda fd: steps.append('fsync again'))
         node.handle_events(node.session.add_sample(samples[5]))
-        assert steps[-2:] == ['fsync again', 'log']
+        assert steps[-3:] == ['fsync again', 'log', 'publish']
         assert 'could not fsync' not in node.diagnostic_status().message
         assert len(journal.read_journal(path).samples) == 10
 
@@ -442,6 +443,7 @@ def test_a_stalled_stream_makes_no_sample_from_stale_data():
             continue
         add = session.add_link_pose if name == 'link_pose' else session.add_sensor_pose
         captured += [e.sample for e in add(stamp, pose) if isinstance(e, SampleCaptured)]
+    session.estimate()
     assert len(captured) == 8          # every stop, the stalled ones from their fresh halves
     for sample in captured:            # each at a real stop: no sample spans the motion
         assert min(quat.angle_between(sample.link.quaternion, stop.quaternion)

@@ -42,7 +42,8 @@ def feed(session, messages, live=False):
     """
     Deliver messages to the session; return all events.
 
-    live: ask for the estimate after every message, as the node does (else nobody asks).
+    live: ask for the estimate after every message, as the node does; else ask once at the
+    end (the replay).
     """
     events = []
     for _, stream, stamp, pose in messages:
@@ -50,7 +51,7 @@ def feed(session, messages, live=False):
         events += add(stamp, pose)
         if live:
             events += session.estimate()
-    return events
+    return events if live else events + session.estimate()
 
 
 def of_type(events, kind):
@@ -320,8 +321,8 @@ def test_add_poses_is_adding_them_one_by_one(seed, link_hz, sensor_hz):
     messages = awkward_messages(np.random.default_rng(seed), link_hz, sensor_hz)
     config = SessionConfig(sensor_offset_ns=-7 * MS)
     one_by_one, in_runs = Session(config), Session(config)
-    expected = comparable(feed(one_by_one, messages))
-    assert comparable(feed_in_runs(in_runs, messages)) == expected
+    expected = comparable(feed(one_by_one, messages))   # with the estimate at the end
+    assert comparable(feed_in_runs(in_runs, messages) + in_runs.estimate()) == expected
     assert in_runs.counters == one_by_one.counters
     assert in_runs.counters['samples'] >= 3 and in_runs.counters['time_jumps'] == 1
     assert in_runs.counters['rejected'] >= 12
@@ -346,16 +347,17 @@ def test_the_replay_pattern_asks_once_and_gets_the_full_solve_of_all_samples():
     _, messages = stop_and_go_messages(rng, n_stops=8)
     live, replay = Session(), Session()
     feed(live, messages, live=True)
-    events = feed(replay, messages)
-    assert of_type(events, EstimateUpdated) == []   # nobody asked: no estimate, no messages
+    events = feed_in_runs(replay, messages)   # nobody asks: no estimate, no messages
+    assert of_type(events, EstimateUpdated) == [] and replay.result is None
     assert [e.text.split(':')[0] for e in of_type(events, Notice)] == [
         'pairing by header stamps']
     assert comparable(of_type(events, SampleCaptured)) == comparable(
         SampleCaptured(k, s) for k, s in enumerate(live.samples))
-    assert replay.counters == live.counters
+    assert replay.counters == live.counters and replay.state == 'collecting'
     estimated = replay.estimate()
     assert [type(e) for e in estimated] == [EstimateUpdated]
-    assert estimated[0].result is replay.result and replay.estimate() == []
+    assert estimated[0].result is replay.result and replay.state == 'estimating'
+    assert replay.estimate() == []
     # One solve over all samples: what `solve` does with them.
     expected = calibrate(live.samples)
     np.testing.assert_allclose(replay.result.quaternion, expected.quaternion, rtol=0,
@@ -366,22 +368,21 @@ def test_the_replay_pattern_asks_once_and_gets_the_full_solve_of_all_samples():
                                                            rel=1e-12)
 
 
-def test_reading_the_result_asks_and_its_events_come_with_the_next_call():
+def test_samples_of_every_source_wait_for_estimate():
     rng = np.random.default_rng(30)
     cell = sim.random_cell(rng)
     samples, _ = sim.samples(rng, cell, 8, rotation_noise_deg=0.05)
     session = Session()
     events = session.add_samples(samples[:4]) + session.add_sample(samples[4])
-    assert [type(e) for e in events] == [SampleCaptured] * 5
-    assert session.state == 'estimating'   # asked: an estimate of the 5 samples
+    assert [type(e) for e in events] == [SampleCaptured] * 5 and session.result is None
+    [updated] = session.estimate()
     first = session.result
-    assert first.samples == 5
-    events = session.add_samples(samples[5:])
-    assert [type(e) for e in events] == [EstimateUpdated] + [SampleCaptured] * 3
-    assert events[0].result is first
-    assert session.result.samples == 8 and session.result is not first
+    assert updated.result is first and first.samples == 5
+    # After an estimate, new samples wait again; the next estimate covers all of them.
+    assert [type(e) for e in session.add_samples(samples[5:])] == [SampleCaptured] * 3
+    assert session.result is first and len(session.samples) == 8
     assert [e.result for e in session.estimate()] == [session.result]
-    assert session.estimate() == []
+    assert session.result.samples == 8 and session.estimate() == []
     session.reset()
     assert session.samples == [] and session.estimate() == [] and session.result is None
 

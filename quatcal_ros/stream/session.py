@@ -13,12 +13,12 @@ and publish (EstimateUpdated carries the new calibration.CalibrationResult):
 `add_poses` takes many poses of one stream at once (an offline replay) with the result, events
 included, of adding them one by one.
 
-The estimate is lazy: a new sample makes it due, and it is made when asked for, by
-`estimate()` (which returns its events) or by reading `result`, `state` or `last_error` (their
-events then come with the next call that returns events).  The live node asks after every
-sample: one new sample is added to the estimate incrementally, with a full robust solve every
-tenth sample or so (calibration.Calibrator).  An offline replay asks once at the end: its
-answer is one full solve over all its samples, that of `solve` on them.
+The estimate is made when asked for: a new sample makes it due, and `estimate()` brings it up
+to date with every sample and returns its events; `result`, `state` and `last_error` tell of
+the estimate of the last estimate() call.  The live node asks after every sample: one new
+sample is added to the estimate incrementally, with a full robust solve every tenth sample or
+so (calibration.Calibrator).  An offline replay asks once at the end: its answer is one full
+solve over all its samples, that of `solve` on them.
 
 Time that goes backwards on a stream by more than `time_jump_ns` (a bag played again, a clock
 reset) starts a new timeline: the pairing buffers are cleared, the samples are kept.  Smaller
@@ -257,21 +257,20 @@ class Session:
 
     def estimate(self):
         """
-        Bring the estimate up to date with every sample; return the events not yet returned.
+        Bring the estimate up to date with every sample; return its events.
 
-        Those of the estimate are its messages (Notice) and EstimateUpdated when it changed;
-        when no sample came since the last estimate there are none.
+        Those are the estimator's messages (Notice), then EstimateUpdated with the new
+        estimate, if there is one; none when no sample came since the last estimate().
         """
-        self._estimate_if_due()
-        return self.pop_events()
+        if not self._calibrator.due:
+            return []
+        events = [Notice(text) for text in self._calibrator.estimate()]
+        if self._calibrator.result is not None:   # a new one
+            events.append(EstimateUpdated(self._calibrator.result))
+        return events
 
     def pop_events(self):
-        """
-        Return the events not yet returned; each event is returned once.
-
-        Those are the events of capture() and of an estimate made on reading result, state or
-        last_error.
-        """
+        """Events not yet returned (those of capture()); each event is returned once."""
         events, self._pending = self._pending, []
         return events
 
@@ -289,20 +288,18 @@ class Session:
 
     @property
     def result(self):
-        """Return the calibration.CalibrationResult of all samples, or None (no estimate)."""
-        self._estimate_if_due()
+        """Return the calibration.CalibrationResult of the last estimate(), or None."""
         return self._calibrator.result
 
     @property
     def last_error(self):
         """Return why there is no estimate (the estimator's last message)."""
-        self._estimate_if_due()
         return self._calibrator.last_error
 
     @property
     def state(self):
         """Return the state: 'waiting for poses', 'collecting' or 'estimating'."""
-        if self.result is not None:
+        if self._calibrator.result is not None:
             return STATES[2]
         if self._counts['pairs'] or self._sample_count():
             return STATES[1]
@@ -402,14 +399,6 @@ class Session:
         self._calibrator.add_sample(sample)
         self._capture.note_sample(sample)
         return [SampleCaptured(self._sample_count() - 1, sample)]
-
-    def _estimate_if_due(self):
-        """Estimate when samples came since the last estimate; keep its events for later."""
-        if not self._calibrator.due:
-            return
-        self._pending += [Notice(text) for text in self._calibrator.estimate()]
-        if self._calibrator.result is not None:   # a new one
-            self._pending.append(EstimateUpdated(self._calibrator.result))
 
     def _reject(self, what, reason, code=''):
         self._counts['rejected'] += 1

@@ -92,6 +92,7 @@ def solve_main(argv=None):
     frames = solve_frames(args, imported.frames)
     session = Session(SessionConfig(calibration=estimator_options(args)))
     session.add_samples(imported.samples)
+    session.estimate()   # one full solve over all of them
     if session.result is not None and args.easy_handeye2_out:
         status = _write_easy_handeye2(parser.prog, args.easy_handeye2_out, session.result,
                                       frames, args.setup, imported.frames)
