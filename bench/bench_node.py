@@ -9,14 +9,14 @@ run in real time, stamped on the wall clock (link pose 1 kHz, sensor pose 60 Hz,
 latency), and reads each process's CPU time (utime + stime of /proc/PID/stat) before and
 after: CPU time per message received.  Target: the calibrator under 3x the floor.
 
-The calibrator starts from 100 samples of the same simulated cell (its samples journal,
+The calibrator starts from 200 samples of the same simulated cell (its samples journal,
 resume:=true).  The latency is the time from publishing the message that completes a still
 sample (found beforehand: the node's session, offline, on the same messages) to receiving the
 new estimate on ~/rotation (a thread of this script that only listens, so arrivals are timed
-as they come).  Target: under 5 ms at 100 samples.  It is measured twice: first with the node
-idle (the stream pauses before each completing message until the node has caught up; samples
-101-120), then under load, during the CPU run (30 s, the calibrator at about 113-138 samples),
-where the completing message comes in the 1 kHz stream like any other.
+as they come).  Target: under 50 ms (95th percentile) at 200 samples.  It is measured twice:
+first with the node idle (the stream pauses before each completing message until the node has
+caught up; samples 201-220), then under load, during the CPU run (30 s, the calibrator at
+about 213-238 samples), where the completing message comes in the 1 kHz stream like any other.
 
 Run: python bench/bench_node.py [--seconds 30] [--latency-stops 20]
 (ROS_DOMAIN_ID 68 unless set; discovery on this machine only.)
@@ -251,7 +251,7 @@ def simulate(seed, seconds, start_ns, still_s=0.6, move_s=0.6):
     from quatcal_ros.sim import simulation
     rng = np.random.default_rng(seed)
     cell = simulation.random_cell(rng)
-    preload, _ = simulation.samples(rng, cell, 100, rotation_noise_deg=0.05,
+    preload, _ = simulation.samples(rng, cell, 200, rotation_noise_deg=0.05,
                                     translation_noise_m=0.0005, rotation_spread_deg=40.0)
     streams = simulation.stop_and_go_streams(
         rng, cell, n_stops=int(np.ceil(seconds / (still_s + move_s))), link_rate_hz=1000.0,
@@ -407,20 +407,21 @@ def main(argv=None):
              f'{len(preload) + 1}-{len(preload) + len(latencies)}'),
             ('under load (1 kHz stream)', loaded, f'{start_samples + 1}-{end_samples}')]
     print('| latency: completing message -> new ~/rotation | new samples | median (ms) | '
-          '90th pct (ms) | max (ms) | samples |')
+          '95th pct (ms) | max (ms) | samples |')
     print('|---|---|---|---|---|---|')
     for label, seconds, samples in rows:
         ms = 1e3 * np.array(seconds)
         if not len(ms):
             print(f'| {label} | 0 | no estimate arrived | | | |')
             continue
-        print(f'| {label} | {len(ms)} | {np.median(ms):.1f} | {np.percentile(ms, 90):.1f} | '
+        print(f'| {label} | {len(ms)} | {np.median(ms):.1f} | {np.percentile(ms, 95):.1f} | '
               f'{ms.max():.1f} | {samples} |')
     for label, seconds, _ in rows:
         ms = 1e3 * np.array(seconds)
         if len(ms):
-            print(f'\nTarget: under 5 ms at 100 samples, {label}: '
-                  f'{"met" if np.median(ms) < 5 else "NOT met"} (median {np.median(ms):.1f} ms; '
+            p95 = np.percentile(ms, 95)
+            print(f'\nTarget: under 50 ms (95th percentile) at 200 samples, {label}: '
+                  f'{"met" if p95 < 50 else "NOT met"} (95th percentile {p95:.1f} ms; '
                   f'each: {", ".join(f"{v:.1f}" for v in ms)})')
     shutil.rmtree(workdir, ignore_errors=True)
     return 0

@@ -102,6 +102,16 @@ def test_without_robustness_outliers_spoil_the_estimate():
     assert error_deg(plain, cell) > 5.0 * error_deg(robust, cell)
 
 
+@pytest.mark.parametrize('field, value, choices', [
+    ('method', 'refine', 'refined, closed-form'),
+    ('setup', 'eye-in-hand', 'eye_in_hand, eye_to_hand'),
+    ('pairs', 'consecutives', 'all, consecutive')])
+def test_options_refuse_unknown_choices_and_name_them(field, value, choices):
+    with pytest.raises(ValueError) as error:
+        CalibrationOptions(**{field: value})
+    assert str(error.value) == f'{field} must be one of {choices}, not {value!r}'
+
+
 def test_same_data_give_the_same_answer():
     _, samples, _ = synthetic(9000, 25, rotation_noise_deg=1.0, outlier_fraction=0.1)
     first = calibrate(samples).to_json_dict()
@@ -134,13 +144,16 @@ def test_calibrator_estimates_from_the_first_two_non_parallel_motions():
     cell, samples, _ = synthetic(4, 6, rotation_noise_deg=0.1)
     calibrator = Calibrator()
     calibrator.add_sample(samples[0])
+    calibrator.estimate()
     assert calibrator.result is None
     calibrator.add_sample(samples[1])
+    calibrator.estimate()
     assert calibrator.result is None and 'at least 3' in calibrator.last_error
-    messages = calibrator.add_sample(samples[2])
-    assert messages == [] and calibrator.result.samples == 3
+    calibrator.add_sample(samples[2])
+    assert calibrator.estimate() == [] and calibrator.result.samples == 3
     for sample in samples[3:]:
         calibrator.add_sample(sample)
+        calibrator.estimate()
     assert error_deg(calibrator.result, cell) < 3 * calibrator.result.uncertainty_deg + 0.01
     calibrator.reset()
     assert calibrator.result is None and calibrator.samples == []
@@ -210,6 +223,7 @@ def test_incremental_updates_agree_with_the_full_solve_and_reject_flips():
     calibrator = Calibrator(full_solve_every=10, small=12)
     for k, sample in enumerate(samples):
         calibrator.add_sample(sample)
+        calibrator.estimate()
         if k < 14 or calibrator.result is None:
             continue
         full = calibrate(samples[:k + 1])

@@ -343,7 +343,8 @@ def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before
         monkeypatch.setattr(node, '_log_sample',
                             lambda event: steps.append('log') or log_sample(event))
         node.handle_events(node.session.add_sample(samples[7]))
-        assert steps == ['write', 'publish', 'fsync', 'log']
+        # The sample's events first (journal, log), then the estimate the node asks for.
+        assert steps == ['write', 'fsync', 'log', 'publish']
         assert len(journal.read_journal(path).samples) == 8
 
         # An fsync that fails is reported (the sample is in the file) and tried again.
@@ -355,12 +356,12 @@ def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before
         assert 'Input/output error' in node.diagnostic_status().message
         monkeypatch.setattr(journal.os, 'fsync', lambda fd: steps.append('fsync again'))
         node.handle_events(node.session.add_sample(samples[5]))
-        assert steps[-2:] == ['fsync again', 'log']
+        assert steps[-3:] == ['fsync again', 'log', 'publish']
         assert 'could not fsync' not in node.diagnostic_status().message
         assert len(journal.read_journal(path).samples) == 10
 
 
-def test_a_due_full_solve_publishes_after_the_quick_estimate(tmp_path, monkeypatch):
+def test_a_due_full_solve_is_the_one_estimate_the_node_publishes(tmp_path, monkeypatch):
     _, samples = synthetic_samples(20, seed=4)
     path = tmp_path / 'samples.csv'
     with resumed_node(path, samples[:19]) as node:
@@ -368,13 +369,12 @@ def test_a_due_full_solve_publishes_after_the_quick_estimate(tmp_path, monkeypat
         publish = node.rotation_publisher.publish
         monkeypatch.setattr(node.rotation_publisher, 'publish',
                             lambda msg: published.append(rotation_of(msg)) or publish(msg))
-        quick = node.session.add_sample(samples[19])   # the 20th: a full solve falls due
-        node.handle_events(quick)
-        assert len(published) == 2
-        assert_allclose(published[0], canonical(quick[-1].estimate.quaternion), atol=1e-12)
+        # The 20th sample: the node asks for its estimate, and a full solve falls due.
+        node.handle_events(node.session.add_sample(samples[19]))
         expected = calibration.calibrate(journal.read_journal(path).samples)
-        assert_allclose(published[1], canonical(expected.quaternion), atol=1e-12)
-        assert node.session.finish() == []
+        assert len(published) == 1
+        assert_allclose(published[0], canonical(expected.quaternion), atol=1e-12)
+        assert node.session.estimate() == []
 
 
 def test_a_moved_marker_makes_the_node_warn_and_suggest_a_reset(rig_factory, tmp_path, capfd):
@@ -443,6 +443,7 @@ def test_a_stalled_stream_makes_no_sample_from_stale_data():
             continue
         add = session.add_link_pose if name == 'link_pose' else session.add_sensor_pose
         captured += [e.sample for e in add(stamp, pose) if isinstance(e, SampleCaptured)]
+    session.estimate()
     assert len(captured) == 8          # every stop, the stalled ones from their fresh halves
     for sample in captured:            # each at a real stop: no sample spans the motion
         assert min(quat.angle_between(sample.link.quaternion, stop.quaternion)

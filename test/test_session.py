@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.calibration import CalibrationOptions
+from quatcal_ros.core.calibration import calibrate, CalibrationOptions
 from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.sim import simulation as sim
 from quatcal_ros.stream.capture import CaptureConfig
@@ -38,13 +38,20 @@ def stop_and_go_messages(rng, n_stops, drop_probability=0.1, noise=(0.2, 0.001))
     return streams, messages
 
 
-def feed(session, messages):
-    """Deliver messages to the session; return all events."""
+def feed(session, messages, live=False):
+    """
+    Deliver messages to the session; return all events.
+
+    live: ask for the estimate after every message, as the node does; else ask once at the
+    end (the replay).
+    """
     events = []
     for _, stream, stamp, pose in messages:
         add = session.add_link_pose if stream == LINK else session.add_sensor_pose
         events += add(stamp, pose)
-    return events
+        if live:
+            events += session.estimate()
+    return events if live else events + session.estimate()
 
 
 def of_type(events, kind):
@@ -60,7 +67,7 @@ def test_stop_and_go_streams_give_one_sample_per_stop_and_the_mounting():
     streams, messages = stop_and_go_messages(rng, n_stops=8)
     session = Session()
     assert session.state == 'waiting for poses'
-    events = feed(session, messages)
+    events = feed(session, messages, live=True)
     # Rates from the first few poses (the camera's drops make its rate under 30 Hz).
     assert re.fullmatch(r'pairing by header stamps: link poses \(500 Hz\) interpolated at the '
                         r'sensor stamps \(\d\d(\.\d)? Hz\)', of_type(events, Notice)[0].text)
@@ -145,9 +152,9 @@ def test_manual_capture_through_the_session():
     assert of_type(deliver_until(first_still + 1200 * MS), SampleCaptured) == []
     ok, text = session.capture(first_still + 1200 * MS)
     assert ok and re.fullmatch(r'sample 0 captured: averaged \d+ pairs over 0\.\d+ s', text)
-    events = session.pop_events()
-    assert [type(e) for e in events] == [SampleCaptured, Notice]
+    assert [type(e) for e in session.pop_events()] == [SampleCaptured]
     assert session.pop_events() == []
+    assert session.estimate() == [Notice(f'no estimate yet: {session.last_error}')]
     assert session.capture(first_still + 1200 * MS)[1].startswith('no motion since the last')
 
     moving = streams.stills[0][1] + 1000 * MS     # in the middle of the move to stop 1
@@ -171,7 +178,7 @@ def test_csv_samples_and_bad_ones():
     session = Session()
     events = []
     for sample in samples:
-        events += session.add_sample(sample)
+        events += session.add_sample(sample) + session.estimate()
     assert [e.index for e in of_type(events, SampleCaptured)] == list(range(12))
     assert of_type(events, EstimateUpdated)[-1].result is session.result
     # 0.05 deg noise on 12 samples: errors of a few hundredths of a degree; 0.2 is >5 sigma.
@@ -314,75 +321,87 @@ def test_add_poses_is_adding_them_one_by_one(seed, link_hz, sensor_hz):
     messages = awkward_messages(np.random.default_rng(seed), link_hz, sensor_hz)
     config = SessionConfig(sensor_offset_ns=-7 * MS)
     one_by_one, in_runs = Session(config), Session(config)
-    expected = comparable(feed(one_by_one, messages))
-    assert comparable(feed_in_runs(in_runs, messages)) == expected
+    expected = comparable(feed(one_by_one, messages))   # with the estimate at the end
+    assert comparable(feed_in_runs(in_runs, messages) + in_runs.estimate()) == expected
     assert in_runs.counters == one_by_one.counters
     assert in_runs.counters['samples'] >= 3 and in_runs.counters['time_jumps'] == 1
     assert in_runs.counters['rejected'] >= 12
     assert np.array_equal(in_runs.result.quaternion, one_by_one.result.quaternion)
 
 
-def test_deferred_estimates_collect_the_same_samples_and_estimate_once():
+def test_the_live_pattern_gives_an_estimate_after_every_sample():
+    """Asked after every message (the node): each new sample's estimate follows it at once."""
     rng = np.random.default_rng(29)
     _, messages = stop_and_go_messages(rng, n_stops=8)
-    live, collecting = Session(), Session(SessionConfig(defer_estimates=True))
-    feed(live, messages)
-    events = feed(collecting, messages)
-    assert of_type(events, EstimateUpdated) == [] and collecting.result is None
-    assert [e.index for e in of_type(events, SampleCaptured)] == list(range(8))
+    session = Session()
+    events = [type(e) for e in feed(session, messages, live=True)
+              if isinstance(e, (SampleCaptured, EstimateUpdated))]
+    # Samples 0 and 1 give no estimate (at least 3 are needed); each later one gives one.
+    assert events == [SampleCaptured] * 3 + [EstimateUpdated, SampleCaptured] * 5 + [
+        EstimateUpdated]
+    assert session.result.samples == 8 and session.estimate() == []
+
+
+def test_the_replay_pattern_asks_once_and_gets_the_full_solve_of_all_samples():
+    rng = np.random.default_rng(29)
+    _, messages = stop_and_go_messages(rng, n_stops=8)
+    live, replay = Session(), Session()
+    feed(live, messages, live=True)
+    events = feed_in_runs(replay, messages)   # nobody asks: no estimate, no messages
+    assert of_type(events, EstimateUpdated) == [] and replay.result is None
+    assert [e.text.split(':')[0] for e in of_type(events, Notice)] == [
+        'pairing by header stamps']
     assert comparable(of_type(events, SampleCaptured)) == comparable(
         SampleCaptured(k, s) for k, s in enumerate(live.samples))
-    assert collecting.counters == live.counters and collecting.state == 'collecting'
-    estimated = collecting.estimate()
+    assert replay.counters == live.counters and replay.state == 'collecting'
+    estimated = replay.estimate()
     assert [type(e) for e in estimated] == [EstimateUpdated]
-    assert estimated[-1].result is collecting.result
-    # One solve over all samples: what `solve` does with them (and so the old replay, which
-    # solved them in a fresh session after streaming with the closed-form estimator).
-    solved = Session()
-    assert comparable(estimated) == comparable(
-        of_type(solved.add_samples(live.samples), EstimateUpdated))
-    assert collecting.result.residual_rms_deg == solved.result.residual_rms_deg
-    assert collecting.estimate() == [] and collecting.state == 'estimating'
+    assert estimated[0].result is replay.result and replay.state == 'estimating'
+    assert replay.estimate() == []
+    # One solve over all samples: what `solve` does with them.
+    expected = calibrate(live.samples)
+    np.testing.assert_allclose(replay.result.quaternion, expected.quaternion, rtol=0,
+                               atol=1e-12)
+    np.testing.assert_allclose(replay.result.translation, expected.translation, rtol=0,
+                               atol=1e-12)
+    assert replay.result.residual_rms_deg == pytest.approx(expected.residual_rms_deg,
+                                                           rel=1e-12)
 
 
-def test_deferred_samples_of_every_source_wait_for_estimate():
+def test_samples_of_every_source_wait_for_estimate():
     rng = np.random.default_rng(30)
     cell = sim.random_cell(rng)
     samples, _ = sim.samples(rng, cell, 8, rotation_noise_deg=0.05)
-    session = Session(SessionConfig(defer_estimates=True))
+    session = Session()
     events = session.add_samples(samples[:4]) + session.add_sample(samples[4])
     assert [type(e) for e in events] == [SampleCaptured] * 5 and session.result is None
-    session.estimate()
+    [updated] = session.estimate()
     first = session.result
-    assert first.samples == 5
+    assert updated.result is first and first.samples == 5
     # After an estimate, new samples wait again; the next estimate covers all of them.
     assert [type(e) for e in session.add_samples(samples[5:])] == [SampleCaptured] * 3
     assert session.result is first and len(session.samples) == 8
-    session.estimate()
-    assert session.result.samples == 8
+    assert [e.result for e in session.estimate()] == [session.result]
+    assert session.result.samples == 8 and session.estimate() == []
     session.reset()
     assert session.samples == [] and session.estimate() == [] and session.result is None
 
 
-def test_early_estimates_give_the_quick_estimate_first_and_the_full_solve_on_finish():
+def test_a_full_solve_on_schedule_is_the_estimate_after_its_sample():
+    """Every tenth sample the estimate is calibrate() on all samples; incremental between."""
     rng = np.random.default_rng(31)
     cell = sim.random_cell(rng)
     samples, _ = sim.samples(rng, cell, 21, rotation_noise_deg=0.2, translation_noise_m=0.001)
-    at_once, early = Session(), Session(SessionConfig(early_estimates=True))
-    at_once.add_samples(samples[:18])
-    early.add_samples(samples[:18])
-    for sample in samples[18:]:
-        expected = at_once.add_sample(sample)
-        events = early.add_sample(sample)
+    session = Session()
+    session.add_samples(samples[:18])
+    session.estimate()
+    for n, sample in enumerate(samples[18:], start=19):
+        events = session.add_sample(sample) + session.estimate()
         assert [type(e) for e in events] == [SampleCaptured, EstimateUpdated]
-        finished = early.finish()
-        if len(early.samples) % 10 == 0:   # a full solve was due (calibration.Calibrator)
-            assert [type(e) for e in finished] == [EstimateUpdated]
-            assert finished[0].result is early.result
-            assert not np.array_equal(events[-1].estimate.quaternion,
-                                      finished[0].estimate.quaternion)
+        full = calibrate(samples[:n])
+        if n == 20:   # calibration.Calibrator's full_solve_every
+            np.testing.assert_allclose(events[-1].result.quaternion, full.quaternion, rtol=0,
+                                       atol=1e-12)
         else:
-            assert finished == []
-        assert comparable(of_type(events + finished, EstimateUpdated)[-1:]) == comparable(
-            of_type(expected, EstimateUpdated))
-    assert early.finish() == []
+            assert not np.array_equal(events[-1].result.quaternion, full.quaternion)
+            assert error_deg(events[-1].result, full) < 0.2 * full.uncertainty_deg

@@ -55,4 +55,5 @@ def test_eth_recording_offset_and_residuals(eth_streams):
     # offset lowers the RMS residual from 0.82 to 0.74 deg.
     assert -40 * MS < report.offset_ns < -5 * MS
     assert report.residual_with_deg < report.residual_without_deg
+    session.estimate()
     assert session.result is not None and session.result.residual_rms_deg < 1.0

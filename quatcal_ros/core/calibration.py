@@ -20,18 +20,17 @@ T_base_sensor (eye-to-hand).
 """
 
 from dataclasses import dataclass, field, replace
-from functools import cache, cached_property
-from typing import Callable
 
 import numpy as np
 
 from quatcal_ros.core import quality
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.leastsq import least_squares_rotation, MotionSystem
-from quatcal_ros.core.motions import Motions, pair_indices, SampleRotations
-from quatcal_ros.core.refine import refine, refine_from, step_sums
+from quatcal_ros.core.motions import Motions, pair_indices, PAIRINGS, SampleRotations
+from quatcal_ros.core.refine import refine, refine_from
 from quatcal_ros.core.solver import DegenerateMotionError, solve_two_motions
 from quatcal_ros.core.translation import SamplePositions, solve_translation
+from quatcal_ros.core.units import SETUPS
 
 # Quantile of the chi distribution with 3 degrees of freedom at 99.9 %: a sample whose residual
 # angle exceeds 4.03 sigma is an outlier with 0.1 % false alarms.
@@ -52,6 +51,9 @@ class InsufficientDataError(DegenerateMotionError):
     """Too few samples or usable motions to determine the rotation."""
 
 
+METHODS = ('refined', 'closed-form')
+
+
 @dataclass(frozen=True)
 class CalibrationOptions:
     """How to turn samples into an estimate (plain numbers; the node freezes its params here)."""
@@ -67,8 +69,14 @@ class CalibrationOptions:
     seed: int = 0                       # fixed, so the same data always give the same answer
     method: str = 'refined'             # or 'closed-form' (Chou-Kamel + closed-form translation)
 
+    def __post_init__(self):
+        """Refuse a value outside its choices (ValueError naming field, value and choices)."""
+        for name, choices in (('setup', SETUPS), ('pairs', PAIRINGS), ('method', METHODS)):
+            value = getattr(self, name)
+            if value not in choices:
+                raise ValueError(f'{name} must be one of {", ".join(choices)}, not {value!r}')
 
-METHODS = ('refined', 'closed-form')
+
 # The joint refinement needs enough samples to estimate both noise levels (6 unknowns each
 # for the mounting and the object, 6 residuals per sample).
 MIN_REFINE_SAMPLES = 6
@@ -153,25 +161,6 @@ def _finite_or_none(value):
     return float(value) if np.isfinite(value) else None
 
 
-@dataclass(frozen=True)
-class Update:
-    """
-    A new estimate: what to publish at once, and its full CalibrationResult on first use.
-
-    The live node publishes `estimate` (rotation and translation) as soon as it exists; the
-    quality figures of `result` (residuals, closed-form translation, excitation, hint) are
-    computed when something first asks for them, after the publication.
-    """
-
-    estimate: Estimate          # the published mounting (refined, or the closed form)
-    report: Callable = field(repr=False, compare=False)
-
-    @cached_property
-    def result(self):
-        """Return the CalibrationResult of this estimate (computed once)."""
-        return self.report()
-
-
 def calibrate(samples, options=CalibrationOptions()):
     """
     Estimate A_z from still samples (list of pose.Sample); see the module docstring.
@@ -179,79 +168,42 @@ def calibrate(samples, options=CalibrationOptions()):
     Raises DegenerateMotionError (a ValueError) with the reason and the motion that would
     help when the samples cannot determine the rotation.
     """
-    return _solve(samples, options).update.result
+    return _solve(samples, options).result
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """
+    The closed-form fit of the samples: what an estimate is made of, and an update extends.
+
+    All per-sample arrays cover every sample; sample_ok marks those the fit uses.
+    """
+
+    rotations: SampleRotations
+    positions: SamplePositions
+    sample_ok: np.ndarray        # bool per sample
+    inliers: Motions             # the motions of the final least squares
+    system: MotionSystem         # their normal matrix
+    info: quality.Information    # their H, G, C
+    q_z: np.ndarray              # the closed-form (Chou-Kamel least-squares) rotation
+    motion_count: int            # motions formed from the samples
+    rejected: list
+    warnings: list               # the frame-convention warnings of the last full solve
+    mismatch_limit: float        # radians, |theta_a - theta_b| screen
+    outlier_threshold: float     # radians, sample residual test
 
 
 @dataclass(frozen=True)
 class _Solution:
-    """
-    An estimate and the state an incremental update continues from.
+    """An estimate: its fit, its CalibrationResult and the refinement it publishes (or None)."""
 
-    `fit` and `info` are functions that compute their value on the first call (an incremental
-    update defers them: only the report and the next update need them); `prepare` computes
-    them and everything else the next incremental update needs that no new sample changes,
-    so that the live node can do that after the estimate is out.
-    """
-
-    update: Update
-    warnings: list               # the frame-convention warnings of the last full solve
-    rotations: SampleRotations
-    fit: Callable                # () -> Motions: the motions of the final least squares
-    system: MotionSystem         # their normal matrix
-    info: Callable               # () -> quality.Information: their H, G, C
-    positions: SamplePositions
-    sample_ok: np.ndarray        # bool per sample
-    mismatch_limit: float        # radians, |theta_a - theta_b| screen
-    outlier_threshold: float     # radians, sample residual test
-    motion_count: int            # motions formed from the samples
-    rejected: list
-    refinement: object = None    # refine.Refinement, the start of warm-started updates
-
-    @cached_property
-    def object_mean(self):
-        """Return the mean object orientation of the good samples under the estimate."""
-        Z = self.rotations.object_orientations(self.update.estimate.quaternion)
-        return quat.average(Z[self.sample_ok])
-
-    @cached_property
-    def step_sums(self):
-        """Return refine.StepSums of the good samples at the refinement (None without one)."""
-        if self.refinement is None:
-            return None
-        ok = self.sample_ok
-        return step_sums(self.refinement, self.rotations.link[ok], self.positions.link[ok],
-                         self.rotations.sensor[ok], self.positions.sensor[ok],
-                         self.rotations.link_matrices[ok])
-
-    def prepare(self):
-        """Compute now the parts of this solution that the next incremental update needs."""
-        return self.object_mean, self.step_sums, self.fit(), self.info()
-
-
-def _now(value):
-    """Return a function that returns `value` (a _Solution part computed at once)."""
-    return lambda: value
-
-
-def _later(function, *args):
-    """
-    Return a function that computes function(*args) on its first call, and remembers it.
-
-    The arguments (the previous motion set, say) are let go once the value exists.
-    """
-    value = []
-
-    def get():
-        nonlocal function, args
-        if not value:
-            value.append(function(*args))
-            function = args = None
-        return value[0]
-    return get
+    fit: _Fit
+    result: CalibrationResult
+    refinement: object           # refine.Refinement or None: the start of warm-started steps
 
 
 def _solve(samples, options):
-    """Run the full pipeline of the module docstring on `samples`."""
+    """Run the full pipeline of the module docstring on `samples`; return its _Solution."""
     n = len(samples)
     if n < 3:
         raise InsufficientDataError(
@@ -284,14 +236,12 @@ def _solve(samples, options):
     warnings = convention_warnings(samples, options) if _suspicious(fit, q_z) else []
     rejected = (_rejected_motions(motions, usable, sample_ok, limit, options)
                 + _rejected_samples(rotations, q_z, sample_ok, motions))
-    positions = SamplePositions.from_samples(samples, rotations)
-    update, refinement = _update(rotations, positions, q_z, _now(fit), _now(info), sample_ok,
-                                 len(motions), rejected, warnings, options)
     threshold = (_outlier_threshold(np.linalg.norm(
         quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok], axis=1))
         if options.robust else np.inf)
-    return _Solution(update, warnings, rotations, _now(fit), system, _now(info), positions,
-                     sample_ok, limit, threshold, len(motions), rejected, refinement)
+    return _estimate(_Fit(rotations, SamplePositions.from_samples(samples, rotations),
+                          sample_ok, fit, system, info, q_z, len(motions), rejected, warnings,
+                          limit, threshold), options)
 
 
 def _suspicious(fit, q_z):
@@ -453,79 +403,56 @@ def _parent_frame(options):
     return 'link' if options.setup == 'eye_in_hand' else 'base'
 
 
-def _update(rotations, positions, q_z, fit, info, sample_ok, motion_count, rejected, warnings,
-            options, previous_refinement=None, prepared=None):
+def _estimate(fit, options, previous=None):
     """
-    Return (Update, refine.Refinement or None) for an estimated rotation q_z.
+    Return the _Solution of `fit`: the published estimate with its quality figures.
 
-    What is published comes first: the joint refinement starts from the closed form, or, given
-    previous_refinement, takes a warm-started step from it (incremental updates; prepared:
-    the refine.StepSums of the samples it had), and is checked against the closed form's
-    rotation. The report (_report) follows on demand. fit, info: functions that return the
-    motions of the estimate and their quality.Information (_Solution).
+    The closed form is the Chou-Kamel rotation fit.q_z with the closed-form translation. The
+    joint refinement starts from it, or, given the previous refine.Refinement (an incremental
+    update), takes one warm-started step from that; it is published when it lands near the
+    closed form (_plausible), else the closed form is, with a warning.
     """
-    @cache
-    def closed_rotation():   # (noise sigma, covariance, uncertainty) of the closed form q_z
-        residuals = quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok]
-        sigma = quality.noise_sigma(residuals)
-        covariance = info().covariance(sigma)
-        return sigma, covariance, quality.uncertainty_deg(covariance)
-
-    warnings = list(warnings)
-    refined, refinement, translation = None, None, None
-    if options.method == 'refined' and np.sum(sample_ok) >= MIN_REFINE_SAMPLES:
-        arrays = (rotations.link[sample_ok], positions.link[sample_ok],
-                  rotations.sensor[sample_ok], positions.sensor[sample_ok])
-        if previous_refinement is None:
-            translation = solve_translation(rotations, positions, q_z, info(), sample_ok,
-                                            closed_rotation()[1])   # the starting point
-            refinement = refine(*arrays, q_z, translation.translation)
-        else:
-            refinement = refine_from(previous_refinement, *arrays,
-                                     rotations.link_matrices[sample_ok], prepared)
-        if _plausible(refinement, q_z, lambda: closed_rotation()[2]):
-            refined = Estimate(refinement.quaternion, refinement.translation,
-                               refinement.uncertainty_deg,
-                               refinement.translation_uncertainty_mm)
-        else:
+    rotations, positions, ok = fit.rotations, fit.positions, fit.sample_ok
+    sigma = quality.noise_sigma(quality.sample_residuals(rotations, fit.q_z, ok)[ok])
+    covariance = fit.info.covariance(sigma)
+    translation = solve_translation(rotations, positions, fit.q_z, fit.info, ok, covariance)
+    closed = Estimate(fit.q_z, translation.translation, quality.uncertainty_deg(covariance),
+                      translation.uncertainty_mm)
+    warnings = list(fit.warnings)
+    refinement = None
+    if options.method == 'refined' and np.sum(ok) >= MIN_REFINE_SAMPLES:
+        arrays = (rotations.link[ok], positions.link[ok], rotations.sensor[ok],
+                  positions.sensor[ok])
+        refinement = (refine(*arrays, fit.q_z, translation.translation) if previous is None
+                      else refine_from(previous, *arrays, rotations.link_matrices[ok]))
+        if not _plausible(refinement, fit.q_z, closed.uncertainty_deg):
             refinement = None
             warnings.append('the joint refinement did not converge to a plausible answer: '
                             'the closed-form estimate is published instead')
-
-    @cache
-    def closed_form():
-        sigma, covariance, uncertainty = closed_rotation()
-        found = translation or solve_translation(rotations, positions, q_z, info(), sample_ok,
-                                                 covariance)
-        return found, Estimate(q_z, found.translation, uncertainty, found.uncertainty_mm)
-
-    def report():
-        found, closed = closed_form()
-        noise = ((refinement.rotation_noise_deg, refinement.translation_noise_mm) if refined
-                 else (np.degrees(closed_rotation()[0]), 1e3 * found.noise_m))
-        return _report(rotations, fit(), info(), sample_ok, motion_count, rejected, warnings,
-                       options, closed, refined, noise)
-
-    published = refined or closed_form()[1]
-    return Update(published, report), refinement
+    if refinement is None:
+        refined, noise = None, (np.degrees(sigma), 1e3 * translation.noise_m)
+    else:
+        refined = Estimate(refinement.quaternion, refinement.translation,
+                           refinement.uncertainty_deg, refinement.translation_uncertainty_mm)
+        noise = (refinement.rotation_noise_deg, refinement.translation_noise_mm)
+    return _Solution(fit, _report(fit, options, closed, refined, noise, warnings), refinement)
 
 
-def _report(rotations, fit, info, sample_ok, motion_count, rejected, warnings, options, closed,
-            refined, noise):
+def _report(fit, options, closed, refined, noise, warnings):
     """Return the CalibrationResult: the published estimate with its quality figures."""
     published = refined or closed
-    ratio, axis = info.excitation()
+    ratio, axis = fit.info.excitation()
     motion_residuals = np.degrees(quality.motion_residual_angles(
-        rotations, published.quaternion, fit.i, fit.j))
+        fit.rotations, published.quaternion, fit.inliers.i, fit.inliers.j))
     return CalibrationResult(
         quaternion=published.quaternion, matrix=quat.matrix_from_quaternion(published.quaternion),
-        samples=len(rotations), motions=motion_count, inliers=len(fit),
-        inlier_samples=int(np.sum(sample_ok)),
+        samples=len(fit.rotations), motions=fit.motion_count, inliers=len(fit.inliers),
+        inlier_samples=int(np.sum(fit.sample_ok)),
         residual_rms_deg=float(np.sqrt(np.mean(motion_residuals ** 2))),
         uncertainty_deg=published.uncertainty_deg,
         noise_deg=float(noise[0]), excitation=ratio, weakest_axis=axis,
         hint=quality.next_motion_hint(ratio, axis, _parent_frame(options)),
-        setup=options.setup, pairs=options.pairs, rejected=rejected, warnings=warnings,
+        setup=options.setup, pairs=options.pairs, rejected=fit.rejected, warnings=warnings,
         motion_residuals_deg=motion_residuals, translation=published.translation,
         translation_uncertainty_mm=published.translation_uncertainty_mm,
         translation_noise_mm=float(noise[1]), method='refined' if refined else 'closed-form',
@@ -536,18 +463,13 @@ def _plausible(refinement, q_closed, closed_uncertainty_deg):
     """
     Whether the refinement converged near the closed form (within 10 of its sigmas + 1 deg).
 
-    closed_uncertainty_deg: a function that returns the closed form's uncertainty, called
-    only when the refinement moved farther than the smallest limit (1.1 deg).
+    The closed form's uncertainty counts as at least 0.01 deg, and as that when unknown (NaN).
     """
     if not (refinement.converged and np.all(np.isfinite(refinement.quaternion))):
         return False
+    sigma_deg = closed_uncertainty_deg if closed_uncertainty_deg > 0.01 else 0.01
     moved = np.degrees(quat.angle_between(refinement.quaternion, q_closed))
-    return bool(moved < _plausible_limit(0.0)
-                or moved < _plausible_limit(closed_uncertainty_deg()))
-
-
-def _plausible_limit(closed_uncertainty_deg):
-    return 10.0 * max(closed_uncertainty_deg, 0.01) + 1.0
+    return bool(moved < 10.0 * sigma_deg + 1.0)
 
 
 # --- frame-convention check -------------------------------------------------------------
@@ -600,14 +522,17 @@ def _median_residual_deg(samples, setup, invert_sensor, options):
 
 class Calibrator:
     """
-    Samples in, estimate out, after every sample: what session.Session drives.
+    Samples in, an estimate of all of them out on request: what session.Session drives.
 
-    A new sample is tested against the current estimate, its motions screened and added to the
-    least-squares system (O(1) per motion), and the estimate re-solved: cheap enough for the
-    live node.  Every `full_solve_every` samples (and while there are few) the full robust
-    pipeline of `calibrate` runs again, so an early misjudgement cannot persist; the live node
-    has it run after the quick update instead (add_sample(full_solve_later=True), finish()).
-    `update` holds the latest estimate at once and its report (`result`) on first use (Update).
+    add_sample and add_samples only store; estimate() brings the estimate up to date. One new
+    sample is tested against the current estimate, its motions (one per earlier good sample)
+    screened and added to the least-squares system and the information, and the refinement
+    takes one warm-started step: no consensus search, no refit. The full robust pipeline of
+    `calibrate` runs instead while the samples are few (up to `small`), on every
+    `full_solve_every`-th sample (so an early misjudgement cannot persist), when there is no
+    estimate to extend, and when several samples came since the last estimate (a file, a
+    resumed session, a replay that asks once at the end: its answer is then that of
+    `calibrate` on all the samples).
     """
 
     def __init__(self, options=CalibrationOptions(), full_solve_every=10, small=12):
@@ -621,65 +546,35 @@ class Calibrator:
         self.samples = []
         self.last_error = 'no samples yet'
         self._solution = None
-        self.full_solve_due = False   # left for finish() by add_sample(full_solve_later=True)
+        self._estimated = 0   # samples the last estimate() covered
 
     @property
-    def update(self):
-        """Return the latest Update, or None before two usable motions."""
-        return self._solution.update if self._solution else None
+    def due(self):
+        """Return whether samples came since the last estimate()."""
+        return len(self.samples) > self._estimated
 
     @property
     def result(self):
-        """Return the latest CalibrationResult, or None before two usable motions."""
-        return self._solution.update.result if self._solution else None
+        """Return the CalibrationResult of the last estimate(), or None (no estimate)."""
+        return self._solution.result if self._solution else None
 
-    def add_sample(self, sample, full_solve_later=False):
-        """
-        Add one still sample and re-estimate; returns messages describing what changed.
-
-        With full_solve_later, a full solve that falls due on this sample waits for finish():
-        the quick incremental update comes first (the live node publishes it in between). A
-        full solve still due from the previous sample runs before anything else.
-        """
-        messages = self._due_full_solve()
+    def add_sample(self, sample):
+        """Add one still sample; estimate() takes it into account."""
         self.samples.append(sample)
-        n = len(self.samples)
-        due = n % self.full_solve_every == 0
-        if self._solution is None or n <= self.small or (due and not full_solve_later):
-            return messages + self._full_solve()
-        messages += self._add_incrementally(sample)
-        self.full_solve_due = due
-        return messages
-
-    def finish(self):
-        """
-        Run the full solve that add_sample left due, if any; return its messages.
-
-        Then compute what the next incremental update needs and no new sample changes
-        (_Solution.prepare): done here, after the estimate is out, it is off the next
-        sample's path.
-        """
-        messages = self._due_full_solve()
-        if self._solution is not None:
-            self._solution.prepare()
-        return messages
-
-    def _due_full_solve(self):
-        """Run the full solve left due by add_sample(full_solve_later=True); its messages."""
-        return self._full_solve() if self.full_solve_due else []
 
     def add_samples(self, samples):
-        """Add many samples (a file, a resumed session) and estimate once."""
+        """Add many samples (a file, a resumed session); estimate() solves them all at once."""
         self.samples.extend(samples)
-        return self._full_solve() if self.samples else []
 
-    def reconfigure(self, **changes):
-        """Change options (e.g. setup) and re-estimate from the same samples."""
-        self.options = replace(self.options, **changes)
-        return self._full_solve()
-
-    def _full_solve(self):
-        self.full_solve_due = False
+    def estimate(self):
+        """Bring the estimate up to date with every sample (class docstring); return messages."""
+        n = len(self.samples)
+        new, self._estimated = n - self._estimated, n
+        if not new:
+            return []
+        if (new == 1 and self._solution is not None and n > self.small
+                and n % self.full_solve_every):
+            return self._add_incrementally(self.samples[-1])
         try:
             self._solution = _solve(self.samples, self.options)
         except DegenerateMotionError as error:
@@ -689,44 +584,41 @@ class Calibrator:
         return []
 
     def _add_incrementally(self, sample):
-        old = self._solution
+        old = self._solution.fit
         rotations = old.rotations.appended(sample)
         positions = old.positions.appended(sample, rotations)
         k = len(rotations) - 1
-        q_z = old.update.estimate.quaternion
+        q_z = self._solution.result.quaternion   # the published estimate
         newest = quat.multiply(quat.multiply(rotations.link[k], q_z), rotations.sensor[k])
-        angle = quat.angle_between(newest, old.object_mean)   # Z_k against the mean Z
+        mean = quat.average(old.rotations.object_orientations(q_z)[old.sample_ok])
+        angle = quat.angle_between(newest, mean)   # Z_k against the mean Z
         rejected = list(old.rejected)
         messages = []
-        fit, system = old.fit, old.system
         if angle > old.outlier_threshold:
             sample_ok = np.append(old.sample_ok, False)
             spoiled = int(np.sum(old.sample_ok)) if self.options.pairs == 'all' else 1
             rejected.append(_sample_rejection(k, np.degrees(angle),
                                               np.degrees(old.outlier_threshold), spoiled))
             messages.append(f'sample {k} rejected: {rejected[-1]["reason"]}')
-            info = _later(old.info().extended, rotations.link_matrices, [], [])
-            q_z = system.solve()[0]   # the closed form, as before this sample
+            inliers, system, q_closed = old.inliers, old.system, old.q_z   # as before
+            info = old.info.extended(rotations.link_matrices, [], [])
         else:
             sample_ok = np.append(old.sample_ok, True)
             new = self._new_motions(rotations, old, q_z)
-            system = system.copy()
+            system = old.system.copy()
             system.add(new.q_a, new.q_b, reference=q_z)
-            q_z = system.solve()[0]
-            fit = _later(Motions.concatenate, old.fit(), new)
-            info = _later(old.info().extended, rotations.link_matrices, new.i, new.j)
-        motion_count = old.motion_count + (k if self.options.pairs == 'all' else 1)
-        update, refinement = _update(rotations, positions, q_z, fit, info, sample_ok,
-                                     motion_count, rejected, old.warnings, self.options,
-                                     old.refinement, old.step_sums)
-        self._solution = replace(old, update=update, rotations=rotations, fit=fit,
-                                 system=system, info=info, positions=positions,
-                                 sample_ok=sample_ok, motion_count=motion_count,
-                                 rejected=rejected, refinement=refinement)
+            q_closed = system.solve()[0]
+            inliers = Motions.concatenate(old.inliers, new)
+            info = old.info.extended(rotations.link_matrices, new.i, new.j)
+        fit = replace(old, rotations=rotations, positions=positions, sample_ok=sample_ok,
+                      inliers=inliers, system=system, info=info, q_z=q_closed,
+                      motion_count=old.motion_count + (k if self.options.pairs == 'all' else 1),
+                      rejected=rejected)
+        self._solution = _estimate(fit, self.options, self._solution.refinement)
         return messages
 
     def _new_motions(self, rotations, old, q_z):
-        """Return the screened motions from the good samples so far to the newest sample."""
+        """Return the screened motions from the good samples of `old` to the newest sample."""
         k = len(rotations) - 1
         partners = np.flatnonzero(old.sample_ok)
         if self.options.pairs == 'consecutive':

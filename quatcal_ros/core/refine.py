@@ -108,47 +108,7 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
                        sigma_t, converged)
 
 
-@dataclass(frozen=True)
-class StepSums:
-    """
-    What one Gauss-Newton step of refine_from needs from a set of samples, at one model.
-
-    With the whitened residuals r of the samples, their Jacobian J and soft-L1 weights W:
-    normal = J^T W J and gradient = J^T W r; and for the rotation and the translation rows
-    (b = 0, 1) gram[b] = J_b^T J_b, cross[b] = J_b^T r_b and squares[b] = r_b^T r_b, which give
-    the sums of squares of the residuals r + J step a step predicts without the rows. Sums
-    over different samples add up (+), so the live calibrator makes those of its samples
-    after an estimate is out, and a new sample only adds its own.
-    """
-
-    count: int                # samples summed
-    normal: np.ndarray        # (12, 12)
-    gradient: np.ndarray      # (12,)
-    gram: np.ndarray          # (2, 12, 12)
-    cross: np.ndarray         # (2, 12)
-    squares: np.ndarray       # (2,)
-
-    def __add__(self, other):
-        """Return the sums over the samples of both."""
-        return StepSums(self.count + other.count, self.normal + other.normal,
-                        self.gradient + other.gradient, self.gram + other.gram,
-                        self.cross + other.cross, self.squares + other.squares)
-
-
-def step_sums(previous, link_q, link_t, sensor_q, sensor_t, link_R=None):
-    """Return the StepSums of these samples at the model and noise levels of `previous`."""
-    model, sigma_r, sigma_t = _start(previous)
-    whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t,
-                              link_R)
-    weights = _soft_l1_weights(whitened)
-    blocks, rows = J.reshape(2, -1, 12), whitened.reshape(2, -1, 1)
-    transposed = blocks.transpose(0, 2, 1)
-    return StepSums(len(link_q), _normal_matrix(J, weights), J.T @ (weights * whitened),
-                    transposed @ blocks, (transposed @ rows)[..., 0],
-                    np.sum(rows[..., 0] ** 2, axis=1))
-
-
-def refine_from(previous, link_q, link_t, sensor_q, sensor_t, link_R=None, prepared=None):
+def refine_from(previous, link_q, link_t, sensor_q, sensor_t, link_R=None):
     """
     Update a Refinement after samples were added: one warm-started Gauss-Newton step.
 
@@ -160,23 +120,18 @@ def refine_from(previous, link_q, link_t, sensor_q, sensor_t, link_R=None, prepa
     from that close lands within a few percent of the uncertainty (test_incremental.py). The
     covariance and the noise levels come from the same linearisation (the residuals the step
     predicts), which differs from one at the new point only to second order in the step.
-    link_R: the link rotation matrices, when the caller has them. prepared: the StepSums of
-    the first prepared.count samples at `previous` (step_sums), when made beforehand; only
-    the samples after them are linearised then.
+    link_R: the link rotation matrices, when the caller has them.
     """
     model, sigma_r, sigma_t = _start(previous)
-    first = 0 if prepared is None else prepared.count
-    sums = prepared
-    if first < len(link_q):
-        rest = step_sums(previous, link_q[first:], link_t[first:], sensor_q[first:],
-                         sensor_t[first:], None if link_R is None else link_R[first:])
-        sums = rest if prepared is None else prepared + rest
-    covariance = _inverse(sums.normal)
-    step = -covariance @ sums.gradient   # the Gauss-Newton step
-    # Sums of squares of the predicted residuals r + J step, per block.
-    squares = sums.squares + (2.0 * sums.cross + sums.gram @ step) @ step
-    return _refinement(_unpack(step, *model), squares, sums.count, covariance, sigma_r,
-                       sigma_t, bool(np.all(np.isfinite(step))))
+    whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t,
+                              link_R)
+    weights = _soft_l1_weights(whitened)
+    covariance = _inverse(_normal_matrix(J, weights))
+    step = -covariance @ (J.T @ (weights * whitened))   # the Gauss-Newton step
+    predicted = (whitened + J @ step).reshape(2, -1)     # rotation rows, translation rows
+    return _refinement(_unpack(step, *model), np.einsum('bk,bk->b', predicted, predicted),
+                       len(link_q), covariance, sigma_r, sigma_t,
+                       bool(np.all(np.isfinite(step))))
 
 
 def _start(previous):

@@ -19,8 +19,6 @@ A thin shell: the session (stream/session.py) does the work, and this node wires
 Times come from header stamps and the node clock (so use_sim_time and bag replays work).
 """
 
-from dataclasses import replace
-
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from geometry_msgs.msg import QuaternionStamped
@@ -94,7 +92,7 @@ class CalibratorNode(Node):
         except ConfigError:
             self.destroy_node()
             raise
-        self.session = Session(replace(settings.session_config(self.config), early_estimates=True))
+        self.session = Session(settings.session_config(self.config))
         self.poses = PoseScreen(settings.check_config(self.config), self._log_bad_message)
         self.moves = MoveWatch()
         self._rejected_samples = set()
@@ -170,13 +168,14 @@ class CalibratorNode(Node):
 
         The journal comes first: a sample is in the file (safe from a crash of the process)
         before the estimate is published, and fsync'd (safe from a power cut) before it is
-        reported captured.
+        reported captured. The log lines come last; then the session is asked for the estimate
+        of the new samples, whose events are handled the same way.
         """
         captured = [event.sample for event in events if isinstance(event, SampleCaptured)]
         self._log_messages(self.journal.append(captured))
         for event in events:
             if isinstance(event, EstimateUpdated):
-                self.publish_estimate(event.estimate)
+                self.publish_estimate(event.result)
         if captured:
             self._log_messages(self.journal.sync())
         for event in events:
@@ -189,7 +188,8 @@ class CalibratorNode(Node):
                                        throttle_duration_sec=LOG_THROTTLE_S)
             elif isinstance(event, Notice):
                 self.get_logger().info(event.text)
-        later = self.session.finish()
+        # The estimate of new samples, if any (the session estimates when asked).
+        later = self.session.estimate()
         if later:
             self.handle_events(later)
 
@@ -377,8 +377,7 @@ class CalibratorNode(Node):
             self._start_tf_broadcast()
         if any(name not in settings.PRESENTATION for name in changed):
             samples = self.session.samples
-            self.session = Session(
-                replace(settings.session_config(self.config), early_estimates=True))
+            self.session = Session(settings.session_config(self.config))
             if samples:
                 self.get_logger().info(
                     f're-estimating from the {len(samples)} samples with the new settings')

@@ -5,20 +5,20 @@ The live node, the bag replay and the CSV tool all drive this one object, so the
 answer on the same data.  Streams come in as (header stamp in integer nanoseconds, Pose):
 link poses T_base_link and sensor poses T_sensor_obj; CSV rows and resumed samples come in as
 pose.Sample.  Every call returns what happened as small event objects, which the shells log
-and publish (EstimateUpdated carries the new calibration.Update: the estimate to publish at
-once, its CalibrationResult on first use):
+and publish (EstimateUpdated carries the new calibration.CalibrationResult):
 
-    SampleCaptured(index, sample), EstimateUpdated(update), Rejected(what, reason),
+    SampleCaptured(index, sample), EstimateUpdated(result), Rejected(what, reason),
     Notice(text)
 
 `add_poses` takes many poses of one stream at once (an offline replay) with the result, events
-included, of adding them one by one.  With `SessionConfig.defer_estimates` the session only
-collects samples, and `estimate()` estimates once from all of them (an offline replay, whose
-answer is that of `solve` on its samples); the live node estimates after every sample.
-Every tenth sample or so the estimator re-runs its full robust solve (calibration.Calibrator);
-with `SessionConfig.early_estimates` that waits for `finish()`, so the sample's quick
-(incremental) estimate comes out first, and the live node publishes it before calling finish(),
-which also prepares the next quick estimate. The next input runs a full solve still due.
+included, of adding them one by one.
+
+The estimate is made when asked for: a new sample makes it due, and `estimate()` brings it up
+to date with every sample and returns its events; `result`, `state` and `last_error` tell of
+the estimate of the last estimate() call.  The live node asks after every sample: one new
+sample is added to the estimate incrementally, with a full robust solve every tenth sample or
+so (calibration.Calibrator).  An offline replay asks once at the end: its answer is one full
+solve over all its samples, that of `solve` on them.
 
 Time that goes backwards on a stream by more than `time_jump_ns` (a bag played again, a clock
 reset) starts a new timeline: the pairing buffers are cleared, the samples are kept.  Smaller
@@ -58,11 +58,6 @@ class SessionConfig:
     # Added to every sensor stamp: a known latency of the sensor's clock (time_offset.py
     # estimates it from a recording); -0.03 s for a camera stamping frames 30 ms late.
     sensor_offset_ns: int = 0
-    # Collect samples without estimating until estimate() (module docstring).
-    defer_estimates: bool = False
-    # Quick estimates first (the live node): a full solve that falls due on a sample waits
-    # for finish() (module docstring).
-    early_estimates: bool = False
 
     def __post_init__(self):
         if self.time_jump_ns < 0:
@@ -79,24 +74,9 @@ class SampleCaptured:
 
 @dataclass(frozen=True)
 class EstimateUpdated:
-    """
-    A new estimate exists: publish `estimate`, then report `result`.
+    """A new estimate exists: publish and report `result` (calibration.CalibrationResult)."""
 
-    update: calibration.Update; `estimate` (rotation, translation) is there at once, `result`
-    (the CalibrationResult with the quality figures) is computed on first use.
-    """
-
-    update: object
-
-    @property
-    def estimate(self):
-        """Return the published calibration.Estimate."""
-        return self.update.estimate
-
-    @property
-    def result(self):
-        """Return the calibration.CalibrationResult of the estimate."""
-        return self.update.result
+    result: object
 
 
 @dataclass(frozen=True)
@@ -145,7 +125,6 @@ class Session:
     def __init__(self, config=SessionConfig()):
         self.config = config
         self._calibrator = Calibrator(config.calibration)
-        self._deferred = []   # samples not yet given to the calibrator (defer_estimates)
         self._start_streams()
 
     def _start_streams(self):
@@ -224,7 +203,7 @@ class Session:
         return events + self._store(sample)
 
     def add_samples(self, samples):
-        """Add many ready samples (a CSV file, a resumed session), estimate once; return events."""
+        """Add many ready samples (a CSV file, a resumed session); return the events."""
         events = self.pop_events()
         good = []
         for sample in samples:
@@ -233,38 +212,25 @@ class Session:
             else:
                 events.append(self._reject('sample', 'non-finite numbers in a pose',
                                            'non_finite'))
-        first, previous = self._sample_count(), self._calibrator.update
-        if self.config.defer_estimates:
-            self._deferred += good
-            messages = []
-        else:
-            messages = self._calibrator.add_samples(good)
+        first = self._sample_count()
+        self._calibrator.add_samples(good)
         if good:
             self._capture.note_sample(good[-1])   # the next still sample needs a motion first
-        events += [SampleCaptured(first + k, sample) for k, sample in enumerate(good)]
-        return events + self._estimated(messages, previous)
+        return events + [SampleCaptured(first + k, sample) for k, sample in enumerate(good)]
 
     def estimate(self):
         """
-        Estimate once from the samples that defer_estimates held back; return the events.
+        Bring the estimate up to date with every sample; return its events.
 
-        All of them go to the estimator at once, as add_samples gives them (so the answer is
-        that of `solve` on the same samples).  Nothing to do when none are held back.
+        Those are the estimator's messages (Notice), then EstimateUpdated with the new
+        estimate, if there is one; none when no sample came since the last estimate().
         """
-        deferred, self._deferred = self._deferred, []
-        if not deferred:
+        if not self._calibrator.due:
             return []
-        return self._estimated(self._calibrator.add_samples(deferred))
-
-    def finish(self):
-        """
-        Do the estimator's work that can wait until the latest estimate is out; return events.
-
-        That is the full solve an early estimate left due (its events), and the groundwork
-        of the next sample's quick estimate (calibration.Calibrator.finish).
-        """
-        previous = self._calibrator.update
-        return self._estimated(self._calibrator.finish(), previous)
+        events = [Notice(text) for text in self._calibrator.estimate()]
+        if self._calibrator.result is not None:   # a new one
+            events.append(EstimateUpdated(self._calibrator.result))
+        return events
 
     def pop_events(self):
         """Events not yet returned (those of capture()); each event is returned once."""
@@ -274,7 +240,6 @@ class Session:
     def reset(self):
         """Start over: forget the streams, the samples, the estimate and the counters."""
         self._calibrator.reset()
-        self._deferred = []
         self._start_streams()
 
     # --- what the shells show ------------------------------------------------------------
@@ -282,11 +247,11 @@ class Session:
     @property
     def samples(self):
         """Return the samples so far (list of pose.Sample), in the estimator's order."""
-        return self._calibrator.samples + self._deferred
+        return list(self._calibrator.samples)
 
     @property
     def result(self):
-        """Return the latest calibration.CalibrationResult, or None before two usable motions."""
+        """Return the calibration.CalibrationResult of the last estimate(), or None."""
         return self._calibrator.result
 
     @property
@@ -297,7 +262,7 @@ class Session:
     @property
     def state(self):
         """Return the state: 'waiting for poses', 'collecting' or 'estimating'."""
-        if self._calibrator.update is not None:
+        if self._calibrator.result is not None:
             return STATES[2]
         if self._counts['pairs'] or self._sample_count():
             return STATES[1]
@@ -334,7 +299,7 @@ class Session:
     # --- internals -----------------------------------------------------------------------
 
     def _sample_count(self):
-        return len(self._calibrator.samples) + len(self._deferred)
+        return len(self._calibrator.samples)
 
     def _add_pose(self, stream, stamp_ns, pose):
         events = self.pop_events() if self._pending else []
@@ -394,24 +359,9 @@ class Session:
         return None
 
     def _store(self, sample):
-        previous = self._calibrator.update
-        if self.config.defer_estimates:
-            self._deferred.append(sample)
-            messages = []
-        else:
-            messages = self._calibrator.add_sample(
-                sample, full_solve_later=self.config.early_estimates)
+        self._calibrator.add_sample(sample)
         self._capture.note_sample(sample)
-        events = [SampleCaptured(self._sample_count() - 1, sample)]
-        return events + self._estimated(messages, previous)
-
-    def _estimated(self, messages, previous=None):
-        """Return the events of an estimator update: its messages, then the new estimate."""
-        events = [Notice(text) for text in messages]
-        update = self._calibrator.update
-        if update is not None and update is not previous:
-            events.append(EstimateUpdated(update))
-        return events
+        return [SampleCaptured(self._sample_count() - 1, sample)]
 
     def _reject(self, what, reason, code=''):
         self._counts['rejected'] += 1

@@ -160,7 +160,8 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
     then keeps those sensor frames and re-interpolates the link at each shifted stamp, so
     the residual is a smooth function of the offset alone. residual_options: the
     CalibrationOptions whose RMS residual scores an offset (default config.calibration).
-    Returns (OffsetReport, the Session replayed with the refined offset applied).
+    Returns (OffsetReport, the Session replayed with the refined offset applied; it estimates
+    when asked, Session.estimate()).
     """
     residual_options = residual_options or config.calibration
     coarse = estimate_time_offset(

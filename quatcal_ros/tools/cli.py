@@ -66,6 +66,7 @@ def solve_main(argv=None):
     frames = solve_frames(args, imported.frames)
     session = Session(session_config(settings_of(args)))
     session.add_samples(imported.samples)
+    session.estimate()   # one full solve over all of them
     if session.result is not None and args.easy_handeye2_out:
         named = imported.frames or {}
         keep = ('robot_base_frame' if args.setup == 'eye_in_hand' else 'robot_effector_frame',
@@ -256,8 +257,8 @@ def replay_main(argv=None):
     if len(session.samples) < 3:
         return fail(prog, where + _too_few_samples(session, report, link, sensor),
                     EXIT_BAD_INPUT)
-    # The session collected the samples without estimating (defer_estimates): one full solve
-    # over all of them, exactly what `solve` computes from the --samples-out file.
+    # The session estimates when asked, so only now: one full solve over all the samples,
+    # exactly what `solve` computes from the --samples-out file.
     session.estimate()
     warnings = notes + report.warnings()
     if session.result is not None:   # the live node's moved-marker watch, over the whole bag
@@ -303,7 +304,7 @@ def _replay_with_time_offset(replay, config, args):
     scoring = replace(config.calibration, method='closed-form')
     try:
         found, session = find_time_offset(recorder.link, recorder.sensor,
-                                          _collecting(config), residual_options=scoring)
+                                          config, residual_options=scoring)
     except ValueError as error:
         raise bag.BagError(f'cannot estimate the time offset: {error}') from None
     report.counters = session.counters
@@ -317,14 +318,8 @@ def _replay_with_time_offset(replay, config, args):
         'residual_with_deg': found.residual_with_deg}
 
 
-def _collecting(config):
-    """Return the config of a session that only collects samples (estimated once, at the end)."""
-    return replace(config, defer_estimates=True)
-
-
 def _replay(replay, config, args):
     """Run the replay; in auto mode without any still sample, again in continuous mode."""
-    config = _collecting(config)
     session, report = _run(replay, config, args, 'replay')
     notes = []
     capture = config.capture
