@@ -113,3 +113,20 @@ def test_undetermined_rotation_exits_3_with_the_reason(repo_root, tmp_path):
     done = run_solve(repo_root, path)
     assert done.returncode == 3
     assert 'Case 1' in done.stderr and 'perpendicular' in done.stderr
+
+
+def test_solve_on_a_journal_takes_its_setup_and_frames(repo_root, tmp_path):
+    from quatcal_ros.files.journal import Journal, JournalHeader
+    rng = np.random.default_rng(3)
+    cell = simulation.random_cell(rng)
+    samples, _ = simulation.samples(rng, cell, 8, rotation_noise_deg=0.05)
+    path = tmp_path / 'samples.csv'
+    header = JournalHeader('eye_in_hand', 'tool0', 'camera_color_optical_frame')
+    written = Journal.create(path, header)
+    for sample in samples:
+        written.append(sample)
+    written.close()
+    done = run_solve(repo_root, path)
+    assert done.returncode == 0, done.stderr
+    line = json.loads(done.stdout)['static_transform_publisher']
+    assert line.endswith('--frame-id tool0 --child-frame-id camera_color_optical_frame')

@@ -425,3 +425,17 @@ def test_frame_and_offset_parameters_change_at_runtime(harness_factory):
     h.publish_pose(mc.SENSOR, 6 * NS, Pose.identity(), 'camera')
     h.wait_received()
     assert dict(node.stats.bad) == {(mc.SENSOR, 'wrong_frame_id'): 1}
+
+
+def test_a_stream_that_never_sent_anything_is_named_with_its_topic():
+    stats = mc.StreamStats()
+    t0 = 1_000 * NS
+    names = {mc.LINK: '/robot/tool0_pose', mc.SENSOR: '/aruco/marker_pose'}
+    assert stats.stale_reasons(t0 + 2 * NS, started_ns=t0, names=names) == []
+    reasons = dict(stats.stale_reasons(t0 + 4 * NS, started_ns=t0, names=names))
+    assert reasons[mc.LINK] == ('no message on /robot/tool0_pose yet: is it remapped to the '
+                                'right topic, and does the publisher run?')
+    assert '/aruco/marker_pose' in reasons[mc.SENSOR]
+    stats.note(mc.SENSOR, t0 + 5 * NS)
+    # From the first message on, the usual rule: the silent stream is stale after 3 s.
+    assert stats.stale_reasons(t0 + 6 * NS, started_ns=t0, names=names) == []

@@ -39,7 +39,7 @@ import numpy as np
 from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, quaternion_norm_problem
-from quatcal_ros.files import plain_yaml
+from quatcal_ros.files import journal, plain_yaml
 from quatcal_ros.files.samples_csv import BadInputError, read_samples
 import yaml
 
@@ -324,6 +324,30 @@ def detect_format(document):
     return None
 
 
+def _csv_samples(path):
+    """
+    Return the ImportedSamples of a samples CSV.
+
+    A samples journal's header names its setup and frames (the link frame is the parent: the
+    effector eye-in-hand, the base eye-to-hand).
+    """
+    samples = read_samples(path)
+    try:
+        with open(path, encoding='utf-8') as stream:
+            first = stream.readline().rstrip('\n')
+    except (OSError, UnicodeDecodeError):
+        first = ''
+    if not first.startswith(journal.MAGIC):
+        return ImportedSamples(samples, 'csv')
+    try:
+        header = journal.JournalHeader.parse(first, str(path))
+    except journal.JournalError as error:
+        raise BadInputError(str(error)) from None
+    parent = 'robot_effector_frame' if header.setup == 'eye_in_hand' else 'robot_base_frame'
+    return ImportedSamples(samples, 'csv', header.setup,
+                           {parent: header.link_frame, 'tracking_base_frame': header.sensor_frame})
+
+
 def load_samples(path, file_format='auto', setup=None):
     """
     Read still samples from a samples CSV or another tool's samples file.
@@ -344,10 +368,10 @@ def load_samples(path, file_format='auto', setup=None):
     if file_format == 'auto':
         file_format = SUFFIX_FORMATS.get(suffix, 'auto')
     if file_format == 'csv':
-        return ImportedSamples(read_samples(path), 'csv')
+        return _csv_samples(path)
     text = _read_text(path)
     if file_format == 'auto' and _is_csv(text):
-        return ImportedSamples(read_samples(path), 'csv')
+        return _csv_samples(path)
     if not text.strip():
         raise BadInputError(f'{name}: empty file')
     document = (_load_json(text, name) if file_format == 'moveit-json' or suffix == '.json'

@@ -35,16 +35,19 @@ def status_message(session, stats):
     return f'collecting: {len(session.samples)} samples, need motions about 2 different axes'
 
 
-def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_static=''):
+def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_static='',
+                      started_ns=None, topics=None):
     """
     Return the DiagnosticStatus of the calibrator.
 
     :param problems: further problems to name (texts); each makes the level WARN.
     :param tf_static: the /tf_static broadcast state, in words.
+    :param started_ns: when the node began to listen (node clock): a stream that never sent
+        anything is named after STALE_AFTER_S, with `topics` (stream: resolved topic).
     """
     result = session.result
     counters = session.counters
-    stale = stats.stale_reasons(now_ns, STALE_AFTER_S)
+    stale = stats.stale_reasons(now_ns, STALE_AFTER_S, started_ns, topics)
     found = [text for _, text in stale]
     if result is not None and result.residual_rms_deg > HIGH_RESIDUAL_DEG:
         found.append(f'high residual {result.residual_rms_deg:.2f} deg RMS: check the frame '

@@ -120,6 +120,7 @@ class CalibratorNode(Node):
             f'{self.config.sensor_frame} from {self.topics[LINK]} and {self.topics[SENSOR]} '
             f'({message_type.__name__}), capture mode {self.config.capture_mode}')
         self._start_tf_broadcast()
+        self._started_ns = self.now_ns()   # a stream silent this long after it is named
         self._resume()
 
     @property
@@ -296,8 +297,12 @@ class CalibratorNode(Node):
             tf_static = 'not broadcast: tf2_ros is not installed' if tf_problem else 'broadcast'
         problems = [self.moves.warning(len(self.session.samples)), self.journal.problem,
                     tf_problem]
-        return calibrator_status(self.session, self.poses.stats, self.now_ns(),
-                                 self.config.link_frame, problems, tf_static)
+        now_ns = self.now_ns()
+        if self._started_ns <= 0:   # use_sim_time: listening begins with the clock
+            self._started_ns = now_ns
+        return calibrator_status(self.session, self.poses.stats, now_ns,
+                                 self.config.link_frame, problems, tf_static,
+                                 self._started_ns, self.topics)
 
     def publish_diagnostics(self):
         """Publish the status once (the timer's callback)."""

@@ -227,15 +227,22 @@ class StreamStats:
         """Streams not heard for after_s (node clock) since the first message of either."""
         return [stream for stream, _ in self.stale_reasons(now_ns, after_s)]
 
-    def stale_reasons(self, now_ns, after_s=STALE_AFTER_S):
+    def stale_reasons(self, now_ns, after_s=STALE_AFTER_S, started_ns=None, names=None):
         """
         Return [(stream, 'sensor_pose stale: no message for 4.2 s'), ...] (node clock).
 
-        A stream is stale when it has sent nothing, or nothing usable, for after_s; before
-        the first message of either stream nothing is stale.
+        A stream is stale when it has sent nothing, or nothing usable, for after_s.  Before
+        the first message of either stream, a stream is named only when `started_ns` (when
+        the listening began) is given and after_s have passed since: 'no message on TOPIC
+        yet', TOPIC from `names` (stream: topic), with the likely cause.
         """
         if self.first_ns is None:
-            return []
+            if started_ns is None or now_ns - started_ns < int(after_s * NS_PER_S):
+                return []
+            names = names or {}
+            return [(stream, f'no message on {names.get(stream, stream)} yet: is it remapped '
+                             'to the right topic, and does the publisher run?')
+                    for stream in STREAMS]
         limit = now_ns - int(after_s * NS_PER_S)
         out = []
         for stream in STREAMS:
