@@ -2,10 +2,10 @@
 Tests of bad pose messages: the core checks (message_checks) and the node that applies them.
 
 Core tests run on plain numbers.  Node tests build the calibrator in a private Context and
-publish through the middleware (ROS_DOMAIN_ID 60): every kind of bad message is counted under
-its stream and reason in /diagnostics, logged with the topic and the reason (throttled per
-both), and skipped, and good data afterwards is still used.  A flood of bad messages on a
-live node is tested in test_soak.py.
+publish through the middleware (on a domain id of conftest): every kind of bad message is
+counted under its stream and reason in /diagnostics, logged with the topic and the reason
+(throttled per both), and skipped, and good data afterwards is still used.  A flood of bad
+messages on a live node is tested in test_soak.py.
 """
 
 import re
@@ -34,7 +34,6 @@ from rclpy.qos import ReliabilityPolicy
 from ros_harness import SpinMixin
 from rosgraph_msgs.msg import Clock
 
-DOMAIN_ID = 60
 NS = NS_PER_S
 MS = 1_000_000
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
@@ -224,9 +223,9 @@ class Harness(SpinMixin):
 
     spin_step = 0.02
 
-    def __init__(self, overrides=()):
+    def __init__(self, domain_id, overrides=()):
         self.context = Context()
-        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
+        rclpy.init(context=self.context, domain_id=domain_id)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.node = CalibratorNode(context=self.context, parameter_overrides=list(overrides))
         self.driver = rclpy.create_node('checks_driver', context=self.context)
@@ -271,11 +270,11 @@ class Harness(SpinMixin):
 
 
 @pytest.fixture
-def harness_factory():
+def harness_factory(domain_id):
     made = []
 
     def make(overrides=()):
-        made.append(Harness(overrides))
+        made.append(Harness(domain_id, overrides))
         return made[-1]
     yield make
     for harness in made:
