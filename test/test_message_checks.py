@@ -9,6 +9,7 @@ messages on a live node is tested in test_soak.py.
 """
 
 import re
+import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
@@ -20,6 +21,7 @@ from quatcal_ros.core.units import MESSAGE_NORM_TOLERANCE, NS_PER_S
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.ros.node import DIAGNOSTIC_NAME
+from quatcal_ros.ros.node import LOG_THROTTLE_S
 from quatcal_ros.sim import simulation
 from quatcal_ros.stream import message_checks as mc
 from quatcal_ros.stream.session import Notice
@@ -352,6 +354,7 @@ def test_logs_are_throttled_per_stream_and_reason(harness_factory, capfd):
     h = harness_factory()
     now = h.node.now_ns()
     nan_pose = Pose(np.array([np.nan, 0.0, 0.0]), quat.IDENTITY.copy())
+    started = time.monotonic()
     for k in range(300):
         msg = conversions.pose_stamped_msg(Pose.identity(), now + k * MS, '')
         msg.pose.position.x = nan_pose.position[0]
@@ -363,9 +366,12 @@ def test_logs_are_throttled_per_stream_and_reason(harness_factory, capfd):
     assert stats.bad[mc.SENSOR, 'non_finite'] == 300
     assert stats.bad[mc.LINK, 'zero_stamp'] == 300
     h.consistent()
+    # One line per stream and reason, and one more per LOG_THROTTLE_S (steady clock) should
+    # this loaded machine take that long: not one per message.
+    most = 1 + int((time.monotonic() - started) // LOG_THROTTLE_S)
     logged = capfd.readouterr().err
-    assert logged.count('/sensor_pose: bad message skipped (non_finite') == 1
-    assert logged.count('/link_pose: bad message skipped (zero_stamp') == 1
+    assert 1 <= logged.count('/sensor_pose: bad message skipped (non_finite') <= most
+    assert 1 <= logged.count('/link_pose: bad message skipped (zero_stamp') <= most
     status, values = h.fresh_status()
     assert values['bad_sensor_pose_non_finite'] == '300'
     assert status.message.startswith('waiting for poses (600 bad messages skipped')
