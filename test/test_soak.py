@@ -80,13 +80,11 @@ def feed(driver, streams, process, flood_per_s=0.0, every_links=None, on_links=N
             driver.spin_some(0.02)
 
     for k, (due, kind, stamp, pose) in enumerate(events):
-        floods = 0
         while flood_period_ns and flood_due <= due:
-            floods += 1
+            wait_for_room(0, 1)
+            driver.publish('flood', flood_due)
             flood_due += flood_period_ns
-        wait_for_room(kind == 'link', (kind == 'sensor') + floods)
-        for _ in range(floods):
-            driver.publish('flood', due)
+        wait_for_room(kind == 'link', kind == 'sensor')
         driver.publish(kind, stamp, pose)
         if kind == 'link' and on_links and driver.published['link'] % every_links == 0:
             on_links()
