@@ -1,31 +1,115 @@
-"""Fixtures and settings shared by all tests of quatcal_ros."""
+"""
+Fixtures and settings shared by all tests of quatcal_ros.
+
+Before any test module is imported, pytest_configure points HOME, ROS_HOME and ROS_LOG_DIR at
+a temporary directory of this session (nodes built by module-scoped fixtures, rcl's log files
+and every subprocess land there) and reserves a ROS domain id of this host for the session's
+default ROS_DOMAIN_ID.  Each test gets a private HOME on top (private_home).  At the end the
+user's own ~/.ros directories are compared with what they held at the start: a test that
+wrote there fails the session, naming what changed.
+"""
 
 import os
 from pathlib import Path
+import shutil
+import tempfile
 
 import numpy as np
 import pytest
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.quaternion import wxyz_from_xyzw
+import ros_domains
+import user_files
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+SESSION = pytest.StashKey[dict]()
 
 # Nodes started by the tests (in-process or as subprocesses, which inherit this) talk over real
 # DDS: keep discovery on this machine so parallel runs and other hosts do not interfere.
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 
+def pytest_configure(config):
+    """Move HOME, ROS_HOME and ROS_LOG_DIR to a session directory; reserve ROS_DOMAIN_ID."""
+    watched = user_files.watched_dirs(os.environ)
+    home = Path(tempfile.mkdtemp(prefix='quatcal_ros-test-home-'))
+    config.stash[SESSION] = {
+        'watched': watched, 'before': user_files.snapshot(watched), 'home': home,
+        'domain': ros_domains.reserve(), 'passed': False}
+    os.environ['HOME'] = str(home)
+    os.environ['ROS_HOME'] = str(home / '.ros')
+    os.environ['ROS_LOG_DIR'] = str(home / '.ros' / 'log')
+    os.environ['ROS_DOMAIN_ID'] = str(config.stash[SESSION]['domain'].domain_id)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """Note whether the session passed (its temporary HOME is then removed)."""
+    if SESSION in session.config.stash:
+        session.config.stash[SESSION]['passed'] = exitstatus == 0
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """After a failure, say where the session's HOME (and rcl's log files) are kept."""
+    if SESSION in config.stash and exitstatus != 0:
+        home = config.stash[SESSION]['home']
+        terminalreporter.write_line(f'test HOME kept: {home} (rcl logs in {home}/.ros/log)')
+
+
+def pytest_unconfigure(config):
+    """Release the session's domain id; remove its HOME unless the session failed."""
+    state = config.stash.get(SESSION, None)
+    if state is None:
+        return
+    state['domain'].release()
+    if state['passed']:
+        shutil.rmtree(state['home'], ignore_errors=True)
+
+
+@pytest.fixture(scope='session', autouse=True)
+def user_files_untouched(pytestconfig):
+    """Fail the session if the user's ~/.ros (journal, results, rcl logs) changed during it."""
+    yield
+    state = pytestconfig.stash[SESSION]
+    changed = user_files.changes(state['before'], user_files.snapshot(state['watched']))
+    if changed:
+        pytest.fail("the user's own ROS files changed during the test session (a test, or "
+                    'another process, wrote outside the test HOME):\n  ' + '\n  '.join(changed),
+                    pytrace=False)
+
+
+@pytest.fixture(scope='session')
+def session_home(pytestconfig):
+    """Return the session's temporary HOME (rcl's log files are in its .ros/log)."""
+    return pytestconfig.stash[SESSION]['home']
+
+
 @pytest.fixture(autouse=True)
 def private_home(tmp_path_factory, monkeypatch):
     """
-    Give every test (and the processes it starts) a HOME of its own.
+    Give every test (and the processes it starts) a HOME and ROS_HOME of its own.
 
     The calibrator node writes ~/.ros/quatcal/samples.csv (its samples journal) by default and
-    moves an earlier one aside: tests must not touch the user's files.  Returns the directory.
+    moves an earlier one aside: tests must not touch the user's files, nor each other's.
+    Returns the directory.
     """
     home = tmp_path_factory.mktemp('home')
     monkeypatch.setenv('HOME', str(home))
+    monkeypatch.setenv('ROS_HOME', str(home / '.ros'))
     return home
+
+
+@pytest.fixture(scope='module')
+def domain_id():
+    """Return a ROS domain id that no other holder on this host has, for one test module."""
+    with ros_domains.reserve() as reservation:
+        yield reservation.domain_id
+
+
+@pytest.fixture(scope='module')
+def process_domain_id():
+    """Return a second id for one module: the processes it starts, apart from its own nodes."""
+    with ros_domains.reserve() as reservation:
+        yield reservation.domain_id
 
 
 @pytest.fixture(scope='session')

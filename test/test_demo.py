@@ -1,4 +1,4 @@
-"""Tests of `python -m quatcal_ros demo` (quatcal_ros.tools.demo), on ROS_DOMAIN_ID 52."""
+"""Tests of `python -m quatcal_ros demo` (quatcal_ros.tools.demo), on a domain of conftest."""
 
 import os
 from pathlib import Path
@@ -13,12 +13,11 @@ from quatcal_ros.core.pose import Pose
 from quatcal_ros.tools import demo
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-DOMAIN_ID = '52'
 
 
 @pytest.fixture
-def domain(monkeypatch):
-    monkeypatch.setenv('ROS_DOMAIN_ID', DOMAIN_ID)
+def domain(monkeypatch, domain_id):
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(domain_id))
     monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 
@@ -64,8 +63,9 @@ def test_report_judges_the_true_error(capsys):
     assert demo.report(args, _result(0.01, 0.05), None) == 1
 
 
-def test_demo_command_with_defaults_converges():
-    env = dict(os.environ, ROS_DOMAIN_ID=DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+def test_demo_command_with_defaults_converges(domain_id):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     paths = [str(REPO_ROOT)] + [p for p in [env.get('PYTHONPATH')] if p]
     env['PYTHONPATH'] = os.pathsep.join(paths)
     done = subprocess.run([sys.executable, '-m', 'quatcal_ros', 'demo'], env=env, cwd=REPO_ROOT,

@@ -11,7 +11,8 @@ Property-based fuzzing (hypothesis) of everything that takes outside data.
 The property: no exception escapes (except the documented error type), the node's counts
 stay consistent (every message is counted once, as good or as bad under one reason), and good
 data after bad still calibrates.  Examples are derandomised so that runs are repeatable; set
-HYPOTHESIS_PROFILE=explore for more, random ones.  ROS_DOMAIN_ID 61 (nothing is published).
+HYPOTHESIS_PROFILE=explore for more, random ones.  The nodes live on a domain id of conftest
+(nothing is published).
 """
 
 import contextlib
@@ -52,7 +53,6 @@ from rclpy.context import Context
 from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
-DOMAIN_ID = 61
 NS = NS_PER_S
 MS = 1_000_000
 FRAMES = {mc.LINK: 'base', mc.SENSOR: 'camera'}
@@ -160,9 +160,9 @@ def message_lists(draw, now_ns, message_type, min_size=0, max_size=40):
 # --- the node's subscription callbacks -------------------------------------------------------
 
 @pytest.fixture(scope='module')
-def context():
+def context(domain_id):
     context = Context()
-    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    rclpy.init(context=context, domain_id=domain_id)
     yield context
     rclpy.try_shutdown(context=context)
 

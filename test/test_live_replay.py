@@ -20,7 +20,8 @@ The second play makes the clock jump back: the session clears its pairing buffer
 notice, /diagnostics time_jumps) and recognises each still of the second play as a repeat of
 an earlier sample, so the same data are not counted twice as new evidence (which made the
 reported uncertainty too small and could reject good samples).  The last tests check these
-rules on the session alone, as the offline replay drives it.  ROS_DOMAIN_ID 93.
+rules on the session alone, as the offline replay drives it.  On a domain id reserved on this
+host (conftest's domain_id); the node's files go to the session's temporary HOME.
 """
 
 import bisect
@@ -63,7 +64,6 @@ from rclpy.qos import ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from std_srvs.srv import Trigger
 
-DOMAIN_ID = 93
 NS = NS_PER_S
 SEED = 93
 N_STOPS = 8
@@ -254,7 +254,7 @@ class Player:
 
 
 @pytest.fixture(scope='module')
-def live(recording):
+def live(recording, domain_id):
     """Play the recording twice (--loop) into a calibrator with use_sim_time; a LiveRun."""
     namespace = f'/live_replay_{uuid.uuid4().hex[:10]}'
     run = LiveRun(namespace)
@@ -262,7 +262,7 @@ def live(recording):
     for topic in ('clock', 'rosout', 'diagnostics'):
         remaps += ['-r', f'/{topic}:={namespace}/{topic}']
     context = rclpy.Context()
-    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    rclpy.init(context=context, domain_id=domain_id)
     executor = SingleThreadedExecutor(context=context)
     calibrator = listener = None
     try:

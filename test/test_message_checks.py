@@ -2,13 +2,14 @@
 Tests of bad pose messages: the core checks (message_checks) and the node that applies them.
 
 Core tests run on plain numbers.  Node tests build the calibrator in a private Context and
-publish through the middleware (ROS_DOMAIN_ID 60): every kind of bad message is counted under
-its stream and reason in /diagnostics, logged with the topic and the reason (throttled per
-both), and skipped, and good data afterwards is still used.  A flood of bad messages on a
-live node is tested in test_soak.py.
+publish through the middleware (on a domain id of conftest): every kind of bad message is
+counted under its stream and reason in /diagnostics, logged with the topic and the reason
+(throttled per both), and skipped, and good data afterwards is still used.  A flood of bad
+messages on a live node is tested in test_soak.py.
 """
 
 import re
+import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
@@ -20,6 +21,7 @@ from quatcal_ros.core.units import MESSAGE_NORM_TOLERANCE, NS_PER_S
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.diagnostics import DIAGNOSTIC_NAME
 from quatcal_ros.ros.node import CalibratorNode
+from quatcal_ros.ros.node import LOG_THROTTLE_S
 from quatcal_ros.sim import simulation
 from quatcal_ros.stream import message_checks as mc
 from quatcal_ros.stream.session import Notice
@@ -34,7 +36,6 @@ from rclpy.qos import ReliabilityPolicy
 from ros_harness import SpinMixin
 from rosgraph_msgs.msg import Clock
 
-DOMAIN_ID = 60
 NS = NS_PER_S
 MS = 1_000_000
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
@@ -224,9 +225,9 @@ class Harness(SpinMixin):
 
     spin_step = 0.02
 
-    def __init__(self, overrides=()):
+    def __init__(self, domain_id, overrides=()):
         self.context = Context()
-        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
+        rclpy.init(context=self.context, domain_id=domain_id)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.node = CalibratorNode(context=self.context, parameter_overrides=list(overrides))
         self.driver = rclpy.create_node('checks_driver', context=self.context)
@@ -271,11 +272,11 @@ class Harness(SpinMixin):
 
 
 @pytest.fixture
-def harness_factory():
+def harness_factory(domain_id):
     made = []
 
     def make(overrides=()):
-        made.append(Harness(overrides))
+        made.append(Harness(domain_id, overrides))
         return made[-1]
     yield make
     for harness in made:
@@ -353,6 +354,7 @@ def test_logs_are_throttled_per_stream_and_reason(harness_factory, capfd):
     h = harness_factory()
     now = h.node.now_ns()
     nan_pose = Pose(np.array([np.nan, 0.0, 0.0]), quat.IDENTITY.copy())
+    started = time.monotonic()
     for k in range(300):
         msg = conversions.pose_stamped_msg(Pose.identity(), now + k * MS, '')
         msg.pose.position.x = nan_pose.position[0]
@@ -364,9 +366,12 @@ def test_logs_are_throttled_per_stream_and_reason(harness_factory, capfd):
     assert stats.bad[mc.SENSOR, 'non_finite'] == 300
     assert stats.bad[mc.LINK, 'zero_stamp'] == 300
     h.consistent()
+    # One line per stream and reason, and one more per LOG_THROTTLE_S (steady clock) should
+    # this loaded machine take that long: not one per message.
+    most = 1 + int((time.monotonic() - started) // LOG_THROTTLE_S)
     logged = capfd.readouterr().err
-    assert logged.count('/sensor_pose: bad message skipped (non_finite') == 1
-    assert logged.count('/link_pose: bad message skipped (zero_stamp') == 1
+    assert 1 <= logged.count('/sensor_pose: bad message skipped (non_finite') <= most
+    assert 1 <= logged.count('/link_pose: bad message skipped (zero_stamp') <= most
     status, values = h.fresh_status()
     assert values['bad_sensor_pose_non_finite'] == '300'
     assert status.message.startswith('waiting for poses (600 bad messages skipped')

@@ -4,8 +4,8 @@ Tests of the calibrator node over real DDS: in-process (rclpy style) and as proc
 In-process tests build the node in a private Context with parameter_overrides and drive it
 from a second node through the middleware, spinning one executor with deadlines.  The
 multi-process test runs `python -m quatcal_ros sim_cell` and `... calibrator` and stops them
-with SIGINT / SIGTERM.  ROS_DOMAIN_ID 53 (in-process) and 54 (processes) keep these tests
-apart from the other test files.
+with SIGINT / SIGTERM.  Two domain ids reserved on this host (conftest: domain_id for the
+in-process tests, process_domain_id for the processes) keep them apart from everything else.
 """
 
 import os
@@ -44,8 +44,6 @@ from std_srvs.srv import Trigger
 import yaml
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-DOMAIN_ID = 53
-PROCESS_DOMAIN_ID = 54
 NS = NS_PER_S
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -64,9 +62,9 @@ def rotation_of(msg):
 class Harness(SpinMixin):
     """A calibrator node and a driver node in one private context and executor."""
 
-    def __init__(self, overrides=(), sensor_qos=RELIABLE, message_type=PoseStamped):
+    def __init__(self, domain_id, overrides=(), sensor_qos=RELIABLE, message_type=PoseStamped):
         self.context = Context()
-        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
+        rclpy.init(context=self.context, domain_id=domain_id)
         self.executor = SingleThreadedExecutor(context=self.context)
         # The simulated streams are stamped in 2023 (simulation.DEFAULT_START_NS): the check
         # of stamps against the node clock is off unless a test sets it.
@@ -128,11 +126,11 @@ class Harness(SpinMixin):
 
 
 @pytest.fixture
-def harness_factory():
+def harness_factory(domain_id):
     made = []
 
     def make(*args, **kwargs):
-        made.append(Harness(*args, **kwargs))
+        made.append(Harness(domain_id, *args, **kwargs))
         return made[-1]
     yield make
     for harness in made:
@@ -284,9 +282,9 @@ def test_manual_capture_service(harness_factory):
 
 # --- parameters -----------------------------------------------------------------------------
 
-def test_invalid_parameters_are_refused_at_start(harness_factory):
+def test_invalid_parameters_are_refused_at_start(domain_id):
     context = Context()
-    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    rclpy.init(context=context, domain_id=domain_id)
     try:
         for name, value in (('setup', 'sideways'), ('still_window_s', -1.0),
                             ('capture_mode', 'never'), ('pose_type', 'odometry')):
@@ -323,9 +321,9 @@ def test_transform_messages_with_pose_type_transform(harness_factory):
     h.spin_until(lambda: len(h.node.session.samples) == 1, what='a sample from transforms')
 
 
-def test_topic_names_follow_namespace_and_remapping():
+def test_topic_names_follow_namespace_and_remapping(domain_id):
     context = Context()
-    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    rclpy.init(context=context, domain_id=domain_id)
     try:
         node = CalibratorNode(context=context, namespace='cell1',
                               cli_args=['--ros-args', '-r', 'link_pose:=/robot/tool_pose'])
@@ -384,37 +382,38 @@ def _tool_command(tool):
     return [sys.executable, '-c', f'import sys; from {module} import main; sys.exit(main())']
 
 
-def _process_env():
-    env = dict(os.environ, ROS_DOMAIN_ID=str(PROCESS_DOMAIN_ID),
+def _process_env(domain_id):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id),
                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
     env['PYTHONPATH'] = os.pathsep.join(
         [str(REPO_ROOT)] + [p for p in [env.get('PYTHONPATH')] if p])
     return env
 
 
-def _start(tool, *ros_args, log_path):
+def _start(tool, *ros_args, log_path, domain_id):
     command = _tool_command(tool) + (['--ros-args', *ros_args] if ros_args else [])
-    return subprocess.Popen(command, env=_process_env(), cwd=REPO_ROOT,
+    return subprocess.Popen(command, env=_process_env(domain_id), cwd=REPO_ROOT,
                             stdout=log_path.open('w'), stderr=subprocess.STDOUT)
 
 
 class Listener(ProcessWatcher):
     """A node in the test process that listens to the processes' outputs."""
 
-    def __init__(self):
-        super().__init__('test_listener', PROCESS_DOMAIN_ID)
+    def __init__(self, domain_id):
+        super().__init__('test_listener', domain_id)
         self.truths = []
         self.node.create_subscription(TransformStamped, '/sim_cell/ground_truth',
                                       self.truths.append, LATCHED)
 
 
-def test_processes_converge_to_the_ground_truth_and_exit_cleanly(tmp_path):
+def test_processes_converge_to_the_ground_truth_and_exit_cleanly(tmp_path, process_domain_id):
     sim = _start('sim_cell', '-p', 'seed:=4', '-p', 'still_s:=0.6', '-p', 'move_s:=0.6',
                  '-p', 'link_rate_hz:=100.0', '-p', 'rotation_spread_deg:=40.0',
-                 log_path=tmp_path / 'sim.log')
+                 log_path=tmp_path / 'sim.log', domain_id=process_domain_id)
     calibrator = _start('calibrator', '-p', 'still_window_s:=0.3',
-                        '-p', 'diagnostics_period_s:=0.5', log_path=tmp_path / 'calib.log')
-    listener = Listener()
+                        '-p', 'diagnostics_period_s:=0.5', log_path=tmp_path / 'calib.log',
+                        domain_id=process_domain_id)
+    listener = Listener(process_domain_id)
     processes = (sim, calibrator)
     try:
         def converged():
@@ -437,13 +436,16 @@ def test_processes_converge_to_the_ground_truth_and_exit_cleanly(tmp_path):
     assert 'sample 0 captured' in logs and 'estimate:' in logs
 
 
-def test_process_exits_cleanly_on_sigterm_and_refuses_bad_parameters(tmp_path):
+def test_process_exits_cleanly_on_sigterm_and_refuses_bad_parameters(tmp_path,
+                                                                     process_domain_id):
     bad = subprocess.run(
         _tool_command('calibrator') + ['--ros-args', '-p', 'setup:=sideways'],
-        env=_process_env(), cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
+        env=_process_env(process_domain_id), cwd=REPO_ROOT, capture_output=True, text=True,
+        timeout=60)
     assert bad.returncode != 0
     assert 'setup' in bad.stdout + bad.stderr and 'sideways' in bad.stdout + bad.stderr
-    calibrator = _start('calibrator', log_path=tmp_path / 'calib.log')
+    calibrator = _start('calibrator', log_path=tmp_path / 'calib.log',
+                        domain_id=process_domain_id)
     deadline = time.monotonic() + 30.0
     while 'calibrating' not in (tmp_path / 'calib.log').read_text():
         assert calibrator.poll() is None and time.monotonic() < deadline

@@ -5,7 +5,8 @@ The node's result outputs for the ROS ecosystem, over real DDS (in-process, rclp
 of the full result, publish_tf (tf2_ros present or not), and ~/save's easy_handeye2 file and
 static_transform_publisher line.  Samples are handed to the node's session the way a resumed
 samples journal is (session.add_samples, then handle_events); the pose-topic input path is
-tested in test_node.py.  ROS_DOMAIN_ID 101 keeps these tests apart from the other files.
+tested in test_node.py.  A domain id reserved on this host (conftest's domain_id) keeps these
+tests apart from everything else.
 """
 
 import sys
@@ -33,7 +34,6 @@ from ros_harness import SpinMixin
 from std_srvs.srv import Trigger
 import yaml
 
-DOMAIN_ID = 101
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 ROSOUT = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
@@ -43,9 +43,9 @@ ROSOUT = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
 class Harness(SpinMixin):
     """A calibrator node and a driver node (rosout, diagnostics, services) in one context."""
 
-    def __init__(self, tmp_path, overrides=()):
+    def __init__(self, domain_id, tmp_path, overrides=()):
         self.context = Context()
-        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
+        rclpy.init(context=self.context, domain_id=domain_id)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.driver = rclpy.create_node('transform_test_driver', context=self.context)
         self.logs = []
@@ -99,11 +99,11 @@ class Harness(SpinMixin):
 
 
 @pytest.fixture
-def make_harness(tmp_path):
+def make_harness(domain_id, tmp_path):
     made = []
 
     def make(overrides=()):
-        made.append(Harness(tmp_path, overrides))
+        made.append(Harness(domain_id, tmp_path, overrides))
         return made[-1]
     yield make
     for harness in made:

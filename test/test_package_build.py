@@ -100,13 +100,12 @@ def _wait_for_node(name, domain_id, proc, timeout):
 
 
 @pytest.mark.colcon
-def test_ros2_run_calibrator_starts_and_stops_on_sigint(workspace, monkeypatch):
+def test_ros2_run_calibrator_starts_and_stops_on_sigint(workspace, monkeypatch, domain_id):
     monkeypatch.setenv('AMENT_PREFIX_PATH', str(workspace / PKG))
     prefix = Path(get_package_prefix(PKG))  # what `ros2 run` asks first
     assert prefix == workspace / PKG
     exe = prefix / 'lib' / PKG / 'calibrator'
 
-    domain_id = 1 + os.getpid() % 100  # keep away from other runs' nodes
     proc = subprocess.Popen([str(exe)], env=_run_env(prefix, domain_id), cwd=workspace,
                             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
@@ -132,12 +131,12 @@ def test_ros2_run_calibrator_starts_and_stops_on_sigint(workspace, monkeypatch):
 
 
 @pytest.mark.colcon
-def test_installed_copy_is_imported(workspace):
+def test_installed_copy_is_imported(workspace, domain_id):
     """The installed tools import the installed package, not the working tree."""
     prefix = workspace / PKG
     code = 'import quatcal_ros.ros.node as m; print(m.__file__)'
     # cwd outside the repo: `python -c` puts the cwd first on sys.path.
-    proc = subprocess.run([sys.executable, '-c', code], env=_run_env(prefix, 0),
+    proc = subprocess.run([sys.executable, '-c', code], env=_run_env(prefix, domain_id),
                           cwd=workspace, stdin=subprocess.DEVNULL, capture_output=True,
                           text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr

@@ -15,14 +15,13 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 import yaml
 
-DOMAIN_ID = 56
 DEFAULTS = Settings().as_dict()
 
 
 @pytest.fixture
-def context():
+def context(domain_id):
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    rclpy.init(context=ctx, domain_id=domain_id)
     yield ctx
     rclpy.try_shutdown(context=ctx)
 
@@ -156,10 +155,10 @@ def test_params_file_lists_every_parameter_with_its_default(repo_root):
         assert lines[index - 1].strip().startswith('#'), f'{setting.name} has no comment'
 
 
-def test_params_file_loads_through_rcl(repo_root):
+def test_params_file_loads_through_rcl(repo_root, domain_id):
     path = repo_root / 'config' / 'calibrator.yaml'
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID,
+    rclpy.init(context=ctx, domain_id=domain_id,
                args=['calibrator', '--ros-args', '--params-file', str(path)])
     try:
         config, node = _declared(ctx)

@@ -7,8 +7,8 @@ The main test kills the node process with SIGKILL in the middle of a session fed
 stop-and-go stream, checks that the samples journal holds every sample the node reported, and
 restarts it with resume:=true: same sample count, the estimate of calibrate() on the journal's
 samples (to 1e-9), and more samples taken as the stream goes on.  The other tests build the
-node in-process (rclpy style) and read its log with capfd.  ROS_DOMAIN_ID 81 (in-process) and
-82 (processes) keep these tests apart from the other test files.
+node in-process (rclpy style) and read its log with capfd.  Two domain ids reserved on this
+host (conftest: domain_id in-process, process_domain_id for processes) keep them apart.
 """
 
 import ast
@@ -58,8 +58,6 @@ from ros_harness import SpinMixin
 from std_srvs.srv import Trigger
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-DOMAIN_ID = 81
-PROCESS_DOMAIN_ID = 82
 NS = NS_PER_S
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 HEADER = JournalHeader('eye_in_hand', 'tool0', 'camera')
@@ -103,9 +101,9 @@ class Rig(SpinMixin):
 
     spin_timeout = 15.0
 
-    def __init__(self, overrides):
+    def __init__(self, domain_id, overrides):
         self.context = Context()
-        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
+        rclpy.init(context=self.context, domain_id=domain_id)
         self.executor = SingleThreadedExecutor(context=self.context)
         # The synthetic stamps are in 2023: no check against the node clock.
         overrides = [Parameter('max_stamp_offset_s', value=0.0)] + overrides
@@ -152,11 +150,11 @@ def calibrator_info_logs():
 
 
 @pytest.fixture
-def rig_factory():
+def rig_factory(domain_id):
     made = []
 
     def make(*overrides):
-        made.append(Rig(list(overrides)))
+        made.append(Rig(domain_id, list(overrides)))
         return made[-1]
     yield make
     for rig in made:
@@ -170,10 +168,10 @@ def random_stops(rng, cell, n):
                                               cell.home.quaternion))) for _ in range(n)]
 
 
-def make_node(*overrides):
+def make_node(domain_id, *overrides):
     """Make a calibrator node without a driver (start-up behaviour); the caller closes it."""
     context = Context()
-    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    rclpy.init(context=context, domain_id=domain_id)
     try:
         return CalibratorNode(context=context, parameter_overrides=list(overrides)), context
     except Exception:
@@ -187,10 +185,10 @@ def close_node(node, context):
 
 
 @contextlib.contextmanager
-def resumed_node(path, samples):
+def resumed_node(domain_id, path, samples):
     """Yield a calibrator node that resumed a journal of `samples` at `path`; close it."""
     write_journal(path, samples)
-    node, context = make_node(Parameter('samples_file', value=str(path)),
+    node, context = make_node(domain_id, Parameter('samples_file', value=str(path)),
                               Parameter('resume', value=True))
     try:
         yield node
@@ -223,11 +221,11 @@ def test_resume_reloads_the_journal_and_publishes_its_estimate(rig_factory, tmp_
     assert ('being written when the node stopped: dropped' in log) == torn
 
 
-def test_start_moves_an_earlier_journal_aside_and_says_so(tmp_path, capfd):
+def test_start_moves_an_earlier_journal_aside_and_says_so(tmp_path, capfd, domain_id):
     _, samples = synthetic_samples(4)
     path = tmp_path / 'samples.csv'
     before = write_journal(path, samples)
-    node, context = make_node(Parameter('samples_file', value=str(path)))
+    node, context = make_node(domain_id, Parameter('samples_file', value=str(path)))
     try:
         assert node.session.samples == [] and node.journal.count == 0
     finally:
@@ -245,7 +243,7 @@ def test_start_moves_an_earlier_journal_aside_and_says_so(tmp_path, capfd):
      'not a quatcal_ros samples journal'),                   # a YAML file: foreign
 ])
 def test_corrupt_or_foreign_journal_is_moved_aside_and_reported(tmp_path, capfd, content,
-                                                                words):
+                                                                words, domain_id):
     path = tmp_path / 'samples.csv'
     if content is None:
         _, samples = synthetic_samples(4)
@@ -253,7 +251,7 @@ def test_corrupt_or_foreign_journal_is_moved_aside_and_reported(tmp_path, capfd,
         lines[3] = lines[3].rsplit(',', 1)[0] + ',NaN-ish\n'
         content = ''.join(lines).encode()
     path.write_bytes(content)
-    node, context = make_node(Parameter('samples_file', value=str(path)),
+    node, context = make_node(domain_id, Parameter('samples_file', value=str(path)),
                               Parameter('resume', value=True))
     try:
         assert node.session.samples == []
@@ -267,13 +265,13 @@ def test_corrupt_or_foreign_journal_is_moved_aside_and_reported(tmp_path, capfd,
     assert 'nothing resumed' in log
 
 
-def test_resume_is_refused_for_another_setup_or_frames(tmp_path):
+def test_resume_is_refused_for_another_setup_or_frames(tmp_path, domain_id):
     _, samples = synthetic_samples(4)
     path = tmp_path / 'samples.csv'
     before = write_journal(path, samples, JournalHeader('eye_to_hand', 'base_link', 'camera'))
     for extra in ([], [Parameter('setup', value='eye_to_hand')]):
         with pytest.raises(ConfigError, match='resume:=true refused') as error:
-            make_node(Parameter('samples_file', value=str(path)),
+            make_node(domain_id, Parameter('samples_file', value=str(path)),
                       Parameter('resume', value=True), *extra)
         assert 'link_frame' in str(error.value)
         assert ("setup 'eye_to_hand' (parameters: 'eye_in_hand')" in str(error.value)) \
@@ -282,15 +280,16 @@ def test_resume_is_refused_for_another_setup_or_frames(tmp_path):
     assert aside_files(tmp_path, 'previous') == aside_files(tmp_path, 'corrupt') == []
 
 
-def test_a_second_node_on_the_same_samples_file_is_refused(tmp_path):
+def test_a_second_node_on_the_same_samples_file_is_refused(tmp_path, domain_id):
     path = tmp_path / 'samples.csv'
-    node, context = make_node(Parameter('samples_file', value=str(path)))
+    node, context = make_node(domain_id, Parameter('samples_file', value=str(path)))
     try:
         with pytest.raises(ConfigError, match='in use by another running calibrator'):
-            make_node(Parameter('samples_file', value=str(path)))
+            make_node(domain_id, Parameter('samples_file', value=str(path)))
     finally:
         close_node(node, context)
-    node, context = make_node(Parameter('samples_file', value=str(path)))   # lock released
+    # The lock is released.
+    node, context = make_node(domain_id, Parameter('samples_file', value=str(path)))
     close_node(node, context)
 
 
@@ -326,10 +325,10 @@ def test_samples_are_journaled_reset_moves_the_journal_aside(rig_factory, tmp_pa
 
 
 def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before_its_log(
-        tmp_path, monkeypatch):
+        tmp_path, monkeypatch, domain_id):
     _, samples = synthetic_samples(8)
     path = tmp_path / 'samples.csv'
-    with resumed_node(path, samples[:7]) as node:
+    with resumed_node(domain_id, path, samples[:7]) as node:
         steps = []
         real_write, real_fsync = os.write, os.fsync
         monkeypatch.setattr(journal.os, 'write',
@@ -361,10 +360,11 @@ def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before
         assert len(journal.read_journal(path).samples) == 10
 
 
-def test_a_due_full_solve_is_the_one_estimate_the_node_publishes(tmp_path, monkeypatch):
+def test_a_due_full_solve_is_the_one_estimate_the_node_publishes(tmp_path, monkeypatch,
+                                                                 domain_id):
     _, samples = synthetic_samples(20, seed=4)
     path = tmp_path / 'samples.csv'
-    with resumed_node(path, samples[:19]) as node:
+    with resumed_node(domain_id, path, samples[:19]) as node:
         published = []
         publish = node.rotation_publisher.publish
         monkeypatch.setattr(node.rotation_publisher, 'publish',
@@ -509,8 +509,8 @@ def test_no_code_from_data_in_the_package():
 
 # --- as processes: SIGKILL in the middle of a session ---------------------------------------
 
-def _process_env(home):
-    env = dict(os.environ, ROS_DOMAIN_ID=str(PROCESS_DOMAIN_ID),
+def _process_env(home, domain_id):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id),
                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1',
                HOME=str(home))
     env['PYTHONPATH'] = os.pathsep.join(
@@ -525,8 +525,8 @@ def _calibrator_command(*ros_args):
 class Feeder(ProcessWatcher):
     """Publishes the stream to the calibrator process and listens to its outputs."""
 
-    def __init__(self, events):
-        super().__init__('resume_test_feeder', PROCESS_DOMAIN_ID)
+    def __init__(self, events, domain_id):
+        super().__init__('resume_test_feeder', domain_id)
         self.events = events
         self.next = 0
         self.publishers = {name: self.node.create_publisher(PoseStamped, name, RELIABLE)
@@ -589,7 +589,7 @@ def test_a_shutdown_between_executor_steps_ends_the_spin_quietly(monkeypatch):
     assert stub.destroyed == 2                    # the node is destroyed either way
 
 
-def test_sigkill_mid_session_loses_no_sample_and_resume_continues(tmp_path):
+def test_sigkill_mid_session_loses_no_sample_and_resume_continues(tmp_path, process_domain_id):
     rng = np.random.default_rng(21)
     cell = simulation.random_cell(rng)
     streams = simulation.stop_and_go_streams(
@@ -599,8 +599,8 @@ def test_sigkill_mid_session_loses_no_sample_and_resume_continues(tmp_path):
     samples_file = tmp_path / 'journal' / 'samples.csv'
     ros_args = ['-p', f'samples_file:={samples_file}', '-p', 'still_window_s:=0.3',
                 '-p', 'diagnostics_period_s:=0.2', '-p', 'max_stamp_offset_s:=0.0']
-    feeder = Feeder(stream_events(streams))
-    env = _process_env(tmp_path)
+    feeder = Feeder(stream_events(streams), process_domain_id)
+    env = _process_env(tmp_path, process_domain_id)
     first_log, second_log = tmp_path / 'first.log', tmp_path / 'second.log'
     process = subprocess.Popen(_calibrator_command(*ros_args), env=env, cwd=tmp_path,
                                stdout=first_log.open('w'), stderr=subprocess.STDOUT)
@@ -660,13 +660,14 @@ def test_sigkill_mid_session_loses_no_sample_and_resume_continues(tmp_path):
     assert aside_files(samples_file.parent, 'corrupt') == []
 
 
-def test_process_refuses_to_resume_another_setup_with_exit_2(tmp_path):
+def test_process_refuses_to_resume_another_setup_with_exit_2(tmp_path, process_domain_id):
     _, samples = synthetic_samples(4)
     path = tmp_path / 'samples.csv'
     before = write_journal(path, samples, JournalHeader('eye_to_hand', 'tool0', 'camera'))
     done = subprocess.run(
         _calibrator_command('-p', f'samples_file:={path}', '-p', 'resume:=true'),
-        env=_process_env(tmp_path), cwd=tmp_path, capture_output=True, text=True, timeout=60)
+        env=_process_env(tmp_path, process_domain_id), cwd=tmp_path, capture_output=True,
+        text=True, timeout=60)
     output = done.stdout + done.stderr
     assert done.returncode == 2, output
     assert 'resume:=true refused' in output and "setup 'eye_to_hand'" in output

@@ -1,9 +1,15 @@
-"""The sim_cell node over real DDS, in-process (rclpy's own test pattern), and as a program."""
+"""
+The sim_cell node over real DDS, in-process (rclpy's own test pattern), and as a program.
+
+On domain ids reserved on this host (conftest).  The streams are checked by their stamps and
+contents, not by when they arrive: no rate or delay measured on the wall clock is asserted.
+"""
 
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 import uuid
 
@@ -24,9 +30,6 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
-# Domains 40-49 are this test suite's; the program test uses its own.
-DOMAIN_ID = 45
-PROGRAM_DOMAIN_ID = 46
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -38,10 +41,10 @@ def namespace():
 
 
 @pytest.fixture
-def context():
-    """Yield a private rclpy Context on DOMAIN_ID, shut down afterwards."""
+def context(domain_id):
+    """Yield a private rclpy Context on the module's domain, shut down afterwards."""
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    rclpy.init(context=ctx, domain_id=domain_id)
     yield ctx
     rclpy.try_shutdown(context=ctx)
 
@@ -52,7 +55,7 @@ class Recorder:
     def __init__(self, context, namespace):
         self.node = Node('sim_cell_recorder', context=context, namespace=namespace)
         self.link, self.sensor, self.truth = [], [], []
-        stream = QoSProfile(depth=100)
+        stream = QoSProfile(depth=1000)      # seconds of the streams: a busy executor loses none
         self.node.create_subscription(PoseStamped, 'link_pose', self._keep(self.link), stream)
         self.node.create_subscription(PoseStamped, 'sensor_pose', self._keep(self.sensor), stream)
         self.node.create_subscription(TransformStamped, 'sim_cell/ground_truth',
@@ -76,6 +79,14 @@ def spin_until(executor, condition, timeout_s):
 def spin_for(executor, seconds):
     """Spin for a fixed time."""
     spin_until(executor, lambda: False, seconds)
+
+
+def stamp_span_s(store):
+    """Return the time between the first and the last header stamp of a Recorder store (s)."""
+    if len(store) < 2:
+        return 0.0
+    first, last = (conv.stamp_ns_from_header(store[k][1].header) for k in (0, -1))
+    return (last - first) / 1e9
 
 
 def _overrides(**values):
@@ -125,8 +136,9 @@ def test_publishes_latched_truth_and_the_simulated_streams(context, namespace, c
         recorder = Recorder(context, namespace)
         nodes.append(recorder.node)
         executor.add_node(recorder.node)
-        assert spin_until(executor, lambda: recorder.truth and len(recorder.sensor) > 5, 10.0)
-        spin_for(executor, 3.0)
+        # Three seconds of the streams by their stamps, however long they take to arrive.
+        assert spin_until(executor, lambda: (recorder.truth and len(recorder.sensor) >= 20
+                                             and stamp_span_s(recorder.link) >= 3.0), 60.0)
     finally:
         executor.shutdown()
         for node in nodes:
@@ -155,21 +167,13 @@ def test_publishes_latched_truth_and_the_simulated_streams(context, namespace, c
     sensor_period = 1e9 / values['sensor_rate_hz']
     link_steps = np.diff([s for s, *_ in link]) / round(link_period)
     assert np.all(link_steps == np.round(link_steps)) and np.all(link_steps >= 1)
-    assert np.mean(link_steps == 1) > 0.95   # a busy test executor may drop a few
+    assert np.mean(link_steps == 1) > 0.95   # every grid point, but for a very few
     assert np.all((np.array([s for s, *_ in sensor]) - start) % round(sensor_period) == 0)
 
-    # Rates, roughly: over the recording, arrivals keep up with the clock within 25 %.
-    arrivals = np.array([a for _, _, a, _ in link])
-    span_s = (arrivals[-1] - arrivals[0]) / 1e9
-    assert len(link) / span_s == pytest.approx(values['link_rate_hz'], rel=0.25)
-    sensor_span_s = (sensor[-1][2] - sensor[0][2]) / 1e9
-    expected_sensor_rate = values['sensor_rate_hz'] * (1.0 - values['drop_probability'])
-    assert len(sensor) / sensor_span_s == pytest.approx(expected_sensor_rate, rel=0.35)
-
-    # Frames arrive latency_s after their exposure stamp (the same system clock), not before.
+    # Frames are published latency_s after their exposure stamp (the same system clock), never
+    # before (a loaded machine only makes them later).
     delays = np.array([(arrival - stamp) / 1e9 for stamp, _, arrival, _ in sensor])
     assert delays.min() >= values['latency_s']
-    assert np.median(delays) < values['latency_s'] + 0.05
 
     # The very poses of stop_and_go_streams with the same seed and start.
     expected = _expected_streams(values, start)
@@ -209,7 +213,7 @@ def test_follows_the_ros_clock_with_use_sim_time(context, namespace):
     try:
         spin_for(executor, 0.5)
         assert not recorder.truth and not recorder.link   # no /clock yet: ROS time is 0
-        deadline = time.monotonic() + 10.0
+        deadline = time.monotonic() + 60.0
         while time.monotonic() < deadline and len(recorder.link) < 150:
             # 50 ms of sim time per round: the node catches up with several samples per tick.
             sim_now_ns += 5 * 10 ** 7
@@ -252,27 +256,36 @@ def test_parameters_are_described_with_ranges(context):
         node.destroy_node()
 
 
-def test_program_logs_the_truth_and_stops_cleanly_on_ctrl_c(repo_root):
-    env = dict(os.environ, ROS_DOMAIN_ID=str(PROGRAM_DOMAIN_ID),
+def test_program_logs_the_truth_and_stops_cleanly_on_ctrl_c(repo_root, process_domain_id):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(process_domain_id),
                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
     process = subprocess.Popen(
         [sys.executable, '-m', 'quatcal_ros.ros.sim_cell', '--ros-args', '-p', 'n_stops:=2',
          '-p', 'still_s:=0.2', '-p', 'move_s:=0.3'],
         cwd=repo_root, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines = []
+    reader = threading.Thread(target=lambda: lines.extend(process.stdout), daemon=True)
+    reader.start()
     try:
-        time.sleep(3.0)
+        # Ctrl-C once it has visited its stops (the wait is generous: startup under load).
+        deadline = time.monotonic() + 60.0
+        while not any('visited all 2 stops' in line for line in lines):
+            assert process.poll() is None, ''.join(lines)
+            assert time.monotonic() < deadline, 'no "visited all 2 stops":\n' + ''.join(lines)
+            time.sleep(0.05)
         process.send_signal(signal.SIGINT)
-        output, _ = process.communicate(timeout=10)
+        process.wait(timeout=30)
+        reader.join(timeout=10)
     finally:
         process.kill()
+    output = ''.join(lines)
     assert process.returncode == 0, output
     assert 'ground truth eye_in_hand tool0 -> camera: quaternion (x, y, z, w) = (' in output
-    assert 'visited all 2 stops' in output
     assert 'Traceback' not in output
 
 
-def test_program_exits_2_on_bad_parameters(repo_root):
-    env = dict(os.environ, ROS_DOMAIN_ID=str(PROGRAM_DOMAIN_ID))
+def test_program_exits_2_on_bad_parameters(repo_root, process_domain_id):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(process_domain_id))
     result = subprocess.run(
         [sys.executable, '-m', 'quatcal_ros.ros.sim_cell', '--ros-args', '-p', 'setup:=sideways'],
         cwd=repo_root, env=env, capture_output=True, text=True, timeout=30)
