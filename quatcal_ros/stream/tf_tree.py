@@ -24,7 +24,7 @@ from typing import NamedTuple
 
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.units import NS_PER_S
-from quatcal_ros.stream.pairing import interpolate_pose
+from quatcal_ros.stream.pose_buffer import interpolate_pose
 
 # Lookup outcomes: evaluated; not yet (an edge has no transform at or after the stamp);
 # never (the stamp is older than a buffer, or inside a gap too long to interpolate across).

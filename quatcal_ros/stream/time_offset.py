@@ -23,7 +23,7 @@ from quatcal_ros.core.calibration import calibrate
 from quatcal_ros.core.pose import Sample
 from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.units import NS_PER_S
-from quatcal_ros.stream.pairing import interpolate_pose
+from quatcal_ros.stream.pose_buffer import interpolate_pose
 from quatcal_ros.stream.session import Session
 
 
