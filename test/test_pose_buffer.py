@@ -55,8 +55,7 @@ def test_empty_buffer():
     assert (len(buffer), buffer.oldest_ns, buffer.newest_ns, buffer.span_ns) == (0, None, None, 0)
     assert buffer.at(START_NS) == (None, Miss(LATER, None, None))
     assert buffer.first_after(START_NS) is None and buffer.last_at_or_before(START_NS) is None
-    positions, quaternions = buffer.arrays()
-    assert positions.shape == (0, 3) and quaternions.shape == (0, 4)
+    assert buffer.poses() == [] and list(buffer.after()) == []
 
 
 def test_insert_keeps_order_replaces_equal_stamps_and_refuses_too_old_ones():
@@ -149,9 +148,7 @@ def test_range_queries():
     assert buffer.last_at_or_before(START_NS - 1) is None
     assert [stamp for stamp, _ in buffer.after(START_NS + 15 * MS)] == \
         [START_NS + 20 * MS, START_NS + 30 * MS]
-    positions, quaternions = buffer.arrays()
-    assert_allclose(positions[:, 0], [0.0, 10.0, 20.0, 30.0])
-    assert quaternions.shape == (4, 4)
+    assert [pose.position[0] for pose in buffer.poses()] == [0.0, 10.0, 20.0, 30.0]
 
 
 def test_trim_by_window_and_length():
@@ -240,7 +237,7 @@ def test_extend_is_append_one_by_one(runs, window_ms, max_length, stop):
         assert count == expected
         by_rows.trim()
         one_by_one.trim()
-    assert len(by_rows) == len(one_by_one)
+    assert len(by_rows) == len(one_by_one) == len(by_rows.poses())
     for (stamp, pose), (other_stamp, other) in zip(by_rows.after(), one_by_one.after()):
         assert stamp == other_stamp
         assert np.array_equal(pose.position, other.position)

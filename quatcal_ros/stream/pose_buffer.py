@@ -24,8 +24,6 @@ import bisect
 from itertools import repeat
 from typing import NamedTuple, Optional
 
-import numpy as np
-
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
 
@@ -205,11 +203,11 @@ class PoseBuffer:
         for index in range(first, len(self._stamps)):
             yield self._stamps[index], self._pose(index)
 
-    def arrays(self):
-        """Return the kept poses as arrays: positions (n, 3), quaternions (n, 4), oldest first."""
-        poses = [self._pose(index) for index in range(self._start, len(self._stamps))]
-        return (np.array([pose.position for pose in poses]).reshape(-1, 3),
-                np.array([pose.quaternion for pose in poses]).reshape(-1, 4))
+    def poses(self):
+        """Return the kept poses, oldest first (a list)."""
+        start = self._start
+        return [self._pose(index) if type(pose) is tuple else pose
+                for index, pose in enumerate(self._poses[start:], start)]
 
     def _pose(self, index):
         """Return the Pose at `index` of the lists, built first if it is a row."""
