@@ -8,7 +8,7 @@ import pytest
 
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
-from quatcal_ros.stream.pairing import interpolate_pose, OutOfOrderStamp, Pairer, PairingConfig
+from quatcal_ros.stream.pairing import OutOfOrderStamp, Pairer, PairingConfig
 
 START_NS = 1_700_000_000 * 10**9   # a realistic epoch: float64 cannot hold it to the ns
 NS = 10**9
@@ -116,16 +116,6 @@ def test_any_rates_and_latency_give_exact_pairs_in_order(seed, link_hz, sensor_h
         assert_same_pose(pair.sensor, sensor_truth.at(pair.stamp_ns), atol=1e-6)
 
 
-def test_interpolate_pose_endpoints_and_midpoint():
-    a = Pose.create([0.0, 0.0, 0.0], quat.IDENTITY)
-    b = Pose.create([2.0, 0.0, 0.0], quat.from_axis_angle([0.0, 0.0, 1.0], np.radians(90.0)))
-    assert_same_pose(interpolate_pose(a, b, 0.0), a, atol=1e-15)
-    assert_same_pose(interpolate_pose(a, b, 1.0), b, atol=1e-15)
-    middle = Pose.create([1.0, 0.0, 0.0],
-                         quat.from_axis_angle([0.0, 0.0, 1.0], np.radians(45.0)))
-    assert_same_pose(interpolate_pose(a, b, 0.5), middle, atol=1e-15)
-
-
 def test_exact_stamps_pair_with_the_samples_themselves():
     rng = np.random.default_rng(3)
     truth = ConstantTwist(rng, 30.0, 0.1)
@@ -203,7 +193,7 @@ def test_buffers_are_bounded_by_window_and_length():
     assert largest['link'] == 300          # max_length binds: 1 s at 1 kHz is 1001 poses
     assert 30 <= largest['sensor'] <= 31   # the window binds: 1 s at 30 Hz
     # The storage behind the buffers is compacted, not only the visible part.
-    assert len(pairer._streams['link'].stamps) <= 2 * max(300, 256)
+    assert len(pairer._streams['link']._stamps) <= 2 * max(300, 256)
 
 
 def test_out_of_order_stamps_are_reported_and_change_nothing():

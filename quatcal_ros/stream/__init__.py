@@ -1,6 +1,6 @@
 """
 From pose streams to samples.
 
-Pairing, still capture, message checks, the TF tree, the time offset and the Session (no ROS,
-no file formats).
+The time-indexed pose buffer, pairing, still capture, message checks, the TF tree, the time
+offset and the Session (no ROS, no file formats).
 """

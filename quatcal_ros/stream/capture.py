@@ -23,6 +23,7 @@ import numpy as np
 
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose, Sample
+from quatcal_ros.stream.pose_buffer import PoseBuffer
 
 MODES = ('auto', 'manual', 'continuous')
 
@@ -80,68 +81,62 @@ def pose_change(pose, reference):
 
 
 class _PairWindow:
-    """The latest pairs as numpy arrays, trimmed to the still-window check (module doc)."""
+    """
+    The latest pairs, trimmed to the still-window check (module doc), and their statistics.
+
+    The link and the sensor poses are two PoseBuffers with the same stamps.
+    """
 
     def __init__(self, window_ns):
         self.window_ns = window_ns
-        self.stamps = np.zeros(64, dtype=np.int64)
-        self.quaternions = np.zeros((64, 2, 4))   # [:, 0] link, [:, 1] sensor
-        self.positions = np.zeros((64, 2, 3))
-        self.start = 0
-        self.end = 0
+        self.link = PoseBuffer()
+        self.sensor = PoseBuffer()
 
     def __len__(self):
-        return self.end - self.start
+        return len(self.link)
 
     def clear(self):
-        self.start = self.end = 0
+        self.link.clear()
+        self.sensor.clear()
 
     def append(self, pair):
-        if self.end == len(self.stamps):
-            self._make_room()
-        self.stamps[self.end] = pair.stamp_ns
-        self.quaternions[self.end] = pair.link.quaternion, pair.sensor.quaternion
-        self.positions[self.end] = pair.link.position, pair.sensor.position
-        self.end += 1
+        self.link.append(pair.stamp_ns, pair.link)
+        self.sensor.append(pair.stamp_ns, pair.sensor)
         self._trim()
-
-    def _make_room(self):
-        count = len(self)
-        if 2 * count > len(self.stamps):
-            grow = len(self.stamps)
-            self.stamps = np.concatenate([self.stamps, np.zeros(grow, dtype=np.int64)])
-            self.quaternions = np.concatenate([self.quaternions, np.zeros((grow, 2, 4))])
-            self.positions = np.concatenate([self.positions, np.zeros((grow, 2, 3))])
-        for array in (self.stamps, self.quaternions, self.positions):
-            array[:count] = array[self.start:self.end]
-        self.start, self.end = 0, count
 
     def _trim(self):
         """Keep the last pair >= window_ns old (if not > 2 window_ns old) and all newer."""
-        newest = self.stamps[self.end - 1]
-        stamps = self.stamps[self.start:self.end]
-        boundary = np.searchsorted(stamps, newest - self.window_ns, side='right') - 1
-        too_old = np.searchsorted(stamps, newest - 2 * self.window_ns, side='left')
-        self.start += max(boundary, too_old, 0)
+        newest = self.link.newest_ns
+        keep_from = newest - 2 * self.window_ns
+        boundary = self.link.last_at_or_before(newest - self.window_ns)
+        if boundary is not None:
+            keep_from = max(keep_from, boundary)
+        self.link.forget_older_than(keep_from)
+        self.sensor.forget_older_than(keep_from)
 
     @property
     def span_ns(self):
-        return int(self.stamps[self.end - 1] - self.stamps[self.start]) if len(self) else 0
+        return self.link.span_ns
+
+    def _arrays(self):
+        """Return the kept quaternions (2, n, 4) and positions (2, n, 3): [0] link, [1] sensor."""
+        poses = self.link.poses() + self.sensor.poses()
+        return (np.concatenate([pose.quaternion for pose in poses]).reshape(2, -1, 4),
+                np.concatenate([pose.position for pose in poses]).reshape(2, -1, 3))
 
     def spread(self):
         """Largest rotation (deg) and translation (m) from the newest pose: (2,) each."""
-        q = self.quaternions[self.start:self.end]
-        p = self.positions[self.start:self.end]
-        angles = np.degrees(quat.angle_between(q, q[-1]))
-        distances = np.linalg.norm(p - p[-1], axis=-1)
-        return angles.max(axis=0), distances.max(axis=0)
+        q, p = self._arrays()
+        angles = np.degrees(quat.angle_between(q, q[:, -1:]))
+        distances = np.linalg.norm(p - p[:, -1:], axis=-1)
+        return angles.max(axis=1), distances.max(axis=1)
 
     def average_sample(self):
         """One Sample: the mean of the kept pairs, stamped at the middle of their span."""
-        q = self.quaternions[self.start:self.end]
-        p = self.positions[self.start:self.end].mean(axis=0)
-        stamp = int(self.stamps[self.start]) + self.span_ns // 2
-        return Sample(stamp, Pose(p[0], quat.average(q[:, 0])), Pose(p[1], quat.average(q[:, 1])))
+        q, p = self._arrays()
+        p = p.mean(axis=1)
+        stamp = self.link.oldest_ns + self.span_ns // 2
+        return Sample(stamp, Pose(p[0], quat.average(q[0])), Pose(p[1], quat.average(q[1])))
 
 
 class Capture:

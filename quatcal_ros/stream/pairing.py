@@ -15,19 +15,18 @@ when it comes.  Stamps are integer nanoseconds; quaternions are (w, x, y, z).  E
 must have strictly increasing stamps: an older or repeated stamp raises `OutOfOrderStamp`
 and leaves the pairer unchanged; the caller decides between dropping it and `reset()`.
 
+Each stream's recent poses are a pose_buffer.PoseBuffer (whose `at` is the rule above).
 Cost per message: an append, an O(log n) bisection and amortised O(1) trimming.
 `add_many` takes a run of the faster stream at once (an offline replay), with the result of
 adding its poses one by one.
 """
 
-import bisect
 from collections import Counter
 from dataclasses import dataclass
-from itertools import repeat
 from typing import NamedTuple
 
-from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.stream.pose_buffer import OLDER, PoseBuffer, StampNotNewer
 
 LINK = 'link'
 SENSOR = 'sensor'
@@ -36,8 +35,6 @@ SENSOR = 'sensor'
 MIN_RATE_SAMPLES = 3
 # The slower stream takes over as the interpolated one only when clearly faster (hysteresis).
 ROLE_SWITCH_RATIO = 1.5
-# Trimmed list heads are deleted once they are this long and at least half of the list.
-COMPACT_AFTER = 256
 
 
 @dataclass(frozen=True)
@@ -86,93 +83,13 @@ class OutOfOrderStamp(ValueError):
                          f'than the previous {stream} stamp ({previous_ns} ns)')
 
 
-def interpolate_pose(pose0, pose1, fraction):
-    """Pose a `fraction` of the way from pose0 (0.0) to pose1 (1.0): linear, and SLERP."""
-    position = pose0.position + fraction * (pose1.position - pose0.position)
-    rotation = quat.normalize(quat.slerp(pose0.quaternion, pose1.quaternion, fraction))
-    return Pose(position, rotation)
-
-
-def _increasing_prefix(stamps_ns):
-    """Return the length of the leading strictly increasing part of a list of stamps."""
-    for index in range(1, len(stamps_ns)):
-        if stamps_ns[index] <= stamps_ns[index - 1]:
-            return index
-    return len(stamps_ns)
-
-
-class _StampedPoses:
-    """
-    One stream's recent poses, oldest first: O(log n) lookup, amortised O(1) trimming.
-
-    Plain lists with a moving head index `start` (a deque would make bisection O(n)).  Poses
-    added as rows of arrays (`extend`) stay (positions, quaternions, row) until `pose(index)`
-    first needs them: most poses of the faster stream are never looked at.
-    """
-
-    def __init__(self):
-        self.stamps = []
-        self.poses = []
-        self.start = 0
-
-    def __len__(self):
-        return len(self.stamps) - self.start
-
-    @property
-    def last(self):
-        return self.stamps[-1]
-
-    def append(self, stamp_ns, pose):
-        self.stamps.append(stamp_ns)
-        self.poses.append(pose)
-
-    def extend(self, stamps_ns, positions, quaternions):
-        """Append the poses of rows of positions (n, 3) and quaternions (n, 4)."""
-        self.stamps.extend(stamps_ns)
-        self.poses.extend(zip(repeat(positions), repeat(quaternions), range(len(stamps_ns))))
-
-    def pose(self, index):
-        """Return the Pose at `index` (of the lists)."""
-        pose = self.poses[index]
-        if type(pose) is tuple:   # a row added by extend(), not yet needed
-            positions, quaternions, row = pose
-            pose = self.poses[index] = Pose(positions[row], quaternions[row])
-        return pose
-
-    def rate_hz(self):
-        """Mean rate over the kept samples, or None with too few of them."""
-        count = len(self)
-        if count < MIN_RATE_SAMPLES:
-            return None
-        return (count - 1) * 1e9 / (self.stamps[-1] - self.stamps[self.start])
-
-    def first_after(self, stamp_ns):
-        """Index of the first kept sample with a stamp > stamp_ns."""
-        return bisect.bisect_right(self.stamps, stamp_ns, self.start)
-
-    def trim(self, window_ns, max_length):
-        """Forget samples older than window_ns before the newest, and all but max_length."""
-        stamps = self.stamps
-        if not stamps or (stamps[self.start] >= stamps[-1] - window_ns
-                          and len(stamps) - self.start <= max_length):
-            return   # nothing to forget: no bisection
-        oldest_kept = bisect.bisect_left(self.stamps, self.stamps[-1] - window_ns, self.start)
-        self.start = max(oldest_kept, len(self.stamps) - max_length)
-        if self.start >= COMPACT_AFTER and 2 * self.start >= len(self.stamps):
-            del self.stamps[:self.start]
-            del self.poses[:self.start]
-            self.start = 0
-
-    def clear(self):
-        self.__init__()
-
-
 class Pairer:
     """Turns the two pose streams into Pairs at the slower stream's stamps (module docstring)."""
 
     def __init__(self, config=PairingConfig()):
         self.config = config
-        self._streams = {LINK: _StampedPoses(), SENSOR: _StampedPoses()}
+        self._streams = {name: PoseBuffer(config.window_ns, config.max_length)
+                         for name in (LINK, SENSOR)}
         self._faster = None
         self._resolved_until_ns = None
         self.unpaired = Counter()   # unpaired slower-stream stamps by reason
@@ -186,7 +103,7 @@ class Pairer:
 
     def rates_hz(self):
         """Observed rate of each stream, {'link': Hz or None, 'sensor': Hz or None}."""
-        return {name: stream.rate_hz() for name, stream in self._streams.items()}
+        return {name: _rate_hz(stream) for name, stream in self._streams.items()}
 
     def buffered(self):
         """Poses kept per stream, {'link': count, 'sensor': count}."""
@@ -211,11 +128,10 @@ class Pairer:
         """Add a pose of stream 'link' or 'sensor'; raises OutOfOrderStamp, see module doc."""
         stamp_ns = int(stamp_ns)
         stream = self._streams[stream_name]
-        stamps = stream.stamps
-        if len(stamps) > stream.start and stamp_ns <= stamps[-1]:
-            raise OutOfOrderStamp(stream_name, stamp_ns, stamps[-1])
-        stamps.append(stamp_ns)
-        stream.poses.append(pose)
+        try:
+            stream.append(stamp_ns, pose)
+        except StampNotNewer as error:
+            raise OutOfOrderStamp(stream_name, stamp_ns, error.newest_ns) from None
         if stream_name != self._faster:   # roles change only when the slower stream speeds up
             self._update_roles()
         return self._settle(stream)
@@ -231,14 +147,12 @@ class Pairer:
         added and (0, []) is returned, and add() takes that pose (and raises, or changes roles).
         stamps_ns: ints; positions (n, 3), quaternions (n, 4) (w, x, y, z): the poses' rows.
         """
-        stream = self._streams[stream_name]
-        if stream_name != self._faster or not stamps_ns or stamps_ns[0] <= stream.last:
+        if stream_name != self._faster:
             return 0, []
-        count = _increasing_prefix(stamps_ns)
-        waiting_ns = self._first_pending_ns()
-        if waiting_ns is not None:
-            count = min(count, bisect.bisect_left(stamps_ns, waiting_ns, 0, count) + 1)
-        stream.extend(stamps_ns[:count], positions, quaternions)
+        stream = self._streams[stream_name]
+        count = stream.extend(stamps_ns, positions, quaternions, self._first_pending_ns())
+        if not count:
+            return 0, []
         # Poses before the last reach no waiting stamp, so add() would pair nothing at them
         # (nor give up on one: the other stream, whose newest stamp decides that, did not move).
         return count, self._settle(stream)
@@ -246,16 +160,15 @@ class Pairer:
     def _settle(self, stream):
         """Pair what the poses just added to `stream` complete, then trim it; return the Pairs."""
         pairs = self._resolve_pending() if self._faster else []
-        stream.trim(self.config.window_ns, self.config.max_length)
+        stream.trim()
         return pairs
 
     def _first_pending_ns(self):
         """Return the oldest slower-stream stamp not yet resolved, or None."""
         slow = self._streams[self._slower]
-        first = slow.start
-        if self._resolved_until_ns is not None:
-            first = slow.first_after(self._resolved_until_ns)
-        return slow.stamps[first] if first < len(slow.stamps) else None
+        if self._resolved_until_ns is None:
+            return slow.oldest_ns
+        return slow.first_after(self._resolved_until_ns)
 
     @property
     def _slower(self):
@@ -274,55 +187,42 @@ class Pairer:
         """Pair every slower-stream stamp the faster stream has now reached, in order."""
         fast = self._streams[self._faster]
         slow = self._streams[self._slower]
-        if not slow.stamps or (self._resolved_until_ns is not None
-                               and slow.stamps[-1] <= self._resolved_until_ns):
+        slow_newest_ns = slow.newest_ns
+        if slow_newest_ns is None or (self._resolved_until_ns is not None
+                                      and slow_newest_ns <= self._resolved_until_ns):
             return []   # nothing waits (most faster-stream messages)
-        first = slow.start
-        if self._resolved_until_ns is not None:
-            first = slow.first_after(self._resolved_until_ns)
+        fast_newest_ns = fast.newest_ns
         pairs = []
-        for index in range(first, len(slow.stamps)):
-            stamp_ns = slow.stamps[index]
-            if stamp_ns <= fast.last:
+        for stamp_ns, slow_pose in slow.after(self._resolved_until_ns):
+            if stamp_ns <= fast_newest_ns:
                 fast_pose = self._fast_pose_at(fast, stamp_ns)
-            elif slow.last - stamp_ns > self.config.window_ns:
+            elif slow_newest_ns - stamp_ns > self.config.window_ns:
                 fast_pose = self._unpaired(
-                    'waiting', f'the {self._faster} stream stopped at stamp {fast.last} ns, '
-                    f'{(stamp_ns - fast.last) * 1e-9:.3f} s before this {self._slower} stamp')
+                    'waiting', f'the {self._faster} stream stopped at stamp {fast_newest_ns} '
+                    f'ns, {(stamp_ns - fast_newest_ns) * 1e-9:.3f} s before this '
+                    f'{self._slower} stamp')
             else:
                 break
             self._resolved_until_ns = stamp_ns
             if fast_pose is not None:
-                pairs.append(self._pair(stamp_ns, slow.pose(index), fast_pose))
+                pairs.append(self._pair(stamp_ns, slow_pose, fast_pose))
         return pairs
 
     def _fast_pose_at(self, fast, stamp_ns):
         """Return the faster stream's pose at stamp_ns (<= its newest), or None if unknown."""
-        after = bisect.bisect_left(fast.stamps, stamp_ns, fast.start)
-        after_ns = fast.stamps[after]
-        if after_ns == stamp_ns:
-            return fast.pose(after)
-        before = after - 1
-        if before >= fast.start:
-            before_ns = fast.stamps[before]
-            if after_ns - before_ns <= self.config.max_gap_ns:
-                fraction = (stamp_ns - before_ns) / (after_ns - before_ns)
-                return interpolate_pose(fast.pose(before), fast.pose(after), fraction)
-            nearest = before if stamp_ns - before_ns < after_ns - stamp_ns else after
-        else:
-            nearest = after
-        if abs(fast.stamps[nearest] - stamp_ns) <= self.config.tolerance_ns:
-            return fast.pose(nearest)
-        if before < fast.start:
+        pose, miss = fast.at(stamp_ns, self.config.max_gap_ns, self.config.tolerance_ns)
+        if miss is None:
+            return pose
+        if miss.reason == OLDER:
             return self._unpaired(
                 'outside', f'{self._slower} stamp {stamp_ns} ns is '
-                f'{(after_ns - stamp_ns) * 1e-9:.3f} s older than the oldest kept '
+                f'{(miss.after_ns - stamp_ns) * 1e-9:.3f} s older than the oldest kept '
                 f'{self._faster} pose: latency beyond the {self.config.window_ns * 1e-9:.3g} s '
                 'buffer, or stamps from different clocks?')
         return self._unpaired(
-            'gap', f'the {self._faster} stream has a gap of {(after_ns - before_ns) * 1e-9:.3f} '
-            f's around {self._slower} stamp {stamp_ns} ns (max gap '
-            f'{self.config.max_gap_ns * 1e-9:.3g} s)')
+            'gap', f'the {self._faster} stream has a gap of '
+            f'{(miss.after_ns - miss.before_ns) * 1e-9:.3f} s around {self._slower} stamp '
+            f'{stamp_ns} ns (max gap {self.config.max_gap_ns * 1e-9:.3g} s)')
 
     def _unpaired(self, reason, text):
         self.unpaired[reason] += 1
@@ -334,3 +234,11 @@ class Pairer:
         if self._faster == LINK:
             return Pair(stamp_ns, fast_pose, slow_pose)
         return Pair(stamp_ns, slow_pose, fast_pose)
+
+
+def _rate_hz(stream):
+    """Mean rate of a stream's kept poses (a PoseBuffer), or None with too few of them."""
+    count = len(stream)
+    if count < MIN_RATE_SAMPLES:
+        return None
+    return (count - 1) * 1e9 / stream.span_ns

@@ -3,10 +3,11 @@ A time-indexed tree of rigid transforms, as tf2 keeps one, and pose streams thro
 
 Edges are parent -> child transforms T_parent_child (pose.Pose, quaternion (w, x, y, z));
 stamps are integer nanoseconds; each frame has at most one parent.  A static edge holds one
-transform valid at all times.  A dynamic edge buffers its stamped transforms (the last
-`cache_ns` of stamps, at most `max_length`) and is evaluated between the two stamps that
-bracket the requested one: position linearly, rotation by quaternion.slerp (pairing's
-interpolate_pose).  Never extrapolated, never across a gap longer than `max_gap_ns`.
+transform valid at all times.  A dynamic edge buffers its stamped transforms (a
+pose_buffer.PoseBuffer: the last `cache_ns` of stamps, at most `max_length`, late ones
+inserted in order) and is evaluated between the two stamps that bracket the requested one:
+position linearly, rotation by SLERP (pose_buffer.interpolate_pose).  Never extrapolated,
+never across a gap longer than `max_gap_ns`.
 
 `TransformTree.chain(target, source)` finds the edges from `target` up to the common ancestor
 and down to `source`; `TransformTree.lookup(target, source, stamp_ns)` composes T_target_source.
@@ -24,7 +25,7 @@ from typing import NamedTuple
 
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.units import NS_PER_S
-from quatcal_ros.stream.pairing import interpolate_pose
+from quatcal_ros.stream.pose_buffer import LATER, OLDER, PoseBuffer
 
 # Lookup outcomes: evaluated; not yet (an edge has no transform at or after the stamp);
 # never (the stamp is older than a buffer, or inside a gap too long to interpolate across).
@@ -54,65 +55,26 @@ class Chain(NamedTuple):
 
 
 class _Edge:
-    """One parent -> child edge: a static transform, or a bounded buffer of stamped ones."""
+    """One parent -> child edge: a static transform, or a PoseBuffer of stamped ones."""
 
-    def __init__(self, parent, static):
+    def __init__(self, parent, static, cache_ns, max_length):
         self.parent = parent
         self.static = static
-        self.stamps = []
-        self.poses = []
-        self.start = 0    # head of the kept part of the lists (trimmed lazily)
-
-    def __len__(self):
-        return len(self.stamps) - self.start
-
-    def add(self, stamp_ns, pose, cache_ns, max_length):
-        """Insert a stamped transform (replacing one at the same stamp); False if too old."""
-        stamps = self.stamps
-        if not len(self) or stamp_ns > stamps[-1]:
-            stamps.append(stamp_ns)
-            self.poses.append(pose)
-        else:
-            index = bisect.bisect_left(stamps, stamp_ns, self.start)
-            if index < len(stamps) and stamps[index] == stamp_ns:
-                self.poses[index] = pose
-                return True
-            if index == self.start and len(self) and stamps[-1] - stamp_ns > cache_ns:
-                return False
-            stamps.insert(index, stamp_ns)
-            self.poses.insert(index, pose)
-        self._trim(cache_ns, max_length)
-        return True
-
-    def _trim(self, cache_ns, max_length):
-        stamps = self.stamps
-        oldest_kept = bisect.bisect_left(stamps, stamps[-1] - cache_ns, self.start)
-        self.start = max(oldest_kept, len(stamps) - max_length)
-        if self.start >= 256 and 2 * self.start >= len(stamps):
-            del stamps[:self.start]
-            del self.poses[:self.start]
-            self.start = 0
-
-    def clear(self):
-        self.stamps, self.poses, self.start = [], [], 0
+        self.static_pose = None
+        self.transforms = PoseBuffer(cache_ns, max_length)
 
     def at(self, stamp_ns, max_gap_ns):
         """(READY, pose) at stamp_ns, or (WAIT or NEVER, why)."""
         if self.static:
-            return READY, self.poses[-1]
-        stamps = self.stamps
-        if not len(self) or stamp_ns > stamps[-1]:
+            return READY, self.static_pose
+        pose, miss = self.transforms.at(stamp_ns, max_gap_ns)
+        if miss is None:
+            return READY, pose
+        if miss.reason == LATER:
             return WAIT, 'no transform at or after the stamp yet'
-        after = bisect.bisect_left(stamps, stamp_ns, self.start)
-        if stamps[after] == stamp_ns:
-            return READY, self.poses[after]
-        if after == self.start:
+        if miss.reason == OLDER:
             return NEVER, 'stamp older than the buffered transforms'
-        before_ns, after_ns = stamps[after - 1], stamps[after]
-        if max_gap_ns is not None and after_ns - before_ns > max_gap_ns:
-            return NEVER, f'gap of {(after_ns - before_ns) / NS_PER_S:.3g} s'
-        fraction = (stamp_ns - before_ns) / (after_ns - before_ns)
-        return READY, interpolate_pose(self.poses[after - 1], self.poses[after], fraction)
+        return NEVER, f'gap of {(miss.after_ns - miss.before_ns) / NS_PER_S:.3g} s'
 
 
 def normalize_frame(frame):
@@ -159,12 +121,14 @@ class TransformTree:
         if edge is None or edge.parent != parent or edge.static != static:
             edge = self._new_edge(parent, child, static)
         if static:
-            edge.stamps, edge.poses = [int(stamp_ns)], [pose]
+            edge.static_pose = pose
             return True
         stamp_ns = int(stamp_ns)
-        if len(edge) and edge.stamps[-1] - stamp_ns > self.time_jump_ns:
+        newest_ns = edge.transforms.newest_ns
+        if newest_ns is not None and newest_ns - stamp_ns > self.time_jump_ns:
             self.clear_dynamic()
-        if edge.add(stamp_ns, pose, self.cache_ns, self.max_length):
+        if edge.transforms.insert(stamp_ns, pose):
+            edge.transforms.trim()
             return True
         self.stale[child] += 1
         return False
@@ -178,7 +142,7 @@ class TransformTree:
                 raise TreeError(f'{parent!r} -> {child!r} would close a loop: {parent!r} '
                                 f'already descends from {child!r}')
             frame = self.parent(frame)
-        edge = self._edges[child] = _Edge(parent, static)
+        edge = self._edges[child] = _Edge(parent, static, self.cache_ns, self.max_length)
         self._chains.clear()
         return edge
 
@@ -186,7 +150,7 @@ class TransformTree:
         """Forget every dynamic transform (time jumped back); static ones stay."""
         for edge in self._edges.values():
             if not edge.static:
-                edge.clear()
+                edge.transforms.clear()
         self.generation += 1
 
     def path_to_root(self, frame):

@@ -13,7 +13,6 @@ Sign: the returned offset is added to the sensor stamps. A camera that stamps fr
 late needs an offset of -30 ms.
 """
 
-import bisect
 from dataclasses import dataclass, replace
 import heapq
 
@@ -23,7 +22,7 @@ from quatcal_ros.core.calibration import calibrate
 from quatcal_ros.core.pose import Sample
 from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.units import NS_PER_S
-from quatcal_ros.stream.pairing import interpolate_pose
+from quatcal_ros.stream.pose_buffer import PoseBuffer
 from quatcal_ros.stream.session import Session
 
 
@@ -169,7 +168,7 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
         [s for s, _ in sensor], [p.quaternion for _, p in sensor], max_offset_s)
     frames = [(sample.stamp_ns - coarse.offset_ns, sample.sensor)
               for sample in replay_streams(link, sensor, config, coarse.offset_ns).samples]
-    link_at = _Interpolator(link)
+    link_at = _interpolator(link)
 
     def residual(offset_ns):
         samples = [Sample(stamp + offset_ns, link_at(stamp + offset_ns), pose)
@@ -184,16 +183,20 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
     return OffsetReport(offset, coarse.correlation, residual(0), residual(offset)), session
 
 
-class _Interpolator:
-    """The pose of a recorded stream at any stamp inside it (pairing.interpolate_pose)."""
+def _interpolator(stream):
+    """
+    Return pose_at(stamp_ns): a recorded stream's pose after its first stamp up to its last.
 
-    def __init__(self, stream):
-        self.stamps = [stamp for stamp, _ in stream]
-        self.poses = [pose for _, pose in stream]
+    Interpolated across any gap (a PoseBuffer without limits; a later pose at the stamp of
+    an earlier one replaces it), None outside, and None at the first stamp itself.
+    """
+    buffer = PoseBuffer()
+    for stamp, pose in stream:
+        buffer.insert(stamp, pose)
+    first_ns = buffer.oldest_ns
 
-    def __call__(self, stamp_ns):
-        k = bisect.bisect_left(self.stamps, stamp_ns)
-        if k == 0 or k == len(self.stamps):
+    def pose_at(stamp_ns):
+        if first_ns is None or stamp_ns <= first_ns:
             return None
-        t0, t1 = self.stamps[k - 1], self.stamps[k]
-        return interpolate_pose(self.poses[k - 1], self.poses[k], (stamp_ns - t0) / (t1 - t0))
+        return buffer.at(stamp_ns)[0]
+    return pose_at
