@@ -451,3 +451,19 @@ def test_process_exits_cleanly_on_sigterm_and_refuses_bad_parameters(tmp_path,
         assert calibrator.poll() is None and time.monotonic() < deadline
         time.sleep(0.1)
     assert stop_process(calibrator, signal.SIGTERM) == 0
+
+
+def test_a_renamed_node_logs_its_fatal_start_up_error_under_its_own_name(
+        tmp_path, process_domain_id):
+    process = _start('calibrator', '-r', '__node:=calibrator2', '-p', 'setup:=sideways',
+                     log_path=tmp_path / 'calib.log', domain_id=process_domain_id)
+    assert process.wait(timeout=60) == 2
+    log = (tmp_path / 'calib.log').read_text()
+    assert '[calibrator2]: invalid parameters: parameter setup must be one of' in log, log
+
+
+def test_node_name_reads_the_remapping():
+    from quatcal_ros.ros.spin import node_name
+    assert node_name(['calibrator', '--ros-args', '-r', '__node:=cal2'], 'calibrator') == 'cal2'
+    assert node_name(['calibrator', '--ros-args', '-p', 'x:=1'], 'calibrator') == 'calibrator'
+    assert node_name(['x', '-r', 'link_pose:=/a', '--remap', '__name:=b'], 'c') == 'b'

@@ -39,13 +39,11 @@ import numpy as np
 from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, quaternion_norm_problem
-from quatcal_ros.files import journal, plain_yaml
+from quatcal_ros.files import exports, journal, plain_yaml
 from quatcal_ros.files.samples_csv import BadInputError, read_samples
 import yaml
 
 FORMATS = ('csv', 'easy_handeye2', 'moveit', 'moveit-json')
-# easy_handeye2's calibration_type -> our setup.
-EASY_HANDEYE2_SETUPS = {'eye_in_hand': 'eye_in_hand', 'eye_on_base': 'eye_to_hand'}
 # A 4x4 matrix whose rotation block is farther than this from orthonormal (max |R^T R - I|)
 # is not a pose.
 ROTATION_TOLERANCE = 1e-3
@@ -199,7 +197,7 @@ def parse_easy_handeye2_samples(document, name='<easy_handeye2 samples>', setup=
     calibration_type = str(parameters.get('calibration_type') or '').strip()
     file_setup = None
     if calibration_type:
-        file_setup = EASY_HANDEYE2_SETUPS.get(calibration_type)
+        file_setup = exports.SETUPS_BY_EASY_HANDEYE2_TYPE.get(calibration_type)
         if file_setup is None:
             raise BadInputError(f'{name}, field parameters.calibration_type: '
                                 f'{calibration_type!r} is not eye_in_hand or eye_on_base')

@@ -40,7 +40,6 @@ from quatcal_ros.stream.session import EstimateUpdated, Notice, Rejected, Sample
 from quatcal_ros.stream.session import Session
 from quatcal_ros.stream.settings import ConfigError
 from rcl_interfaces.msg import SetParametersResult
-import rclpy
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy
 from rclpy.qos import QoSProfile
@@ -391,28 +390,7 @@ class CalibratorNode(Node):
 
 def main(args=None):
     """Run the calibrator node; return 2 (after logging the reason) for invalid parameters."""
-    stopped = spin.install_stop_handlers()
-    rclpy.init(args=args)
-    if stopped:
-        rclpy.try_shutdown()
-    try:
-        executor, node = spin.start(CalibratorNode, refused=ConfigError)
-    except ConfigError as error:
-        rclpy.logging.get_logger(_node_name(args)).fatal(f'invalid parameters: {error}')
-        rclpy.try_shutdown()
-        return 2
-    if node is not None:
-        spin.spin_until_stopped(node, executor)
-    return None
-
-
-def _node_name(args):
-    """Return the node's name as remapped on the command line (__node:=NAME), for the log."""
-    for index, arg in enumerate(args or []):
-        if arg.startswith('__node:=') or arg.startswith('__name:='):
-            if index and args[index - 1] in ('-r', '--remap'):
-                return arg.split(':=', 1)[1]
-    return NODE_NAME
+    return spin.run(CalibratorNode, NODE_NAME, ConfigError, 'invalid parameters', args)
 
 
 if __name__ == '__main__':

@@ -27,7 +27,6 @@ from quatcal_ros.ros import conversions, spin
 from quatcal_ros.ros.qos import LATCHED_QOS
 from quatcal_ros.sim import simulation
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -233,19 +232,8 @@ class SimCell(Node):
 
 def main(args=None):
     """Run the sim_cell node until SIGINT or SIGTERM (exit 0); 2 on bad parameters."""
-    stopped = spin.install_stop_handlers()
-    rclpy.init(args=args)
-    if stopped:
-        rclpy.try_shutdown()
-    try:
-        executor, node = spin.start(SimCell, refused=(ValueError, ParameterException))
-    except (ValueError, ParameterException) as error:
-        rclpy.logging.get_logger(NODE_NAME).fatal(f'bad parameters: {error}')
-        rclpy.try_shutdown()
-        return 2
-    if node is not None:
-        spin.spin_until_stopped(node, executor)
-    return 0
+    return spin.run(SimCell, NODE_NAME, (ValueError, ParameterException), 'bad parameters',
+                    args)
 
 
 if __name__ == '__main__':

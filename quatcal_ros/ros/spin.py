@@ -10,6 +10,7 @@ as rclpy is up.
 
 import gc
 import signal
+import sys
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
@@ -72,3 +73,35 @@ def spin_until_stopped(node, executor):
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
+
+
+def run(make_node, default_name, refused, what, args=None):
+    """
+    Run the node `make_node` builds until a stop signal: the main() of the package's nodes.
+
+    A start-up error of a type in `refused` is logged as FATAL under the node's name (the
+    default_name, or as remapped with __node:=NAME) as '<what>: <error>', and gives 2.
+    :return: 0 after a stop signal, 2 after a refused start.
+    """
+    stopped = install_stop_handlers()
+    rclpy.init(args=args)
+    if stopped:
+        rclpy.try_shutdown()
+    try:
+        executor, node = start(make_node, refused)
+    except refused as error:
+        rclpy.logging.get_logger(node_name(args, default_name)).fatal(f'{what}: {error}')
+        rclpy.try_shutdown()
+        return 2
+    if node is not None:
+        spin_until_stopped(node, executor)
+    return 0
+
+
+def node_name(args, default_name):
+    """Return the node name as remapped on the command line (-r __node:=NAME), or the default."""
+    args = sys.argv if args is None else args
+    for before, arg in zip(args, args[1:]):
+        if before in ('-r', '--remap') and arg.startswith(('__node:=', '__name:=')):
+            return arg.split(':=', 1)[1]
+    return default_name
