@@ -119,31 +119,24 @@ def repo_root():
 
 
 @pytest.fixture(scope='session')
-def shared_dir():
+def datasets_dir():
     """
-    Return the project's shared/ directory (datasets/, paper/), as a pathlib.Path.
+    Return the real recordings shipped with the repository (data/), as a pathlib.Path.
 
-    Found through the environment variable QUATCAL_SHARED, else at ../shared beside the
-    repository (where CI puts it). Tests that use it are skipped when it is missing.
+    Each folder has its SOURCE.md (origin, licence, format); see data/README.md.
     """
-    env = os.environ.get('QUATCAL_SHARED')
-    candidate = Path(env) if env else REPO_ROOT.parent / 'shared'
-    if not (candidate / 'datasets').is_dir():
-        how = 'QUATCAL_SHARED=%s' % env if env else 'default ../shared beside the repository'
-        pytest.skip('shared data not found: %s has no datasets/ (%s); set QUATCAL_SHARED to '
-                    'the shared/ directory to run this test' % (candidate, how))
-    return candidate.resolve()
+    return REPO_ROOT / 'data'
 
 
 @pytest.fixture(scope='session')
-def eth_streams(shared_dir):
+def eth_streams(datasets_dir):
     """
     Return the ETH robot-arm recording as (link, camera) lists of (stamp_ns, Pose).
 
     Link: sr300_hinge in base_link, ~50 Hz. Camera: the IR camera in the target frame, ~30 Hz
     (SOURCE.md: the inverse of T_sensor_obj, so solve it with invert_sensor).
     """
-    folder = shared_dir / 'datasets' / 'ethz_robot_arm_real'
+    folder = datasets_dir / 'ethz_robot_arm_real'
 
     def load(name):
         rows = np.loadtxt(folder / name, delimiter=',')

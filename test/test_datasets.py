@@ -1,4 +1,4 @@
-"""Real recordings of other groups (../shared/datasets): consistency and published references."""
+"""Real recordings of other groups (data/): consistency and published references."""
 
 import numpy as np
 import pytest
@@ -9,10 +9,10 @@ from quatcal_ros.files.importers import read_moveit_json_samples
 
 
 @pytest.fixture(scope='module')
-def moveit_samples(shared_dir):
+def moveit_samples(datasets_dir):
     """50 stop-and-go samples, eye-to-hand: [eef_wrt_world, obj_wrt_sensor] 4x4 matrices."""
     return read_moveit_json_samples(
-        shared_dir / 'datasets' / 'moveit_pose_samples' / 'pose_samples.json')
+        datasets_dir / 'moveit_pose_samples' / 'pose_samples.json')
 
 
 def test_moveit_motions_have_consistent_rotation_angles(moveit_samples):

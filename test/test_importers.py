@@ -191,14 +191,14 @@ def test_solve_moveit_samples_yaml(repo_root, tmp_path, setup):
     assert_recovers(out, cell)
 
 
-def test_moveit_json_reproduces_the_published_eye_to_hand_result(repo_root, shared_dir):
+def test_moveit_json_reproduces_the_published_eye_to_hand_result(repo_root, datasets_dir):
     """
     moveit_calibration's own test data (pose_samples.json), as its solver test reads it.
 
     Reference (SOURCE.md): camera in the base frame at (0.659, -0.249, 0.830) m, rotation
     Rx(0.230) Ry(-2.540) Rz(1.950), a solver's output printed to 3 decimals.
     """
-    path = shared_dir / 'datasets' / 'moveit_pose_samples' / 'pose_samples.json'
+    path = datasets_dir / 'moveit_pose_samples' / 'pose_samples.json'
     reference = quat.multiply(quat.multiply(quat.from_axis_angle([1, 0, 0], 0.230),
                                             quat.from_axis_angle([0, 1, 0], -2.540)),
                               quat.from_axis_angle([0, 0, 1], 1.950))

@@ -482,7 +482,7 @@ def convention_warnings(samples, options):
     Warnings when the data fit far better with the sensor poses inverted.
 
     Under the right convention one rotation solves every motion; with the sensor poses
-    inverted (the sensor in the object frame, as ../shared/datasets/ethz_robot_arm_real stores
+    inverted (the sensor in the object frame, as data/ethz_robot_arm_real stores
     them) or the link poses inverted (eye-to-hand data solved as eye-in-hand) the residuals
     grow to tens of degrees.  Rotation angles cannot tell (angle(L_i^T L_j) == angle(L_i L_j^T)),
     and rotations alone cannot tell an inverted sensor from the other setup either: eye-in-hand

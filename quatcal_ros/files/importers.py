@@ -21,7 +21,7 @@ Formats (each checked against the tool's source):
 - moveit_calibration samples YAML (handeye_control_widget "Save samples"): a list of
   `{effector_wrt_world: [16 numbers], object_wrt_sensor: [16 numbers]}`, each a 4x4
   homogeneous matrix in row-major order: T_base_eef and T_sensor_obj, for both setups.
-- moveit_calibration's solver test data (pose_samples.json, ../shared/datasets): a JSON list
+- moveit_calibration's solver test data (pose_samples.json, data/moveit_pose_samples): a JSON list
   of `[eef_wrt_world, obj_wrt_sensor]` pairs of nested 4x4 row-major matrices.
 
 The files hold no time stamps: sample i gets the stamp i seconds.  YAML is read with
