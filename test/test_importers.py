@@ -340,3 +340,49 @@ def test_solve_exits_2_naming_the_entry(repo_root, tmp_path):
     assert "entry samples[3], field robot.translation.x: 'oops' is not a number" in done.stderr
     done = run_solve(repo_root, tmp_path / 'missing.yaml')
     assert done.returncode == 2 and 'missing.yaml: cannot read' in done.stderr
+
+
+BILLION_LAUGHS = ('a: &a [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n' + ''.join(
+    f'{b}: &{b} [*{a}, *{a}, *{a}, *{a}, *{a}, *{a}, *{a}, *{a}, *{a}]\n'
+    for a, b in zip('abcdefgh', 'bcdefghi')))
+
+
+@pytest.mark.parametrize('suffix, text, words', [
+    ('.samples', BILLION_LAUGHS, 'line 2: not readable YAML: an alias (*a)'),
+    ('.samples', '[' * 5000 + ']' * 5000, 'nested deeper than 64 levels'),
+    ('.samples', 'samples: ' + '9' * 5000, 'an integer of 5000 digits'),
+    ('.json', '[' * 100000 + ']' * 100000, 'not readable JSON: nested too deeply'),
+    ('.json', '[' + '9' * 5000 + ']', 'an integer of 5000 digits'),
+])
+def test_hostile_files_are_refused_in_bounded_time_naming_the_file(
+        tmp_path, suffix, text, words):
+    path = tmp_path / ('hostile' + suffix)
+    path.write_text(text)
+    with pytest.raises(BadInputError, match=r'hostile') as caught:
+        importers.load_samples(path)
+    assert words in str(caught.value)
+
+
+def test_hostile_file_exits_2_without_a_traceback(repo_root, tmp_path):
+    path = tmp_path / 'laughs.samples'
+    path.write_text(BILLION_LAUGHS)
+    done = run_solve(repo_root, path)
+    assert done.returncode == 2 and 'Traceback' not in done.stderr
+    assert 'laughs.samples, line 2: not readable YAML: an alias' in done.stderr
+
+
+def test_spreadsheet_csv_details(tmp_path):
+    rng = np.random.default_rng(2)
+    samples, _ = simulation.samples(rng, simulation.random_cell(rng), 4)
+    text = format_samples(samples)
+    path = tmp_path / 'bom.csv'
+    path.write_text('\ufeff' + text, encoding='utf-8')   # what spreadsheets write
+    assert len(importers.load_samples(path).samples) == 4
+    header, first, *rest = text.splitlines()
+    cells = first.split(',')
+    for bad, words in (('0_455', "field link_x: '0_455' is not a number"),
+                       ('1e308', 'field link_x: 1e+308 m is not a position in a robot cell')):
+        path.write_text('\n'.join([header, ','.join([cells[0], bad] + cells[2:]), *rest]))
+        with pytest.raises(BadInputError, match='row 2') as caught:
+            importers.load_samples(path)
+        assert words in str(caught.value)

@@ -24,6 +24,14 @@ def cell_samples(n, seed=3, noise_deg=0.05):
     return cell, samples
 
 
+def assert_same(got, expected):
+    assert [s.stamp_ns for s in got] == [s.stamp_ns for s in expected]
+    for ours, theirs in zip(got, expected):
+        np.testing.assert_array_equal(ours.link.position, theirs.link.position)
+        np.testing.assert_allclose(ours.sensor.quaternion, theirs.sensor.quaternion,
+                                   atol=1e-15)   # renormalised on reading
+
+
 @pytest.fixture(scope='module')
 def result():
     return calibration.calibrate(cell_samples(12)[1])
@@ -109,3 +117,47 @@ def test_a_reset_that_failed_does_not_crash_the_next_sample(tmp_path, monkeypatc
     assert record.append(samples[1:]) == [] and record.sync() == []
     assert len(journal.read_journal(path).samples) == 2
     record.close()
+
+
+def test_a_journal_deleted_while_the_node_runs_is_re_created_in_order(tmp_path):
+    _, samples = cell_samples(4)
+    path = tmp_path / 'samples.csv'
+    record = SamplesJournal(path, HEADER, resume=False)
+    record.append(samples[:2], samples[:2])
+    path.unlink()                                   # someone cleans up ~/.ros
+    ((level, text),) = record.append(samples[2:3], samples[:3])
+    assert level == 'error' and 're-created with all 3 samples' in text
+    assert record.append(samples[3:], samples) == [] and record.sync() == []
+    assert_same(journal.read_journal(path).samples, samples)
+    record.close()
+
+
+def test_a_file_put_in_the_journals_place_is_moved_aside_not_overwritten(tmp_path):
+    _, samples = cell_samples(3)
+    path = tmp_path / 'samples.csv'
+    record = SamplesJournal(path, HEADER, resume=False)
+    record.append(samples[:1], samples[:1])
+    path.unlink()
+    path.write_text("somebody else's notes\n")
+    record.append(samples[1:], samples)
+    assert_same(journal.read_journal(path).samples, samples)
+    (aside,) = [p for p in tmp_path.iterdir() if '.previous-' in p.name]
+    assert aside.read_text() == "somebody else's notes\n"
+    record.close()
+
+
+@pytest.mark.parametrize('device', ['/dev/null', 'fifo'])
+def test_a_path_that_is_not_a_regular_file_is_never_replaced(tmp_path, result, device):
+    import os
+    if device == 'fifo':
+        device = tmp_path / 'fifo'
+        os.mkfifo(device)
+    before = os.stat(device)
+    saved = save_result(result, ('tool0', 'camera'), 'eye_in_hand', result_file=device)
+    ((_, _, error),) = saved.failed
+    assert 'not a regular file' in str(error)
+    with pytest.raises(journal.JournalRefused, match='not a regular file'):
+        SamplesJournal(device, HEADER, resume=False)
+    after = os.stat(device)
+    assert (after.st_ino, after.st_mode, after.st_rdev) == \
+        (before.st_ino, before.st_mode, before.st_rdev)

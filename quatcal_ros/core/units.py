@@ -17,6 +17,9 @@ SETUPS = ('eye_in_hand', 'eye_to_hand')
 MESSAGE_NORM_TOLERANCE = 1e-3
 # A file's quaternion may have been rounded to a few digits (by hand or a spreadsheet).
 FILE_NORM_TOLERANCE = 1e-2
+# A position farther than this (metres) from its frame's origin is a unit or typing error
+# (millimetres for metres, a misplaced decimal point), not a robot cell.
+MAX_POSITION_M = 1000.0
 
 
 def ns_from_s(seconds):

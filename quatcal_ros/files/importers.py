@@ -31,7 +31,6 @@ robot.rotation.w: 'abc' is not a number`.
 """
 
 from dataclasses import dataclass, field
-import json
 import math
 from pathlib import Path
 
@@ -85,13 +84,7 @@ def _load_yaml(text, name):
 
 
 def _load_json(text, name):
-    try:
-        return json.loads(text)
-    except ValueError as error:
-        line = getattr(error, 'lineno', None)
-        where = f', line {line}' if line else ''
-        raise BadInputError(f'{name}{where}: not readable JSON: '
-                            f'{getattr(error, "msg", error)}') from None
+    return plain_yaml.load_json(text, name)
 
 
 # --- numbers and poses -----------------------------------------------------------------------

@@ -299,6 +299,36 @@ class Journal:
         if sync:
             self.sync()
 
+    def lost(self):
+        """Return whether the file was deleted or replaced since it was opened."""
+        if self._fd is None:
+            return False
+        opened = os.fstat(self._fd)
+        try:
+            now = os.stat(self.path)
+        except FileNotFoundError:
+            return True
+        same = (now.st_dev, now.st_ino) == (opened.st_dev, opened.st_ino)
+        return opened.st_nlink == 0 or not same
+
+    def rewrite(self, samples):
+        """
+        Write the journal anew, atomically: the header and `samples` (all of the session's).
+
+        For a journal that was deleted or replaced while it was open (`lost`); a file put in
+        its place is moved aside first, never overwritten.
+        :raises OSError: when it cannot be written; the journal stays as it was.
+        """
+        if self.path.exists() or self.path.is_symlink():
+            move_aside(self.path, PREVIOUS)
+        atomic_write_text(self.path, self.header.line() + '\n' + format_samples(samples))
+        os.close(self._fd)
+        self._fd = None
+        self.count = len(samples)
+        self._unwritten = []
+        self._unsynced = False
+        self._open()
+
     def sync(self):
         """Fsync the lines written since the last sync; raise OSError on failure."""
         if self._unsynced:
@@ -425,6 +455,9 @@ def start(path, header, resume, now=None):
     path = absolute(path)
     if path.is_dir():
         raise JournalRefused(f'{path} is a directory; samples_file must name a file')
+    if path.exists() and not path.is_file():   # a device such as /dev/null, a pipe, a socket
+        raise JournalRefused(f'{path} exists and is not a regular file; samples_file must '
+                             'name a regular file (it is never moved aside or replaced)')
     lock_fd = lock(path)
     try:
         return _start_locked(path, header, resume, lock_fd, now)

@@ -29,6 +29,7 @@ The core's quaternions are (w, x, y, z); this file is the boundary where they be
 No rclpy here: the module is plain Python for every tool.
 """
 
+import errno
 import math
 import os
 from pathlib import Path
@@ -57,6 +58,10 @@ def atomic_write_bytes(path, data, mode=0o644):
     :raises OSError: when the directory cannot be created or written; the target is unchanged.
     """
     target = Path(path).expanduser().absolute()
+    if target.exists() and not target.is_file():
+        # A device (/dev/null), a pipe or a directory is never renamed over.
+        raise OSError(errno.EEXIST, 'exists and is not a regular file; nothing was written',
+                      str(target))
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix='.' + target.name + '.', suffix='.tmp',
                                     dir=target.parent)

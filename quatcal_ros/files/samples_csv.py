@@ -16,7 +16,7 @@ import math
 
 from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.core.quaternion import wxyz_from_xyzw
-from quatcal_ros.core.units import FILE_NORM_TOLERANCE, quaternion_norm_problem
+from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, quaternion_norm_problem
 
 COLUMNS = ('stamp',
            'link_x', 'link_y', 'link_z', 'link_qx', 'link_qy', 'link_qz', 'link_qw',
@@ -32,7 +32,8 @@ class BadInputError(ValueError):
 def read_samples(path):
     """Read samples (list of pose.Sample) from a samples CSV file; raise BadInputError."""
     try:
-        with open(path, newline='') as stream:
+        # utf-8-sig: the byte-order mark that spreadsheet programs write is not a column name.
+        with open(path, newline='', encoding='utf-8-sig') as stream:
             return parse_samples(stream, str(path))
     except OSError as error:
         raise BadInputError(f'{path}: cannot read: {error.strerror}') from None
@@ -76,11 +77,17 @@ def _sample_from_row(row, index, name, line):
         if i >= len(row):
             raise BadInputError(f'{where}: missing (the row has {len(row)} fields)')
         try:
+            if '_' in row[i]:   # float() reads 0_455 as 455
+                raise ValueError(row[i])
             value = float(row[i])
         except ValueError:
             raise BadInputError(f'{where}: {row[i].strip()!r} is not a number') from None
         if not math.isfinite(value):
             raise BadInputError(f'{where}: {row[i].strip()} is not a finite number')
+        if column[-2:] in ('_x', '_y', '_z') and abs(value) > MAX_POSITION_M:
+            raise BadInputError(f'{where}: {value:g} m is not a position in a robot cell (at '
+                                f'most {MAX_POSITION_M:g} m from the origin; positions are in '
+                                'metres)')
         values[column] = value
     if not abs(values['stamp']) < MAX_STAMP_S:
         raise BadInputError(f'{name}, row {line}, field stamp: {values["stamp"]:g} s is out of '

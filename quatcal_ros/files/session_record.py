@@ -49,9 +49,26 @@ class SamplesJournal:
         """Return the number of samples the journal holds."""
         return self.journal.count
 
-    def append(self, samples):
-        """Write `samples` (in the file, not yet fsync'd: see sync); return errors to log."""
+    def append(self, samples, session_samples=None):
+        """
+        Write `samples` (in the file, not yet fsync'd: see sync); return errors to log.
+
+        session_samples: every sample of the session (the new ones last), for re-creating a
+        journal that was deleted or replaced while the node ran.
+        """
         messages = []
+        if samples and session_samples is not None and self.journal.lost():
+            lost = self.journal.count
+            try:
+                self.journal.rewrite(session_samples)
+            except OSError as error:
+                self.problem = (f'{self.path} was deleted or replaced while the node ran and '
+                                f'cannot be re-created ({error}): {len(session_samples)} '
+                                'samples are not saved')
+                return [('error', self.problem)]
+            return [('error', f'{self.path} was deleted or replaced while the node ran (it '
+                              f'held {lost} samples): re-created with all '
+                              f'{len(session_samples)} samples of the session')]
         for sample in samples:
             messages += self._call(self.journal.append, sample, sync=False)
         return messages

@@ -172,7 +172,7 @@ class CalibratorNode(Node):
         of the new samples, whose events are handled the same way.
         """
         captured = [event.sample for event in events if isinstance(event, SampleCaptured)]
-        self._log_messages(self.journal.append(captured))
+        self._log_messages(self.journal.append(captured, self.session.samples))
         for event in events:
             if isinstance(event, EstimateUpdated):
                 self.publish_estimate(event.result)
