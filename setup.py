@@ -34,8 +34,8 @@ setup(
     license='BSD-3-Clause',
     entry_points={
         'console_scripts': [
-            'calibrator = quatcal_ros.ros.node:main',
-            'sim_cell = quatcal_ros.ros.sim_cell:main',
+            'calibrator = quatcal_ros.ros.stop_signals:calibrator',
+            'sim_cell = quatcal_ros.ros.stop_signals:sim_cell',
             'solve = quatcal_ros.tools.cli:solve_main',
             'replay = quatcal_ros.tools.cli:replay_main',
             'demo = quatcal_ros.tools.demo:main',

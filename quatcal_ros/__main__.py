@@ -34,10 +34,12 @@ def main(argv=None):
         print(f'quatcal_ros: unknown tool {argv[0]!r}\n{usage()}', file=sys.stderr)
         return 2
     module, function, _ = TOOLS[argv[0]]
-    tool_main = getattr(importlib.import_module(module), function)
     if argv[0] in ('calibrator', 'sim_cell'):
-        # ROS nodes take rclpy's argument list (with --ros-args) including a program name.
-        return tool_main(args=[argv[0]] + argv[1:]) or 0
+        # ROS nodes take rclpy's argument list (with --ros-args) including a program name;
+        # a stop signal while they import ends them cleanly too.
+        from quatcal_ros.ros import stop_signals
+        return stop_signals.run(module, [argv[0]] + argv[1:]) or 0
+    tool_main = getattr(importlib.import_module(module), function)
     return tool_main(argv[1:]) or 0
 
 

@@ -28,8 +28,9 @@ LAYERS = {
     'files': ({'core', 'files'}, {'numpy', 'yaml'}),
     'ros': ({'core', 'stream', 'files', 'sim', 'ros'}, {'numpy', 'yaml', 'rosbags'} | ROS),
     'tools': ({'core', 'stream', 'files', 'sim', 'ros', 'tools'}, {'numpy', 'yaml'} | ROS),
-    # quatcal_ros/__main__.py (imports its tools by name) and solver.py (the contract's name)
-    '': ({'core'}, set()),
+    # quatcal_ros/__main__.py (imports its tools by name; ros.stop_signals first for the
+    # nodes) and solver.py (the contract's name)
+    '': ({'core', 'ros'}, set()),
 }
 
 

@@ -467,3 +467,18 @@ def test_node_name_reads_the_remapping():
     assert node_name(['calibrator', '--ros-args', '-r', '__node:=cal2'], 'calibrator') == 'cal2'
     assert node_name(['calibrator', '--ros-args', '-p', 'x:=1'], 'calibrator') == 'calibrator'
     assert node_name(['x', '-r', 'link_pose:=/a', '--remap', '__name:=b'], 'c') == 'b'
+
+
+@pytest.mark.parametrize('tool, signum, delay_s', [
+    ('calibrator', signal.SIGINT, 0.05), ('calibrator', signal.SIGTERM, 0.2),
+    ('calibrator', signal.SIGINT, 0.4), ('calibrator', signal.SIGTERM, 0.8),
+    ('sim_cell', signal.SIGINT, 0.1), ('sim_cell', signal.SIGTERM, 0.5),
+])
+def test_a_stop_signal_at_any_moment_of_start_up_exits_0(
+        tmp_path, process_domain_id, tool, signum, delay_s):
+    """While the tool imports, builds its node or spins: SIGINT and SIGTERM end it with 0."""
+    process = _start(tool, log_path=tmp_path / 'log', domain_id=process_domain_id)
+    time.sleep(delay_s)   # when the signal comes; any moment must do
+    process.send_signal(signum)
+    assert process.wait(timeout=60) == 0, (tmp_path / 'log').read_text()
+    assert 'Traceback' not in (tmp_path / 'log').read_text()

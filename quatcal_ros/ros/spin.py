@@ -12,14 +12,19 @@ import gc
 import signal
 import sys
 
+from quatcal_ros.ros import stop_signals
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.executors import SingleThreadedExecutor
 
 
 def install_stop_handlers():
-    """Make SIGINT and SIGTERM shut rclpy down; return the list of signals received."""
-    received = []
+    """
+    Make SIGINT and SIGTERM shut rclpy down; return the list of signals received.
+
+    Signals noted before (stop_signals.guard, from the entry point on) are in the list.
+    """
+    received = stop_signals.received
 
     def on_signal(signum, frame):
         received.append(signum)
@@ -38,6 +43,8 @@ def start(make_node, refused=()):
 
     Exceptions of the types in `refused` (the node's own start-up errors) pass through.
     """
+    if not rclpy.ok():   # a signal came first: build nothing on a context that is down
+        return None, None
     try:
         return SingleThreadedExecutor(), make_node()
     except refused:
@@ -95,6 +102,7 @@ def run(make_node, default_name, refused, what, args=None):
         return 2
     if node is not None:
         spin_until_stopped(node, executor)
+    stopped.clear()   # this run's signals, not the next one's (tests run nodes in-process)
     return 0
 
 
