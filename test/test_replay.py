@@ -375,3 +375,42 @@ def test_progress_bar_is_throttled_and_only_on_terminals():
     progress.close(10)
     assert quiet.getvalue() == '' and not progress.enabled
     assert not Progress(10, stream=FakeTerminal(), enabled=False).enabled
+
+
+@pytest.mark.parametrize('fill, at', [(b'\0', 0.5), (b'\xff', 0.5)])
+def test_a_damaged_recording_exits_2_unless_a_partial_replay_is_asked(
+        repo_root, streams, tmp_path, fill, at):
+    """Zeros in an mcap chunk lose messages silently in rosbags; other bytes stop it."""
+    write_bag(tmp_path / 'bag', {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED},
+              topic_messages(streams, POSE_STAMPED), 'mcap')
+    (storage,) = (tmp_path / 'bag').glob('*.mcap')
+    data = bytearray(storage.read_bytes())
+    start = int(len(data) * at)
+    data[start:start + 4096] = fill * 4096
+    storage.write_bytes(bytes(data))
+    args = ('--link-topic', '/link_pose', '--sensor-topic', '/sensor_pose', '--quiet')
+    done = run_replay(repo_root, tmp_path / 'bag', *args)
+    assert done.returncode == 2 and done.stdout == '', done.stderr
+    assert 'the recording is damaged' in done.stderr and 'Traceback' not in done.stderr
+    partial = run_replay(repo_root, tmp_path / 'bag', *args, '--partial')
+    if partial.returncode == 0:
+        warnings = json.loads(partial.stdout)['warnings']
+        assert any(w.startswith('partial replay: the recording is damaged, read only /link_pose')
+                   for w in warnings), warnings
+    else:   # too little left to solve: still named
+        assert partial.returncode in (2, 3) and 'Traceback' not in partial.stderr
+
+
+def test_a_stream_with_only_bad_messages_is_named_with_why(repo_root, streams, tmp_path):
+    messages = topic_messages(streams, POSE_STAMPED)
+    for topic, _, msg in messages:
+        if topic == '/link_pose':
+            msg.pose.orientation.x = msg.pose.orientation.y = 0.0
+            msg.pose.orientation.z = msg.pose.orientation.w = 0.0
+    write_bag(tmp_path / 'bad', {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED},
+              messages)
+    done = run_replay(repo_root, tmp_path / 'bad', '--link-topic', '/link_pose',
+                      '--sensor-topic', '/sensor_pose', '--quiet')
+    assert done.returncode == 2, done.stderr
+    assert 'no link poses from /link_pose' in done.stderr
+    assert 'skipped (zero_quaternion), pose.orientation has norm 0' in done.stderr

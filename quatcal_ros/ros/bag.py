@@ -210,13 +210,23 @@ class ReplayReport:
     examples: dict = field(default_factory=dict)           # (where, reason): first text
     sources: dict = field(default_factory=dict)            # stream: topic or TF frames
     tf_dropped: dict = field(default_factory=dict)         # stream: its tf_tree.FramePoses
+    unread: dict = field(default_factory=dict)             # topic: (read, indexed) when fewer
+    damaged: str = ''                                      # why reading stopped (partial)
     tf_stale: int = 0
     tf_frames: tuple = ()                                  # every frame the TF tree knew
     counters: dict = field(default_factory=dict)           # the session's, at the end
 
+    def unread_text(self):
+        """Say which topics' indexed messages could not all be read, or ''."""
+        return '; '.join(f'{topic}: {read} of the {indexed} messages its index lists'
+                         for topic, (read, indexed) in self.unread.items())
+
     def warnings(self):
         """Return what was not used, as sentences for the JSON "warnings"."""
         out = []
+        if self.unread:
+            out.append(f'partial replay: the recording is damaged, read only '
+                       f'{self.unread_text()}' + (f' ({self.damaged})' if self.damaged else ''))
         for key, count in sorted(self.bad.items()):
             where, reason = key
             item = 'message' if where in self.sources else 'transform'
@@ -291,31 +301,57 @@ class Replay:
                 raise BagError(f'{self.bag.path}: topic {topic} has type {msgtype}, not '
                                f'{TF_TYPE}')
 
-    def run(self, session, on_progress=None):
+    def run(self, session, on_progress=None, partial=False):
         """
         Replay the whole bag into `session`; return a ReplayReport.
 
-        on_progress(messages read) is called every PROGRESS_EVERY messages.
+        on_progress(messages read) is called every PROGRESS_EVERY messages.  The messages read
+        of each topic are counted against the bag's index (ReplayReport.unread: a damaged
+        storage can lose messages silently).  Storage that cannot be read on raises BagError,
+        unless `partial`: then what was read is used and ReplayReport.damaged says why it
+        stopped.
         """
+        read = Counter()   # messages read per topic, against the bag's index
         run = _Run(self, session)
+        try:
+            count = self._read(run, read, on_progress)
+        except BagError as error:
+            if not partial:
+                raise
+            run.report.damaged = str(error)
+            count = sum(read.values())
+        report = run.finish(count)
+        indexed = {topic: self.bag.topics[topic][1] for topic in self.topics}
+        report.unread = {topic: (read[topic], indexed[topic]) for topic in sorted(self.topics)
+                         if read[topic] < indexed[topic]}
+        return report
+
+    def _read(self, run, read, on_progress):
+        """Feed the bag's messages to `run` (static transforms first); return their count."""
         static = {topic for topic in self.tf_topics if is_static_tf_topic(topic)}
         count = 0
         for connection, _, raw in self.bag.messages(self.bag.connections(static)):
             count += 1
+            read[connection.topic] += 1
             run.on_tf(connection.topic, raw, static=True)
         connections = self.bag.connections(self.topics - static)
         feeds = {connection.id: run.feed_of(connection.topic) for connection in connections}
+        topics = {connection.id: connection.topic for connection in connections}
         window = []   # the feed of each message read ahead
-        for count, (connection, _, raw) in enumerate(self.bag.messages(connections), count + 1):
-            feed = feeds[connection.id]
-            feed.add(raw)
-            window.append(feed)
-            if not count % PROGRESS_EVERY:
-                _feed_window(window)
-                if on_progress is not None:
-                    on_progress(count)
-        _feed_window(window)
-        return run.finish(count)
+        try:
+            for count, (connection, _, raw) in enumerate(self.bag.messages(connections),
+                                                         count + 1):
+                read[topics[connection.id]] += 1
+                feed = feeds[connection.id]
+                feed.add(raw)
+                window.append(feed)
+                if not count % PROGRESS_EVERY:
+                    _feed_window(window)
+                    if on_progress is not None:
+                        on_progress(count)
+        finally:
+            _feed_window(window)   # what was read before damaged storage, too
+        return count
 
 
 def _feed_window(window):

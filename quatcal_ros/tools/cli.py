@@ -205,6 +205,10 @@ def replay_parser():
                                                 'as the messages name it)')
     outputs.add_argument('--child-frame', help='child (sensor) frame in --result-out '
                                                '(default: as the messages name it)')
+    outputs.add_argument('--partial', action='store_true',
+                         help='use what a damaged recording still gives (the result says how '
+                              'many indexed messages could not be read); without it such a '
+                              'recording exits 2')
     outputs.add_argument('--quiet', action='store_true',
                          help='no progress bar and no summary on stderr')
     return parser
@@ -244,6 +248,10 @@ def replay_main(argv=None):
         return fail(prog, 'interrupted', EXIT_INTERRUPTED)
     if not args.quiet:
         _summary(prog, report, session, time.monotonic() - start)
+    if report.unread and not args.partial:
+        return fail(prog, f'{args.bag}: the recording is damaged: read only '
+                          f'{report.unread_text()}; pass --partial to use what could be read',
+                    EXIT_BAD_INPUT)
     where = f'{args.bag}: '
     if args.samples_out:
         try:
@@ -298,7 +306,7 @@ def _replay_with_time_offset(replay, config, args):
     """Read both streams, find the sensor time offset, replay with it applied."""
     from quatcal_ros.ros import bag   # rosbags is needed by the replay only
     recorder = _StreamRecorder()
-    report = replay.run(recorder)
+    report = replay.run(recorder, partial=args.partial)
     # Candidate offsets are scored by the closed-form estimate's residual: many solves, each
     # far cheaper than the refinement's.
     scoring = replace(config.calibration, method='closed-form')
@@ -345,7 +353,7 @@ def _run(replay, config, args, label):
 
     on_progress = (lambda done: progress.update(done, extra)) if progress.enabled else None
     try:
-        report = replay.run(session, on_progress)
+        report = replay.run(session, on_progress, partial=args.partial)
     finally:
         progress.close(None, extra)
     return session, report
@@ -371,8 +379,8 @@ def _too_few_samples(session, report, link, sensor):
             why += f' ({frames.last_dropped})'
         if frames is not None:
             why += f'; frames in the TF topics: {", ".join(report.tf_frames) or "none"}'
-        skipped = [f'{n} skipped, {report.skipped_example[key]}'
-                   for key, n in report.skipped.items() if key[0] == source.topic]
+        skipped = [f'{n} skipped ({reason}), {report.examples[where, reason]}'
+                   for (where, reason), n in report.bad.items() if where == f'{stream}_pose']
         return why + ('; ' + '; '.join(skipped) if skipped else '')
     if not counters['pairs']:
         (l0, l1), (s0, s1) = report.stamps['link'], report.stamps['sensor']
