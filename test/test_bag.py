@@ -296,10 +296,11 @@ def test_decoded_poses_give_what_one_message_at_a_time_gives(tmp_path, streams, 
     assert fast_report.warnings() == slow_report.warnings()
     assert (fast_report.messages, fast_report.stamps, fast_report.frames) == \
         (slow_report.messages, slow_report.stamps, slow_report.frames)
-    # One non_finite link pose is refused by conversions, the other (1e308 coordinates that
-    # overflow) by the session; both are counted as bad messages.
+    # A NaN link pose is refused by conversions, one of 1e308 coordinates by the position
+    # bound (max_position_m); both are counted as bad messages.
     assert fast_report.bad == {
-        ('link_pose', 'non_finite'): 2, ('link_pose', 'bad_stamp'): 1,
+        ('link_pose', 'non_finite'): 1, ('link_pose', 'implausible_position'): 1,
+        ('link_pose', 'bad_stamp'): 1,
         ('link_pose', 'undecodable'): 1, ('link_pose', 'duplicate_stamp'): 1,
         ('sensor_pose', 'non_finite'): 1}
 

@@ -16,6 +16,7 @@ import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from geometry_msgs.msg import QuaternionStamped
 from geometry_msgs.msg import TransformStamped
@@ -482,3 +483,45 @@ def test_a_stop_signal_at_any_moment_of_start_up_exits_0(
     process.send_signal(signum)
     assert process.wait(timeout=60) == 0, (tmp_path / 'log').read_text()
     assert 'Traceback' not in (tmp_path / 'log').read_text()
+
+
+def test_publishers_of_the_wrong_type_are_named(domain_id):
+    from geometry_msgs.msg import PointStamped
+    h = Harness(domain_id)
+    other = Context()   # a participant of its own: one may not hold a topic in two types
+    rclpy.init(context=other, domain_id=domain_id)
+    try:
+        wrong = rclpy.create_node('wrong_type', context=other)
+        wrong.create_publisher(PointStamped, 'sensor_pose', RELIABLE)
+        h.spin_until(lambda: any('PointStamped' in p for p in h.node._silent_stream_problems()),
+                     what='the wrong-type publisher in the graph')
+        status = h.node.diagnostic_status()
+        assert status.level == DiagnosticStatus.WARN
+        assert '/sensor_pose has publishers of type geometry_msgs/msg/PointStamped; the node ' \
+            'subscribes geometry_msgs/msg/PoseStamped (parameter pose_type)' in status.message
+        wrong.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=other)
+        h.close()
+
+
+def test_a_position_beyond_the_bound_is_counted_not_used(domain_id):
+    h = Harness(domain_id, [Parameter('max_position_m', value=100.0)])
+    try:
+        h.publish('link_pose', 10 * NS_PER_S, Pose.create([1e308, 0.0, 0.0], [1, 0, 0, 0]))
+        h.publish('link_pose', 11 * NS_PER_S, Pose.create([150.0, 0.0, 0.0], [1, 0, 0, 0]))
+        h.spin_until(lambda: h.node.stats.bad_total == 2, what='two implausible positions')
+        assert h.node.stats.bad == {('link_pose', 'implausible_position'): 2}
+    finally:
+        h.close()
+
+
+def test_without_a_clock_the_status_still_comes_and_says_so(domain_id):
+    h = Harness(domain_id, [Parameter('use_sim_time', value=True),
+                            Parameter('diagnostics_period_s', value=0.2)])
+    try:
+        h.spin_until(lambda: h.diagnostics, what='/diagnostics without /clock')
+        (status,) = h.diagnostics[-1].status
+        assert 'no /clock message has come' in status.message
+    finally:
+        h.close()

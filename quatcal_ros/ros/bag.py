@@ -393,16 +393,18 @@ class _Feed:
 class _PoseFeed(_Feed):
     """A PoseStamped or TransformStamped topic: its messages are decoded together (cdr.py)."""
 
-    def __init__(self, on_raw, on_rows, msgtype, frame_id=''):
+    def __init__(self, on_raw, on_rows, msgtype, checks=CheckConfig(), stream=LINK):
         super().__init__(on_raw)
         self.on_rows = on_rows   # (raws, cdr.DecodedPoses, start, stop) of decoded rows
         self.msgtype = msgtype
-        self.frame_id = frame_id   # the header frame the checks want ('' any)
+        self.frame_id = checks.frame_id(stream)   # the header frame the checks want ('' any)
+        self.max_position_m = checks.max_position_m
         self.decoded = None
 
     def prepare(self):
         """Decode the messages added."""
-        self.decoded = cdr.decode_poses(self.raws, self.msgtype, frame_id=self.frame_id)
+        self.decoded = cdr.decode_poses(self.raws, self.msgtype, frame_id=self.frame_id,
+                                        max_position_m=self.max_position_m)
 
     def take(self, count):
         """Feed the next `count` messages: decoded rows together, the others by on_raw."""
@@ -456,9 +458,8 @@ class _Run:
         msgtype = self.replay.msgtypes[topic]
         if msgtype not in cdr.STRINGS_BEFORE_POSE:
             return _Feed(on_pose)
-        frame_id = self.replay.checks.frame_id(STREAMS[stream])
         return _PoseFeed(on_pose, lambda *rows: self._on_rows(stream, msgtype, *rows), msgtype,
-                         frame_id)
+                         self.replay.checks, STREAMS[stream])
 
     def _pose_handler(self, topic, stream):
         """Return the function that takes one raw pose message (rosbags deserialises it)."""

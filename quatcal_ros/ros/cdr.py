@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from quatcal_ros.core.units import MESSAGE_NORM_TOLERANCE, NS_PER_S
+from quatcal_ros.core.units import MAX_POSITION_M, MESSAGE_NORM_TOLERANCE, NS_PER_S
 
 # Strings before the pose: header.frame_id (and child_frame_id), by message type.
 STRINGS_BEFORE_POSE = {'geometry_msgs/msg/PoseStamped': 1,
@@ -46,13 +46,15 @@ class DecodedPoses(NamedTuple):
     ok: np.ndarray
 
 
-def decode_poses(raws, msgtype, norm_tolerance=MESSAGE_NORM_TOLERANCE, frame_id=''):
+def decode_poses(raws, msgtype, norm_tolerance=MESSAGE_NORM_TOLERANCE, frame_id='',
+                 max_position_m=MAX_POSITION_M):
     """
     Decode raw CDR messages of type `msgtype` (a key of STRINGS_BEFORE_POSE); a DecodedPoses.
 
     Rows not `ok` are left to rosbags' deserialisation, conversions and the message checks
     (module docstring); so are zero stamps and, when `frame_id` is given, every header frame
-    other than exactly that one (the message checks decide what they are).
+    other than exactly that one, and positions beyond max_position_m (the message checks
+    decide what they are).
     """
     strings = STRINGS_BEFORE_POSE[msgtype]
     count = len(raws)
@@ -69,7 +71,9 @@ def decode_poses(raws, msgtype, norm_tolerance=MESSAGE_NORM_TOLERANCE, frame_id=
         taken = set(rows)
         left = [row for row in left if row not in taken]
     positions, quaternions, usable = _pose_values(values, norm_tolerance)
-    return DecodedPoses(stamps, positions, quaternions, ok & usable & (stamps != 0))
+    with np.errstate(invalid='ignore'):
+        near = (np.abs(positions) <= max_position_m).all(axis=1)
+    return DecodedPoses(stamps, positions, quaternions, ok & usable & near & (stamps != 0))
 
 
 def _records(raws, rows, strings):

@@ -40,6 +40,7 @@ from quatcal_ros.stream.session import EstimateUpdated, Notice, Rejected, Sample
 from quatcal_ros.stream.session import Session
 from quatcal_ros.stream.settings import ConfigError
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy
 from rclpy.qos import QoSProfile
@@ -108,7 +109,11 @@ class CalibratorNode(Node):
         self._tf_problem = None       # why publish_tf has no effect, for /diagnostics
         self.diagnostics_publisher = self.create_publisher(
             DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
-        self.create_timer(self.config.diagnostics_period_s, self.publish_diagnostics)
+        # On the steady clock: with use_sim_time and no /clock the status still comes, and
+        # says that no clock runs.
+        self.create_timer(self.config.diagnostics_period_s, self.publish_diagnostics,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._message_type = message_type
         self.create_service(Trigger, '~/capture', self._on_capture)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_service(Trigger, '~/save', self._on_save)
@@ -295,13 +300,30 @@ class CalibratorNode(Node):
         else:
             tf_static = 'not broadcast: tf2_ros is not installed' if tf_problem else 'broadcast'
         problems = [self.moves.warning(len(self.session.samples)), self.journal.problem,
-                    tf_problem]
+                    tf_problem, *self._silent_stream_problems()]
         now_ns = self.now_ns()
+        if now_ns <= 0 and self.get_parameter('use_sim_time').value:
+            problems.append('use_sim_time is true but no /clock message has come: no clock '
+                            'runs (play the bag with --clock, or start the simulator)')
         if self._started_ns <= 0:   # use_sim_time: listening begins with the clock
             self._started_ns = now_ns
         return calibrator_status(self.session, self.poses.stats, now_ns,
                                  self.config.link_frame, problems, tf_static,
                                  self._started_ns, self.topics)
+
+    def _silent_stream_problems(self):
+        """Name the publishers of a silent stream whose type is not the one subscribed."""
+        expected = f'geometry_msgs/msg/{self._message_type.__name__}'
+        problems = []
+        for stream, topic in self.topics.items():
+            if self.poses.stats.received[stream]:
+                continue
+            found = sorted({info.topic_type for info in
+                            self.get_publishers_info_by_topic(topic)} - {expected})
+            if found:
+                problems.append(f'{topic} has publishers of type {", ".join(found)}; the node '
+                                f'subscribes {expected} (parameter pose_type)')
+        return problems
 
     def publish_diagnostics(self):
         """Publish the status once (the timer's callback)."""

@@ -55,10 +55,17 @@ class PoseScreen:
                 reason, stream, stamp_ns, header.frame_id, now_ns, config))
             return None
         try:
-            return stamp_ns, pose_from_msg(msg)
+            pose = pose_from_msg(msg)
         except BadPoseError as error:
             self.bad(stream, message_checks.pose_error_reason(error), error)
             return None
+        if message_checks.position_reason(pose.position, self.config) is not None:
+            limit = self.config.max_position_m
+            self.bad(stream, 'implausible_position', lambda: (
+                f'position {pose.position.tolist()} m is farther than {limit:g} m from the '
+                'origin (parameter max_position_m): are the units metres?'))
+            return None
+        return stamp_ns, pose
 
     def take_rows(self, stream, count, now_ns=0):
         """Count `count` messages of `stream` that a fast decoder checked and found good."""

@@ -24,7 +24,7 @@ integer nanoseconds.
 from collections import Counter
 from dataclasses import dataclass
 
-from quatcal_ros.core.units import NS_PER_S
+from quatcal_ros.core.units import MAX_POSITION_M, NS_PER_S
 
 LINK, SENSOR = 'link_pose', 'sensor_pose'
 STREAMS = (LINK, SENSOR)
@@ -32,6 +32,8 @@ STREAMS = (LINK, SENSOR)
 STALE_AFTER_S = 3.0
 # Each (stream, reason) is logged at most once per this many seconds (steady clock).
 LOG_THROTTLE_S = 5.0
+# A value from a message (a frame id) is logged with at most this many characters.
+MAX_LOGGED_CHARACTERS = 80
 
 REASONS = {
     'non_finite': 'NaN or inf in the pose',
@@ -45,6 +47,7 @@ REASONS = {
     'duplicate_stamp': 'same header stamp as the previous message',
     'out_of_order': 'header stamp older than the previous message',
     'wrong_frame_id': 'header.frame_id is not the configured frame',
+    'implausible_position': 'a position farther from the origin than max_position_m',
     'undecodable': 'recorded bytes that do not decode as the topic type',
     'breaks_tree': 'a transform that would break the TF tree (a loop, a second parent)',
 }
@@ -62,6 +65,7 @@ class CheckConfig:
     max_stamp_offset_ns: int = 30 * NS_PER_S
     link_frame_id: str = ''
     sensor_frame_id: str = ''
+    max_position_m: float = MAX_POSITION_M
 
     def __post_init__(self):
         if self.max_stamp_offset_ns < 0:
@@ -126,8 +130,8 @@ def describe(reason, stream, stamp_ns=None, frame_id=None, now_ns=None, config=N
                 '--clock and set use_sim_time; 0 turns the check off')
     if reason == 'wrong_frame_id':
         parameter = 'link_frame_id' if stream == LINK else 'sensor_frame_id'
-        return (f'header.frame_id {frame_id!r} is not {config.frame_id(stream)!r} (parameter '
-                f'{parameter}): is the topic remapped to the right source?')
+        return (f'header.frame_id {clip(frame_id)!r} is not {config.frame_id(stream)!r} '
+                f'(parameter {parameter}): is the topic remapped to the right source?')
     return REASONS.get(reason, reason)
 
 
@@ -143,11 +147,26 @@ def rejected_reason(event):
     return code if code in REASONS else 'malformed'
 
 
+def position_reason(position, config):
+    """Return 'implausible_position' when a coordinate exceeds config.max_position_m."""
+    limit = config.max_position_m
+    if -limit <= position[0] <= limit and -limit <= position[1] <= limit and \
+            -limit <= position[2] <= limit:
+        return None
+    return 'implausible_position'
+
+
+def clip(text, length=MAX_LOGGED_CHARACTERS):
+    """Return `text` cut to `length` characters (a 1 MB frame id is not logged whole)."""
+    text = str(text)
+    return text if len(text) <= length else f'{text[:length]}... ({len(text)} characters)'
+
+
 def detail_text(detail):
     """Return the text of a bad message's detail (text, exception, or function building it)."""
     if detail is None:
         return ''
-    return detail() if callable(detail) else str(detail)
+    return clip(detail() if callable(detail) else detail, 4 * MAX_LOGGED_CHARACTERS)
 
 
 def diagnostic_key(stream, reason):

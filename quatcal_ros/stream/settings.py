@@ -158,6 +158,10 @@ SETTINGS = (
             'Pose messages whose header stamp is farther than this (seconds) from the node '
             'clock (with use_sim_time: /clock) are skipped and counted; 0 turns the check '
             'off.', unit='s', low=0.0, high=1e6),
+    Setting('max_position_m', 1000.0,
+            'Pose messages with a position coordinate farther than this (metres) from the '
+            'origin are skipped and counted (implausible_position): a unit error, not a cell.',
+            unit='m', low=1.0, high=1e6, tools=REPLAY),
     Setting('link_frame_id', '',
             'header.frame_id that link_pose messages must carry (the robot base frame); '
             "others are skipped and counted. '' accepts any.", allow_empty=True, tools=REPLAY),
@@ -206,7 +210,8 @@ DEFAULTS = {setting.name: setting.default for setting in SETTINGS}
 # Settings that change only the presentation or the message checks: the node keeps its
 # session (and estimate) when only these change.
 PRESENTATION = ('link_frame', 'sensor_frame', 'result_file', 'max_stamp_offset_s',
-                'link_frame_id', 'sensor_frame_id', 'easy_handeye2_file', 'publish_tf')
+                'max_position_m', 'link_frame_id', 'sensor_frame_id', 'easy_handeye2_file',
+                'publish_tf')
 
 
 def _from_values(values):
@@ -300,4 +305,5 @@ def check_config(settings):
     """Return the message_checks.CheckConfig of `settings` (what pose messages must satisfy)."""
     return CheckConfig(max_stamp_offset_ns=ns_from_s(settings.max_stamp_offset_s),
                        link_frame_id=settings.link_frame_id,
-                       sensor_frame_id=settings.sensor_frame_id)
+                       sensor_frame_id=settings.sensor_frame_id,
+                       max_position_m=settings.max_position_m)

@@ -164,7 +164,7 @@ def add_capture_arguments(parser):
 CAPTURE = ('capture_mode', 'still_window_s', 'still_rotation_deg', 'still_translation_m',
            'sensor_still_rotation_deg', 'sensor_still_translation_m', 'min_still_pairs',
            'continuous_step_deg', 'max_gap_s', 'pairing_tolerance_s', 'link_frame_id',
-           'sensor_frame_id')
+           'sensor_frame_id', 'max_position_m')
 
 
 def replay_parser():
