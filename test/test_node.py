@@ -525,3 +525,19 @@ def test_without_a_clock_the_status_still_comes_and_says_so(domain_id):
         assert 'no /clock message has come' in status.message
     finally:
         h.close()
+
+
+def test_two_clocks_on_one_stream_are_named(domain_id):
+    h = Harness(domain_id)
+    try:
+        pose = Pose.create([0.1, 0.2, 0.3], [1, 0, 0, 0])
+        h.node.diagnostic_status()   # the status period starts
+        for k in range(8):   # a second publisher stamping one second earlier
+            h.publish('sensor_pose', (100 + k) * NS_PER_S // 10 + (k % 2) * -NS_PER_S, pose)
+        h.wait_received()
+        assert h.node.session.counters['time_jumps'] >= 3
+        status = h.node.diagnostic_status()
+        assert 'two publishers with different clocks on one stream?' in status.message
+        assert status.level == DiagnosticStatus.WARN
+    finally:
+        h.close()

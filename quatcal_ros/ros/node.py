@@ -50,6 +50,8 @@ from std_srvs.srv import Trigger
 NODE_NAME = settings.NODE_NAME
 LINK, SENSOR = message_checks.LINK, message_checks.SENSOR
 LOG_THROTTLE_S = message_checks.LOG_THROTTLE_S
+# Clock jumps back within one status period that point to two clocks on one stream.
+REPEATED_JUMPS = 3
 # Said once (WARN) and kept in /diagnostics when publish_tf is true but tf2_ros is missing.
 TF2_ROS_MISSING = ('publish_tf is true but tf2_ros is not installed: the result is not '
                    'broadcast on /tf_static (it is still on ~/transform)')
@@ -125,6 +127,7 @@ class CalibratorNode(Node):
             f'({message_type.__name__}), capture mode {self.config.capture_mode}')
         self._start_tf_broadcast()
         self._started_ns = self.now_ns()   # a stream silent this long after it is named
+        self._jumps_seen = 0               # the session's time jumps at the last status
         self._resume()
 
     @property
@@ -191,6 +194,8 @@ class CalibratorNode(Node):
             elif isinstance(event, Rejected):
                 self.get_logger().info(f'rejected {event.what}: {event.reason}',
                                        throttle_duration_sec=LOG_THROTTLE_S)
+            elif isinstance(event, Notice) and event.code == 'time_jump':
+                self.get_logger().info(event.text, throttle_duration_sec=LOG_THROTTLE_S)
             elif isinstance(event, Notice):
                 self.get_logger().info(event.text)
         # The estimate of new samples, if any (the session estimates when asked).
@@ -301,6 +306,12 @@ class CalibratorNode(Node):
             tf_static = 'not broadcast: tf2_ros is not installed' if tf_problem else 'broadcast'
         problems = [self.moves.warning(len(self.session.samples)), self.journal.problem,
                     tf_problem, *self._silent_stream_problems()]
+        jumps = self.session.counters['time_jumps']
+        if jumps - self._jumps_seen >= REPEATED_JUMPS:
+            problems.append(f'the stamps jumped back {jumps - self._jumps_seen} times since '
+                            'the last status: two publishers with different clocks on one '
+                            'stream? (ros2 topic info -v link_pose / sensor_pose)')
+        self._jumps_seen = jumps
         now_ns = self.now_ns()
         if now_ns <= 0 and self.get_parameter('use_sim_time').value:
             problems.append('use_sim_time is true but no /clock message has come: no clock '

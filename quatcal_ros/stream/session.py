@@ -95,9 +95,10 @@ class Rejected:
 
 @dataclass(frozen=True)
 class Notice:
-    """Something the user should know (log it)."""
+    """Something the user should know (log it); `code` 'time_jump' for a clock that jumped."""
 
     text: str
+    code: str = field(default='', compare=False)
 
 
 def _finite(*poses):
@@ -381,7 +382,7 @@ class Session:
         self._capture.clear_window()
         self._counts['time_jumps'] += 1
         return Notice(f'time jumped back by {error.jump_ns * 1e-9:.1f} s (bag replayed?): '
-                      'pairing buffers cleared, samples kept')
+                      'pairing buffers cleared, samples kept', code='time_jump')
 
     def _unpaired_notice(self, paired):
         """Return a Notice when UNPAIRED_NOTICE_AFTER poses in a row could not be paired."""
