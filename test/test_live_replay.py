@@ -154,14 +154,19 @@ class LiveRun:
     rotations: list = field(default_factory=list)      # QuaternionStamped
     logs: list = field(default_factory=list)           # rcl_interfaces/Log of the calibrator
     diagnostics_before_clock: int = 0
+    clockless: list = field(default_factory=list)   # statuses saying that no clock runs
     capture_response: object = None
     passes: list = field(default_factory=list)
 
     def on_diagnostics(self, array):
         for status in array.status:
-            if status.name == DIAGNOSTIC_NAME:
-                self.diagnostics.append(status)
-                self.diagnostic_stamps.append(conv.stamp_ns_from_header(array.header))
+            if status.name != DIAGNOSTIC_NAME:
+                continue
+            if 'no /clock message has come' in status.message:   # the steady-clock watch
+                self.clockless.append(status)
+                continue
+            self.diagnostics.append(status)
+            self.diagnostic_stamps.append(conv.stamp_ns_from_header(array.header))
 
     def on_log(self, msg):
         if msg.name == f'{self.namespace.strip("/")}.calibrator':
@@ -285,7 +290,8 @@ def live(recording, domain_id):
                      and player.clock_pub.get_subscription_count()
                      and capture.service_is_ready()),
             what='discovery of the calibrator')
-        # No /clock yet: ROS time stands at 0, so the diagnostics timer never fires.
+        # No /clock yet: ROS time stands at 0, so the diagnostics timer does not fire; only
+        # the steady-clock watch may, to say that no clock runs (checked below).
         player.spin_for(0.5)
         run.diagnostics_before_clock = len(run.diagnostics)
 
@@ -321,6 +327,8 @@ def live(recording, domain_id):
 
 def test_node_clock_follows_the_played_clock(live, recording):
     assert live.diagnostics_before_clock == 0
+    # Statuses from the steady-clock watch (discovery took long) say so, at WARN.
+    assert all(status.level == DiagnosticStatus.WARN for status in live.clockless)
     # Every stamp the node puts out is on the recording's clock (2023), not the wall clock.
     stamps = np.array(live.diagnostic_stamps)
     start, stop = recording.start_ns, recording.end_ns + TAIL_NS

@@ -111,10 +111,13 @@ class CalibratorNode(Node):
         self._tf_problem = None       # why publish_tf has no effect, for /diagnostics
         self.diagnostics_publisher = self.create_publisher(
             DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
-        # On the steady clock: with use_sim_time and no /clock the status still comes, and
-        # says that no clock runs.
-        self.create_timer(self.config.diagnostics_period_s, self.publish_diagnostics,
-                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        # On the node clock (with use_sim_time: one status per second of a played bag); a
+        # steady-clock watch keeps it coming, saying so, when that clock stands still.
+        self.create_timer(self.config.diagnostics_period_s, self.publish_diagnostics)
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._last_status_ns = self._steady.now().nanoseconds
+        self.create_timer(self.config.diagnostics_period_s, self._watch_status,
+                          clock=self._steady)
         self._message_type = message_type
         self.create_service(Trigger, '~/capture', self._on_capture)
         self.create_service(Trigger, '~/reset', self._on_reset)
@@ -336,8 +339,15 @@ class CalibratorNode(Node):
                                 f'subscribes {expected} (parameter pose_type)')
         return problems
 
+    def _watch_status(self):
+        """Publish the status when the node clock has not for two periods (no /clock)."""
+        late_ns = 2 * self.config.diagnostics_period_s * 1e9
+        if self._steady.now().nanoseconds - self._last_status_ns > late_ns:
+            self.publish_diagnostics()
+
     def publish_diagnostics(self):
         """Publish the status once (the timer's callback)."""
+        self._last_status_ns = self._steady.now().nanoseconds
         array = DiagnosticArray(status=[self.diagnostic_status()])
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_publisher.publish(array)
