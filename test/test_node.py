@@ -541,3 +541,17 @@ def test_two_clocks_on_one_stream_are_named(domain_id):
         assert status.level == DiagnosticStatus.WARN
     finally:
         h.close()
+
+
+def test_without_home_rcl_gets_a_log_directory(monkeypatch, tmp_path, capsys):
+    from quatcal_ros.ros import spin
+    for name in ('HOME', 'ROS_HOME', 'ROS_LOG_DIR'):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setattr(spin.os.path, 'expanduser', lambda path: str(tmp_path))
+    spin._ensure_log_directory()
+    assert os.environ['ROS_HOME'] == str(tmp_path / '.ros')
+    assert 'HOME is not set' in capsys.readouterr().err
+    monkeypatch.setattr(spin.os.path, 'expanduser', lambda path: path)   # no pwd entry
+    monkeypatch.delenv('ROS_HOME')
+    spin._ensure_log_directory()
+    assert os.environ['ROS_HOME'].endswith('.ros') and os.environ['ROS_HOME'] != '~/.ros'

@@ -9,8 +9,10 @@ as rclpy is up.
 """
 
 import gc
+import os
 import signal
 import sys
+import tempfile
 
 from quatcal_ros.ros import stop_signals
 import rclpy
@@ -91,6 +93,7 @@ def run(make_node, default_name, refused, what, args=None):
     :return: 0 after a stop signal, 2 after a refused start.
     """
     stopped = install_stop_handlers()
+    _ensure_log_directory()
     rclpy.init(args=args)
     if stopped:
         rclpy.try_shutdown()
@@ -104,6 +107,23 @@ def run(make_node, default_name, refused, what, args=None):
         spin_until_stopped(node, executor)
     stopped.clear()   # this run's signals, not the next one's (tests run nodes in-process)
     return 0
+
+
+def _ensure_log_directory():
+    """
+    Give rcl a log directory when HOME is unset (a service, a container): it needs one.
+
+    rcl writes its log files to ROS_LOG_DIR, else ROS_HOME/log, else $HOME/.ros/log; without
+    any of them rclpy.init fails.  ROS_HOME then becomes the user's home from the password
+    database (~/.ros), or the temporary directory; stderr says where.
+    """
+    if any(os.environ.get(name) for name in ('ROS_LOG_DIR', 'ROS_HOME', 'HOME')):
+        return
+    home = os.path.expanduser('~')
+    base = home if home != '~' and os.path.isdir(home) else tempfile.gettempdir()
+    os.environ['ROS_HOME'] = os.path.join(base, '.ros')
+    print(f'HOME is not set: ROS_HOME is {os.environ["ROS_HOME"]} (rcl writes its log files '
+          'there)', file=sys.stderr)
 
 
 def node_name(args, default_name):
