@@ -36,9 +36,9 @@ setup(
         'console_scripts': [
             'calibrator = quatcal_ros.ros.stop_signals:calibrator',
             'sim_cell = quatcal_ros.ros.stop_signals:sim_cell',
-            'solve = quatcal_ros.tools.cli:solve_main',
-            'replay = quatcal_ros.tools.cli:replay_main',
-            'demo = quatcal_ros.tools.demo:main',
+            'solve = quatcal_ros.__main__:solve',
+            'replay = quatcal_ros.__main__:replay',
+            'demo = quatcal_ros.__main__:demo',
         ],
     },
 )

@@ -7,6 +7,8 @@ The same tools are ROS executables: `ros2 run quatcal_ros TOOL`.
 import importlib
 import sys
 
+from quatcal_ros.core.threads import single_threaded_blas
+
 TOOLS = {
     'solve': ('quatcal_ros.tools.cli', 'solve_main', 'rotation from a samples CSV (prints JSON)'),
     'replay': ('quatcal_ros.tools.cli', 'replay_main', 'rotation from a rosbag2 recording'),
@@ -34,6 +36,7 @@ def main(argv=None):
         print(f'quatcal_ros: unknown tool {argv[0]!r}\n{usage()}', file=sys.stderr)
         return 2
     module, function, _ = TOOLS[argv[0]]
+    single_threaded_blas()
     if argv[0] in ('calibrator', 'sim_cell'):
         # ROS nodes take rclpy's argument list (with --ros-args) including a program name;
         # a stop signal while they import ends them cleanly too.
@@ -41,6 +44,21 @@ def main(argv=None):
         return stop_signals.run(module, [argv[0]] + argv[1:]) or 0
     tool_main = getattr(importlib.import_module(module), function)
     return tool_main(argv[1:]) or 0
+
+
+def solve():
+    """Entry point of `ros2 run quatcal_ros solve`."""
+    sys.exit(main(['solve', *sys.argv[1:]]))
+
+
+def replay():
+    """Entry point of `ros2 run quatcal_ros replay`."""
+    sys.exit(main(['replay', *sys.argv[1:]]))
+
+
+def demo():
+    """Entry point of `ros2 run quatcal_ros demo`."""
+    sys.exit(main(['demo', *sys.argv[1:]]))
 
 
 if __name__ == '__main__':

@@ -130,3 +130,28 @@ def test_solve_on_a_journal_takes_its_setup_and_frames(repo_root, tmp_path):
     assert done.returncode == 0, done.stderr
     line = json.loads(done.stdout)['static_transform_publisher']
     assert line.endswith('--frame-id tool0 --child-frame-id camera_color_optical_frame')
+
+
+def test_the_tools_run_numpys_blas_on_one_thread(repo_root):
+    """The entry points set the thread count before numpy loads its BLAS."""
+    env = {k: v for k, v in os.environ.items() if not k.endswith('_NUM_THREADS')}
+    code = ('import sys\n'
+            'from quatcal_ros import __main__ as tools\n'
+            'tools.single_threaded_blas()\n'
+            'import numpy, threadpoolctl\n'
+            'print(max(p["num_threads"] for p in threadpoolctl.threadpool_info()))\n')
+    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          cwd=repo_root, env=env, check=True)
+    assert done.stdout.strip() == '1'
+
+
+def test_every_tool_entry_sets_the_thread_count(monkeypatch, capsys):
+    from quatcal_ros import __main__ as tools
+    for name in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
+        monkeypatch.delenv(name, raising=False)
+    with pytest.raises(SystemExit):
+        tools.main(['solve', '--help'])
+    assert os.environ['OPENBLAS_NUM_THREADS'] == '1'
+    monkeypatch.setenv('OPENBLAS_NUM_THREADS', '2')   # the user's choice stays
+    tools.single_threaded_blas()
+    assert os.environ['OPENBLAS_NUM_THREADS'] == '2'

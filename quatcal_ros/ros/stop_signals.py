@@ -12,6 +12,8 @@ import importlib
 import signal
 import sys
 
+from quatcal_ros.core.threads import single_threaded_blas
+
 received = []   # the stop signals received so far, in order
 
 
@@ -26,8 +28,9 @@ def guard():
 
 
 def run(module, args=None):
-    """Guard, then import `module` and return its main(args)."""
+    """Guard, then import `module` (numpy's BLAS on one thread) and return its main(args)."""
     guard()
+    single_threaded_blas()
     return importlib.import_module(module).main(args)
 
 
