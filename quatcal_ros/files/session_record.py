@@ -131,6 +131,13 @@ class Saved:
         """Return whether everything asked for was written."""
         return not self.failed
 
+    def texts(self):
+        """Return one sentence per file: where it was saved, or why it could not be."""
+        done = [f'saved to {path}' if what == 'result' else
+                f'easy_handeye2 layout saved to {path}' for what, path in self.written]
+        return done + [f'could not write {"easy_handeye2_file " if what != "result" else ""}'
+                       f'{target}: {error}' for what, target, error in self.failed]
+
 
 def save_result(result, frames, setup, result_file=None, easy_handeye2_file=None,
                 easy_handeye2_frames=None, extra=None):

@@ -10,12 +10,69 @@ any problem: a stale stream, a high residual, the estimator's warnings, or those
 from diagnostic_msgs.msg import DiagnosticStatus
 from diagnostic_msgs.msg import KeyValue
 import numpy as np
+from quatcal_ros.core import quaternion as quat
 from quatcal_ros.stream import message_checks
 from quatcal_ros.stream.message_checks import LINK, SENSOR, STALE_AFTER_S
 
 DIAGNOSTIC_NAME = 'calibrator: hand-eye rotation'
 # An RMS motion residual above this (degrees) means inconsistent data: WARN.
 HIGH_RESIDUAL_DEG = 1.0
+# Clock jumps back within one status period that point to two clocks on one stream.
+REPEATED_JUMPS = 3
+
+
+def format_quaternion_xyzw(q_wxyz):
+    """'x, y, z, w = (..)' text of a quaternion given as (w, x, y, z)."""
+    x, y, z, w = quat.xyzw_from_wxyz(q_wxyz)
+    return f'x, y, z, w = ({x:.6f}, {y:.6f}, {z:.6f}, {w:.6f})'
+
+
+def describe_result(result):
+    """One log line for a new estimate."""
+    return (f'estimate: {format_quaternion_xyzw(result.quaternion)}, residual '
+            f'{result.residual_rms_deg:.3f} deg RMS, uncertainty {result.uncertainty_deg:.3f} '
+            f'deg, from {result.samples} samples ({result.inliers} of {result.motions} '
+            f'motions used); next: {result.hint}')
+
+
+class InputWatch:
+    """
+    Problems of the node's input that no single message shows, found at each status.
+
+    Publishers of the wrong type on a silent stream, clock jumps that point to two clocks on
+    one stream, use_sim_time without /clock; and when listening began (for silent streams).
+    """
+
+    def __init__(self, expected_type, started_ns):
+        self.expected_type = expected_type   # e.g. geometry_msgs/msg/PoseStamped
+        self.started_ns = started_ns
+        self.jumps_seen = 0                  # the session's time jumps at the last status
+
+    def problems(self, stats, topics, publisher_types, time_jumps, now_ns, sim_time):
+        """
+        Return the problems in words, given the counts and the graph at node time now_ns.
+
+        publisher_types(topic): the types of the topic's publishers (the ROS graph).
+        """
+        found = []
+        for stream, topic in topics.items():
+            if stats.received[stream]:
+                continue
+            wrong = sorted(set(publisher_types(topic)) - {self.expected_type})
+            if wrong:
+                found.append(f'{topic} has publishers of type {", ".join(wrong)}; the node '
+                             f'subscribes {self.expected_type} (parameter pose_type)')
+        if time_jumps - self.jumps_seen >= REPEATED_JUMPS:
+            found.append(f'the stamps jumped back {time_jumps - self.jumps_seen} times since '
+                         'the last status: two publishers with different clocks on one '
+                         'stream? (ros2 topic info -v link_pose / sensor_pose)')
+        self.jumps_seen = time_jumps
+        if now_ns <= 0 and sim_time:
+            found.append('use_sim_time is true but no /clock message has come: no clock runs '
+                         '(play the bag with --clock, or start the simulator)')
+        if self.started_ns <= 0:   # use_sim_time: listening begins with the clock
+            self.started_ns = now_ns
+        return found
 
 
 def status_message(session, stats):

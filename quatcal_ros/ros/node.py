@@ -23,7 +23,6 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from geometry_msgs.msg import QuaternionStamped
 from geometry_msgs.msg import TransformStamped
-from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.files import exports
 from quatcal_ros.files import journal
@@ -31,7 +30,7 @@ from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_res
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros import parameters
 from quatcal_ros.ros import spin
-from quatcal_ros.ros.diagnostics import calibrator_status
+from quatcal_ros.ros.diagnostics import calibrator_status, describe_result, InputWatch
 from quatcal_ros.ros.pose_screen import PoseScreen
 from quatcal_ros.ros.qos import LATCHED_QOS
 from quatcal_ros.stream import message_checks
@@ -50,8 +49,6 @@ from std_srvs.srv import Trigger
 NODE_NAME = settings.NODE_NAME
 LINK, SENSOR = message_checks.LINK, message_checks.SENSOR
 LOG_THROTTLE_S = message_checks.LOG_THROTTLE_S
-# Clock jumps back within one status period that point to two clocks on one stream.
-REPEATED_JUMPS = 3
 # Said once (WARN) and kept in /diagnostics when publish_tf is true but tf2_ros is missing.
 TF2_ROS_MISSING = ('publish_tf is true but tf2_ros is not installed: the result is not '
                    'broadcast on /tf_static (it is still on ~/transform)')
@@ -63,20 +60,6 @@ LINK_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
 SENSOR_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
                         reliability=ReliabilityPolicy.BEST_EFFORT)
 DIAGNOSTICS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-
-
-def format_quaternion_xyzw(q_wxyz):
-    """'x, y, z, w = (..)' text of a quaternion given as (w, x, y, z)."""
-    x, y, z, w = quat.xyzw_from_wxyz(q_wxyz)
-    return f'x, y, z, w = ({x:.6f}, {y:.6f}, {z:.6f}, {w:.6f})'
-
-
-def describe_result(result):
-    """One log line for a new estimate."""
-    return (f'estimate: {format_quaternion_xyzw(result.quaternion)}, residual '
-            f'{result.residual_rms_deg:.3f} deg RMS, uncertainty {result.uncertainty_deg:.3f} '
-            f'deg, from {result.samples} samples ({result.inliers} of {result.motions} '
-            f'motions used); next: {result.hint}')
 
 
 class CalibratorNode(Node):
@@ -118,7 +101,6 @@ class CalibratorNode(Node):
         self._last_status_ns = self._steady.now().nanoseconds
         self.create_timer(self.config.diagnostics_period_s, self._watch_status,
                           clock=self._steady)
-        self._message_type = message_type
         self.create_service(Trigger, '~/capture', self._on_capture)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_service(Trigger, '~/save', self._on_save)
@@ -129,8 +111,7 @@ class CalibratorNode(Node):
             f'{self.config.sensor_frame} from {self.topics[LINK]} and {self.topics[SENSOR]} '
             f'({message_type.__name__}), capture mode {self.config.capture_mode}')
         self._start_tf_broadcast()
-        self._started_ns = self.now_ns()   # a stream silent this long after it is named
-        self._jumps_seen = 0               # the session's time jumps at the last status
+        self.inputs = InputWatch(f'geometry_msgs/msg/{message_type.__name__}', self.now_ns())
         self._resume()
 
     @property
@@ -307,37 +288,18 @@ class CalibratorNode(Node):
             tf_static = 'off (publish_tf is false)'
         else:
             tf_static = 'not broadcast: tf2_ros is not installed' if tf_problem else 'broadcast'
-        problems = [self.moves.warning(len(self.session.samples)), self.journal.problem,
-                    tf_problem, *self._silent_stream_problems()]
-        jumps = self.session.counters['time_jumps']
-        if jumps - self._jumps_seen >= REPEATED_JUMPS:
-            problems.append(f'the stamps jumped back {jumps - self._jumps_seen} times since '
-                            'the last status: two publishers with different clocks on one '
-                            'stream? (ros2 topic info -v link_pose / sensor_pose)')
-        self._jumps_seen = jumps
         now_ns = self.now_ns()
-        if now_ns <= 0 and self.get_parameter('use_sim_time').value:
-            problems.append('use_sim_time is true but no /clock message has come: no clock '
-                            'runs (play the bag with --clock, or start the simulator)')
-        if self._started_ns <= 0:   # use_sim_time: listening begins with the clock
-            self._started_ns = now_ns
+        problems = [self.moves.warning(len(self.session.samples)), self.journal.problem,
+                    tf_problem, *self.inputs.problems(
+                        self.poses.stats, self.topics, self._publisher_types,
+                        self.session.counters['time_jumps'], now_ns,
+                        self.get_parameter('use_sim_time').value)]
         return calibrator_status(self.session, self.poses.stats, now_ns,
                                  self.config.link_frame, problems, tf_static,
-                                 self._started_ns, self.topics)
+                                 self.inputs.started_ns, self.topics)
 
-    def _silent_stream_problems(self):
-        """Name the publishers of a silent stream whose type is not the one subscribed."""
-        expected = f'geometry_msgs/msg/{self._message_type.__name__}'
-        problems = []
-        for stream, topic in self.topics.items():
-            if self.poses.stats.received[stream]:
-                continue
-            found = sorted({info.topic_type for info in
-                            self.get_publishers_info_by_topic(topic)} - {expected})
-            if found:
-                problems.append(f'{topic} has publishers of type {", ".join(found)}; the node '
-                                f'subscribes {expected} (parameter pose_type)')
-        return problems
+    def _publisher_types(self, topic):
+        return [info.topic_type for info in self.get_publishers_info_by_topic(topic)]
 
     def _watch_status(self):
         """Publish the status when the node clock has not for two periods (no /clock)."""
@@ -388,14 +350,9 @@ class CalibratorNode(Node):
         base = {'robot_base_frame': config.link_frame_id} if config.setup == 'eye_in_hand' else {}
         saved = save_result(result, frames, config.setup, config.result_file,
                             config.easy_handeye2_file, base)
-        texts = [f'saved to {path}' if what == 'result' else
-                 f'easy_handeye2 layout saved to {path}' for what, path in saved.written]
-        for what, target, error in saved.failed:
-            name = 'easy_handeye2_file ' if what == 'easy_handeye2' else ''
-            texts.append(f'could not write {name}{target}: {error}')
-            self.get_logger().error(texts[-1])
-        response.success = saved.ok
-        response.message = '; '.join(texts)
+        response.success, response.message = saved.ok, '; '.join(saved.texts())
+        if not saved.ok:
+            self.get_logger().error(response.message)
         if saved.ok:
             self.get_logger().info(f'result {response.message}')
             self.get_logger().info(
