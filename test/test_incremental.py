@@ -184,3 +184,12 @@ def test_a_rejected_sample_keeps_the_estimate_and_is_reported():
     assert [r['sample'] for r in result.rejected if 'sample' in r] == [15]
     np.testing.assert_array_equal(result.closed_form.quaternion,
                                   results[-1].closed_form.quaternion)
+
+
+def test_full_solves_are_spaced_to_a_fifth_of_the_samples():
+    calibrator = Calibrator(full_solve_every=10)
+    assert [calibrator.full_solve_step(n) for n in (20, 50, 51, 100, 200, 1000)] == \
+        [10, 10, 20, 20, 40, 320]
+    due = [n for n in range(13, 401) if n % calibrator.full_solve_step(n) == 0]
+    assert due[:4] == [20, 30, 40, 50] and 200 in due and 210 not in due
+    assert [n for n in due if n > 200] == [240, 320, 400]   # 80 apart beyond 200

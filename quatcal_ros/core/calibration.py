@@ -520,6 +520,10 @@ def _median_residual_deg(samples, setup, invert_sensor, options):
     return float(np.degrees(np.median(motions.residual_angles(q_z))))
 
 
+# Full solves come at least every 1/FULL_SOLVE_SHARE of the samples (Calibrator).
+FULL_SOLVE_SHARE = 5
+
+
 class Calibrator:
     """
     Samples in, an estimate of all of them out on request: what session.Session drives.
@@ -529,7 +533,9 @@ class Calibrator:
     screened and added to the least-squares system and the information, and the refinement
     takes one warm-started step: no consensus search, no refit. The full robust pipeline of
     `calibrate` runs instead while the samples are few (up to `small`), on every
-    `full_solve_every`-th sample (so an early misjudgement cannot persist), when there is no
+    `full_solve_step`-th sample (every `full_solve_every`-th up to 5 times that many samples,
+    then spaced to a fifth of the samples, so an early misjudgement cannot persist and a long
+    session stays fast), when there is no
     estimate to extend, and when several samples came since the last estimate (a file, a
     resumed session, a replay that asks once at the end: its answer is then that of
     `calibrate` on all the samples).
@@ -573,7 +579,7 @@ class Calibrator:
         if not new:
             return []
         if (new == 1 and self._solution is not None and n > self.small
-                and n % self.full_solve_every):
+                and n % self.full_solve_step(n)):
             return self._add_incrementally(self.samples[-1])
         try:
             self._solution = _solve(self.samples, self.options)
@@ -582,6 +588,20 @@ class Calibrator:
             self.last_error = str(error)
             return [f'no estimate yet: {error}']
         return []
+
+    def full_solve_step(self, n):
+        """
+        Return the spacing of full solves at n samples.
+
+        It is full_solve_every, doubled while the full solves would come more often than
+        every 1/FULL_SOLVE_SHARE of the samples.  Early misjudgements are corrected often
+        while they matter, and a large session does not pay an O(N^2) solve every few
+        samples (at 200 samples: every 40th).
+        """
+        step = self.full_solve_every
+        while step * FULL_SOLVE_SHARE < n:
+            step *= 2
+        return step
 
     def _add_incrementally(self, sample):
         old = self._solution.fit
