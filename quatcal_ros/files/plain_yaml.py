@@ -61,8 +61,9 @@ def load(text, name, holds='the file'):
         deep nesting, or an integer with too many digits; 'NAME: larger than ...' for size.
     """
     _check_size(text, name)
+    loader = _BoundedLoader(text)   # yaml.safe_load's loader, bounded (class docstring)
     try:
-        return yaml.load(text, Loader=_BoundedLoader)   # noqa: S506 - a safe loader
+        return loader.get_single_data()
     except yaml.constructor.ConstructorError as error:
         raise BadInputError(f'{name}{_line(error)}: refused: not plain data ({error.problem}); '
                             f'{holds} holds only mappings, lists, strings and numbers') from None
@@ -71,6 +72,8 @@ def load(text, name, holds='the file'):
         raise BadInputError(f'{name}{_line(error)}: not readable YAML: {problem}') from None
     except (ValueError, RecursionError) as error:   # int() of a 5000-digit number, ...
         raise BadInputError(f'{name}: not readable YAML: {_short(error)}') from None
+    finally:
+        loader.dispose()
 
 
 def load_json(text, name):
