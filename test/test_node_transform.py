@@ -20,7 +20,7 @@ import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.ros.diagnostics import DIAGNOSTIC_NAME
 from quatcal_ros.ros.node import CalibratorNode
-from quatcal_ros.ros.node import TF2_ROS_MISSING
+from quatcal_ros.ros.static_tf import TF2_ROS_MISSING
 from quatcal_ros.sim import simulation
 from rcl_interfaces.msg import Log
 import rclpy

@@ -142,3 +142,11 @@ def test_the_first_code_block_starts_with_make_demo_and_make_test(readme):
     assert block is not None, 'README.md has no code block'
     commands = [line.split('#', 1)[0].strip() for line in block.group(1).splitlines()]
     assert [c for c in commands if c][:2] == ['make demo', 'make test'], block.group(1)
+
+
+def test_the_module_map_names_every_module():
+    package = Path(__file__).resolve().parents[1] / 'quatcal_ros'
+    text = (Path(__file__).resolve().parents[1] / 'README.md').read_text()
+    missing = [str(path.relative_to(package)) for path in sorted(package.glob('*/*.py'))
+               if path.name != '__init__.py' and f'`{path.name}`' not in text]
+    assert not missing, f'README.md module map lacks {missing}'

@@ -33,6 +33,7 @@ from quatcal_ros.ros import spin
 from quatcal_ros.ros.diagnostics import calibrator_status, describe_result, InputWatch
 from quatcal_ros.ros.pose_screen import PoseScreen
 from quatcal_ros.ros.qos import LATCHED_QOS
+from quatcal_ros.ros.static_tf import StaticTf
 from quatcal_ros.stream import message_checks
 from quatcal_ros.stream import settings
 from quatcal_ros.stream.session import EstimateUpdated, Notice, Rejected, SampleCaptured
@@ -49,9 +50,6 @@ from std_srvs.srv import Trigger
 NODE_NAME = settings.NODE_NAME
 LINK, SENSOR = message_checks.LINK, message_checks.SENSOR
 LOG_THROTTLE_S = message_checks.LOG_THROTTLE_S
-# Said once (WARN) and kept in /diagnostics when publish_tf is true but tf2_ros is missing.
-TF2_ROS_MISSING = ('publish_tf is true but tf2_ros is not installed: the result is not '
-                   'broadcast on /tf_static (it is still on ~/transform)')
 # Depth 1000: one second of a 1 kHz stream (or of a flood of bad messages) waits while a new
 # sample is estimated instead of being dropped.
 LINK_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
@@ -90,8 +88,7 @@ class CalibratorNode(Node):
             QuaternionStamped, '~/rotation', LATCHED_QOS)
         self.transform_publisher = self.create_publisher(
             TransformStamped, '~/transform', LATCHED_QOS)
-        self._tf_broadcaster = None   # tf2_ros.StaticTransformBroadcaster, with publish_tf
-        self._tf_problem = None       # why publish_tf has no effect, for /diagnostics
+        self.static_tf = StaticTf(self)
         self.diagnostics_publisher = self.create_publisher(
             DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
         # On the node clock (with use_sim_time: one status per second of a played bag); a
@@ -199,8 +196,8 @@ class CalibratorNode(Node):
         self.rotation_publisher.publish(msg)
         transform = self.transform_msg(result, conversions.stamp_ns_from_header(msg.header))
         self.transform_publisher.publish(transform)
-        if self.config.publish_tf and self._tf_broadcaster is not None:
-            self._tf_broadcaster.sendTransform(transform)
+        if self.config.publish_tf:
+            self.static_tf.send(transform)
 
     def transform_msg(self, result, stamp_ns):
         """Return the TransformStamped link_frame -> sensor_frame of `result`."""
@@ -236,21 +233,10 @@ class CalibratorNode(Node):
                 logger.info(text)
 
     def _start_tf_broadcast(self):
-        """With publish_tf, make the /tf_static broadcaster (once), or say why there is none."""
-        if not self.config.publish_tf or self._tf_broadcaster is not None:
-            return
-        try:
-            import tf2_ros
-        except ImportError:
-            if self._tf_problem is None:
-                self.get_logger().warning(TF2_ROS_MISSING)
-            self._tf_problem = TF2_ROS_MISSING
-            return
-        self._tf_problem = None
-        self._tf_broadcaster = tf2_ros.StaticTransformBroadcaster(self)
+        """With publish_tf, start /tf_static; turned on at runtime, it sends the estimate."""
         result = self.session.result
-        if result is not None:   # publish_tf turned on at runtime: send the current estimate
-            self._tf_broadcaster.sendTransform(self.transform_msg(result, self.now_ns()))
+        if self.config.publish_tf and self.static_tf.start() and result is not None:
+            self.static_tf.send(self.transform_msg(result, self.now_ns()))
 
     # --- samples journal -------------------------------------------------------------------
 
@@ -283,11 +269,7 @@ class CalibratorNode(Node):
 
     def diagnostic_status(self):
         """Build the DiagnosticStatus published on /diagnostics."""
-        tf_problem = self._tf_problem if self.config.publish_tf else None
-        if not self.config.publish_tf:
-            tf_static = 'off (publish_tf is false)'
-        else:
-            tf_static = 'not broadcast: tf2_ros is not installed' if tf_problem else 'broadcast'
+        tf_static, tf_problem = self.static_tf.state(self.config.publish_tf)
         now_ns = self.now_ns()
         problems = [self.moves.warning(len(self.session.samples)), self.journal.problem,
                     tf_problem, *self.inputs.problems(
