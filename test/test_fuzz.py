@@ -20,6 +20,7 @@ import io
 import json
 import os
 import shutil
+import tracemalloc
 
 from geometry_msgs.msg import PoseStamped
 from geometry_msgs.msg import TransformStamped
@@ -31,6 +32,7 @@ import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.units import NS_PER_S
+from quatcal_ros.files import plain_yaml
 from quatcal_ros.files.samples_csv import BadInputError
 from quatcal_ros.files.samples_csv import COLUMNS
 from quatcal_ros.files.samples_csv import format_samples
@@ -556,3 +558,48 @@ def test_random_files_are_not_bags(tmp_path_factory, data, name):
             pass
     status, err = replay(target)
     assert status == 2 and err.startswith('replay: error:'), err
+
+
+# --- the bounded YAML and JSON loader --------------------------------------------------------
+
+@st.composite
+def hostile_yaml(draw):
+    """YAML that anchors and aliases, nests, and writes long integers, at random."""
+    fan = draw(st.integers(1, 12))
+    levels = draw(st.integers(0, 12))
+    lines = ['l0: &l0 [' + ', '.join(['x'] * fan) + ']']
+    lines += [f'l{k}: &l{k} [' + ', '.join([f'*l{k - 1}'] * fan) + ']'
+              for k in range(1, levels + 1)]
+    depth = draw(st.integers(0, 300))
+    lines.append('deep: ' + '[' * depth + ']' * depth)
+    lines.append('n: ' + '9' * draw(st.integers(1, 6000)))
+    lines += draw(st.lists(st.text(max_size=30), max_size=3))
+    return '\n'.join(draw(st.permutations(lines)))
+
+
+def _bounded_load(load, text):
+    """Load `text`; return the peak memory (bytes) it took, refused or not."""
+    tracemalloc.start()
+    try:
+        load(text, 'fuzz.yaml')
+    except BadInputError as error:
+        assert str(error).startswith('fuzz.yaml')
+    finally:
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return peak
+
+
+@examples(150)
+@given(st.one_of(hostile_yaml(), st.text(max_size=200)))
+def test_the_yaml_loader_refuses_or_loads_in_bounded_memory(text):
+    # No alias expands, nothing nests past 64 levels: a few MB at most, whatever the text.
+    assert _bounded_load(plain_yaml.load, text) < 64 * 1024 * 1024
+
+
+@examples(150)
+@given(st.one_of(st.integers(0, 5000).map(lambda n: '[' * n + ']' * n),
+                 st.integers(1, 6000).map(lambda n: '[' + '7' * n + ']'),
+                 st.text(max_size=200)))
+def test_the_json_loader_refuses_or_loads_in_bounded_memory(text):
+    assert _bounded_load(plain_yaml.load_json, text) < 64 * 1024 * 1024

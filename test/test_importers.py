@@ -353,6 +353,7 @@ BILLION_LAUGHS = ('a: &a [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n' + ''.j
     ('.samples', 'samples: ' + '9' * 5000, 'an integer of 5000 digits'),
     ('.json', '[' * 100000 + ']' * 100000, 'not readable JSON: nested too deeply'),
     ('.json', '[' + '9' * 5000 + ']', 'an integer of 5000 digits'),
+    ('.samples', '\x08', 'not readable YAML: unacceptable character #x0008'),
 ])
 def test_hostile_files_are_refused_in_bounded_time_naming_the_file(
         tmp_path, suffix, text, words):

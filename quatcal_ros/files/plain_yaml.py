@@ -61,8 +61,9 @@ def load(text, name, holds='the file'):
         deep nesting, or an integer with too many digits; 'NAME: larger than ...' for size.
     """
     _check_size(text, name)
-    loader = _BoundedLoader(text)   # yaml.safe_load's loader, bounded (class docstring)
+    loader = None
     try:
+        loader = _BoundedLoader(text)   # yaml.safe_load's loader, bounded (class docstring)
         return loader.get_single_data()
     except yaml.constructor.ConstructorError as error:
         raise BadInputError(f'{name}{_line(error)}: refused: not plain data ({error.problem}); '
@@ -73,7 +74,8 @@ def load(text, name, holds='the file'):
     except (ValueError, RecursionError) as error:   # int() of a 5000-digit number, ...
         raise BadInputError(f'{name}: not readable YAML: {_short(error)}') from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
 
 
 def load_json(text, name):
