@@ -223,15 +223,6 @@ class Bench:
                                                                               0))
 
 
-def delivery_order(streams):
-    """Return [(due ns, stream, stamp ns, pose)] in publishing order."""
-    events = [(stamp, 0, 'link', stamp, pose) for stamp, pose in streams.link]
-    events += [(due, 1, 'sensor', stamp, pose)
-               for due, (stamp, pose) in zip(streams.sensor_delivery_ns, streams.sensor)]
-    events.sort(key=lambda e: e[:2])
-    return [(due, stream, stamp, pose) for due, _, stream, stamp, pose in events]
-
-
 def completing_messages(events, preload, still_window_s):
     """Return the indices of the messages that complete a still sample (the node's session)."""
     from quatcal_ros.stream import settings
@@ -369,7 +360,7 @@ def main(argv=None):
     latency_s = args.latency_stops * 1.2 + 1.0
     cell, preload, streams = simulate(5, args.seconds + latency_s, time.time_ns() + 8 * NS,
                                       start_samples=args.start_samples)
-    events = delivery_order(streams)
+    events = streams.delivery_order()
     split = next(k for k, e in enumerate(events) if e[0] - events[0][0] >= latency_s * NS)
     completing_all = completing_messages(events, preload, 0.3)
     completing = [k for k in completing_all if k < split][:args.latency_stops]

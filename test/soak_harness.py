@@ -65,15 +65,6 @@ def make_streams(seed, duration_s, link_rate_hz, sensor_rate_hz, start_ns, still
         drop_probability=0.02, rotation_spread_deg=40.0, start_ns=start_ns)
 
 
-def delivery_order(streams):
-    """Return the streams' messages as [(due ns, 'link' or 'sensor', stamp ns, pose)]."""
-    events = [(stamp, 0, 'link', stamp, pose) for stamp, pose in streams.link]
-    events += [(due, 1, 'sensor', stamp, pose)
-               for due, (stamp, pose) in zip(streams.sensor_delivery_ns, streams.sensor)]
-    events.sort(key=lambda event: event[:2])
-    return [(due, kind, stamp, pose) for due, _, kind, stamp, pose in events]
-
-
 def error_deg(msg, truth):
     """Return the angle between a QuaternionStamped and the true mounting (degrees)."""
     q = msg.quaternion

@@ -88,10 +88,7 @@ def synthetic_samples(n, seed=1, noise_deg=0.1):
 
 def stream_events(streams):
     """(delivery ns, topic, header stamp ns, pose) of both streams in delivery order."""
-    events = [(stamp, 0, 'link_pose', stamp, pose) for stamp, pose in streams.link]
-    events += [(delivery, 1, 'sensor_pose', stamp, pose) for delivery, (stamp, pose)
-               in zip(streams.sensor_delivery_ns, streams.sensor)]
-    return [(e[0],) + e[2:] for e in sorted(events, key=lambda e: e[:2])]
+    return streams.delivery_order(('link_pose', 'sensor_pose'))
 
 
 # --- in-process ------------------------------------------------------------------------------

@@ -338,3 +338,15 @@ def test_core_module_imports_no_ros(repo_root):
             '("rclpy", "geometry_msgs", "std_msgs", "builtin_interfaces")]; '
             'sys.exit(str(bad) if bad else 0)')
     subprocess.run([sys.executable, '-c', code], check=True, cwd=repo_root)
+
+
+def test_delivery_order_is_the_publishing_order():
+    rng = np.random.default_rng(4)
+    streams = sim.stop_and_go_streams(rng, sim.random_cell(rng), 2, latency_s=0.03)
+    events = streams.delivery_order()
+    assert len(events) == len(streams.link) + len(streams.sensor)
+    dues = [due for due, _, _, _ in events]
+    assert dues == sorted(dues)
+    assert [e[2] for e in events if e[1] == 'sensor'] == [s for s, _ in streams.sensor]
+    assert all(due == stamp for due, name, stamp, _ in events if name == 'link')
+    assert {e[1] for e in streams.delivery_order(('a', 'b'))} == {'a', 'b'}

@@ -33,7 +33,6 @@ import numpy as np
 from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.sim import simulation
 from ros_harness import stop_process
-from soak_harness import delivery_order
 from soak_harness import Driver
 from soak_harness import error_deg
 from soak_harness import make_streams
@@ -60,7 +59,7 @@ def feed(driver, streams, process, flood_per_s=0.0, every_links=None, on_links=N
     flood_per_s: NaN poses on sensor_pose per second of stream, stamped on the stream's clock.
     on_links(): called after every `every_links` link poses (memory sampling).
     """
-    events = delivery_order(streams)
+    events = streams.delivery_order()
     flood_period_ns = int(NS / flood_per_s) if flood_per_s else None
     flood_due = events[0][0]
     deadline = time.monotonic() + WALL_LIMIT_S

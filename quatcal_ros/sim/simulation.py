@@ -486,6 +486,20 @@ class Streams:
         """Return the answer: cell.mounting (T_link_sensor, or T_base_sensor for eye_to_hand)."""
         return self.cell.mounting
 
+    def delivery_order(self, names=('link', 'sensor')):
+        """
+        Return both streams as [(due ns, stream name, header stamp ns, pose)] in publishing order.
+
+        A link pose is due at its stamp, a sensor frame at its delivery; at equal times the
+        link pose comes first.  names: what to call the two streams.
+        """
+        link, sensor = names
+        events = [(stamp, 0, link, stamp, pose) for stamp, pose in self.link]
+        events += [(due, 1, sensor, stamp, pose)
+                   for due, (stamp, pose) in zip(self.sensor_delivery_ns, self.sensor)]
+        events.sort(key=lambda event: event[:2])
+        return [(due, name, stamp, pose) for due, _, name, stamp, pose in events]
+
 
 def stop_and_go_streams(rng, cell, n_stops, link_rate_hz=500.0, sensor_rate_hz=30.0,
                         still_s=1.5, move_s=2.0, rotation_noise_deg=0.0,
