@@ -175,7 +175,9 @@ def test_wrong_setup_is_detected_and_named():
         said = ' '.join(calibrate(samples).warnings)
     except DegenerateMotionError as error:
         said = str(error)
-    assert '--setup eye_to_hand' in said and '--invert-sensor' in said
+    # Rotations alone cannot tell the other setup from inverted sensor poses; the
+    # translations can, so only the right fix is named.
+    assert '--setup eye_to_hand' in said and '--invert-sensor' not in said
     right = calibrate(samples, CalibrationOptions(setup='eye_to_hand'))
     assert not right.warnings
     assert error_deg(right, cell) < 3 * right.uncertainty_deg + 0.01

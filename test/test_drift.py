@@ -64,13 +64,19 @@ def test_two_moved_samples_are_not_yet_a_move():
     assert drift.find_move(moved, calibration.calibrate(moved).quaternion) is None
 
 
-def test_the_robust_estimate_alone_hides_a_move():
-    """Why the check exists: the moved samples are rejected, the residual stays low."""
+def test_the_robust_estimate_alone_does_not_say_what_happened():
+    """
+    Why the check exists: the robust estimate only down-weights the moved samples as noisy.
+
+    A 3 deg move is no bad detection (the heavy-tailed noise explains it), so nothing is
+    rejected; the validation fails, but only the drift check says the marker moved, and when.
+    """
     cell, samples = cell_and_samples(3, 16)
     moved = marker_moved(cell, samples, 12, 3.0)
     result = calibration.calibrate(moved)
-    assert result.residual_rms_deg < 1.0          # below the node's high-residual warning
-    assert {e['sample'] for e in result.rejected if 'sample' in e} >= {12, 13, 14, 15}
+    assert not result.rejected
+    assert {e['sample'] for e in result.noisy} == {12, 13, 14, 15}
+    assert result.validation['verdict'] == 'fail'
     assert drift.find_move(moved, result.quaternion).first == 12
 
 

@@ -14,7 +14,8 @@ in refine.whitened_jacobian: X's rotation (left perturbation, radians), X's tran
 """
 
 import numpy as np
-from quatcal_ros.core.refine import whitened_jacobian
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.refine import jacobian, whitened_jacobian
 
 
 def cramer_rao_covariance(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t):
@@ -32,6 +33,23 @@ def cramer_rao_covariance(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t):
                           np.asarray(o_q, dtype=float), np.asarray(o_t, dtype=float),
                           sigma_r, sigma_t)
     return np.linalg.inv(J.T @ J)
+
+
+def cramer_rao_covariance_general(link_q, link_t, x_q, x_t, o_q, o_t, noise_covariance):
+    """
+    Return the bound (12 x 12) for sensor noise with any 6x6 covariance in the sensor frame.
+
+    noise_covariance: of (rotation vector of R_meas R_true^T, t_meas - t_true), radians and
+    metres, the same for every sample (simulation.add_sensor_noise draws it). The Fisher
+    information is sum_i J_i^T Sigma^-1 J_i with refine.jacobian's J_i.
+    """
+    link_q = np.asarray(link_q, dtype=float)
+    link_R = quat.matrix_from_quaternion(link_q)
+    lever = np.einsum('nji,nj->ni', link_R, np.asarray(o_t, dtype=float)
+                      - np.asarray(link_t, dtype=float)) - np.asarray(x_t, dtype=float)
+    J = jacobian(link_R, quat.matrix_from_quaternion(np.asarray(x_q, dtype=float)), lever)
+    information = np.linalg.inv(noise_covariance)
+    return np.linalg.inv(np.einsum('nai,ab,nbj->ij', J, information, J))
 
 
 def rotation_rms_deg(covariance):

@@ -1,50 +1,54 @@
 """
-Estimate the sensor mounting rotation A_z from still samples: robust, with quality figures.
+Estimate the sensor mounting A_z from still samples: robust, with quality figures.
 
 Pipeline (one function, `calibrate`, used by the node, the bag replay and the CSV tool through
-`Calibrator` / session.Session):
-1. motions from the samples, all pairs or consecutive pairs (motions.py, eq. (35)-(36));
-2. screening: motions too small to inform, and (robust mode) motions whose rotation angles
-   theta_a and theta_b disagree (A_a and A_b must be similar matrices, Lemma 4 of Shiu and
-   Ahmad; erratum 3 of the paper);
-3. (robust) a consensus search whose minimal solver is the paper's two-motion method
-   (solver.solve_two_motions), scored by the median sample residual (least median of squares,
-   so no threshold has to be guessed);
-4. (robust) rejection of bad samples: a bad detection spoils every motion it takes part in,
-   so samples, not only motions, are tested, by their residual in the base frame;
-5. least squares over the remaining motions (leastsq.py, stacked eq. (41));
-6. quality: per-motion residuals, RMS residual, uncertainty and excitation (quality.py).
+`Calibrator` / session.Session). Every step is O(N) in the samples:
+1. (robust) a consensus search whose minimal solver is the paper's two-motion method
+   (solver.solve_two_motions) on a bounded set of candidate motions (eq. (35)-(36)), screened
+   for size and for rotation angles theta_a, theta_b that disagree (Lemma 4 of Shiu and
+   Ahmad; erratum 3), scored by the median sample residual (least median of squares);
+2. (robust) bad detections: a bad detection spoils every motion it takes part in, so samples
+   are judged, by their object orientation in the base frame, against a heavy-tailed noise
+   model fitted to all of them (heavy_tails.bad_detections);
+3. the least squares of eq. (41) over all pairs of the good samples, without forming a motion
+   (leastsq.all_pairs_rotation), or over consecutive pairs; the closed-form translation
+   (translation.py);
+4. the joint refinement of rotation and translation over the absolute poses (refine.py):
+   anisotropic, heavy-tailed sensor noise estimated from the data, a sandwich covariance;
+5. quality: residuals, uncertainty, excitation, leave-one-out validation (validation.py), and
+   the frame-convention check over the whole fit (conventions.py).
 
-Quaternions are (w, x, y, z).  The answer is the rotation of T_link_sensor (eye-in-hand) or
+Quaternions are (w, x, y, z). The answer is the rotation of T_link_sensor (eye-in-hand) or
 T_base_sensor (eye-to-hand).
 """
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from quatcal_ros.core import conventions
+from quatcal_ros.core import heavy_tails
 from quatcal_ros.core import quality
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.leastsq import least_squares_rotation, MotionSystem
-from quatcal_ros.core.motions import Motions, pair_indices, PAIRINGS, SampleRotations
-from quatcal_ros.core.refine import refine, refine_from
+from quatcal_ros.core.leastsq import all_pairs_rotation, least_squares_rotation, MotionSystem, \
+    sample_matrices
+from quatcal_ros.core.motions import motion_count, Motions, pair_indices, PAIRINGS, \
+    SampleRotations
+from quatcal_ros.core.refine import MAX_ITERATIONS, refine
 from quatcal_ros.core.solver import DegenerateMotionError, solve_two_motions
 from quatcal_ros.core.translation import SamplePositions, solve_translation
 from quatcal_ros.core.units import SETUPS
+from quatcal_ros.core.validation import not_enough_samples, Thresholds, validate
 
-# Quantile of the chi distribution with 3 degrees of freedom at 99.9 %: a sample whose residual
-# angle exceeds 4.03 sigma is an outlier with 0.1 % false alarms.
-CHI3_999 = 4.03
-# Median of the chi distribution with 3 degrees of freedom (median angle / sigma).
-CHI3_MEDIAN = 1.5382
-# Smallest outlier threshold (radians): below it, differences are rounding, not bad data.
-MIN_OUTLIER_THRESHOLD = 1e-6
-# Median motion residual (degrees) above which the frame conventions are checked.
-SUSPICIOUS_RESIDUAL_DEG = 0.5
-# Motions used to estimate the scale of |theta_a - theta_b| (a median needs no more).
-MISMATCH_SCALE_MOTIONS = 20000
+# Candidate motions of the consensus search: every pair up to this many, else the consecutive
+# pairs and random others (a median needs no more).
+CANDIDATE_MOTIONS = 2000
 # Minimum axis separation (degrees) of the two motions of a consensus hypothesis.
 HYPOTHESIS_AXIS_SEPARATION_DEG = 20.0
+# A refinement sample whose noise weight falls below this is reported as noisy.
+NOISY_WEIGHT = 0.5
+# Gauss-Newton steps of a warm-started refinement (between full solves).
+WARM_ITERATIONS = 3
 
 
 class InsufficientDataError(DegenerateMotionError):
@@ -68,6 +72,7 @@ class CalibrationOptions:
     hypotheses: int = 32                # consensus-search trials (P(all bad) ~ 1e-15)
     seed: int = 0                       # fixed, so the same data always give the same answer
     method: str = 'refined'             # or 'closed-form' (Chou-Kamel + closed-form translation)
+    validation: Thresholds = field(default_factory=Thresholds)
 
     def __post_init__(self):
         """Refuse a value outside its choices (ValueError naming field, value and choices)."""
@@ -108,9 +113,9 @@ class CalibrationResult:
     matrix: np.ndarray              # 3x3
     samples: int
     motions: int                    # motions formed from the samples
-    inliers: int                    # motions used in the final least squares
+    inliers: int                    # motions between the good samples (the least squares')
     inlier_samples: int
-    residual_rms_deg: float         # RMS of the per-motion residual angles (inliers)
+    residual_rms_deg: float         # RMS residual angle of those motions (eq. (38))
     uncertainty_deg: float          # expected RMS error angle, sqrt(trace(cov))
     noise_deg: float                # estimated per-axis rotation noise of one sample
     excitation: float               # weakest / strongest information eigenvalue, 0..1
@@ -120,13 +125,16 @@ class CalibrationResult:
     pairs: str
     rejected: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
-    motion_residuals_deg: np.ndarray = None   # per inlier motion
     translation: np.ndarray = None  # (3,) metres, of the published estimate
     translation_uncertainty_mm: float = float('nan')
     translation_noise_mm: float = float('nan')   # per-axis noise of one sample's position
     method: str = 'closed-form'     # which estimate the top-level fields hold
     closed_form: Estimate = None    # Chou-Kamel rotation and closed-form translation
     refined: Estimate = None        # the joint refinement, when it ran
+    noise_model: dict = None        # the fitted sensor noise (refine.py), JSON-ready
+    noisy: list = field(default_factory=list)     # down-weighted samples
+    validation: dict = None         # validation.validate's JSON object
+    sample_ok: np.ndarray = None    # bool per sample: used (not a bad detection)
 
     def to_json_dict(self):
         """Return the JSON object of DESIGN.md contract 3 (plus extra keys, never renamed)."""
@@ -154,6 +162,9 @@ class CalibrationResult:
             'method': self.method,
             'closed_form': self.closed_form.to_json_dict(),
             'refined': self.refined.to_json_dict() if self.refined else None,
+            'noise_model': self.noise_model,
+            'noisy': self.noisy,
+            'validation': self.validation,
         }
 
 
@@ -173,104 +184,148 @@ def calibrate(samples, options=CalibrationOptions()):
 
 @dataclass(frozen=True)
 class _Fit:
-    """
-    The closed-form fit of the samples: what an estimate is made of, and an update extends.
+    """The rotation stage: which samples are good, the closed-form rotation, its information."""
 
-    All per-sample arrays cover every sample; sample_ok marks those the fit uses.
-    """
-
-    rotations: SampleRotations
-    positions: SamplePositions
-    sample_ok: np.ndarray        # bool per sample
-    inliers: Motions             # the motions of the final least squares
-    system: MotionSystem         # their normal matrix
-    info: quality.Information    # their H, G, C
     q_z: np.ndarray              # the closed-form (Chou-Kamel least-squares) rotation
-    motion_count: int            # motions formed from the samples
+    sample_ok: np.ndarray        # bool per sample
+    info: quality.Information    # of the motions the least squares used
+    inliers: int                 # those motions
+    residual_rms: float          # their RMS residual angle (radians)
     rejected: list
-    warnings: list               # the frame-convention warnings of the last full solve
-    mismatch_limit: float        # radians, |theta_a - theta_b| screen
-    outlier_threshold: float     # radians, sample residual test
 
 
 @dataclass(frozen=True)
 class _Solution:
-    """An estimate: its fit, its CalibrationResult and the refinement it publishes (or None)."""
+    """An estimate: its CalibrationResult and the refinement it publishes (or None)."""
 
-    fit: _Fit
     result: CalibrationResult
     refinement: object           # refine.Refinement or None: the start of warm-started steps
 
 
-def _solve(samples, options):
-    """Run the full pipeline of the module docstring on `samples`; return its _Solution."""
+def _solve(samples, options, previous=None):
+    """
+    Run the pipeline of the module docstring on `samples`; return its _Solution.
+
+    previous: the _Solution of fewer of the same samples, or None. Given it, its published
+    rotation replaces the consensus search and its refinement starts the new one (a warm
+    solve, what the live calibrator runs between full solves).
+    """
     n = len(samples)
     if n < 3:
         raise InsufficientDataError(
             f'{n} sample(s): at least 3 are needed (two motions about different axes); '
             'move the robot to new poses, rotating the link by 20-40 degrees each time')
     rotations = SampleRotations.from_samples(samples, options.setup, options.invert_sensor)
-    motions = Motions.between(rotations, *pair_indices(n, options.pairs))
-    usable, limit = _screen(motions, options)
-    sample_ok = np.ones(n, dtype=bool)
+    positions = SamplePositions.from_samples(samples, rotations)
+    start = previous.result.quaternion if previous is not None else None
     try:
-        if options.robust:
-            q_z = _consensus(rotations, motions.subset(usable), options)
-            for _ in range(2):
-                sample_ok = _good_samples(rotations, q_z)
-                fit = motions.subset(usable & sample_ok[motions.i] & sample_ok[motions.j])
-                _require_motions(fit, options)
-                q_z = least_squares_rotation(fit.q_a, fit.q_b, reference=q_z)
+        if options.pairs == 'all':
+            fit = _all_pairs(rotations, options, start)
         else:
-            fit = motions.subset(usable)
-            _require_motions(fit, options)
-            q_z = least_squares_rotation(fit.q_a, fit.q_b)
-        system = MotionSystem()
-        system.add(fit.q_a, fit.q_b, reference=q_z if options.robust or _near_half_turns(fit)
-                   else None)
-        q_z = system.solve()[0]
-        info = _check_excitation(rotations, fit, options)
+            fit = _consecutive(rotations, options, start)
     except DegenerateMotionError as error:
-        raise type(error)(' '.join([str(error)] + convention_warnings(samples, options))) \
-            from None
-    warnings = convention_warnings(samples, options) if _suspicious(fit, q_z) else []
+        advice = conventions.warnings(samples, options) if previous is None else []
+        raise type(error)(' '.join([str(error)] + advice)) from None
+    return _estimate(samples, rotations, positions, fit, options, previous)
+
+
+# --- rotation stage --------------------------------------------------------------------------
+
+def _all_pairs(rotations, options, start):
+    """Run the rotation stage over all pairs of samples (module docstring, steps 1-3)."""
+    n = len(rotations)
+    candidates = _candidates(rotations, options)
+    if options.robust:
+        q_z = start if start is not None else _consensus(rotations, candidates, options)
+        sample_ok, detections = np.ones(n, dtype=bool), None
+        for _ in range(2):
+            detections = _detections(rotations, q_z, detections)
+            sample_ok = ~detections.bad
+            _require_samples(sample_ok)
+            q_z = all_pairs_rotation(rotations, sample_ok, q_z)
+    else:
+        _require_motions(candidates)
+        sample_ok, detections = np.ones(n, dtype=bool), None
+        q_z = all_pairs_rotation(rotations, sample_ok,
+                                 least_squares_rotation(candidates.q_a, candidates.q_b))
+    info = _check_excitation(quality.Information.all_pairs(rotations.link_matrices, sample_ok),
+                             _count(sample_ok), options)
+    residuals = quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok]
+    k = _count(sample_ok)
+    # Over all pairs, sum_{i<j} |e_j - e_i|^2 = K sum_i |e_i - mean|^2 (to first order the
+    # motion residual angle is |e_j - e_i|).
+    centred = residuals - residuals.mean(axis=0)
+    rms = float(np.sqrt(2.0 * np.sum(centred ** 2) / max(k - 1, 1)))
+    return _Fit(q_z, sample_ok, info, motion_count(k), rms,
+                _rejected_samples(rotations, q_z, sample_ok, detections, k - 1))
+
+
+def _consecutive(rotations, options, start):
+    """Run the rotation stage over consecutive pairs of samples only."""
+    n = len(rotations)
+    motions = Motions.between(rotations, *pair_indices(n, 'consecutive'))
+    usable, limit = _screen(motions, options)
+    sample_ok, detections = np.ones(n, dtype=bool), None
+    if options.robust:
+        q_z = start if start is not None else _consensus(rotations, motions.subset(usable),
+                                                         options)
+        for _ in range(2):
+            detections = _detections(rotations, q_z, detections)
+            sample_ok = ~detections.bad
+            fit = motions.subset(usable & sample_ok[motions.i] & sample_ok[motions.j])
+            _require_motions(fit)
+            q_z = least_squares_rotation(fit.q_a, fit.q_b, reference=q_z)
+    else:
+        fit = motions.subset(usable)
+        _require_motions(fit)
+        q_z = least_squares_rotation(fit.q_a, fit.q_b)
+    system = MotionSystem()
+    system.add(fit.q_a, fit.q_b, reference=q_z if options.robust or _near_half_turns(fit)
+               else None)
+    q_z = system.solve()[0]
+    info = _check_excitation(quality.Information.of(rotations.link_matrices, fit.i, fit.j),
+                             len(fit), options)
     rejected = (_rejected_motions(motions, usable, sample_ok, limit, options)
-                + _rejected_samples(rotations, q_z, sample_ok, motions))
-    threshold = (_outlier_threshold(np.linalg.norm(
-        quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok], axis=1))
-        if options.robust else np.inf)
-    return _estimate(_Fit(rotations, SamplePositions.from_samples(samples, rotations),
-                          sample_ok, fit, system, info, q_z, len(motions), rejected, warnings,
-                          limit, threshold), options)
+                + _rejected_samples(rotations, q_z, sample_ok, detections, 2))
+    rms = float(np.sqrt(np.mean(fit.residual_angles(q_z) ** 2)))
+    return _Fit(q_z, sample_ok, info, len(fit), rms, rejected)
 
 
-def _suspicious(fit, q_z):
-    """
-    Whether the residuals are too large for the noise the angle mismatches show.
+def _count(mask):
+    return int(np.sum(mask))
 
-    Under the right convention the median residual is ~2.3 times the median |theta_a -
-    theta_b| (3-D versus 1-D projections of the same noise); a wrong convention leaves the
-    angles equal but the residuals at tens of degrees.
-    """
-    residual = np.median(fit.residual_angles(q_z))
-    mismatch = np.median(np.abs(fit.angle_a - fit.angle_b))
-    return residual > np.radians(SUSPICIOUS_RESIDUAL_DEG) and residual > 6.0 * mismatch
+
+def _candidates(rotations, options):
+    """Return the screened candidate motions of the consensus search (a bounded set)."""
+    n = len(rotations)
+    if motion_count(n) <= CANDIDATE_MOTIONS:
+        i, j = pair_indices(n, 'all')
+    else:
+        rng = np.random.default_rng(options.seed)
+        extra = CANDIDATE_MOTIONS - (n - 1)
+        a = rng.integers(0, n, max(extra, 0))
+        b = rng.integers(0, n - 1, max(extra, 0))
+        b = b + (b >= a)   # any other sample
+        first = np.arange(n - 1)
+        i = np.concatenate([first, np.minimum(a, b)])[:CANDIDATE_MOTIONS]
+        j = np.concatenate([first + 1, np.maximum(a, b)])[:CANDIDATE_MOTIONS]
+    motions = Motions.between(rotations, i, j)
+    return motions.subset(_screen(motions, options)[0])
 
 
 def _near_half_turns(motions):
-    """Whether any motion is within ~6 deg of a half turn, where erratum 3's sign rule fails."""
+    """Return whether a motion is within ~6 deg of a half turn (erratum 3's sign rule fails)."""
     return bool(np.any(np.minimum(np.abs(motions.q_a[:, 0]), np.abs(motions.q_b[:, 0])) < 0.05))
 
 
 def _screen(motions, options):
-    """Motions usable for the estimate (bool mask) and the |theta_a - theta_b| limit."""
+    """Return the motions usable for the estimate (bool mask) and the |theta_a - theta_b| limit."""
     angle_a, angle_b = motions.angle_a, motions.angle_b
     large = _usable(angle_a, angle_b, options.min_motion_deg, np.inf)
     limit = np.inf
-    if options.robust and np.any(large[:MISMATCH_SCALE_MOTIONS]):
+    if options.robust and np.any(large):
         # |theta_a - theta_b| of a good motion is Gaussian: 5 robust sigmas, within bounds.
-        mismatch = np.abs(angle_a - angle_b)[:MISMATCH_SCALE_MOTIONS]
-        sigma = np.median(mismatch[large[:MISMATCH_SCALE_MOTIONS]]) / 0.6745
+        sigma = np.median(np.abs(angle_a - angle_b)[large]) / 0.6745
         limit = np.clip(5.0 * sigma, np.radians(0.1), np.radians(options.max_angle_mismatch_deg))
     return _usable(angle_a, angle_b, options.min_motion_deg, limit), limit
 
@@ -307,11 +362,8 @@ def _rejected_motions(motions, usable, sample_ok, limit, options):
 
 
 def _consensus(rotations, candidates, options):
-    """Least-median-of-squares consensus over two-motion hypotheses of the paper's method."""
-    if len(candidates) < 2:
-        raise InsufficientDataError(
-            f'only {len(candidates)} usable motion(s): at least two motions about different '
-            'axes are needed; rotate the link by 20-40 degrees about a new axis and stop')
+    """Return the least-median-of-squares consensus of two-motion hypotheses (the paper's)."""
+    _require_motions(candidates)
     hypotheses = [least_squares_rotation(candidates.q_a, candidates.q_b)]
     rng = np.random.default_rng(options.seed)
     axes = candidates.axis_a
@@ -331,68 +383,71 @@ def _consensus(rotations, candidates, options):
         except DegenerateMotionError:
             continue
         hypotheses.append(solution.quaternion)
-    scores = [np.median(np.linalg.norm(quality.sample_residuals(rotations, q), axis=1))
-              for q in hypotheses]
+    # Every hypothesis's object orientations Z_i at once: (H, N, 4).
+    Z = np.einsum('nij,hj->hni', sample_matrices(rotations), np.array(hypotheses))
+    scores = [np.median(np.linalg.norm(quat.rotation_vector(quat.multiply(
+        z, quat.conjugate(quat.average(z)))), axis=1)) for z in Z]
     return hypotheses[int(np.argmin(scores))]
 
 
-def _outlier_threshold(angles):
+def _detections(rotations, q_z, previous=None):
     """
-    Residual angle (radians) above which a sample is an outlier (robust chi-3 test).
+    Judge every sample's object orientation against the others (heavy_tails.bad_detections).
 
-    The residual angles of good samples follow sigma times a chi distribution with 3 degrees of
-    freedom, shrunk by sqrt((3N - 6) / 3N) because six parameters were fitted to them.
+    The residuals are taken about the mean orientation of the samples weighted by their
+    probability of being good (all samples alike at first), so the verdicts never rest on a
+    set trimmed by an earlier verdict.
     """
-    n = len(angles)
-    shrink = np.sqrt(max(3 * n - 6, 1) / (3 * n))
-    sigma = np.median(angles) / (CHI3_MEDIAN * shrink)
-    return max(CHI3_999 * sigma, MIN_OUTLIER_THRESHOLD)
+    Z = rotations.object_orientations(q_z)
+    weights = None if previous is None else previous.good_probability
+    mean = quat.average(Z, weights)
+    return heavy_tails.bad_detections(quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean))))
 
 
-def _good_samples(rotations, q_z):
-    """Mark the samples whose object orientation agrees with the consensus (bool mask)."""
-    ok = np.ones(len(rotations), dtype=bool)
-    for _ in range(3):
-        angles = np.linalg.norm(quality.sample_residuals(rotations, q_z, ok), axis=1)
-        ok = angles <= _outlier_threshold(angles[ok])
-    return ok
-
-
-def _rejected_samples(rotations, q_z, sample_ok, motions):
-    """Reasons for each rejected sample."""
-    if np.all(sample_ok):
+def _rejected_samples(rotations, q_z, sample_ok, detections, spoiled):
+    """Return reasons for each bad detection; `spoiled`: the motions each would have formed."""
+    if detections is None or np.all(sample_ok):
         return []
     angles = np.degrees(np.linalg.norm(
         quality.sample_residuals(rotations, q_z, sample_ok), axis=1))
-    threshold = np.degrees(_outlier_threshold(np.radians(angles[sample_ok])))
-    return [_sample_rejection(i, angles[i], threshold,
-                              int(np.sum((motions.i == i) | (motions.j == i))))
+    noise = detections.noise
+    sigma_deg = np.degrees(np.sqrt(noise.covariance[0, 0]))
+    return [_sample_rejection(i, angles[i], sigma_deg, noise.nu,
+                              detections.good_probability[i], spoiled)
             for i in np.flatnonzero(~sample_ok)]
 
 
-def _sample_rejection(index, angle_deg, threshold_deg, spoiled):
+def _sample_rejection(index, angle_deg, sigma_deg, nu, good_probability, spoiled):
     """Return the `rejected` entry of a bad sample."""
+    tails = 'Gaussian' if not np.isfinite(nu) else f't with {nu:g} degrees of freedom'
     return {'sample': int(index), 'reason': (
-        f'its object orientation disagrees with the other samples by {angle_deg:.2f} deg '
-        f'(threshold {threshold_deg:.2f} deg): a bad detection such as a marker flip; its '
-        f'{spoiled} motions are not used')}
+        f'its object orientation disagrees with the other samples by {angle_deg:.2f} deg, '
+        f'which the fitted noise ({sigma_deg:.3f} deg per axis, {tails}) cannot explain '
+        f'(probability of a good detection {good_probability:.1e}): a bad detection such as a '
+        f'marker flip; its {spoiled} motions are not used')}
 
 
-def _require_motions(fit, options):
+def _require_samples(sample_ok):
+    if _count(sample_ok) < 3:
+        raise InsufficientDataError(
+            f'only {_count(sample_ok)} sample(s) agree with each other: at least 3 are needed; '
+            'check the detections and move the robot to new poses')
+
+
+def _require_motions(fit):
     if len(fit) < 2:
         raise InsufficientDataError(
             f'only {len(fit)} usable motion(s) after screening: at least two motions about '
             'different axes are needed; rotate the link by 20-40 degrees about a new axis')
 
 
-def _check_excitation(rotations, fit, options):
-    """Information of the fitted motions; Case 1 (all axes parallel) is refused."""
-    info = quality.Information.of(rotations.link_matrices, fit.i, fit.j)
+def _check_excitation(info, count, options):
+    """Return info, refusing Case 1 (all motion axes parallel)."""
     ratio, axis = info.excitation()
     if ratio < np.sin(np.radians(options.min_axis_spread_deg)) ** 2:
         frame = _parent_frame(options)
         raise DegenerateMotionError(
-            f'Case 1: all {len(fit)} usable motions rotate about (nearly) the same axis, '
+            f'Case 1: all {count} usable motions rotate about (nearly) the same axis, '
             f'{quality.nearest_axis_name(axis, frame)} ([{", ".join(f"{c:.2f}" for c in axis)}]'
             '), so the rotation about it is undetermined; '
             + quality.next_motion_hint(0.0, axis, frame))
@@ -403,121 +458,115 @@ def _parent_frame(options):
     return 'link' if options.setup == 'eye_in_hand' else 'base'
 
 
-def _estimate(fit, options, previous=None):
+# --- estimates -------------------------------------------------------------------------------
+
+def _estimate(samples, rotations, positions, fit, options, previous):
     """
-    Return the _Solution of `fit`: the published estimate with its quality figures.
+    Return the _Solution of the rotation stage `fit`: the estimates and their quality.
 
     The closed form is the Chou-Kamel rotation fit.q_z with the closed-form translation. The
-    joint refinement starts from it, or, given the previous refine.Refinement (an incremental
-    update), takes one warm-started step from that; it is published when it lands near the
-    closed form (_plausible), else the closed form is, with a warning.
+    joint refinement starts from it (warm-started from `previous`'s, with a few steps, between
+    full solves); it is published when it lands near the closed form (_plausible), else the
+    closed form is, with a warning.
     """
-    rotations, positions, ok = fit.rotations, fit.positions, fit.sample_ok
+    ok = fit.sample_ok
     sigma = quality.noise_sigma(quality.sample_residuals(rotations, fit.q_z, ok)[ok])
     covariance = fit.info.covariance(sigma)
     translation = solve_translation(rotations, positions, fit.q_z, fit.info, ok, covariance)
     closed = Estimate(fit.q_z, translation.translation, quality.uncertainty_deg(covariance),
                       translation.uncertainty_mm)
-    warnings = list(fit.warnings)
+    warnings = [] if previous is not None else conventions.warnings(samples, options)
+    arrays = (rotations.link[ok], positions.link[ok], rotations.sensor[ok], positions.sensor[ok])
     refinement = None
-    if options.method == 'refined' and np.sum(ok) >= MIN_REFINE_SAMPLES:
-        arrays = (rotations.link[ok], positions.link[ok], rotations.sensor[ok],
-                  positions.sensor[ok])
-        refinement = (refine(*arrays, fit.q_z, translation.translation) if previous is None
-                      else refine_from(previous, *arrays, rotations.link_matrices[ok]))
-        if not _plausible(refinement, fit.q_z, closed.uncertainty_deg):
-            refinement = None
-            warnings.append('the joint refinement did not converge to a plausible answer: '
-                            'the closed-form estimate is published instead')
-    if refinement is None:
-        refined, noise = None, (np.degrees(sigma), 1e3 * translation.noise_m)
+    if _count(ok) >= MIN_REFINE_SAMPLES:
+        warm = previous.refinement if previous is not None else None
+        refinement = refine(*arrays, fit.q_z, translation.translation, robust=options.robust,
+                            start=warm, max_iterations=(MAX_ITERATIONS if warm is None
+                                                        else WARM_ITERATIONS))
+    published_refinement = refinement if options.method == 'refined' else None
+    if published_refinement is not None and not _plausible(refinement, fit.q_z,
+                                                           closed.uncertainty_deg):
+        published_refinement = None
+        warnings.append('the joint refinement did not converge to a plausible answer: '
+                        'the closed-form estimate is published instead')
+    refined = None if published_refinement is None else Estimate(
+        refinement.quaternion, refinement.translation, refinement.uncertainty_deg,
+        refinement.translation_uncertainty_mm)
+    if refined is None:
+        noise = (np.degrees(sigma), 1e3 * translation.noise_m)
     else:
-        refined = Estimate(refinement.quaternion, refinement.translation,
-                           refinement.uncertainty_deg, refinement.translation_uncertainty_mm)
         noise = (refinement.rotation_noise_deg, refinement.translation_noise_mm)
-    return _Solution(fit, _report(fit, options, closed, refined, noise, warnings), refinement)
+    result = _report(fit, options, closed, refined, noise, warnings, refinement)
+    return _Solution(result, refinement)
 
 
-def _report(fit, options, closed, refined, noise, warnings):
+def _report(fit, options, closed, refined, noise, warnings, refinement):
     """Return the CalibrationResult: the published estimate with its quality figures."""
     published = refined or closed
     ratio, axis = fit.info.excitation()
-    motion_residuals = np.degrees(quality.motion_residual_angles(
-        fit.rotations, published.quaternion, fit.inliers.i, fit.inliers.j))
+    used = np.flatnonzero(fit.sample_ok)
+    warnings = warnings + conventions.rigid_fit_warnings(np.degrees(fit.residual_rms), noise[1])
     return CalibrationResult(
         quaternion=published.quaternion, matrix=quat.matrix_from_quaternion(published.quaternion),
-        samples=len(fit.rotations), motions=fit.motion_count, inliers=len(fit.inliers),
-        inlier_samples=int(np.sum(fit.sample_ok)),
-        residual_rms_deg=float(np.sqrt(np.mean(motion_residuals ** 2))),
+        samples=len(fit.sample_ok), motions=motion_count(len(fit.sample_ok), options.pairs),
+        inliers=fit.inliers, inlier_samples=len(used),
+        residual_rms_deg=float(np.degrees(fit.residual_rms)),
         uncertainty_deg=published.uncertainty_deg,
         noise_deg=float(noise[0]), excitation=ratio, weakest_axis=axis,
         hint=quality.next_motion_hint(ratio, axis, _parent_frame(options)),
         setup=options.setup, pairs=options.pairs, rejected=fit.rejected, warnings=warnings,
-        motion_residuals_deg=motion_residuals, translation=published.translation,
+        translation=published.translation,
         translation_uncertainty_mm=published.translation_uncertainty_mm,
         translation_noise_mm=float(noise[1]), method='refined' if refined else 'closed-form',
-        closed_form=closed, refined=refined)
+        closed_form=closed, refined=refined,
+        noise_model=_noise_model(refinement, options.robust),
+        noisy=_noisy(refinement, used) if options.robust else [],
+        validation=(validate(refinement.leave_one_out, used, options.validation)
+                    if refinement is not None else
+                    not_enough_samples(len(used), MIN_REFINE_SAMPLES, options.validation)),
+        sample_ok=fit.sample_ok)
+
+
+def _noise_model(refinement, robust):
+    """Return the fitted sensor noise as JSON: per-axis RMS, correlation, tail weight."""
+    if refinement is None:
+        return None
+    covariance = refinement.noise.covariance
+    sd = np.sqrt(np.diag(covariance))
+    nu = refinement.noise.nu
+    return {'rotation_noise_deg': [float(v) for v in np.degrees(sd[:3])],
+            'translation_noise_mm': [float(v) for v in 1e3 * sd[3:]],
+            'frame': 'sensor',
+            'correlation': [[float(v) for v in row] for row in covariance / np.outer(sd, sd)],
+            'tail_degrees_of_freedom': float(nu) if np.isfinite(nu) else None,
+            'distribution': ('gaussian' if not np.isfinite(nu) else 'student_t'),
+            'robust': bool(robust),
+            'model_uncertainty_deg': _finite_or_none(refinement.model_uncertainty_deg),
+            'model_translation_uncertainty_mm': _finite_or_none(
+                refinement.model_translation_uncertainty_mm)}
+
+
+def _noisy(refinement, used):
+    """Return the samples the heavy-tailed noise model down-weighted below NOISY_WEIGHT."""
+    if refinement is None:
+        return []
+    weights = refinement.noise.weights
+    return [{'sample': int(used[k]), 'weight': round(float(weights[k]), 3),
+             'reason': f'noisy: weighted {weights[k]:.2f} of a typical sample in the refinement'}
+            for k in np.flatnonzero(weights < NOISY_WEIGHT)]
 
 
 def _plausible(refinement, q_closed, closed_uncertainty_deg):
     """
-    Whether the refinement converged near the closed form (within 10 of its sigmas + 1 deg).
+    Return whether the refinement converged near the closed form (within 10 of its sigmas + 1 deg).
 
     The closed form's uncertainty counts as at least 0.01 deg, and as that when unknown (NaN).
     """
-    if not (refinement.converged and np.all(np.isfinite(refinement.quaternion))):
+    if not np.all(np.isfinite(refinement.quaternion)):
         return False
     sigma_deg = closed_uncertainty_deg if closed_uncertainty_deg > 0.01 else 0.01
     moved = np.degrees(quat.angle_between(refinement.quaternion, q_closed))
     return bool(moved < 10.0 * sigma_deg + 1.0)
-
-
-# --- frame-convention check -------------------------------------------------------------
-
-CONVENTION_PAIRS = 2000   # pairs examined: plenty for a median, bounded cost
-
-
-def convention_warnings(samples, options):
-    """
-    Warnings when the data fit far better with the sensor poses inverted.
-
-    Under the right convention one rotation solves every motion; with the sensor poses
-    inverted (the sensor in the object frame, as data/ethz_robot_arm_real stores
-    them) or the link poses inverted (eye-to-hand data solved as eye-in-hand) the residuals
-    grow to tens of degrees.  Rotation angles cannot tell (angle(L_i^T L_j) == angle(L_i L_j^T)),
-    and rotations alone cannot tell an inverted sensor from the other setup either: eye-in-hand
-    data fit (eye_to_hand, sensor inverted) exactly, with the object's orientation as answer.
-    So the check compares the median residual of the configured convention with that of the
-    inverted sensor and names both possible fixes.
-    """
-    current = _median_residual_deg(samples, options.setup, options.invert_sensor, options)
-    other = _median_residual_deg(samples, options.setup, not options.invert_sensor, options)
-    if (current is None or other is None or current < SUSPICIOUS_RESIDUAL_DEG
-            or current < 3.0 * other):
-        return []
-    other_setup = 'eye_to_hand' if options.setup == 'eye_in_hand' else 'eye_in_hand'
-    invert = ('the sensor poses are inverted (the sensor in the object frame instead of the '
-              'object in the sensor frame): use --invert-sensor' if not options.invert_sensor
-              else 'the sensor poses are not inverted: drop --invert-sensor')
-    return [f'frame convention: the motions fit badly as configured (median residual '
-            f'{current:.2f} deg) but well with the sensor poses inverted ({other:.2f} deg): '
-            f'either {invert}, or the setup is {other_setup}: use --setup {other_setup}']
-
-
-def _median_residual_deg(samples, setup, invert_sensor, options):
-    """Median motion residual (degrees) of a plain least-squares fit under one convention."""
-    rotations = SampleRotations.from_samples(samples, setup, invert_sensor)
-    i, j = pair_indices(len(samples), 'all')
-    if len(i) > CONVENTION_PAIRS:
-        pick = np.random.default_rng(options.seed).choice(len(i), CONVENTION_PAIRS, False)
-        i, j = i[pick], j[pick]
-    motions = Motions.between(rotations, i, j)
-    motions = motions.subset(np.minimum(motions.angle_a, motions.angle_b)
-                             >= np.radians(options.min_motion_deg))
-    if len(motions) < 3:
-        return None
-    q_z = least_squares_rotation(motions.q_a, motions.q_b)
-    return float(np.degrees(np.median(motions.residual_angles(q_z))))
 
 
 # Full solves come at least every 1/FULL_SOLVE_SHARE of the samples (Calibrator).
@@ -528,17 +577,15 @@ class Calibrator:
     """
     Samples in, an estimate of all of them out on request: what session.Session drives.
 
-    add_sample and add_samples only store; estimate() brings the estimate up to date. One new
-    sample is tested against the current estimate, its motions (one per earlier good sample)
-    screened and added to the least-squares system and the information, and the refinement
-    takes one warm-started step: no consensus search, no refit. The full robust pipeline of
-    `calibrate` runs instead while the samples are few (up to `small`), on every
-    `full_solve_step`-th sample (every `full_solve_every`-th up to 5 times that many samples,
-    then spaced to a fifth of the samples, so an early misjudgement cannot persist and a long
-    session stays fast), when there is no
-    estimate to extend, and when several samples came since the last estimate (a file, a
-    resumed session, a replay that asks once at the end: its answer is then that of
-    `calibrate` on all the samples).
+    add_sample and add_samples only store; estimate() brings the estimate up to date. Every
+    estimate covers all samples in O(N). Between full solves (after one new sample), the
+    previous published rotation stands in for the consensus search and the refinement is
+    warm-started (a few Gauss-Newton steps). The full pipeline of `calibrate` runs while the
+    samples are few (up to `small`), on every `full_solve_step`-th sample (every
+    `full_solve_every`-th up to 5 times that many samples, then spaced to a fifth of the
+    samples, so an early misjudgement cannot persist), when there is no estimate to extend,
+    and when several samples came since the last estimate (a file, a resumed session, a
+    replay that asks once at the end: its answer is then that of `calibrate`).
     """
 
     def __init__(self, options=CalibrationOptions(), full_solve_every=10, small=12):
@@ -578,15 +625,18 @@ class Calibrator:
         new, self._estimated = n - self._estimated, n
         if not new:
             return []
-        if (new == 1 and self._solution is not None and n > self.small
-                and n % self.full_solve_step(n)):
-            return self._add_incrementally(self.samples[-1])
+        warm = (new == 1 and self._solution is not None and n > self.small
+                and n % self.full_solve_step(n))
         try:
-            self._solution = _solve(self.samples, self.options)
+            self._solution = _solve(self.samples, self.options,
+                                    self._solution if warm else None)
         except DegenerateMotionError as error:
             self._solution = None
             self.last_error = str(error)
             return [f'no estimate yet: {error}']
+        if warm:
+            newest = [r for r in self._solution.result.rejected if r.get('sample') == n - 1]
+            return [f'sample {n - 1} rejected: {r["reason"]}' for r in newest]
         return []
 
     def full_solve_step(self, n):
@@ -594,55 +644,10 @@ class Calibrator:
         Return the spacing of full solves at n samples.
 
         It is full_solve_every, doubled while the full solves would come more often than
-        every 1/FULL_SOLVE_SHARE of the samples.  Early misjudgements are corrected often
-        while they matter, and a large session does not pay an O(N^2) solve every few
-        samples (at 200 samples: every 40th).
+        every 1/FULL_SOLVE_SHARE of the samples: early misjudgements are corrected often
+        while they matter (at 200 samples: every 40th).
         """
         step = self.full_solve_every
         while step * FULL_SOLVE_SHARE < n:
             step *= 2
         return step
-
-    def _add_incrementally(self, sample):
-        old = self._solution.fit
-        rotations = old.rotations.appended(sample)
-        positions = old.positions.appended(sample, rotations)
-        k = len(rotations) - 1
-        q_z = self._solution.result.quaternion   # the published estimate
-        newest = quat.multiply(quat.multiply(rotations.link[k], q_z), rotations.sensor[k])
-        mean = quat.average(old.rotations.object_orientations(q_z)[old.sample_ok])
-        angle = quat.angle_between(newest, mean)   # Z_k against the mean Z
-        rejected = list(old.rejected)
-        messages = []
-        if angle > old.outlier_threshold:
-            sample_ok = np.append(old.sample_ok, False)
-            spoiled = int(np.sum(old.sample_ok)) if self.options.pairs == 'all' else 1
-            rejected.append(_sample_rejection(k, np.degrees(angle),
-                                              np.degrees(old.outlier_threshold), spoiled))
-            messages.append(f'sample {k} rejected: {rejected[-1]["reason"]}')
-            inliers, system, q_closed = old.inliers, old.system, old.q_z   # as before
-            info = old.info.extended(rotations.link_matrices, [], [])
-        else:
-            sample_ok = np.append(old.sample_ok, True)
-            new = self._new_motions(rotations, old, q_z)
-            system = old.system.copy()
-            system.add(new.q_a, new.q_b, reference=q_z)
-            q_closed = system.solve()[0]
-            inliers = Motions.concatenate(old.inliers, new)
-            info = old.info.extended(rotations.link_matrices, new.i, new.j)
-        fit = replace(old, rotations=rotations, positions=positions, sample_ok=sample_ok,
-                      inliers=inliers, system=system, info=info, q_z=q_closed,
-                      motion_count=old.motion_count + (k if self.options.pairs == 'all' else 1),
-                      rejected=rejected)
-        self._solution = _estimate(fit, self.options, self._solution.refinement)
-        return messages
-
-    def _new_motions(self, rotations, old, q_z):
-        """Return the screened motions from the good samples of `old` to the newest sample."""
-        k = len(rotations) - 1
-        partners = np.flatnonzero(old.sample_ok)
-        if self.options.pairs == 'consecutive':
-            partners = partners[-1:]
-        new = Motions.between(rotations, partners, np.full(len(partners), k))
-        return new.subset(_usable(new.angle_a, new.angle_b, self.options.min_motion_deg,
-                                  old.mismatch_limit))

@@ -88,3 +88,42 @@ def least_squares_rotation(q_a, q_b, reference=None):
     system = MotionSystem()
     system.add(q_a, q_b, reference)
     return system.solve()[0]
+
+
+# --- all pairs in O(N) ------------------------------------------------------------------------
+
+def sample_matrices(rotations):
+    """
+    Return A_i = P+(link_i) P-(sensor_i) (N, 4, 4): Z_i = A_i p_z is sample i's object orientation.
+
+    A_i is orthogonal (a product of two orthogonal matrices), so |Z_j - Z_i| = |B_ij p_z| for
+    the motion (i, j) of eq. (41) with its sign (erratum 3) chosen to match (module docstring).
+    """
+    return quat.plus_matrix(rotations.link) @ quat.minus_matrix(rotations.sensor)
+
+
+def all_pairs_rotation(rotations, use, reference, weights=None, iterations=3):
+    """
+    Return the all-pairs least-squares p_z of eq. (41) over the samples `use`, in O(N).
+
+    With sigma_i = +-1 putting every Z_i = A_i p on one hemisphere (erratum 3's sign, decided
+    per sample against `reference`),
+        sum_{i<j} |sigma_j Z_j - sigma_i Z_i|^2 = N^2 - |(sum_i sigma_i A_i) p|^2,
+    so the minimiser is the top right singular vector of the 4x4 sum_i sigma_i A_i: no motion
+    is formed. `weights` (per sample, optional) weigh pair (i, j) by w_i w_j. The signs are
+    re-decided against the new estimate until they stop changing (`iterations` at most).
+    Returns p_z (w, x, y, z), w >= 0.
+    """
+    A = sample_matrices(rotations)[use]
+    w = np.ones(len(A)) if weights is None else np.asarray(weights, dtype=float)[use]
+    p = np.asarray(reference, dtype=float)
+    signs = None
+    for _ in range(iterations):
+        Z = A @ p
+        new_signs = np.where(Z @ quat.average(Z, w) < 0.0, -1.0, 1.0)
+        if signs is not None and np.array_equal(new_signs, signs):
+            break
+        signs = new_signs
+        S = np.einsum('n,nij->ij', w * signs, A)
+        p = np.linalg.svd(S)[2][0]
+    return quat.canonical(p)

@@ -59,19 +59,6 @@ class SampleRotations:
     def __len__(self):
         return len(self.link)
 
-    def appended(self, sample):
-        """Return these rotations and those of one more sample (same setup, inversion)."""
-        link = np.asarray(sample.link.quaternion, dtype=float)[None, :]
-        sensor = np.asarray(sample.sensor.quaternion, dtype=float)[None, :]
-        if self.link_inverted:
-            link = quat.conjugate(link)
-        if self.sensor_inverted:
-            sensor = quat.conjugate(sensor)
-        return SampleRotations(
-            np.vstack([self.link, link]), np.vstack([self.sensor, sensor]),
-            self.link_inverted, self.sensor_inverted,
-            np.concatenate([self.link_matrices, quat.matrix_from_quaternion(link)]))
-
     def object_orientations(self, q_z):
         """
         Z_i = link_i (x) q_z (x) sensor_i: the object's orientation in the base frame.

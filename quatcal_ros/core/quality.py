@@ -66,15 +66,21 @@ class Information:
         H, C = _motion_sums(link_matrices, i, j)
         return Information(H, np.einsum('nij,nkj->ik', C, C), C)
 
-    def extended(self, link_matrices, i, j):
+    @staticmethod
+    def all_pairs(link_matrices, use):
         """
-        Return the Information with motions (i[k], j[k]) added: O(new motions + samples).
+        H, C and G of every pair of the samples `use` (bool mask), in O(N).
 
-        link_matrices: those of all samples, including the ones new since this was made.
+        Over all pairs of K samples with R_s = sum R(link_i), H = K^2 I - R_s^T R_s and
+        C_n = K R(link_n)^T - R_s^T (zero for samples not used): no motion is formed.
         """
-        H, C = _motion_sums(link_matrices, i, j)
-        C[:len(self.C)] += self.C
-        return Information(self.H + H, np.einsum('nij,nkj->ik', C, C), C)
+        R = link_matrices[use]
+        k = len(R)
+        total = R.sum(axis=0)
+        C = np.zeros_like(link_matrices)
+        C[use] = k * np.transpose(R, (0, 2, 1)) - total.T
+        H = k * k * np.eye(3) - total.T @ total
+        return Information(H, np.einsum('nij,nkj->ik', C, C), C)
 
     def covariance(self, sigma):
         """cov(delta) (3x3, rad^2) for per-axis sample noise sigma (radians)."""
@@ -101,24 +107,6 @@ def _motion_sums(link_matrices, i, j):
     C = np.stack([np.bincount(j, Dt[:, e], n) - np.bincount(i, Dt[:, e], n)
                   for e in range(9)], axis=-1).reshape(n, 3, 3)
     return H, C.astype(float, copy=False)   # (bincount of no motions is integer)
-
-
-def motion_residual_angles(rotations, q_z, i, j):
-    """
-    Angles (radians) by which motions (i[k], j[k]) violate eq. (38) for the estimate q_z.
-
-    The same numbers as motions.Motions.residual_angles, from the samples: p_a (x) p_z and
-    p_z (x) p_b differ by the rotation between Z_i and Z_j (module docstring), so one
-    product per motion suffices.
-    """
-    Z = rotations.object_orientations(q_z)
-    a, b = Z[i], Z[j]
-    # For unit a, b: conj(a) (x) b = [a . b, v] with |v| = |b - (a . b) a|, the part of b
-    # orthogonal to a (4-D), which keeps tiny angles exact (atan2, as rotation_angle does).
-    cosine = np.einsum('ki,ki->k', a, b)
-    orthogonal = b - cosine[:, None] * a
-    return 2.0 * np.arctan2(np.sqrt(np.einsum('ki,ki->k', orthogonal, orthogonal)),
-                            np.abs(cosine))
 
 
 def uncertainty_deg(covariance):

@@ -6,41 +6,94 @@ rotation-only ones ignore what the translations say about the rotation. Here eve
 is compared with one model: the object is fixed, so for sample i (link poses inverted for
 eye-to-hand, as in motions.py)
     S_i = inv(X) inv(L_i) O
-with X the mounting and O the object pose in the base (eye-to-hand: link) frame. The 12
-unknowns (X, O) minimise the squared rotation residuals (radians, sensor frame) over
-sigma_r^2 plus the translation residuals (metres) over sigma_t^2. The two noise levels are
-re-estimated from the residuals themselves, and a soft-L1 loss tames what outliers survived
-the rotation stage. scipy.optimize.least_squares does the minimisation; it starts from the
-closed form (Chou-Kamel rotation, closed-form translation), which stays the fallback.
+with X the mounting and O the object pose in the base (eye-to-hand: link) frame. The residual
+of sample i is 6-D, in the sensor frame: the rotation vector of R_meas R_pred^T (radians) and
+t_meas - t_pred (metres). Its noise is a t with a 6x6 scale matrix estimated from the residuals
+(heavy_tails.fit_t): anisotropic, as camera poses from PnP are (far noisier along the optical
+axis than across it), rotation and translation correlated, and heavy-tailed when the data say
+so (nu < inf down-weights noisy samples). Without `robust` the noise is Gaussian: plain
+weighted least squares. A few dozen samples cannot estimate 21 covariance entries well, so the
+scale matrix is shrunk towards one variance for rotation and one for translation, the more
+the fewer samples there are (heavy_tails.shrunk_to_blocks, NOISE_PRIOR_SAMPLES).
+
+The 12 unknowns (X, O) are found by Gauss-Newton in numpy, re-fitting the noise model at every
+step (iteratively reweighted least squares); it starts from the closed form (Chou-Kamel
+rotation, closed-form translation), which stays the fallback. Every sum is over samples: O(N).
+
+The reported covariance is the sandwich A^-1 B A^-1 (A the weighted normal matrix, B the sum
+of the samples' outer score products): it holds when the model's noise is wrong too, which
+the inverse normal matrix alone (`model_covariance`) does not. Leave-one-out predictions of
+every sample come from the same sums (`leave_one_out`).
 """
 
 from dataclasses import dataclass
+import math
 
 import numpy as np
+from quatcal_ros.core import heavy_tails
 from quatcal_ros.core import quaternion as quat
-from scipy.optimize import least_squares
 
-# Soft-L1 scale in units of the estimated noise: residuals up to ~3 sigma count fully.
-ROBUST_SCALE = 3.0
-NOISE_ITERATIONS = 3
+MAX_ITERATIONS = 20
+# Converged when the last step moved the unknowns by less than this many of their sigmas.
+STEP_TOLERANCE = 1e-6
 # Floors of the noise estimates, so exact synthetic data do not divide by zero.
 MIN_ROTATION_NOISE = 1e-6      # radians
 MIN_TRANSLATION_NOISE = 1e-6   # metres
+NOISE_FLOOR = np.array([MIN_ROTATION_NOISE] * 3 + [MIN_TRANSLATION_NOISE] * 3) ** 2
+NOISE_PRIOR_SAMPLES = 40
+# Residuals per sample and the samples' worth of them the 12 unknowns use up.
+DIMENSIONS = 6
+LOST_SAMPLES = 12 / DIMENSIONS
 
 
 @dataclass(frozen=True)
 class Refinement:
-    """The refined mounting X and object pose O, with their uncertainties."""
+    """The refined mounting X and object pose O, their covariance and the fitted noise."""
 
     quaternion: np.ndarray          # X rotation (w, x, y, z)
     translation: np.ndarray         # X translation, metres
     object_quaternion: np.ndarray
     object_translation: np.ndarray
-    rotation_noise_deg: float       # estimated per-axis noise of one sensor orientation
-    translation_noise_mm: float     # estimated per-axis noise of one sensor position
-    uncertainty_deg: float          # expected RMS error angle of X's rotation
-    translation_uncertainty_mm: float
+    noise: heavy_tails.NoiseFit     # of the 6-D sensor-frame residuals (rad, m)
+    covariance: np.ndarray          # 12 x 12 sandwich: X rotation, X translation, O, O
+    model_covariance: np.ndarray    # 12 x 12 inverse weighted normal matrix
+    residuals: np.ndarray           # (N, 6) at the answer
+    leave_one_out: np.ndarray       # (N, 6) each sample's residual predicted without it
     converged: bool
+
+    @property
+    def rotation_noise_deg(self):
+        """Return the per-axis RMS rotation noise of one sensor pose (degrees)."""
+        return float(np.degrees(np.sqrt(np.trace(self.noise.covariance[:3, :3]) / 3.0)))
+
+    @property
+    def translation_noise_mm(self):
+        """Return the per-axis RMS translation noise of one sensor pose (millimetres)."""
+        return float(1e3 * np.sqrt(np.trace(self.noise.covariance[3:, 3:]) / 3.0))
+
+    @property
+    def uncertainty_deg(self):
+        """Return the expected RMS error angle of X's rotation (degrees), from the sandwich."""
+        return _rms(self.covariance[:3, :3], np.degrees(1.0))
+
+    @property
+    def translation_uncertainty_mm(self):
+        """Return the expected RMS error of X's translation (millimetres), from the sandwich."""
+        return _rms(self.covariance[3:6, 3:6], 1e3)
+
+    @property
+    def model_uncertainty_deg(self):
+        """Return the rotation uncertainty the noise model alone predicts (degrees)."""
+        return _rms(self.model_covariance[:3, :3], np.degrees(1.0))
+
+    @property
+    def model_translation_uncertainty_mm(self):
+        """Return the translation uncertainty the noise model alone predicts (millimetres)."""
+        return _rms(self.model_covariance[3:6, 3:6], 1e3)
+
+
+def _rms(block, unit):
+    return float(unit * np.sqrt(max(np.trace(block), 0.0)))
 
 
 def residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, link_R=None):
@@ -48,19 +101,19 @@ def residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, link_R=Non
     Compare measured and predicted sensor poses: rotation (rad) and position (m) errors.
 
     The prediction is S_i = inv(X) inv(L_i) O (module docstring). The rotation error is the
-    rotation vector of inv(q_pred) (x) q_meas = inv(O) (x) L_i (x) X (x) S_i, whose fixed
-    factors act as one 4x4 matrix (eq. (11)-(12)); the position error is t_meas minus
-    R_X^T w_i, w_i = R_L^T (t_O - t_L) - t_X. link_R: the link rotation matrices, when the
-    caller has them (else from link_q).
+    rotation vector of q_meas (x) inv(q_pred) = S_i (x) inv(O) (x) L_i (x) X, in the sensor
+    frame; the fixed factors inv(O) and X act on L_i as one 4x4 matrix (eq. (11)-(12)). The
+    position error is t_meas minus R_X^T w_i, w_i = R_L^T (t_O - t_L) - t_X. link_R: the
+    link rotation matrices, when the caller has them (else from link_q).
     """
-    return _residuals(link_q, sensor_q, sensor_t, x_q, o_q, quat.matrix_from_quaternion(x_q),
+    R_X = quat.matrix_from_quaternion(x_q)
+    return _residuals(link_q, sensor_q, sensor_t, x_q, o_q, R_X,
                       _lever(link_q, link_t, x_t, o_t, link_R))
 
 
 def _residuals(link_q, sensor_q, sensor_t, x_q, o_q, R_X, lever):
-    """Return `residuals` given X's rotation matrix and the levers w_i."""
     fixed = quat.plus_matrix(quat.conjugate(o_q)) @ quat.minus_matrix(x_q)
-    rotation = quat.rotation_vector(quat.multiply(link_q @ fixed.T, sensor_q))
+    rotation = quat.rotation_vector(quat.multiply(sensor_q, link_q @ fixed.T))
     return rotation, sensor_t - lever @ R_X
 
 
@@ -70,167 +123,155 @@ def _lever(link_q, link_t, x_t, o_t, link_R=None):
     return np.einsum('nji,nj->ni', R_L, o_t - link_t) - x_t
 
 
-def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
+def jacobian(R_L, R_X, w):
     """
-    Refine the mounting (x_q, x_t) over samples (link_q, link_t, sensor_q, sensor_t).
+    Return the residual Jacobian (N, 6, 12) for left perturbations a, b of X and O.
 
-    All inputs are arrays of the samples to use (inliers of the rotation stage), link poses
-    already inverted for eye-to-hand. Returns a Refinement.
+    With w = R_L^T (t_O - t_L) - t_X (the object seen from the link, minus the mounting
+    offset), to first order:
+        rotation residual:     d/da = R_X^T,  d/db = -R_X^T R_L^T
+        translation residual:  d/da = -R_X^T skew(w),  d/dt_X = R_X^T,  d/dt_O = -R_X^T R_L^T
     """
-    o_q, o_t = _object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t)
-    n = len(link_q)
-    link_R = quat.matrix_from_quaternion(link_q)
-    sigma_r, sigma_t = _noise(*residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q,
-                                         o_t), n)
-    x = np.zeros(12)
-    converged = True
-    for _ in range(NOISE_ITERATIONS):
-        def cost(p, sigma_r=sigma_r, sigma_t=sigma_t):
-            model = _unpack(p, x_q, x_t, o_q, o_t)
-            return _whitened(*residuals(link_q, link_t, sensor_q, sensor_t, *model, link_R),
-                             sigma_r, sigma_t)
-
-        def jacobian(p, sigma_r=sigma_r, sigma_t=sigma_t):
-            return whitened_jacobian(link_q, link_t, *_unpack(p, x_q, x_t, o_q, o_t),
-                                     sigma_r, sigma_t, link_R)
-        fit = least_squares(cost, x, jac=jacobian, loss='soft_l1', f_scale=ROBUST_SCALE,
-                            x_scale='jac')
-        x = fit.x
-        converged = converged and fit.success
-        sigma_r, sigma_t = _noise(*residuals(link_q, link_t, sensor_q, sensor_t,
-                                             *_unpack(x, x_q, x_t, o_q, o_t)), n)
-    model = _unpack(x, x_q, x_t, o_q, o_t)
-    whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t,
-                              link_R)
-    covariance = _inverse(_normal_matrix(J, _soft_l1_weights(whitened)))
-    blocks = whitened.reshape(2, -1)
-    return _refinement(model, np.einsum('bk,bk->b', blocks, blocks), n, covariance, sigma_r,
-                       sigma_t, converged)
-
-
-def refine_from(previous, link_q, link_t, sensor_q, sensor_t, link_R=None):
-    """
-    Update a Refinement after samples were added: one warm-started Gauss-Newton step.
-
-    The mounting, the object pose and the noise levels of `previous` are the start; the step
-    solves the normal equations of the whitened residuals with the soft-L1 loss as iteratively
-    reweighted least squares. Cheap (one linearisation, no line search, no noise
-    re-estimation loop): what the live calibrator runs after each new sample between full
-    solves. A new sample moves the optimum by a fraction of its uncertainty, and one step
-    from that close lands within a few percent of the uncertainty (test_incremental.py). The
-    covariance and the noise levels come from the same linearisation (the residuals the step
-    predicts), which differs from one at the new point only to second order in the step.
-    link_R: the link rotation matrices, when the caller has them.
-    """
-    model, sigma_r, sigma_t = _start(previous)
-    whitened, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, sigma_r, sigma_t,
-                              link_R)
-    weights = _soft_l1_weights(whitened)
-    covariance = _inverse(_normal_matrix(J, weights))
-    step = -covariance @ (J.T @ (weights * whitened))   # the Gauss-Newton step
-    predicted = (whitened + J @ step).reshape(2, -1)     # rotation rows, translation rows
-    return _refinement(_unpack(step, *model), np.einsum('bk,bk->b', predicted, predicted),
-                       len(link_q), covariance, sigma_r, sigma_t,
-                       bool(np.all(np.isfinite(step))))
-
-
-def _start(previous):
-    """Return the model (X, O) and the noise levels (floored) of a Refinement."""
-    model = (previous.quaternion, previous.translation, previous.object_quaternion,
-             previous.object_translation)
-    return (model, max(np.radians(previous.rotation_noise_deg), MIN_ROTATION_NOISE),
-            max(previous.translation_noise_mm / 1e3, MIN_TRANSLATION_NOISE))
-
-
-def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t,
-                link_R=None):
-    """Return the whitened residuals (6N: rotations, then translations) and their Jacobian."""
-    R_L = quat.matrix_from_quaternion(link_q) if link_R is None else link_R
-    R_X = quat.matrix_from_quaternion(x_q)
-    lever = _lever(link_q, link_t, x_t, o_t, R_L)
-    whitened = _whitened(*_residuals(link_q, sensor_q, sensor_t, x_q, o_q, R_X, lever),
-                         sigma_r, sigma_t)
-    return whitened, _whitened_jacobian(R_L, R_X, quat.matrix_from_quaternion(o_q), lever,
-                                        sigma_r, sigma_t)
-
-
-def _whitened(rotation, translation, sigma_r, sigma_t):
-    """Return the residuals divided by their noise levels, rotations first, as one vector."""
-    return np.concatenate([(rotation / sigma_r).ravel(), (translation / sigma_t).ravel()])
-
-
-def _normal_matrix(J, weights):
-    """Return J^T W J with W = diag(weights) (the soft-L1 weights of the residuals)."""
-    return J.T @ (weights[:, None] * J)
-
-
-def _inverse(normal):
-    """Return the inverse of a normal matrix; the pseudo-inverse when it is singular."""
-    try:
-        return np.linalg.inv(normal)
-    except np.linalg.LinAlgError:   # degenerate samples: minimum-norm steps
-        return np.linalg.pinv(normal)
-
-
-def _refinement(model, squares, n, covariance, sigma_r, sigma_t, converged):
-    """
-    Return the Refinement of model (X, O) of n samples, with its residuals and covariance.
-
-    squares: the sums of squares of the whitened rotation and translation residuals, from
-    which the noise levels are re-estimated; the covariance is (J^T W J)^-1 of the whitened
-    problem with the soft-L1 weights W (whitened with the noise levels the fit used).
-    """
-    x_q, x_t, o_q, o_t = model
-    noise_r, noise_t = _noise_of_squares(sigma_r * sigma_r * squares[0],
-                                         sigma_t * sigma_t * squares[1], n)
-    return Refinement(
-        quaternion=quat.canonical(x_q), translation=x_t, object_quaternion=o_q,
-        object_translation=o_t, rotation_noise_deg=float(np.degrees(noise_r)),
-        translation_noise_mm=float(1e3 * noise_t),
-        uncertainty_deg=float(np.degrees(np.sqrt(max(np.trace(covariance[:3, :3]), 0.0)))),
-        translation_uncertainty_mm=float(
-            1e3 * np.sqrt(max(np.trace(covariance[3:6, 3:6]), 0.0))),
-        converged=bool(converged))
-
-
-def _soft_l1_weights(whitened):
-    """Return the IRLS weights rho'(z) = 1 / sqrt(1 + z) of the soft-L1 loss, z = (r / f)^2."""
-    return 1.0 / np.sqrt(1.0 + (whitened / ROBUST_SCALE) ** 2)
-
-
-def _unpack(p, x_q, x_t, o_q, o_t):
-    """Return X and O for parameters p: rotation vectors applied on the left, translations."""
-    return (quat.multiply(quat.from_rotation_vector(p[0:3]), x_q), x_t + p[3:6],
-            quat.multiply(quat.from_rotation_vector(p[6:9]), o_q), o_t + p[9:12])
+    n = len(R_L)
+    J = np.zeros((n, 6, 12))
+    to_sensor = R_X.T @ np.transpose(R_L, (0, 2, 1))
+    J[:, 0:3, 0:3] = R_X.T
+    J[:, 0:3, 6:9] = -to_sensor
+    J[:, 3:6, 0:3] = -R_X.T @ quat.skew(w)
+    J[:, 3:6, 3:6] = R_X.T
+    J[:, 3:6, 9:12] = -to_sensor
+    return J
 
 
 def whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t, link_R=None):
     """
-    Return the whitened residual Jacobian (6N x 12) for left perturbations a, b of X, O.
+    Return the Jacobian (6N x 12) of the residuals divided by their noise levels.
 
-    link_R: the link rotation matrices, when the caller has them (else from link_q).
-
-    With M = inv(L) O and w = R_L^T (t_O - t_L) - t_X (the object seen from the link, minus
-    the mounting offset), to first order:
-        rotation residual:     d/da = R_M^T,  d/db = -R_O^T
-        translation residual:  d/da = -R_X^T skew(w),  d/dt_X = R_X^T,  d/dt_O = -R_X^T R_L^T
+    Rows: all rotation residuals, then all translation residuals; sigma_r (radians) and
+    sigma_t (metres) per axis. link_R: the link rotation matrices, when the caller has them.
     """
     R_L = quat.matrix_from_quaternion(link_q) if link_R is None else link_R
-    return _whitened_jacobian(R_L, quat.matrix_from_quaternion(x_q),
-                              quat.matrix_from_quaternion(o_q),
-                              _lever(link_q, link_t, x_t, o_t, R_L), sigma_r, sigma_t)
+    J = jacobian(R_L, quat.matrix_from_quaternion(x_q), _lever(link_q, link_t, x_t, o_t, R_L))
+    J[:, 0:3] /= sigma_r
+    J[:, 3:6] /= sigma_t
+    return np.concatenate([J[:, 0:3].reshape(-1, 12), J[:, 3:6].reshape(-1, 12)])
 
 
-def _whitened_jacobian(R_L, R_X, R_O, w, sigma_r, sigma_t):
-    """Return `whitened_jacobian` given the rotation matrices and the levers w_i."""
-    n = len(R_L)
-    J = np.zeros((2, n, 3, 12))
-    J[0, :, :, 0:3] = R_O.T @ R_L / sigma_r
-    J[0, :, :, 6:9] = -R_O.T / sigma_r
-    J[1, :, :, 0:3] = -R_X.T @ quat.skew(w) / sigma_t
-    J[1, :, :, 3:6] = R_X.T / sigma_t
-    J[1, :, :, 9:12] = -R_X.T @ np.transpose(R_L, (0, 2, 1)) / sigma_t
-    return J.reshape(6 * n, 12)
+def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None,
+           max_iterations=MAX_ITERATIONS):
+    """
+    Refine the mounting (x_q, x_t) over samples (link_q, link_t, sensor_q, sensor_t).
+
+    All inputs are arrays of the samples to use (the good ones of the rotation stage), link
+    poses already inverted for eye-to-hand. robust: a heavy-tailed noise model (else
+    Gaussian); start: an earlier Refinement to start from instead (a warm start: its mounting
+    and object pose). Returns a Refinement.
+    """
+    link_R = quat.matrix_from_quaternion(link_q)
+    if start is None:
+        o_q, o_t = _object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t)
+    else:
+        x_q, x_t = start.quaternion, start.translation
+        o_q, o_t = start.object_quaternion, start.object_translation
+    model = (x_q, x_t, o_q, o_t)
+    n = len(link_q)
+    structure = heavy_tails.shrunk_to_blocks(n, NOISE_PRIOR_SAMPLES)
+    grid = heavy_tails.NU_GRID if robust else (math.inf,)
+    converged = False
+    for _ in range(max_iterations):
+        e, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R)
+        noise = heavy_tails.fit_t(e, LOST_SAMPLES, structure, NOISE_FLOOR, grid)
+        A, g = _normal_equations(J, e, noise)
+        step = -_solve(A, g)
+        model = _unpack(step, *model)
+        if not np.all(np.isfinite(step)):
+            break
+        if float(step @ A @ step) < STEP_TOLERANCE ** 2:
+            converged = True
+            break
+    e, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R)
+    noise = heavy_tails.fit_t(e, LOST_SAMPLES, structure, NOISE_FLOOR, grid)
+    return _refinement(model, e, J, noise, converged)
+
+
+def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, link_R):
+    """Return the residuals (N, 6: rotation, translation) and their Jacobian (N, 6, 12)."""
+    R_X = quat.matrix_from_quaternion(x_q)
+    lever = _lever(link_q, link_t, x_t, o_t, link_R)
+    rotation, translation = _residuals(link_q, sensor_q, sensor_t, x_q, o_q, R_X, lever)
+    return np.hstack([rotation, translation]), jacobian(link_R, R_X, lever)
+
+
+def _normal_equations(J, e, noise):
+    """Return A = sum w_i J_i^T S^-1 J_i and g = sum w_i J_i^T S^-1 e_i (the IRLS sums)."""
+    information = np.linalg.inv(noise.scale)
+    WJ = np.einsum('nai,ab->nib', J, information) * noise.weights[:, None, None]
+    return np.einsum('nib,nbj->ij', WJ, J), np.einsum('nib,nb->i', WJ, e)
+
+
+def _solve(normal, rhs):
+    try:
+        return np.linalg.solve(normal, rhs)
+    except np.linalg.LinAlgError:   # degenerate samples: a minimum-norm step
+        return np.linalg.pinv(normal) @ rhs
+
+
+def _refinement(model, e, J, noise, converged):
+    """Return the Refinement of model (X, O) with residuals e, Jacobian J and the noise."""
+    x_q, x_t, o_q, o_t = model
+    information = np.linalg.inv(noise.scale)
+    WJ = np.einsum('nai,ab->nib', J, information) * noise.weights[:, None, None]
+    A = np.einsum('nib,nbj->ij', WJ, J)
+    A_inv = np.linalg.pinv(A)
+    # The sandwich with each sample's score taken at its leave-one-out residual (the
+    # jackknife-like HC3 form): the plain residuals of a fit with 12 unknowns understate the
+    # scatter of a few dozen samples, and more so for the samples that steer the fit.
+    leave_one_out = _leave_one_out(A, WJ, J, e)
+    scores = np.einsum('nib,nb->ni', WJ, leave_one_out)
+    sandwich = A_inv @ (scores.T @ scores) @ A_inv
+    return Refinement(
+        quaternion=quat.canonical(x_q), translation=x_t, object_quaternion=o_q,
+        object_translation=o_t, noise=noise, covariance=sandwich,
+        model_covariance=_model_covariance(A_inv, noise), residuals=e,
+        leave_one_out=leave_one_out, converged=bool(converged))
+
+
+def _model_covariance(A_inv, noise):
+    """
+    Return the covariance the fitted noise model predicts: the inverse Fisher information.
+
+    For a t with nu degrees of freedom in d dimensions the Fisher information of a location
+    is (nu + d) / (nu + d + 2) times the Gaussian one with the scale matrix S; the IRLS
+    normal matrix A has the weights' mean in place of that factor.
+    """
+    if math.isinf(noise.nu):
+        return A_inv
+    d = DIMENSIONS
+    efficiency = (noise.nu + d) / (noise.nu + d + 2.0) / max(noise.weights.mean(), 1e-12)
+    return A_inv / efficiency
+
+
+def _leave_one_out(A, WJ, J, e):
+    """
+    Return each sample's residual predicted by the fit of all the other samples (N, 6).
+
+    Removing sample k moves the optimum by (A - J_k^T W_k J_k)^-1 J_k^T W_k e_k (one
+    Gauss-Newton step, exact for a linear model), and its residual by J_k times that.
+    """
+    without = A[None] - np.einsum('nib,nbj->nij', WJ, J)
+    rhs = np.einsum('nib,nb->ni', WJ, e)
+    try:
+        moved = np.linalg.solve(without, rhs[..., None])[..., 0]
+    except np.linalg.LinAlgError:   # a sample the others cannot do without
+        moved = np.einsum('nij,nj->ni', np.linalg.pinv(without), rhs)
+    return e + np.einsum('naj,nj->na', J, moved)
+
+
+def _unpack(p, x_q, x_t, o_q, o_t):
+    """Return X and O moved by p: rotation vectors applied on the left, translations added."""
+    return (quat.normalize(quat.multiply(quat.from_rotation_vector(p[0:3]), x_q)), x_t + p[3:6],
+            quat.normalize(quat.multiply(quat.from_rotation_vector(p[6:9]), o_q)),
+            o_t + p[9:12])
 
 
 def _object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
@@ -238,15 +279,3 @@ def _object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
     q = quat.multiply(quat.multiply(link_q, x_q), sensor_q)
     t = link_t + quat.rotate(link_q, x_t + quat.rotate(x_q, sensor_t))
     return quat.average(q), t.mean(axis=0)
-
-
-def _noise(rotation, translation, n):
-    """Return per-axis noise estimates: 3N residuals each, 12 unknowns shared between them."""
-    return _noise_of_squares(np.sum(rotation ** 2), np.sum(translation ** 2), n)
-
-
-def _noise_of_squares(rotation_squares, translation_squares, n):
-    """Return `_noise` given the sums of squares of the rotation and translation residuals."""
-    dof = max(3 * n - 6, 1)
-    return (max(float(np.sqrt(max(rotation_squares, 0.0) / dof)), MIN_ROTATION_NOISE),
-            max(float(np.sqrt(max(translation_squares, 0.0) / dof)), MIN_TRANSLATION_NOISE))

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.motions import SampleRotations
 
 
 @dataclass(frozen=True)
@@ -37,14 +36,6 @@ class SamplePositions:
         if rotations.sensor_inverted:
             sensor = -quat.rotate(rotations.sensor, sensor)
         return SamplePositions(link, sensor)
-
-    def appended(self, sample, rotations):
-        """Return these positions and one more sample's (`rotations` includes it)."""
-        more = SamplePositions.from_samples([sample], SampleRotations(
-            rotations.link[-1:], rotations.sensor[-1:], rotations.link_inverted,
-            rotations.sensor_inverted, rotations.link_matrices[-1:]))
-        return SamplePositions(np.vstack([self.link, more.link]),
-                               np.vstack([self.sensor, more.sensor]))
 
 
 @dataclass(frozen=True)

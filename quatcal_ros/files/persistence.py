@@ -22,6 +22,9 @@ mounting, format quatcal_ros/mounting version 2:
       refined: {..}                          # null when the refinement did not run
     hint: ..
     warnings: [..]
+    validation: {verdict, reason, rms_rotation_deg, rms_translation_mm, thresholds, worst}
+                                             # the leave-one-out check (added in version 2;
+                                             # per-sample errors are in the JSON only)
 
 Version 1 files (format quatcal_ros/rotation: the rotation alone) still read.
 
@@ -147,6 +150,10 @@ def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extr
         'hint': str(getattr(result, 'hint', '') or ''),
         'warnings': [str(text) for text in (getattr(result, 'warnings', None) or [])],
     }
+    validation = getattr(result, 'validation', None)
+    if validation:
+        document['validation'] = {key: value for key, value in validation.items()
+                                  if key != 'samples'}
     if extra:
         document.update(extra)
     return document

@@ -111,6 +111,9 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
                      'conventions and the time alignment of the streams')
     if result is not None:
         found += list(result.warnings)
+    validation = (result.validation if result is not None else None) or {}
+    if validation.get('verdict') == 'fail':
+        found.append(f'validation failed: {validation["reason"]}')
     found += [text for text in problems if text]
     values = {
         'state': session.state,
@@ -123,6 +126,11 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
         'translation_xyz_m': (' '.join(f'{v:.6f}' for v in result.translation)
                               if result is not None else ''),
         'translation_uncertainty_mm': _number_text(result and result.translation_uncertainty_mm),
+        'validation': validation.get('verdict', ''),
+        'validation_rms_rotation_deg': _number_text(validation.get('rms_rotation_deg')),
+        'validation_rms_translation_mm': _number_text(validation.get('rms_translation_mm')),
+        'validation_worst_samples': ' '.join(str(w['sample'])
+                                             for w in validation.get('worst', [])),
         'tf_static': tf_static,
         'hint': result.hint if result is not None else session.last_error,
         'link_messages': stats.received[LINK],

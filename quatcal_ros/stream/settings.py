@@ -21,6 +21,7 @@ from dataclasses import asdict, dataclass, field, make_dataclass
 import math
 
 from quatcal_ros.core.calibration import CalibrationOptions, METHODS
+from quatcal_ros.core.validation import Thresholds
 from quatcal_ros.core.units import ns_from_s, SETUPS
 from quatcal_ros.stream.capture import CaptureConfig, MODES as CAPTURE_MODES
 from quatcal_ros.stream.message_checks import CheckConfig
@@ -172,8 +173,9 @@ SETTINGS = (
             'Motions from all pairs of samples (more information) or consecutive ones only.',
             choices=PAIRS, tools=BOTH),
     Setting('robust', True,
-            'Reject bad detections (marker flips) and inconsistent motions by a consensus '
-            'search; false for plain least squares.', tools=BOTH),
+            'Reject bad detections (marker flips) by a consensus search and a heavy-tailed '
+            'noise model that down-weights noisy samples; false for plain (weighted) least '
+            'squares in every estimate.', tools=BOTH),
     Setting('invert_sensor', False,
             'true: the sensor poses are the sensor in the object frame (the inverse of the '
             'usual detector output).', tools=BOTH),
@@ -181,6 +183,15 @@ SETTINGS = (
             'refined: joint maximum-likelihood refinement over rotations and translations '
             '(from 6 samples on); closed-form: the Chou-Kamel rotation and the closed-form '
             'translation. Both are reported.', choices=METHODS, tools=BOTH),
+    Setting('validation_max_rotation_deg', 1.0,
+            'The validation passes when the leave-one-out prediction error of the sensor '
+            "poses (RMS over the good samples) is at most this angle and "
+            'validation_max_translation_mm.', unit='deg', low=0.0, high=180.0, tools=BOTH),
+    Setting('validation_max_translation_mm', 10.0,
+            'The validation passes when the leave-one-out prediction error of the sensor '
+            'positions (RMS over the good samples) is at most this distance and the angle '
+            'is within validation_max_rotation_deg.', unit='mm', low=0.0, high=1e6,
+            tools=BOTH),
     Setting('result_file', DEFAULT_RESULT_FILE,
             'Where ~/save writes the result YAML (~ is expanded; written atomically).'),
     Setting('easy_handeye2_file', '',
@@ -295,7 +306,9 @@ def session_config(settings):
             calibration=CalibrationOptions(
                 setup=settings.setup, pairs=settings.pairs, robust=settings.robust,
                 invert_sensor=settings.invert_sensor, min_motion_deg=settings.min_motion_deg,
-                method=settings.method),
+                method=settings.method, validation=Thresholds(
+                    settings.validation_max_rotation_deg,
+                    settings.validation_max_translation_mm)),
             sensor_offset_ns=ns_from_s(settings.sensor_time_offset_s))
     except ValueError as error:
         raise ConfigError(f'inconsistent settings: {error}') from None

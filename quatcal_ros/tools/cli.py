@@ -32,7 +32,8 @@ EXIT_UNDETERMINED = 3
 EXIT_INTERRUPTED = 130
 
 
-ESTIMATOR = ('setup', 'pairs', 'robust', 'invert_sensor', 'method', 'min_motion_deg')
+ESTIMATOR = ('setup', 'pairs', 'robust', 'invert_sensor', 'method', 'min_motion_deg',
+             'validation_max_rotation_deg', 'validation_max_translation_mm')
 
 
 def solve_main(argv=None):

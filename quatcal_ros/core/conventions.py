@@ -1,0 +1,118 @@
+"""
+Frame-convention and rigid-mounting checks over the whole fit, rotations and translations.
+
+A wrong convention (the other setup, the sensor poses inverted) still lets rotations fit
+moderately well when the robot turns little, since rotation angles cannot tell
+(angle(L_i^T L_j) == angle(L_i L_j^T)), but the object positions the samples predict then
+scatter by the lever arms (tens of centimetres) instead of by the sensor noise. So each of the
+four conventions (setup x sensor inversion) gets a quick closed-form fit of rotation and
+translation, and the configured one is compared with the best by the median rotation residual
+times the median position residual. The warning names the fix.
+
+A fit that no convention explains (a residual of tens of degrees) is not a rigid mounting, or
+the data are dominated by bad detections: `rigid_fit_warnings` says so loudly.
+"""
+
+import numpy as np
+
+from quatcal_ros.core import quality
+from quatcal_ros.core.leastsq import all_pairs_rotation, least_squares_rotation
+from quatcal_ros.core.motions import Motions, SampleRotations
+from quatcal_ros.core.solver import DegenerateMotionError
+from quatcal_ros.core.translation import SamplePositions, solve_translation
+from quatcal_ros.core.units import SETUPS
+
+# Samples (evenly spaced) and random motions the check examines: plenty for medians.
+CHECK_SAMPLES = 400
+CHECK_MOTIONS = 2000
+# The configured convention is questioned only when its fit is poor in absolute terms...
+SUSPICIOUS_RESIDUAL_DEG = 0.5
+SUSPICIOUS_POSITION_MM = 5.0
+# ... and another fits better by this factor (median rotation x median position residual).
+BETTER_FACTOR = 6.0
+# Floors of the medians (noise-free data, or no position information).
+FLOOR_DEG, FLOOR_MM = 0.01, 0.01
+# A rotation residual (RMS, degrees) no rigid mounting with a working sensor leaves.
+NOT_RIGID_DEG = 10.0
+
+
+def warnings(samples, options):
+    """Return a warning naming the fix when another convention fits far better, else []."""
+    fits = {}
+    for setup in SETUPS:
+        for invert in (False, True):
+            fits[setup, invert] = _misfit(samples, setup, invert, options)
+    current = fits[options.setup, options.invert_sensor]
+    if current is None:
+        return []
+    others = {k: v for k, v in fits.items() if v is not None
+              and k != (options.setup, options.invert_sensor)}
+    if not others:
+        return []
+    best = min(others, key=lambda k: _score(others[k]))
+    rotation, position = current
+    if (rotation < SUSPICIOUS_RESIDUAL_DEG and position < SUSPICIOUS_POSITION_MM
+            or _score(current) < BETTER_FACTOR * _score(others[best])):
+        return []
+    return [f'frame convention: the samples fit badly as configured (median residual '
+            f'{rotation:.2f} deg, {position:.1f} mm) but well as {_name(*best)} '
+            f'({others[best][0]:.2f} deg, {others[best][1]:.1f} mm): '
+            f'{_fix(options, *best)}']
+
+
+def _score(fit):
+    return max(fit[0], FLOOR_DEG) * max(fit[1], FLOOR_MM)
+
+
+def _name(setup, invert):
+    return setup + (' with the sensor poses inverted' if invert else '')
+
+
+def _fix(options, setup, invert):
+    words = []
+    if setup != options.setup:
+        words.append(f'use --setup {setup}')
+    if invert != options.invert_sensor:
+        words.append('the sensor poses are inverted (the sensor in the object frame instead of '
+                     'the object in the sensor frame): use --invert-sensor' if invert else
+                     'the sensor poses are not inverted: drop --invert-sensor')
+    return '; '.join(words)
+
+
+def _misfit(samples, setup, invert, options):
+    """Return the median rotation (deg) and position (mm) residuals of a quick fit, or None."""
+    if len(samples) > CHECK_SAMPLES:
+        samples = [samples[k] for k in np.linspace(0, len(samples) - 1, CHECK_SAMPLES,
+                                                   dtype=int)]
+    n = len(samples)
+    rotations = SampleRotations.from_samples(samples, setup, invert)
+    rng = np.random.default_rng(options.seed)
+    i = rng.integers(0, n, CHECK_MOTIONS)
+    j = rng.integers(0, n, CHECK_MOTIONS)
+    motions = Motions.between(rotations, i, j)
+    motions = motions.subset(np.minimum(motions.angle_a, motions.angle_b)
+                             >= np.radians(options.min_motion_deg))
+    if len(motions) < 3:
+        return None
+    use = np.ones(n, dtype=bool)
+    q_z = all_pairs_rotation(rotations, use, least_squares_rotation(motions.q_a, motions.q_b))
+    residuals = quality.sample_residuals(rotations, q_z)
+    info = quality.Information.all_pairs(rotations.link_matrices, use)
+    try:
+        positions = SamplePositions.from_samples(samples, rotations)
+        translation = solve_translation(rotations, positions, q_z, info, use)
+    except (DegenerateMotionError, np.linalg.LinAlgError):
+        return None
+    return (float(np.degrees(np.median(np.linalg.norm(residuals, axis=1)))),
+            float(1e3 * np.median(np.linalg.norm(translation.residuals, axis=1))))
+
+
+def rigid_fit_warnings(residual_rms_deg, translation_noise_mm):
+    """Return a loud warning when the residuals are too large for any rigid mounting."""
+    if not residual_rms_deg > NOT_RIGID_DEG:
+        return []
+    return [f'the samples do not fit a rigid mounting: residual {residual_rms_deg:.1f} deg RMS '
+            f'(position scatter {translation_noise_mm:.0f} mm per axis). Check that the '
+            'sensor is fixed where the setup says, that the link and sensor poses belong to '
+            'the same moments, and that bad detections are screened (do not use --no-robust '
+            'on such data); do not use this estimate']

@@ -1,0 +1,78 @@
+"""
+Validation: how well the mounting predicts each sample it was not fitted to.
+
+For every good sample, the fit of all the other samples (refine.Refinement.leave_one_out)
+predicts the sensor's view of the object; the prediction error is split into an angle (deg)
+and a distance (mm). Their RMS over the samples is what a user should expect on a new pose,
+noise included, and the verdict compares it with the user's thresholds. The worst samples are
+named so they can be inspected (or dropped).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+WORST = 3
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """Pass limits of the leave-one-out prediction errors (RMS over the good samples)."""
+
+    max_rotation_deg: float = 1.0
+    max_translation_mm: float = 10.0
+
+    def to_json_dict(self):
+        """Return the thresholds as JSON."""
+        return {'max_rotation_deg': self.max_rotation_deg,
+                'max_translation_mm': self.max_translation_mm}
+
+
+def validate(leave_one_out, samples, thresholds=Thresholds()):
+    """
+    Return the JSON object of the validation (DESIGN.md contract 6).
+
+    leave_one_out: (K, 6) predicted residuals (rotation vector in radians, position in
+    metres, sensor frame) of the good samples whose indices are `samples` (K,).
+    """
+    rotation = np.degrees(np.linalg.norm(leave_one_out[:, :3], axis=1))
+    translation = 1e3 * np.linalg.norm(leave_one_out[:, 3:], axis=1)
+    rms_rotation = float(np.sqrt(np.mean(rotation ** 2)))
+    rms_translation = float(np.sqrt(np.mean(translation ** 2)))
+    # Worst by the larger of the two errors, each in units of its RMS.
+    badness = np.maximum(rotation / max(rms_rotation, 1e-300),
+                         translation / max(rms_translation, 1e-300))
+    worst = np.argsort(-badness, kind='stable')[:WORST]
+    failures = []
+    if rms_rotation > thresholds.max_rotation_deg:
+        failures.append(f'rotation {rms_rotation:.3f} deg > {thresholds.max_rotation_deg:g} deg')
+    if rms_translation > thresholds.max_translation_mm:
+        failures.append(f'translation {rms_translation:.2f} mm > '
+                        f'{thresholds.max_translation_mm:g} mm')
+    verdict = 'fail' if failures else 'pass'
+    reason = ('leave-one-out prediction errors (RMS over the good samples) within the '
+              'thresholds' if not failures else
+              'leave-one-out prediction errors (RMS) above the thresholds: ' + ', '.join(failures))
+    return {
+        'method': 'leave-one-out',
+        'verdict': verdict,
+        'reason': reason,
+        'rms_rotation_deg': rms_rotation,
+        'rms_translation_mm': rms_translation,
+        'thresholds': thresholds.to_json_dict(),
+        'worst': [_entry(samples[k], rotation[k], translation[k]) for k in worst],
+        'samples': [_entry(s, r, t) for s, r, t in zip(samples, rotation, translation)],
+    }
+
+
+def _entry(sample, rotation_deg, translation_mm):
+    return {'sample': int(sample), 'rotation_deg': float(rotation_deg),
+            'translation_mm': float(translation_mm)}
+
+
+def not_enough_samples(count, needed, thresholds=Thresholds()):
+    """Return the validation object when too few good samples exist to validate."""
+    return {'method': 'leave-one-out', 'verdict': 'unknown',
+            'reason': f'{count} good samples: the leave-one-out validation needs {needed}',
+            'rms_rotation_deg': None, 'rms_translation_mm': None,
+            'thresholds': thresholds.to_json_dict(), 'worst': [], 'samples': []}
