@@ -3,8 +3,9 @@ Estimate the sensor mounting A_z from still samples: robust, with quality figure
 
 Pipeline (one function, `calibrate`, used by the node, the bag replay and the CSV tool through
 `Calibrator` / session.Session). Every step is O(N) in the samples:
-1. (robust) a consensus search whose minimal solver is the paper's two-motion method
-   (solver.solve_two_motions) on a bounded set of candidate motions (eq. (35)-(36)), screened
+1. (robust) a consensus search over two-motion hypotheses (what the paper's method solves,
+   here by the least squares of eq. (41), for all at once) on a bounded set of candidate
+   motions (eq. (35)-(36)), screened
    for size and for rotation angles theta_a, theta_b that disagree (Lemma 4 of Shiu and
    Ahmad; erratum 3), scored by the median sample residual (least median of squares);
 2. (robust) bad detections: a bad detection spoils every motion it takes part in, so samples
@@ -30,12 +31,12 @@ from quatcal_ros.core import conventions
 from quatcal_ros.core import heavy_tails
 from quatcal_ros.core import quality
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.leastsq import all_pairs_rotation, least_squares_rotation, MotionSystem, \
-    sample_matrices
+from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, least_squares_rotation, \
+    MotionSystem, sample_matrices
 from quatcal_ros.core.motions import motion_count, Motions, pair_indices, PAIRINGS, \
     SampleRotations
-from quatcal_ros.core.refine import MAX_ITERATIONS, refine
-from quatcal_ros.core.solver import DegenerateMotionError, solve_two_motions
+from quatcal_ros.core.refine import MAX_ITERATIONS, refine, with_jackknife
+from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.translation import SamplePositions, solve_translation
 from quatcal_ros.core.units import SETUPS
 from quatcal_ros.core.validation import not_enough_samples, Thresholds, validate
@@ -362,32 +363,34 @@ def _rejected_motions(motions, usable, sample_ok, limit, options):
 
 
 def _consensus(rotations, candidates, options):
-    """Return the least-median-of-squares consensus of two-motion hypotheses (the paper's)."""
+    """
+    Return the least-median-of-squares consensus of two-motion hypotheses.
+
+    Each hypothesis solves two candidate motions about axes at least
+    HYPOTHESIS_AXIS_SEPARATION_DEG apart exactly (for exact data; the least squares of eq. (41)
+    over the two, the answer of the paper's two-motion method, solved for every hypothesis at
+    once), and is scored by the median residual of the samples' object orientations.
+    """
     _require_motions(candidates)
-    hypotheses = [least_squares_rotation(candidates.q_a, candidates.q_b)]
     rng = np.random.default_rng(options.seed)
+    draws = rng.integers(0, len(candidates), (4 * options.hypotheses, 2))
     axes = candidates.axis_a
-    min_cos = np.cos(np.radians(HYPOTHESIS_AXIS_SEPARATION_DEG))
-    for _ in range(4 * options.hypotheses):
-        if len(hypotheses) > options.hypotheses:
-            break
-        k1, k2 = rng.choice(len(candidates), size=2, replace=False)
-        if abs(axes[k1] @ axes[k2]) > min_cos:
-            continue
-        A_a = quat.matrix_from_quaternion(candidates.q_a[[k1, k2]])
-        A_b = quat.matrix_from_quaternion(candidates.q_b[[k1, k2]])
-        try:
-            solution = solve_two_motions(
-                A_a[0], A_b[0], A_a[1], A_b[1], min_rotation=0.0, angle_tolerance=np.pi,
-                min_axis_separation=0.0)
-        except DegenerateMotionError:
-            continue
-        hypotheses.append(solution.quaternion)
+    separated = ((draws[:, 0] != draws[:, 1]) & (np.abs(np.einsum(
+        'ki,ki->k', axes[draws[:, 0]], axes[draws[:, 1]]))
+        <= np.cos(np.radians(HYPOTHESIS_AXIS_SEPARATION_DEG))))
+    draws = draws[separated][:options.hypotheses]
+    B = b_matrices(candidates.q_a[draws.ravel()], candidates.q_b[draws.ravel()])
+    normal = np.einsum('kji,kjl->kil', B, B).reshape(len(draws), 2, 4, 4).sum(axis=1)
+    hypotheses = np.vstack([least_squares_rotation(candidates.q_a, candidates.q_b)[None],
+                            np.linalg.eigh(normal)[1][:, :, 0]])
     # Every hypothesis's object orientations Z_i at once: (H, N, 4).
-    Z = np.einsum('nij,hj->hni', sample_matrices(rotations), np.array(hypotheses))
-    scores = [np.median(np.linalg.norm(quat.rotation_vector(quat.multiply(
-        z, quat.conjugate(quat.average(z)))), axis=1)) for z in Z]
-    return hypotheses[int(np.argmin(scores))]
+    Z = np.einsum('nij,hj->hni', sample_matrices(rotations), hypotheses)
+    mean = np.linalg.eigh(np.einsum('hni,hnj->hij', Z, Z))[1][:, :, -1]   # quat.average
+    cosine = np.abs(np.einsum('hni,hi->hn', Z, mean))
+    orthogonal = np.linalg.norm(Z - cosine[..., None] * np.sign(
+        np.einsum('hni,hi->hn', Z, mean))[..., None] * mean[:, None], axis=2)
+    scores = np.median(np.arctan2(orthogonal, cosine), axis=1)   # half the residual angles
+    return quat.canonical(hypotheses[int(np.argmin(scores))])
 
 
 def _detections(rotations, q_z, previous=None):
@@ -480,9 +483,10 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     refinement = None
     if _count(ok) >= MIN_REFINE_SAMPLES:
         warm = previous.refinement if previous is not None else None
-        refinement = refine(*arrays, fit.q_z, translation.translation, robust=options.robust,
-                            start=warm, max_iterations=(MAX_ITERATIONS if warm is None
-                                                        else WARM_ITERATIONS))
+        refinement = with_jackknife(
+            refine(*arrays, fit.q_z, translation.translation, robust=options.robust, start=warm,
+                   max_iterations=MAX_ITERATIONS if warm is None else WARM_ITERATIONS),
+            *arrays, robust=options.robust)
     published_refinement = refinement if options.method == 'refined' else None
     if published_refinement is not None and not _plausible(refinement, fit.q_z,
                                                            closed.uncertainty_deg):

@@ -26,7 +26,7 @@ from quatcal_ros.core.units import SETUPS
 CHECK_SAMPLES = 400
 CHECK_MOTIONS = 2000
 # The configured convention is questioned only when its fit is poor in absolute terms...
-SUSPICIOUS_RESIDUAL_DEG = 0.5
+SUSPICIOUS_RESIDUAL_DEG = 1.0
 SUSPICIOUS_POSITION_MM = 5.0
 # ... and another fits better by this factor (median rotation x median position residual).
 BETTER_FACTOR = 6.0
@@ -38,21 +38,19 @@ NOT_RIGID_DEG = 10.0
 
 def warnings(samples, options):
     """Return a warning naming the fix when another convention fits far better, else []."""
-    fits = {}
-    for setup in SETUPS:
-        for invert in (False, True):
-            fits[setup, invert] = _misfit(samples, setup, invert, options)
-    current = fits[options.setup, options.invert_sensor]
-    if current is None:
+    current = _misfit(samples, options.setup, options.invert_sensor, options)
+    if current is None or (current[0] < SUSPICIOUS_RESIDUAL_DEG
+                           and current[1] < SUSPICIOUS_POSITION_MM):
         return []
-    others = {k: v for k, v in fits.items() if v is not None
-              and k != (options.setup, options.invert_sensor)}
+    fits = {(setup, invert): _misfit(samples, setup, invert, options)
+            for setup in SETUPS for invert in (False, True)
+            if (setup, invert) != (options.setup, options.invert_sensor)}
+    others = {k: v for k, v in fits.items() if v is not None}
     if not others:
         return []
     best = min(others, key=lambda k: _score(others[k]))
     rotation, position = current
-    if (rotation < SUSPICIOUS_RESIDUAL_DEG and position < SUSPICIOUS_POSITION_MM
-            or _score(current) < BETTER_FACTOR * _score(others[best])):
+    if _score(current) < BETTER_FACTOR * _score(others[best]):
         return []
     return [f'frame convention: the samples fit badly as configured (median residual '
             f'{rotation:.2f} deg, {position:.1f} mm) but well as {_name(*best)} '

@@ -17,29 +17,118 @@ that (motion blur, a grazing view of the target), and now and then a detection i
   START_SIGMAS robust sigmas).
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import math
 
 import numpy as np
 
 NU_GRID = (3.0, 5.0, 10.0, 30.0, math.inf)
 EM_ITERATIONS = 12
+WARM_EM_ITERATIONS = 1
+# Models less probable than this are dropped from the average (and from the work).
+MIN_PROBABILITY = 0.02
+
+
+@dataclass(frozen=True)
+class Shape:
+    """A form the scale matrix may take: its name, projection and free parameters."""
+
+    name: str
+    project: object          # scatter (d x d) -> the matrix of this shape; None: as it is
+    parameters: int
+
+
+def isotropic_blocks(d, block=3):
+    """Return the Shape sigma_k^2 I on each diagonal block of `block` axes (d / block params)."""
+    def project(scatter):
+        return np.diag(np.repeat(scatter.diagonal().reshape(-1, block).mean(axis=1), block))
+    return Shape('isotropic', project, d // block)
+
+
+def full(d):
+    """Return the Shape of any symmetric positive definite matrix (d (d + 1) / 2 params)."""
+    return Shape('full', None, d * (d + 1) // 2)
+
+
+@dataclass(frozen=True)
+class Component:
+    """One candidate noise model fitted to the residuals: a Shape and a nu."""
+
+    shape: Shape
+    nu: float
+    scale: np.ndarray       # d x d
+    weights: np.ndarray     # (nu + d) / (nu + delta_i); 1 for nu = inf
+    delta: np.ndarray       # squared Mahalanobis distances r_i^T S^-1 r_i
+    log_density: np.ndarray  # per sample
+    criterion: float        # the Bayesian information criterion of the fit
+
+    @property
+    def covariance(self):
+        """Return the covariance of this t, nu / (nu - 2) S (S for nu = inf)."""
+        return self.scale * (1.0 if math.isinf(self.nu) else self.nu / (self.nu - 2.0))
 
 
 @dataclass(frozen=True)
 class NoiseFit:
-    """The fitted t: scale matrix (d x d), degrees of freedom, per-sample weights and delta."""
+    """
+    The fitted noise: candidate models averaged with their posterior probabilities.
 
-    scale: np.ndarray
-    nu: float
-    weights: np.ndarray     # (nu + d) / (nu + delta_i); 1 for nu = inf
-    delta: np.ndarray       # squared Mahalanobis distances r_i^T S^-1 r_i
-    log_likelihood: float
+    The probabilities come from the information criterion (exp(BIC_k) normalised): nearly
+    always one model has all of it, but near a tie the estimate moves smoothly from one to
+    the other instead of jumping when a sample's last digit changes.
+    """
+
+    components: tuple
+    probabilities: np.ndarray
+
+    @property
+    def best(self):
+        """Return the most probable Component."""
+        return self.components[int(np.argmax(self.probabilities))]
+
+    @property
+    def nu(self):
+        """Return the most probable tail degrees of freedom (inf: Gaussian)."""
+        return self.best.nu
 
     @property
     def covariance(self):
-        """Return the covariance of the fitted t, nu / (nu - 2) S (S for nu = inf)."""
-        return self.scale * (1.0 if math.isinf(self.nu) else self.nu / (self.nu - 2.0))
+        """Return the covariance of the noise (d x d), averaged over the models."""
+        return sum(p * c.covariance for p, c in zip(self.probabilities, self.components))
+
+    @property
+    def weights(self):
+        """Return each sample's weight relative to a typical sample, averaged over the models."""
+        return sum(p * c.weights for p, c in zip(self.probabilities, self.components))
+
+    def information(self):
+        """Return each sample's information matrix sum_k p_k w_ik S_k^-1, (N, d, d)."""
+        return sum(p * c.weights[:, None, None] * np.linalg.inv(c.scale)[None]
+                   for p, c in zip(self.probabilities, self.components))
+
+    def subset(self, mask):
+        """Return this fit restricted to the samples `mask` selects (to warm-start a refit)."""
+        return NoiseFit(tuple(replace(c, weights=c.weights[mask], delta=c.delta[mask],
+                                      log_density=c.log_density[mask])
+                              for c in self.components), self.probabilities)
+
+    def refitted(self, residuals, lost_samples=0.0, floor=None):
+        """Return the same models and probabilities with their scales fitted to `residuals`."""
+        r = np.asarray(residuals, dtype=float)
+        count = max(len(r) - lost_samples, 1.0)
+        return NoiseFit(tuple(_fit_component(r, np.ones(len(r)), count, c.shape, c.nu, floor, c)
+                              for c in self.components), self.probabilities)
+
+    def probability_change(self, other):
+        """Return the largest change of a model's probability from `other` to this fit."""
+        mine = {(c.shape.name, c.nu): p for c, p in zip(self.components, self.probabilities)}
+        theirs = {(c.shape.name, c.nu): p for c, p in zip(other.components, other.probabilities)}
+        return max(abs(mine.get(k, 0.0) - theirs.get(k, 0.0)) for k in set(mine) | set(theirs))
+
+    def density(self):
+        """Return each sample's density under the noise, averaged over the models."""
+        return sum(p * np.exp(c.log_density)
+                   for p, c in zip(self.probabilities, self.components))
 
 
 def t_weights(delta, d, nu):
@@ -58,72 +147,64 @@ def t_log_density(delta, d, nu, log_det):
             - 0.5 * (nu + d) * np.log1p(delta / nu))
 
 
-def fit_t(residuals, lost_samples=0.0, structure=None, floor=None, grid=NU_GRID,
-          prior=None):
+def fit_t(residuals, shapes, grid=NU_GRID, lost_samples=0.0, floor=None, prior=None,
+          start=None):
     """
-    Fit the t of the module docstring to residuals (N, d); return the best NoiseFit on `grid`.
+    Fit the t of the module docstring to residuals (N, d); return the NoiseFit.
 
-    lost_samples: samples' worth of degrees of freedom spent on fitted parameters (the scale
-    is divided by N - lost_samples); structure: a function that projects a d x d scatter
-    matrix onto the allowed form (e.g. isotropic blocks), None for a full matrix; floor: d
-    variances added to the diagonal (so exact data do not divide by zero); prior: per-sample
-    probabilities of being good (bad_detections), which weight each sample's part in the fit.
+    Every combination of a Shape in `shapes` and a nu on `grid` is fitted and weighed by the
+    Bayesian information criterion (log-likelihood less half the free parameters times
+    log N), so a full covariance counts only when the data show its shape clearly, and heavy
+    tails only when the data need them. lost_samples: samples' worth of degrees of freedom
+    spent on fitted parameters (the scale is divided by N minus them); floor: d variances
+    added to the diagonal (so exact data do not divide by zero); prior: per-sample
+    probabilities of being good (bad_detections), which weight each sample's part in the fit;
+    start: a NoiseFit of similar residuals whose weights start the EM (fewer steps).
     """
     r = np.asarray(residuals, dtype=float)
     n, d = r.shape
     good = np.ones(n) if prior is None else prior
     count = max(good.sum() - lost_samples, 1.0)
-    best = None
-    for nu in grid:
-        w = np.ones(n)
-        for _ in range(EM_ITERATIONS if not math.isinf(nu) else 1):
-            scale = _scale(r, good * w, count, structure, floor)
-            delta = _mahalanobis(r, scale)
-            w = t_weights(delta, d, nu)
-        scale = _scale(r, good * w, count, structure, floor)
-        delta = _mahalanobis(r, scale)
-        log_det = float(np.linalg.slogdet(scale)[1])
-        log_likelihood = float(good @ t_log_density(delta, d, nu, log_det))
-        if best is None or log_likelihood > best.log_likelihood:
-            best = NoiseFit(scale, nu, t_weights(delta, d, nu), delta, log_likelihood)
-    return best
+    earlier = {} if start is None else {(c.shape.name, c.nu): c for c in start.components}
+    components = [_fit_component(r, good, count, shape, nu, floor,
+                                 earlier.get((shape.name, nu)))
+                  for shape in shapes for nu in grid]
+    criteria = np.array([c.criterion for c in components])
+    probabilities = np.exp(criteria - criteria.max())
+    keep = probabilities > MIN_PROBABILITY * probabilities.sum()   # no say: dropped
+    return NoiseFit(tuple(c for c, k in zip(components, keep) if k),
+                    probabilities[keep] / probabilities[keep].sum())
 
 
-def _scale(r, w, count, structure, floor):
+def _fit_component(r, good, count, shape, nu, floor, warm=None):
+    """Fit one Shape and nu by EM (warm: an earlier Component of them to start from)."""
+    d = r.shape[1]
+    if warm is not None and len(warm.weights) != len(r):
+        warm = None   # of other samples: no start
+    w = warm.weights if warm is not None else np.ones(len(r))
+    if math.isinf(nu):
+        steps = 0
+    else:
+        steps = WARM_EM_ITERATIONS if warm is not None else EM_ITERATIONS
+    for _ in range(steps):
+        w = t_weights(_mahalanobis(r, _scale(r, good * w, count, shape, floor)), d, nu)
+    scale = _scale(r, good * w, count, shape, floor)
+    delta = _mahalanobis(r, scale)
+    log_density = t_log_density(delta, d, nu, float(np.linalg.slogdet(scale)[1]))
+    free = shape.parameters + (0 if math.isinf(nu) else 1)
+    criterion = float(good @ log_density) - 0.5 * free * math.log(max(good.sum(), 2.0))
+    return Component(shape, nu, scale, t_weights(delta, d, nu), delta, log_density, criterion)
+
+
+def _scale(r, w, count, shape, floor):
     scatter = (r * w[:, None]).T @ r / count
-    if structure is not None:
-        scatter = structure(scatter)
+    if shape.project is not None:
+        scatter = shape.project(scatter)
     return scatter if floor is None else scatter + np.diag(floor)
 
 
 def _mahalanobis(r, scale):
     return np.einsum('ni,ni->n', r @ np.linalg.inv(scale), r)
-
-
-def shrunk_to_blocks(samples, prior_samples, block=3):
-    """
-    Return a `structure` that shrinks a full scatter matrix towards isotropic blocks.
-
-    The weight of the full matrix is samples / (samples + prior_samples): with few samples the
-    21 entries of a 6x6 covariance are poorly known and the two variances win; with many the
-    data's own shape (anisotropy, correlations) does, smoothly, with no step in between.
-    """
-    weight = samples / (samples + prior_samples)
-    blocks = isotropic_blocks(block)
-
-    def project(scatter):
-        return weight * scatter + (1.0 - weight) * blocks(scatter)
-    return project
-
-
-def isotropic_blocks(block=3):
-    """Return a `structure` for fit_t: sigma_k^2 I on each diagonal block of `block` axes."""
-    def project(scatter):
-        d = len(scatter)
-        values = np.repeat([np.trace(scatter[k:k + block, k:k + block]) / block
-                            for k in range(0, d, block)], block)
-        return np.diag(values)
-    return project
 
 
 # --- bad detections -------------------------------------------------------------------------
@@ -179,11 +260,12 @@ def bad_detections(rotation_residuals, lost_samples=2.0, floor=1e-14):
     uniform = uniform_rotation_density(angles)
     start = START_SIGMAS * max(np.median(angles) / CHI3_MEDIAN, math.sqrt(floor))
     good = (angles <= start).astype(float)
+    noise = None
     for _ in range(MIXTURE_ITERATIONS):
-        noise = fit_t(r, lost_samples, isotropic_blocks(3), np.full(3, floor), prior=good)
+        noise = fit_t(r, (isotropic_blocks(3),), NU_GRID, lost_samples, np.full(3, floor),
+                      prior=good, start=noise)
         fraction = min(max(good.mean(), 0.5), 1.0 - MIN_BAD_FRACTION)
-        log_det = float(np.linalg.slogdet(noise.scale)[1])
-        density = np.exp(t_log_density(noise.delta, 3, noise.nu, log_det))
+        density = noise.density()
         updated = fraction * density / (fraction * density + (1.0 - fraction) * uniform)
         if np.allclose(updated, good, atol=1e-6):
             break

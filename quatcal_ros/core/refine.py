@@ -12,21 +12,22 @@ t_meas - t_pred (metres). Its noise is a t with a 6x6 scale matrix estimated fro
 (heavy_tails.fit_t): anisotropic, as camera poses from PnP are (far noisier along the optical
 axis than across it), rotation and translation correlated, and heavy-tailed when the data say
 so (nu < inf down-weights noisy samples). Without `robust` the noise is Gaussian: plain
-weighted least squares. A few dozen samples cannot estimate 21 covariance entries well, so the
-scale matrix is shrunk towards one variance for rotation and one for translation, the more
-the fewer samples there are (heavy_tails.shrunk_to_blocks, NOISE_PRIOR_SAMPLES).
+weighted least squares. A few dozen samples cannot estimate 21 covariance entries well, so a
+full matrix is used only when the data show its shape clearly; else one variance for rotation
+and one for translation (chosen by the information criterion, heavy_tails.fit_t).
 
 The 12 unknowns (X, O) are found by Gauss-Newton in numpy, re-fitting the noise model at every
 step (iteratively reweighted least squares); it starts from the closed form (Chou-Kamel
 rotation, closed-form translation), which stays the fallback. Every sum is over samples: O(N).
 
-The reported covariance is the sandwich A^-1 B A^-1 (A the weighted normal matrix, B the sum
-of the samples' outer score products): it holds when the model's noise is wrong too, which
-the inverse normal matrix alone (`model_covariance`) does not. Leave-one-out predictions of
+The reported covariance is the sandwich A^-1 B A^-1 (A the weighted normal matrix, B the
+scatter of the samples' scores, with the HC2 small-sample correction): it holds when the
+model's noise is wrong too, which the inverse normal matrix alone (`model_covariance`,
+reported beside it) does not. Leave-one-out predictions of
 every sample come from the same sums (`leave_one_out`).
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import math
 
 import numpy as np
@@ -36,14 +37,23 @@ from quatcal_ros.core import quaternion as quat
 MAX_ITERATIONS = 20
 # Converged when the last step moved the unknowns by less than this many of their sigmas.
 STEP_TOLERANCE = 1e-6
+# The noise models' probabilities may move this much at the answer without another round.
+MODEL_TOLERANCE = 1e-3
 # Floors of the noise estimates, so exact synthetic data do not divide by zero.
 MIN_ROTATION_NOISE = 1e-6      # radians
 MIN_TRANSLATION_NOISE = 1e-6   # metres
 NOISE_FLOOR = np.array([MIN_ROTATION_NOISE] * 3 + [MIN_TRANSLATION_NOISE] * 3) ** 2
-NOISE_PRIOR_SAMPLES = 40
 # Residuals per sample and the samples' worth of them the 12 unknowns use up.
 DIMENSIONS = 6
 LOST_SAMPLES = 12 / DIMENSIONS
+# The shapes the noise's scale matrix may take; a full 6x6 one only from FULL_SHAPE_SAMPLES
+# samples on (fitted to fewer, its 21 entries follow the noise of the few: a nearly singular
+# matrix that weighs some directions without bound and reports a far too small uncertainty).
+ISOTROPIC = (heavy_tails.isotropic_blocks(DIMENSIONS),)
+SHAPES = ISOTROPIC + (heavy_tails.full(DIMENSIONS),)
+FULL_SHAPE_SAMPLES = 30
+# Blocks of the jackknife (with_jackknife).
+JACKKNIFE_BLOCKS = 20
 
 
 @dataclass(frozen=True)
@@ -60,6 +70,7 @@ class Refinement:
     residuals: np.ndarray           # (N, 6) at the answer
     leave_one_out: np.ndarray       # (N, 6) each sample's residual predicted without it
     converged: bool
+    resampled: np.ndarray = None    # 6 x 6 block-jackknife covariance of X (with_jackknife)
 
     @property
     def rotation_noise_deg(self):
@@ -72,13 +83,28 @@ class Refinement:
         return float(1e3 * np.sqrt(np.trace(self.noise.covariance[3:, 3:]) / 3.0))
 
     @property
+    def reported_covariance(self):
+        """Return X's 6 x 6 covariance as reported: resampled when it was, else the sandwich."""
+        return self.covariance[:6, :6] if self.resampled is None else self.resampled
+
+    @property
     def uncertainty_deg(self):
-        """Return the expected RMS error angle of X's rotation (degrees), from the sandwich."""
-        return _rms(self.covariance[:3, :3], np.degrees(1.0))
+        """Return the expected RMS error angle of X's rotation (degrees)."""
+        return _rms(self.reported_covariance[:3, :3], np.degrees(1.0))
 
     @property
     def translation_uncertainty_mm(self):
-        """Return the expected RMS error of X's translation (millimetres), from the sandwich."""
+        """Return the expected RMS error of X's translation (millimetres)."""
+        return _rms(self.reported_covariance[3:6, 3:6], 1e3)
+
+    @property
+    def sandwich_uncertainty_deg(self):
+        """Return the rotation uncertainty of the sandwich covariance (degrees)."""
+        return _rms(self.covariance[:3, :3], np.degrees(1.0))
+
+    @property
+    def sandwich_translation_uncertainty_mm(self):
+        """Return the translation uncertainty of the sandwich covariance (millimetres)."""
         return _rms(self.covariance[3:6, 3:6], 1e3)
 
     @property
@@ -173,25 +199,99 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None
     else:
         x_q, x_t = start.quaternion, start.translation
         o_q, o_t = start.object_quaternion, start.object_translation
-    model = (x_q, x_t, o_q, o_t)
-    n = len(link_q)
-    structure = heavy_tails.shrunk_to_blocks(n, NOISE_PRIOR_SAMPLES)
+    arrays = (link_q, link_t, sensor_q, sensor_t, link_R)
+    model, noise, converged = _fit(arrays, (x_q, x_t, o_q, o_t), robust,
+                                   start.noise if start is not None else None, max_iterations)
+    e, J = _linearised(*arrays[:4], *model, link_R)
+    return _refinement(model, e, J, noise, converged)
+
+
+def _fit(arrays, model, robust, warm, max_iterations):
+    """
+    Return the refined model (X, O), the noise model at it, and whether the steps converged.
+
+    arrays: (link_q, link_t, sensor_q, sensor_t, link_R); warm: a NoiseFit of similar
+    residuals to start the noise models' EM from, or None.
+    The noise's models and their probabilities are chosen from the residuals at the start
+    and again at the answer; in between only the scales follow the steps. When the choice at
+    the answer differs, the steps resume under it (once).
+    """
     grid = heavy_tails.NU_GRID if robust else (math.inf,)
-    converged = False
-    for _ in range(max_iterations):
+    shapes = SHAPES if len(arrays[0]) >= FULL_SHAPE_SAMPLES else ISOTROPIC
+    noise, converged = None, False
+    for _ in range(2):
+        model, noise, converged = _gauss_newton(arrays, model, (shapes, grid), noise or warm,
+                                                noise is None, max_iterations)
+        e, _ = _linearised(*arrays[:4], *model, arrays[4])
+        chosen = heavy_tails.fit_t(e, shapes, grid, LOST_SAMPLES, NOISE_FLOOR, start=noise)
+        moved = chosen.probability_change(noise)
+        noise = chosen
+        if moved < MODEL_TOLERANCE or not max_iterations:
+            break
+    return model, noise, converged
+
+
+def _gauss_newton(arrays, model, models, noise, choose, iterations):
+    """
+    Return the model after Gauss-Newton steps, the noise last used, and convergence.
+
+    models: (shapes, grid) of the noise models; choose: fit them (warm-started from `noise`
+    when given) on the first step, else keep `noise`'s models and refit their scales.
+    """
+    link_q, link_t, sensor_q, sensor_t, link_R = arrays
+    for _ in range(iterations):
         e, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R)
-        noise = heavy_tails.fit_t(e, LOST_SAMPLES, structure, NOISE_FLOOR, grid)
+        if choose:
+            noise = heavy_tails.fit_t(e, *models, LOST_SAMPLES, NOISE_FLOOR, start=noise)
+            choose = False
+        else:
+            noise = noise.refitted(e, LOST_SAMPLES, NOISE_FLOOR)
         A, g = _normal_equations(J, e, noise)
         step = -_solve(A, g)
-        model = _unpack(step, *model)
         if not np.all(np.isfinite(step)):
-            break
+            return model, noise, False
+        model = _unpack(step, *model)
         if float(step @ A @ step) < STEP_TOLERANCE ** 2:
-            converged = True
-            break
-    e, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R)
-    noise = heavy_tails.fit_t(e, LOST_SAMPLES, structure, NOISE_FLOOR, grid)
-    return _refinement(model, e, J, noise, converged)
+            return model, noise, True
+    if choose:   # no step asked for: the noise at the start
+        e, _ = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R)
+        noise = heavy_tails.fit_t(e, *models, LOST_SAMPLES, NOISE_FLOOR, start=noise)
+    return model, noise, False
+
+
+def with_jackknife(refinement, link_q, link_t, sensor_q, sensor_t, robust=True,
+                   blocks=JACKKNIFE_BLOCKS):
+    """
+    Return `refinement` with its block-jackknife covariance of X (`resampled`).
+
+    The samples (in their order, so that neighbours in time fall together) are cut into
+    `blocks` contiguous blocks; without each, the noise models' scales and weights are
+    re-fitted to the other samples' residuals and one Gauss-Newton step from the answer gives
+    that replicate's mounting (the step from an optimum this close lands within a small
+    fraction of the uncertainty). The spread of those answers is what the sandwich cannot
+    see: the noise model's own estimation from the same residuals, which makes the fitted
+    weights look better than they are with a few dozen samples. Cost: `blocks` steps, O(N)
+    each.
+    """
+    n = len(link_q)
+    groups = np.array_split(np.arange(n), min(blocks, n))
+    if len(groups) < 3:
+        return refinement
+    link_R = quat.matrix_from_quaternion(link_q)
+    e, J = _linearised(link_q, link_t, sensor_q, sensor_t, refinement.quaternion,
+                       refinement.translation, refinement.object_quaternion,
+                       refinement.object_translation, link_R)
+    moves = []
+    for group in groups:
+        keep = np.ones(n, dtype=bool)
+        keep[group] = False
+        noise = refinement.noise.subset(keep).refitted(e[keep], LOST_SAMPLES, NOISE_FLOOR)
+        A, g = _normal_equations(J[keep], e[keep], noise)
+        moves.append(-_solve(A, g)[:6])   # X's rotation vector (left) and translation
+    moves = np.array(moves)
+    g = len(groups)
+    centred = moves - moves.mean(axis=0)
+    return replace(refinement, resampled=(g - 1) / g * centred.T @ centred)
 
 
 def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, link_R):
@@ -203,9 +303,8 @@ def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, link_R):
 
 
 def _normal_equations(J, e, noise):
-    """Return A = sum w_i J_i^T S^-1 J_i and g = sum w_i J_i^T S^-1 e_i (the IRLS sums)."""
-    information = np.linalg.inv(noise.scale)
-    WJ = np.einsum('nai,ab->nib', J, information) * noise.weights[:, None, None]
+    """Return A = sum J_i^T M_i J_i and g = sum J_i^T M_i e_i, M_i the samples' information."""
+    WJ = np.einsum('nai,nab->nib', J, noise.information())
     return np.einsum('nib,nbj->ij', WJ, J), np.einsum('nib,nb->i', WJ, e)
 
 
@@ -219,21 +318,38 @@ def _solve(normal, rhs):
 def _refinement(model, e, J, noise, converged):
     """Return the Refinement of model (X, O) with residuals e, Jacobian J and the noise."""
     x_q, x_t, o_q, o_t = model
-    information = np.linalg.inv(noise.scale)
-    WJ = np.einsum('nai,ab->nib', J, information) * noise.weights[:, None, None]
+    information = noise.information()
+    WJ = np.einsum('nai,nab->nib', J, information)
     A = np.einsum('nib,nbj->ij', WJ, J)
     A_inv = np.linalg.pinv(A)
-    # The sandwich with each sample's score taken at its leave-one-out residual (the
-    # jackknife-like HC3 form): the plain residuals of a fit with 12 unknowns understate the
-    # scatter of a few dozen samples, and more so for the samples that steer the fit.
     leave_one_out = _leave_one_out(A, WJ, J, e)
-    scores = np.einsum('nib,nb->ni', WJ, leave_one_out)
-    sandwich = A_inv @ (scores.T @ scores) @ A_inv
+    sandwich = A_inv @ _score_scatter(J, e, information, A_inv) @ A_inv
     return Refinement(
         quaternion=quat.canonical(x_q), translation=x_t, object_quaternion=o_q,
         object_translation=o_t, noise=noise, covariance=sandwich,
         model_covariance=_model_covariance(A_inv, noise), residuals=e,
         leave_one_out=leave_one_out, converged=bool(converged))
+
+
+def _score_scatter(J, e, information, A_inv):
+    """
+    Return B = sum_i s_i s_i^T, the scatter of the samples' scores, for the sandwich.
+
+    The plain residuals of a fit with 12 unknowns understate the noise, the more for the
+    samples that steer the fit: in whitened coordinates (M_i = L_i L_i^T) each residual is
+    divided by sqrt(I - h_i), h_i = L_i^T J_i A^-1 J_i^T L_i its block of the hat matrix (the
+    HC2 correction, unbiased for a linear model with the noise the weights assume), and
+    s_i = J_i^T L_i (I - h_i)^-1/2 L_i^T e_i.
+    """
+    L = np.linalg.cholesky(information)                       # (N, 6, 6)
+    whitened_J = np.einsum('nba,nbj->naj', L, J)              # L^T J
+    whitened_e = np.einsum('nba,nb->na', L, e)
+    hat = np.einsum('nai,ij,nbj->nab', whitened_J, A_inv, whitened_J)
+    values, vectors = np.linalg.eigh(np.eye(J.shape[1])[None] - hat)
+    root = np.einsum('nab,nb,ncb->nac', vectors, 1.0 / np.sqrt(np.maximum(values, 1e-12)),
+                     vectors)
+    scores = np.einsum('naj,nab,nb->nj', whitened_J, root, whitened_e)
+    return scores.T @ scores
 
 
 def _model_covariance(A_inv, noise):
@@ -242,12 +358,12 @@ def _model_covariance(A_inv, noise):
 
     For a t with nu degrees of freedom in d dimensions the Fisher information of a location
     is (nu + d) / (nu + d + 2) times the Gaussian one with the scale matrix S; the IRLS
-    normal matrix A has the weights' mean in place of that factor.
+    normal matrix A has the weights' mean in place of that factor (averaged over the models).
     """
-    if math.isinf(noise.nu):
-        return A_inv
     d = DIMENSIONS
-    efficiency = (noise.nu + d) / (noise.nu + d + 2.0) / max(noise.weights.mean(), 1e-12)
+    efficiency = sum(p * (1.0 if math.isinf(c.nu) else (c.nu + d) / (c.nu + d + 2.0)
+                          / max(c.weights.mean(), 1e-12))
+                     for p, c in zip(noise.probabilities, noise.components))
     return A_inv / efficiency
 
 

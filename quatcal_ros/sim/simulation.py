@@ -272,6 +272,39 @@ def add_pose_noise(rng, positions, quaternions, rotation_noise_deg=0.0, translat
     return positions + z[:, 3:] * translation_noise_m, noisy_q
 
 
+def add_sensor_noise(rng, positions, quaternions, covariance):
+    """
+    Noisy copies of sensor poses with a 6x6 covariance in the sensor frame.
+
+    Draws e ~ N(0, covariance) per pose, e = (rotation vector r in radians, translation t in
+    metres), and returns p' = p + t, q' = exp(r) (x) q: the error model of refine.py's
+    residual (rotation vector of R_meas R_true^T, t_meas - t_true).
+    """
+    positions = np.asarray(positions, dtype=float).reshape(-1, 3)
+    quaternions = np.asarray(quaternions, dtype=float).reshape(-1, 4)
+    e = rng.standard_normal((len(positions), 6)) @ np.linalg.cholesky(covariance).T
+    turn = quat.from_rotation_vector(e[:, :3])
+    return positions + e[:, 3:], _positive_w(quat.normalize(quat.multiply(turn, quaternions)))
+
+
+def pnp_like_covariance(lateral_m=0.0005, depth_m=0.003, rotation_deg=0.1,
+                        rotation_about_axis_deg=0.03, correlation=0.8):
+    """
+    Return a 6x6 sensor-frame covariance shaped like camera poses from PnP.
+
+    Position noise along the optical axis (sensor z) is depth_m, across it lateral_m;
+    rotation noise about the lateral axes rotation_deg, about the optical axis
+    rotation_about_axis_deg. A tilt of the target about x is confused with a shift along y
+    (and about y with one along x), which the correlation models.
+    """
+    r, rz = np.radians(rotation_deg), np.radians(rotation_about_axis_deg)
+    sd = np.array([r, r, rz, lateral_m, lateral_m, depth_m])
+    correlation_matrix = np.eye(6)
+    correlation_matrix[0, 4] = correlation_matrix[4, 0] = correlation
+    correlation_matrix[1, 3] = correlation_matrix[3, 1] = -correlation
+    return correlation_matrix * np.outer(sd, sd)
+
+
 def corrupt_orientations(quaternions, uniforms):
     """
     Bad detections of T_sensor_obj orientations (N, 4), as marker detectors make them.
@@ -298,7 +331,7 @@ def corrupt_orientations(quaternions, uniforms):
 
 def samples(rng, cell, n, rotation_noise_deg=0.0, translation_noise_m=0.0, outlier_fraction=0.0,
             link_rotation_noise_deg=0.0, link_translation_noise_m=0.0, rotation_spread_deg=30.0,
-            start_ns=DEFAULT_START_NS, period_ns=2 * NS_PER_S):
+            start_ns=DEFAULT_START_NS, period_ns=2 * NS_PER_S, sensor_covariance=None):
     """
     Return n still samples of `cell` at stop_poses(), and the indices of the outliers.
 
@@ -306,13 +339,19 @@ def samples(rng, cell, n, rotation_noise_deg=0.0, translation_noise_m=0.0, outli
     round(outlier_fraction * n) of them, at random indices, are then corrupted
     (corrupt_orientations); link poses get link_rotation_noise_deg / link_translation_noise_m.
     Stamps are start_ns + i * period_ns (int).  The stops and the outlier indices do not depend
-    on the noise levels.  Returns (list[Sample], sorted list[int] of outlier indices).
+    on the noise levels.  sensor_covariance (6x6, e.g. pnp_like_covariance()) replaces the two
+    sensor noise levels by add_sensor_noise.
+    Returns (list[Sample], sorted list[int] of outlier indices).
     """
     if not 0.0 <= outlier_fraction <= 1.0:
         raise ValueError(f'outlier_fraction must be in [0, 1], not {outlier_fraction}')
     link_p, link_q = _stack(stop_poses(rng, cell, n, rotation_spread_deg))
-    sensor_p, sensor_q = add_pose_noise(rng, *cell.sensor_poses(link_p, link_q),
-                                        rotation_noise_deg, translation_noise_m)
+    if sensor_covariance is None:
+        sensor_p, sensor_q = add_pose_noise(rng, *cell.sensor_poses(link_p, link_q),
+                                            rotation_noise_deg, translation_noise_m)
+    else:
+        sensor_p, sensor_q = add_sensor_noise(rng, *cell.sensor_poses(link_p, link_q),
+                                              sensor_covariance)
     outliers = np.sort(rng.choice(n, int(round(outlier_fraction * n)), replace=False))
     sensor_q[outliers], _ = corrupt_orientations(sensor_q[outliers],
                                                  rng.random((len(outliers), 4)))

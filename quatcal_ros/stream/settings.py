@@ -21,8 +21,8 @@ from dataclasses import asdict, dataclass, field, make_dataclass
 import math
 
 from quatcal_ros.core.calibration import CalibrationOptions, METHODS
-from quatcal_ros.core.validation import Thresholds
 from quatcal_ros.core.units import ns_from_s, SETUPS
+from quatcal_ros.core.validation import Thresholds
 from quatcal_ros.stream.capture import CaptureConfig, MODES as CAPTURE_MODES
 from quatcal_ros.stream.message_checks import CheckConfig
 from quatcal_ros.stream.pairing import PairingConfig
@@ -185,7 +185,7 @@ SETTINGS = (
             'translation. Both are reported.', choices=METHODS, tools=BOTH),
     Setting('validation_max_rotation_deg', 1.0,
             'The validation passes when the leave-one-out prediction error of the sensor '
-            "poses (RMS over the good samples) is at most this angle and "
+            'poses (RMS over the good samples) is at most this angle and '
             'validation_max_translation_mm.', unit='deg', low=0.0, high=180.0, tools=BOTH),
     Setting('validation_max_translation_mm', 10.0,
             'The validation passes when the leave-one-out prediction error of the sensor '

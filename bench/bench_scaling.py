@@ -1,0 +1,147 @@
+#!/usr/bin/env python3
+"""
+Solve time against the number of samples, ours beside OpenCV's calibrateHandEye in one run.
+
+Every row solves the same synthetic eye-in-hand samples (0.5 deg, 1 mm sensor noise): ours by
+default (refined + robust), closed form (robust) and plain least squares (closed form,
+--no-robust), and OpenCV's PARK, TSAI and HORAUD (O(N^2) in the motions it forms: skipped
+above --opencv-max samples). Times are CPU milliseconds per solve (process time, median of
+--repeats), single-threaded BLAS as the tools run it. Printed after the table: the growth
+exponent of each of ours from 100 to the largest N (time ~ N^k), the load average, and with
+--memory the peak resident memory of a solve of 10,000 and 100,000 samples in a fresh process,
+and with --startup the wall time of `python -m quatcal_ros solve` on a 20-row CSV beside
+bench/opencv_solve_csv.py (csv, numpy and cv2 only) on the same file.
+Run: python bench/bench_scaling.py [--repeats 5] [--sizes 10 20 ...] [--memory] [--startup]
+"""
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+# One BLAS thread, as the tools run (quatcal_ros.core.threads): set before numpy loads.
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+
+import cv2  # noqa: E402, I100
+import numpy as np  # noqa: E402
+
+from quatcal_ros.core.calibration import calibrate, CalibrationOptions  # noqa: E402
+from quatcal_ros.files.samples_csv import format_samples  # noqa: E402
+from quatcal_ros.sim import simulation  # noqa: E402
+
+OURS = {
+    'ours default': CalibrationOptions(),
+    'ours closed-form': CalibrationOptions(method='closed-form'),
+    'ours LSQ': CalibrationOptions(method='closed-form', robust=False),
+}
+OPENCV = {'PARK': cv2.CALIB_HAND_EYE_PARK, 'TSAI': cv2.CALIB_HAND_EYE_TSAI,
+          'HORAUD': cv2.CALIB_HAND_EYE_HORAUD}
+
+
+def cell_samples(n, seed=1):
+    rng = np.random.default_rng(seed)
+    cell = simulation.random_cell(rng)
+    return simulation.samples(rng, cell, n, rotation_noise_deg=0.5,
+                              translation_noise_m=0.001)[0]
+
+
+def cpu_ms(function, repeats):
+    function()
+    times = []
+    for _ in range(repeats):
+        start = time.process_time()
+        function()
+        times.append(time.process_time() - start)
+    return 1e3 * float(np.median(times))
+
+
+def opencv_solver(samples, method):
+    arguments = ([s.link.rotation for s in samples],
+                 [s.link.position.reshape(3, 1) for s in samples],
+                 [s.sensor.rotation for s in samples],
+                 [s.sensor.position.reshape(3, 1) for s in samples])
+    return lambda: cv2.calibrateHandEye(*arguments, method=method)
+
+
+def peak_memory(n):
+    """Return (CPU s, peak RSS MB) of one default solve of n samples in a fresh process."""
+    code = ('import resource, time, sys; sys.path.insert(0, %r); import bench_scaling as b; '
+            's = b.cell_samples(%d); t = time.process_time(); b.calibrate(s); '
+            'print(time.process_time() - t, '
+            'resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)'
+            % (os.path.dirname(os.path.abspath(__file__)), n))
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    return float(out[0]), float(out[1])
+
+
+def startup(repeats):
+    """Return median wall seconds of `solve` and of the OpenCV script on a 20-row CSV."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    with tempfile.TemporaryDirectory() as folder:
+        path = os.path.join(folder, 'samples.csv')
+        with open(path, 'w') as stream:
+            stream.write(format_samples(cell_samples(20)))
+        commands = {'solve': [sys.executable, '-m', 'quatcal_ros', 'solve', path],
+                    'opencv': [sys.executable, os.path.join(here, 'opencv_solve_csv.py'),
+                               path]}
+        times = {name: [] for name in commands}
+        for _ in range(repeats):
+            for name, command in commands.items():
+                start = time.perf_counter()
+                subprocess.run(command, check=True, stdout=subprocess.DEVNULL,
+                               cwd=os.path.dirname(here))
+                times[name].append(time.perf_counter() - start)
+    return {name: float(np.median(values)) for name, values in times.items()}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
+    parser.add_argument('--repeats', type=int, default=5)
+    parser.add_argument('--sizes', type=int, nargs='+',
+                        default=[10, 20, 50, 100, 200, 1000, 2000, 10000])
+    parser.add_argument('--opencv-max', type=int, default=2000)
+    parser.add_argument('--memory', action='store_true')
+    parser.add_argument('--startup', action='store_true')
+    args = parser.parse_args()
+    if args.startup:
+        ours, opencv = (startup(args.repeats)[name] for name in ('solve', 'opencv'))
+        print(f'solve on a 20-row CSV: {ours:.2f} s wall; the OpenCV script: {opencv:.2f} s; '
+              f'ratio {ours / opencv:.2f} (median of {args.repeats})')
+    names = list(OURS) + list(OPENCV)
+    print('| N | ' + ' | '.join(names) + ' | default / PARK | default / best OpenCV |')
+    print('|---' * (len(names) + 3) + '|')
+    ours_times = {name: [] for name in OURS}
+    for n in args.sizes:
+        samples = cell_samples(n)
+        row = {}
+        for name, options in OURS.items():
+            row[name] = cpu_ms(lambda: calibrate(samples, options), args.repeats)
+            ours_times[name].append(row[name])
+        for name, method in OPENCV.items():
+            row[name] = (cpu_ms(opencv_solver(samples, method), args.repeats)
+                         if n <= args.opencv_max else float('nan'))
+        best = min(row[name] for name in OPENCV)
+        cells = [f'{row[name]:.2f}' if np.isfinite(row[name]) else '-' for name in names]
+        ratios = [f'{row["ours default"] / row["PARK"]:.2f}' if np.isfinite(row['PARK'])
+                  else '-', f'{row["ours default"] / best:.2f}' if np.isfinite(best) else '-']
+        print(f'| {n} | ' + ' | '.join(cells + ratios) + ' |')
+    sizes = np.array(args.sizes, dtype=float)
+    big = sizes >= 100
+    if np.sum(big) >= 2:
+        for name, times in ours_times.items():
+            k = np.polyfit(np.log(sizes[big]), np.log(np.array(times)[big]), 1)[0]
+            print(f'growth exponent of {name} from {int(sizes[big][0])} to '
+                  f'{int(sizes[big][-1])} samples: {k:.2f}')
+    print(f'load average: {" ".join(f"{v:.1f}" for v in os.getloadavg())}; CPU ms per solve')
+    if args.memory:
+        for n in (10000, 100000):
+            cpu, rss = peak_memory(n)
+            print(f'{n} samples, default solve in a fresh process: {cpu:.2f} s CPU, '
+                  f'peak RSS {rss:.0f} MB (whole process, samples included)')
+
+
+if __name__ == '__main__':
+    main()
