@@ -6,11 +6,14 @@ Every row solves the same synthetic eye-in-hand samples (0.5 deg, 1 mm sensor no
 default (refined + robust), closed form (robust) and plain least squares (closed form,
 --no-robust), and OpenCV's PARK, TSAI and HORAUD (O(N^2) in the motions it forms: skipped
 above --opencv-max samples). Times are CPU milliseconds per solve (process time, median of
---repeats), single-threaded BLAS as the tools run it. Printed after the table: the growth
-exponent of each of ours from 100 to the largest N (time ~ N^k), the load average, and with
---memory the peak resident memory of a solve of 10,000 and 100,000 samples in a fresh process,
-and with --startup the wall time of `python -m quatcal_ros solve` on a 20-row CSV beside
-bench/opencv_solve_csv.py (csv, numpy and cv2 only) on the same file.
+--repeats), single-threaded BLAS as the tools run it. 'LSQ rotation kernel' is the O(N)
+all-pairs least-squares rotation alone (the floor the estimates build on).
+
+Printed after the table: the growth exponent of each of ours from 100 to the largest N
+(time ~ N^k) and the load average; with --memory the peak resident memory of a solve of
+10,000 and 100,000 samples in a fresh process; with --startup the wall time of
+`python -m quatcal_ros solve` on a 20-row CSV beside bench/opencv_solve_csv.py (csv, numpy and
+cv2 only) on the same file.
 Run: python bench/bench_scaling.py [--repeats 5] [--sizes 10 20 ...] [--memory] [--startup]
 """
 
@@ -28,6 +31,8 @@ import cv2  # noqa: E402, I100
 import numpy as np  # noqa: E402
 
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions  # noqa: E402
+from quatcal_ros.core.leastsq import all_pairs_rotation  # noqa: E402
+from quatcal_ros.core.motions import SampleRotations  # noqa: E402
 from quatcal_ros.files.samples_csv import format_samples  # noqa: E402
 from quatcal_ros.sim import simulation  # noqa: E402
 
@@ -36,6 +41,8 @@ OURS = {
     'ours closed-form': CalibrationOptions(method='closed-form'),
     'ours LSQ': CalibrationOptions(method='closed-form', robust=False),
 }
+# The O(N) all-pairs least-squares rotation alone (leastsq.all_pairs_rotation): the floor.
+KERNEL = 'LSQ rotation kernel'
 OPENCV = {'PARK': cv2.CALIB_HAND_EYE_PARK, 'TSAI': cv2.CALIB_HAND_EYE_TSAI,
           'HORAUD': cv2.CALIB_HAND_EYE_HORAUD}
 
@@ -63,6 +70,14 @@ def opencv_solver(samples, method):
                  [s.sensor.rotation for s in samples],
                  [s.sensor.position.reshape(3, 1) for s in samples])
     return lambda: cv2.calibrateHandEye(*arguments, method=method)
+
+
+def kernel(samples):
+    """Return a call of the O(N) least squares on `samples` (rotations collected first)."""
+    rotations = SampleRotations.from_samples(samples)
+    use = np.ones(len(samples), dtype=bool)
+    reference = calibrate(samples, OURS['ours LSQ']).closed_form.quaternion
+    return lambda: all_pairs_rotation(rotations, use, reference)
 
 
 def peak_memory(n):
@@ -110,7 +125,7 @@ def main():
         ours, opencv = (startup(args.repeats)[name] for name in ('solve', 'opencv'))
         print(f'solve on a 20-row CSV: {ours:.2f} s wall; the OpenCV script: {opencv:.2f} s; '
               f'ratio {ours / opencv:.2f} (median of {args.repeats})')
-    names = list(OURS) + list(OPENCV)
+    names = list(OURS) + [KERNEL] + list(OPENCV)
     print('| N | ' + ' | '.join(names) + ' | default / PARK | default / best OpenCV |')
     print('|---' * (len(names) + 3) + '|')
     ours_times = {name: [] for name in OURS}
@@ -120,6 +135,7 @@ def main():
         for name, options in OURS.items():
             row[name] = cpu_ms(lambda: calibrate(samples, options), args.repeats)
             ours_times[name].append(row[name])
+        row[KERNEL] = cpu_ms(kernel(samples), args.repeats)
         for name, method in OPENCV.items():
             row[name] = (cpu_ms(opencv_solver(samples, method), args.repeats)
                          if n <= args.opencv_max else float('nan'))

@@ -99,9 +99,11 @@ def test_incremental_result_matches_a_full_solve_of_the_same_samples():
     assert (a.samples, a.motions, a.inliers, a.inlier_samples) == (
         b.samples, b.motions, b.inliers, b.inlier_samples)
     assert np.degrees(quat.angle_between(a.quaternion, b.quaternion)) < 0.05 * b.uncertainty_deg
-    assert a.uncertainty_deg == pytest.approx(b.uncertainty_deg, rel=0.05)
+    # The uncertainties are block jackknives (20 blocks, 19 degrees of freedom: about 16 %
+    # scatter of their own); the warm one scales the last full solve's to the new sandwich.
+    assert a.uncertainty_deg == pytest.approx(b.uncertainty_deg, rel=0.3)
     assert a.residual_rms_deg == pytest.approx(b.residual_rms_deg, rel=0.05)
-    assert a.translation_uncertainty_mm == pytest.approx(b.translation_uncertainty_mm, rel=0.05)
+    assert a.translation_uncertainty_mm == pytest.approx(b.translation_uncertainty_mm, rel=0.3)
     np.testing.assert_allclose(a.closed_form.translation, b.closed_form.translation, atol=1e-4)
     assert a.excitation == pytest.approx(b.excitation, rel=1e-6)
 

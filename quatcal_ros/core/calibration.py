@@ -35,7 +35,7 @@ from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, least_squar
     MotionSystem, sample_matrices
 from quatcal_ros.core.motions import motion_count, Motions, pair_indices, PAIRINGS, \
     SampleRotations
-from quatcal_ros.core.refine import MAX_ITERATIONS, refine, with_jackknife
+from quatcal_ros.core.refine import MAX_ITERATIONS, refine, with_jackknife, with_jackknife_of
 from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.translation import SamplePositions, solve_translation
 from quatcal_ros.core.units import SETUPS
@@ -239,7 +239,7 @@ def _all_pairs(rotations, options, start):
     if options.robust:
         q_z = start if start is not None else _consensus(rotations, candidates, options)
         sample_ok, detections = np.ones(n, dtype=bool), None
-        for _ in range(2):
+        for _ in range(2 if start is None else 1):   # a warm start is already clean
             detections = _detections(rotations, q_z, detections)
             sample_ok = ~detections.bad
             _require_samples(sample_ok)
@@ -483,10 +483,12 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     refinement = None
     if _count(ok) >= MIN_REFINE_SAMPLES:
         warm = previous.refinement if previous is not None else None
-        refinement = with_jackknife(
-            refine(*arrays, fit.q_z, translation.translation, robust=options.robust, start=warm,
-                   max_iterations=MAX_ITERATIONS if warm is None else WARM_ITERATIONS),
-            *arrays, robust=options.robust)
+        refinement = refine(*arrays, fit.q_z, translation.translation, robust=options.robust,
+                            start=warm, max_iterations=(MAX_ITERATIONS if warm is None
+                                                        else WARM_ITERATIONS))
+        if options.method == 'refined':   # its uncertainty is published: resample it
+            refinement = (with_jackknife(refinement, *arrays, robust=options.robust)
+                          if warm is None else with_jackknife_of(refinement, warm))
     published_refinement = refinement if options.method == 'refined' else None
     if published_refinement is not None and not _plausible(refinement, fit.q_z,
                                                            closed.uncertainty_deg):
@@ -544,10 +546,22 @@ def _noise_model(refinement, robust):
             'correlation': [[float(v) for v in row] for row in covariance / np.outer(sd, sd)],
             'tail_degrees_of_freedom': float(nu) if np.isfinite(nu) else None,
             'distribution': ('gaussian' if not np.isfinite(nu) else 'student_t'),
+            'shape': refinement.noise.best.shape.name,
             'robust': bool(robust),
+            'uncertainty_from': _uncertainty_source(refinement),
+            'sandwich_uncertainty_deg': _finite_or_none(refinement.sandwich_uncertainty_deg),
+            'sandwich_translation_uncertainty_mm': _finite_or_none(
+                refinement.sandwich_translation_uncertainty_mm),
             'model_uncertainty_deg': _finite_or_none(refinement.model_uncertainty_deg),
             'model_translation_uncertainty_mm': _finite_or_none(
                 refinement.model_translation_uncertainty_mm)}
+
+
+def _uncertainty_source(refinement):
+    if refinement.resampled is None:
+        return 'sandwich'
+    return ('block_jackknife_scaled' if refinement.resampled_from_earlier
+            else 'block_jackknife')
 
 
 def _noisy(refinement, used):

@@ -25,6 +25,7 @@ import numpy as np
 NU_GRID = (3.0, 5.0, 10.0, 30.0, math.inf)
 EM_ITERATIONS = 12
 WARM_EM_ITERATIONS = 1
+RESUMED_EM_ITERATIONS = 3
 # Models less probable than this are dropped from the average (and from the work).
 MIN_PROBABILITY = 0.02
 
@@ -178,14 +179,15 @@ def fit_t(residuals, shapes, grid=NU_GRID, lost_samples=0.0, floor=None, prior=N
 
 def _fit_component(r, good, count, shape, nu, floor, warm=None):
     """Fit one Shape and nu by EM (warm: an earlier Component of them to start from)."""
-    d = r.shape[1]
-    if warm is not None and len(warm.weights) != len(r):
-        warm = None   # of other samples: no start
-    w = warm.weights if warm is not None else np.ones(len(r))
+    n, d = r.shape
+    w = np.ones(n)
+    steps = EM_ITERATIONS
+    if warm is not None:   # of these samples, or of the first of them (a sample added since)
+        m = min(n, len(warm.weights))
+        w[:m] = warm.weights[:m]
+        steps = WARM_EM_ITERATIONS if m == n else RESUMED_EM_ITERATIONS
     if math.isinf(nu):
         steps = 0
-    else:
-        steps = WARM_EM_ITERATIONS if warm is not None else EM_ITERATIONS
     for _ in range(steps):
         w = t_weights(_mahalanobis(r, _scale(r, good * w, count, shape, floor)), d, nu)
     scale = _scale(r, good * w, count, shape, floor)

@@ -36,7 +36,7 @@ from quatcal_ros.core import quaternion as quat
 
 MAX_ITERATIONS = 20
 # Converged when the last step moved the unknowns by less than this many of their sigmas.
-STEP_TOLERANCE = 1e-6
+STEP_TOLERANCE = 1e-4
 # The noise models' probabilities may move this much at the answer without another round.
 MODEL_TOLERANCE = 1e-3
 # Floors of the noise estimates, so exact synthetic data do not divide by zero.
@@ -71,6 +71,7 @@ class Refinement:
     leave_one_out: np.ndarray       # (N, 6) each sample's residual predicted without it
     converged: bool
     resampled: np.ndarray = None    # 6 x 6 block-jackknife covariance of X (with_jackknife)
+    resampled_from_earlier: bool = False   # scaled from an earlier jackknife (with_jackknife_of)
 
     @property
     def rotation_noise_deg(self):
@@ -292,6 +293,27 @@ def with_jackknife(refinement, link_q, link_t, sensor_q, sensor_t, robust=True,
     g = len(groups)
     centred = moves - moves.mean(axis=0)
     return replace(refinement, resampled=(g - 1) / g * centred.T @ centred)
+
+
+def with_jackknife_of(refinement, earlier):
+    """
+    Return `refinement` with a resampled covariance scaled from an earlier one's jackknife.
+
+    Between full solves (one more sample) the jackknife's excess over the sandwich changes
+    little: each block of X's covariance (rotation, translation) is the sandwich scaled by
+    the ratio the jackknife of `earlier` (a Refinement of nearly the same samples) had to
+    its sandwich. Cost: nothing; the next full solve resamples again.
+    """
+    if earlier is None or earlier.resampled is None:
+        return refinement
+    scale = []
+    for block in (slice(0, 3), slice(3, 6)):
+        sandwich = np.trace(earlier.covariance[block, block])
+        ratio = np.trace(earlier.resampled[block, block]) / sandwich if sandwich > 0 else 1.0
+        scale += [np.sqrt(ratio)] * 3
+    scale = np.array(scale)
+    return replace(refinement, resampled=refinement.covariance[:6, :6] * np.outer(scale, scale),
+                   resampled_from_earlier=True)
 
 
 def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, link_R):
