@@ -12,6 +12,8 @@ root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 venv="$root/.venv"
 stamp="$venv/.bootstrap-stamp"
 inputs=("$root/requirements/runtime.txt" "$root/requirements/dev.txt"
+        "$root/requirements/tf2_msgs_build.txt" "$root/scripts/build_tf2_msgs.sh"
+        "$root/scripts/tf2_msgs/CMakeLists.txt" "$root/scripts/tf2_msgs/msg/TFMessage.msg"
         "$root/setup.py" "$root/setup.cfg" "$root/package.xml")
 
 up_to_date() {
@@ -60,8 +62,11 @@ pip=("$venv/bin/python" -m pip --disable-pip-version-check --no-input)
 "${pip[@]}" install --no-build-isolation --no-deps --use-pep517 \
     --config-settings editable_mode=compat -e "$root"
 
+# No wheel of tf2_msgs exists: build TFMessage locally (skipped where tf2_msgs imports).
+"$root/scripts/build_tf2_msgs.sh" "$venv"
+
 # Fail now, not in the first test, when the stack does not import.
-"$venv/bin/python" -c 'import rclpy, geometry_msgs.msg, std_srvs.srv, diagnostic_msgs.msg, numpy, yaml, rosbags'
+"$venv/bin/python" -c 'import rclpy, geometry_msgs.msg, std_srvs.srv, diagnostic_msgs.msg, tf2_msgs.msg, numpy, yaml, rosbags'
 
 touch "$stamp"
 echo "bootstrap: done" >&2

@@ -19,6 +19,18 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
+def harnesses_of(harness_class, domain_id):
+    """Yield a function that makes harnesses on `domain_id`; close them all afterwards."""
+    made = []
+
+    def make(*args, **kwargs):
+        made.append(harness_class(domain_id, *args, **kwargs))
+        return made[-1]
+    yield make
+    for harness in made:
+        harness.close()
+
+
 class SpinMixin:
     """
     close(), spin_until() and spin_for() for a harness with executor, node, driver, context.
@@ -28,6 +40,15 @@ class SpinMixin:
 
     spin_timeout = 10.0
     spin_step = 0.05
+
+    def watch_outputs(self):
+        """Collect the calibrator's ~/rotation in `rotations`, /diagnostics in `diagnostics`."""
+        self.rotations = []
+        self.diagnostics = []
+        self.driver.create_subscription(QuaternionStamped, '/calibrator/rotation',
+                                        self.rotations.append, LATCHED)
+        self.driver.create_subscription(DiagnosticArray, '/diagnostics',
+                                        self.diagnostics.append, 10)
 
     def close(self):
         """Stop spinning, destroy both nodes and shut the private context down."""

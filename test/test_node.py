@@ -15,10 +15,8 @@ import subprocess
 import sys
 import time
 
-from diagnostic_msgs.msg import DiagnosticArray
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
-from geometry_msgs.msg import QuaternionStamped
 from geometry_msgs.msg import TransformStamped
 import numpy as np
 import pytest
@@ -37,6 +35,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.qos import QoSProfile
 from rclpy.qos import ReliabilityPolicy
+from ros_harness import harnesses_of
 from ros_harness import LATCHED
 from ros_harness import ProcessWatcher
 from ros_harness import SpinMixin
@@ -75,12 +74,7 @@ class Harness(SpinMixin):
         self.message_type = message_type
         self.link_pub = self.driver.create_publisher(message_type, 'link_pose', RELIABLE)
         self.sensor_pub = self.driver.create_publisher(message_type, 'sensor_pose', sensor_qos)
-        self.rotations = []
-        self.diagnostics = []
-        self.driver.create_subscription(QuaternionStamped, '/calibrator/rotation',
-                                        self.rotations.append, LATCHED)
-        self.driver.create_subscription(DiagnosticArray, '/diagnostics',
-                                        self.diagnostics.append, 10)
+        self.watch_outputs()
         self.clients = {name: self.driver.create_client(Trigger, f'/calibrator/{name}')
                         for name in ('capture', 'reset', 'save')}
         self.sent = {'link_pose': 0, 'sensor_pose': 0}
@@ -128,14 +122,7 @@ class Harness(SpinMixin):
 
 @pytest.fixture
 def harness_factory(domain_id):
-    made = []
-
-    def make(*args, **kwargs):
-        made.append(Harness(domain_id, *args, **kwargs))
-        return made[-1]
-    yield make
-    for harness in made:
-        harness.close()
+    yield from harnesses_of(Harness, domain_id)
 
 
 def still_events(cell, link, start_ns, duration_s=0.8, rate_hz=25.0):

@@ -28,11 +28,11 @@ from pathlib import Path
 import numpy as np
 
 from quatcal_ros.ros import cdr
-from quatcal_ros.ros.conversions import BadPoseError, pose_from_msg, stamp_ns_from_header
 from quatcal_ros.ros.pose_screen import PoseScreen
-from quatcal_ros.stream import message_checks
+from quatcal_ros.ros.tf_feed import DEFAULT_TF_TOPICS, is_static_tf_topic, TF_CACHE_NS, \
+    TF_MAX_GAP_NS, TfFeed
 from quatcal_ros.stream.message_checks import CheckConfig, LINK, SENSOR
-from quatcal_ros.stream.tf_tree import FramePoses, normalize_frame, TransformTree, TreeError
+from quatcal_ros.stream.tf_tree import normalize_frame, TransformTree
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
 
@@ -40,13 +40,6 @@ TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 POSE_TYPES = ('geometry_msgs/msg/PoseStamped', 'geometry_msgs/msg/TransformStamped',
               'geometry_msgs/msg/PoseWithCovarianceStamped', 'nav_msgs/msg/Odometry')
 TF_TYPE = 'tf2_msgs/msg/TFMessage'
-DEFAULT_TF_TOPICS = ('/tf', '/tf_static')
-# Dynamic transforms are interpolated across gaps up to this long (a slow publisher of a fixed
-# frame on /tf still works); the pairing applies its own gap limit to the composed poses.
-TF_MAX_GAP_NS = 500_000_000
-# Dynamic transforms kept per edge (the stretch of stamps): enough for publishers' latencies,
-# small enough for robots with many joints at 1 kHz.
-TF_CACHE_NS = 2_000_000_000
 # Messages are read ahead (and the progress callback runs) this many at a time.
 PROGRESS_EVERY = 512
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
@@ -54,11 +47,6 @@ STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 
 class BagError(ValueError):
     """A recording or topic that cannot be replayed; the message names the file or topic."""
-
-
-def is_static_tf_topic(topic):
-    """Whether a TFMessage topic holds static transforms (/tf_static, /robot/tf_static)."""
-    return topic.rstrip('/').endswith('tf_static')
 
 
 def _frame_ids(msg):
@@ -441,13 +429,12 @@ class _Run:
             sources={STREAMS[stream]: str(source) for stream, source in replay.inputs.items()})
         self.tree = TransformTree(cache_ns=TF_CACHE_NS, max_gap_ns=replay.tf_max_gap_ns)
         self.adders = {'link': session.add_link_pose, 'sensor': session.add_sensor_pose}
-        self.watchers = []
-        for stream, source in replay.inputs.items():
-            if source.frames is not None:
-                frames = FramePoses(self.tree, *source.frames)
-                self.watchers.append((stream, frames))
-                self.report.tf_dropped[stream] = frames
-                self.report.frames[stream] = tuple(source.frames)
+        self.tf = TfFeed(self.tree, self.poses, {
+            stream: tuple(source.frames) for stream, source in replay.inputs.items()
+            if source.frames is not None}, self._feed)
+        for stream, frames in self.tf.watchers.items():
+            self.report.tf_dropped[stream] = frames
+            self.report.frames[stream] = tuple(replay.inputs[stream].frames)
 
     def feed_of(self, topic):
         """Return the _Feed that takes the raw messages of `topic`."""
@@ -518,34 +505,11 @@ class _Run:
         except Exception as error:   # noqa: B902 - whatever rosbags raises on bad bytes
             self.poses.bad(topic, 'undecodable', f'{type(error).__name__}: {error}')
             return
-        changed = []
-        for transform in msg.transforms:
-            try:
-                stamp_ns = stamp_ns_from_header(transform.header)
-                pose = pose_from_msg(transform)
-                parent, child = _frame_ids(transform)
-                stored = self.tree.set_transform(parent, child, stamp_ns, pose, static)
-            except TreeError as error:
-                self.poses.bad(topic, 'breaks_tree', error)
-                continue
-            except BadPoseError as error:
-                self.poses.bad(topic, message_checks.pose_error_reason(error), error)
-                continue
-            except ValueError as error:   # nanosec out of range
-                self.poses.bad(topic, 'bad_stamp', error)
-                continue
-            if stored and not static:
-                changed.append((child, stamp_ns))
-        for stream, frames in self.watchers:
-            for child, stamp_ns in changed:
-                frames.note(child, stamp_ns)
-            for stamp_ns, pose in frames.ready():
-                self._feed(stream, stamp_ns, pose)
+        self.tf.take(topic, msg, static)
 
     def finish(self, count):
         """Close the TF watchers and return the completed ReplayReport."""
-        for _, frames in self.watchers:
-            frames.finish()
+        self.tf.finish()
         report = self.report
         stats = self.poses.stats
         report.messages = count

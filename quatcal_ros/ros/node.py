@@ -34,18 +34,22 @@ from quatcal_ros.ros.diagnostics import calibrator_status, describe_result, Inpu
 from quatcal_ros.ros.pose_screen import PoseScreen
 from quatcal_ros.ros.qos import LATCHED_QOS
 from quatcal_ros.ros.static_tf import StaticTf
+from quatcal_ros.ros.tf_feed import TF_CACHE_NS, TF_MAX_GAP_NS, TfFeed
 from quatcal_ros.stream import message_checks
 from quatcal_ros.stream import settings
 from quatcal_ros.stream.session import EstimateUpdated, Notice, Rejected, SampleCaptured
 from quatcal_ros.stream.session import Session
 from quatcal_ros.stream.settings import ConfigError
+from quatcal_ros.stream.tf_tree import TransformTree
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy
 from rclpy.qos import HistoryPolicy
 from rclpy.qos import QoSProfile
 from rclpy.qos import ReliabilityPolicy
 from std_srvs.srv import Trigger
+from tf2_msgs.msg import TFMessage
 
 NODE_NAME = settings.NODE_NAME
 LINK, SENSOR = message_checks.LINK, message_checks.SENSOR
@@ -58,6 +62,11 @@ LINK_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
 SENSOR_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
                         reliability=ReliabilityPolicy.BEST_EFFORT)
 DIAGNOSTICS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+# TF input: tf2's listener QoS (reliable, depth 100; /tf_static transient local, so every
+# static broadcaster's latched message arrives whenever it started).
+TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+TF_STATIC_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class CalibratorNode(Node):
@@ -67,6 +76,7 @@ class CalibratorNode(Node):
         super().__init__(NODE_NAME, **kwargs)
         try:
             self.config = parameters.declare_parameters(self)
+            self._tf_frames = settings.tf_frames(self.config)
             self.journal = SamplesJournal(self.config.samples_file, self._journal_header(),
                                           self.config.resume)
         except (journal.JournalRefused, OSError) as error:
@@ -79,11 +89,8 @@ class CalibratorNode(Node):
         self.poses = PoseScreen(settings.check_config(self.config), self._log_bad_message)
         self.moves = MoveWatch()
         self._rejected_samples = set()
-        message_type = PoseStamped if self.config.pose_type == 'pose' else TransformStamped
-        self.topics = {   # resolved names (namespace, remapping), for the logs
-            stream: self.create_subscription(message_type, stream, callback, qos).topic_name
-            for stream, callback, qos in ((LINK, self._on_link, LINK_QOS),
-                                          (SENSOR, self._on_sensor, SENSOR_QOS))}
+        self.tf = None
+        message_type = self._subscribe_inputs()
         self.rotation_publisher = self.create_publisher(
             QuaternionStamped, '~/rotation', LATCHED_QOS)
         self.transform_publisher = self.create_publisher(
@@ -105,10 +112,11 @@ class CalibratorNode(Node):
         self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(
             f'calibrating {self.config.setup} rotation {self.config.link_frame} -> '
-            f'{self.config.sensor_frame} from {self.topics[LINK]} and {self.topics[SENSOR]} '
+            f'{self.config.sensor_frame} from {self._input_text()} '
             f'({message_type.__name__}), capture mode {self.config.capture_mode}')
         self._start_tf_broadcast()
-        self.inputs = InputWatch(f'geometry_msgs/msg/{message_type.__name__}', self.now_ns())
+        package = 'tf2_msgs' if self.tf is not None else 'geometry_msgs'
+        self.inputs = InputWatch(f'{package}/msg/{message_type.__name__}', self.now_ns())
         self._resume()
 
     @property
@@ -126,6 +134,48 @@ class CalibratorNode(Node):
         return self.get_clock().now().nanoseconds
 
     # --- pose input ------------------------------------------------------------------------
+
+    def _subscribe_inputs(self):
+        """Subscribe the pose topics, or /tf and /tf_static (TF input); return the type."""
+        frames = self._tf_frames
+        if frames is None:
+            message_type = PoseStamped if self.config.pose_type == 'pose' else TransformStamped
+            self.topics = {   # resolved names (namespace, remapping), for the logs
+                stream: self.create_subscription(message_type, stream, callback, qos).topic_name
+                for stream, callback, qos in ((LINK, self._on_link, LINK_QOS),
+                                              (SENSOR, self._on_sensor, SENSOR_QOS))}
+            return message_type
+        self.tf = TfFeed(TransformTree(cache_ns=TF_CACHE_NS, max_gap_ns=TF_MAX_GAP_NS),
+                         self.poses, {LINK: frames['link'], SENSOR: frames['sensor']},
+                         self._on_tf_pose)
+        tf_topic = self.create_subscription(
+            TFMessage, '/tf', lambda msg: self._on_tf(tf_topic.topic_name, msg, False),
+            TF_QOS)
+        static_topic = self.create_subscription(
+            TFMessage, '/tf_static', lambda msg: self._on_tf(static_topic.topic_name, msg, True),
+            TF_STATIC_QOS)
+        self.topics = {LINK: tf_topic.topic_name, SENSOR: tf_topic.topic_name}
+        return TFMessage
+
+    def _input_text(self):
+        if self.tf is None:
+            return f'{self.topics[LINK]} and {self.topics[SENSOR]}'
+        pairs = {stream: f'{frames.target} -> {frames.source}'
+                 for stream, frames in self.tf.watchers.items()}
+        return f'/tf and /tf_static: link pose {pairs[LINK]}, sensor pose {pairs[SENSOR]}'
+
+    def _on_tf(self, topic, msg, static):
+        self.poses.stats.note(topic, self.now_ns())
+        self.tf.take(topic, msg, static)
+
+    def _on_tf_pose(self, stream, stamp_ns, pose):
+        """Take a pose composed from the transform tree (TF input), as _on_pose does."""
+        now_ns = self.now_ns()
+        self.poses.take_rows(stream, 1, now_ns)
+        add = self.session.add_link_pose if stream == LINK else self.session.add_sensor_pose
+        events = self.poses.verdict(stream, add(stamp_ns, pose), now_ns)
+        if events:
+            self.handle_events(events)
 
     def _on_link(self, msg):
         self._on_pose(LINK, msg, self.session.add_link_pose)
@@ -146,7 +196,8 @@ class CalibratorNode(Node):
         so_far = (f'{total} so far' if count == total
                   else f'{count} since the last report, {total} in all')
         self.get_logger().warning(
-            f'{self.topics[stream]}: bad message skipped ({reason}, {so_far}; reported at most '
+            f'{self.topics.get(stream, stream)}: bad message skipped ({reason}, {so_far}; '
+            'reported at most '
             f'every {LOG_THROTTLE_S:g} s): {message_checks.detail_text(detail)}')
 
     # --- session events --------------------------------------------------------------------

@@ -104,6 +104,22 @@ SETTINGS = (
             'base (eye_to_hand): the parent frame of the result, header.frame_id of '
             '~/rotation.'),
     Setting('sensor_frame', 'camera', 'Frame of the sensor: the child frame of the result.'),
+    Setting('robot_base_frame', '',
+            'TF input (all four TF frames set): the link pose is robot_base_frame -> '
+            'robot_effector_frame, composed from /tf and /tf_static at each stamp, instead '
+            "of the link_pose topic. '' (default): the pose topics.", allow_empty=True,
+            read_only=True),
+    Setting('robot_effector_frame', '',
+            'TF input: the robot link the sensor rides on (eye_in_hand) or that holds the '
+            "marker (eye_to_hand), e.g. tool0. '' with the other three: the pose topics.",
+            allow_empty=True, read_only=True),
+    Setting('tracking_base_frame', '',
+            'TF input: the sensor pose is tracking_base_frame -> tracking_marker_frame (the '
+            "object seen by the sensor), e.g. camera_color_optical_frame -> marker. '' with "
+            'the other three: the pose topics.', allow_empty=True, read_only=True),
+    Setting('tracking_marker_frame', '',
+            "TF input: the observed object's frame (the marker or the board). '' with the "
+            'other three: the pose topics.', allow_empty=True, read_only=True),
     Setting('pose_type', 'pose',
             'Message type of link_pose and sensor_pose: pose = geometry_msgs/PoseStamped, '
             'transform = geometry_msgs/TransformStamped.', choices=POSE_TYPES, read_only=True),
@@ -312,6 +328,25 @@ def session_config(settings):
             sensor_offset_ns=ns_from_s(settings.sensor_time_offset_s))
     except ValueError as error:
         raise ConfigError(f'inconsistent settings: {error}') from None
+
+
+TF_FRAMES = ('robot_base_frame', 'robot_effector_frame', 'tracking_base_frame',
+             'tracking_marker_frame')
+
+
+def tf_frames(settings):
+    """
+    Return {'link': (base, effector), 'sensor': (tracking base, marker)}, or None (topics).
+
+    :raises ConfigError: when some of the four TF frames are set and others not.
+    """
+    values = [getattr(settings, name) for name in TF_FRAMES]
+    if not any(values):
+        return None
+    missing = [name for name, value in zip(TF_FRAMES, values) if not value]
+    if missing:
+        raise ConfigError(f'TF input needs all four frames: {", ".join(missing)} not set')
+    return {'link': tuple(values[:2]), 'sensor': tuple(values[2:])}
 
 
 def check_config(settings):

@@ -1,0 +1,82 @@
+"""
+TF messages in, link and sensor poses out: the one TF input of the live node and the replay.
+
+A `TfFeed` keeps a stream.tf_tree.TransformTree of everything on /tf and /tf_static and, for
+each stream, a tf_tree.FramePoses of its two frames (link: robot base -> effector; sensor:
+tracking base -> marker). Each tf2_msgs/TFMessage (an rclpy message or a rosbags one: the
+fields are the same) updates the tree; every pose a stream's chain can now be evaluated at
+(at the stamps its dynamic transforms arrived, interpolated, never across a gap, never
+"latest") goes to `on_pose(stream, stamp_ns, pose)`. A malformed transform (NaN, a zero or
+bad stamp, a loop or a frame with a second parent) is counted under the TF topic and its
+reason by the PoseScreen, and skipped, like a malformed pose message. The first parent a
+frame is seen with stays its parent (tf2 would re-parent it, silently moving every frame
+below it).
+"""
+
+from quatcal_ros.ros.conversions import BadPoseError, pose_from_msg, stamp_ns_from_header
+from quatcal_ros.stream import message_checks
+from quatcal_ros.stream.tf_tree import FramePoses, normalize_frame, TreeError
+
+DEFAULT_TF_TOPICS = ('/tf', '/tf_static')
+# Dynamic transforms are interpolated across gaps up to this long (a slow publisher of a fixed
+# frame on /tf still works); the pairing applies its own gap limit to the composed poses.
+TF_MAX_GAP_NS = 500_000_000
+# Dynamic transforms kept per edge (the stretch of stamps): enough for publishers' latencies,
+# small enough for robots with many joints at 1 kHz.
+TF_CACHE_NS = 2_000_000_000
+
+
+def is_static_tf_topic(topic):
+    """Return whether `topic` carries static transforms (/tf_static, or a remapping of it)."""
+    return topic.rstrip('/').endswith('tf_static')
+
+
+class TfFeed:
+    """The transform tree, each stream's frame pair, and what to do with a composed pose."""
+
+    def __init__(self, tree, screen, frames, on_pose):
+        """
+        Watch `frames` ({stream: (target, source)}) in `tree`; feed poses to `on_pose`.
+
+        screen: the ros.pose_screen.PoseScreen that counts bad transforms.
+        """
+        self.tree = tree
+        self.screen = screen
+        self.on_pose = on_pose
+        self.watchers = {stream: FramePoses(tree, *pair) for stream, pair in frames.items()}
+
+    def take(self, topic, msg, static):
+        """Take one TFMessage from `topic` (static: from /tf_static); feed what it completes."""
+        changed = []
+        for transform in msg.transforms:
+            try:
+                stamp_ns = stamp_ns_from_header(transform.header)
+                pose = pose_from_msg(transform)
+                parent = normalize_frame(transform.header.frame_id)
+                child = normalize_frame(transform.child_frame_id)
+                known = self.tree.parent(child)
+                if known is not None and known != parent:
+                    raise TreeError(f'{parent!r} -> {child!r} would give {child!r} a second '
+                                    f'parent (it has {known!r}): two publishers disagree')
+                stored = self.tree.set_transform(parent, child, stamp_ns, pose, static)
+            except TreeError as error:
+                self.screen.bad(topic, 'breaks_tree', error)
+                continue
+            except BadPoseError as error:
+                self.screen.bad(topic, message_checks.pose_error_reason(error), error)
+                continue
+            except ValueError as error:   # nanosec out of range
+                self.screen.bad(topic, 'bad_stamp', error)
+                continue
+            if stored and not static:
+                changed.append((child, stamp_ns))
+        for stream, frames in self.watchers.items():
+            for child, stamp_ns in changed:
+                frames.note(child, stamp_ns)
+            for stamp_ns, pose in frames.ready():
+                self.on_pose(stream, stamp_ns, pose)
+
+    def finish(self):
+        """Close the frame watchers (what they still wait for is counted as dropped)."""
+        for frames in self.watchers.values():
+            frames.finish()

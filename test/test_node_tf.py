@@ -1,0 +1,136 @@
+"""
+The calibrator with TF input, over real Fast DDS: /tf and /tf_static as a real cell has them.
+
+The cell publishes the robot as a chain of two joints on /tf (base_link -> shoulder -> tool0),
+the camera driver's static camera_link -> camera_color_optical_frame on /tf_static, and the
+marker detector's camera_color_optical_frame -> marker on /tf at the camera's rate, each
+stamped at its exposure and delivered late, as in simulation.stop_and_go_streams. The node
+reads them with the four frame parameters of easy_handeye2.
+"""
+
+import numpy as np
+import pytest
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.ros import conversions
+from quatcal_ros.ros.node import CalibratorNode
+from quatcal_ros.sim import simulation
+from quatcal_ros.stream.settings import ConfigError
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from ros_harness import harnesses_of, SpinMixin
+from tf2_msgs.msg import TFMessage
+
+TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+FRAMES = [Parameter('robot_base_frame', value='base_link'),
+          Parameter('robot_effector_frame', value='tool0'),
+          Parameter('tracking_base_frame', value='camera_color_optical_frame'),
+          Parameter('tracking_marker_frame', value='marker')]
+# The optical frame of a camera driver: z forward, x right, y down.
+CAMERA_LINK_TO_OPTICAL = Pose([0.0, 0.015, 0.0],
+                              quat.from_rotation_vector([-1.2092, 1.2092, -1.2092]))
+
+
+class TfHarness(SpinMixin):
+    """A calibrator in TF mode and a driver that publishes /tf and /tf_static."""
+
+    def __init__(self, domain_id, overrides=()):
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        parameters = [Parameter('max_stamp_offset_s', value=0.0), *FRAMES, *overrides]
+        self.node = CalibratorNode(context=self.context, parameter_overrides=parameters)
+        self.driver = rclpy.create_node('test_tf_driver', context=self.context)
+        self.tf = self.driver.create_publisher(TFMessage, '/tf', TF_QOS)
+        self.tf_static = self.driver.create_publisher(TFMessage, '/tf_static', STATIC_QOS)
+        self.watch_outputs()
+        self.sent = 0
+        for node in (self.node, self.driver):
+            self.executor.add_node(node)
+        self.spin_until(lambda: self.tf.get_subscription_count()
+                        and self.tf_static.get_subscription_count(),
+                        what='discovery of the calibrator')
+
+    def publish(self, transforms, static=False):
+        """Publish one TFMessage of (parent, child, stamp_ns, Pose)."""
+        msg = TFMessage(transforms=[conversions.transform_stamped_msg(pose, stamp, parent, child)
+                                    for parent, child, stamp, pose in transforms])
+        (self.tf_static if static else self.tf).publish(msg)
+        if not static:
+            self.sent += 1
+
+    def wait_received(self, timeout=10.0):
+        topic = self.node.topics['link_pose']
+        self.spin_until(lambda: self.node.stats.received[topic] >= self.sent, timeout,
+                        what='the node to receive /tf')
+
+
+@pytest.fixture
+def tf_harness(domain_id):
+    yield from harnesses_of(TfHarness, domain_id)
+
+
+def shoulder(stamp_ns):
+    """Return a first joint turning about base z: tool0's pose needs a chain of two."""
+    return Pose([0.0, 0.0, 0.3], quat.from_axis_angle([0, 0, 1], 0.3 * np.sin(stamp_ns * 1e-9)))
+
+
+def cell_messages(streams):
+    """Return the cell's /tf messages in delivery order: [[(parent, child, stamp, pose)]]."""
+    events = []
+    for stamp, link in streams.link:
+        first = shoulder(stamp)
+        events.append((stamp, 0, [('base_link', 'shoulder', stamp, first),
+                                  ('shoulder', 'tool0', stamp, first.inverse() @ link)]))
+    for delivery, (stamp, seen) in zip(streams.sensor_delivery_ns, streams.sensor):
+        events.append((delivery, 1, [('camera_color_optical_frame', 'marker', stamp, seen)]))
+    return [transforms for _, _, transforms in sorted(events, key=lambda e: e[:2])]
+
+
+def test_the_node_on_a_tf_cell_converges_to_the_truth(tf_harness):
+    rng = np.random.default_rng(11)
+    cell = simulation.random_cell(rng)
+    streams = simulation.stop_and_go_streams(
+        rng, cell, n_stops=12, link_rate_hz=50.0, sensor_rate_hz=30.0, still_s=1.0, move_s=1.0,
+        rotation_noise_deg=0.2, translation_noise_m=0.001, rotation_spread_deg=40.0)
+    h = tf_harness()
+    start = streams.link[0][0]
+    h.publish([('camera_link', 'camera_color_optical_frame', start, CAMERA_LINK_TO_OPTICAL)],
+              static=True)
+    messages = cell_messages(streams)
+    # Malformed TF among them: a NaN, a loop, and a second parent for tool0.
+    nan = Pose.identity()
+    nan.position[0] = float('nan')
+    bad = [[('base_link', 'shoulder', start + 5, nan)],
+           [('tool0', 'base_link', start + 7, Pose.identity())],
+           [('world', 'tool0', start + 9, Pose.identity())]]
+    messages = messages[:40] + bad + messages[40:]
+    for k in range(0, len(messages), 50):
+        for transforms in messages[k:k + 50]:
+            h.publish(transforms)
+        h.wait_received()
+    h.spin_until(lambda: h.rotations, what='an estimate on ~/rotation')
+    result = h.node.session.result
+    assert result.samples >= 10
+    error = np.degrees(quat.angle_between(result.quaternion, cell.mounting.quaternion))
+    assert error < 3.0 * result.uncertainty_deg
+    moved = 1e3 * np.linalg.norm(result.translation - cell.mounting.position)
+    assert moved < 3.0 * result.translation_uncertainty_mm
+    bad_counts = {reason: count for (where, reason), count in h.node.stats.bad.items()
+                  if where == '/tf'}
+    assert bad_counts.get('non_finite', 0) == 1 and bad_counts.get('breaks_tree', 0) == 2
+
+
+def test_tf_input_needs_all_four_frames(domain_id):
+    context = Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    try:
+        with pytest.raises(ConfigError, match='tracking_marker_frame not set'):
+            CalibratorNode(context=context, parameter_overrides=FRAMES[:3])
+    finally:
+        rclpy.try_shutdown(context=context)
