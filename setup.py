@@ -18,6 +18,9 @@ data_files = [
 config_files = sorted(glob(os.path.join('config', '*.yaml')))  # relative to this directory
 if config_files:
     data_files.append(('share/' + package_name + '/config', config_files))
+launch_files = sorted(glob(os.path.join('launch', '*.launch.py')))
+if launch_files:
+    data_files.append(('share/' + package_name + '/launch', launch_files))
 
 setup(
     name=package_name,

@@ -5,7 +5,7 @@ The subpackages are the rooms of the house; each may import only those below it
 (test/test_layers.py checks every module):
 
     core    the mathematics: quaternions, the paper's solver, least squares, refinement,
-            uncertainty, the calibrator (numpy and scipy only)
+            uncertainty, the calibrator (numpy only)
     sim     simulated cells with known answers (numpy)
     stream  from pose streams to samples: pairing, still capture, message checks, the TF
             tree, the time offset, and the Session that the node, the replay and the CSV

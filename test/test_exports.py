@@ -245,3 +245,33 @@ def test_replay_prints_the_line_with_the_frames_of_the_messages(tmp_path, capsys
     assert (args.frame_id, args.child_frame_id) == ('flange', 'cam')
     np.testing.assert_allclose([args.x, args.y, args.z],
                                [out['translation'][k] for k in 'xyz'], rtol=0, atol=1e-10)
+
+
+def test_the_urdf_joint_and_xacro_macro_hold_the_mounting():
+    """Check rpy (URDF's Rz(yaw) Ry(pitch) Rx(roll), gimbal lock included) and the XML."""
+    import xml.etree.ElementTree as ElementTree
+
+    from quatcal_ros.core.calibration import Estimate
+    rng = np.random.default_rng(3)
+    quaternions = list(quat.normalize(rng.normal(size=(50, 4))))
+    quaternions += [quat.from_axis_angle([0, 1, 0], np.pi / 2),
+                    quat.multiply(quat.from_axis_angle([0, 0, 1], 0.3),
+                                  quat.from_axis_angle([0, 1, 0], -np.pi / 2))]
+    for q in quaternions:
+        result = Estimate(q, np.array([0.01, -0.2, 0.35]), 0.1, 1.0)
+        roll, pitch, yaw = exports.urdf_rpy(result)
+        turn = [quat.matrix_from_quaternion(quat.from_axis_angle(axis, angle))
+                for axis, angle in (([0, 0, 1], yaw), ([0, 1, 0], pitch), ([1, 0, 0], roll))]
+        np.testing.assert_allclose(turn[0] @ turn[1] @ turn[2],
+                                   quat.matrix_from_quaternion(q), atol=1e-9)
+    joint = ElementTree.fromstring(exports.urdf_joint(result, 'tool0', 'camera'))
+    assert joint.get('type') == 'fixed' and joint.find('parent').get('link') == 'tool0'
+    assert joint.find('child').get('link') == 'camera'
+    origin = joint.find('origin')
+    np.testing.assert_allclose([float(v) for v in origin.get('xyz').split()], [0.01, -0.2, 0.35])
+    np.testing.assert_allclose([float(v) for v in origin.get('rpy').split()],
+                               exports.urdf_rpy(result), atol=1e-9)
+    robot = ElementTree.fromstring(exports.xacro_macro(result, 'tool0', 'camera'))
+    macro = robot.find('{http://www.ros.org/wiki/xacro}macro')
+    assert macro.get('params') == 'parent:=tool0'
+    assert macro.find('joint/parent').get('link') == '${parent}'

@@ -8,7 +8,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 # Listed explicitly (not the whole directory) so colcon's build/, install/ and log/ at the repo
 # root are never linted; missing ones are left out.
-CHECKED = [str(ROOT / p) for p in ('setup.py', 'quatcal_ros', 'test', 'bench')
+CHECKED = [str(ROOT / p) for p in ('setup.py', 'quatcal_ros', 'test', 'bench', 'launch')
            if (ROOT / p).exists()]
 
 

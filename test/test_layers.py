@@ -22,7 +22,7 @@ ROS_MESSAGES = {'builtin_interfaces', 'diagnostic_msgs', 'geometry_msgs', 'rcl_i
 ROS = {'rclpy', 'tf2_ros'} | ROS_MESSAGES
 # room: (rooms of quatcal_ros it may import, third-party packages it may import)
 LAYERS = {
-    'core': ({'core'}, {'numpy', 'scipy'}),
+    'core': ({'core'}, {'numpy'}),
     'sim': ({'core', 'sim'}, {'numpy'}),
     'stream': ({'core', 'stream'}, {'numpy'}),
     'files': ({'core', 'files'}, {'numpy', 'yaml'}),

@@ -64,6 +64,7 @@ def test_installed_layout(workspace):
     assert (site / PKG).is_dir(), 'Python package not installed under %s' % site
     for config in sorted((ROOT / 'config').glob('*.yaml')):
         assert (prefix / 'share' / PKG / 'config' / config.name).is_file()
+    assert (prefix / 'share' / PKG / 'launch' / 'calibrate.launch.py').is_file()
 
 
 def _run_env(prefix, domain_id):

@@ -6,7 +6,7 @@ from ament_pep257.main import main
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-CHECKED = [str(ROOT / p) for p in ('setup.py', 'quatcal_ros', 'test', 'bench')
+CHECKED = [str(ROOT / p) for p in ('setup.py', 'quatcal_ros', 'test', 'bench', 'launch')
            if (ROOT / p).exists()]
 
 

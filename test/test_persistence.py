@@ -142,6 +142,14 @@ def test_the_result_file_is_the_whole_mounting(tmp_path):
         estimate = document['estimates'][name]
         assert estimate['uncertainty_deg'] > 0 and estimate['translation_uncertainty_mm'] > 0
         assert set(estimate['translation']) == set('xyz')
+    # The validation verdict without the per-sample list (that is in the JSON), and the joint.
+    validation = document['validation']
+    assert validation['verdict'] == result.validation['verdict'] == 'pass'
+    assert validation['thresholds'] == result.validation['thresholds']
+    assert len(validation['worst']) == 3 and 'samples' not in validation
+    assert '<parent link="tool0"/>' in document['urdf']
+    assert '<child link="camera"/>' in document['urdf']
+    assert 'xacro:macro' in document['xacro']
 
 
 def test_version_1_files_still_read_and_unknown_versions_are_named(tmp_path):

@@ -26,6 +26,8 @@ The result in the formats of the ROS ecosystem: easy_handeye2's calibration file
   the file holds exactly these keys; our quality figures go into YAML comments.
 - `static_transform_publisher_command`: the `ros2 run tf2_ros static_transform_publisher`
   line (Jazzy flag syntax) that broadcasts the result on /tf_static.
+- `urdf_joint`, `xacro_macro`: the mounting as a fixed URDF joint and as a xacro macro, to
+  commit into the robot description (DESIGN.md contract 6: "urdf", "xacro").
 
 Core module: standard library, numpy and PyYAML; no rclpy.  Quaternions in the core are
 (w, x, y, z); both outputs use ROS's (x, y, z, w), written field by field.
@@ -34,6 +36,7 @@ Core module: standard library, numpy and PyYAML; no rclpy.  Quaternions in the c
 import math
 from pathlib import Path
 import shlex
+from xml.sax.saxutils import escape
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
@@ -45,6 +48,8 @@ SETUPS_BY_EASY_HANDEYE2_TYPE = {value: key for key, value in EASY_HANDEYE2_TYPES
 # Parent and child frames used when nothing names them: the node's defaults for eye-in-hand,
 # the usual robot base frame for eye-to-hand.
 DEFAULT_FRAMES = {'eye_in_hand': ('tool0', 'camera'), 'eye_to_hand': ('base_link', 'camera')}
+# Characters escaped in XML attribute values (besides &, <, >).
+QUOTED = {'"': '&quot;'}
 # Decimals of the numbers on the static_transform_publisher line: 0.1 nm and 1e-10.
 COMMAND_DECIMALS = 10
 
@@ -213,3 +218,59 @@ def static_transform_publisher_command(result, parent_frame, child_frame):
     arguments = static_transform_publisher_arguments(result, parent_frame, child_frame)
     return ' '.join(['ros2', 'run', 'tf2_ros', 'static_transform_publisher']
                     + [shlex.quote(argument) for argument in arguments])
+
+
+def urdf_rpy(result):
+    """
+    Return URDF's (roll, pitch, yaw) of the result's rotation, radians.
+
+    URDF's origin rotates by R = Rz(yaw) Ry(pitch) Rx(roll) (fixed axes x, y, z). At
+    pitch = +-90 deg roll and yaw are not separable: yaw is then 0 and roll takes it all.
+    """
+    R = quat.matrix_from_quaternion(np.asarray(result.quaternion, dtype=float).reshape(4))
+    pitch = float(np.arctan2(-R[2, 0], np.hypot(R[0, 0], R[1, 0])))
+    if np.hypot(R[0, 0], R[1, 0]) < 1e-12:   # gimbal lock
+        return float(np.arctan2(-R[1, 2], R[1, 1])), pitch, 0.0
+    return float(np.arctan2(R[2, 1], R[2, 2])), pitch, float(np.arctan2(R[1, 0], R[0, 0]))
+
+
+def _joint_name(child_frame):
+    return f'{child_frame}_mount_joint'
+
+
+def urdf_joint(result, parent_frame, child_frame):
+    """
+    Return the fixed URDF joint parent_frame -> child_frame of the result (text).
+
+    <joint name=".." type="fixed"><parent link=".."/><child link=".."/><origin xyz=".."
+    rpy=".."/></joint>, to commit the mounting into a robot description.
+    """
+    xyz = ' '.join(_number(v) for v in _translation(result))
+    rpy = ' '.join(_number(v) for v in urdf_rpy(result))
+    return (f'<joint name="{escape(_joint_name(child_frame), QUOTED)}" type="fixed">\n'
+            f'  <parent link="{escape(str(parent_frame), QUOTED)}"/>\n'
+            f'  <child link="{escape(str(child_frame), QUOTED)}"/>\n'
+            f'  <origin xyz="{xyz}" rpy="{rpy}"/>\n'
+            '</joint>\n')
+
+
+def xacro_macro(result, parent_frame, child_frame):
+    """
+    Return the result as a xacro macro (text): the fixed joint, with the parent a parameter.
+
+    <xacro:CHILD_mount parent="PARENT"/> in a robot's xacro adds the joint (the child link
+    itself is the sensor driver's or the description's).
+    """
+    xyz = ' '.join(_number(v) for v in _translation(result))
+    rpy = ' '.join(_number(v) for v in urdf_rpy(result))
+    name = escape(f'{child_frame}_mount', QUOTED)
+    return ('<?xml version="1.0"?>\n'
+            '<robot xmlns:xacro="http://www.ros.org/wiki/xacro">\n'
+            f'  <xacro:macro name="{name}" params="parent:={escape(str(parent_frame), QUOTED)}">\n'
+            f'    <joint name="{escape(_joint_name(child_frame), QUOTED)}" type="fixed">\n'
+            '      <parent link="${parent}"/>\n'
+            f'      <child link="{escape(str(child_frame), QUOTED)}"/>\n'
+            f'      <origin xyz="{xyz}" rpy="{rpy}"/>\n'
+            '    </joint>\n'
+            '  </xacro:macro>\n'
+            '</robot>\n')

@@ -22,6 +22,8 @@ mounting, format quatcal_ros/mounting version 2:
       refined: {..}                          # null when the refinement did not run
     hint: ..
     warnings: [..]
+    urdf: ..                                 # the fixed joint parent_frame -> child_frame
+    xacro: ..                                # the same as a xacro macro
     validation: {verdict, reason, rms_rotation_deg, rms_translation_mm, thresholds, worst}
                                              # the leave-one-out check (added in version 2;
                                              # per-sample errors are in the JSON only)
@@ -39,6 +41,7 @@ from pathlib import Path
 import tempfile
 
 import numpy as np
+from quatcal_ros.files import exports
 from quatcal_ros.files import plain_yaml
 import yaml
 
@@ -150,6 +153,11 @@ def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extr
         'hint': str(getattr(result, 'hint', '') or ''),
         'warnings': [str(text) for text in (getattr(result, 'warnings', None) or [])],
     }
+    try:   # the fixed joint of the mounting, to commit into the robot description
+        document['urdf'] = exports.urdf_joint(result, parent_frame, child_frame)
+        document['xacro'] = exports.xacro_macro(result, parent_frame, child_frame)
+    except (AttributeError, ValueError):   # no (finite) translation
+        pass
     validation = getattr(result, 'validation', None)
     if validation:
         document['validation'] = {key: value for key, value in validation.items()

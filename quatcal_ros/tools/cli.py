@@ -124,6 +124,8 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None):
     parent, child = frames or exports.default_frames(result.setup)
     document['static_transform_publisher'] = exports.static_transform_publisher_command(
         result, parent, child)
+    document['urdf'] = exports.urdf_joint(result, parent, child)
+    document['xacro'] = exports.xacro_macro(result, parent, child)
     document.update(extra or {})
     print(json.dumps(document, indent=2))
     return 0
