@@ -134,3 +134,42 @@ def test_tf_input_needs_all_four_frames(domain_id):
             CalibratorNode(context=context, parameter_overrides=FRAMES[:3])
     finally:
         rclpy.try_shutdown(context=context)
+
+
+def test_publish_tf_gives_no_frame_a_second_parent(tf_harness):
+    """The optical frame is under camera_link: the node broadcasts tool0 -> camera_link."""
+    rng = np.random.default_rng(12)
+    cell = simulation.random_cell(rng)
+    streams = simulation.stop_and_go_streams(
+        rng, cell, n_stops=10, link_rate_hz=50.0, sensor_rate_hz=30.0, still_s=1.0, move_s=1.0,
+        rotation_noise_deg=0.2, translation_noise_m=0.001, rotation_spread_deg=40.0)
+    h = tf_harness([Parameter('publish_tf', value=True),
+                    Parameter('link_frame', value='tool0'),
+                    Parameter('sensor_frame', value='camera_color_optical_frame')])
+    heard = []
+    h.driver.create_subscription(TFMessage, '/tf_static', heard.append, STATIC_QOS)
+    start = streams.link[0][0]
+    h.publish([('camera_link', 'camera_color_optical_frame', start, CAMERA_LINK_TO_OPTICAL)],
+              static=True)
+    messages = cell_messages(streams)
+    for k in range(0, len(messages), 50):
+        for transforms in messages[k:k + 50]:
+            h.publish(transforms)
+        h.wait_received()
+    h.spin_until(lambda: h.rotations, what='an estimate')
+    result = h.node.session.result
+
+    def ours():
+        return [t for msg in heard for t in msg.transforms if t.header.frame_id == 'tool0']
+    h.spin_until(lambda: ours() and np.allclose(
+        conversions.pose_from_msg(ours()[-1]).position,
+        (Pose.create(result.translation, result.quaternion)
+         @ CAMERA_LINK_TO_OPTICAL.inverse()).position, atol=1e-9),
+        what="the node's /tf_static for the last estimate")
+    children = {t.child_frame_id for t in ours()}
+    assert children == {'camera_link'}   # never the optical frame: it has its parent
+    composed = conversions.pose_from_msg(ours()[-1]) @ CAMERA_LINK_TO_OPTICAL
+    np.testing.assert_allclose(composed.position, result.translation, atol=1e-9)
+    assert np.degrees(quat.angle_between(composed.quaternion, result.quaternion)) < 1e-7
+    assert np.degrees(quat.angle_between(composed.quaternion, cell.mounting.quaternion)) < \
+        3 * result.uncertainty_deg

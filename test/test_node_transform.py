@@ -9,18 +9,14 @@ tested in test_node.py.  A domain id reserved on this host (conftest's domain_id
 tests apart from everything else.
 """
 
-import sys
-import types
 
 from diagnostic_msgs.msg import DiagnosticArray
-from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import TransformStamped
 import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.ros.diagnostics import DIAGNOSTIC_NAME
 from quatcal_ros.ros.node import CalibratorNode
-from quatcal_ros.ros.static_tf import TF2_ROS_MISSING
 from quatcal_ros.sim import simulation
 from rcl_interfaces.msg import Log
 import rclpy
@@ -32,6 +28,7 @@ from rclpy.qos import QoSProfile
 from rclpy.qos import ReliabilityPolicy
 from ros_harness import SpinMixin
 from std_srvs.srv import Trigger
+from tf2_msgs.msg import TFMessage
 import yaml
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -78,6 +75,12 @@ class Harness(SpinMixin):
         received = []
         self.driver.create_subscription(TransformStamped, '/calibrator/transform',
                                         received.append, LATCHED)
+        return received
+
+    def subscribe_tf_static(self):
+        """Subscribe /tf_static as tf2 listeners do; return the list of messages received."""
+        received = []
+        self.driver.create_subscription(TFMessage, '/tf_static', received.append, LATCHED)
         return received
 
     def node_logs(self, level=None, text=''):
@@ -200,78 +203,34 @@ def test_a_new_estimate_replaces_the_latched_transform(make_harness, cell_and_sa
     assert received[-1].header.frame_id == 'tool0' and received[-1].child_frame_id == 'camera'
 
 
-def test_publish_tf_without_tf2_ros_warns_once_and_says_so(make_harness, cell_and_samples,
-                                                           monkeypatch):
+def test_publish_tf_broadcasts_every_estimate_on_tf_static(make_harness, cell_and_samples):
+    """A tf2_msgs publisher of the node's own (no tf2_ros): latched, so late listeners get it."""
     _, samples = cell_and_samples
-    monkeypatch.setitem(sys.modules, 'tf2_ros', None)   # `import tf2_ros` fails, as here
     h = make_harness([Parameter('publish_tf', value=True)])
-    h.spin_until(lambda: h.node_logs(Log.WARN, TF2_ROS_MISSING), what='the warning')
-    assert TF2_ROS_MISSING == ('publish_tf is true but tf2_ros is not installed: the result '
-                               'is not broadcast on /tf_static (it is still on ~/transform)')
-    received = h.subscribe_transform()
-    h.add_samples(samples)
-    h.spin_until(lambda: received, what='~/transform')
-    # Turning it off and on again does not repeat the warning.
-    for value in (False, True):
-        (done,) = h.node.set_parameters([Parameter('publish_tf', value=value)])
-        assert done.successful
-    h.add_samples(samples[:3])   # a new estimate: still published, no crash
-    status = h.next_status(lambda s: values_of(s).get('samples') == '15')
-    assert status.level == DiagnosticStatus.WARN
-    assert TF2_ROS_MISSING in status.message
-    assert values_of(status)['tf_static'] == 'not broadcast: tf2_ros is not installed'
-    assert len(h.node_logs(Log.WARN, TF2_ROS_MISSING)) == 1
-    # With publish_tf false the problem is no longer reported.
-    (done,) = h.node.set_parameters([Parameter('publish_tf', value=False)])
-    status = h.next_status()
-    assert TF2_ROS_MISSING not in status.message
-    assert values_of(status)['tf_static'] == 'off (publish_tf is false)'
-
-
-def fake_tf2_ros():
-    """Return a tf2_ros stand-in whose StaticTransformBroadcaster records what it sends."""
-    module = types.ModuleType('tf2_ros')
-    module.sent = []
-
-    class StaticTransformBroadcaster:
-        def __init__(self, node):
-            module.node = node
-
-        def sendTransform(self, transform):   # noqa: N802 (tf2_ros's name)
-            module.sent.append(transform)
-    module.StaticTransformBroadcaster = StaticTransformBroadcaster
-    return module
-
-
-def test_publish_tf_broadcasts_every_estimate_with_tf2_ros(make_harness, cell_and_samples,
-                                                           monkeypatch):
-    _, samples = cell_and_samples
-    tf2_ros = fake_tf2_ros()
-    monkeypatch.setitem(sys.modules, 'tf2_ros', tf2_ros)
-    h = make_harness([Parameter('publish_tf', value=True)])
-    assert tf2_ros.node is h.node and tf2_ros.sent == []
     h.add_samples(samples[:8])
     h.add_samples(samples[8:])
-    assert len(tf2_ros.sent) == 2
-    last = tf2_ros.sent[-1]
+    received = h.subscribe_tf_static()   # late: transient local delivers the last one
+    h.spin_until(lambda: received, what='/tf_static')
+    (last,) = received[-1].transforms
     assert last.header.frame_id == 'tool0' and last.child_frame_id == 'camera'
     np.testing.assert_allclose(translation(last.transform), h.node.session.result.translation,
                                atol=1e-12)
     assert values_of(h.node.diagnostic_status())['tf_static'] == 'broadcast'
-    assert not h.node_logs(Log.WARN, TF2_ROS_MISSING)
 
 
-def test_publish_tf_turned_on_at_runtime_sends_the_current_estimate(
-        make_harness, cell_and_samples, monkeypatch):
+def test_publish_tf_turned_on_at_runtime_sends_the_current_estimate(make_harness,
+                                                                    cell_and_samples):
     _, samples = cell_and_samples
-    tf2_ros = fake_tf2_ros()
-    monkeypatch.setitem(sys.modules, 'tf2_ros', tf2_ros)
     h = make_harness([Parameter('sensor_frame', value='cam')])
+    received = h.subscribe_tf_static()
     h.add_samples(samples)
-    assert tf2_ros.sent == []
+    h.spin_for(0.5)
+    assert received == []
+    assert values_of(h.node.diagnostic_status())['tf_static'] == 'off (publish_tf is false)'
     (done,) = h.node.set_parameters([Parameter('publish_tf', value=True)])
     assert done.successful
-    assert len(tf2_ros.sent) == 1 and tf2_ros.sent[0].child_frame_id == 'cam'
+    h.spin_until(lambda: received, what='/tf_static')
+    assert received[-1].transforms[0].child_frame_id == 'cam'
     assert len(h.node.session.samples) == len(samples)   # presentation only: no re-estimate
 
 

@@ -3,8 +3,9 @@ The calibrator's status on /diagnostics: state, counts, quality, and every probl
 
 `calibrator_status` builds one diagnostic_msgs/DiagnosticStatus from the session, the message
 counts (message_checks.StreamStats) and the problems the node knows of (a moved marker, a
-journal that cannot be written, publish_tf without tf2_ros).  The level is WARN when there is
-any problem: a stale stream, a high residual, the estimator's warnings, or those given.
+journal that cannot be written, a publish_tf that would break the TF tree).  The level is
+WARN when there is any problem: a stale stream, a high residual, the estimator's warnings, or
+those given.
 """
 
 from diagnostic_msgs.msg import DiagnosticStatus

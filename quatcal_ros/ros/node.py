@@ -7,7 +7,7 @@ A thin shell: the session (stream/session.py) does the work, and this node wires
   pose_screen.PoseScreen, the same checks the replay runs; bad ones are logged throttled;
 - publishes `~/rotation` (QuaternionStamped, latched, frame_id = link_frame) and
   `~/transform` (TransformStamped link_frame -> sensor_frame, latched) on each new estimate,
-  with publish_tf:=true also on /tf_static (tf2_ros, when installed), and the status on
+  with publish_tf:=true also on /tf_static (frame-safe), and the status on
   `/diagnostics` (diagnostics.py) every diagnostics_period_s;
 - serves `~/capture`, `~/reset` and `~/save` (std_srvs/Trigger);
 - keeps the session's files and warnings through files/session_record.py: each captured
@@ -245,10 +245,10 @@ class CalibratorNode(Node):
         msg = conversions.quaternion_stamped_msg(
             result.quaternion, self.now_ns(), self.config.link_frame)
         self.rotation_publisher.publish(msg)
-        transform = self.transform_msg(result, conversions.stamp_ns_from_header(msg.header))
-        self.transform_publisher.publish(transform)
+        stamp_ns = conversions.stamp_ns_from_header(msg.header)
+        self.transform_publisher.publish(self.transform_msg(result, stamp_ns))
         if self.config.publish_tf:
-            self.static_tf.send(transform)
+            self._broadcast(result, stamp_ns)
 
     def transform_msg(self, result, stamp_ns):
         """Return the TransformStamped link_frame -> sensor_frame of `result`."""
@@ -287,7 +287,13 @@ class CalibratorNode(Node):
         """With publish_tf, start /tf_static; turned on at runtime, it sends the estimate."""
         result = self.session.result
         if self.config.publish_tf and self.static_tf.start() and result is not None:
-            self.static_tf.send(self.transform_msg(result, self.now_ns()))
+            self._broadcast(result, self.now_ns())
+
+    def _broadcast(self, result, stamp_ns):
+        """Put the result on /tf_static, frame-safe in the TF tree with TF input."""
+        self.static_tf.send(Pose.create(result.translation, result.quaternion), stamp_ns,
+                            self.config.link_frame, self.config.sensor_frame,
+                            self.tf.tree if self.tf is not None else None)
 
     # --- samples journal -------------------------------------------------------------------
 

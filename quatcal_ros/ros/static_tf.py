@@ -1,12 +1,26 @@
 """
-The result on /tf_static (publish_tf:=true): tf2_ros's static broadcaster, when installed.
+The result on /tf_static (publish_tf:=true), through a tf2_msgs publisher, frame-safe.
 
-tf2_ros comes with a ROS 2 install, not with the PyPI wheels: without it `StaticTf` says so
-once (a WARN) and keeps the reason for /diagnostics; the result is on ~/transform either way.
+No tf2_ros is needed: the node publishes tf2_msgs/TFMessage on /tf_static with the QoS of
+tf2's static broadcasters (reliable, transient local, depth 1), so late listeners get it.
+
+It never gives a frame a second parent. With TF input the node knows the transform tree, and
+when the sensor frame already has a parent there (camera_color_optical_frame under
+camera_link, from the camera driver's /tf_static), the published transform is link_frame ->
+the root of the sensor frame's static subtree (camera_link), the mounting composed with that
+static chain; the log says so once. When the sensor frame hangs from a moving transform, or
+its root is already connected to the link frame some other way, a transform from link_frame
+would break the tree: nothing is published and the reason is in the log and /diagnostics.
+An edge from link_frame itself (this node's earlier publication, heard back) is replaced.
 """
 
-TF2_ROS_MISSING = ('publish_tf is true but tf2_ros is not installed: the result is not '
-                   'broadcast on /tf_static (it is still on ~/transform)')
+from quatcal_ros.ros import conversions
+from quatcal_ros.stream.tf_tree import normalize_frame
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from tf2_msgs.msg import TFMessage
+
+STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class StaticTf:
@@ -14,33 +28,80 @@ class StaticTf:
 
     def __init__(self, node):
         self.node = node
-        self.broadcaster = None   # tf2_ros.StaticTransformBroadcaster once started
-        self.problem = None       # why publish_tf has no effect
+        self.publisher = None
+        self.problem = None       # why the last estimate was not broadcast
+        self.said = None          # the last redirection or refusal logged
 
     def start(self):
-        """Make the broadcaster (once); return whether it exists."""
-        if self.broadcaster is not None:
-            return True
-        try:
-            import tf2_ros
-        except ImportError:
-            if self.problem is None:
-                self.node.get_logger().warning(TF2_ROS_MISSING)
-            self.problem = TF2_ROS_MISSING
-            return False
-        self.problem = None
-        self.broadcaster = tf2_ros.StaticTransformBroadcaster(self.node)
+        """Make the publisher (once); return True."""
+        if self.publisher is None:
+            self.publisher = self.node.create_publisher(TFMessage, '/tf_static', STATIC_QOS)
         return True
 
-    def send(self, transform):
-        """Broadcast `transform` (TransformStamped), when the broadcaster exists."""
-        if self.broadcaster is not None:
-            self.broadcaster.sendTransform(transform)
+    def send(self, pose, stamp_ns, parent, child, tree=None):
+        """
+        Broadcast T_parent_child (pose.Pose) at stamp_ns, re-rooted in `tree` when needed.
+
+        tree: the node's stream.tf_tree.TransformTree (TF input), or None (pose topics: the
+        transform is published as it is).
+        """
+        if self.publisher is None:
+            return
+        target = (parent, child, pose)
+        if tree is not None:
+            target = self._frame_safe(pose, parent, child, tree)
+        if target is None:
+            return
+        parent, child, pose = target
+        self.problem = None
+        self.publisher.publish(TFMessage(transforms=[
+            conversions.transform_stamped_msg(pose, stamp_ns, parent, child)]))
+
+    def _frame_safe(self, pose, parent, child, tree):
+        """Return (parent, child, pose) that adds no second parent to `tree`, or None."""
+        parent, child = normalize_frame(parent), normalize_frame(child)
+        root = child
+        while True:
+            above = tree.parent(root)
+            if above is None or above == parent or not tree.is_static(root):
+                break
+            root = above
+        above = tree.parent(root)
+        if above is not None and above != parent:
+            return self._refuse(
+                f'publish_tf: {child} hangs from {above} by a moving transform on /tf, so a '
+                f'transform {parent} -> {root} would give {root} a second parent: nothing is '
+                'broadcast (the result is on ~/transform)')
+        if above is None and tree.chain(root, parent) is not None:
+            return self._refuse(
+                f'publish_tf: {root} is already connected to {parent} in TF: another transform '
+                f'{parent} -> {root} would close a loop: nothing is broadcast (the result is on '
+                '~/transform)')
+        if root == child:
+            return parent, child, pose
+        chain = tree.lookup(root, child, 0)   # static edges only: any stamp
+        self._say(f'publish_tf: {child} already has a parent in TF ({tree.parent(child)}): '
+                  f'broadcasting {parent} -> {root}, the mounting composed with the static '
+                  f'{root} -> {child}')
+        return parent, root, pose @ chain.inverse()
+
+    def _refuse(self, text):
+        self.problem = text
+        self._say(text, warning=True)
+        return None
+
+    def _say(self, text, warning=False):
+        if text != self.said:
+            self.said = text
+            if warning:   # one call site per severity (rclpy insists)
+                self.node.get_logger().warning(text)
+            else:
+                self.node.get_logger().info(text)
 
     def state(self, enabled):
         """Return the broadcast state for /diagnostics, and the problem to name (or None)."""
         if not enabled:
             return 'off (publish_tf is false)', None
         if self.problem:
-            return 'not broadcast: tf2_ros is not installed', self.problem
+            return 'not broadcast: it would break the TF tree', self.problem
         return 'broadcast', None

@@ -217,8 +217,10 @@ SETTINGS = (
             allow_empty=True),
     Setting('publish_tf', False,
             'true: broadcast the result (link_frame -> sensor_frame) on /tf_static after '
-            'every estimate, with tf2_ros (a ROS 2 install); without tf2_ros the node warns '
-            'and reports it in /diagnostics. The result is on ~/transform either way.'),
+            'every estimate (tf2_msgs/TFMessage, latched). With TF input it never gives a '
+            'frame a second parent: where sensor_frame already has a parent, it broadcasts '
+            'link_frame -> the root of its static subtree instead. The result is on '
+            '~/transform either way.'),
     Setting('samples_file', DEFAULT_SAMPLES_FILE,
             'Journal of the captured samples (samples CSV with a header comment; ~ is '
             "expanded): each sample is appended and fsync'd as it is captured, ~/reset starts "

@@ -110,6 +110,11 @@ class TransformTree:
         edge = self._edges.get(normalize_frame(frame))
         return edge.parent if edge else None
 
+    def is_static(self, frame):
+        """Return whether `frame` hangs from its parent by a static transform."""
+        edge = self._edges.get(normalize_frame(frame))
+        return bool(edge and edge.static)
+
     def set_transform(self, parent, child, stamp_ns, pose, static=False):
         """
         Add T_parent_child (pose.Pose) at stamp_ns (int); return whether it was stored.
