@@ -92,16 +92,34 @@ def cell_messages(streams):
     return [transforms for _, _, transforms in sorted(events, key=lambda e: e[:2])]
 
 
-def test_the_node_on_a_tf_cell_converges_to_the_truth(tf_harness):
-    rng = np.random.default_rng(11)
+def tf_cell(seed, n_stops):
+    """Return a simulated cell and its stop-and-go streams (50 Hz robot, 30 Hz camera)."""
+    rng = np.random.default_rng(seed)
     cell = simulation.random_cell(rng)
-    streams = simulation.stop_and_go_streams(
-        rng, cell, n_stops=12, link_rate_hz=50.0, sensor_rate_hz=30.0, still_s=1.0, move_s=1.0,
-        rotation_noise_deg=0.2, translation_noise_m=0.001, rotation_spread_deg=40.0)
+    return cell, simulation.stop_and_go_streams(
+        rng, cell, n_stops=n_stops, link_rate_hz=50.0, sensor_rate_hz=30.0, still_s=1.0,
+        move_s=1.0, rotation_noise_deg=0.2, translation_noise_m=0.001, rotation_spread_deg=40.0)
+
+
+def play(h, messages):
+    """Publish the messages in chunks the node keeps up with."""
+    for k in range(0, len(messages), 50):
+        for transforms in messages[k:k + 50]:
+            h.publish(transforms)
+        h.wait_received()
+
+
+def publish_camera_driver(h, streams):
+    """Publish the driver's static camera_link -> camera_color_optical_frame."""
+    h.publish([('camera_link', 'camera_color_optical_frame', streams.link[0][0],
+                CAMERA_LINK_TO_OPTICAL)], static=True)
+
+
+def test_the_node_on_a_tf_cell_converges_to_the_truth(tf_harness):
+    cell, streams = tf_cell(11, 12)
     h = tf_harness()
+    publish_camera_driver(h, streams)
     start = streams.link[0][0]
-    h.publish([('camera_link', 'camera_color_optical_frame', start, CAMERA_LINK_TO_OPTICAL)],
-              static=True)
     messages = cell_messages(streams)
     # Malformed TF among them: a NaN, a loop, and a second parent for tool0.
     nan = Pose.identity()
@@ -109,11 +127,7 @@ def test_the_node_on_a_tf_cell_converges_to_the_truth(tf_harness):
     bad = [[('base_link', 'shoulder', start + 5, nan)],
            [('tool0', 'base_link', start + 7, Pose.identity())],
            [('world', 'tool0', start + 9, Pose.identity())]]
-    messages = messages[:40] + bad + messages[40:]
-    for k in range(0, len(messages), 50):
-        for transforms in messages[k:k + 50]:
-            h.publish(transforms)
-        h.wait_received()
+    play(h, messages[:40] + bad + messages[40:])
     h.spin_until(lambda: h.rotations, what='an estimate on ~/rotation')
     result = h.node.session.result
     assert result.samples >= 10
@@ -138,24 +152,14 @@ def test_tf_input_needs_all_four_frames(domain_id):
 
 def test_publish_tf_gives_no_frame_a_second_parent(tf_harness):
     """The optical frame is under camera_link: the node broadcasts tool0 -> camera_link."""
-    rng = np.random.default_rng(12)
-    cell = simulation.random_cell(rng)
-    streams = simulation.stop_and_go_streams(
-        rng, cell, n_stops=10, link_rate_hz=50.0, sensor_rate_hz=30.0, still_s=1.0, move_s=1.0,
-        rotation_noise_deg=0.2, translation_noise_m=0.001, rotation_spread_deg=40.0)
+    cell, streams = tf_cell(12, 10)
     h = tf_harness([Parameter('publish_tf', value=True),
                     Parameter('link_frame', value='tool0'),
                     Parameter('sensor_frame', value='camera_color_optical_frame')])
     heard = []
     h.driver.create_subscription(TFMessage, '/tf_static', heard.append, STATIC_QOS)
-    start = streams.link[0][0]
-    h.publish([('camera_link', 'camera_color_optical_frame', start, CAMERA_LINK_TO_OPTICAL)],
-              static=True)
-    messages = cell_messages(streams)
-    for k in range(0, len(messages), 50):
-        for transforms in messages[k:k + 50]:
-            h.publish(transforms)
-        h.wait_received()
+    publish_camera_driver(h, streams)
+    play(h, cell_messages(streams))
     h.spin_until(lambda: h.rotations, what='an estimate')
     result = h.node.session.result
 
