@@ -177,3 +177,44 @@ def test_publish_tf_gives_no_frame_a_second_parent(tf_harness):
     assert np.degrees(quat.angle_between(composed.quaternion, result.quaternion)) < 1e-7
     assert np.degrees(quat.angle_between(composed.quaternion, cell.mounting.quaternion)) < \
         3 * result.uncertainty_deg
+
+
+def test_a_bag_of_the_same_tf_traffic_replays_to_the_same_samples_and_estimate(tf_harness,
+                                                                                tmp_path):
+    """The live node and `replay` share the TF input (ros.tf_feed): the same samples."""
+    from quatcal_ros.core.calibration import calibrate
+    from quatcal_ros.ros.bag import Bag, PoseInput, Replay, TF_TYPE, TYPESTORE, write_bag
+    from quatcal_ros.stream import settings
+    from quatcal_ros.stream.session import Session
+
+    cell, streams = tf_cell(13, 10)
+    h = tf_harness()
+    publish_camera_driver(h, streams)
+    messages = cell_messages(streams)
+    play(h, messages)
+    h.spin_until(lambda: h.rotations, what='an estimate')
+    live = h.node.session
+
+    def bag_message(transforms):
+        return TYPESTORE.types[TF_TYPE](transforms=[
+            conversions.transform_stamped_msg(pose, stamp, parent, child, typestore=TYPESTORE)
+            for parent, child, stamp, pose in transforms])
+    start = streams.link[0][0]
+    records = [('/tf_static', start, bag_message([('camera_link', 'camera_color_optical_frame',
+                                                  start, CAMERA_LINK_TO_OPTICAL)]))]
+    records += [('/tf', max(t[2] for t in transforms), bag_message(transforms))
+                for transforms in messages]
+    write_bag(tmp_path / 'cell', {'/tf': TF_TYPE, '/tf_static': TF_TYPE},
+              sorted(records, key=lambda record: record[1]))
+    offline = Session(settings.session_config(settings.Settings()))
+    with Bag(tmp_path / 'cell') as recording:
+        Replay(recording, PoseInput(frames=('base_link', 'tool0')),
+               PoseInput(frames=('camera_color_optical_frame', 'marker'))).run(offline)
+    offline.estimate()
+    assert [s.stamp_ns for s in offline.samples] == [s.stamp_ns for s in live.samples]
+    for mine, theirs in zip(offline.samples, live.samples):
+        np.testing.assert_allclose(mine.sensor.position, theirs.sensor.position, atol=1e-12)
+        np.testing.assert_allclose(mine.link.quaternion, theirs.link.quaternion, atol=1e-12)
+    # The same samples: the replay's estimate is calibrate()'s on the live node's samples.
+    full = calibrate(list(live.samples), live.config.calibration)
+    assert np.degrees(quat.angle_between(offline.result.quaternion, full.quaternion)) < 1e-9
