@@ -179,8 +179,7 @@ def test_publish_tf_gives_no_frame_a_second_parent(tf_harness):
         3 * result.uncertainty_deg
 
 
-def test_a_bag_of_the_same_tf_traffic_replays_to_the_same_samples_and_estimate(tf_harness,
-                                                                                tmp_path):
+def test_a_bag_of_the_same_tf_traffic_replays_to_the_same_samples(tf_harness, tmp_path):
     """The live node and `replay` share the TF input (ros.tf_feed): the same samples."""
     from quatcal_ros.core.calibration import calibrate
     from quatcal_ros.ros.bag import Bag, PoseInput, Replay, TF_TYPE, TYPESTORE, write_bag
