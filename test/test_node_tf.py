@@ -8,6 +8,8 @@ stamped at its exposure and delivered late, as in simulation.stop_and_go_streams
 reads them with the four frame parameters of easy_handeye2.
 """
 
+import time
+
 import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
@@ -217,3 +219,35 @@ def test_a_bag_of_the_same_tf_traffic_replays_to_the_same_samples(tf_harness, tm
     # The same samples: the replay's estimate is calibrate()'s on the live node's samples.
     full = calibrate(list(live.samples), live.config.calibration)
     assert np.degrees(quat.angle_between(offline.result.quaternion, full.quaternion)) < 1e-9
+
+
+def test_sim_cell_in_tf_mode_drives_the_calibrator_to_its_ground_truth(domain_id):
+    """sim_cell publishes like a real cell (two joints, a static camera_link, the marker)."""
+    from quatcal_ros.ros.sim_cell import SimCell
+
+    context = Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    executor = SingleThreadedExecutor(context=context)
+    cell = SimCell(context=context, parameter_overrides=[
+        Parameter(name, value=value) for name, value in (
+            ('tf_mode', True), ('seed', 4), ('n_stops', 8), ('still_s', 1.0), ('move_s', 0.6),
+            ('link_rate_hz', 100.0), ('link_frame', 'tool0'),
+            ('sensor_frame', 'camera_color_optical_frame'))])
+    node = CalibratorNode(context=context, parameter_overrides=FRAMES)
+    try:
+        for each in (cell, node):
+            executor.add_node(each)
+        deadline = time.monotonic() + 60.0
+        while (node.session.result is None or node.session.result.samples < 7) \
+                and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        result = node.session.result
+        assert result is not None and result.samples >= 7, node.session.last_error
+        error = np.degrees(quat.angle_between(result.quaternion, cell.cell.mounting.quaternion))
+        assert error < 3.0 * result.uncertainty_deg
+        assert not node.stats.bad
+    finally:
+        executor.shutdown()
+        cell.destroy_node()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)

@@ -12,6 +12,13 @@ publishes, with stamps from its own clock (so use_sim_time works):
   link_frame -> sensor_frame (eye_in_hand) or base_frame -> sensor_frame (eye_to_hand),
   stamped with the start of the trajectory (link sample 0).  It is also logged at start.
 
+With tf_mode:=true it publishes like a real cell instead of the two pose topics: the robot as
+a chain of two joints on /tf (base_frame -> shoulder -> link_frame, one TFMessage per link
+sample, as robot_state_publisher does), the camera driver's static camera_link ->
+sensor_frame on /tf_static, and the detector's sensor_frame -> marker_frame on /tf at the
+camera's rate, with the same noise, latency and drops. The calibrator reads it with
+robot_base_frame, robot_effector_frame, tracking_base_frame and tracking_marker_frame.
+
 With seed S, the poses are those of simulation.stop_and_go_streams() for the same rng, cell
 and start: rng = default_rng(S); cell = random_cell(rng, setup[, mounting]); streams(rng, ...).
 """
@@ -30,7 +37,10 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy
 from rclpy.qos import QoSProfile
+from rclpy.qos import ReliabilityPolicy
+from tf2_msgs.msg import TFMessage
 
 NODE_NAME = 'sim_cell'
 # A clock step larger than this (or backwards) pauses the motion instead of replaying it.
@@ -60,7 +70,25 @@ PARAMETERS = {
     'base_frame': ('base_link', 'frame_id of link_pose (robot base)', None),
     'link_frame': ('tool0', 'the link the sensor is mounted on (eye_in_hand)', None),
     'sensor_frame': ('camera', 'frame_id of sensor_pose', None),
+    'tf_mode': (False, 'publish /tf and /tf_static like a real cell (a two-joint robot, a static '
+                'camera_link -> sensor_frame, the marker) instead of link_pose and sensor_pose',
+                None),
+    'marker_frame': ('marker', 'the observed marker frame (tf_mode)', None),
 }
+# tf_mode: the camera driver's static transform to the sensor frame, and the first joint.
+CAMERA_LINK = 'camera_link'
+CAMERA_LINK_TO_SENSOR = Pose.create([0.0, 0.015, 0.0],
+                                    quat.from_rotation_vector([-1.2092, 1.2092, -1.2092]))
+SHOULDER = 'shoulder'
+TF_QOS = QoSProfile(depth=100)
+TF_STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def shoulder_pose(stamp_ns):
+    """Return base -> shoulder at stamp_ns: a joint turning about base z (tf_mode)."""
+    return Pose.create([0.0, 0.0, 0.3],
+                       quat.from_axis_angle([0.0, 0.0, 1.0], 0.3 * np.sin(stamp_ns * 1e-9)))
 
 
 @dataclass(frozen=True)
@@ -84,6 +112,8 @@ class SimCellConfig:
     base_frame: str
     link_frame: str
     sensor_frame: str
+    tf_mode: bool
+    marker_frame: str
 
 
 def _descriptor(description, limits):
@@ -148,8 +178,12 @@ class SimCell(Node):
             config.drop_probability, config.outlier_fraction)
         self._latency_ns = ns_from_s(config.latency_s)
         stream_qos = QoSProfile(depth=STREAM_QOS_DEPTH)
-        self._link_pub = self.create_publisher(PoseStamped, 'link_pose', stream_qos)
-        self._sensor_pub = self.create_publisher(PoseStamped, 'sensor_pose', stream_qos)
+        if config.tf_mode:
+            self._tf_pub = self.create_publisher(TFMessage, '/tf', TF_QOS)
+            self._tf_static_pub = self.create_publisher(TFMessage, '/tf_static', TF_STATIC_QOS)
+        else:
+            self._link_pub = self.create_publisher(PoseStamped, 'link_pose', stream_qos)
+            self._sensor_pub = self.create_publisher(PoseStamped, 'sensor_pose', stream_qos)
         self._truth_pub = self.create_publisher(TransformStamped, '~/ground_truth', LATCHED_QOS)
         self._origin_ns = None      # clock time of trajectory time 0
         self._last_now_ns = None
@@ -181,6 +215,9 @@ class SimCell(Node):
         parent, child = self.truth_frames
         self._truth_pub.publish(conversions.transform_stamped_msg(
             self.cell.mounting, now_ns, parent, child))
+        if self.config.tf_mode:
+            self._tf_static_pub.publish(TFMessage(transforms=[conversions.transform_stamped_msg(
+                CAMERA_LINK_TO_SENSOR, now_ns, CAMERA_LINK, self.config.sensor_frame)]))
 
     def _on_tick(self):
         now_ns = self.get_clock().now().nanoseconds
@@ -206,9 +243,18 @@ class SimCell(Node):
             return
         self._next_link += len(times)
         positions, quaternions = self._trajectory.link_poses(times)
+        config = self.config
         for t, p, q in zip(times.tolist(), positions, quaternions):
-            self._link_pub.publish(conversions.pose_stamped_msg(
-                Pose(p, q), self._origin_ns + t, self.config.base_frame))
+            stamp, link = self._origin_ns + t, Pose(p, q)
+            if not config.tf_mode:
+                self._link_pub.publish(conversions.pose_stamped_msg(
+                    link, stamp, config.base_frame))
+                continue
+            first = shoulder_pose(stamp)
+            self._tf_pub.publish(TFMessage(transforms=[
+                conversions.transform_stamped_msg(first, stamp, config.base_frame, SHOULDER),
+                conversions.transform_stamped_msg(first.inverse() @ link, stamp, SHOULDER,
+                                                  config.link_frame)]))
 
     def _publish_frames(self, exposed_before_ns):
         """Publish the frames exposed up to exposed_before_ns (now minus the latency)."""
@@ -218,9 +264,15 @@ class SimCell(Node):
         self._next_frame += len(times)
         true_p, true_q = self.cell.sensor_poses(*self._trajectory.link_poses(times))
         positions, quaternions, kept, _ = self._sensor.observe(true_p, true_q)
+        config = self.config
         for t, p, q in zip(times[kept].tolist(), positions[kept], quaternions[kept]):
-            self._sensor_pub.publish(conversions.pose_stamped_msg(
-                Pose(p, q), self._origin_ns + t, self.config.sensor_frame))
+            stamp, seen = self._origin_ns + t, Pose(p, q)
+            if config.tf_mode:
+                self._tf_pub.publish(TFMessage(transforms=[conversions.transform_stamped_msg(
+                    seen, stamp, config.sensor_frame, config.marker_frame)]))
+            else:
+                self._sensor_pub.publish(conversions.pose_stamped_msg(
+                    seen, stamp, config.sensor_frame))
 
     def _check_finished(self, t_ns):
         duration = self._trajectory.duration_ns
