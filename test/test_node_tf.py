@@ -142,6 +142,16 @@ def test_the_node_on_a_tf_cell_converges_to_the_truth(tf_harness):
     assert bad_counts.get('non_finite', 0) == 1 and bad_counts.get('breaks_tree', 0) == 2
 
 
+def test_the_local_tf2_msgs_is_the_standard_type(tf_harness):
+    """Type name and Jazzy type hash of tf2_msgs/TFMessage: robot_state_publisher matches."""
+    h = tf_harness()
+    (info,) = [i for i in h.driver.get_publishers_info_by_topic('/tf')
+               if i.node_name == 'test_tf_driver']
+    assert info.topic_type == 'tf2_msgs/msg/TFMessage'
+    assert str(info.topic_type_hash) == (
+        'RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087')
+
+
 def test_tf_input_needs_all_four_frames(domain_id):
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)
@@ -251,3 +261,15 @@ def test_sim_cell_in_tf_mode_drives_the_calibrator_to_its_ground_truth(domain_id
         cell.destroy_node()
         node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def test_a_frame_that_never_comes_is_named_on_diagnostics(tf_harness):
+    cell, streams = tf_cell(14, 3)
+    h = tf_harness([Parameter('robot_effector_frame', value='tool_0')])   # a typo
+    publish_camera_driver(h, streams)
+    play(h, cell_messages(streams)[:200])
+    status = h.node.diagnostic_status()
+    assert ('TF input: base_link -> tool_0 cannot be composed: no frame tool_0 on /tf or '
+            '/tf_static yet (frames seen: ') in status.message
+    assert 'tool0' in status.message   # among the frames seen
+    assert 'camera_color_optical_frame -> marker' not in status.message   # that one works

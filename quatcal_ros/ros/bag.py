@@ -200,7 +200,7 @@ class ReplayReport:
     tf_dropped: dict = field(default_factory=dict)         # stream: its tf_tree.FramePoses
     unread: dict = field(default_factory=dict)             # topic: (read, indexed) when fewer
     damaged: str = ''                                      # why reading stopped (partial)
-    tf_stale: int = 0
+    tf_stale: int = 0   # transforms older than the TF buffer (also counted as out_of_order)
     tf_frames: tuple = ()                                  # every frame the TF tree knew
     counters: dict = field(default_factory=dict)           # the session's, at the end
 
@@ -225,8 +225,6 @@ class ReplayReport:
                 reasons = ', '.join(f'{n} {why}' for why, n in sorted(frames.dropped.items()))
                 out.append(f'{stream} pose {frames.target} -> {frames.source}: stamps not '
                            f'evaluated ({reasons}); last: {frames.last_dropped}')
-        if self.tf_stale:
-            out.append(f'{self.tf_stale} transform(s) older than the TF buffer ignored')
         jumps = self.counters.get('time_jumps', 0)
         if jumps:
             out.append(f'time jumped back {jumps} time(s) (a bag played twice?): pairing '

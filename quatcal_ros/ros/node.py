@@ -332,7 +332,8 @@ class CalibratorNode(Node):
                     tf_problem, *self.inputs.problems(
                         self.poses.stats, self.topics, self._publisher_types,
                         self.session.counters['time_jumps'], now_ns,
-                        self.get_parameter('use_sim_time').value)]
+                        self.get_parameter('use_sim_time').value),
+                    *(self.tf.problems() if self.tf is not None else ())]
         return calibrator_status(self.session, self.poses.stats, now_ns,
                                  self.config.link_frame, problems, tf_static,
                                  self.inputs.started_ns, self.topics)

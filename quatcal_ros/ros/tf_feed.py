@@ -24,6 +24,8 @@ TF_MAX_GAP_NS = 500_000_000
 # Dynamic transforms kept per edge (the stretch of stamps): enough for publishers' latencies,
 # small enough for robots with many joints at 1 kHz.
 TF_CACHE_NS = 2_000_000_000
+# Frames named in a problem's text, at most.
+MAX_FRAMES_NAMED = 12
 
 
 def is_static_tf_topic(topic):
@@ -68,13 +70,35 @@ class TfFeed:
             except ValueError as error:   # nanosec out of range
                 self.screen.bad(topic, 'bad_stamp', error)
                 continue
-            if stored and not static:
+            if not stored:   # older than the edge's buffer: too late to interpolate
+                self.screen.bad(topic, 'out_of_order', lambda child=child, stamp=stamp_ns: (
+                    f'transform to {child} stamped {stamp * 1e-9:.3f} s is older than the '
+                    f'{TF_CACHE_NS * 1e-9:g} s of transforms kept for it'))
+            elif not static:
                 changed.append((child, stamp_ns))
         for stream, frames in self.watchers.items():
             for child, stamp_ns in changed:
                 frames.note(child, stamp_ns)
             for stamp_ns, pose in frames.ready():
                 self.on_pose(stream, stamp_ns, pose)
+
+    def problems(self):
+        """Return sentences naming each frame pair that cannot be composed from the tree."""
+        found = []
+        frames = self.tree.frames
+        for watcher in self.watchers.values():
+            target, source = watcher.target, watcher.source
+            if self.tree.chain(target, source) is not None:
+                continue
+            unknown = [frame for frame in (target, source) if frame not in frames]
+            seen = ', '.join(sorted(frames)[:MAX_FRAMES_NAMED]) or 'none'
+            if unknown:
+                why = (f'no frame {" or ".join(unknown)} on /tf or /tf_static yet (frames '
+                       f'seen: {seen}{", ..." if len(frames) > MAX_FRAMES_NAMED else ""})')
+            else:
+                why = 'they are in two separate trees (no chain of transforms joins them)'
+            found.append(f'TF input: {target} -> {source} cannot be composed: {why}')
+        return found
 
     def finish(self):
         """Close the frame watchers (what they still wait for is counted as dropped)."""
