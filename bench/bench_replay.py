@@ -8,8 +8,12 @@ storage format; then times, best of --repeats runs:
 - bare read: rosbags' Reader over every message, each deserialised (the floor);
 - replay: cli.replay_main on the bag (read, convert, pair, capture, estimate, final solve).
 Target: the replay runs at no less than half the bare read rate.  --profile prints the
-replay's cProfile (top functions by own time).
+replay's cProfile (top functions by own time).  --processes instead runs both as whole
+processes (`python -m quatcal_ros replay` against a script that only reads and deserialises,
+imports included) and prints their CPU seconds and peak resident memory: the targets are CPU
+within 1.1x of the bare read's and peak memory flat in bag length (<= 1.5x the bare read's).
 Run: python bench/bench_replay.py [--minutes M] [--storage sqlite3 mcap] [--profile]
+                                  [--processes]
 """
 
 import argparse
@@ -74,6 +78,37 @@ def replay(path):
     return out.getvalue()
 
 
+BARE_READ = """
+import sys
+from rosbags.rosbag2 import Reader
+from rosbags.typesys import get_typestore, Stores
+store = get_typestore(Stores.ROS2_JAZZY)
+with Reader(sys.argv[1]) as reader:
+    for connection, _, raw in reader.messages():
+        store.deserialize_cdr(raw, connection.msgtype)
+"""
+
+
+def process_cost(command):
+    """Return (CPU s, peak RSS MB) of a child process, measured by GNU time."""
+    import subprocess
+    done = subprocess.run(['/usr/bin/time', '-f', 'COST %M %U %S', *command], check=True,
+                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    line = [row for row in done.stderr.splitlines() if row.startswith('COST ')][-1]
+    peak_kb, user, system = (float(v) for v in line.split()[1:])
+    return user + system, peak_kb / 1024
+
+
+def processes(path):
+    """Return {'bare read': (CPU, RSS), 'replay': (CPU, RSS)} of whole processes on `path`."""
+    import sys
+    bare = process_cost([sys.executable, '-c', BARE_READ, str(path)])   # smaller: first
+    ours = process_cost([sys.executable, '-m', 'quatcal_ros', 'replay', str(path),
+                         '--link-topic', '/link_pose', '--sensor-topic', '/sensor_pose',
+                         '--quiet'])
+    return {'bare read': bare, 'replay': ours}
+
+
 def best_seconds(function, repeats):
     times = []
     for _ in range(repeats):
@@ -90,16 +125,28 @@ def main():
                         default=['sqlite3', 'mcap'])
     parser.add_argument('--repeats', type=int, default=2)
     parser.add_argument('--profile', action='store_true')
+    parser.add_argument('--processes', action='store_true')
     args = parser.parse_args()
     start = time.perf_counter()
     messages, _ = recording(args.minutes)
     print(f'{len(messages)} messages ({args.minutes:g} min, link {LINK_RATE_HZ:g} Hz, sensor '
           f'{SENSOR_RATE_HZ:g} Hz) simulated in {time.perf_counter() - start:.1f} s\n')
     rows = []
+    if args.processes:
+        print('| storage | length | messages | bare read CPU s | replay CPU s | ratio | '
+              'bare read peak MB | replay peak MB | ratio |')
+        print('|---|---|---:|---:|---:|---:|---:|---:|---:|')
     with tempfile.TemporaryDirectory() as tmp:
         for storage in args.storage:
             path = f'{tmp}/{storage}'
             write_bag(path, TOPICS, messages, storage)
+            if args.processes:
+                cost = processes(path)
+                (read_cpu, read_rss), (ours_cpu, ours_rss) = cost['bare read'], cost['replay']
+                print(f'| {storage} | {args.minutes:g} min | {len(messages)} | {read_cpu:.1f} | '
+                      f'{ours_cpu:.1f} | {ours_cpu / read_cpu:.2f} | {read_rss:.0f} | '
+                      f'{ours_rss:.0f} | {ours_rss / read_rss:.2f} |')
+                continue
             count = bare_read(path)
             read_s = best_seconds(lambda: bare_read(path), args.repeats)
             replay_s = best_seconds(lambda: replay(path), args.repeats)
@@ -109,6 +156,8 @@ def main():
                 profile.runcall(replay, path)
                 print(f'--- replay profile ({storage}), top 25 by own time')
                 pstats.Stats(profile).sort_stats('tottime').print_stats(25)
+    if args.processes:
+        return
     print('| storage | messages | bare read (msg/s) | replay (msg/s) | replay / read | '
           'target >= 0.5 |')
     print('|---|---:|---:|---:|---:|:---:|')
