@@ -273,3 +273,21 @@ def test_a_frame_that_never_comes_is_named_on_diagnostics(tf_harness):
             '/tf_static yet (frames seen: ') in status.message
     assert 'tool0' in status.message   # among the frames seen
     assert 'camera_color_optical_frame -> marker' not in status.message   # that one works
+
+
+def test_a_late_transform_is_only_late_not_a_time_jump(tf_harness):
+    """A transform a second late (a stalled publisher) is inserted in order; nothing is reset."""
+    cell, streams = tf_cell(16, 4)
+    h = tf_harness()
+    publish_camera_driver(h, streams)
+    messages = cell_messages(streams)
+    play(h, messages[:300])
+    generation = h.node.tf.tree.generation
+    newest = max(t[2] for transforms in messages[:300] for t in transforms)
+    late = newest - 10 ** 9
+    h.publish([('base_link', 'shoulder', late, shoulder(late))])
+    play(h, messages[300:])
+    assert h.node.tf.tree.generation == generation   # the transform buffers were not cleared
+    assert h.node.session.counters['time_jumps'] == 0
+    assert not h.node.stats.bad
+    h.spin_until(lambda: h.node.session.result is not None, what='an estimate')

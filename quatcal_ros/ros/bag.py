@@ -29,10 +29,10 @@ import numpy as np
 
 from quatcal_ros.ros import cdr
 from quatcal_ros.ros.pose_screen import PoseScreen
-from quatcal_ros.ros.tf_feed import DEFAULT_TF_TOPICS, is_static_tf_topic, TF_CACHE_NS, \
-    TF_MAX_GAP_NS, TfFeed
+from quatcal_ros.ros.tf_feed import DEFAULT_TF_TOPICS, is_static_tf_topic, TF_MAX_GAP_NS, \
+    TfFeed
 from quatcal_ros.stream.message_checks import CheckConfig, LINK, SENSOR
-from quatcal_ros.stream.tf_tree import normalize_frame, TransformTree
+from quatcal_ros.stream.tf_tree import normalize_frame
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
 
@@ -425,7 +425,7 @@ class _Run:
         self.report = ReplayReport(
             stamps={'link': [None, None], 'sensor': [None, None]},
             sources={STREAMS[stream]: str(source) for stream, source in replay.inputs.items()})
-        self.tree = TransformTree(cache_ns=TF_CACHE_NS, max_gap_ns=replay.tf_max_gap_ns)
+        self.tree = TfFeed.new_tree(replay.tf_max_gap_ns)
         self.adders = {'link': session.add_link_pose, 'sensor': session.add_sensor_pose}
         self.tf = TfFeed(self.tree, self.poses, {
             stream: tuple(source.frames) for stream, source in replay.inputs.items()

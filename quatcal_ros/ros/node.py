@@ -34,13 +34,12 @@ from quatcal_ros.ros.diagnostics import calibrator_status, describe_result, Inpu
 from quatcal_ros.ros.pose_screen import PoseScreen
 from quatcal_ros.ros.qos import LATCHED_QOS
 from quatcal_ros.ros.static_tf import StaticTf
-from quatcal_ros.ros.tf_feed import TF_CACHE_NS, TF_MAX_GAP_NS, TfFeed
+from quatcal_ros.ros.tf_feed import TfFeed
 from quatcal_ros.stream import message_checks
 from quatcal_ros.stream import settings
 from quatcal_ros.stream.session import EstimateUpdated, Notice, Rejected, SampleCaptured
 from quatcal_ros.stream.session import Session
 from quatcal_ros.stream.settings import ConfigError
-from quatcal_ros.stream.tf_tree import TransformTree
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -145,8 +144,8 @@ class CalibratorNode(Node):
                 for stream, callback, qos in ((LINK, self._on_link, LINK_QOS),
                                               (SENSOR, self._on_sensor, SENSOR_QOS))}
             return message_type
-        self.tf = TfFeed(TransformTree(cache_ns=TF_CACHE_NS, max_gap_ns=TF_MAX_GAP_NS),
-                         self.poses, {LINK: frames['link'], SENSOR: frames['sensor']},
+        self.tf = TfFeed(TfFeed.new_tree(), self.poses,
+                         {LINK: frames['link'], SENSOR: frames['sensor']},
                          self._on_tf_pose)
         tf_topic = self.create_subscription(
             TFMessage, '/tf', lambda msg: self._on_tf(tf_topic.topic_name, msg, False),

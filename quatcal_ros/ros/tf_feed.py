@@ -15,7 +15,7 @@ below it).
 
 from quatcal_ros.ros.conversions import BadPoseError, pose_from_msg, stamp_ns_from_header
 from quatcal_ros.stream import message_checks
-from quatcal_ros.stream.tf_tree import FramePoses, normalize_frame, TreeError
+from quatcal_ros.stream.tf_tree import FramePoses, normalize_frame, TransformTree, TreeError
 
 DEFAULT_TF_TOPICS = ('/tf', '/tf_static')
 # Dynamic transforms are interpolated across gaps up to this long (a slow publisher of a fixed
@@ -24,6 +24,11 @@ TF_MAX_GAP_NS = 500_000_000
 # Dynamic transforms kept per edge (the stretch of stamps): enough for publishers' latencies,
 # small enough for robots with many joints at 1 kHz.
 TF_CACHE_NS = 2_000_000_000
+# A transform this much older than its edge's newest means the clock jumped back (a bag
+# played again), and clears the dynamic transforms; a later one, up to this late, is only
+# late (a slow publisher, a burst after a stall) and is inserted in order. The cache length:
+# anything inside it can still be interpolated.
+TF_TIME_JUMP_NS = TF_CACHE_NS
 # Frames named in a problem's text, at most.
 MAX_FRAMES_NAMED = 12
 
@@ -35,6 +40,12 @@ def is_static_tf_topic(topic):
 
 class TfFeed:
     """The transform tree, each stream's frame pair, and what to do with a composed pose."""
+
+    @staticmethod
+    def new_tree(max_gap_ns=TF_MAX_GAP_NS):
+        """Return a stream.tf_tree.TransformTree with the TF input's cache and time jumps."""
+        return TransformTree(cache_ns=TF_CACHE_NS, max_gap_ns=max_gap_ns,
+                             time_jump_ns=TF_TIME_JUMP_NS)
 
     def __init__(self, tree, screen, frames, on_pose):
         """
