@@ -27,6 +27,7 @@ import time
 # One BLAS thread, as the tools run (quatcal_ros.core.threads): set before numpy loads.
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
+from bench_speed import cell_samples  # noqa: E402, I100 (the same cells)
 import cv2  # noqa: E402, I100
 import numpy as np  # noqa: E402
 
@@ -34,7 +35,6 @@ from quatcal_ros.core.calibration import calibrate, CalibrationOptions  # noqa: 
 from quatcal_ros.core.leastsq import all_pairs_rotation  # noqa: E402
 from quatcal_ros.core.motions import SampleRotations  # noqa: E402
 from quatcal_ros.files.samples_csv import format_samples  # noqa: E402
-from quatcal_ros.sim import simulation  # noqa: E402
 
 OURS = {
     'ours default': CalibrationOptions(),
@@ -45,13 +45,6 @@ OURS = {
 KERNEL = 'LSQ rotation kernel'
 OPENCV = {'PARK': cv2.CALIB_HAND_EYE_PARK, 'TSAI': cv2.CALIB_HAND_EYE_TSAI,
           'HORAUD': cv2.CALIB_HAND_EYE_HORAUD}
-
-
-def cell_samples(n, seed=1):
-    rng = np.random.default_rng(seed)
-    cell = simulation.random_cell(rng)
-    return simulation.samples(rng, cell, n, rotation_noise_deg=0.5,
-                              translation_noise_m=0.001)[0]
 
 
 def cpu_ms(function, repeats):

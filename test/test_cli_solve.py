@@ -20,15 +20,19 @@ def run_solve(repo_root, *args):
                           capture_output=True, text=True, env=env, timeout=120)
 
 
-@pytest.fixture
-def cell_csv(tmp_path):
-    rng = np.random.default_rng(21)
+def write_cell_csv(path, seed, n, **noise):
+    """Write n samples of a random cell to `path`; return (cell, path, outliers)."""
+    rng = np.random.default_rng(seed)
     cell = simulation.random_cell(rng)
-    samples, outliers = simulation.samples(rng, cell, 20, rotation_noise_deg=0.3,
-                                           outlier_fraction=0.1)
-    path = tmp_path / 'samples.csv'
+    samples, outliers = simulation.samples(rng, cell, n, **noise)
     path.write_text(format_samples(samples))
     return cell, path, outliers
+
+
+@pytest.fixture
+def cell_csv(tmp_path):
+    return write_cell_csv(tmp_path / 'samples.csv', 21, 20, rotation_noise_deg=0.3,
+                          outlier_fraction=0.1)
 
 
 def test_solve_prints_the_contract_json(repo_root, cell_csv):
@@ -167,13 +171,8 @@ def test_ten_thousand_samples_solve_in_bounded_memory(tmp_path, capsys):
     import tracemalloc
 
     from quatcal_ros.tools.cli import solve_main
-    rng = np.random.default_rng(4)
-    cell = simulation.random_cell(rng)
-    samples, _ = simulation.samples(rng, cell, 10000, rotation_noise_deg=0.5,
-                                    translation_noise_m=0.001)
-    path = tmp_path / 'big.csv'
-    path.write_text(format_samples(samples))
-    del samples
+    cell, path, _ = write_cell_csv(tmp_path / 'big.csv', 4, 10000, rotation_noise_deg=0.5,
+                                   translation_noise_m=0.001)
     tracemalloc.start()
     try:
         assert solve_main([str(path)]) == 0

@@ -16,6 +16,8 @@ from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.node import CalibratorNode
+from quatcal_ros.ros.sim_cell import CAMERA_LINK_TO_SENSOR as CAMERA_LINK_TO_OPTICAL
+from quatcal_ros.ros.sim_cell import shoulder_pose as shoulder
 from quatcal_ros.sim import simulation
 from quatcal_ros.stream.settings import ConfigError
 import rclpy
@@ -33,9 +35,6 @@ FRAMES = [Parameter('robot_base_frame', value='base_link'),
           Parameter('robot_effector_frame', value='tool0'),
           Parameter('tracking_base_frame', value='camera_color_optical_frame'),
           Parameter('tracking_marker_frame', value='marker')]
-# The optical frame of a camera driver: z forward, x right, y down.
-CAMERA_LINK_TO_OPTICAL = Pose([0.0, 0.015, 0.0],
-                              quat.from_rotation_vector([-1.2092, 1.2092, -1.2092]))
 
 
 class TfHarness(SpinMixin):
@@ -75,11 +74,6 @@ class TfHarness(SpinMixin):
 @pytest.fixture
 def tf_harness(domain_id):
     yield from harnesses_of(TfHarness, domain_id)
-
-
-def shoulder(stamp_ns):
-    """Return a first joint turning about base z: tool0's pose needs a chain of two."""
-    return Pose([0.0, 0.0, 0.3], quat.from_axis_angle([0, 0, 1], 0.3 * np.sin(stamp_ns * 1e-9)))
 
 
 def cell_messages(streams):

@@ -15,7 +15,7 @@ in refine.whitened_jacobian: X's rotation (left perturbation, radians), X's tran
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.refine import jacobian, whitened_jacobian
+from quatcal_ros.core.refine import jacobian, lever, whitened_jacobian
 
 
 def cramer_rao_covariance(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t):
@@ -45,9 +45,9 @@ def cramer_rao_covariance_general(link_q, link_t, x_q, x_t, o_q, o_t, noise_cova
     """
     link_q = np.asarray(link_q, dtype=float)
     link_R = quat.matrix_from_quaternion(link_q)
-    lever = np.einsum('nji,nj->ni', link_R, np.asarray(o_t, dtype=float)
-                      - np.asarray(link_t, dtype=float)) - np.asarray(x_t, dtype=float)
-    J = jacobian(link_R, quat.matrix_from_quaternion(np.asarray(x_q, dtype=float)), lever)
+    levers = lever(link_q, np.asarray(link_t, dtype=float), np.asarray(x_t, dtype=float),
+                   np.asarray(o_t, dtype=float), link_R)
+    J = jacobian(link_R, quat.matrix_from_quaternion(np.asarray(x_q, dtype=float)), levers)
     information = np.linalg.inv(noise_covariance)
     return np.linalg.inv(np.einsum('nai,ab,nbj->ij', J, information, J))
 

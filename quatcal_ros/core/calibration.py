@@ -35,7 +35,8 @@ from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, least_squar
     MotionSystem, sample_matrices
 from quatcal_ros.core.motions import motion_count, Motions, pair_indices, PAIRINGS, \
     SampleRotations
-from quatcal_ros.core.refine import MAX_ITERATIONS, refine, with_jackknife, with_jackknife_of
+from quatcal_ros.core.refine import MAX_ITERATIONS, refine, uncertainties, with_jackknife, \
+    with_jackknife_of
 from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.translation import SamplePositions, solve_translation
 from quatcal_ros.core.units import SETUPS
@@ -385,12 +386,8 @@ def _consensus(rotations, candidates, options):
                             np.linalg.eigh(normal)[1][:, :, 0]])
     # Every hypothesis's object orientations Z_i at once: (H, N, 4).
     Z = np.einsum('nij,hj->hni', sample_matrices(rotations), hypotheses)
-    mean = np.linalg.eigh(np.einsum('hni,hnj->hij', Z, Z))[1][:, :, -1]   # quat.average
-    cosine = np.abs(np.einsum('hni,hi->hn', Z, mean))
-    orthogonal = np.linalg.norm(Z - cosine[..., None] * np.sign(
-        np.einsum('hni,hi->hn', Z, mean))[..., None] * mean[:, None], axis=2)
-    scores = np.median(np.arctan2(orthogonal, cosine), axis=1)   # half the residual angles
-    return quat.canonical(hypotheses[int(np.argmin(scores))])
+    residuals = quat.angle_between(quat.average(Z)[:, None], Z)   # (H, N) radians
+    return quat.canonical(hypotheses[int(np.argmin(np.median(residuals, axis=1)))])
 
 
 def _detections(rotations, q_z, previous=None):
@@ -538,6 +535,8 @@ def _noise_model(refinement, robust):
     if refinement is None:
         return None
     covariance = refinement.noise.covariance
+    sandwich, model = (uncertainties(refinement.covariance),
+                       uncertainties(refinement.model_covariance))
     sd = np.sqrt(np.diag(covariance))
     nu = refinement.noise.nu
     return {'rotation_noise_deg': [float(v) for v in np.degrees(sd[:3])],
@@ -549,12 +548,10 @@ def _noise_model(refinement, robust):
             'shape': refinement.noise.best.shape.name,
             'robust': bool(robust),
             'uncertainty_from': _uncertainty_source(refinement),
-            'sandwich_uncertainty_deg': _finite_or_none(refinement.sandwich_uncertainty_deg),
-            'sandwich_translation_uncertainty_mm': _finite_or_none(
-                refinement.sandwich_translation_uncertainty_mm),
-            'model_uncertainty_deg': _finite_or_none(refinement.model_uncertainty_deg),
-            'model_translation_uncertainty_mm': _finite_or_none(
-                refinement.model_translation_uncertainty_mm)}
+            'sandwich_uncertainty_deg': _finite_or_none(sandwich[0]),
+            'sandwich_translation_uncertainty_mm': _finite_or_none(sandwich[1]),
+            'model_uncertainty_deg': _finite_or_none(model[0]),
+            'model_translation_uncertainty_mm': _finite_or_none(model[1])}
 
 
 def _uncertainty_source(refinement):

@@ -259,9 +259,15 @@ def average(quaternions, weights=None):
     Average a set of unit quaternions (w, x, y, z) (Markley et al. 2007).
 
     The eigenvector of the largest eigenvalue of sum w_i q_i q_i^T: insensitive to the sign of
-    each q_i, and the maximum-likelihood mean for small scatter.
+    each q_i, and the maximum-likelihood mean for small scatter. `quaternions` (N, 4), or a
+    batch of sets (..., N, 4) averaged each.
     """
-    Q = np.asarray(quaternions, dtype=float).reshape(-1, 4)
+    Q = np.asarray(quaternions, dtype=float)
+    if Q.ndim > 2:   # a batch of sets (..., N, 4): their averages (..., 4)
+        w = np.ones(Q.shape[:-1]) if weights is None else np.asarray(weights, dtype=float)
+        _, vectors = np.linalg.eigh(np.einsum('...ni,...n,...nj->...ij', Q, w, Q))
+        return canonical(vectors[..., -1])
+    Q = Q.reshape(-1, 4)
     w = np.ones(len(Q)) if weights is None else np.asarray(weights, dtype=float)
     _, vectors = np.linalg.eigh((Q * w[:, None]).T @ Q)
     return canonical(vectors[:, -1])

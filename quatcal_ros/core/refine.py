@@ -90,33 +90,24 @@ class Refinement:
 
     @property
     def uncertainty_deg(self):
-        """Return the expected RMS error angle of X's rotation (degrees)."""
-        return _rms(self.reported_covariance[:3, :3], np.degrees(1.0))
+        """Return the expected RMS error angle of X's rotation (degrees), as reported."""
+        return uncertainties(self.reported_covariance)[0]
 
     @property
     def translation_uncertainty_mm(self):
-        """Return the expected RMS error of X's translation (millimetres)."""
-        return _rms(self.reported_covariance[3:6, 3:6], 1e3)
+        """Return the expected RMS error of X's translation (millimetres), as reported."""
+        return uncertainties(self.reported_covariance)[1]
 
-    @property
-    def sandwich_uncertainty_deg(self):
-        """Return the rotation uncertainty of the sandwich covariance (degrees)."""
-        return _rms(self.covariance[:3, :3], np.degrees(1.0))
 
-    @property
-    def sandwich_translation_uncertainty_mm(self):
-        """Return the translation uncertainty of the sandwich covariance (millimetres)."""
-        return _rms(self.covariance[3:6, 3:6], 1e3)
+def uncertainties(covariance):
+    """
+    Return X's expected RMS errors (rotation angle in degrees, translation in millimetres).
 
-    @property
-    def model_uncertainty_deg(self):
-        """Return the rotation uncertainty the noise model alone predicts (degrees)."""
-        return _rms(self.model_covariance[:3, :3], np.degrees(1.0))
-
-    @property
-    def model_translation_uncertainty_mm(self):
-        """Return the translation uncertainty the noise model alone predicts (millimetres)."""
-        return _rms(self.model_covariance[3:6, 3:6], 1e3)
+    covariance: a covariance whose first six rows and columns are X's rotation (radians) and
+    translation (metres): Refinement.covariance (the sandwich), .model_covariance or
+    .reported_covariance.
+    """
+    return (_rms(covariance[:3, :3], np.degrees(1.0)), _rms(covariance[3:6, 3:6], 1e3))
 
 
 def _rms(block, unit):
@@ -135,16 +126,16 @@ def residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, link_R=Non
     """
     R_X = quat.matrix_from_quaternion(x_q)
     return _residuals(link_q, sensor_q, sensor_t, x_q, o_q, R_X,
-                      _lever(link_q, link_t, x_t, o_t, link_R))
+                      lever(link_q, link_t, x_t, o_t, link_R))
 
 
-def _residuals(link_q, sensor_q, sensor_t, x_q, o_q, R_X, lever):
+def _residuals(link_q, sensor_q, sensor_t, x_q, o_q, R_X, w):
     fixed = quat.plus_matrix(quat.conjugate(o_q)) @ quat.minus_matrix(x_q)
     rotation = quat.rotation_vector(quat.multiply(sensor_q, link_q @ fixed.T))
-    return rotation, sensor_t - lever @ R_X
+    return rotation, sensor_t - w @ R_X
 
 
-def _lever(link_q, link_t, x_t, o_t, link_R=None):
+def lever(link_q, link_t, x_t, o_t, link_R=None):
     """Return w_i = R_L^T (t_O - t_L) - t_X: the object seen from the link, minus X's offset."""
     R_L = quat.matrix_from_quaternion(link_q) if link_R is None else link_R
     return np.einsum('nji,nj->ni', R_L, o_t - link_t) - x_t
@@ -178,7 +169,7 @@ def whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t, link
     sigma_t (metres) per axis. link_R: the link rotation matrices, when the caller has them.
     """
     R_L = quat.matrix_from_quaternion(link_q) if link_R is None else link_R
-    J = jacobian(R_L, quat.matrix_from_quaternion(x_q), _lever(link_q, link_t, x_t, o_t, R_L))
+    J = jacobian(R_L, quat.matrix_from_quaternion(x_q), lever(link_q, link_t, x_t, o_t, R_L))
     J[:, 0:3] /= sigma_r
     J[:, 3:6] /= sigma_t
     return np.concatenate([J[:, 0:3].reshape(-1, 12), J[:, 3:6].reshape(-1, 12)])
@@ -319,9 +310,9 @@ def with_jackknife_of(refinement, earlier):
 def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, link_R):
     """Return the residuals (N, 6: rotation, translation) and their Jacobian (N, 6, 12)."""
     R_X = quat.matrix_from_quaternion(x_q)
-    lever = _lever(link_q, link_t, x_t, o_t, link_R)
-    rotation, translation = _residuals(link_q, sensor_q, sensor_t, x_q, o_q, R_X, lever)
-    return np.hstack([rotation, translation]), jacobian(link_R, R_X, lever)
+    w = lever(link_q, link_t, x_t, o_t, link_R)
+    rotation, translation = _residuals(link_q, sensor_q, sensor_t, x_q, o_q, R_X, w)
+    return np.hstack([rotation, translation]), jacobian(link_R, R_X, w)
 
 
 def _normal_equations(J, e, noise):

@@ -144,9 +144,7 @@ class CalibratorNode(Node):
                 for stream, callback, qos in ((LINK, self._on_link, LINK_QOS),
                                               (SENSOR, self._on_sensor, SENSOR_QOS))}
             return message_type
-        self.tf = TfFeed(TfFeed.new_tree(), self.poses,
-                         {LINK: frames['link'], SENSOR: frames['sensor']},
-                         self._on_tf_pose)
+        self.tf = TfFeed(TfFeed.new_tree(), self.poses, frames, self._on_tf_pose)
         tf_topic = self.create_subscription(
             TFMessage, '/tf', lambda msg: self._on_tf(tf_topic.topic_name, msg, False),
             TF_QOS)
@@ -172,9 +170,7 @@ class CalibratorNode(Node):
         now_ns = self.now_ns()
         self.poses.take_rows(stream, 1, now_ns)
         add = self.session.add_link_pose if stream == LINK else self.session.add_sensor_pose
-        events = self.poses.verdict(stream, add(stamp_ns, pose), now_ns)
-        if events:
-            self.handle_events(events)
+        self._add_pose(stream, add, (stamp_ns, pose), now_ns)
 
     def _on_link(self, msg):
         self._on_pose(LINK, msg, self.session.add_link_pose)
@@ -186,9 +182,13 @@ class CalibratorNode(Node):
         now_ns = self.now_ns()
         taken = self.poses.take(stream, msg, now_ns)
         if taken is not None:
-            events = self.poses.verdict(stream, add(*taken), now_ns)
-            if events:
-                self.handle_events(events)
+            self._add_pose(stream, add, taken, now_ns)
+
+    def _add_pose(self, stream, add, taken, now_ns):
+        """Give a checked (stamp_ns, Pose) to the session; handle what it says."""
+        events = self.poses.verdict(stream, add(*taken), now_ns)
+        if events:
+            self.handle_events(events)
 
     def _log_bad_message(self, stream, reason, count, detail):
         total = self.poses.stats.bad[stream, reason]

@@ -75,7 +75,8 @@ PARAMETERS = {
                 None),
     'marker_frame': ('marker', 'the observed marker frame (tf_mode)', None),
 }
-# tf_mode: the camera driver's static transform to the sensor frame, and the first joint.
+# tf_mode: the camera driver's static transform to the sensor frame (an optical frame: z
+# forward, x right, y down), and the first joint.
 CAMERA_LINK = 'camera_link'
 CAMERA_LINK_TO_SENSOR = Pose.create([0.0, 0.015, 0.0],
                                     quat.from_rotation_vector([-1.2092, 1.2092, -1.2092]))

@@ -24,7 +24,7 @@ from quatcal_ros.core.calibration import CalibrationOptions, METHODS
 from quatcal_ros.core.units import ns_from_s, SETUPS
 from quatcal_ros.core.validation import Thresholds
 from quatcal_ros.stream.capture import CaptureConfig, MODES as CAPTURE_MODES
-from quatcal_ros.stream.message_checks import CheckConfig
+from quatcal_ros.stream.message_checks import CheckConfig, LINK, SENSOR
 from quatcal_ros.stream.pairing import PairingConfig
 from quatcal_ros.stream.session import SessionConfig
 
@@ -338,7 +338,7 @@ TF_FRAMES = ('robot_base_frame', 'robot_effector_frame', 'tracking_base_frame',
 
 def tf_frames(settings):
     """
-    Return {'link': (base, effector), 'sensor': (tracking base, marker)}, or None (topics).
+    Return {LINK: (base, effector), SENSOR: (tracking base, marker)}, or None (topics).
 
     :raises ConfigError: when some of the four TF frames are set and others not.
     """
@@ -348,7 +348,7 @@ def tf_frames(settings):
     missing = [name for name, value in zip(TF_FRAMES, values) if not value]
     if missing:
         raise ConfigError(f'TF input needs all four frames: {", ".join(missing)} not set')
-    return {'link': tuple(values[:2]), 'sensor': tuple(values[2:])}
+    return {LINK: tuple(values[:2]), SENSOR: tuple(values[2:])}
 
 
 def check_config(settings):
