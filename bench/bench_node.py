@@ -42,7 +42,7 @@ TICK_S = 0.004
 
 def run_empty_subscriber():
     """Run the floor: the node's subscriptions with callbacks that only count."""
-    from quatcal_ros.ros.node import LINK_QOS, SENSOR_QOS
+    from quatcal_ros.ros.qos import LINK_QOS, SENSOR_QOS
     from geometry_msgs.msg import PoseStamped
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor

@@ -36,7 +36,7 @@ sys.path.insert(0, str(REPO_ROOT / 'test'))      # the test's harness and domain
 NS = 1_000_000_000
 TICK_S = 0.004
 PARAMETERS = ('diagnostics_period_s:=0.5', 'still_window_s:=0.3')
-LINK_DEPTH = 1000   # the node's link_pose subscription queue (node.LINK_QOS)
+LINK_DEPTH = 1000   # the node's link_pose subscription queue (qos.LINK_QOS)
 
 
 def run_real_time(driver, streams, process, flood_hz=0.0, on_second=None):

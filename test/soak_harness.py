@@ -27,7 +27,7 @@ from rclpy.qos import ReliabilityPolicy
 from ros_harness import LATCHED
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-# Reliable, and as deep as the node's link_pose queue (node.LINK_QOS).
+# Reliable, and as deep as the node's link_pose queue (qos.LINK_QOS).
 PUBLISH_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 

@@ -193,11 +193,11 @@ def nodes(context, tmp_path_factory):
 def restart(node):
     """Start a fresh session and fresh counts on `node`."""
     node._on_reset(Trigger.Request(), Trigger.Response())
-    node.poses.stats = mc.StreamStats()
+    node.inputs.screen.stats = mc.StreamStats()
 
 
 def deliver(node, stream, msg):
-    (node._on_link if stream == mc.LINK else node._on_sensor)(msg)
+    node.inputs._on_pose(stream, msg)
 
 
 def assert_consistent(node, sent):

@@ -21,9 +21,9 @@ from quatcal_ros.core.units import MESSAGE_NORM_TOLERANCE, NS_PER_S
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.diagnostics import DIAGNOSTIC_NAME
 from quatcal_ros.ros.node import CalibratorNode
-from quatcal_ros.ros.node import LOG_THROTTLE_S
 from quatcal_ros.sim import simulation
 from quatcal_ros.stream import message_checks as mc
+from quatcal_ros.stream.message_checks import LOG_THROTTLE_S
 from quatcal_ros.stream.session import Notice
 from quatcal_ros.stream.session import Rejected
 from quatcal_ros.stream.session import Session

@@ -16,6 +16,7 @@ from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.node import CalibratorNode
+from quatcal_ros.ros.qos import TF_QOS, TF_STATIC_BROADCAST_QOS
 from quatcal_ros.ros.sim_cell import CAMERA_LINK_TO_SENSOR as CAMERA_LINK_TO_OPTICAL
 from quatcal_ros.ros.sim_cell import shoulder_pose as shoulder
 from quatcal_ros.sim import simulation
@@ -24,13 +25,9 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from ros_harness import harnesses_of, SpinMixin
 from tf2_msgs.msg import TFMessage
 
-TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 FRAMES = [Parameter('robot_base_frame', value='base_link'),
           Parameter('robot_effector_frame', value='tool0'),
           Parameter('tracking_base_frame', value='camera_color_optical_frame'),
@@ -48,7 +45,8 @@ class TfHarness(SpinMixin):
         self.node = CalibratorNode(context=self.context, parameter_overrides=parameters)
         self.driver = rclpy.create_node('test_tf_driver', context=self.context)
         self.tf = self.driver.create_publisher(TFMessage, '/tf', TF_QOS)
-        self.tf_static = self.driver.create_publisher(TFMessage, '/tf_static', STATIC_QOS)
+        self.tf_static = self.driver.create_publisher(
+            TFMessage, '/tf_static', TF_STATIC_BROADCAST_QOS)
         self.watch_outputs()
         self.sent = 0
         for node in (self.node, self.driver):
@@ -66,7 +64,7 @@ class TfHarness(SpinMixin):
             self.sent += 1
 
     def wait_received(self, timeout=10.0):
-        topic = self.node.topics['link_pose']
+        topic = self.node.inputs.topics['link_pose']
         self.spin_until(lambda: self.node.stats.received[topic] >= self.sent, timeout,
                         what='the node to receive /tf')
 
@@ -163,7 +161,7 @@ def test_publish_tf_gives_no_frame_a_second_parent(tf_harness):
                     Parameter('link_frame', value='tool0'),
                     Parameter('sensor_frame', value='camera_color_optical_frame')])
     heard = []
-    h.driver.create_subscription(TFMessage, '/tf_static', heard.append, STATIC_QOS)
+    h.driver.create_subscription(TFMessage, '/tf_static', heard.append, TF_STATIC_BROADCAST_QOS)
     publish_camera_driver(h, streams)
     play(h, cell_messages(streams))
     h.spin_until(lambda: h.rotations, what='an estimate')
@@ -276,12 +274,12 @@ def test_a_late_transform_is_only_late_not_a_time_jump(tf_harness):
     publish_camera_driver(h, streams)
     messages = cell_messages(streams)
     play(h, messages[:300])
-    generation = h.node.tf.tree.generation
+    generation = h.node.inputs.tf.tree.generation
     newest = max(t[2] for transforms in messages[:300] for t in transforms)
     late = newest - 10 ** 9
     h.publish([('base_link', 'shoulder', late, shoulder(late))])
     play(h, messages[300:])
-    assert h.node.tf.tree.generation == generation   # the transform buffers were not cleared
+    assert h.node.inputs.tf.tree.generation == generation   # the buffers were not cleared
     assert h.node.session.counters['time_jumps'] == 0
     assert not h.node.stats.bad
     h.spin_until(lambda: h.node.session.result is not None, what='an estimate')

@@ -335,8 +335,8 @@ def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before
         publish = node.rotation_publisher.publish
         monkeypatch.setattr(node.rotation_publisher, 'publish',
                             lambda msg: steps.append('publish') or publish(msg))
-        log_sample = node._log_sample
-        monkeypatch.setattr(node, '_log_sample',
+        log_sample = node.log.sample
+        monkeypatch.setattr(node.log, 'sample',
                             lambda event: steps.append('log') or log_sample(event))
         node.handle_events(node.session.add_sample(samples[7]))
         # The sample's events first (journal, log), then the estimate the node asks for.

@@ -2,9 +2,9 @@
 The live calibrator node: pose topics in, hand-eye estimate out (DESIGN.md contract 4).
 
 A thin shell: the session (stream/session.py) does the work, and this node wires it to ROS.
-- subscribes `link_pose` and `sensor_pose` (relative names; PoseStamped, or TransformStamped
-  with pose_type:=transform); each message is checked, converted and counted by
-  pose_screen.PoseScreen, the same checks the replay runs; bad ones are logged throttled;
+- takes its poses through inputs.NodeInputs: the topics `link_pose` and `sensor_pose`, or
+  /tf and /tf_static when the four TF frames are set; each message is checked, converted and
+  counted with the checks the replay runs, bad ones are logged throttled;
 - publishes `~/rotation` (QuaternionStamped, latched, frame_id = link_frame) and
   `~/transform` (TransformStamped link_frame -> sensor_frame, latched) on each new estimate,
   with publish_tf:=true also on /tf_static (frame-safe), and the status on
@@ -12,7 +12,8 @@ A thin shell: the session (stream/session.py) does the work, and this node wires
 - serves `~/capture`, `~/reset` and `~/save` (std_srvs/Trigger);
 - keeps the session's files and warnings through files/session_record.py: each captured
   sample goes to the samples journal before its estimate is published and is fsync'd before it
-  is logged; resume:=true continues a journal; a moved marker is warned of once;
+  is logged; resume:=true continues a journal; a moved marker is warned of once; what
+  happens is logged by event_log.EventLog;
 - declares its parameters from the settings table (parameters.py) and re-estimates from the
   samples kept when one that shapes the session changes at runtime.
 
@@ -20,7 +21,6 @@ Times come from header stamps and the node clock (so use_sim_time and bag replay
 """
 
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped
 from geometry_msgs.msg import QuaternionStamped
 from geometry_msgs.msg import TransformStamped
 from quatcal_ros.core.pose import Pose
@@ -30,42 +30,21 @@ from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_res
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros import parameters
 from quatcal_ros.ros import spin
-from quatcal_ros.ros.diagnostics import calibrator_status, describe_result, InputWatch
-from quatcal_ros.ros.pose_screen import PoseScreen
-from quatcal_ros.ros.qos import LATCHED_QOS
+from quatcal_ros.ros.diagnostics import calibrator_status, InputWatch
+from quatcal_ros.ros.event_log import EventLog
+from quatcal_ros.ros.inputs import NodeInputs
+from quatcal_ros.ros.qos import DIAGNOSTICS_QOS, LATCHED_QOS
 from quatcal_ros.ros.static_tf import StaticTf
-from quatcal_ros.ros.tf_feed import TfFeed
-from quatcal_ros.stream import message_checks
 from quatcal_ros.stream import settings
-from quatcal_ros.stream.session import EstimateUpdated, Notice, Rejected, SampleCaptured
-from quatcal_ros.stream.session import Session
+from quatcal_ros.stream.message_checks import LINK
+from quatcal_ros.stream.session import EstimateUpdated, SampleCaptured, Session
 from quatcal_ros.stream.settings import ConfigError
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy
-from rclpy.qos import HistoryPolicy
-from rclpy.qos import QoSProfile
-from rclpy.qos import ReliabilityPolicy
 from std_srvs.srv import Trigger
-from tf2_msgs.msg import TFMessage
 
 NODE_NAME = settings.NODE_NAME
-LINK, SENSOR = message_checks.LINK, message_checks.SENSOR
-LOG_THROTTLE_S = message_checks.LOG_THROTTLE_S
-# Depth 1000: one second of a 1 kHz stream (or of a flood of bad messages) waits while a new
-# sample is estimated instead of being dropped.
-LINK_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
-                      reliability=ReliabilityPolicy.RELIABLE)
-# BEST_EFFORT matches reliable and best-effort (sensor data) publishers alike.
-SENSOR_QOS = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
-                        reliability=ReliabilityPolicy.BEST_EFFORT)
-DIAGNOSTICS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-# TF input: tf2's listener QoS (reliable, depth 100; /tf_static transient local, so every
-# static broadcaster's latched message arrives whenever it started).
-TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-TF_STATIC_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class CalibratorNode(Node):
@@ -85,11 +64,10 @@ class CalibratorNode(Node):
             self.destroy_node()
             raise
         self.session = Session(settings.session_config(self.config))
-        self.poses = PoseScreen(settings.check_config(self.config), self._log_bad_message)
+        self.log = EventLog(self.get_logger())
         self.moves = MoveWatch()
-        self._rejected_samples = set()
-        self.tf = None
-        message_type = self._subscribe_inputs()
+        self.inputs = NodeInputs(self, settings.check_config(self.config), self._tf_frames,
+                                 self.config.pose_type, self._add_pose)
         self.rotation_publisher = self.create_publisher(
             QuaternionStamped, '~/rotation', LATCHED_QOS)
         self.transform_publisher = self.create_publisher(
@@ -111,93 +89,32 @@ class CalibratorNode(Node):
         self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(
             f'calibrating {self.config.setup} rotation {self.config.link_frame} -> '
-            f'{self.config.sensor_frame} from {self._input_text()} '
-            f'({message_type.__name__}), capture mode {self.config.capture_mode}')
+            f'{self.config.sensor_frame} from {self.inputs.describe()}, '
+            f'capture mode {self.config.capture_mode}')
         self._start_tf_broadcast()
-        package = 'tf2_msgs' if self.tf is not None else 'geometry_msgs'
-        self.inputs = InputWatch(f'{package}/msg/{message_type.__name__}', self.now_ns())
+        self.input_watch = InputWatch(self.inputs.type_name, self.now_ns())
         self._resume()
 
     @property
     def stats(self):
         """Return the message counts (message_checks.StreamStats)."""
-        return self.poses.stats
+        return self.inputs.screen.stats
 
     @property
     def checks(self):
         """Return what pose messages must satisfy (message_checks.CheckConfig)."""
-        return self.poses.config
+        return self.inputs.screen.config
 
     def now_ns(self):
         """Return the node clock (ROS time; simulated with use_sim_time) in nanoseconds."""
         return self.get_clock().now().nanoseconds
 
-    # --- pose input ------------------------------------------------------------------------
-
-    def _subscribe_inputs(self):
-        """Subscribe the pose topics, or /tf and /tf_static (TF input); return the type."""
-        frames = self._tf_frames
-        if frames is None:
-            message_type = PoseStamped if self.config.pose_type == 'pose' else TransformStamped
-            self.topics = {   # resolved names (namespace, remapping), for the logs
-                stream: self.create_subscription(message_type, stream, callback, qos).topic_name
-                for stream, callback, qos in ((LINK, self._on_link, LINK_QOS),
-                                              (SENSOR, self._on_sensor, SENSOR_QOS))}
-            return message_type
-        self.tf = TfFeed(TfFeed.new_tree(), self.poses, frames, self._on_tf_pose)
-        tf_topic = self.create_subscription(
-            TFMessage, '/tf', lambda msg: self._on_tf(tf_topic.topic_name, msg, False),
-            TF_QOS)
-        static_topic = self.create_subscription(
-            TFMessage, '/tf_static', lambda msg: self._on_tf(static_topic.topic_name, msg, True),
-            TF_STATIC_QOS)
-        self.topics = {LINK: tf_topic.topic_name, SENSOR: tf_topic.topic_name}
-        return TFMessage
-
-    def _input_text(self):
-        if self.tf is None:
-            return f'{self.topics[LINK]} and {self.topics[SENSOR]}'
-        pairs = {stream: f'{frames.target} -> {frames.source}'
-                 for stream, frames in self.tf.watchers.items()}
-        return f'/tf and /tf_static: link pose {pairs[LINK]}, sensor pose {pairs[SENSOR]}'
-
-    def _on_tf(self, topic, msg, static):
-        self.poses.stats.note(topic, self.now_ns())
-        self.tf.take(topic, msg, static)
-
-    def _on_tf_pose(self, stream, stamp_ns, pose):
-        """Take a pose composed from the transform tree (TF input), as _on_pose does."""
-        now_ns = self.now_ns()
-        self.poses.take_rows(stream, 1, now_ns)
-        add = self.session.add_link_pose if stream == LINK else self.session.add_sensor_pose
-        self._add_pose(stream, add, (stamp_ns, pose), now_ns)
-
-    def _on_link(self, msg):
-        self._on_pose(LINK, msg, self.session.add_link_pose)
-
-    def _on_sensor(self, msg):
-        self._on_pose(SENSOR, msg, self.session.add_sensor_pose)
-
-    def _on_pose(self, stream, msg, add):
-        now_ns = self.now_ns()
-        taken = self.poses.take(stream, msg, now_ns)
-        if taken is not None:
-            self._add_pose(stream, add, taken, now_ns)
-
-    def _add_pose(self, stream, add, taken, now_ns):
+    def _add_pose(self, stream, taken, now_ns):
         """Give a checked (stamp_ns, Pose) to the session; handle what it says."""
-        events = self.poses.verdict(stream, add(*taken), now_ns)
+        add = self.session.add_link_pose if stream == LINK else self.session.add_sensor_pose
+        events = self.inputs.screen.verdict(stream, add(*taken), now_ns)
         if events:
             self.handle_events(events)
-
-    def _log_bad_message(self, stream, reason, count, detail):
-        total = self.poses.stats.bad[stream, reason]
-        so_far = (f'{total} so far' if count == total
-                  else f'{count} since the last report, {total} in all')
-        self.get_logger().warning(
-            f'{self.topics.get(stream, stream)}: bad message skipped ({reason}, {so_far}; '
-            'reported at most '
-            f'every {LOG_THROTTLE_S:g} s): {message_checks.detail_text(detail)}')
 
     # --- session events --------------------------------------------------------------------
 
@@ -211,33 +128,22 @@ class CalibratorNode(Node):
         of the new samples, whose events are handled the same way.
         """
         captured = [event.sample for event in events if isinstance(event, SampleCaptured)]
-        self._log_messages(self.journal.append(captured, self.session.samples))
+        self.log.messages(self.journal.append(captured, self.session.samples))
         for event in events:
             if isinstance(event, EstimateUpdated):
                 self.publish_estimate(event.result)
         if captured:
-            self._log_messages(self.journal.sync())
-        for event in events:
-            if isinstance(event, SampleCaptured):
-                self._log_sample(event)
-            elif isinstance(event, EstimateUpdated):
-                self._log_estimate(event.result)
-            elif isinstance(event, Rejected):
-                self.get_logger().info(f'rejected {event.what}: {event.reason}',
-                                       throttle_duration_sec=LOG_THROTTLE_S)
-            elif isinstance(event, Notice) and event.code == 'time_jump':
-                self.get_logger().info(event.text, throttle_duration_sec=LOG_THROTTLE_S)
-            elif isinstance(event, Notice):
-                self.get_logger().info(event.text)
+            self.log.messages(self.journal.sync())
+        self.log.log(events, self._move_check)
         # The estimate of new samples, if any (the session estimates when asked).
         later = self.session.estimate()
         if later:
             self.handle_events(later)
 
-    def _log_sample(self, event):
-        position = ', '.join(f'{v:.3f}' for v in event.sample.link.position)
-        self.get_logger().info(f'sample {event.index} captured at stamp '
-                               f'{event.sample.stamp_ns * 1e-9:.3f} s (link at [{position}] m)')
+    def _move_check(self, result):
+        options = self.session.config.calibration
+        return self.moves.check(self.session.samples, result.quaternion, options.setup,
+                                options.invert_sensor)
 
     def publish_estimate(self, result):
         """Publish `result` (quaternion, translation) on ~/rotation, ~/transform, /tf_static."""
@@ -255,33 +161,6 @@ class CalibratorNode(Node):
             Pose.create(result.translation, result.quaternion), stamp_ns,
             self.config.link_frame, self.config.sensor_frame)
 
-    def _log_estimate(self, result):
-        """Log a new estimate, its newly rejected samples and warnings, and a moved marker."""
-        logger = self.get_logger()
-        logger.info(describe_result(result))
-        rejected = {entry['sample']: entry['reason'] for entry in result.rejected
-                    if 'sample' in entry}
-        for index in sorted(set(rejected) - self._rejected_samples):
-            logger.info(f'rejected sample {index}: {rejected[index]}')
-        self._rejected_samples = set(rejected)
-        for warning in result.warnings:
-            logger.warning(warning, throttle_duration_sec=LOG_THROTTLE_S)
-        options = self.session.config.calibration
-        move = self.moves.check(self.session.samples, result.quaternion, options.setup,
-                                options.invert_sensor)
-        if move:
-            logger.warning(move)
-
-    def _log_messages(self, messages):
-        logger = self.get_logger()
-        for level, text in messages:   # one call site per severity (rclpy insists)
-            if level == 'error':
-                logger.error(text)
-            elif level == 'warning':
-                logger.warning(text)
-            else:
-                logger.info(text)
-
     def _start_tf_broadcast(self):
         """With publish_tf, start /tf_static; turned on at runtime, it sends the estimate."""
         result = self.session.result
@@ -292,7 +171,7 @@ class CalibratorNode(Node):
         """Put the result on /tf_static, frame-safe in the TF tree with TF input."""
         self.static_tf.send(Pose.create(result.translation, result.quaternion), stamp_ns,
                             self.config.link_frame, self.config.sensor_frame,
-                            self.tf.tree if self.tf is not None else None)
+                            self.inputs.tf.tree if self.inputs.tf is not None else None)
 
     # --- samples journal -------------------------------------------------------------------
 
@@ -303,7 +182,7 @@ class CalibratorNode(Node):
     def _resume(self):
         """Log what opening the journal did; estimate from its samples when resuming."""
         report = self.journal.report
-        self._log_messages(report.messages)
+        self.log.messages(report.messages)
         if report.samples:   # already in the journal: not appended again, not logged
             self._add_known_samples(report.samples)
             if self.session.result is None:
@@ -328,14 +207,14 @@ class CalibratorNode(Node):
         tf_static, tf_problem = self.static_tf.state(self.config.publish_tf)
         now_ns = self.now_ns()
         problems = [self.moves.warning(len(self.session.samples)), self.journal.problem,
-                    tf_problem, *self.inputs.problems(
-                        self.poses.stats, self.topics, self._publisher_types,
+                    tf_problem, *self.input_watch.problems(
+                        self.stats, self.inputs.topics, self._publisher_types,
                         self.session.counters['time_jumps'], now_ns,
                         self.get_parameter('use_sim_time').value),
-                    *(self.tf.problems() if self.tf is not None else ())]
-        return calibrator_status(self.session, self.poses.stats, now_ns,
+                    *self.inputs.problems()]
+        return calibrator_status(self.session, self.stats, now_ns,
                                  self.config.link_frame, problems, tf_static,
-                                 self.inputs.started_ns, self.topics)
+                                 self.input_watch.started_ns, self.inputs.topics)
 
     def _publisher_types(self, topic):
         return [info.topic_type for info in self.get_publishers_info_by_topic(topic)]
@@ -366,7 +245,7 @@ class CalibratorNode(Node):
     def _on_reset(self, request, response):
         discarded = len(self.session.samples)
         self.session.reset()
-        self._rejected_samples = set()
+        self.log.reset()
         self.moves.reset()
         journal_text = self.journal.restart()
         if self.journal.problem:
@@ -410,12 +289,12 @@ class CalibratorNode(Node):
 
     def _apply_parameters(self, changes):
         old, self.config = self.config, parameters.updated(self.config, changes)
-        self.poses.config = settings.check_config(self.config)
+        self.inputs.screen.config = settings.check_config(self.config)
         changed = [n for n, v in self.config.as_dict().items() if old.as_dict()[n] != v]
         if changed:
             self.get_logger().info(f'parameters changed: {", ".join(changed)}')
         if set(changed) & set(journal.HEADER_KEYS):
-            self._log_messages(self.journal.set_header(self._journal_header()))
+            self.log.messages(self.journal.set_header(self._journal_header()))
         if 'publish_tf' in changed:
             self._start_tf_broadcast()
         if any(name not in settings.PRESENTATION for name in changed):

@@ -31,15 +31,13 @@ from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.units import ns_from_s, NS_PER_S, SETUPS
 from quatcal_ros.ros import conversions, spin
-from quatcal_ros.ros.qos import LATCHED_QOS
+from quatcal_ros.ros.qos import LATCHED_QOS, TF_QOS, TF_STATIC_BROADCAST_QOS
 from quatcal_ros.sim import simulation
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy
 from rclpy.qos import QoSProfile
-from rclpy.qos import ReliabilityPolicy
 from tf2_msgs.msg import TFMessage
 
 NODE_NAME = 'sim_cell'
@@ -81,9 +79,6 @@ CAMERA_LINK = 'camera_link'
 CAMERA_LINK_TO_SENSOR = Pose.create([0.0, 0.015, 0.0],
                                     quat.from_rotation_vector([-1.2092, 1.2092, -1.2092]))
 SHOULDER = 'shoulder'
-TF_QOS = QoSProfile(depth=100)
-TF_STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def shoulder_pose(stamp_ns):
@@ -181,7 +176,8 @@ class SimCell(Node):
         stream_qos = QoSProfile(depth=STREAM_QOS_DEPTH)
         if config.tf_mode:
             self._tf_pub = self.create_publisher(TFMessage, '/tf', TF_QOS)
-            self._tf_static_pub = self.create_publisher(TFMessage, '/tf_static', TF_STATIC_QOS)
+            self._tf_static_pub = self.create_publisher(
+                TFMessage, '/tf_static', TF_STATIC_BROADCAST_QOS)
         else:
             self._link_pub = self.create_publisher(PoseStamped, 'link_pose', stream_qos)
             self._sensor_pub = self.create_publisher(PoseStamped, 'sensor_pose', stream_qos)

@@ -15,12 +15,9 @@ An edge from link_frame itself (this node's earlier publication, heard back) is 
 """
 
 from quatcal_ros.ros import conversions
+from quatcal_ros.ros.qos import TF_STATIC_BROADCAST_QOS
 from quatcal_ros.stream.tf_tree import normalize_frame
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from tf2_msgs.msg import TFMessage
-
-STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class StaticTf:
@@ -35,7 +32,8 @@ class StaticTf:
     def start(self):
         """Make the publisher (once); return True."""
         if self.publisher is None:
-            self.publisher = self.node.create_publisher(TFMessage, '/tf_static', STATIC_QOS)
+            self.publisher = self.node.create_publisher(
+                TFMessage, '/tf_static', TF_STATIC_BROADCAST_QOS)
         return True
 
     def send(self, pose, stamp_ns, parent, child, tree=None):
