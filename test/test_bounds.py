@@ -163,3 +163,30 @@ def test_jacobian_matches_finite_differences_at_the_truth():
                                for e in np.eye(12)])
     analytic = refine.whitened_jacobian(link_q, link_t, *truth, 1.0, 1.0)
     np.testing.assert_allclose(analytic, numeric, atol=1e-7)
+
+
+@pytest.mark.parametrize('setup', SETUPS)
+def test_robot_noise_in_the_sensor_frame_matches_finite_differences(setup):
+    """link_noise_covariances is the first-order image of noise on T_base_link: check it."""
+    rng = np.random.default_rng(9)
+    cell = simulation.random_cell(rng, setup)
+    link_t, link_q = (np.array(a) for a in zip(*[(p.position, p.quaternion)
+                                                 for p in simulation.stop_poses(rng, cell, 5)]))
+    sensor_t, sensor_q = cell.sensor_poses(link_t, link_q)
+
+    def moved(e):   # the sensor poses when every link pose is measured with noise e
+        t, q = cell.sensor_poses(link_t + e[3:], quat.multiply(quat.from_rotation_vector(
+            np.broadcast_to(e[:3], link_t.shape)), link_q))
+        rotation = quat.rotation_vector(quat.multiply(q, quat.conjugate(sensor_q)))
+        return np.concatenate([rotation, t - sensor_t], axis=1)   # (N, 6)
+
+    h = 1e-6
+    A = np.stack([(moved(h * e) - moved(-h * e)) / (2 * h) for e in np.eye(6)], axis=2)
+    link_covariance = np.diag([1e-4, 2e-4, 3e-4, 1e-6, 4e-6, 9e-6])
+    refine_t, refine_q = ((link_t, link_q) if setup == 'eye_in_hand'
+                          else simulation.invert(link_t, link_q))
+    covariances = bounds.link_noise_covariances(
+        refine_q, refine_t, cell.mounting.quaternion, cell.target.position, link_covariance,
+        setup)
+    np.testing.assert_allclose(covariances, A @ link_covariance @ np.transpose(A, (0, 2, 1)),
+                               rtol=1e-6, atol=1e-14)

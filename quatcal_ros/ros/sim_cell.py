@@ -6,8 +6,9 @@ publishes, with stamps from its own clock (so use_sim_time works):
 
 - `link_pose` (geometry_msgs/PoseStamped): T_base_link, frame_id = base_frame, at link_rate_hz;
 - `sensor_pose` (PoseStamped): T_sensor_obj, frame_id = sensor_frame, as a camera would
-  (simulation.SensorModel): sensor_rate_hz, noise, header stamp = exposure time, published
-  latency_s after it, frames dropped with drop_probability, marker flips with outlier_fraction;
+  (simulation.SensorModel): sensor_rate_hz, noise, header stamp = exposure time (plus
+  clock_offset_s: a sensor clock that leads the robot's), published latency_s after the
+  exposure, frames dropped with drop_probability, marker flips with outlier_fraction;
 - `~/ground_truth` (TransformStamped, reliable + transient local, depth 1): the mounting,
   link_frame -> sensor_frame (eye_in_hand) or base_frame -> sensor_frame (eye_to_hand),
   stamped with the start of the trajectory (link sample 0).  It is also logged at start.
@@ -55,6 +56,9 @@ PARAMETERS = {
     'rotation_noise_deg': (0.2, 'sensor rotation noise, std per axis (deg)', (0.0, 10.0)),
     'translation_noise_m': (0.001, 'sensor translation noise, std per axis (m)', (0.0, 0.1)),
     'latency_s': (0.03, 'delay from exposure (header stamp) to publication (s)', (0.0, 2.0)),
+    'clock_offset_s': (0.0, "the sensor clock's lead over the robot's: added to every sensor "
+                       'stamp (s); the calibrator corrects it with sensor_time_offset_s',
+                       (-1.0, 1.0)),
     'drop_probability': (0.05, 'probability that a sensor frame is dropped', (0.0, 1.0)),
     'outlier_fraction': (0.0, 'probability that a frame is a marker flip', (0.0, 1.0)),
     'still_s': (1.5, 'time the robot stands still at each stop (s)', (0.0, 60.0)),
@@ -98,6 +102,7 @@ class SimCellConfig:
     rotation_noise_deg: float
     translation_noise_m: float
     latency_s: float
+    clock_offset_s: float
     drop_probability: float
     outlier_fraction: float
     still_s: float
@@ -173,6 +178,7 @@ class SimCell(Node):
             rng, config.rotation_noise_deg, config.translation_noise_m,
             config.drop_probability, config.outlier_fraction)
         self._latency_ns = ns_from_s(config.latency_s)
+        self._clock_offset_ns = ns_from_s(config.clock_offset_s)
         stream_qos = QoSProfile(depth=STREAM_QOS_DEPTH)
         if config.tf_mode:
             self._tf_pub = self.create_publisher(TFMessage, '/tf', TF_QOS)
@@ -263,7 +269,7 @@ class SimCell(Node):
         positions, quaternions, kept, _ = self._sensor.observe(true_p, true_q)
         config = self.config
         for t, p, q in zip(times[kept].tolist(), positions[kept], quaternions[kept]):
-            stamp, seen = self._origin_ns + t, Pose(p, q)
+            stamp, seen = self._origin_ns + t + self._clock_offset_ns, Pose(p, q)
             if config.tf_mode:
                 self._tf_pub.publish(TFMessage(transforms=[conversions.transform_stamped_msg(
                     seen, stamp, config.sensor_frame, config.marker_frame)]))

@@ -544,13 +544,16 @@ def stop_and_go_streams(rng, cell, n_stops, link_rate_hz=500.0, sensor_rate_hz=3
                         still_s=1.5, move_s=2.0, rotation_noise_deg=0.0,
                         translation_noise_m=0.0, latency_s=0.03, drop_probability=0.05,
                         outlier_fraction=0.0, rotation_spread_deg=30.0,
-                        start_ns=DEFAULT_START_NS):
+                        start_ns=DEFAULT_START_NS, clock_offset_s=0.0):
     """
     Link and sensor streams of a robot visiting n_stops stops (StopAndGo, SensorModel).
 
     Link samples are at start_ns + grid_times_ns(i, link_rate_hz), sensor exposures at
     start_ns + grid_times_ns(j, sensor_rate_hz), both up to the end of the last still interval;
-    each frame is delivered latency_s after its exposure.  The sim_cell node builds the same
+    each frame is delivered latency_s after its exposure.  clock_offset_s: the sensor's clock
+    leads the robot's by this much (a clock offset mode): every sensor stamp is its exposure
+    time plus the offset, the poses and the delivery times stay the same (the session's
+    sensor_time_offset_s = -clock_offset_s undoes it).  The sim_cell node builds the same
     StopAndGo and SensorModel from the same rng in the same order, so with its seed, the same
     cell and start_ns it publishes these very poses.  Vectorised: 10 minutes at 1 kHz take
     about a second.
@@ -570,13 +573,13 @@ def stop_and_go_streams(rng, cell, n_stops, link_rate_hz=500.0, sensor_rate_hz=3
     true_p, true_q = cell.sensor_poses(*trajectory.link_poses(exposure_t))
     sensor_p, sensor_q, kept, outlier = sensor.observe(true_p, true_q)
     start = int(start_ns)
-    sensor_stamps = (exposure_t[kept] + start).tolist()
-    latency_ns = ns_from_s(latency_s)
+    exposures = exposure_t[kept] + start
+    sensor_stamps = (exposures + ns_from_s(clock_offset_s)).tolist()
     return Streams(
         cell=cell,
         link=list(zip((link_t + start).tolist(), poses_from_arrays(link_p, link_q))),
         sensor=list(zip(sensor_stamps, poses_from_arrays(sensor_p[kept], sensor_q[kept]))),
-        sensor_delivery_ns=[stamp + latency_ns for stamp in sensor_stamps],
+        sensor_delivery_ns=(exposures + ns_from_s(latency_s)).tolist(),
         sensor_outliers=np.flatnonzero(outlier[kept]).tolist(),
         stops=[trajectory.stop(k) for k in range(n_stops)],
         stills=[tuple(start + t for t in trajectory.still_interval_ns(k))

@@ -26,6 +26,10 @@ from quatcal_ros.stream.pose_buffer import PoseBuffer
 from quatcal_ros.stream.session import Session
 
 
+# A relative change of the RMS residual below this is no evidence about the offset.
+FLAT_RESIDUAL = 1e-6
+
+
 @dataclass(frozen=True)
 class TimeOffset:
     """An estimated offset (add to sensor stamps) and how clear the alignment was."""
@@ -179,6 +183,10 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
         except DegenerateMotionError:
             return np.inf
     offset = refine_time_offset(residual, coarse.offset_ns, span_ns)
+    # Samples taken while still do not see the offset: on a flat residual the search wanders
+    # in its bracket, so it only replaces the cross-correlation when it lowers the residual.
+    if not residual(offset) < residual(coarse.offset_ns) * (1.0 - FLAT_RESIDUAL):
+        offset = coarse.offset_ns
     session = replay_streams(link, sensor, config, offset)
     return OffsetReport(offset, coarse.correlation, residual(0), residual(offset)), session
 
