@@ -328,3 +328,22 @@ def test_bags_get_the_message_checks_of_the_live_node(tmp_path, streams, monkeyp
     _, report = replay(tmp_path / 'b', checks=CheckConfig(sensor_frame_id='cam'))
     assert report.bad == {('link_pose', 'zero_stamp'): 4,
                           ('sensor_pose', 'wrong_frame_id'): len(streams.sensor)}
+
+
+def test_pose_with_covariance_topics_bring_their_covariances(tmp_path, streams, pose_bag):
+    """A detector's PoseWithCovarianceStamped in a bag: the samples carry its covariance."""
+    covariance = np.diag([1e-6, 1e-6, 9e-6, 3e-6, 3e-6, 1e-7])   # ROS order
+    messages = [m for m in pose_messages(streams) if m[0] == '/link']
+    messages += [('/sensor', delivered, conversions.pose_with_covariance_stamped_msg(
+        Pose(pose.position, pose.quaternion, covariance), stamp, 'camera', typestore=TYPESTORE))
+        for (stamp, pose), delivered in zip(streams.sensor, streams.sensor_delivery_ns)]
+    path = tmp_path / 'with_covariance'
+    write_bag(path, {'/link': POSE_STAMPED,
+                     '/sensor': 'geometry_msgs/msg/PoseWithCovarianceStamped'},
+              sorted(messages, key=lambda m: m[1]))
+    session, _ = replay(path)
+    plain, _ = replay(pose_bag)
+    assert len(session.samples) == len(plain.samples) >= 5
+    for sample, other in zip(session.samples, plain.samples):
+        np.testing.assert_allclose(sample.sensor.covariance, covariance, rtol=1e-12)
+        np.testing.assert_allclose(sample.sensor.position, other.sensor.position, atol=1e-12)

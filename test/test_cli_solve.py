@@ -1,5 +1,6 @@
 """`python -m quatcal_ros solve SAMPLES.csv`: DESIGN.md contracts 2 and 3, run as users run it."""
 
+import io
 import json
 import os
 import subprocess
@@ -9,8 +10,10 @@ import numpy as np
 import pytest
 
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.calibration import calibrate
 from quatcal_ros.core.pose import Pose, Sample
-from quatcal_ros.files.samples_csv import COLUMNS, format_samples
+from quatcal_ros.files.samples_csv import BadInputError, COLUMNS, COVARIANCE_COLUMNS, \
+    format_samples, parse_samples
 from quatcal_ros.sim import simulation
 
 
@@ -95,6 +98,57 @@ def test_bad_input_exits_2_naming_row_and_field(repo_root, tmp_path, text, expec
     assert done.returncode == 2
     assert expected in done.stderr and str(path) in done.stderr
     assert 'Traceback' not in done.stderr and done.stdout == ''
+
+
+def covariance_samples(n=12, seed=31):
+    rng = np.random.default_rng(seed)
+    cell = simulation.random_cell(rng)
+    covariances = simulation.pnp_like_covariance()[None] * np.linspace(1.0, 9.0, n)[:, None, None]
+    return simulation.samples(rng, cell, n, sensor_covariance=covariances,
+                              report_covariance=True)[0]
+
+
+def test_sensor_covariance_columns_round_trip_and_weight_the_solve(repo_root, tmp_path):
+    samples = covariance_samples()
+    samples[3] = Sample(samples[3].stamp_ns, samples[3].link,
+                        Pose(samples[3].sensor.position, samples[3].sensor.quaternion))
+    text = format_samples(samples)
+    assert text.split('\n', 1)[0] == ','.join(COLUMNS + COVARIANCE_COLUMNS)
+    assert text.split('\n')[4].count(',') == len(COLUMNS) - 1   # sample 3: none
+    read = parse_samples(io.StringIO(text))
+    for before, after in zip(samples, read):
+        if before.sensor.covariance is None:
+            assert after.sensor.covariance is None
+        else:
+            np.testing.assert_array_equal(after.sensor.covariance, before.sensor.covariance)
+    # Every sample with its covariance: solve uses them, as calibrate does.
+    samples = covariance_samples()
+    path = tmp_path / 'with_covariance.csv'
+    path.write_text(format_samples(samples))
+    done = run_solve(repo_root, path)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout)
+    assert result['noise_model']['sample_covariances'] == 'input'
+    expected = calibrate(samples)
+    assert quat.angle_between([result['rotation'][k] for k in 'wxyz'], expected.quaternion) \
+        < 1e-12
+
+
+@pytest.mark.parametrize('change, expected', [
+    (lambda cells: cells[:-1], "field sensor_cov_rz_rz: '' is not a number (give all 21"),
+    (lambda cells: cells[:-1] + ['nan'], 'field sensor_cov_rz_rz: nan is not a finite number'),
+    (lambda cells: ['-1'] + cells[1:], 'the covariance is not positive definite'),
+])
+def test_bad_sensor_covariances_are_named(change, expected):
+    text = format_samples(covariance_samples(3))
+    header, first, *rest = text.splitlines()
+    cells = first.split(',')
+    first = ','.join(cells[:len(COLUMNS)] + change(cells[len(COLUMNS):]))
+    with pytest.raises(BadInputError, match='cov.csv, row 2') as raised:
+        parse_samples(io.StringIO('\n'.join([header, first, *rest]) + '\n'), 'cov.csv')
+    assert expected in str(raised.value)
+    with pytest.raises(BadInputError, match='covariance column.s. sensor_cov_x_x missing'):
+        parse_samples(io.StringIO(header.replace(',sensor_cov_x_x', '') + '\n'), 'cov.csv')
 
 
 def test_missing_file_and_bad_arguments_exit_2(repo_root, tmp_path):

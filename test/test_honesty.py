@@ -126,6 +126,43 @@ def test_the_refinement_reaches_the_bound_with_robot_side_noise(setup):
         assert np.sqrt(bound[:, axis].mean() / sensor_only[:, axis].mean()) > 1.05
 
 
+def heteroscedastic(n):
+    """Per-sample covariances: the PnP shape, every other sample 5x noisier (a far view)."""
+    scales = np.where(np.arange(n) % 2 == 0, 1.0, 25.0)
+    return scales[:, None, None] * simulation.pnp_like_covariance()[None]
+
+
+def test_the_samples_own_covariances_weight_them_at_the_bound():
+    """Covariances from the input (PoseWithCovariance, CSV): used, at the bound, honest."""
+    covariances = heteroscedastic(30)
+    with_input, without, bound = [], [], []
+    for k in range(80):
+        for report, out in ((True, with_input), (False, without)):
+            rng = np.random.default_rng(500 + k)
+            cell = simulation.random_cell(rng)
+            samples = simulation.samples(rng, cell, 30, sensor_covariance=covariances,
+                                         report_covariance=report)[0]
+            result = calibrate(samples)
+            assert result.noise_model['sample_covariances'] == ('input' if report else 'none')
+            out.append((quat.angle_between(result.quaternion, cell.mounting.quaternion) ** 2,
+                        np.sum((result.translation - cell.mounting.position) ** 2),
+                        np.radians(result.uncertainty_deg) ** 2,
+                        (1e-3 * result.translation_uncertainty_mm) ** 2))
+        C = bounds.cramer_rao_covariance_general(
+            np.array([s.link.quaternion for s in samples]),
+            np.array([s.link.position for s in samples]), cell.mounting.quaternion,
+            cell.mounting.position, cell.target.quaternion, cell.target.position, covariances)
+        bound.append((np.trace(C[:3, :3]), np.trace(C[3:6, 3:6])))
+    with_input, without, bound = np.array(with_input), np.array(without), np.array(bound)
+    for axis, name in enumerate(('rotation', 'translation')):
+        ratio = np.sqrt(with_input[:, axis].mean() / bound[:, axis].mean())
+        assert 0.85 <= ratio <= 1.1, f'{name}: {ratio:.3f}x the bound'
+        honest = np.sqrt(with_input[:, axis].mean() / with_input[:, axis + 2].mean())
+        assert HONEST[0] <= honest <= HONEST[1], f'{name}: error / reported {honest:.2f}'
+        # Without them the fitted t sees only part of the spread: a larger error.
+        assert without[:, axis].mean() > 1.1 * with_input[:, axis].mean()
+
+
 def test_the_fitted_noise_model_finds_the_pnp_shape():
     _, samples = next(cells('pnp', 80, 1, seed=3))
     model = calibrate(samples).noise_model

@@ -18,7 +18,7 @@ from numpy.testing import assert_allclose
 import pytest
 from quatcal_ros.files import journal
 from quatcal_ros.files.journal import JournalError, JournalHeader, JournalRefused
-from quatcal_ros.files.samples_csv import COLUMNS, format_samples
+from quatcal_ros.files.samples_csv import COLUMNS, COVARIANCE_COLUMNS, format_samples
 from quatcal_ros.sim import simulation
 from quatcal_ros.tools import cli
 
@@ -83,7 +83,7 @@ def test_appended_samples_read_back_exactly(tmp_path):
     data = written_journal(path, samples)
     lines = data.decode().splitlines()
     assert lines[0] == HEADER.line()
-    assert lines[1] == ','.join(COLUMNS)
+    assert lines[1] == ','.join(COLUMNS + COVARIANCE_COLUMNS)
     assert len(lines) == 2 + len(samples)
     contents = journal.read_journal(path)
     assert contents.header == HEADER and contents.notices == []
@@ -352,4 +352,19 @@ def test_journal_rows_are_the_samples_csv_rows(tmp_path):
     samples = make_samples(3)
     path = tmp_path / 'samples.csv'
     data = written_journal(path, samples).decode()
-    assert data.split('\n', 1)[1] == format_samples(samples)
+    assert data.split('\n', 1)[1] == format_samples(samples, covariance_columns=True)
+
+
+def test_sensor_covariances_survive_the_journal(tmp_path):
+    """Samples from PoseWithCovarianceStamped keep their covariances through a restart."""
+    rng = np.random.default_rng(4)
+    cell = simulation.random_cell(rng)
+    covariances = simulation.pnp_like_covariance()[None] * np.arange(1.0, 6.0)[:, None, None]
+    samples, _ = simulation.samples(rng, cell, 5, sensor_covariance=covariances,
+                                    report_covariance=True)
+    path = tmp_path / 'samples.csv'
+    written_journal(path, samples[:2] + make_samples(1) + samples[2:])
+    read = journal.read_journal(path).samples
+    assert read[2].sensor.covariance is None
+    for got, sample in zip(read[:2] + read[3:], samples):
+        np.testing.assert_array_equal(got.sensor.covariance, sample.sensor.covariance)

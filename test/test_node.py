@@ -17,6 +17,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from geometry_msgs.msg import TransformStamped
 import numpy as np
 import pytest
@@ -94,6 +95,8 @@ class Harness(SpinMixin):
         publisher = self.link_pub if stream == 'link_pose' else self.sensor_pub
         if self.message_type is PoseStamped:
             msg = conversions.pose_stamped_msg(pose, stamp_ns, 'frame')
+        elif self.message_type is PoseWithCovarianceStamped:
+            msg = conversions.pose_with_covariance_stamped_msg(pose, stamp_ns, 'frame')
         else:
             msg = conversions.transform_stamped_msg(pose, stamp_ns, 'frame', 'child')
         publisher.publish(msg)
@@ -307,6 +310,32 @@ def test_transform_messages_with_pose_type_transform(harness_factory):
     cell = simulation.random_cell(np.random.default_rng(6))
     h.publish_events(still_events(cell, cell.home, simulation.DEFAULT_START_NS))
     h.spin_until(lambda: len(h.node.session.samples) == 1, what='a sample from transforms')
+
+
+def test_pose_with_covariance_messages_weight_the_samples(harness_factory):
+    """pose_type:=pose_with_covariance: each sample keeps its covariance; a bad one is named."""
+    h = harness_factory([Parameter('pose_type', value='pose_with_covariance')],
+                        message_type=PoseWithCovarianceStamped)
+    rng = np.random.default_rng(6)
+    cell = simulation.random_cell(rng)
+    covariance = np.diag([1e-6, 1e-6, 9e-6, 3e-6, 3e-6, 1e-7])   # ROS order, m^2 and rad^2
+    start = simulation.DEFAULT_START_NS
+    events = []
+    for k, link in enumerate(simulation.stop_poses(rng, cell, 6)):
+        events += [(stream, stamp, Pose(pose.position, pose.quaternion, (k + 1) * covariance)
+                    if stream == 'sensor_pose' else pose)
+                   for stream, stamp, pose in still_events(cell, link, start + k * 2 * NS)]
+    h.publish_events(events)
+    h.spin_until(lambda: len(h.node.session.samples) == 6, what='six samples')
+    for k, sample in enumerate(h.node.session.samples):
+        np.testing.assert_allclose(sample.sensor.covariance, (k + 1) * covariance, rtol=1e-12)
+    h.spin_until(lambda: h.node.session.result is not None, what='an estimate')
+    assert h.node.session.result.noise_model['sample_covariances'] == 'input'
+    bad = conversions.pose_with_covariance_stamped_msg(cell.home, start + 20 * NS, 'frame')
+    bad.pose.covariance[7] = -1.0   # not positive definite
+    h.sensor_pub.publish(bad)
+    h.spin_until(lambda: h.node.stats.bad[('sensor_pose', 'bad_covariance')] == 1,
+                 what='the bad covariance counted')
 
 
 def test_topic_names_follow_namespace_and_remapping(domain_id):

@@ -15,6 +15,7 @@ in refine.whitened_jacobian: X's rotation (left perturbation, radians), X's tran
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import inverse_perturbation
 from quatcal_ros.core.refine import jacobian, lever, whitened_jacobian
 
 
@@ -71,12 +72,10 @@ def link_noise_covariances(link_q, link_t, x_q, o_t, link_covariance, setup='eye
     link_t = np.asarray(link_t, dtype=float)
     R_L = quat.matrix_from_quaternion(link_q)
     n = len(R_L)
-    to_refine = np.broadcast_to(np.eye(6), (n, 6, 6)).copy()
+    to_refine = np.broadcast_to(np.eye(6), (n, 6, 6))
     if setup == 'eye_to_hand':   # noise of T_base_link, seen on its inverse R_L, t_L
         base_t = -np.einsum('nji,nj->ni', R_L, link_t)   # T_base_link's position
-        to_refine[:, 0:3, 0:3] = -R_L
-        to_refine[:, 3:6, 0:3] = -R_L @ quat.skew(base_t)
-        to_refine[:, 3:6, 3:6] = -R_L
+        to_refine = inverse_perturbation(np.transpose(R_L, (0, 2, 1)), base_t)
     R_X = quat.matrix_from_quaternion(np.asarray(x_q, dtype=float))
     M = R_X.T @ np.transpose(R_L, (0, 2, 1))
     to_residual = np.zeros((n, 6, 6))

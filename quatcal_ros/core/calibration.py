@@ -35,6 +35,7 @@ from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, least_squar
     MotionSystem, sample_matrices
 from quatcal_ros.core.motions import motion_count, Motions, pair_indices, PAIRINGS, \
     SampleRotations
+from quatcal_ros.core.pose import inverse_perturbation, residual_order
 from quatcal_ros.core.refine import MAX_ITERATIONS, refine, uncertainties, with_jackknife, \
     with_jackknife_of
 from quatcal_ros.core.solver import DegenerateMotionError
@@ -480,9 +481,11 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     refinement = None
     if _count(ok) >= MIN_REFINE_SAMPLES:
         warm = previous.refinement if previous is not None else None
+        own = sensor_covariances(samples, options.invert_sensor)
         refinement = refine(*arrays, fit.q_z, translation.translation, robust=options.robust,
                             start=warm, max_iterations=(MAX_ITERATIONS if warm is None
-                                                        else WARM_ITERATIONS))
+                                                        else WARM_ITERATIONS),
+                            sensor_covariance=None if own is None else own[ok])
         if options.method == 'refined':   # its uncertainty is published: resample it
             refinement = (with_jackknife(refinement, *arrays, robust=options.robust)
                           if warm is None else with_jackknife_of(refinement, warm))
@@ -501,6 +504,26 @@ def _estimate(samples, rotations, positions, fit, options, previous):
         noise = (refinement.rotation_noise_deg, refinement.translation_noise_mm)
     result = _report(fit, options, closed, refined, noise, warnings, refinement)
     return _Solution(result, refinement)
+
+
+def sensor_covariances(samples, invert_sensor=False):
+    """
+    Return the samples' own sensor covariances (N, 6, 6) as refine weighs them, or None.
+
+    Used only when every sample has one (Pose.covariance: ROS order, re-ordered to the
+    residual's rotation, translation); with invert_sensor they are carried to the inverted
+    poses (pose.inverse_perturbation).
+    """
+    given = [s.sensor.covariance for s in samples]
+    if not given or any(c is None for c in given):
+        return None
+    covariances = residual_order(np.array(given))
+    if invert_sensor:
+        A = inverse_perturbation(
+            quat.matrix_from_quaternion(np.array([s.sensor.quaternion for s in samples])),
+            np.array([s.sensor.position for s in samples]))
+        covariances = A @ covariances @ np.transpose(A, (0, 2, 1))
+    return covariances
 
 
 def _report(fit, options, closed, refined, noise, warnings, refinement):
@@ -542,6 +565,7 @@ def _noise_model(refinement, robust):
     return {'rotation_noise_deg': [float(v) for v in np.degrees(sd[:3])],
             'translation_noise_mm': [float(v) for v in 1e3 * sd[3:]],
             'frame': 'sensor',
+            'sample_covariances': ('input' if refinement.whitening is not None else 'none'),
             'correlation': [[float(v) for v in row] for row in covariance / np.outer(sd, sd)],
             'tail_degrees_of_freedom': float(nu) if np.isfinite(nu) else None,
             'distribution': ('gaussian' if not np.isfinite(nu) else 'student_t'),

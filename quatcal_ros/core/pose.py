@@ -3,7 +3,10 @@ Rigid transforms and still samples, the plain-number types the core works on.
 
 A `Pose` T_parent_child holds the position of the child origin in the parent frame (metres)
 and the child's orientation as a unit quaternion (w, x, y, z): it maps child coordinates to
-parent coordinates, x_parent = R x_child + t.
+parent coordinates, x_parent = R x_child + t. A pose may carry the covariance its source gave
+(geometry_msgs/PoseWithCovariance, the covariance columns of the samples CSV): 6x6 in ROS's
+order (x, y, z, rotation about the parent's x, y, z axes), metres and radians; composing or
+inverting drops it.
 """
 
 from dataclasses import dataclass
@@ -19,6 +22,7 @@ class Pose:
 
     position: np.ndarray
     quaternion: np.ndarray
+    covariance: np.ndarray = None   # 6x6, ROS order (module docstring), or None
 
     @staticmethod
     def create(position, quaternion_wxyz):
@@ -57,6 +61,40 @@ class Pose:
         """From a 4x4 homogeneous matrix."""
         H = np.asarray(H, dtype=float)
         return Pose(H[:3, 3].copy(), quat.quaternion_from_matrix(H[:3, :3]))
+
+
+# Index of ROS's covariance order (x, y, z, rx, ry, rz) in refine's residual order
+# (rotation, then translation).
+ROS_TO_RESIDUAL = np.array([3, 4, 5, 0, 1, 2])
+
+
+def residual_order(covariances):
+    """Return covariances (..., 6, 6) in ROS's order re-ordered as (rotation, translation)."""
+    c = np.asarray(covariances, dtype=float)
+    return c[..., ROS_TO_RESIDUAL[:, None], ROS_TO_RESIDUAL]
+
+
+def ros_order(covariances):
+    """Return covariances (..., 6, 6) in the residual's order as ROS orders them."""
+    back = np.argsort(ROS_TO_RESIDUAL)
+    return np.asarray(covariances, dtype=float)[..., back[:, None], back]
+
+
+def inverse_perturbation(R, t):
+    """
+    Return A (N, 6, 6): a small error (r, d) of poses (R, t) as the error of their inverses.
+
+    Errors in refine's convention: R' = exp(r) R, t' = t + d (rotation vector in the parent
+    frame, then translation). To first order the inverse (R^T, -R^T t) is off by
+    r_inv = -R^T r and d_inv = -R^T d - R^T [t]x r, so a covariance C of (r, d) becomes
+    A C A^T.
+    """
+    R_T = np.transpose(np.asarray(R, dtype=float), (0, 2, 1))
+    A = np.zeros((len(R_T), 6, 6))
+    A[:, 0:3, 0:3] = -R_T
+    A[:, 3:6, 0:3] = -R_T @ quat.skew(t)
+    A[:, 3:6, 3:6] = -R_T
+    return A
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,11 @@ scatter of the samples' scores, with the HC2 small-sample correction): it holds 
 model's noise is wrong too, which the inverse normal matrix alone (`model_covariance`,
 reported beside it) does not. Leave-one-out predictions of
 every sample come from the same sums (`leave_one_out`).
+
+Samples whose input gave their own covariance C_i (`sensor_covariance`) are weighted by it:
+residuals and Jacobian are whitened by W_i = L L_i^-1 (C_i = L_i L_i^T, L L^T the mean of the
+C_i), so the noise model fits what is left beyond the given shapes, in the units of a typical
+sample; `residuals` and `leave_one_out` stay in radians and metres.
 """
 
 from dataclasses import dataclass, replace
@@ -72,6 +77,7 @@ class Refinement:
     converged: bool
     resampled: np.ndarray = None    # 6 x 6 block-jackknife covariance of X (with_jackknife)
     resampled_from_earlier: bool = False   # scaled from an earlier jackknife (with_jackknife_of)
+    whitening: np.ndarray = None    # (N, 6, 6) W_i from the samples' own covariances, or None
 
     @property
     def rotation_noise_deg(self):
@@ -176,33 +182,42 @@ def whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t, link
 
 
 def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None,
-           max_iterations=MAX_ITERATIONS):
+           max_iterations=MAX_ITERATIONS, sensor_covariance=None):
     """
     Refine the mounting (x_q, x_t) over samples (link_q, link_t, sensor_q, sensor_t).
 
     All inputs are arrays of the samples to use (the good ones of the rotation stage), link
     poses already inverted for eye-to-hand. robust: a heavy-tailed noise model (else
     Gaussian); start: an earlier Refinement to start from instead (a warm start: its mounting
-    and object pose). Returns a Refinement.
+    and object pose); sensor_covariance: (N, 6, 6) each sample's own covariance of its
+    residual (rotation, translation; pose.residual_order), or None. Returns a Refinement.
     """
     link_R = quat.matrix_from_quaternion(link_q)
+    whitening = None if sensor_covariance is None else whitening_of(sensor_covariance)
     if start is None:
         o_q, o_t = _object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t)
     else:
         x_q, x_t = start.quaternion, start.translation
         o_q, o_t = start.object_quaternion, start.object_translation
-    arrays = (link_q, link_t, sensor_q, sensor_t, link_R)
+    arrays = (link_q, link_t, sensor_q, sensor_t, link_R, whitening)
     model, noise, converged = _fit(arrays, (x_q, x_t, o_q, o_t), robust,
                                    start.noise if start is not None else None, max_iterations)
-    e, J = _linearised(*arrays[:4], *model, link_R)
-    return _refinement(model, e, J, noise, converged)
+    e, J = _linearised(*arrays[:4], *model, *arrays[4:])
+    return _refinement(model, e, J, noise, converged, whitening)
+
+
+def whitening_of(covariances):
+    """Return W_i = L L_i^-1 (module docstring) of covariances (N, 6, 6)."""
+    C = np.asarray(covariances, dtype=float)
+    L_i = np.linalg.cholesky(C)
+    return np.linalg.cholesky(C.mean(axis=0))[None] @ np.linalg.inv(L_i)
 
 
 def _fit(arrays, model, robust, warm, max_iterations):
     """
     Return the refined model (X, O), the noise model at it, and whether the steps converged.
 
-    arrays: (link_q, link_t, sensor_q, sensor_t, link_R); warm: a NoiseFit of similar
+    arrays: (link_q, link_t, sensor_q, sensor_t, link_R, whitening); warm: a NoiseFit of similar
     residuals to start the noise models' EM from, or None.
     The noise's models and their probabilities are chosen from the residuals at the start
     and again at the answer; in between only the scales follow the steps. When the choice at
@@ -214,7 +229,7 @@ def _fit(arrays, model, robust, warm, max_iterations):
     for _ in range(2):
         model, noise, converged = _gauss_newton(arrays, model, (shapes, grid), noise or warm,
                                                 noise is None, max_iterations)
-        e, _ = _linearised(*arrays[:4], *model, arrays[4])
+        e, _ = _linearised(*arrays[:4], *model, *arrays[4:])
         chosen = heavy_tails.fit_t(e, shapes, grid, LOST_SAMPLES, NOISE_FLOOR, start=noise)
         moved = chosen.probability_change(noise)
         noise = chosen
@@ -230,9 +245,9 @@ def _gauss_newton(arrays, model, models, noise, choose, iterations):
     models: (shapes, grid) of the noise models; choose: fit them (warm-started from `noise`
     when given) on the first step, else keep `noise`'s models and refit their scales.
     """
-    link_q, link_t, sensor_q, sensor_t, link_R = arrays
+    link_q, link_t, sensor_q, sensor_t, link_R, whitening = arrays
     for _ in range(iterations):
-        e, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R)
+        e, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R, whitening)
         if choose:
             noise = heavy_tails.fit_t(e, *models, LOST_SAMPLES, NOISE_FLOOR, start=noise)
             choose = False
@@ -246,7 +261,7 @@ def _gauss_newton(arrays, model, models, noise, choose, iterations):
         if float(step @ A @ step) < STEP_TOLERANCE ** 2:
             return model, noise, True
     if choose:   # no step asked for: the noise at the start
-        e, _ = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R)
+        e, _ = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R, whitening)
         noise = heavy_tails.fit_t(e, *models, LOST_SAMPLES, NOISE_FLOOR, start=noise)
     return model, noise, False
 
@@ -272,7 +287,7 @@ def with_jackknife(refinement, link_q, link_t, sensor_q, sensor_t, robust=True,
     link_R = quat.matrix_from_quaternion(link_q)
     e, J = _linearised(link_q, link_t, sensor_q, sensor_t, refinement.quaternion,
                        refinement.translation, refinement.object_quaternion,
-                       refinement.object_translation, link_R)
+                       refinement.object_translation, link_R, refinement.whitening)
     moves = []
     for group in groups:
         keep = np.ones(n, dtype=bool)
@@ -307,12 +322,16 @@ def with_jackknife_of(refinement, earlier):
                    resampled_from_earlier=True)
 
 
-def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, link_R):
+def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, link_R,
+                whitening=None):
     """Return the residuals (N, 6: rotation, translation) and their Jacobian (N, 6, 12)."""
     R_X = quat.matrix_from_quaternion(x_q)
     w = lever(link_q, link_t, x_t, o_t, link_R)
     rotation, translation = _residuals(link_q, sensor_q, sensor_t, x_q, o_q, R_X, w)
-    return np.hstack([rotation, translation]), jacobian(link_R, R_X, w)
+    e, J = np.hstack([rotation, translation]), jacobian(link_R, R_X, w)
+    if whitening is None:
+        return e, J
+    return np.einsum('nab,nb->na', whitening, e), np.einsum('nab,nbj->naj', whitening, J)
 
 
 def _normal_equations(J, e, noise):
@@ -328,8 +347,12 @@ def _solve(normal, rhs):
         return np.linalg.pinv(normal) @ rhs
 
 
-def _refinement(model, e, J, noise, converged):
-    """Return the Refinement of model (X, O) with residuals e, Jacobian J and the noise."""
+def _refinement(model, e, J, noise, converged, whitening=None):
+    """
+    Return the Refinement of model (X, O) with residuals e, Jacobian J and the noise.
+
+    e and J whitened by `whitening` when it is given; the residuals reported are not.
+    """
     x_q, x_t, o_q, o_t = model
     information = noise.information()
     WJ = np.einsum('nai,nab->nib', J, information)
@@ -337,11 +360,15 @@ def _refinement(model, e, J, noise, converged):
     A_inv = np.linalg.pinv(A)
     leave_one_out = _leave_one_out(A, WJ, J, e)
     sandwich = A_inv @ _score_scatter(J, e, information, A_inv) @ A_inv
+    if whitening is not None:   # back to radians and metres
+        unwhiten = np.linalg.inv(whitening)
+        e = np.einsum('nab,nb->na', unwhiten, e)
+        leave_one_out = np.einsum('nab,nb->na', unwhiten, leave_one_out)
     return Refinement(
         quaternion=quat.canonical(x_q), translation=x_t, object_quaternion=o_q,
         object_translation=o_t, noise=noise, covariance=sandwich,
         model_covariance=_model_covariance(A_inv, noise), residuals=e,
-        leave_one_out=leave_one_out, converged=bool(converged))
+        leave_one_out=leave_one_out, converged=bool(converged), whitening=whitening)
 
 
 def _score_scatter(J, e, information, A_inv):

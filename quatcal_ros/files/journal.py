@@ -38,7 +38,8 @@ import time
 from urllib.parse import quote, unquote
 
 from quatcal_ros.files.persistence import atomic_write_text
-from quatcal_ros.files.samples_csv import BadInputError, COLUMNS, format_samples, parse_samples
+from quatcal_ros.files.samples_csv import BadInputError, COLUMNS, format_samples, \
+    header_columns, parse_samples
 
 try:   # POSIX; elsewhere journals are not locked
     import fcntl
@@ -321,7 +322,8 @@ class Journal:
         """
         if self.path.exists() or self.path.is_symlink():
             move_aside(self.path, PREVIOUS)
-        atomic_write_text(self.path, self.header.line() + '\n' + format_samples(samples))
+        atomic_write_text(self.path, self.header.line() + '\n'
+                          + format_samples(samples, covariance_columns=True))
         os.close(self._fd)
         self._fd = None
         self.count = len(samples)
@@ -393,7 +395,7 @@ def _write_empty(path, header):
     path = absolute(path)
     if path.exists() or path.is_symlink():
         raise FileExistsError(errno.EEXIST, 'refusing to overwrite', str(path))
-    atomic_write_text(path, f'{header.line()}\n{",".join(COLUMNS)}\n')
+    atomic_write_text(path, f'{header.line()}\n{",".join(header_columns(True))}\n')
 
 
 def absolute(path):

@@ -8,12 +8,18 @@ stamp in seconds, positions in metres, quaternions (x, y, z, w) as in ROS (conve
 core's (w, x, y, z) here, by column name).  Lines starting with '#' before the header row are
 comments (the samples journal of the live node, journal.py, starts with one, so `solve` reads
 it as it is).  Errors name the file, the row (line number in the file) and the field.
+
+Optional: the sensor pose's own covariance in 21 columns sensor_cov_A_B (A, B in x, y, z, rx,
+ry, rz, the upper triangle of geometry_msgs/PoseWithCovariance's 6x6, metres and radians,
+rotations about the sensor frame's axes). A row gives all 21 or none (empty or left off);
+a covariance must be symmetric positive definite.
 """
 
 import csv
 import io
 import math
 
+import numpy as np
 from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.core.quaternion import wxyz_from_xyzw
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, quaternion_norm_problem
@@ -21,6 +27,10 @@ from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, quaterni
 COLUMNS = ('stamp',
            'link_x', 'link_y', 'link_z', 'link_qx', 'link_qy', 'link_qz', 'link_qw',
            'sensor_x', 'sensor_y', 'sensor_z', 'sensor_qx', 'sensor_qy', 'sensor_qz', 'sensor_qw')
+COVARIANCE_AXES = ('x', 'y', 'z', 'rx', 'ry', 'rz')   # ROS's order
+COVARIANCE_ENTRIES = tuple((i, j) for i in range(6) for j in range(i, 6))
+COVARIANCE_COLUMNS = tuple(f'sensor_cov_{COVARIANCE_AXES[i]}_{COVARIANCE_AXES[j]}'
+                           for i, j in COVARIANCE_ENTRIES)
 # Stamps are integer nanoseconds in the core (int64, as rosbag2 stores them).
 MAX_STAMP_S = 2 ** 63 / 1e9
 
@@ -62,12 +72,52 @@ def _parse_rows(reader, name):
         raise BadInputError(f'{name}, row 1 (header): missing column(s) {", ".join(missing)}; '
                             f'expected {",".join(COLUMNS)}')
     index = {column: header.index(column) for column in COLUMNS}
+    given = [column for column in COVARIANCE_COLUMNS if column in header]
+    if given and len(given) < len(COVARIANCE_COLUMNS):
+        missing = [column for column in COVARIANCE_COLUMNS if column not in header]
+        raise BadInputError(f'{name}, row 1 (header): covariance column(s) {", ".join(missing)} '
+                            f'missing: give all {len(COVARIANCE_COLUMNS)} sensor_cov_* or none')
+    covariance_index = [header.index(column) for column in given]
     samples = []
     for row in reader:
         if not row or all(not cell.strip() for cell in row):
             continue
-        samples.append(_sample_from_row(row, index, name, reader.line_num))
+        sample = _sample_from_row(row, index, name, reader.line_num)
+        if covariance_index:
+            covariance = _covariance(row, covariance_index, name, reader.line_num)
+            if covariance is not None:
+                sample = Sample(sample.stamp_ns, sample.link,
+                                Pose(sample.sensor.position, sample.sensor.quaternion,
+                                     covariance))
+        samples.append(sample)
     return samples
+
+
+def _covariance(row, columns, name, line):
+    """Return the row's sensor covariance (6x6, ROS order), or None when it gives none."""
+    cells = [row[i].strip() if i < len(row) else '' for i in columns]
+    if not any(cells):
+        return None
+    where = f'{name}, row {line}'
+    covariance = np.zeros((6, 6))
+    for column, cell, (i, j) in zip(COVARIANCE_COLUMNS, cells, COVARIANCE_ENTRIES):
+        try:
+            if not cell or '_' in cell:
+                raise ValueError(cell)
+            value = float(cell)
+        except ValueError:
+            raise BadInputError(f'{where}, field {column}: {cell!r} is not a number (give all '
+                                f'{len(COVARIANCE_COLUMNS)} sensor_cov_* or none)') from None
+        if not math.isfinite(value):
+            raise BadInputError(f'{where}, field {column}: {cell} is not a finite number')
+        covariance[i, j] = covariance[j, i] = value
+    try:
+        np.linalg.cholesky(covariance)
+    except np.linalg.LinAlgError:
+        raise BadInputError(f'{where}, fields sensor_cov_*: the covariance is not positive '
+                            'definite (variances must be > 0, correlations within -1..1)') \
+            from None
+    return covariance
 
 
 def _sample_from_row(row, index, name, line):
@@ -108,20 +158,31 @@ def _pose(values, prefix, name, line):
     return Pose.create(position, wxyz_from_xyzw(xyzw))
 
 
-def format_samples(samples, header=True):
+def header_columns(covariance):
+    """Return the header's columns, with the covariance columns when `covariance`."""
+    return COLUMNS + (COVARIANCE_COLUMNS if covariance else ())
+
+
+def format_samples(samples, header=True, covariance_columns=None):
     """
     Format `samples` (list of pose.Sample) as samples CSV text, full float precision.
 
-    header=False gives the rows only (one line per sample, each ending with a newline).
+    header=False gives the rows only (one line per sample, each ending with a newline). The
+    covariance columns are in the header when `covariance_columns`, or (None) when a sample
+    has a covariance; a row has them only when its sample does.
     """
     out = io.StringIO()
     writer = csv.writer(out, lineterminator='\n')
+    if covariance_columns is None:
+        covariance_columns = any(s.sensor.covariance is not None for s in samples)
     if header:
-        writer.writerow(COLUMNS)
+        writer.writerow(header_columns(covariance_columns))
     for s in samples:
         row = [f'{s.stamp_ns / 1e9:.9f}']
         for pose in (s.link, s.sensor):
             w, x, y, z = pose.quaternion
             row += [repr(float(v)) for v in (*pose.position, x, y, z, w)]
+        if s.sensor.covariance is not None:
+            row += [repr(float(s.sensor.covariance[i, j])) for i, j in COVARIANCE_ENTRIES]
         writer.writerow(row)
     return out.getvalue()

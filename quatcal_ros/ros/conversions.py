@@ -30,8 +30,8 @@ class BadPoseError(ValueError):
     A pose holds numbers that are not a pose; the message names the field.
 
     `field` is the offending field ('pose.position.x', 'pose.orientation', ...); `reason`
-    one of 'non_finite', 'zero_quaternion', 'non_unit_quaternion', 'malformed' (the codes of
-    message_checks.REASONS).
+    one of 'non_finite', 'zero_quaternion', 'non_unit_quaternion', 'bad_covariance',
+    'malformed' (the codes of message_checks.REASONS).
     """
 
     def __init__(self, message, field='', reason='malformed'):
@@ -128,9 +128,54 @@ def pose_from_msg(msg, norm_tolerance=MESSAGE_NORM_TOLERANCE):
     layout = _LAYOUTS.get(type(msg))
     if layout is None:   # found once per message class
         _, _, position_name, orientation_name = _pose_fields(msg)
+        covariance_name = _covariance_field(msg)
         layout = _LAYOUTS[type(msg)] = (attrgetter(position_name), attrgetter(orientation_name),
-                                        position_name, orientation_name)
-    get_position, get_orientation, position_name, orientation_name = layout
+                                        position_name, orientation_name,
+                                        covariance_name and attrgetter(covariance_name))
+    get_position, get_orientation, position_name, orientation_name, get_covariance = layout
+    if get_covariance is not None:   # PoseWithCovariance(Stamped)
+        pose = _pose_numbers(msg, layout, norm_tolerance)
+        return Pose(pose.position, pose.quaternion, covariance_from_msg(get_covariance(msg)))
+    return _pose_numbers(msg, layout, norm_tolerance)
+
+
+def _covariance_field(msg):
+    """Return the name of a PoseWithCovariance(Stamped)'s covariance field, or None."""
+    obj, path = msg, ''
+    while hasattr(obj, 'pose'):
+        if hasattr(obj, 'covariance'):
+            return path + 'covariance'
+        obj, path = obj.pose, path + 'pose.'
+    return None
+
+
+def covariance_from_msg(values):
+    """
+    Return a PoseWithCovariance's 36 values as a 6x6 (ROS order), or None when all are zero.
+
+    Zero is what drivers publish when they do not know the covariance. Raises BadPoseError
+    (reason 'bad_covariance') when the matrix is not finite, symmetric and positive definite.
+    """
+    covariance = np.asarray(values, dtype=float).reshape(6, 6)
+    if not covariance.any():
+        return None
+    problem = None
+    if not np.all(np.isfinite(covariance)):
+        problem = 'NaN or inf'
+    elif not np.allclose(covariance, covariance.T, rtol=1e-6, atol=0.0):
+        problem = 'not symmetric'
+    else:
+        try:
+            np.linalg.cholesky(covariance)
+        except np.linalg.LinAlgError:
+            problem = 'not positive definite'
+    if problem:
+        raise BadPoseError(f'pose.covariance: {problem}', 'pose.covariance', 'bad_covariance')
+    return covariance
+
+
+def _pose_numbers(msg, layout, norm_tolerance):
+    get_position, get_orientation, position_name, orientation_name, _ = layout
     position, orientation = get_position(msg), get_orientation(msg)
     # Fast path, as in validate_pose_numbers, building (w, x, y, z) directly.
     try:
@@ -210,6 +255,17 @@ def pose_stamped_msg(pose, stamp_ns, frame_id, typestore=None):
     """geometry_msgs/PoseStamped of a Pose (typestore: build rosbags classes instead)."""
     return _msg_class('geometry_msgs/msg/PoseStamped', typestore)(
         header=_header(stamp_ns, frame_id, typestore), pose=pose_msg(pose, typestore))
+
+
+def pose_with_covariance_stamped_msg(pose, stamp_ns, frame_id, typestore=None):
+    """geometry_msgs/PoseWithCovarianceStamped of a Pose and its covariance (zeros: none)."""
+    covariance = np.zeros(36) if pose.covariance is None else np.ravel(pose.covariance)
+    with_covariance = _msg_class('geometry_msgs/msg/PoseWithCovariance', typestore)(
+        pose=pose_msg(pose, typestore),
+        covariance=(covariance.astype(float) if typestore is not None
+                    else [float(v) for v in covariance]))
+    return _msg_class('geometry_msgs/msg/PoseWithCovarianceStamped', typestore)(
+        header=_header(stamp_ns, frame_id, typestore), pose=with_covariance)
 
 
 def transform_stamped_msg(pose, stamp_ns, frame_id, child_frame_id, typestore=None):

@@ -3,8 +3,8 @@ The live node's pose input: two pose topics, or /tf and /tf_static (DESIGN.md co
 
 `NodeInputs` makes the subscriptions and turns every message into checked (stamp_ns, Pose)
 pairs through one PoseScreen, the checks the replay runs too:
-- pose topics `link_pose` and `sensor_pose` (relative names; PoseStamped, or TransformStamped
-  with pose_type:=transform);
+- pose topics `link_pose` and `sensor_pose` (relative names; PoseStamped, TransformStamped
+  with pose_type:=transform, PoseWithCovarianceStamped with pose_type:=pose_with_covariance);
 - with the four TF frames set (settings.tf_frames), /tf and /tf_static through a TfFeed that
   composes base -> effector and tracking base -> marker at each stamp.
 Each good pose goes to `deliver(stream, (stamp_ns, pose), now_ns)`; a bad message is logged,
@@ -12,6 +12,7 @@ throttled, with its resolved topic name.
 """
 
 from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from geometry_msgs.msg import TransformStamped
 from quatcal_ros.ros.pose_screen import PoseScreen
 from quatcal_ros.ros.qos import LINK_QOS, SENSOR_QOS, TF_QOS, TF_STATIC_LISTEN_QOS
@@ -19,6 +20,10 @@ from quatcal_ros.ros.tf_feed import TfFeed
 from quatcal_ros.stream import message_checks
 from quatcal_ros.stream.message_checks import LINK, LOG_THROTTLE_S, SENSOR
 from tf2_msgs.msg import TFMessage
+
+# The pose_type setting's choices (settings.POSE_TYPES).
+MESSAGE_TYPES = {'pose': PoseStamped, 'transform': TransformStamped,
+                 'pose_with_covariance': PoseWithCovarianceStamped}
 
 
 class NodeInputs:
@@ -30,7 +35,7 @@ class NodeInputs:
 
         :param check_config: message_checks.CheckConfig, what the messages must satisfy.
         :param tf_frames: settings.tf_frames(config): {stream: frame pair} or None.
-        :param pose_type: 'pose' (PoseStamped) or 'transform' (TransformStamped).
+        :param pose_type: a key of MESSAGE_TYPES.
         :param deliver: deliver(stream, (stamp_ns, Pose), now_ns) for each good pose.
         """
         self._node = node
@@ -38,7 +43,7 @@ class NodeInputs:
         self.screen = PoseScreen(check_config, self._log_bad_message)
         self.tf = None
         if tf_frames is None:
-            self.message_type = PoseStamped if pose_type == 'pose' else TransformStamped
+            self.message_type = MESSAGE_TYPES[pose_type]
             self.topics = {   # resolved names (namespace, remapping), for the logs
                 stream: node.create_subscription(
                     self.message_type, stream, lambda msg, s=stream: self._on_pose(s, msg),

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.pose import Pose, Sample
+from quatcal_ros.core.pose import Pose, ros_order, Sample
 from quatcal_ros.core.units import ns_from_s, NS_PER_S, SETUPS
 
 # A realistic epoch (Nov 2023): float64 cannot hold it to the nanosecond, which catches code
@@ -278,11 +278,13 @@ def add_sensor_noise(rng, positions, quaternions, covariance):
 
     Draws e ~ N(0, covariance) per pose, e = (rotation vector r in radians, translation t in
     metres), and returns p' = p + t, q' = exp(r) (x) q: the error model of refine.py's
-    residual (rotation vector of R_meas R_true^T, t_meas - t_true).
+    residual (rotation vector of R_meas R_true^T, t_meas - t_true). covariance: one 6x6 for
+    all poses, or one per pose (N, 6, 6).
     """
     positions = np.asarray(positions, dtype=float).reshape(-1, 3)
     quaternions = np.asarray(quaternions, dtype=float).reshape(-1, 4)
-    e = rng.standard_normal((len(positions), 6)) @ np.linalg.cholesky(covariance).T
+    root = np.broadcast_to(np.linalg.cholesky(covariance), (len(positions), 6, 6))
+    e = np.einsum('nab,nb->na', root, rng.standard_normal((len(positions), 6)))
     turn = quat.from_rotation_vector(e[:, :3])
     return positions + e[:, 3:], _positive_w(quat.normalize(quat.multiply(turn, quaternions)))
 
@@ -331,7 +333,8 @@ def corrupt_orientations(quaternions, uniforms):
 
 def samples(rng, cell, n, rotation_noise_deg=0.0, translation_noise_m=0.0, outlier_fraction=0.0,
             link_rotation_noise_deg=0.0, link_translation_noise_m=0.0, rotation_spread_deg=30.0,
-            start_ns=DEFAULT_START_NS, period_ns=2 * NS_PER_S, sensor_covariance=None):
+            start_ns=DEFAULT_START_NS, period_ns=2 * NS_PER_S, sensor_covariance=None,
+            report_covariance=False):
     """
     Return n still samples of `cell` at stop_poses(), and the indices of the outliers.
 
@@ -339,8 +342,10 @@ def samples(rng, cell, n, rotation_noise_deg=0.0, translation_noise_m=0.0, outli
     round(outlier_fraction * n) of them, at random indices, are then corrupted
     (corrupt_orientations); link poses get link_rotation_noise_deg / link_translation_noise_m.
     Stamps are start_ns + i * period_ns (int).  The stops and the outlier indices do not depend
-    on the noise levels.  sensor_covariance (6x6, e.g. pnp_like_covariance()) replaces the two
-    sensor noise levels by add_sensor_noise.
+    on the noise levels.  sensor_covariance (6x6, e.g. pnp_like_covariance(), or one per
+    sample, (n, 6, 6)) replaces the two sensor noise levels by add_sensor_noise; with
+    report_covariance the sensor poses carry it (Pose.covariance, ROS order), as a detector
+    that publishes PoseWithCovarianceStamped would.
     Returns (list[Sample], sorted list[int] of outlier indices).
     """
     if not 0.0 <= outlier_fraction <= 1.0:
@@ -357,8 +362,11 @@ def samples(rng, cell, n, rotation_noise_deg=0.0, translation_noise_m=0.0, outli
                                                  rng.random((len(outliers), 4)))
     link_p, link_q = add_pose_noise(rng, link_p, link_q,
                                     link_rotation_noise_deg, link_translation_noise_m)
+    reported = [None] * n
+    if report_covariance and sensor_covariance is not None:
+        reported = list(np.broadcast_to(ros_order(sensor_covariance), (n, 6, 6)).copy())
     result = [Sample(int(start_ns) + i * int(period_ns), Pose(link_p[i], link_q[i]),
-                     Pose(sensor_p[i], sensor_q[i])) for i in range(n)]
+                     Pose(sensor_p[i], sensor_q[i], reported[i])) for i in range(n)]
     return result, [int(i) for i in outliers]
 
 

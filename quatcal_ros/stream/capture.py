@@ -132,11 +132,21 @@ class _PairWindow:
         return angles.max(axis=1), distances.max(axis=1)
 
     def average_sample(self):
-        """One Sample: the mean of the kept pairs, stamped at the middle of their span."""
+        """
+        One Sample: the mean of the kept pairs, stamped at the middle of their span.
+
+        When every sensor pose of the window has a covariance, the sample's is their mean:
+        not divided by the number of frames, whose errors in a still window are mostly
+        shared (the same view of the target); refine fits the overall scale anyway.
+        """
         q, p = self._arrays()
         p = p.mean(axis=1)
         stamp = self.link.oldest_ns + self.span_ns // 2
-        return Sample(stamp, Pose(p[0], quat.average(q[0])), Pose(p[1], quat.average(q[1])))
+        covariances = [pose.covariance for pose in self.sensor.poses()]
+        covariance = (None if any(c is None for c in covariances)
+                      else np.mean(covariances, axis=0))
+        return Sample(stamp, Pose(p[0], quat.average(q[0])),
+                      Pose(p[1], quat.average(q[1]), covariance))
 
 
 class Capture:

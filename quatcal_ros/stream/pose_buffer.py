@@ -35,10 +35,17 @@ COMPACT_AFTER = 256
 
 
 def interpolate_pose(pose0, pose1, fraction):
-    """Pose a `fraction` of the way from pose0 (0.0) to pose1 (1.0): linear, and SLERP."""
+    """
+    Pose a `fraction` of the way from pose0 (0.0) to pose1 (1.0): linear, and SLERP.
+
+    Covariances (when both poses have one) are blended linearly too.
+    """
     position = pose0.position + fraction * (pose1.position - pose0.position)
     rotation = quat.normalize(quat.slerp(pose0.quaternion, pose1.quaternion, fraction))
-    return Pose(position, rotation)
+    covariance = None
+    if pose0.covariance is not None and pose1.covariance is not None:
+        covariance = pose0.covariance + fraction * (pose1.covariance - pose0.covariance)
+    return Pose(position, rotation, covariance)
 
 
 class StampNotNewer(ValueError):

@@ -30,7 +30,7 @@ from quatcal_ros.stream.session import SessionConfig
 
 DEFAULT_RESULT_FILE = '~/.ros/quatcal/calibration.yaml'
 DEFAULT_SAMPLES_FILE = '~/.ros/quatcal/samples.csv'
-POSE_TYPES = ('pose', 'transform')
+POSE_TYPES = ('pose', 'transform', 'pose_with_covariance')
 PAIRS = ('all', 'consecutive')
 NODE_NAME = 'calibrator'
 
@@ -122,7 +122,9 @@ SETTINGS = (
             'other three: the pose topics.', allow_empty=True, read_only=True),
     Setting('pose_type', 'pose',
             'Message type of link_pose and sensor_pose: pose = geometry_msgs/PoseStamped, '
-            'transform = geometry_msgs/TransformStamped.', choices=POSE_TYPES, read_only=True),
+            'transform = geometry_msgs/TransformStamped, pose_with_covariance = '
+            "geometry_msgs/PoseWithCovarianceStamped (the sensor's covariances weight its "
+            'samples).', choices=POSE_TYPES, read_only=True),
     Setting('setup', 'eye_in_hand',
             'eye_in_hand: the sensor rides on the link, the answer is link -> sensor; '
             'eye_to_hand: the sensor is fixed in the cell, the answer is base -> sensor.',
