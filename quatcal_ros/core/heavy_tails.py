@@ -35,15 +35,20 @@ class Shape:
     """A form the scale matrix may take: its name, projection and free parameters."""
 
     name: str
-    project: object          # scatter (d x d) -> the matrix of this shape; None: as it is
+    project: object          # scatters (..., d, d) -> matrices of this shape; None: as they are
     parameters: int
+    diagonal: object = None  # for diagonal shapes: the scatters' diagonals (K, d) -> theirs
 
 
 def isotropic_blocks(d, block=3):
     """Return the Shape sigma_k^2 I on each diagonal block of `block` axes (d / block params)."""
+    def diagonal(variances):
+        means = variances.reshape(variances.shape[:-1] + (-1, block)).mean(axis=-1)
+        return np.repeat(means, block, axis=-1)
+
     def project(scatter):
-        return np.diag(np.repeat(scatter.diagonal().reshape(-1, block).mean(axis=1), block))
-    return Shape('isotropic', project, d // block)
+        return diagonal(np.diagonal(scatter, axis1=-2, axis2=-1))[..., None] * np.eye(d)
+    return Shape('isotropic', project, d // block, diagonal)
 
 
 def full(d):
@@ -117,8 +122,41 @@ class NoiseFit:
         """Return the same models and probabilities with their scales fitted to `residuals`."""
         r = np.asarray(residuals, dtype=float)
         count = max(len(r) - lost_samples, 1.0)
-        return NoiseFit(tuple(_fit_component(r, np.ones(len(r)), count, c.shape, c.nu, floor, c)
-                              for c in self.components), self.probabilities)
+        by_shape = {}
+        for c in self.components:
+            by_shape.setdefault(c.shape.name, []).append(c)
+        fitted = {}
+        for group in by_shape.values():
+            for c in _fit_components(r, np.ones(len(r)), count, group[0].shape,
+                                     [c.nu for c in group], floor, group):
+                fitted[c.shape.name, c.nu] = c
+        return NoiseFit(tuple(fitted[c.shape.name, c.nu] for c in self.components),
+                        self.probabilities)
+
+    def refitted_information(self, residuals, keep, lost_samples=0.0, floor=None):
+        """
+        Return each sample's information (B, N, d, d) with the scales refitted per row of keep.
+
+        keep (B, N) bool: for each row b the scales (and weights) are refitted, as `refitted`
+        does, to the samples it keeps, warm-started from this fit's weights; the samples it
+        leaves out get zero. The models and their probabilities stay. All rows at once: the
+        jackknife's replicates (refine.with_jackknife).
+        """
+        r = np.asarray(residuals, dtype=float)
+        keep = np.asarray(keep, dtype=float)
+        rows, n = keep.shape
+        d = r.shape[1]
+        count = np.maximum(keep.sum(axis=1) - lost_samples, 1.0)
+        information = np.zeros((rows, n, d, d))
+        for p, c in zip(self.probabilities, self.components):
+            nu = np.full(rows, c.nu)
+            w = np.broadcast_to(c.weights, (rows, n))
+            for _ in range(0 if math.isinf(c.nu) else WARM_EM_ITERATIONS):
+                w = _t_weights(_distances(r, keep * w, count, c.shape, floor), d, nu)
+            scale = _scale(r, keep * w, count, c.shape, floor)
+            w = _t_weights(_mahalanobis(r, scale), d, nu)
+            information += p * (keep * w)[..., None, None] * np.linalg.inv(scale)[:, None]
+        return information
 
     def probability_change(self, other):
         """Return the largest change of a model's probability from `other` to this fit."""
@@ -167,9 +205,10 @@ def fit_t(residuals, shapes, grid=NU_GRID, lost_samples=0.0, floor=None, prior=N
     good = np.ones(n) if prior is None else prior
     count = max(good.sum() - lost_samples, 1.0)
     earlier = {} if start is None else {(c.shape.name, c.nu): c for c in start.components}
-    components = [_fit_component(r, good, count, shape, nu, floor,
-                                 earlier.get((shape.name, nu)))
-                  for shape in shapes for nu in grid]
+    components = []
+    for shape in shapes:
+        components += _fit_components(r, good, count, shape, grid, floor,
+                                      [earlier.get((shape.name, nu)) for nu in grid])
     criteria = np.array([c.criterion for c in components])
     probabilities = np.exp(criteria - criteria.max())
     keep = probabilities > MIN_PROBABILITY * probabilities.sum()   # no say: dropped
@@ -177,36 +216,82 @@ def fit_t(residuals, shapes, grid=NU_GRID, lost_samples=0.0, floor=None, prior=N
                     probabilities[keep] / probabilities[keep].sum())
 
 
-def _fit_component(r, good, count, shape, nu, floor, warm=None):
-    """Fit one Shape and nu by EM (warm: an earlier Component of them to start from)."""
+def _fit_components(r, good, count, shape, nus, floor, warm):
+    """
+    Fit one Shape with each nu of `nus` by EM, all at once; return their Components.
+
+    warm: for each nu an earlier Component of it to start from, or None. Each model takes
+    its own number of EM steps (none for nu = inf, fewer from a warm start), as if fitted
+    alone: the batch only shares the arithmetic.
+    """
     n, d = r.shape
-    w = np.ones(n)
-    steps = EM_ITERATIONS
-    if warm is not None:   # of these samples, or of the first of them (a sample added since)
-        m = min(n, len(warm.weights))
-        w[:m] = warm.weights[:m]
-        steps = WARM_EM_ITERATIONS if m == n else RESUMED_EM_ITERATIONS
-    if math.isinf(nu):
-        steps = 0
-    for _ in range(steps):
-        w = t_weights(_mahalanobis(r, _scale(r, good * w, count, shape, floor)), d, nu)
+    k = len(nus)
+    nu = np.array(nus, dtype=float)
+    w = np.ones((k, n))
+    steps = np.full(k, EM_ITERATIONS)
+    for i, component in enumerate(warm):
+        if component is not None:   # of these samples, or of the first (a sample added since)
+            m = min(n, len(component.weights))
+            w[i, :m] = component.weights[:m]
+            steps[i] = WARM_EM_ITERATIONS if m == n else RESUMED_EM_ITERATIONS
+    steps[np.isinf(nu)] = 0
+    for step in range(int(steps.max(initial=0))):
+        moving = steps > step           # finite nu only (nu = inf takes no steps)
+        nu_moving = nu[moving][:, None]
+        delta = _distances(r, good * w[moving], count, shape, floor)
+        w[moving] = (nu_moving + d) / (nu_moving + delta)
     scale = _scale(r, good * w, count, shape, floor)
     delta = _mahalanobis(r, scale)
-    log_density = t_log_density(delta, d, nu, float(np.linalg.slogdet(scale)[1]))
-    free = shape.parameters + (0 if math.isinf(nu) else 1)
-    criterion = float(good @ log_density) - 0.5 * free * math.log(max(good.sum(), 2.0))
-    return Component(shape, nu, scale, t_weights(delta, d, nu), delta, log_density, criterion)
+    log_det = np.linalg.slogdet(scale)[1]
+    weights = _t_weights(delta, d, nu)
+    free = shape.parameters + np.where(np.isinf(nu), 0, 1)
+    log_n = math.log(max(good.sum(), 2.0))
+    components = []
+    for i in range(k):
+        log_density = t_log_density(delta[i], d, float(nu[i]), float(log_det[i]))
+        criterion = float(good @ log_density) - 0.5 * free[i] * log_n
+        components.append(Component(shape, float(nu[i]), scale[i], weights[i], delta[i],
+                                    log_density, criterion))
+    return components
+
+
+def _t_weights(delta, d, nu):
+    """Return t_weights for each row of delta (K, N) with its nu (K,)."""
+    finite = np.isfinite(nu)[:, None]
+    safe = np.where(finite, nu[:, None], 1.0)
+    return np.where(finite, (safe + d) / (safe + delta), 1.0)
 
 
 def _scale(r, w, count, shape, floor):
-    scatter = (r * w[:, None]).T @ r / count
+    """
+    Return the scale matrices (K, d, d) of residuals r (N, d) with weights w (K, N).
+
+    count: the samples' worth each is divided by, one for all or one per row (K,).
+    """
+    scatter = (np.swapaxes(w[:, :, None] * r, 1, 2) @ r) / np.reshape(count, (-1, 1, 1))
     if shape.project is not None:
         scatter = shape.project(scatter)
     return scatter if floor is None else scatter + np.diag(floor)
 
 
+def _distances(r, w, count, shape, floor):
+    """
+    Return the Mahalanobis distances (K, N) under the scales _scale would return.
+
+    For a diagonal shape without forming a matrix (the EM's inner loop: the same numbers).
+    """
+    if shape.diagonal is None:
+        return _mahalanobis(r, _scale(r, w, count, shape, floor))
+    squares = r * r
+    variances = shape.diagonal((w @ squares) / np.reshape(count, (-1, 1)))
+    if floor is not None:
+        variances = variances + floor
+    return (squares @ (1.0 / variances).T).T
+
+
 def _mahalanobis(r, scale):
-    return np.einsum('ni,ni->n', r @ np.linalg.inv(scale), r)
+    """Return r_n^T S_k^-1 r_n (K, N) for scales (K, d, d)."""
+    return ((r @ np.linalg.inv(scale)) * r).sum(axis=-1)
 
 
 # --- bad detections -------------------------------------------------------------------------

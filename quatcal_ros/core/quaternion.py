@@ -69,8 +69,8 @@ def plus_matrix(a):
 
     a: (4,) or (..., 4), w first; the result is (4, 4) or (..., 4, 4).
     """
-    a0, x, y, z = np.moveaxis(np.asarray(a, dtype=float), -1, 0)
-    return _rows([a0, -x, -y, -z], [x, a0, -z, y], [y, z, a0, -x], [z, -y, x, a0])
+    # Rows [a0, -x, -y, -z], [x, a0, -z, y], [y, z, a0, -x], [z, -y, x, a0].
+    return np.asarray(a, dtype=float)[..., _SWAP] * _PLUS_SIGNS
 
 
 def minus_matrix(b):
@@ -79,12 +79,14 @@ def minus_matrix(b):
 
     b: (4,) or (..., 4), w first; the result is (4, 4) or (..., 4, 4).
     """
-    b0, x, y, z = np.moveaxis(np.asarray(b, dtype=float), -1, 0)
-    return _rows([b0, -x, -y, -z], [x, b0, z, -y], [y, -z, b0, x], [z, y, -x, b0])
+    # Rows [b0, -x, -y, -z], [x, b0, z, -y], [y, -z, b0, x], [z, y, -x, b0].
+    return np.asarray(b, dtype=float)[..., _SWAP] * _MINUS_SIGNS
 
 
-def _rows(*rows):
-    return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
+# The components and signs of the entries of P+ and P- (eqs. (11), (12)).
+_SWAP = np.array([[0, 1, 2, 3], [1, 0, 3, 2], [2, 3, 0, 1], [3, 2, 1, 0]])
+_PLUS_SIGNS = np.array([[1, -1, -1, -1], [1, 1, -1, 1], [1, 1, 1, -1], [1, -1, 1, 1]], float)
+_MINUS_SIGNS = np.array([[1, -1, -1, -1], [1, 1, 1, -1], [1, -1, 1, 1], [1, 1, -1, 1]], float)
 
 
 def normalize(q):

@@ -288,13 +288,15 @@ def with_jackknife(refinement, link_q, link_t, sensor_q, sensor_t, robust=True,
     e, J = _linearised(link_q, link_t, sensor_q, sensor_t, refinement.quaternion,
                        refinement.translation, refinement.object_quaternion,
                        refinement.object_translation, link_R, refinement.whitening)
-    moves = []
-    for group in groups:
-        keep = np.ones(n, dtype=bool)
-        keep[group] = False
-        noise = refinement.noise.subset(keep).refitted(e[keep], LOST_SAMPLES, NOISE_FLOOR)
-        A, g = _normal_equations(J[keep], e[keep], noise)
-        moves.append(-_solve(A, g)[:6])   # X's rotation vector (left) and translation
+    keep = np.ones((len(groups), n), dtype=bool)
+    for row, group in enumerate(groups):
+        keep[row, group] = False
+    information = refinement.noise.refitted_information(e, keep, LOST_SAMPLES, NOISE_FLOOR)
+    MJ = (information @ J[None]).reshape(len(groups), -1, 12)    # (B, 6N, 12)
+    flat_J = J.reshape(-1, 12)
+    A = flat_J.T @ MJ                                              # (B, 12, 12)
+    g = np.swapaxes(MJ, 1, 2) @ e.reshape(-1)                      # (B, 12)
+    moves = [-_solve(A_b, g_b)[:6] for A_b, g_b in zip(A, g)]   # X's rotation and translation
     moves = np.array(moves)
     g = len(groups)
     centred = moves - moves.mean(axis=0)
