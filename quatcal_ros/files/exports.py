@@ -33,10 +33,10 @@ Core module: standard library, numpy and PyYAML; no rclpy.  Quaternions in the c
 (w, x, y, z); both outputs use ROS's (x, y, z, w), written field by field.
 """
 
+from html import escape   # &, <, >, both quotes: XML attribute values (and a light import)
 import math
 from pathlib import Path
 import shlex
-from xml.sax.saxutils import escape
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
@@ -48,8 +48,6 @@ SETUPS_BY_EASY_HANDEYE2_TYPE = {value: key for key, value in EASY_HANDEYE2_TYPES
 # Parent and child frames used when nothing names them: the node's defaults for eye-in-hand,
 # the usual robot base frame for eye-to-hand.
 DEFAULT_FRAMES = {'eye_in_hand': ('tool0', 'camera'), 'eye_to_hand': ('base_link', 'camera')}
-# Characters escaped in XML attribute values (besides &, <, >).
-QUOTED = {'"': '&quot;'}
 # Decimals of the numbers on the static_transform_publisher line: 0.1 nm and 1e-10.
 COMMAND_DECIMALS = 10
 
@@ -247,9 +245,9 @@ def urdf_joint(result, parent_frame, child_frame):
     """
     xyz = ' '.join(_number(v) for v in _translation(result))
     rpy = ' '.join(_number(v) for v in urdf_rpy(result))
-    return (f'<joint name="{escape(_joint_name(child_frame), QUOTED)}" type="fixed">\n'
-            f'  <parent link="{escape(str(parent_frame), QUOTED)}"/>\n'
-            f'  <child link="{escape(str(child_frame), QUOTED)}"/>\n'
+    return (f'<joint name="{escape(_joint_name(child_frame))}" type="fixed">\n'
+            f'  <parent link="{escape(str(parent_frame))}"/>\n'
+            f'  <child link="{escape(str(child_frame))}"/>\n'
             f'  <origin xyz="{xyz}" rpy="{rpy}"/>\n'
             '</joint>\n')
 
@@ -263,13 +261,13 @@ def xacro_macro(result, parent_frame, child_frame):
     """
     xyz = ' '.join(_number(v) for v in _translation(result))
     rpy = ' '.join(_number(v) for v in urdf_rpy(result))
-    name = escape(f'{child_frame}_mount', QUOTED)
+    name = escape(f'{child_frame}_mount')
     return ('<?xml version="1.0"?>\n'
             '<robot xmlns:xacro="http://www.ros.org/wiki/xacro">\n'
-            f'  <xacro:macro name="{name}" params="parent:={escape(str(parent_frame), QUOTED)}">\n'
-            f'    <joint name="{escape(_joint_name(child_frame), QUOTED)}" type="fixed">\n'
+            f'  <xacro:macro name="{name}" params="parent:={escape(str(parent_frame))}">\n'
+            f'    <joint name="{escape(_joint_name(child_frame))}" type="fixed">\n'
             '      <parent link="${parent}"/>\n'
-            f'      <child link="{escape(str(child_frame), QUOTED)}"/>\n'
+            f'      <child link="{escape(str(child_frame))}"/>\n'
             f'      <origin xyz="{xyz}" rpy="{rpy}"/>\n'
             '    </joint>\n'
             '  </xacro:macro>\n'

@@ -33,7 +33,7 @@ from quatcal_ros.ros import spin
 from quatcal_ros.ros.diagnostics import calibrator_status, InputWatch
 from quatcal_ros.ros.event_log import EventLog
 from quatcal_ros.ros.inputs import NodeInputs
-from quatcal_ros.ros.qos import DIAGNOSTICS_QOS, LATCHED_QOS
+from quatcal_ros.ros.qos import DIAGNOSTICS_QOS, LATCHED_QOS, quiet_publisher_events
 from quatcal_ros.ros.static_tf import StaticTf
 from quatcal_ros.stream import settings
 from quatcal_ros.stream.message_checks import LINK
@@ -69,12 +69,15 @@ class CalibratorNode(Node):
         self.inputs = NodeInputs(self, settings.check_config(self.config), self._tf_frames,
                                  self.config.pose_type, self._add_pose)
         self.rotation_publisher = self.create_publisher(
-            QuaternionStamped, '~/rotation', LATCHED_QOS)
+            QuaternionStamped, '~/rotation', LATCHED_QOS,
+            event_callbacks=quiet_publisher_events())
         self.transform_publisher = self.create_publisher(
-            TransformStamped, '~/transform', LATCHED_QOS)
+            TransformStamped, '~/transform', LATCHED_QOS,
+            event_callbacks=quiet_publisher_events())
         self.static_tf = StaticTf(self)
         self.diagnostics_publisher = self.create_publisher(
-            DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
+            DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS,
+            event_callbacks=quiet_publisher_events())
         # On the node clock (with use_sim_time: one status per second of a played bag); a
         # steady-clock watch keeps it coming, saying so, when that clock stands still.
         self.create_timer(self.config.diagnostics_period_s, self.publish_diagnostics)

@@ -7,6 +7,7 @@ The TF profiles are tf2's: /tf reliable, depth 100; /tf_static transient local, 
 static broadcaster's latched message arrives whenever it started.
 """
 
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.qos import DurabilityPolicy
 from rclpy.qos import HistoryPolicy
 from rclpy.qos import QoSProfile
@@ -29,3 +30,14 @@ TF_STATIC_LISTEN_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIA
                                   durability=DurabilityPolicy.TRANSIENT_LOCAL)
 TF_STATIC_BROADCAST_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def quiet_publisher_events():
+    """
+    Return publisher event callbacks without rclpy's defaults, for the node's outputs.
+
+    The defaults (a warning on an incompatible subscriber) are two waitables per publisher
+    that the executor polls on every message: for the calibrator's outputs, whose QoS every
+    usual subscriber matches, that cost the 1 kHz input path more than it told anyone.
+    """
+    return PublisherEventCallbacks(use_default_callbacks=False)

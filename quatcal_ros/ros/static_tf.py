@@ -15,7 +15,7 @@ An edge from link_frame itself (this node's earlier publication, heard back) is 
 """
 
 from quatcal_ros.ros import conversions
-from quatcal_ros.ros.qos import TF_STATIC_BROADCAST_QOS
+from quatcal_ros.ros.qos import quiet_publisher_events, TF_STATIC_BROADCAST_QOS
 from quatcal_ros.stream.tf_tree import normalize_frame
 from tf2_msgs.msg import TFMessage
 
@@ -33,7 +33,8 @@ class StaticTf:
         """Make the publisher (once); return True."""
         if self.publisher is None:
             self.publisher = self.node.create_publisher(
-                TFMessage, '/tf_static', TF_STATIC_BROADCAST_QOS)
+                TFMessage, '/tf_static', TF_STATIC_BROADCAST_QOS,
+                event_callbacks=quiet_publisher_events())
         return True
 
     def send(self, pose, stamp_ns, parent, child, tree=None):
