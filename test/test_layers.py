@@ -103,3 +103,27 @@ def test_core_and_stream_load_no_yaml(repo_root):
             '    importlib.import_module(name)\n'
             'sys.exit("yaml loaded" if "yaml" in sys.modules else 0)\n')
     subprocess.run([sys.executable, '-c', code], check=True, cwd=repo_root)
+
+
+def test_solve_of_a_csv_loads_no_ros_yaml_or_bag_reader(repo_root, tmp_path):
+    """`solve FILE.csv` imports what it needs and no more (its start-up is a user's wait)."""
+    from quatcal_ros.files.samples_csv import format_samples
+    from quatcal_ros.sim import simulation
+    import numpy as np
+    rng = np.random.default_rng(2)
+    cell = simulation.random_cell(rng)
+    path = tmp_path / 'samples.csv'
+    path.write_text(format_samples(simulation.samples(rng, cell, 8, rotation_noise_deg=0.2)[0]))
+    code = ('import runpy, sys\n'
+            f'sys.argv = ["quatcal_ros", "solve", {str(path)!r}]\n'
+            'try:\n'
+            '    runpy.run_module("quatcal_ros", run_name="__main__")\n'
+            'except SystemExit as stop:\n'
+            '    assert not stop.code, stop.code\n'
+            'loaded = [m for m in ("rclpy", "rosbags", "yaml", "scipy", "cv2", "xml.sax",\n'
+            '                      "urllib.request") if m in sys.modules]\n'
+            'sys.exit(f"loaded {loaded}" if loaded else 0)\n')
+    done = subprocess.run([sys.executable, '-c', code], cwd=repo_root, capture_output=True,
+                          text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert '"rotation"' in done.stdout

@@ -40,7 +40,7 @@ import shlex
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
-import yaml
+from quatcal_ros.files import plain_yaml
 
 # easy_handeye2's calibration_type for each of our setups.
 EASY_HANDEYE2_TYPES = {'eye_in_hand': 'eye_in_hand', 'eye_to_hand': 'eye_on_base'}
@@ -176,7 +176,7 @@ def easy_handeye2_yaml(result, parent_frame, child_frame, setup='eye_in_hand', n
         '(translation).\n'
         '# easy_handeye2 loads it from ~/.ros2/easy_handeye2/calibrations/NAME.calib, NAME = '
         'parameters.name.\n')
-    return header + yaml.safe_dump(document, sort_keys=False, default_flow_style=False)
+    return header + plain_yaml.dump(document, sort_keys=False, default_flow_style=False)
 
 
 def easy_handeye2_name(path):

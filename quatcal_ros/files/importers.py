@@ -40,7 +40,6 @@ from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, quaternion_norm_problem
 from quatcal_ros.files import exports, journal, plain_yaml
 from quatcal_ros.files.samples_csv import BadInputError, read_samples
-import yaml
 
 FORMATS = ('csv', 'easy_handeye2', 'moveit', 'moveit-json')
 # A 4x4 matrix whose rotation block is farther than this from orthonormal (max |R^T R - I|)
@@ -410,8 +409,8 @@ def format_easy_handeye2_samples(samples, setup='eye_in_hand', parameters=None):
         robot = sample.link if setup == 'eye_in_hand' else sample.link.inverse()
         entries.append({'robot': _transform_dict(robot),
                         'tracking': _transform_dict(sample.sensor)})
-    return yaml.safe_dump({'parameters': params, 'samples': entries}, sort_keys=False,
-                          default_flow_style=False)
+    return plain_yaml.dump({'parameters': params, 'samples': entries}, sort_keys=False,
+                           default_flow_style=False)
 
 
 def format_moveit_samples(samples):
@@ -419,4 +418,4 @@ def format_moveit_samples(samples):
     entries = [{'effector_wrt_world': [float(v) for v in s.link.as_matrix().ravel()],
                 'object_wrt_sensor': [float(v) for v in s.sensor.as_matrix().ravel()]}
                for s in samples]
-    return yaml.safe_dump(entries, sort_keys=False, default_flow_style=None)
+    return plain_yaml.dump(entries, sort_keys=False, default_flow_style=None)

@@ -43,7 +43,6 @@ import tempfile
 import numpy as np
 from quatcal_ros.files import exports
 from quatcal_ros.files import plain_yaml
-import yaml
 
 RESULT_FORMAT = 'quatcal_ros/mounting'
 RESULT_FORMAT_VERSION = 2
@@ -187,7 +186,7 @@ def format_result_yaml(result, parent_frame, child_frame, setup='eye_in_hand', e
               '# rotation (quaternion x, y, z, w) and translation (m) of the transform\n'
               '# parent_frame -> child_frame; matrix maps child_frame coordinates to\n'
               '# parent_frame coordinates.\n')
-    return header + yaml.safe_dump(document, sort_keys=False, default_flow_style=None)
+    return header + plain_yaml.dump(document, sort_keys=False, default_flow_style=None)
 
 
 def write_result_yaml(path, result, parent_frame, child_frame, setup='eye_in_hand',

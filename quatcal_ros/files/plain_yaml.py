@@ -10,45 +10,51 @@ MAX_INT_DIGITS digits.  `load_json` applies the same bounds to JSON.  Every fail
 BadInputError that names the file and, where known, the line.
 """
 
+import functools
 import json
 
 from quatcal_ros.files.samples_csv import BadInputError
-import yaml
 
 MAX_BYTES = 64 * 1024 * 1024      # far above any samples or result file (a sample: ~400 B)
 MAX_DEPTH = 64                    # a samples file nests 5 levels
 MAX_INT_DIGITS = 100              # no count, stamp or coordinate needs more
 
 
-class _BoundedLoader(yaml.SafeLoader):
-    """The safe loader, refusing aliases and deep nesting while it composes the document."""
+@functools.lru_cache(maxsize=None)
+def _loader():
+    """Return the bounded loader class (made on first use: PyYAML is imported only then)."""
+    import yaml
 
-    def compose_node(self, parent, index):
-        if self.check_event(yaml.events.AliasEvent):
-            event = self.peek_event()
-            raise yaml.composer.ComposerError(
-                None, None, f'an alias (*{event.anchor}): aliases are not accepted in a data '
-                            'file', event.start_mark)
-        self._depth = getattr(self, '_depth', 0) + 1
-        try:
-            if self._depth > MAX_DEPTH:
+    class _BoundedLoader(yaml.SafeLoader):
+        """The safe loader, refusing aliases and deep nesting while it composes a document."""
+
+        def compose_node(self, parent, index):
+            if self.check_event(yaml.events.AliasEvent):
+                event = self.peek_event()
                 raise yaml.composer.ComposerError(
-                    None, None, f'nested deeper than {MAX_DEPTH} levels',
-                    self.peek_event().start_mark)
-            return super().compose_node(parent, index)
-        finally:
-            self._depth -= 1
+                    None, None, f'an alias (*{event.anchor}): aliases are not accepted in a '
+                                'data file', event.start_mark)
+            self._depth = getattr(self, '_depth', 0) + 1
+            try:
+                if self._depth > MAX_DEPTH:
+                    raise yaml.composer.ComposerError(
+                        None, None, f'nested deeper than {MAX_DEPTH} levels',
+                        self.peek_event().start_mark)
+                return super().compose_node(parent, index)
+            finally:
+                self._depth -= 1
 
-    def construct_yaml_int(self, node):
-        """Return the integer of `node`; ValueError for one with too many digits."""
-        digits = len(str(node.value).lstrip('+-').replace('_', ''))
-        if digits > MAX_INT_DIGITS:
-            raise ValueError(f'line {node.start_mark.line + 1}: an integer of {digits} digits '
-                             f'(at most {MAX_INT_DIGITS})')
-        return super().construct_yaml_int(node)
+        def construct_yaml_int(self, node):
+            """Return the integer of `node`; ValueError for one with too many digits."""
+            digits = len(str(node.value).lstrip('+-').replace('_', ''))
+            if digits > MAX_INT_DIGITS:
+                raise ValueError(f'line {node.start_mark.line + 1}: an integer of {digits} '
+                                 f'digits (at most {MAX_INT_DIGITS})')
+            return super().construct_yaml_int(node)
 
-
-_BoundedLoader.add_constructor('tag:yaml.org,2002:int', _BoundedLoader.construct_yaml_int)
+    _BoundedLoader.add_constructor('tag:yaml.org,2002:int',
+                                   _BoundedLoader.construct_yaml_int)
+    return _BoundedLoader
 
 
 def load(text, name, holds='the file'):
@@ -63,12 +69,12 @@ def load(text, name, holds='the file'):
     _check_size(text, name)
     loader = None
     try:
-        loader = _BoundedLoader(text)   # yaml.safe_load's loader, bounded (class docstring)
+        loader = _loader()(text)   # yaml.safe_load's loader, bounded (class docstring)
         return loader.get_single_data()
-    except yaml.constructor.ConstructorError as error:
+    except _yaml().constructor.ConstructorError as error:
         raise BadInputError(f'{name}{_line(error)}: refused: not plain data ({error.problem}); '
                             f'{holds} holds only mappings, lists, strings and numbers') from None
-    except yaml.YAMLError as error:
+    except _yaml().YAMLError as error:
         problem = getattr(error, 'problem', None) or str(error).splitlines()[0]
         raise BadInputError(f'{name}{_line(error)}: not readable YAML: {problem}') from None
     except (ValueError, RecursionError) as error:   # int() of a 5000-digit number, ...
@@ -76,6 +82,16 @@ def load(text, name, holds='the file'):
     finally:
         if loader is not None:
             loader.dispose()
+
+
+def dump(document, **options):
+    """Return `document` as YAML text (PyYAML's safe_dump with `options`): the one writer."""
+    return _yaml().safe_dump(document, **options)
+
+
+def _yaml():
+    import yaml   # on first use: `solve` of a CSV, the node's message path never need it
+    return yaml
 
 
 def load_json(text, name):
