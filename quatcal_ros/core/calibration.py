@@ -557,7 +557,7 @@ def _noise_model(refinement, robust):
     """Return the fitted sensor noise as JSON: per-axis RMS, correlation, tail weight."""
     if refinement is None:
         return None
-    covariance = refinement.noise.covariance
+    covariance = refinement.noise_covariance
     sandwich, model = (uncertainties(refinement.covariance),
                        uncertainties(refinement.model_covariance))
     sd = np.sqrt(np.diag(covariance))

@@ -27,9 +27,10 @@ reported beside it) does not. Leave-one-out predictions of
 every sample come from the same sums (`leave_one_out`).
 
 Samples whose input gave their own covariance C_i (`sensor_covariance`) are weighted by it:
-residuals and Jacobian are whitened by W_i = L L_i^-1 (C_i = L_i L_i^T, L L^T the mean of the
-C_i), so the noise model fits what is left beyond the given shapes, in the units of a typical
-sample; `residuals` and `leave_one_out` stay in radians and metres.
+residuals and Jacobian are whitened by W_i = L_i^-1 (C_i = L_i L_i^T), so the noise model
+fits the scale left beyond the given covariances (1 when they are right); `noise_covariance`
+carries it back to radians and metres for a typical sample, and `residuals` and
+`leave_one_out` stay in radians and metres.
 """
 
 from dataclasses import dataclass, replace
@@ -80,14 +81,23 @@ class Refinement:
     whitening: np.ndarray = None    # (N, 6, 6) W_i from the samples' own covariances, or None
 
     @property
+    def noise_covariance(self):
+        """Return the fitted noise of one sensor pose (6x6, rad and m; a typical sample's)."""
+        if self.whitening is None:
+            return self.noise.covariance
+        unwhiten = np.linalg.inv(self.whitening)
+        return np.mean(unwhiten @ self.noise.covariance @ np.transpose(unwhiten, (0, 2, 1)),
+                       axis=0)
+
+    @property
     def rotation_noise_deg(self):
         """Return the per-axis RMS rotation noise of one sensor pose (degrees)."""
-        return float(np.degrees(np.sqrt(np.trace(self.noise.covariance[:3, :3]) / 3.0)))
+        return float(np.degrees(np.sqrt(np.trace(self.noise_covariance[:3, :3]) / 3.0)))
 
     @property
     def translation_noise_mm(self):
         """Return the per-axis RMS translation noise of one sensor pose (millimetres)."""
-        return float(1e3 * np.sqrt(np.trace(self.noise.covariance[3:, 3:]) / 3.0))
+        return float(1e3 * np.sqrt(np.trace(self.noise_covariance[3:, 3:]) / 3.0))
 
     @property
     def reported_covariance(self):
@@ -207,10 +217,8 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None
 
 
 def whitening_of(covariances):
-    """Return W_i = L L_i^-1 (module docstring) of covariances (N, 6, 6)."""
-    C = np.asarray(covariances, dtype=float)
-    L_i = np.linalg.cholesky(C)
-    return np.linalg.cholesky(C.mean(axis=0))[None] @ np.linalg.inv(L_i)
+    """Return W_i = L_i^-1 (module docstring) of covariances (N, 6, 6)."""
+    return np.linalg.inv(np.linalg.cholesky(np.asarray(covariances, dtype=float)))
 
 
 def _fit(arrays, model, robust, warm, max_iterations):
