@@ -27,7 +27,9 @@ LAYERS = {
     'stream': ({'core', 'stream'}, {'numpy'}),
     'files': ({'core', 'files'}, {'numpy', 'yaml'}),
     'ros': ({'core', 'stream', 'files', 'sim', 'ros'}, {'numpy', 'yaml', 'rosbags'} | ROS),
-    'tools': ({'core', 'stream', 'files', 'sim', 'ros', 'tools'}, {'numpy', 'yaml'} | ROS),
+    'vision': ({'core', 'files', 'vision'}, {'numpy', 'cv2'}),
+    'tools': ({'core', 'stream', 'files', 'sim', 'ros', 'vision', 'tools'},
+              {'numpy', 'yaml'} | ROS),
     # quatcal_ros/__main__.py (imports its tools by name; ros.stop_signals first for the
     # nodes) and solver.py (the contract's name)
     '': ({'core', 'ros'}, set()),

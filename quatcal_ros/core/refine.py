@@ -62,8 +62,22 @@ FULL_SHAPE_SAMPLES = 30
 JACKKNIFE_BLOCKS = 20
 
 
+class ReportedUncertainty:
+    """The uncertainty figures of an estimate whose `reported_covariance` is X's 6 x 6."""
+
+    @property
+    def uncertainty_deg(self):
+        """Return the expected RMS error angle of X's rotation (degrees), as reported."""
+        return uncertainties(self.reported_covariance)[0]
+
+    @property
+    def translation_uncertainty_mm(self):
+        """Return the expected RMS error of X's translation (millimetres), as reported."""
+        return uncertainties(self.reported_covariance)[1]
+
+
 @dataclass(frozen=True)
-class Refinement:
+class Refinement(ReportedUncertainty):
     """The refined mounting X and object pose O, their covariance and the fitted noise."""
 
     quaternion: np.ndarray          # X rotation (w, x, y, z)
@@ -103,16 +117,6 @@ class Refinement:
     def reported_covariance(self):
         """Return X's 6 x 6 covariance as reported: resampled when it was, else the sandwich."""
         return self.covariance[:6, :6] if self.resampled is None else self.resampled
-
-    @property
-    def uncertainty_deg(self):
-        """Return the expected RMS error angle of X's rotation (degrees), as reported."""
-        return uncertainties(self.reported_covariance)[0]
-
-    @property
-    def translation_uncertainty_mm(self):
-        """Return the expected RMS error of X's translation (millimetres), as reported."""
-        return uncertainties(self.reported_covariance)[1]
 
 
 def uncertainties(covariance):
@@ -205,7 +209,7 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None
     link_R = quat.matrix_from_quaternion(link_q)
     whitening = None if sensor_covariance is None else whitening_of(sensor_covariance)
     if start is None:
-        o_q, o_t = _object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t)
+        o_q, o_t = object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t)
     else:
         x_q, x_t = start.quaternion, start.translation
         o_q, o_t = start.object_quaternion, start.object_translation
@@ -440,7 +444,7 @@ def _unpack(p, x_q, x_t, o_q, o_t):
             o_t + p[9:12])
 
 
-def _object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
+def object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
     """Return the mean object pose O = L_i X S_i over the samples."""
     q = quat.multiply(quat.multiply(link_q, x_q), sensor_q)
     t = link_t + quat.rotate(link_q, x_t + quat.rotate(x_q, sensor_t))

@@ -57,6 +57,18 @@ def _loader():
     return _BoundedLoader
 
 
+def load_file(path, holds='the file'):
+    """Return the plain data of the YAML file `path` (load's errors, and 'cannot read')."""
+    try:
+        with open(path, encoding='utf-8') as stream:
+            text = stream.read()
+    except OSError as error:
+        raise BadInputError(f'{path}: cannot read: {error.strerror}') from None
+    except UnicodeDecodeError:
+        raise BadInputError(f'{path}: not a text file (UTF-8 expected)') from None
+    return load(text, str(path), holds)
+
+
 def load(text, name, holds='the file'):
     """
     Return the plain data of YAML `text` read from `name`.

@@ -10,10 +10,15 @@ recording by quatcal_ros.ros.bag.
 import argparse
 from dataclasses import replace
 import json
+from pathlib import Path
 import sys
 import time
 
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.motions import SampleRotations
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.refine import object_pose
+from quatcal_ros.core.translation import SamplePositions
 from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.files import exports
 from quatcal_ros.files import importers
@@ -43,7 +48,10 @@ def solve_main(argv=None):
                                   'the samples CSV, or samples saved by easy_handeye2 or '
                                   'moveit_calibration; prints one JSON object.')
     parser.add_argument('samples', help='samples file: the samples CSV (DESIGN.md contract '
-                                        "2) or another tool's samples (see --format)")
+                                        "2) or another tool's samples (see --format); or an "
+                                        'image dataset folder (images/, robot_poses.csv, '
+                                        'camera_info.yaml, board.yaml): the board is detected '
+                                        'in each image and the estimate refined on its pixels')
     add_setting_options(parser, 'solve', ESTIMATOR)
     # Unset unless given: an easy_handeye2 file may name the setup (else eye_in_hand).
     parser.set_defaults(setup=None)
@@ -59,6 +67,8 @@ def solve_main(argv=None):
                         help='also write the result in the easy_handeye2 calibration layout '
                              '(e.g. ~/.ros2/easy_handeye2/calibrations/NAME.calib)')
     args = parser.parse_args(argv)
+    if Path(args.samples).is_dir():
+        return _solve_images(parser.prog, args)
     try:
         imported = importers.load_samples(args.samples, args.format, args.setup)
     except BadInputError as error:
@@ -79,6 +89,49 @@ def solve_main(argv=None):
             return fail(parser.prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)
     return print_result(parser.prog, session, f'{args.samples}: ', imported.warnings,
                         frames=frames)
+
+
+def _solve_images(prog, args):
+    """`solve DIR`: the board in each image, the pose-based estimate, then on the pixels."""
+    from quatcal_ros.vision import dataset as images   # cv2 only on the image path
+    from quatcal_ros.vision.reprojection import refine_reprojection
+    args.setup = args.setup or 'eye_in_hand'
+    where = f'{args.samples}: '
+    progress = None
+    try:
+        total = len(images.read_robot_poses(Path(args.samples) / 'robot_poses.csv'))
+        progress = Progress(total, 'images', enabled=sys.stderr.isatty())
+        data = images.load_image_dataset(args.samples, progress=progress.update)
+    except BadInputError as error:
+        return fail(prog, error, EXIT_BAD_INPUT)
+    finally:
+        if progress is not None:
+            progress.close()
+    session = Session(session_config(settings_of(args)))
+    session.add_samples(data.samples)
+    session.estimate()
+    views = {'used': len(data.samples), 'refused': data.refused_json()}
+    result = session.result
+    if result is None or len(data.samples) < 3:
+        return print_result(prog, session, where, frames=solve_frames(args),
+                            extra={'views': views})
+    rotations = SampleRotations.from_samples(data.samples, args.setup)
+    positions = SamplePositions.from_samples(data.samples, rotations)
+    used = result.sample_ok
+    link_q, link_t = rotations.link[used], positions.link[used]
+    o_q, o_t = object_pose(link_q, link_t, rotations.sensor[used], positions.sensor[used],
+                           result.quaternion, result.translation)
+    fit = refine_reprojection(link_q, link_t, images.views_for_refinement(data, used),
+                              data.camera, result.quaternion, result.translation, o_q, o_t,
+                              robust=args.robust)
+    on_pixels = replace(result, quaternion=fit.quaternion,
+                        matrix=quat.matrix_from_quaternion(fit.quaternion),
+                        translation=fit.translation, uncertainty_deg=fit.uncertainty_deg,
+                        translation_uncertainty_mm=fit.translation_uncertainty_mm,
+                        method='reprojection')
+    return print_result(prog, session, where, frames=solve_frames(args), result=on_pixels,
+                        extra={'views': views, 'reprojection': fit.to_json_dict(),
+                               'pose_based_method': result.method})
 
 
 def add_frame_arguments(parser):
@@ -105,13 +158,15 @@ def solve_frames(args, named=None):
                                  (named_parent, named.get('tracking_base_frame')))
 
 
-def print_result(prog, session, where='', warnings=(), frames=None, extra=None):
+def print_result(prog, session, where='', warnings=(), frames=None, extra=None, result=None):
     """
     Print the session's result as JSON (exit 0) or why there is none (exit 2 or 3).
 
     warnings: sentences added to the result's own "warnings" (what the input lacked).
     frames: (parent, child) of the "static_transform_publisher" line; default
     exports.default_frames of the result's setup. extra: more keys for the JSON object.
+    result: the CalibrationResult to print instead of the session's (`solve DIR`: the same
+    with the estimate on the pixels at the top level).
     """
     if len(session.samples) < 3:
         return fail(prog, f'{where}{len(session.samples)} sample(s); at least 3 are needed',
@@ -119,7 +174,7 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None):
     if session.result is None:
         return fail(prog, f'{where}the rotation cannot be determined: {session.last_error}',
                     EXIT_UNDETERMINED)
-    result = with_warnings(session.result, warnings)
+    result = with_warnings(result or session.result, warnings)
     document = result.to_json_dict()
     parent, child = frames or exports.default_frames(result.setup)
     document['static_transform_publisher'] = exports.static_transform_publisher_command(

@@ -1,0 +1,1 @@
+"""Camera images in: calibration targets, their detection and pose, pixel-level refinement."""

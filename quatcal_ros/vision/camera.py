@@ -1,0 +1,106 @@
+"""
+The camera model: camera_calibration's YAML (DESIGN.md contract 5) or a sensor_msgs CameraInfo.
+
+Intrinsics K (3x3) and distortion as ROS names them: plumb_bob (k1, k2, p1, p2, k3) and
+rational_polynomial (k1, k2, p1, p2, k3, k4, k5, k6), the orders OpenCV takes. `project` is
+OpenCV's model in numpy (checked against cv2.projectPoints), so a refinement can evaluate
+every corner of every view at once.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from quatcal_ros.files import plain_yaml
+from quatcal_ros.files.samples_csv import BadInputError
+
+MODELS = {'plumb_bob': 5, 'rational_polynomial': 8}
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Image size, intrinsics and distortion of one camera."""
+
+    width: int
+    height: int
+    K: np.ndarray            # 3x3
+    distortion_model: str
+    D: np.ndarray            # 5 or 8 coefficients, OpenCV's order
+
+    def project(self, points):
+        """Return the pixels (..., 2) of camera-frame points (..., 3) (z > 0)."""
+        p = np.asarray(points, dtype=float)
+        x, y = p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]
+        d = np.zeros(8)
+        d[:len(self.D)] = self.D
+        k1, k2, p1, p2, k3, k4, k5, k6 = d
+        r2 = x * x + y * y
+        radial = ((1 + r2 * (k1 + r2 * (k2 + r2 * k3)))
+                  / (1 + r2 * (k4 + r2 * (k5 + r2 * k6))))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        K = self.K
+        return np.stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]],
+                        axis=-1)
+
+
+def read_camera_yaml(path):
+    """Read camera_calibration's YAML; raise BadInputError naming the file and field."""
+    return parse_camera(plain_yaml.load_file(path, holds='a camera_info file'), str(path))
+
+
+def parse_camera(document, name='<camera_info>'):
+    """Return the Camera of a camera_calibration document (a mapping)."""
+    if not isinstance(document, dict):
+        raise BadInputError(f'{name}: expected the mapping camera_calibration writes '
+                            '(image_width, camera_matrix, distortion_model, '
+                            'distortion_coefficients)')
+    width, height = (_size(document, field, name) for field in ('image_width', 'image_height'))
+    K = _matrix(document, 'camera_matrix', name, (3, 3))
+    model = document.get('distortion_model', 'plumb_bob')
+    if model not in MODELS:
+        raise BadInputError(f'{name}, field distortion_model: {model!r} is not one of '
+                            f'{", ".join(MODELS)}')
+    D = _matrix(document, 'distortion_coefficients', name, None).ravel()
+    return camera_from(width, height, K, model, D, name)
+
+
+def camera_from(width, height, K, model, D, name='camera_info'):
+    """Return a checked Camera (also for a CameraInfo message's fields)."""
+    K = np.asarray(K, dtype=float).reshape(3, 3)
+    D = np.asarray(D, dtype=float).ravel()
+    if model not in MODELS:
+        raise BadInputError(f'{name}: distortion_model {model!r} is not one of '
+                            f'{", ".join(MODELS)}')
+    if len(D) != MODELS[model]:
+        if not (model == 'plumb_bob' and len(D) in (4, 5)):
+            raise BadInputError(f'{name}, field distortion_coefficients: {model} takes '
+                                f'{MODELS[model]} coefficients, not {len(D)}')
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(D))):
+        raise BadInputError(f'{name}, field camera_matrix: NaN or inf')
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if not (fx > 0 and fy > 0 and 0 <= cx <= width and 0 <= cy <= height
+            and K[2, 2] == 1 and not K[1, 0] and not K[2, 0] and not K[2, 1]):
+        raise BadInputError(f'{name}, field camera_matrix: not a camera matrix (fx, fy > 0, '
+                            'the principal point inside the image, last row 0 0 1); an '
+                            'all-zero CameraInfo means the camera is not calibrated')
+    return Camera(int(width), int(height), K, model, D)
+
+
+def _size(document, field, name):
+    value = document.get(field)
+    if not isinstance(value, int) or isinstance(value, bool) or not 0 < value <= 100_000:
+        raise BadInputError(f'{name}, field {field}: {value!r} is not an image size in pixels')
+    return value
+
+
+def _matrix(document, field, name, shape):
+    value = document.get(field)
+    data = value.get('data') if isinstance(value, dict) else None
+    try:
+        array = np.array(data, dtype=float)
+    except (TypeError, ValueError):
+        array = None
+    if array is None or array.ndim != 1 or (shape and array.size != shape[0] * shape[1]):
+        raise BadInputError(f'{name}, field {field}: expected {{rows, cols, data: [...]}} '
+                            f'with {shape[0] * shape[1] if shape else "the"} numbers')
+    return array.reshape(shape) if shape else array

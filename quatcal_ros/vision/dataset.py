@@ -1,0 +1,137 @@
+"""
+An image dataset folder (DESIGN.md contract 5) as samples, views and the reasons for refusals.
+
+    DIR/images/<name>.png|.jpg   DIR/robot_poses.csv   DIR/camera_info.yaml   DIR/board.yaml
+
+`load_image_dataset` detects the board in each image listed in robot_poses.csv (detect.py);
+each view that passes its checks becomes a still sample: the link pose of its row and the
+board pose T_camera_board with the PnP covariance (which weighs it in the pose-based
+refinement). The refused views are listed with their named reasons; nothing is dropped
+silently. Errors in the files name the file, the row and the field.
+"""
+
+import csv
+from dataclasses import dataclass, field
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+from quatcal_ros.core.pose import Pose, Sample
+from quatcal_ros.core.quaternion import wxyz_from_xyzw
+from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, NS_PER_S, \
+    quaternion_norm_problem
+from quatcal_ros.files.samples_csv import BadInputError
+from quatcal_ros.vision.board import read_board
+from quatcal_ros.vision.camera import read_camera_yaml
+from quatcal_ros.vision.detect import Checks, detect
+
+POSE_COLUMNS = ('image', 'link_x', 'link_y', 'link_z', 'link_qx', 'link_qy', 'link_qz',
+                'link_qw')
+
+
+@dataclass
+class ImageDataset:
+    """The views of a folder: the samples of those used, and why the others were refused."""
+
+    board: object
+    camera: object
+    names: list = field(default_factory=list)      # images used, in file order
+    samples: list = field(default_factory=list)    # one per image used
+    views: list = field(default_factory=list)      # detect.View of each image used
+    refused: list = field(default_factory=list)    # {'image', 'reason', 'detail'}
+
+    def refused_json(self):
+        return list(self.refused)
+
+
+def is_image_dataset(path):
+    """Return whether `path` is a folder in the layout of contract 5."""
+    path = Path(path)
+    return path.is_dir() and (path / 'robot_poses.csv').is_file()
+
+
+def load_image_dataset(folder, checks=Checks(), progress=None):
+    """Read and detect the folder (module docstring); progress(done, total) after each image."""
+    folder = Path(folder)
+    for name in ('robot_poses.csv', 'camera_info.yaml', 'board.yaml'):
+        if not (folder / name).is_file():
+            raise BadInputError(f'{folder}: {name} missing (an image dataset folder holds '
+                                'images/, robot_poses.csv, camera_info.yaml and board.yaml)')
+    board = read_board(folder / 'board.yaml')
+    camera = read_camera_yaml(folder / 'camera_info.yaml')
+    rows = read_robot_poses(folder / 'robot_poses.csv')
+    dataset = ImageDataset(board, camera)
+    for index, (image_name, link) in enumerate(rows):
+        path = folder / 'images' / image_name
+        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
+        if gray is None:
+            view_refused = ('unreadable_image', 'missing' if not path.is_file()
+                            else 'not an image OpenCV can read')
+            dataset.refused.append({'image': image_name, 'reason': view_refused[0],
+                                    'detail': view_refused[1]})
+        else:
+            view = detect(gray, board, camera, checks)
+            if view.ok:
+                dataset.names.append(image_name)
+                dataset.views.append(view)
+                dataset.samples.append(Sample(index * NS_PER_S, link, view.pose))
+            else:
+                dataset.refused.append({'image': image_name, 'reason': view.refused,
+                                        'detail': view.detail})
+        if progress is not None:
+            progress(index + 1, len(rows))
+    return dataset
+
+
+def read_robot_poses(path):
+    """Return [(image name, T_base_link Pose)] of robot_poses.csv; BadInputError names the row."""
+    name = str(path)
+    with open(path, newline='', encoding='utf-8-sig') as stream:
+        reader = csv.reader(stream)
+        header = [column.strip() for column in next(reader, [])]
+        missing = [c for c in POSE_COLUMNS if c not in header]
+        if missing:
+            raise BadInputError(f'{name}, row 1 (header): missing column(s) '
+                                f'{", ".join(missing)}; expected {",".join(POSE_COLUMNS)}')
+        index = {c: header.index(c) for c in POSE_COLUMNS}
+        rows, seen = [], set()
+        for row in reader:
+            if not row or all(not cell.strip() for cell in row):
+                continue
+            line = reader.line_num
+            image = row[index['image']].strip() if index['image'] < len(row) else ''
+            if not image or '/' in image or image in seen:
+                raise BadInputError(f'{name}, row {line}, field image: {image!r} is not a new '
+                                    'file name in images/')
+            seen.add(image)
+            rows.append((image, _link_pose(row, index, name, line)))
+    if not rows:
+        raise BadInputError(f'{name}: no rows')
+    return rows
+
+
+def _link_pose(row, index, name, line):
+    values = {}
+    for column in POSE_COLUMNS[1:]:
+        where = f'{name}, row {line}, field {column}'
+        cell = row[index[column]].strip() if index[column] < len(row) else ''
+        try:
+            value = float(cell)
+        except ValueError:
+            raise BadInputError(f'{where}: {cell!r} is not a number') from None
+        if not math.isfinite(value) or (column[-2:] in ('_x', '_y', '_z')
+                                        and abs(value) > MAX_POSITION_M):
+            raise BadInputError(f'{where}: {value:g} is not a finite pose value in metres')
+        values[column] = value
+    xyzw = [values[f'link_q{axis}'] for axis in 'xyzw']
+    problem = quaternion_norm_problem(xyzw, FILE_NORM_TOLERANCE)
+    if problem:
+        raise BadInputError(f'{name}, row {line}, fields link_qx..link_qw: {problem}')
+    return Pose.create([values[f'link_{a}'] for a in 'xyz'], wxyz_from_xyzw(xyzw))
+
+
+def views_for_refinement(dataset, used):
+    """Return [(object_points, image_points)] of the views whose samples `used` selects."""
+    return [(view.object_points, view.image_points)
+            for view, ok in zip(dataset.views, np.asarray(used, dtype=bool)) if ok]

@@ -1,0 +1,194 @@
+"""
+The board in one image: corners (sub-pixel), a planar-aware PnP, and the per-view checks.
+
+`detect(gray, board, camera, checks)` returns a View: the board's corners in the board frame
+and in the image, the pose T_camera_board and its covariance, or the named reason the view is
+refused (REASONS). The pose comes from IPPE (OpenCV's planar PnP, which returns both poses a
+plane allows) refined by Levenberg-Marquardt; when the second pose fits about as well and
+points elsewhere the view is ambiguous, a marker flip waiting to happen. The covariance is
+the PnP's at the pixel noise its own residuals show: sigma^2 (J^T J)^-1 with J the Jacobian
+of the pixels with respect to refine.py's pose error (a rotation vector on the left in the
+camera frame, then the translation), in ROS's order as Pose.covariance holds it.
+"""
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose, ros_order
+
+REASONS = {
+    'unreadable_image': 'the file is not an image OpenCV can read',
+    'wrong_image_size': 'the image size differs from camera_info',
+    'no_board': 'no corner of the board was found',
+    'too_few_corners': 'fewer corners than a reliable pose needs',
+    'blurred': 'the board region is too blurred (sharpness below the threshold)',
+    'ambiguous_pose': 'two board poses fit about equally well (planar ambiguity)',
+    'reprojection_error': 'the pose leaves corner residuals above the threshold',
+}
+
+
+@dataclass(frozen=True)
+class Checks:
+    """What a view must satisfy to be used."""
+
+    min_corners: int = 8
+    max_reprojection_px: float = 2.0
+    min_sharpness: float = 10.0          # variance of the Laplacian over the board region
+    ambiguity_ratio: float = 1.2         # second PnP pose's RMS within this factor: ambiguous
+    ambiguity_angle_deg: float = 3.0     # ... and this far from the first
+
+
+@dataclass(frozen=True)
+class View:
+    """One image's detection: corners, pose, quality, or why it is refused."""
+
+    object_points: np.ndarray = None     # (M, 3) board frame, metres
+    image_points: np.ndarray = None      # (M, 2) pixels
+    pose: Pose = None                    # T_camera_board, with its covariance (ROS order)
+    rms_px: float = float('nan')
+    sharpness: float = float('nan')
+    refused: str = ''                    # a key of REASONS, or ''
+    detail: str = ''
+
+    @property
+    def ok(self):
+        return not self.refused
+
+
+def find_corners(gray, board):
+    """Return (object points (M, 3), image points (M, 2)) of the board's corners found."""
+    if board.kind == 'chessboard':
+        pattern = (board.size[0] - 1, board.size[1] - 1)
+        found, corners = cv2.findChessboardCornersSB(gray, pattern, cv2.CALIB_CB_ACCURACY)
+        if not found:
+            return np.zeros((0, 3)), np.zeros((0, 2))
+        return board.chessboard_points(), corners.reshape(-1, 2).astype(float)
+    cv_board = board.cv_board
+    if board.kind == 'charuco':
+        corners, ids, _, _ = cv2.aruco.CharucoDetector(cv_board).detectBoard(gray)
+        if ids is None or len(ids) == 0:
+            return np.zeros((0, 3)), np.zeros((0, 2))
+        points = cv_board.getChessboardCorners()[ids.ravel()]
+        return points.astype(float), corners.reshape(-1, 2).astype(float)
+    parameters = cv2.aruco.DetectorParameters()
+    parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    detector = cv2.aruco.ArucoDetector(cv_board.getDictionary(), parameters)
+    corners, ids, _ = detector.detectMarkers(gray)
+    if ids is None or len(ids) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 2))
+    object_points, image_points = cv_board.matchImagePoints(corners, ids)
+    if object_points is None or len(object_points) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 2))
+    return object_points.reshape(-1, 3).astype(float), image_points.reshape(-1, 2).astype(float)
+
+
+def detect(gray, board, camera, checks=Checks()):
+    """Return the View of the board in a grayscale image (module docstring)."""
+    if gray is None or gray.ndim != 2 or gray.size == 0:
+        return View(refused='unreadable_image', detail='not a grayscale image')
+    if gray.shape != (camera.height, camera.width):
+        return View(refused='wrong_image_size',
+                    detail=f'{gray.shape[1]}x{gray.shape[0]} px, camera_info says '
+                           f'{camera.width}x{camera.height}')
+    object_points, image_points = find_corners(gray, board)
+    if len(image_points) == 0:
+        return View(refused='no_board', detail='no corner found')
+    if len(image_points) < checks.min_corners:
+        return View(object_points, image_points, refused='too_few_corners',
+                    detail=f'{len(image_points)} corners, at least {checks.min_corners}')
+    sharpness = board_sharpness(gray, image_points)
+    if sharpness < checks.min_sharpness:
+        return View(object_points, image_points, sharpness=sharpness, refused='blurred',
+                    detail=f'sharpness {sharpness:.1f}, at least {checks.min_sharpness:g}')
+    return _with_pose(object_points, image_points, camera, checks, sharpness)
+
+
+def board_sharpness(gray, image_points):
+    """Return the variance of the Laplacian over the corners' bounding box."""
+    x0, y0 = np.floor(image_points.min(axis=0)).astype(int)
+    x1, y1 = np.ceil(image_points.max(axis=0)).astype(int)
+    region = gray[max(y0, 0):y1 + 1, max(x0, 0):x1 + 1]
+    if region.size < 9:
+        return 0.0
+    return float(cv2.Laplacian(region, cv2.CV_64F).var())
+
+
+def _with_pose(object_points, image_points, camera, checks, sharpness):
+    solutions = _pnp(object_points, image_points, camera)
+    (rvec, tvec, rms), others = solutions[0], solutions[1:]
+    pose = pose_from_rvec(rvec, tvec)
+    for other_rvec, other_tvec, other_rms in others:
+        angle = np.degrees(quat.angle_between(pose.quaternion,
+                                              pose_from_rvec(other_rvec, other_tvec).quaternion))
+        if other_rms < checks.ambiguity_ratio * max(rms, 1e-3) \
+                and angle > checks.ambiguity_angle_deg:
+            return View(object_points, image_points, pose, rms, sharpness,
+                        refused='ambiguous_pose',
+                        detail=f'a second pose {angle:.1f} deg away fits with '
+                               f'{other_rms:.2f} px against {rms:.2f} px')
+    if rms > checks.max_reprojection_px:
+        return View(object_points, image_points, pose, rms, sharpness,
+                    refused='reprojection_error',
+                    detail=f'RMS {rms:.2f} px, at most {checks.max_reprojection_px:g} px')
+    covariance = pose_covariance(pose, object_points, image_points, camera)
+    return View(object_points, image_points,
+                Pose(pose.position, pose.quaternion, covariance), rms, sharpness)
+
+
+def _pnp(object_points, image_points, camera):
+    """Return [(rvec, tvec, RMS px)] of the PnP poses, best first (IPPE, then LM-refined)."""
+    obj = object_points.reshape(-1, 1, 3)
+    img = image_points.reshape(-1, 1, 2)
+    planar = np.ptp(object_points[:, 2]) < 1e-9
+    flags = cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_ITERATIVE
+    count, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, camera.K, camera.D, flags=flags)
+    solutions = []
+    for rvec, tvec in zip(rvecs[:count], tvecs[:count]):
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, camera.K, camera.D, rvec.copy(),
+                                          tvec.copy())
+        projected, _ = cv2.projectPoints(obj, rvec, tvec, camera.K, camera.D)
+        rms = float(np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - image_points) ** 2,
+                                           axis=1))))
+        solutions.append((rvec.ravel(), tvec.ravel(), rms))
+    return sorted(solutions, key=lambda s: s[2])
+
+
+def pose_from_rvec(rvec, tvec):
+    """Return the Pose of an OpenCV rotation vector and translation (T_camera_board)."""
+    R, _ = cv2.Rodrigues(np.asarray(rvec, dtype=float).reshape(3))
+    return Pose(np.asarray(tvec, dtype=float).reshape(3).copy(), quat.quaternion_from_matrix(R))
+
+
+def pixel_jacobian(pose, object_points, camera, h=1e-6):
+    """Return d pixels / d (left rotation vector, translation) of T_camera_board: (2M, 6)."""
+    R = pose.rotation
+    columns = []
+    for k in range(6):
+        step = np.zeros(6)
+        step[k] = h
+        plus = _project(camera, R, pose.position, object_points, step)
+        minus = _project(camera, R, pose.position, object_points, -step)
+        columns.append((plus - minus).ravel() / (2 * h))
+    return np.stack(columns, axis=1)
+
+
+def _project(camera, R, t, object_points, step):
+    turn = quat.matrix_from_quaternion(quat.from_rotation_vector(step[:3]))
+    return camera.project(object_points @ (turn @ R).T + t + step[3:])
+
+
+def pose_covariance(pose, object_points, image_points, camera):
+    """Return the pose's covariance (6x6, ROS order) at the pixel noise its residuals show."""
+    J = pixel_jacobian(pose, object_points, camera)
+    residuals = camera.project(object_points @ pose.rotation.T + pose.position) - image_points
+    dof = max(residuals.size - 6, 1)
+    sigma2 = max(float(np.sum(residuals ** 2)) / dof, MIN_PIXEL_NOISE ** 2)
+    return ros_order(sigma2 * np.linalg.inv(J.T @ J))
+
+
+# A floor of the pixel noise a covariance is computed with: a view's residuals show only the
+# corners' scatter about the pose that fits them, not the errors they share (sub-pixel
+# detectors are biased by about a tenth of a pixel), which a very precise view would hide.
+MIN_PIXEL_NOISE = 0.1

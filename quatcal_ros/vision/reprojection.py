@@ -1,0 +1,196 @@
+"""
+The mounting from the target's pixels: a joint maximum-likelihood fit on corner residuals.
+
+The unknowns are refine.py's: the mounting X and the board pose O (T_base_board for
+eye-in-hand, T_link_board for eye-to-hand; link poses as refine gets them). View i sees
+board corner p at the pixel camera.project(R_S p + t_S), S_i = inv(X) inv(L_i) O; the
+residual is the detected pixel minus that. Gauss-Newton over the 12 unknowns (left rotation
+vectors and translations, as refine's), with Huber weights on each corner's residual (robust
+to a few bad corners) and the pixel noise estimated from the weighted residuals; the
+Jacobian by central differences of the vectorised model (every corner of every view at once).
+The intrinsics stay fixed; their misfit shows as a pixel noise above the detector's.
+
+Uncertainty: the block jackknife over the views (each block's views left out, one Gauss-Newton
+step from the answer), which sees what the model cannot (errors shared by a view's corners),
+with the model's sigma^2 (J^T W J)^-1 reported beside it. `cramer_rao_covariance` is the
+bound for independent Gaussian pixel noise.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.refine import ReportedUncertainty, uncertainties
+
+MAX_ITERATIONS = 30
+STEP_TOLERANCE = 1e-6          # in units of the unknowns' sigmas
+HUBER_SIGMAS = 2.5             # corners beyond this many sigmas are down-weighted
+JACKKNIFE_BLOCKS = 20
+MIN_JACKKNIFE_VIEWS = 8
+DIFFERENCE_STEP = 1e-7         # radians and metres
+
+
+@dataclass(frozen=True)
+class Corners:
+    """Every corner of the views used, stacked: view index, board point, detected pixel."""
+
+    view: np.ndarray     # (K,) int
+    points: np.ndarray   # (K, 3) board frame, metres
+    pixels: np.ndarray   # (K, 2)
+
+    @staticmethod
+    def of(views):
+        """Stack (object_points, image_points) of each view."""
+        return Corners(np.concatenate([np.full(len(o), i) for i, (o, _) in enumerate(views)]),
+                       np.concatenate([o for o, _ in views]).astype(float),
+                       np.concatenate([u for _, u in views]).astype(float))
+
+
+@dataclass(frozen=True)
+class ReprojectionFit(ReportedUncertainty):
+    """The mounting X and board pose O on pixels, their covariance, the pixel noise."""
+
+    quaternion: np.ndarray
+    translation: np.ndarray
+    object_quaternion: np.ndarray
+    object_translation: np.ndarray
+    pixel_noise_px: float
+    rms_px: float
+    model_covariance: np.ndarray   # 12 x 12
+    resampled: np.ndarray          # 6 x 6 view jackknife of X, or None (too few views)
+    converged: bool
+    iterations: int
+    view_rms_px: np.ndarray        # (N,) RMS residual of each view
+
+    @property
+    def reported_covariance(self):
+        """Return X's 6 x 6 covariance as reported: the jackknife's, else the model's."""
+        return self.model_covariance[:6, :6] if self.resampled is None else self.resampled
+
+    def to_json_dict(self):
+        """Return the JSON object of the fit (the "reprojection" key of `solve DIR`)."""
+        x, y, z, w = quat.xyzw_from_wxyz(self.quaternion)
+        model = uncertainties(self.model_covariance[:6, :6])
+        return {'rotation': {'x': float(x), 'y': float(y), 'z': float(z), 'w': float(w)},
+                'translation': dict(zip('xyz', (float(v) for v in self.translation))),
+                'uncertainty_deg': float(self.uncertainty_deg),
+                'translation_uncertainty_mm': float(self.translation_uncertainty_mm),
+                'uncertainty_from': ('view_jackknife' if self.resampled is not None
+                                     else 'model'),
+                'model_uncertainty_deg': float(model[0]),
+                'model_translation_uncertainty_mm': float(model[1]),
+                'pixel_noise_px': float(self.pixel_noise_px),
+                'reprojection_rms_px': float(self.rms_px),
+                'worst_view_rms_px': float(np.max(self.view_rms_px)),
+                'converged': bool(self.converged), 'iterations': int(self.iterations)}
+
+
+def predicted_pixels(link_q, link_t, corners, camera, model):
+    """Return the pixels (K, 2) the model (X, O) predicts for every corner."""
+    x_q, x_t, o_q, o_t = model
+    R_X, R_O = quat.matrix_from_quaternion(x_q), quat.matrix_from_quaternion(o_q)
+    R_L = quat.matrix_from_quaternion(link_q)                       # (N, 3, 3)
+    R_S = R_X.T @ np.transpose(R_L, (0, 2, 1)) @ R_O                 # (N, 3, 3)
+    t_S = (np.einsum('nji,nj->ni', R_L, o_t - link_t) - x_t) @ R_X   # (N, 3)
+    v = corners.view
+    points = np.einsum('kij,kj->ki', R_S[v], corners.points) + t_S[v]
+    return camera.project(points)
+
+
+def _unpack(p, x_q, x_t, o_q, o_t):
+    return (quat.normalize(quat.multiply(quat.from_rotation_vector(p[0:3]), x_q)), x_t + p[3:6],
+            quat.normalize(quat.multiply(quat.from_rotation_vector(p[6:9]), o_q)),
+            o_t + p[9:12])
+
+
+def jacobian(link_q, link_t, corners, camera, model):
+    """Return d pixels / d unknowns, (K, 2, 12), by central differences."""
+    columns = []
+    for k in range(12):
+        step = np.zeros(12)
+        step[k] = DIFFERENCE_STEP
+        plus = predicted_pixels(link_q, link_t, corners, camera, _unpack(step, *model))
+        minus = predicted_pixels(link_q, link_t, corners, camera, _unpack(-step, *model))
+        columns.append((plus - minus) / (2 * DIFFERENCE_STEP))
+    return np.stack(columns, axis=-1)
+
+
+def refine_reprojection(link_q, link_t, views, camera, x_q, x_t, o_q, o_t, robust=True,
+                        max_iterations=MAX_ITERATIONS):
+    """
+    Fit X and O to the corners of `views` ([(object_points, image_points)], one per link pose).
+
+    Starts from (x_q, x_t, o_q, o_t), e.g. the pose-based refinement's answer; returns a
+    ReprojectionFit.
+    """
+    link_q, link_t = np.asarray(link_q, dtype=float), np.asarray(link_t, dtype=float)
+    corners = Corners.of(views)
+    model = (np.asarray(x_q, float), np.asarray(x_t, float), np.asarray(o_q, float),
+             np.asarray(o_t, float))
+    converged, iterations = False, 0
+    for iterations in range(1, max_iterations + 1):
+        e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, model)
+        J = jacobian(link_q, link_t, corners, camera, model)
+        w, sigma = _weights(e, robust)
+        A, g = _normal_equations(J, e, w)
+        step = np.linalg.lstsq(A, g, rcond=None)[0]
+        model = _unpack(step, *model)
+        if float(step @ A @ step) / sigma ** 2 < STEP_TOLERANCE ** 2:
+            converged = True
+            break
+    e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, model)
+    J = jacobian(link_q, link_t, corners, camera, model)
+    w, sigma = _weights(e, robust)
+    A, _ = _normal_equations(J, e, w)
+    covariance = sigma ** 2 * np.linalg.pinv(A)
+    squared = np.sum(e * e, axis=1)
+    view_rms = np.sqrt(np.bincount(corners.view, squared) / np.bincount(corners.view))
+    return ReprojectionFit(
+        quaternion=quat.canonical(model[0]), translation=model[1], object_quaternion=model[2],
+        object_translation=model[3], pixel_noise_px=sigma,
+        rms_px=float(np.sqrt(squared.mean())), model_covariance=covariance,
+        resampled=_jackknife(J, e, w, corners.view, len(views)), converged=converged,
+        iterations=iterations, view_rms_px=view_rms)
+
+
+def _weights(e, robust):
+    """Return each corner's Huber weight and the pixel noise sigma (per axis)."""
+    r = np.linalg.norm(e, axis=1)
+    dof = max(e.size - 12, 1)
+    if not robust:
+        return np.ones(len(r)), max(float(np.sqrt(np.sum(r * r) / dof)), 1e-6)
+    sigma = max(float(np.median(r)) / 1.1774, 1e-6)   # the median of a 2-D Gaussian's norm
+    for _ in range(3):
+        w = np.minimum(1.0, HUBER_SIGMAS * sigma / np.maximum(r, 1e-12))
+        sigma = max(float(np.sqrt(np.sum(w * r * r) / max(2 * w.sum() - 12, 1.0))), 1e-6)
+    return np.minimum(1.0, HUBER_SIGMAS * sigma / np.maximum(r, 1e-12)), sigma
+
+
+def _normal_equations(J, e, w):
+    WJ = J * w[:, None, None]
+    flat_WJ, flat_J = WJ.reshape(-1, 12), J.reshape(-1, 12)
+    return flat_WJ.T @ flat_J, flat_WJ.T @ e.reshape(-1)
+
+
+def _jackknife(J, e, w, view, n_views):
+    """Return the block jackknife (over views) covariance of X, or None with too few views."""
+    if n_views < MIN_JACKKNIFE_VIEWS:
+        return None
+    blocks = np.array_split(np.arange(n_views), min(JACKKNIFE_BLOCKS, n_views))
+    moves = []
+    for block in blocks:
+        keep = ~np.isin(view, block)
+        A, g = _normal_equations(J[keep], e[keep], w[keep])
+        moves.append(np.linalg.lstsq(A, g, rcond=None)[0][:6])
+    moves = np.array(moves)
+    b = len(blocks)
+    centred = moves - moves.mean(axis=0)
+    return (b - 1) / b * centred.T @ centred
+
+
+def cramer_rao_covariance(link_q, link_t, views, camera, model, sigma_px):
+    """Return the 12 x 12 bound sigma^2 (J^T J)^-1 at the true model, pixel noise sigma_px."""
+    corners = Corners.of(views)
+    J = jacobian(np.asarray(link_q, float), np.asarray(link_t, float), corners, camera,
+                 tuple(np.asarray(m, float) for m in model)).reshape(-1, 12)
+    return sigma_px ** 2 * np.linalg.inv(J.T @ J)

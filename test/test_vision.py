@@ -1,0 +1,264 @@
+"""
+Calibration targets in images: boards, detection, checks, covariance, pixel refinement.
+
+Boards and cameras from their files, the per-view checks, the PnP covariance, the
+reprojection refinement at its Cramer-Rao bound, and `solve DIR` on rendered datasets.
+
+Images are rendered with OpenCV (vision/render.py) from a known camera, board and mounting;
+the Monte-Carlo checks use corners projected with Gaussian pixel noise (no rendering), so
+they test the estimator alone.
+"""
+
+import json
+import os
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.calibration import calibrate
+from quatcal_ros.core.pose import Pose, residual_order, Sample
+from quatcal_ros.files.samples_csv import BadInputError
+from quatcal_ros.vision.board import parse_board
+from quatcal_ros.vision.camera import camera_from, parse_camera
+from quatcal_ros.vision.detect import _pnp, _with_pose, Checks, detect, pose_covariance, \
+    pose_from_rvec
+from quatcal_ros.vision.render import Renderer, view_poses, write_dataset
+from quatcal_ros.vision.reprojection import cramer_rao_covariance, refine_reprojection
+
+CAMERA = camera_from(640, 480, [[600, 0, 320], [0, 600, 240], [0, 0, 1]], 'plumb_bob',
+                     [0, 0, 0, 0, 0])
+BOARDS = {
+    'charuco': {'type': 'charuco', 'squares_x': 7, 'squares_y': 5, 'square_length_m': 0.03,
+                'marker_length_m': 0.022, 'dictionary': 'DICT_5X5_100'},
+    'chessboard': {'type': 'chessboard', 'squares_x': 9, 'squares_y': 6,
+                   'square_length_m': 0.025},
+    'aruco_grid': {'type': 'aruco_grid', 'markers_x': 5, 'markers_y': 4,
+                   'marker_length_m': 0.03, 'marker_separation_m': 0.008,
+                   'dictionary': 'DICT_4X4_50'},
+    'apriltag_grid': {'type': 'apriltag_grid', 'markers_x': 5, 'markers_y': 4,
+                      'marker_length_m': 0.03, 'marker_separation_m': 0.008},
+}
+
+
+@pytest.fixture(scope='module')
+def renderers():
+    return {name: Renderer(parse_board(doc), CAMERA) for name, doc in BOARDS.items()}
+
+
+def pose_error(estimate, truth):
+    """Return the error (rotation vector, translation) in refine's convention."""
+    return np.concatenate([quat.rotation_vector(quat.multiply(estimate.quaternion,
+                                                              quat.conjugate(truth.quaternion))),
+                           estimate.position - truth.position])
+
+
+# --- boards and cameras -------------------------------------------------------------------
+
+@pytest.mark.parametrize('change, field', [
+    ({'type': 'circles'}, 'field type'),
+    ({'squares_x': 1}, 'field squares_x'),
+    ({'square_length_m': -0.03}, 'field square_length_m'),
+    ({'marker_length_m': 0.05}, 'field marker_length_m: 0.05 m must be smaller'),
+    ({'dictionary': 'DICT_7X7_BIG'}, 'field dictionary'),
+    ({'dictionary': 'DICT_4X4_50', 'squares_x': 20, 'squares_y': 20}, 'has 50 markers'),
+])
+def test_bad_board_files_name_the_field(change, field):
+    with pytest.raises(BadInputError, match=field):
+        parse_board({**BOARDS['charuco'], **change}, 'board.yaml')
+
+
+def test_bad_camera_info_is_named():
+    good = {'image_width': 640, 'image_height': 480, 'distortion_model': 'plumb_bob',
+            'camera_matrix': {'rows': 3, 'cols': 3, 'data': CAMERA.K.ravel().tolist()},
+            'distortion_coefficients': {'rows': 1, 'cols': 5, 'data': [0.0] * 5}}
+    assert parse_camera(good).width == 640
+    zeros = {**good, 'camera_matrix': {'rows': 3, 'cols': 3, 'data': [0.0] * 9}}
+    with pytest.raises(BadInputError, match='not calibrated'):
+        parse_camera(zeros, 'camera_info.yaml')
+    with pytest.raises(BadInputError, match='takes 8 coefficients'):
+        parse_camera({**good, 'distortion_model': 'rational_polynomial'})
+    with pytest.raises(BadInputError, match='distortion_model'):
+        parse_camera({**good, 'distortion_model': 'equidistant'})
+
+
+@pytest.mark.parametrize('model, coefficients', [
+    ('plumb_bob', [0.1, -0.2, 0.001, -0.002, 0.05]),
+    ('rational_polynomial', [0.1, -0.2, 0.001, -0.002, 0.05, 0.01, -0.02, 0.03])])
+def test_projection_is_opencvs(model, coefficients):
+    camera = camera_from(640, 480, [[600, 0, 320], [0, 610, 240], [0, 0, 1]], model,
+                         coefficients)
+    points = np.random.default_rng(1).uniform([-0.2, -0.2, 0.5], [0.2, 0.2, 1.0], (50, 3))
+    expected, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), camera.K, camera.D)
+    np.testing.assert_allclose(camera.project(points), expected.reshape(-1, 2), atol=1e-9)
+
+
+# --- detection ------------------------------------------------------------------------------
+
+@pytest.mark.parametrize('name', sorted(BOARDS))
+def test_every_board_type_is_found_with_an_honest_pose(renderers, name):
+    """Rendered views (noise, blur, a brightness change): pose near the truth, covariance fits."""
+    renderer = renderers[name]
+    rng = np.random.default_rng(5)
+    distances = []
+    for truth in view_poses(rng, 12, renderer):
+        image = renderer.render(truth, rng, noise=3.0, blur_sigma=0.7,
+                                gain=rng.uniform(0.7, 1.1))
+        view = detect(image, renderer.board, CAMERA)
+        assert view.ok, f'{view.refused}: {view.detail}'
+        e = pose_error(view.pose, truth)
+        assert np.degrees(np.linalg.norm(e[:3])) < 0.5 and np.linalg.norm(e[3:]) < 2e-3
+        distances.append(e @ np.linalg.solve(residual_order(view.pose.covariance), e))
+    # The squared Mahalanobis distance of a 6-D error averages 6 when the covariance is
+    # right; the renderer's interpolation adds a little error the noise does not explain.
+    assert 2.0 < np.mean(distances) < 15.0, np.mean(distances)
+
+
+def test_views_are_refused_with_named_reasons(renderers):
+    renderer = renderers['charuco']
+    board = renderer.board
+    rng = np.random.default_rng(2)
+    truth = view_poses(rng, 1, renderer)[0]
+    image = renderer.render(truth, rng)
+    assert detect(np.full_like(image, 128), board, CAMERA).refused == 'no_board'
+    assert detect(image[:, :600], board, CAMERA).refused == 'wrong_image_size'
+    assert detect(None, board, CAMERA).refused == 'unreadable_image'
+    blurred = detect(cv2.GaussianBlur(image, (0, 0), 1.5), board, CAMERA,
+                     Checks(min_sharpness=500.0))
+    assert blurred.refused == 'blurred' and 'sharpness' in blurred.detail
+    corner = Pose(truth.position + [0.23, 0.17, 0.0], truth.quaternion)   # mostly out of view
+    few = detect(renderer.render(corner, rng), board, CAMERA, Checks(min_corners=20))
+    assert few.refused in ('too_few_corners', 'no_board')
+    view = detect(image, board, CAMERA)
+    moved = view.image_points.copy()
+    moved[::3] += 4.0     # corners the pose cannot fit
+    bad = _with_pose(view.object_points, moved, CAMERA, Checks(), 100.0)
+    assert bad.refused == 'reprojection_error' and 'RMS' in bad.detail
+
+
+def test_a_planar_pose_ambiguity_is_refused():
+    """A small board far away, seen frontally: two poses fit the same (a flip waiting)."""
+    points = np.array([[0, 0, 0], [0.02, 0, 0], [0.02, 0.02, 0], [0, 0.02, 0]], float)
+    truth = Pose.create([0, 0, 2.0], [1, 0, 0, 0])
+    pixels = CAMERA.project(points @ truth.rotation.T + truth.position)
+    pixels += np.random.default_rng(3).normal(0, 0.3, pixels.shape)
+    view = _with_pose(points, pixels, CAMERA, Checks(min_corners=4), 100.0)
+    assert view.refused == 'ambiguous_pose' and 'second pose' in view.detail
+
+
+# --- the reprojection refinement ------------------------------------------------------------
+
+def synthetic_cell(rng, renderer, views, pixel_noise):
+    """Return (truth X, O, link poses, [(points, pixels)], pose samples) of a cell."""
+    mounting = Pose.create([0.05, -0.03, 0.08], quat.from_rotation_vector(rng.normal(size=3)))
+    board_pose = Pose.create([0.6, 0.1, 0.0], quat.from_rotation_vector(rng.normal(size=3)))
+    seen = view_poses(rng, views, renderer, distance_m=(0.3, 0.9))
+    links = [board_pose @ s.inverse() @ mounting.inverse() for s in seen]
+    points = renderer.board.cv_board.getChessboardCorners().astype(float)
+    corners, samples = [], []
+    for i, (s, link) in enumerate(zip(seen, links)):
+        pixels = CAMERA.project(points @ s.rotation.T + s.position)
+        pixels = pixels + rng.normal(0, pixel_noise, pixels.shape)
+        corners.append((points, pixels))
+        rvec, tvec, _ = _pnp(points, pixels, CAMERA)[0]
+        pnp = pose_from_rvec(rvec, tvec)
+        samples.append(Sample(i * 10 ** 9, link, Pose(pnp.position, pnp.quaternion,
+                                                      pose_covariance(pnp, points, pixels,
+                                                                      CAMERA))))
+    return mounting, board_pose, links, corners, samples
+
+
+def test_the_reprojection_refinement_reaches_its_bound_and_is_honest(renderers):
+    """0.3 px corner noise, 15 views at 0.3-0.9 m: within 1.1x of Cramer-Rao, honest."""
+    sigma = 0.3
+    errors, bound, reported, pose_based, plain = [], [], [], [], []
+    for trial in range(30):
+        rng = np.random.default_rng(trial)
+        X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 15, sigma)
+        link_q = np.array([link.quaternion for link in links])
+        link_t = np.array([link.position for link in links])
+        start = calibrate(samples)
+        fit = refine_reprojection(link_q, link_t, corners, CAMERA, start.quaternion,
+                                  start.translation, O.quaternion, O.position + 0.01)
+        assert fit.converged
+        C = cramer_rao_covariance(link_q, link_t, corners, CAMERA,
+                                  (X.quaternion, X.position, O.quaternion, O.position), sigma)
+        errors.append((quat.angle_between(fit.quaternion, X.quaternion) ** 2,
+                       np.sum((fit.translation - X.position) ** 2)))
+        bound.append((np.trace(C[:3, :3]), np.trace(C[3:6, 3:6])))
+        reported.append((np.radians(fit.uncertainty_deg) ** 2,
+                         (1e-3 * fit.translation_uncertainty_mm) ** 2))
+        pose_based.append(np.sum((start.translation - X.position) ** 2))
+        without = calibrate([Sample(s.stamp_ns, s.link, Pose(s.sensor.position,
+                                                             s.sensor.quaternion))
+                             for s in samples])
+        plain.append(np.sum((without.translation - X.position) ** 2))
+        assert abs(fit.pixel_noise_px - sigma) < 0.05
+    errors, bound, reported = np.array(errors), np.array(bound), np.array(reported)
+    for axis, name in enumerate(('rotation', 'translation')):
+        ratio = np.sqrt(errors[:, axis].mean() / bound[:, axis].mean())
+        assert 0.85 <= ratio <= 1.1, f'{name}: {ratio:.2f}x the bound'
+        honest = np.sqrt(errors[:, axis].mean() / reported[:, axis].mean())
+        assert 0.7 <= honest <= 1.3, f'{name}: error / reported {honest:.2f}'
+    # Pose-based without the PnP covariances: PnP's depth noise weighs as much as its
+    # lateral noise, far from the pixels' answer (measured: about 5x the bound).
+    assert np.mean(plain) > 4.0 * errors[:, 1].mean()
+    # With them it is near the pixels' answer (measured: about 1.05x the bound).
+    assert np.mean(pose_based) < 1.5 * errors[:, 1].mean()
+
+
+# --- solve DIR --------------------------------------------------------------------------------
+
+def write_rendered_dataset(folder, renderer, views, seed):
+    rng = np.random.default_rng(seed)
+    mounting = Pose.create([0.05, -0.03, 0.08], quat.from_rotation_vector(rng.normal(size=3)))
+    board_pose = Pose.create([0.6, 0.1, 0.0], quat.from_rotation_vector(rng.normal(size=3)))
+    seen = view_poses(rng, views, renderer, distance_m=(0.3, 0.8))
+    links = [board_pose @ s.inverse() @ mounting.inverse() for s in seen]
+    images = [renderer.render(s, rng, noise=2.0, blur_sigma=0.6) for s in seen]
+    names = [f'view_{i:03d}.png' for i in range(views)]
+    write_dataset(folder, BOARDS['charuco'], CAMERA, names, links, images)
+    return mounting, names
+
+
+def run_solve(repo_root, *args):
+    env = dict(os.environ, PYTHONPATH=str(repo_root))
+    return subprocess.run([sys.executable, '-m', 'quatcal_ros', 'solve', *map(str, args)],
+                          capture_output=True, text=True, env=env, timeout=300)
+
+
+def test_solve_dir_refines_on_the_pixels_and_lists_refused_views(repo_root, tmp_path,
+                                                                 renderers):
+    mounting, names = write_rendered_dataset(tmp_path, renderers['charuco'], 16, seed=3)
+    cv2.imwrite(str(tmp_path / 'images' / names[4]), np.full((480, 640), 128, np.uint8))
+    (tmp_path / 'images' / names[9]).unlink()
+    done = run_solve(repo_root, tmp_path)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout)
+    assert result['method'] == 'reprojection' and result['pose_based_method'] == 'refined'
+    assert result['views']['used'] == 14
+    assert {(r['image'], r['reason']) for r in result['views']['refused']} == {
+        (names[4], 'no_board'), (names[9], 'unreadable_image')}
+    q = [result['rotation'][k] for k in 'wxyz']
+    angle = np.degrees(quat.angle_between(q, mounting.quaternion))
+    error_mm = 1e3 * np.linalg.norm([result['translation'][k] for k in 'xyz']
+                                    - mounting.position)
+    # Rendered corners: the truth within a few reported sigmas (and far below a millimetre).
+    assert angle < 4 * result['uncertainty_deg'] + 0.01
+    assert error_mm < 4 * result['translation_uncertainty_mm'] + 0.05
+    assert result['reprojection']['reprojection_rms_px'] < 0.5
+    assert result['refined'] is not None and result['closed_form'] is not None
+    assert result['noise_model']['sample_covariances'] == 'input'
+    assert '<joint' in result['urdf']
+
+
+def test_solve_dir_with_a_bad_file_exits_2_naming_it(repo_root, tmp_path, renderers):
+    write_rendered_dataset(tmp_path, renderers['charuco'], 4, seed=4)
+    (tmp_path / 'board.yaml').write_text('type: charuco\nsquares_x: 7\n')
+    done = run_solve(repo_root, tmp_path)
+    assert done.returncode == 2 and 'board.yaml, field squares_y' in done.stderr
+    (tmp_path / 'board.yaml').unlink()
+    done = run_solve(repo_root, tmp_path)
+    assert done.returncode == 2 and 'board.yaml missing' in done.stderr
