@@ -39,6 +39,7 @@ setup(
         'console_scripts': [
             'calibrator = quatcal_ros.ros.stop_signals:calibrator',
             'sim_cell = quatcal_ros.ros.stop_signals:sim_cell',
+            'target_detector = quatcal_ros.ros.stop_signals:target_detector',
             'solve = quatcal_ros.__main__:solve',
             'replay = quatcal_ros.__main__:replay',
             'demo = quatcal_ros.__main__:demo',

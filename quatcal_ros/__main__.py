@@ -14,6 +14,8 @@ TOOLS = {
     'replay': ('quatcal_ros.tools.cli', 'replay_main', 'rotation from a rosbag2 recording'),
     'calibrator': ('quatcal_ros.ros.node', 'main', 'the live calibration node'),
     'sim_cell': ('quatcal_ros.ros.sim_cell', 'main', 'a simulated robot cell (ROS node)'),
+    'target_detector': ('quatcal_ros.ros.target_detector', 'main',
+                        'the calibration board in camera images (ROS node)'),
     'demo': ('quatcal_ros.tools.demo', 'main',
              'calibrator against the simulated cell, until it converges'),
 }
@@ -37,7 +39,7 @@ def main(argv=None):
         return 2
     module, function, _ = TOOLS[argv[0]]
     single_threaded_blas()
-    if argv[0] in ('calibrator', 'sim_cell'):
+    if argv[0] in ('calibrator', 'sim_cell', 'target_detector'):
         # ROS nodes take rclpy's argument list (with --ros-args) including a program name;
         # a stop signal while they import ends them cleanly too.
         from quatcal_ros.ros import stop_signals

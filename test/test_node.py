@@ -63,7 +63,8 @@ def rotation_of(msg):
 class Harness(SpinMixin):
     """A calibrator node and a driver node in one private context and executor."""
 
-    def __init__(self, domain_id, overrides=(), sensor_qos=RELIABLE, message_type=PoseStamped):
+    def __init__(self, domain_id, overrides=(), sensor_qos=RELIABLE, message_type=PoseStamped,
+                 sensor_type=None):
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain_id)
         self.executor = SingleThreadedExecutor(context=self.context)
@@ -72,9 +73,11 @@ class Harness(SpinMixin):
         overrides = [Parameter('max_stamp_offset_s', value=0.0), *overrides]
         self.node = CalibratorNode(context=self.context, parameter_overrides=list(overrides))
         self.driver = rclpy.create_node('test_driver', context=self.context)
-        self.message_type = message_type
+        self.message_types = {'link_pose': message_type,
+                              'sensor_pose': sensor_type or message_type}
         self.link_pub = self.driver.create_publisher(message_type, 'link_pose', RELIABLE)
-        self.sensor_pub = self.driver.create_publisher(message_type, 'sensor_pose', sensor_qos)
+        self.sensor_pub = self.driver.create_publisher(self.message_types['sensor_pose'],
+                                                       'sensor_pose', sensor_qos)
         self.watch_outputs()
         self.clients = {name: self.driver.create_client(Trigger, f'/calibrator/{name}')
                         for name in ('capture', 'reset', 'save')}
@@ -93,9 +96,10 @@ class Harness(SpinMixin):
 
     def publish(self, stream, stamp_ns, pose):
         publisher = self.link_pub if stream == 'link_pose' else self.sensor_pub
-        if self.message_type is PoseStamped:
+        message_type = self.message_types[stream]
+        if message_type is PoseStamped:
             msg = conversions.pose_stamped_msg(pose, stamp_ns, 'frame')
-        elif self.message_type is PoseWithCovarianceStamped:
+        elif message_type is PoseWithCovarianceStamped:
             msg = conversions.pose_with_covariance_stamped_msg(pose, stamp_ns, 'frame')
         else:
             msg = conversions.transform_stamped_msg(pose, stamp_ns, 'frame', 'child')
@@ -312,10 +316,17 @@ def test_transform_messages_with_pose_type_transform(harness_factory):
     h.spin_until(lambda: len(h.node.session.samples) == 1, what='a sample from transforms')
 
 
-def test_pose_with_covariance_messages_weight_the_samples(harness_factory):
-    """pose_type:=pose_with_covariance: each sample keeps its covariance; a bad one is named."""
-    h = harness_factory([Parameter('pose_type', value='pose_with_covariance')],
-                        message_type=PoseWithCovarianceStamped)
+@pytest.mark.parametrize('parameter', ['pose_type', 'sensor_pose_type'])
+def test_pose_with_covariance_messages_weight_the_samples(harness_factory, parameter):
+    """Sensor poses with covariance: each sample keeps its covariance; bad ones are named.
+
+    pose_type: both topics carry it; sensor_pose_type: only sensor_pose (the target_detector's
+    poses beside a robot's PoseStamped).
+    """
+    both = parameter == 'pose_type'
+    h = harness_factory([Parameter(parameter, value='pose_with_covariance')],
+                        message_type=PoseWithCovarianceStamped if both else PoseStamped,
+                        sensor_type=PoseWithCovarianceStamped)
     rng = np.random.default_rng(6)
     cell = simulation.random_cell(rng)
     covariance = np.diag([1e-6, 1e-6, 9e-6, 3e-6, 3e-6, 1e-7])   # ROS order, m^2 and rad^2
@@ -514,7 +525,8 @@ def test_publishers_of_the_wrong_type_are_named(domain_id):
         status = h.node.diagnostic_status()
         assert status.level == DiagnosticStatus.WARN
         assert '/sensor_pose has publishers of type geometry_msgs/msg/PointStamped; the node ' \
-            'subscribes geometry_msgs/msg/PoseStamped (parameter pose_type)' in status.message
+            'subscribes geometry_msgs/msg/PoseStamped (parameter pose_type, or ' \
+            'sensor_pose_type)' in status.message
         wrong.destroy_node()
     finally:
         rclpy.try_shutdown(context=other)

@@ -283,3 +283,63 @@ def quaternion_stamped_msg(q_wxyz, stamp_ns, frame_id, typestore=None):
     return _msg_class('geometry_msgs/msg/QuaternionStamped', typestore)(
         header=_header(stamp_ns, frame_id, typestore),
         quaternion=_quaternion_msg(q_wxyz, typestore))
+
+
+# --- camera images (the target detector) -----------------------------------------------------
+
+# Image encodings read, with their channels and the OpenCV conversion to grey.
+IMAGE_ENCODINGS = {'mono8': (1, None), '8UC1': (1, None), 'mono16': (1, None),
+                   '16UC1': (1, None), 'bgr8': (3, 'COLOR_BGR2GRAY'),
+                   'rgb8': (3, 'COLOR_RGB2GRAY'), 'bgra8': (4, 'COLOR_BGRA2GRAY'),
+                   'rgba8': (4, 'COLOR_RGBA2GRAY'), '8UC3': (3, 'COLOR_BGR2GRAY')}
+
+
+class BadImageError(ValueError):
+    """An image message that is not an image of a known encoding; the message says why."""
+
+
+def gray_from_image_msg(msg):
+    """Return the grayscale uint8 array of a sensor_msgs Image or CompressedImage."""
+    import cv2
+    if hasattr(msg, 'format'):   # CompressedImage
+        data = np.frombuffer(bytes(msg.data), np.uint8)
+        gray = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+        if gray is None:
+            raise BadImageError(f'compressed image ({msg.format or "no format"}) does not '
+                                'decode')
+        return gray
+    encoding = msg.encoding
+    if encoding not in IMAGE_ENCODINGS:
+        raise BadImageError(f'encoding {encoding!r} is not one of '
+                            f'{", ".join(IMAGE_ENCODINGS)}')
+    channels, conversion = IMAGE_ENCODINGS[encoding]
+    depth = 2 if '16' in encoding else 1
+    width, height, step = int(msg.width), int(msg.height), int(msg.step)
+    data = bytes(msg.data)
+    if not width or not height or step < width * channels * depth \
+            or len(data) < step * height:
+        raise BadImageError(f'{width}x{height} {encoding} with step {step} and {len(data)} '
+                            'bytes of data is not a whole image')
+    rows = np.frombuffer(data, np.uint8)[:step * height].reshape(height, step)
+    pixels = rows[:, :width * channels * depth]
+    if depth == 2:
+        big = pixels.view('>u2' if msg.is_bigendian else '<u2').reshape(height, width)
+        return (big >> 8).astype(np.uint8)
+    if conversion is None:
+        return np.ascontiguousarray(pixels)
+    return cv2.cvtColor(pixels.reshape(height, width, channels), getattr(cv2, conversion))
+
+
+def camera_from_camera_info(msg):
+    """Return the vision.camera.Camera of a sensor_msgs CameraInfo (BadInputError if not one)."""
+    from quatcal_ros.vision.camera import camera_from
+    return camera_from(int(msg.width), int(msg.height), np.array(msg.k, dtype=float),
+                       msg.distortion_model, np.array(msg.d, dtype=float), 'camera_info')
+
+
+def bgr_image_msg(image, header):
+    """Return a sensor_msgs/Image (bgr8) of a BGR uint8 array, with `header`."""
+    from sensor_msgs.msg import Image
+    height, width = image.shape[:2]
+    return Image(header=header, height=height, width=width, encoding='bgr8', is_bigendian=0,
+                 step=width * 3, data=np.ascontiguousarray(image).tobytes())

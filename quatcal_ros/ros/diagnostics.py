@@ -44,8 +44,8 @@ class InputWatch:
     one stream, use_sim_time without /clock; and when listening began (for silent streams).
     """
 
-    def __init__(self, expected_type, started_ns):
-        self.expected_type = expected_type   # e.g. geometry_msgs/msg/PoseStamped
+    def __init__(self, expected_types, started_ns):
+        self.expected_types = expected_types   # {stream: 'geometry_msgs/msg/PoseStamped'}
         self.started_ns = started_ns
         self.jumps_seen = 0                  # the session's time jumps at the last status
 
@@ -59,10 +59,12 @@ class InputWatch:
         for stream, topic in topics.items():
             if stats.received[stream]:
                 continue
-            wrong = sorted(set(publisher_types(topic)) - {self.expected_type})
+            expected = self.expected_types[stream]
+            wrong = sorted(set(publisher_types(topic)) - {expected})
             if wrong:
                 found.append(f'{topic} has publishers of type {", ".join(wrong)}; the node '
-                             f'subscribes {self.expected_type} (parameter pose_type)')
+                             f'subscribes {expected} (parameter pose_type'
+                             f'{", or sensor_pose_type" if stream == "sensor_pose" else ""})')
         if time_jumps - self.jumps_seen >= REPEATED_JUMPS:
             found.append(f'the stamps jumped back {time_jumps - self.jumps_seen} times since '
                          'the last status: two publishers with different clocks on one '

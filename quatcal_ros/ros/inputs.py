@@ -29,13 +29,13 @@ MESSAGE_TYPES = {'pose': PoseStamped, 'transform': TransformStamped,
 class NodeInputs:
     """The subscriptions of the calibrator node and the checks of what they bring."""
 
-    def __init__(self, node, check_config, tf_frames, pose_type, deliver):
+    def __init__(self, node, check_config, tf_frames, pose_types, deliver):
         """
         Subscribe on `node`: the TF topics when `tf_frames` is set, else the pose topics.
 
         :param check_config: message_checks.CheckConfig, what the messages must satisfy.
         :param tf_frames: settings.tf_frames(config): {stream: frame pair} or None.
-        :param pose_type: a key of MESSAGE_TYPES.
+        :param pose_types: {stream: a key of MESSAGE_TYPES}.
         :param deliver: deliver(stream, (stamp_ns, Pose), now_ns) for each good pose.
         """
         self._node = node
@@ -43,14 +43,15 @@ class NodeInputs:
         self.screen = PoseScreen(check_config, self._log_bad_message)
         self.tf = None
         if tf_frames is None:
-            self.message_type = MESSAGE_TYPES[pose_type]
+            self.message_types = {stream: MESSAGE_TYPES[pose_types[stream]]
+                                  for stream in (LINK, SENSOR)}
             self.topics = {   # resolved names (namespace, remapping), for the logs
                 stream: node.create_subscription(
-                    self.message_type, stream, lambda msg, s=stream: self._on_pose(s, msg),
-                    qos).topic_name
+                    self.message_types[stream], stream,
+                    lambda msg, s=stream: self._on_pose(s, msg), qos).topic_name
                 for stream, qos in ((LINK, LINK_QOS), (SENSOR, SENSOR_QOS))}
             return
-        self.message_type = TFMessage
+        self.message_types = {LINK: TFMessage, SENSOR: TFMessage}
         self.tf = TfFeed(TfFeed.new_tree(), self.screen, tf_frames, self._on_tf_pose)
         tf_topic = node.create_subscription(
             TFMessage, '/tf', lambda msg: self._on_tf(tf_topic.topic_name, msg, False), TF_QOS)
@@ -60,16 +61,18 @@ class NodeInputs:
         self.topics = {LINK: tf_topic.topic_name, SENSOR: tf_topic.topic_name}
 
     @property
-    def type_name(self):
-        """Return the full name of the input message type, e.g. geometry_msgs/msg/PoseStamped."""
+    def type_names(self):
+        """Return each stream's message type, e.g. {'link_pose': 'geometry_msgs/msg/...'}."""
         package = 'tf2_msgs' if self.tf is not None else 'geometry_msgs'
-        return f'{package}/msg/{self.message_type.__name__}'
+        return {stream: f'{package}/msg/{kind.__name__}'
+                for stream, kind in self.message_types.items()}
 
     def describe(self):
         """Return where the poses come from, in words (for the start-up log line)."""
         if self.tf is None:
-            return (f'{self.topics[LINK]} and {self.topics[SENSOR]} '
-                    f'({self.message_type.__name__})')
+            link, sensor = (self.message_types[s].__name__ for s in (LINK, SENSOR))
+            kinds = link if link == sensor else f'{link}, {sensor}'
+            return f'{self.topics[LINK]} and {self.topics[SENSOR]} ({kinds})'
         pairs = {stream: f'{frames.target} -> {frames.source}'
                  for stream, frames in self.tf.watchers.items()}
         return (f'/tf and /tf_static: link pose {pairs[LINK]}, sensor pose {pairs[SENSOR]} '

@@ -67,7 +67,7 @@ class CalibratorNode(Node):
         self.log = EventLog(self.get_logger())
         self.moves = MoveWatch()
         self.inputs = NodeInputs(self, settings.check_config(self.config), self._tf_frames,
-                                 self.config.pose_type, self._add_pose)
+                                 settings.pose_types(self.config), self._add_pose)
         self.rotation_publisher = self.create_publisher(
             QuaternionStamped, '~/rotation', LATCHED_QOS,
             event_callbacks=quiet_publisher_events())
@@ -95,7 +95,7 @@ class CalibratorNode(Node):
             f'{self.config.sensor_frame} from {self.inputs.describe()}, '
             f'capture mode {self.config.capture_mode}')
         self._start_tf_broadcast()
-        self.input_watch = InputWatch(self.inputs.type_name, self.now_ns())
+        self.input_watch = InputWatch(self.inputs.type_names, self.now_ns())
         self._resume()
 
     @property

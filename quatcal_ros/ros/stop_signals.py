@@ -42,3 +42,8 @@ def calibrator():
 def sim_cell():
     """Entry point of `ros2 run quatcal_ros sim_cell`."""
     sys.exit(run('quatcal_ros.ros.sim_cell'))
+
+
+def target_detector():
+    """Entry point of `ros2 run quatcal_ros target_detector`."""
+    sys.exit(run('quatcal_ros.ros.target_detector'))

@@ -125,6 +125,11 @@ SETTINGS = (
             'transform = geometry_msgs/TransformStamped, pose_with_covariance = '
             "geometry_msgs/PoseWithCovarianceStamped (the sensor's covariances weight its "
             'samples).', choices=POSE_TYPES, read_only=True),
+    Setting('sensor_pose_type', '',
+            "Message type of sensor_pose when it differs from link_pose's (one of pose_type's "
+            "choices), e.g. pose_with_covariance for the target_detector's poses beside a "
+            "robot's PoseStamped; '' = pose_type.", choices=('',) + POSE_TYPES,
+            allow_empty=True, read_only=True),
     Setting('setup', 'eye_in_hand',
             'eye_in_hand: the sensor rides on the link, the answer is link -> sensor; '
             'eye_to_hand: the sensor is fixed in the cell, the answer is base -> sensor.',
@@ -359,3 +364,8 @@ def check_config(settings):
                        link_frame_id=settings.link_frame_id,
                        sensor_frame_id=settings.sensor_frame_id,
                        max_position_m=settings.max_position_m)
+
+
+def pose_types(settings):
+    """Return {LINK: pose_type, SENSOR: sensor_pose_type or pose_type}: each topic's type."""
+    return {LINK: settings.pose_type, SENSOR: settings.sensor_pose_type or settings.pose_type}

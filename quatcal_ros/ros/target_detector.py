@@ -1,0 +1,137 @@
+"""
+ROS 2 node `target_detector`: the calibration board's pose in each camera image.
+
+Subscribes `image` (sensor_msgs/Image; CompressedImage on `image/compressed` with
+image_transport:=compressed) and `camera_info` (sensor_msgs/CameraInfo), both sensor-data QoS.
+For each image it finds the board of `board_file` (vision/detect.py: sub-pixel corners, planar
+PnP, the per-view checks) and publishes:
+- `~/pose` (geometry_msgs/PoseWithCovarianceStamped): T_camera_board with the image's header
+  (stamp, camera frame), the covariance from the PnP Jacobian at the pixel noise its residuals
+  show, in ROS's order; the calibrator takes it with pose_type:=pose_with_covariance, other
+  tools as any PoseWithCovarianceStamped;
+- `~/debug_image` (sensor_msgs/Image, bgr8, with debug_image:=true): the image with the
+  corners found and the board's axes drawn.
+A refused view (no board, too few corners, blurred, an ambiguous or badly fitting pose) and a
+bad message (an unknown encoding, a truncated image, a CameraInfo of zeros) are counted by
+reason, logged at most every 5 s, and skipped.
+"""
+
+from collections import Counter
+
+import cv2
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from quatcal_ros.files.samples_csv import BadInputError
+from quatcal_ros.ros import conversions, spin
+from quatcal_ros.ros.qos import quiet_publisher_events
+from quatcal_ros.vision.board import read_board
+from quatcal_ros.vision.detect import Checks, detect
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+
+NODE_NAME = 'target_detector'
+LOG_THROTTLE_S = 5.0
+TRANSPORTS = ('raw', 'compressed')
+# name: (default, description); read once at start (read-only).
+PARAMETERS = {
+    'board_file': ('', 'the board.yaml of the calibration target (required)'),
+    'image_transport': ('raw', 'raw: sensor_msgs/Image on image; compressed: '
+                        'sensor_msgs/CompressedImage on image/compressed'),
+    'debug_image': (True, 'publish ~/debug_image with the corners and axes drawn'),
+    'min_corners': (Checks.min_corners, 'fewest corners a view must show'),
+    'max_reprojection_px': (Checks.max_reprojection_px,
+                            'largest RMS corner residual of a usable pose (pixels)'),
+    'min_sharpness': (Checks.min_sharpness,
+                      'least variance of the Laplacian over the board region (blur check)'),
+}
+
+
+class TargetDetector(Node):
+    """The `target_detector` node (module docstring); ValueError on bad parameters."""
+
+    def __init__(self, **kwargs):
+        super().__init__(NODE_NAME, **kwargs)
+        values = {name: self.declare_parameter(
+            name, default, ParameterDescriptor(description=text, read_only=True)).value
+            for name, (default, text) in PARAMETERS.items()}
+        if values['image_transport'] not in TRANSPORTS:
+            raise ValueError(f'image_transport must be one of {TRANSPORTS}, not '
+                             f'{values["image_transport"]!r}')
+        if not values['board_file']:
+            raise ValueError('board_file is required: the board.yaml of the target')
+        try:
+            self.board = read_board(values['board_file'])
+        except BadInputError as error:
+            raise ValueError(str(error)) from None
+        self.checks = Checks(min_corners=int(values['min_corners']),
+                             max_reprojection_px=float(values['max_reprojection_px']),
+                             min_sharpness=float(values['min_sharpness']))
+        self.camera = None
+        self.counts = Counter()
+        self.pose_publisher = self.create_publisher(
+            PoseWithCovarianceStamped, '~/pose', 10, event_callbacks=quiet_publisher_events())
+        self.debug_publisher = (self.create_publisher(Image, '~/debug_image', 2,
+                                                      event_callbacks=quiet_publisher_events())
+                                if values['debug_image'] else None)
+        self.create_subscription(CameraInfo, 'camera_info', self._on_camera_info,
+                                 qos_profile_sensor_data)
+        compressed = values['image_transport'] == 'compressed'
+        self.create_subscription(CompressedImage if compressed else Image,
+                                 'image/compressed' if compressed else 'image',
+                                 self._on_image, qos_profile_sensor_data)
+        self.get_logger().info(f'detecting a {self.board.kind} board '
+                               f'({self.board.size[0]} x {self.board.size[1]}) in '
+                               f'{"image/compressed" if compressed else "image"}')
+
+    def _on_camera_info(self, msg):
+        try:
+            self.camera = conversions.camera_from_camera_info(msg)
+        except BadInputError as error:
+            self._skip('bad_camera_info', str(error))
+
+    def _on_image(self, msg):
+        self.counts['images'] += 1
+        if self.camera is None:
+            self._skip('no_camera_info', 'no usable camera_info received yet')
+            return
+        try:
+            gray = conversions.gray_from_image_msg(msg)
+        except conversions.BadImageError as error:
+            self._skip('bad_image', str(error))
+            return
+        view = detect(gray, self.board, self.camera, self.checks)
+        if not view.ok:
+            self._skip(view.refused, view.detail)
+        else:
+            self.counts['detected'] += 1
+            self.pose_publisher.publish(conversions.pose_with_covariance_stamped_msg(
+                view.pose, conversions.stamp_ns_from_header(msg.header), msg.header.frame_id))
+        if self.debug_publisher is not None:
+            self.debug_publisher.publish(conversions.bgr_image_msg(
+                self._drawn(gray, view), msg.header))
+
+    def _drawn(self, gray, view):
+        image = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+        if view.image_points is not None:
+            for u, v in view.image_points:
+                cv2.circle(image, (int(round(u)), int(round(v))), 3, (0, 255, 0), 1)
+        if view.ok:
+            rvec, _ = cv2.Rodrigues(view.pose.rotation)
+            cv2.drawFrameAxes(image, self.camera.K, self.camera.D, rvec, view.pose.position,
+                              0.5 * min(self.board.extent_m))
+        return image
+
+    def _skip(self, reason, detail):
+        self.counts[reason] += 1
+        self.get_logger().warning(f'{reason} ({self.counts[reason]} so far): {detail}',
+                                  throttle_duration_sec=LOG_THROTTLE_S)
+
+
+def main(args=None):
+    """Run the target detector; return 2 (after logging the reason) for bad parameters."""
+    return spin.run(TargetDetector, NODE_NAME, ValueError, 'invalid parameters', args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
