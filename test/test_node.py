@@ -318,7 +318,8 @@ def test_transform_messages_with_pose_type_transform(harness_factory):
 
 @pytest.mark.parametrize('parameter', ['pose_type', 'sensor_pose_type'])
 def test_pose_with_covariance_messages_weight_the_samples(harness_factory, parameter):
-    """Sensor poses with covariance: each sample keeps its covariance; bad ones are named.
+    """
+    Sensor poses with covariance: each sample keeps its covariance; bad ones are named.
 
     pose_type: both topics carry it; sensor_pose_type: only sensor_pose (the target_detector's
     poses beside a robot's PoseStamped).
