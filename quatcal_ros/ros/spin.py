@@ -13,6 +13,7 @@ import os
 import signal
 import sys
 import tempfile
+import threading
 
 from quatcal_ros.ros import stop_signals
 import rclpy
@@ -30,13 +31,21 @@ def install_stop_handlers():
 
     def on_signal(signum, frame):
         received.append(signum)
-        try:
-            rclpy.try_shutdown()
-        except RuntimeError:   # RCLError: rclpy's own handler shut the context down meanwhile
-            pass
+        # Not here: the handler runs in the main thread between two of its bytecodes, maybe
+        # inside rclpy's Context.ok(), which holds the lock try_shutdown takes (a non-reentrant
+        # threading.Lock): the process hung about once in 50 stops (seen in CI). A thread
+        # takes the lock as soon as the main thread lets go of it.
+        threading.Thread(target=_shutdown, name='stop-signal', daemon=True).start()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, on_signal)
     return received
+
+
+def _shutdown():
+    try:
+        rclpy.try_shutdown()
+    except RuntimeError:   # RCLError: rclpy's own handler shut the context down meanwhile
+        pass
 
 
 def start(make_node, refused=()):
