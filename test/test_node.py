@@ -343,6 +343,15 @@ def test_pose_with_covariance_messages_weight_the_samples(harness_factory, param
         np.testing.assert_allclose(sample.sensor.covariance, (k + 1) * covariance, rtol=1e-12)
     h.spin_until(lambda: h.node.session.result is not None, what='an estimate')
     assert h.node.session.result.noise_model['sample_covariances'] == 'input'
+    # The planner's next pose, on ~/next_pose (latched, robot base frame) and /diagnostics.
+    proposals = []
+    h.driver.create_subscription(PoseStamped, '/calibrator/next_pose', proposals.append,
+                                 LATCHED)
+    h.spin_until(lambda: proposals, what='~/next_pose')
+    assert proposals[-1].header.frame_id == 'base_link'
+    values = {kv.key: kv.value for kv in h.node.diagnostic_status().values}
+    assert values['next_pose'].startswith('position ') and 'expected uncertainty' in \
+        values['next_pose']
     bad = conversions.pose_with_covariance_stamped_msg(cell.home, start + 20 * NS, 'frame')
     bad.pose.covariance[7] = -1.0   # not positive definite
     h.sensor_pub.publish(bad)

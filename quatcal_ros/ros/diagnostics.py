@@ -96,7 +96,7 @@ def status_message(session, stats):
 
 
 def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_static='',
-                      started_ns=None, topics=None):
+                      started_ns=None, topics=None, next_pose=None):
     """
     Return the DiagnosticStatus of the calibrator.
 
@@ -104,6 +104,7 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
     :param tf_static: the /tf_static broadcast state, in words.
     :param started_ns: when the node began to listen (node clock): a stream that never sent
         anything is named after STALE_AFTER_S, with `topics` (stream: resolved topic).
+    :param next_pose: the planner's core.planner.NextPose, or None.
     """
     result = session.result
     counters = session.counters
@@ -136,6 +137,7 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
                                              for w in validation.get('worst', [])),
         'tf_static': tf_static,
         'hint': result.hint if result is not None else session.last_error,
+        'next_pose': _next_pose_text(next_pose),
         'link_messages': stats.received[LINK],
         'sensor_messages': stats.received[SENSOR],
         'bad_messages': stats.bad_total,
@@ -153,6 +155,17 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
         level=DiagnosticStatus.WARN if found else DiagnosticStatus.OK, name=DIAGNOSTIC_NAME,
         message='; '.join([status_message(session, stats)] + found), hardware_id=hardware_id,
         values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
+
+
+def _next_pose_text(next_pose):
+    """Return the proposed link pose in words: position, quaternion, the expected gain."""
+    if next_pose is None:
+        return ''
+    x, y, z, w = quat.xyzw_from_wxyz(next_pose.link.quaternion)
+    position = ' '.join(f'{v:.4f}' for v in next_pose.link.position)
+    return (f'position {position} m, quaternion (x, y, z, w) {x:.5f} {y:.5f} {z:.5f} {w:.5f}; '
+            f'expected uncertainty {next_pose.uncertainty_deg:.4f} deg, '
+            f'{next_pose.translation_uncertainty_mm:.3f} mm')
 
 
 def _number_text(value):

@@ -7,6 +7,8 @@ A thin shell: the session (stream/session.py) does the work, and this node wires
   counted with the checks the replay runs, bad ones are logged throttled;
 - publishes `~/rotation` (QuaternionStamped, latched, frame_id = link_frame) and
   `~/transform` (TransformStamped link_frame -> sensor_frame, latched) on each new estimate,
+  and `~/next_pose` (PoseStamped, latched, in the robot base frame: core/planner.py's link
+  pose that most shrinks the uncertainty),
   with publish_tf:=true also on /tf_static (frame-safe), and the status on
   `/diagnostics` (diagnostics.py) every diagnostics_period_s;
 - serves `~/capture`, `~/reset` and `~/save` (std_srvs/Trigger);
@@ -21,8 +23,10 @@ Times come from header stamps and the node clock (so use_sim_time and bag replay
 """
 
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
 from geometry_msgs.msg import QuaternionStamped
 from geometry_msgs.msg import TransformStamped
+from quatcal_ros.core.planner import plan_next_pose
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.files import exports
 from quatcal_ros.files import journal
@@ -68,6 +72,9 @@ class CalibratorNode(Node):
         self.moves = MoveWatch()
         self.inputs = NodeInputs(self, settings.check_config(self.config), self._tf_frames,
                                  settings.pose_types(self.config), self._add_pose)
+        self.next_pose = None   # the planner's proposal for the latest estimate
+        self.next_pose_publisher = self.create_publisher(
+            PoseStamped, '~/next_pose', LATCHED_QOS, event_callbacks=quiet_publisher_events())
         self.rotation_publisher = self.create_publisher(
             QuaternionStamped, '~/rotation', LATCHED_QOS,
             event_callbacks=quiet_publisher_events())
@@ -157,6 +164,20 @@ class CalibratorNode(Node):
         self.transform_publisher.publish(self.transform_msg(result, stamp_ns))
         if self.config.publish_tf:
             self._broadcast(result, stamp_ns)
+        options = self.session.config.calibration
+        self.next_pose = plan_next_pose(self.session.samples, result, options.setup,
+                                        options.invert_sensor)
+        if self.next_pose is not None:
+            self.next_pose_publisher.publish(conversions.pose_stamped_msg(
+                self.next_pose.link, stamp_ns, self._base_frame()))
+
+    def _base_frame(self):
+        """Return the robot base frame: the TF input's, the link poses' header, or base_link."""
+        if self._tf_frames is not None:
+            return self._tf_frames[LINK][0]
+        if self.config.link_frame_id:
+            return self.config.link_frame_id
+        return self.config.link_frame if self.config.setup == 'eye_to_hand' else 'base_link'
 
     def transform_msg(self, result, stamp_ns):
         """Return the TransformStamped link_frame -> sensor_frame of `result`."""
@@ -217,7 +238,8 @@ class CalibratorNode(Node):
                     *self.inputs.problems()]
         return calibrator_status(self.session, self.stats, now_ns,
                                  self.config.link_frame, problems, tf_static,
-                                 self.input_watch.started_ns, self.inputs.topics)
+                                 self.input_watch.started_ns, self.inputs.topics,
+                                 self.next_pose)
 
     def _publisher_types(self, topic):
         return [info.topic_type for info in self.get_publishers_info_by_topic(topic)]
@@ -250,6 +272,7 @@ class CalibratorNode(Node):
         self.session.reset()
         self.log.reset()
         self.moves.reset()
+        self.next_pose = None
         journal_text = self.journal.restart()
         if self.journal.problem:
             self.get_logger().error(self.journal.problem)

@@ -16,6 +16,7 @@ import time
 
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.motions import SampleRotations
+from quatcal_ros.core.planner import plan_next_pose
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.refine import object_pose
 from quatcal_ros.core.translation import SamplePositions
@@ -181,6 +182,9 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
         result, parent, child)
     document['urdf'] = exports.urdf_joint(result, parent, child)
     document['xacro'] = exports.xacro_macro(result, parent, child)
+    options = session.config.calibration
+    planned = plan_next_pose(session.samples, result, options.setup, options.invert_sensor)
+    document['next_pose'] = planned.to_json_dict() if planned is not None else None
     document.update(extra or {})
     print(json.dumps(document, indent=2))
     return 0
