@@ -239,3 +239,18 @@ def test_ten_thousand_samples_solve_in_bounded_memory(tmp_path, capsys):
     truth = cell.mounting.quaternion
     found = quat.wxyz_from_xyzw([out['rotation'][k] for k in 'xyzw'])
     assert np.degrees(quat.angle_between(found, truth)) < 3 * out['uncertainty_deg']
+
+
+def test_the_next_pose_follows_the_planner_options(repo_root, tmp_path):
+    cell, path, _ = write_cell_csv(tmp_path / 'samples.csv', 5, 12, rotation_noise_deg=0.3,
+                                   translation_noise_m=0.002)
+    last = parse_samples(io.StringIO(path.read_text()))[-1].link
+    for limit in (15.0, 60.0):
+        done = run_solve(repo_root, path, '--plan-max-rotation-deg', limit)
+        assert done.returncode == 0, done.stderr
+        proposal = json.loads(done.stdout)['next_pose']
+        q = [proposal['orientation'][k] for k in 'wxyz']
+        assert np.degrees(quat.angle_between(q, last.quaternion)) <= limit + 1e-6
+        assert proposal['expected_uncertainty_deg'] < proposal['current_uncertainty_deg']
+    done = run_solve(repo_root, path, '--plan-view-cone-deg', 90)
+    assert done.returncode == 2 and 'plan-view-cone-deg' in done.stderr

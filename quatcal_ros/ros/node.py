@@ -166,7 +166,7 @@ class CalibratorNode(Node):
             self._broadcast(result, stamp_ns)
         options = self.session.config.calibration
         self.next_pose = plan_next_pose(self.session.samples, result, options.setup,
-                                        options.invert_sensor)
+                                        options.invert_sensor, settings.plan_limits(self.config))
         if self.next_pose is not None:
             self.next_pose_publisher.publish(conversions.pose_stamped_msg(
                 self.next_pose.link, stamp_ns, self._base_frame()))

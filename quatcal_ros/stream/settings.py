@@ -21,6 +21,7 @@ from dataclasses import asdict, dataclass, field, make_dataclass
 import math
 
 from quatcal_ros.core.calibration import CalibrationOptions, METHODS
+from quatcal_ros.core.planner import PlanLimits
 from quatcal_ros.core.units import ns_from_s, SETUPS
 from quatcal_ros.core.validation import Thresholds
 from quatcal_ros.stream.capture import CaptureConfig, MODES as CAPTURE_MODES
@@ -206,6 +207,15 @@ SETTINGS = (
             'refined: joint maximum-likelihood refinement over rotations and translations '
             '(from 6 samples on); closed-form: the Chou-Kamel rotation and the closed-form '
             'translation. Both are reported.', choices=METHODS, tools=BOTH),
+    Setting('plan_max_rotation_deg', 45.0,
+            "The next-pose planner turns the link at most this far from the last sample's "
+            'orientation.', unit='deg', low=1.0, high=180.0, tools=BOTH),
+    Setting('plan_view_cone_deg', 20.0,
+            "The next-pose planner keeps the target within this angle of the sensor's "
+            'optical axis (z).', unit='deg', low=1.0, high=80.0, tools=BOTH),
+    Setting('plan_workspace_margin_m', 0.1,
+            'The next-pose planner keeps the link inside the box of the link positions seen, '
+            'grown by this much on every side.', unit='m', low=0.0, high=10.0, tools=BOTH),
     Setting('validation_max_rotation_deg', 1.0,
             'The validation passes when the leave-one-out prediction error of the sensor '
             'poses (RMS over the good samples) is at most this angle and '
@@ -247,7 +257,8 @@ DEFAULTS = {setting.name: setting.default for setting in SETTINGS}
 # session (and estimate) when only these change.
 PRESENTATION = ('link_frame', 'sensor_frame', 'result_file', 'max_stamp_offset_s',
                 'max_position_m', 'link_frame_id', 'sensor_frame_id', 'easy_handeye2_file',
-                'publish_tf')
+                'publish_tf', 'plan_max_rotation_deg', 'plan_view_cone_deg',
+                'plan_workspace_margin_m')
 
 
 def _from_values(values):
@@ -369,3 +380,10 @@ def check_config(settings):
 def pose_types(settings):
     """Return {LINK: pose_type, SENSOR: sensor_pose_type or pose_type}: each topic's type."""
     return {LINK: settings.pose_type, SENSOR: settings.sensor_pose_type or settings.pose_type}
+
+
+def plan_limits(settings):
+    """Return the next-pose planner's core.planner.PlanLimits of the settings."""
+    return PlanLimits(max_rotation_deg=settings.plan_max_rotation_deg,
+                      cone_deg=settings.plan_view_cone_deg,
+                      margin_m=settings.plan_workspace_margin_m)

@@ -16,7 +16,7 @@ import time
 
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.motions import SampleRotations
-from quatcal_ros.core.planner import plan_next_pose
+from quatcal_ros.core.planner import plan_next_pose, PlanLimits
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.refine import object_pose
 from quatcal_ros.core.translation import SamplePositions
@@ -28,7 +28,8 @@ from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import BadInputError, format_samples
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
 from quatcal_ros.stream.session import Session
-from quatcal_ros.stream.settings import check_config, ConfigError, session_config
+from quatcal_ros.stream.settings import check_config, ConfigError, plan_limits, \
+    session_config
 from quatcal_ros.stream.time_offset import find_time_offset
 from quatcal_ros.tools.options import add_setting_options, settings_of
 from quatcal_ros.tools.progress import Progress
@@ -39,7 +40,8 @@ EXIT_INTERRUPTED = 130
 
 
 ESTIMATOR = ('setup', 'pairs', 'robust', 'invert_sensor', 'method', 'min_motion_deg',
-             'validation_max_rotation_deg', 'validation_max_translation_mm')
+             'validation_max_rotation_deg', 'validation_max_translation_mm',
+             'plan_max_rotation_deg', 'plan_view_cone_deg', 'plan_workspace_margin_m')
 
 
 def solve_main(argv=None):
@@ -89,7 +91,7 @@ def solve_main(argv=None):
         for _, target, error in saved.failed:
             return fail(parser.prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)
     return print_result(parser.prog, session, f'{args.samples}: ', imported.warnings,
-                        frames=frames)
+                        frames=frames, limits=plan_limits(settings_of(args)))
 
 
 def _solve_images(prog, args):
@@ -115,7 +117,7 @@ def _solve_images(prog, args):
     result = session.result
     if result is None or len(data.samples) < 3:
         return print_result(prog, session, where, frames=solve_frames(args),
-                            extra={'views': views})
+                            extra={'views': views}, limits=plan_limits(settings_of(args)))
     rotations = SampleRotations.from_samples(data.samples, args.setup)
     positions = SamplePositions.from_samples(data.samples, rotations)
     used = result.sample_ok
@@ -131,6 +133,7 @@ def _solve_images(prog, args):
                         translation_uncertainty_mm=fit.translation_uncertainty_mm,
                         method='reprojection')
     return print_result(prog, session, where, frames=solve_frames(args), result=on_pixels,
+                        limits=plan_limits(settings_of(args)),
                         extra={'views': views, 'reprojection': fit.to_json_dict(),
                                'pose_based_method': result.method})
 
@@ -159,7 +162,8 @@ def solve_frames(args, named=None):
                                  (named_parent, named.get('tracking_base_frame')))
 
 
-def print_result(prog, session, where='', warnings=(), frames=None, extra=None, result=None):
+def print_result(prog, session, where='', warnings=(), frames=None, extra=None, result=None,
+                 limits=PlanLimits()):
     """
     Print the session's result as JSON (exit 0) or why there is none (exit 2 or 3).
 
@@ -167,7 +171,7 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     frames: (parent, child) of the "static_transform_publisher" line; default
     exports.default_frames of the result's setup. extra: more keys for the JSON object.
     result: the CalibrationResult to print instead of the session's (`solve DIR`: the same
-    with the estimate on the pixels at the top level).
+    with the estimate on the pixels at the top level). limits: the next-pose planner's.
     """
     if len(session.samples) < 3:
         return fail(prog, f'{where}{len(session.samples)} sample(s); at least 3 are needed',
@@ -183,7 +187,8 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     document['urdf'] = exports.urdf_joint(result, parent, child)
     document['xacro'] = exports.xacro_macro(result, parent, child)
     options = session.config.calibration
-    planned = plan_next_pose(session.samples, result, options.setup, options.invert_sensor)
+    planned = plan_next_pose(session.samples, result, options.setup, options.invert_sensor,
+                             limits)
     document['next_pose'] = planned.to_json_dict() if planned is not None else None
     document.update(extra or {})
     print(json.dumps(document, indent=2))
@@ -341,7 +346,8 @@ def replay_main(argv=None):
         if status:
             return status
     return print_result(prog, session, where, warnings, frames=_replay_frames(args, report),
-                        extra={'time_offset': time_offset} if time_offset else None)
+                        extra={'time_offset': time_offset} if time_offset else None,
+                        limits=plan_limits(settings_of(args)))
 
 
 class _StreamRecorder:
