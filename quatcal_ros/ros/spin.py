@@ -19,6 +19,7 @@ from quatcal_ros.ros import stop_signals
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.utilities import get_default_context
 
 
 def install_stop_handlers():
@@ -31,11 +32,18 @@ def install_stop_handlers():
 
     def on_signal(signum, frame):
         received.append(signum)
-        # Not here: the handler runs in the main thread between two of its bytecodes, maybe
-        # inside rclpy's Context.ok(), which holds the lock try_shutdown takes (a non-reentrant
-        # threading.Lock): the process hung about once in 50 stops (seen in CI). A thread
-        # takes the lock as soon as the main thread lets go of it.
-        threading.Thread(target=_shutdown, name='stop-signal', daemon=True).start()
+        # The handler runs in the main thread between two of its bytecodes, maybe inside
+        # rclpy's Context.ok(), which holds the lock try_shutdown takes (a non-reentrant
+        # threading.Lock): shutting down here then hung the process (about once in 50 stops,
+        # seen in CI). When the main thread holds it, a thread shuts down as soon as it lets
+        # go; otherwise here and now, so that what the main thread does next sees rclpy down.
+        lock = getattr(get_default_context(), '_lock', None)
+        if lock is not None and not lock.acquire(blocking=False):
+            threading.Thread(target=_shutdown, name='stop-signal', daemon=True).start()
+            return
+        if lock is not None:
+            lock.release()
+        _shutdown()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, on_signal)
     return received
