@@ -27,13 +27,12 @@ import numpy as np  # noqa: E402
 
 from quatcal_ros.core import quaternion as quat  # noqa: E402
 from quatcal_ros.core.calibration import calibrate  # noqa: E402
-from quatcal_ros.core.pose import Pose, Sample  # noqa: E402
-from quatcal_ros.core.refine import object_pose  # noqa: E402
+from quatcal_ros.core.pose import Sample  # noqa: E402
 from quatcal_ros.vision.board import parse_board  # noqa: E402
 from quatcal_ros.vision.camera import camera_from  # noqa: E402
 from quatcal_ros.vision.detect import detect  # noqa: E402
-from quatcal_ros.vision.render import Renderer, view_poses  # noqa: E402
-from quatcal_ros.vision.reprojection import refine_reprojection  # noqa: E402
+from quatcal_ros.vision.render import cell_views, Renderer, view_poses  # noqa: E402
+from quatcal_ros.vision.reprojection import refine_from_poses  # noqa: E402
 
 BOARD = {'type': 'charuco', 'squares_x': 7, 'squares_y': 5, 'square_length_m': 0.03,
          'marker_length_m': 0.022, 'dictionary': 'DICT_5X5_100'}
@@ -50,14 +49,13 @@ def camera(width=640, height=480, f=600.0):
 def trial(renderer, views, seed):
     """Return {method: (rotation error deg, translation error mm)} of one rendered cell."""
     rng = np.random.default_rng(seed)
-    X = Pose.create([0.05, -0.03, 0.08], quat.from_rotation_vector(rng.normal(size=3)))
-    board_pose = Pose.create([0.6, 0.1, 0.0], quat.from_rotation_vector(rng.normal(size=3)))
+    X, _, seen_poses, cell_links = cell_views(rng, renderer, views)
     links, found = [], []
-    for seen in view_poses(rng, views, renderer, distance_m=(0.3, 0.9)):
+    for seen, link in zip(seen_poses, cell_links):
         view = detect(renderer.render(seen, rng, noise=2.0, blur_sigma=0.6), renderer.board,
                       renderer.camera)
         if view.ok:
-            links.append(board_pose @ seen.inverse() @ X.inverse())
+            links.append(link)
             found.append(view)
     samples = [Sample(i * 10 ** 9, link, view.pose)
                for i, (link, view) in enumerate(zip(links, found))]
@@ -65,15 +63,8 @@ def trial(renderer, views, seed):
     pose_based = calibrate(samples)
     estimates['ours, pose-based (refined, PnP covariances)'] = (
         pose_based.quaternion, pose_based.translation)
-    link_q = np.array([link.quaternion for link in links])
-    link_t = np.array([link.position for link in links])
-    o_q, o_t = object_pose(link_q, link_t, np.array([v.pose.quaternion for v in found]),
-                           np.array([v.pose.position for v in found]), pose_based.quaternion,
-                           pose_based.translation)
-    fit = refine_reprojection(link_q, link_t,
-                              [(v.object_points, v.image_points) for v in found],
-                              renderer.camera, pose_based.quaternion, pose_based.translation,
-                              o_q, o_t)
+    fit = refine_from_poses(samples, [(v.object_points, v.image_points) for v in found],
+                            renderer.camera, pose_based)
     estimates['ours, on the pixels (reprojection)'] = (fit.quaternion, fit.translation)
     for name, method in OPENCV.items():
         R, t = cv2.calibrateHandEye([link.rotation for link in links],

@@ -25,7 +25,7 @@ from quatcal_ros.vision.board import parse_board
 from quatcal_ros.vision.camera import camera_from, parse_camera
 from quatcal_ros.vision.detect import _pnp, _with_pose, Checks, detect, pose_covariance, \
     pose_from_rvec
-from quatcal_ros.vision.render import Renderer, view_poses, write_dataset
+from quatcal_ros.vision.render import cell_views, Renderer, view_poses, write_dataset
 from quatcal_ros.vision.reprojection import cramer_rao_covariance, refine_reprojection
 
 CAMERA = camera_from(640, 480, [[600, 0, 320], [0, 600, 240], [0, 0, 1]], 'plumb_bob',
@@ -152,10 +152,7 @@ def test_a_planar_pose_ambiguity_is_refused():
 
 def synthetic_cell(rng, renderer, views, pixel_noise):
     """Return (truth X, O, link poses, [(points, pixels)], pose samples) of a cell."""
-    mounting = Pose.create([0.05, -0.03, 0.08], quat.from_rotation_vector(rng.normal(size=3)))
-    board_pose = Pose.create([0.6, 0.1, 0.0], quat.from_rotation_vector(rng.normal(size=3)))
-    seen = view_poses(rng, views, renderer, distance_m=(0.3, 0.9))
-    links = [board_pose @ s.inverse() @ mounting.inverse() for s in seen]
+    mounting, board_pose, seen, links = cell_views(rng, renderer, views)
     points = renderer.board.cv_board.getChessboardCorners().astype(float)
     corners, samples = [], []
     for i, (s, link) in enumerate(zip(seen, links)):
@@ -213,10 +210,7 @@ def test_the_reprojection_refinement_reaches_its_bound_and_is_honest(renderers):
 
 def write_rendered_dataset(folder, renderer, views, seed):
     rng = np.random.default_rng(seed)
-    mounting = Pose.create([0.05, -0.03, 0.08], quat.from_rotation_vector(rng.normal(size=3)))
-    board_pose = Pose.create([0.6, 0.1, 0.0], quat.from_rotation_vector(rng.normal(size=3)))
-    seen = view_poses(rng, views, renderer, distance_m=(0.3, 0.8))
-    links = [board_pose @ s.inverse() @ mounting.inverse() for s in seen]
+    mounting, _, seen, links = cell_views(rng, renderer, views, distance_m=(0.3, 0.8))
     images = [renderer.render(s, rng, noise=2.0, blur_sigma=0.6) for s in seen]
     names = [f'view_{i:03d}.png' for i in range(views)]
     write_dataset(folder, BOARDS['charuco'], CAMERA, names, links, images)

@@ -152,9 +152,9 @@ class NoiseFit:
             nu = np.full(rows, c.nu)
             w = np.broadcast_to(c.weights, (rows, n))
             for _ in range(0 if math.isinf(c.nu) else WARM_EM_ITERATIONS):
-                w = _t_weights(_distances(r, keep * w, count, c.shape, floor), d, nu)
+                w = t_weights(_distances(r, keep * w, count, c.shape, floor), d, nu)
             scale = _scale(r, keep * w, count, c.shape, floor)
-            w = _t_weights(_mahalanobis(r, scale), d, nu)
+            w = t_weights(_mahalanobis(r, scale), d, nu)
             information += p * (keep * w)[..., None, None] * np.linalg.inv(scale)[:, None]
         return information
 
@@ -168,13 +168,6 @@ class NoiseFit:
         """Return each sample's density under the noise, averaged over the models."""
         return sum(p * np.exp(c.log_density)
                    for p, c in zip(self.probabilities, self.components))
-
-
-def t_weights(delta, d, nu):
-    """Return the EM weights (nu + d) / (nu + delta) (ones for nu = inf)."""
-    if math.isinf(nu):
-        return np.ones_like(delta)
-    return (nu + d) / (nu + delta)
 
 
 def t_log_density(delta, d, nu, log_det):
@@ -236,14 +229,13 @@ def _fit_components(r, good, count, shape, nus, floor, warm):
             steps[i] = WARM_EM_ITERATIONS if m == n else RESUMED_EM_ITERATIONS
     steps[np.isinf(nu)] = 0
     for step in range(int(steps.max(initial=0))):
-        moving = steps > step           # finite nu only (nu = inf takes no steps)
-        nu_moving = nu[moving][:, None]
-        delta = _distances(r, good * w[moving], count, shape, floor)
-        w[moving] = (nu_moving + d) / (nu_moving + delta)
+        moving = steps > step
+        w[moving] = t_weights(_distances(r, good * w[moving], count, shape, floor), d,
+                              nu[moving])
     scale = _scale(r, good * w, count, shape, floor)
     delta = _mahalanobis(r, scale)
     log_det = np.linalg.slogdet(scale)[1]
-    weights = _t_weights(delta, d, nu)
+    weights = t_weights(delta, d, nu)
     free = shape.parameters + np.where(np.isinf(nu), 0, 1)
     log_n = math.log(max(good.sum(), 2.0))
     components = []
@@ -255,8 +247,8 @@ def _fit_components(r, good, count, shape, nus, floor, warm):
     return components
 
 
-def _t_weights(delta, d, nu):
-    """Return t_weights for each row of delta (K, N) with its nu (K,)."""
+def t_weights(delta, d, nu):
+    """Return the EM weights (nu + d) / (nu + delta_kn) (K, N), each row with its nu (K,)."""
     finite = np.isfinite(nu)[:, None]
     safe = np.where(finite, nu[:, None], 1.0)
     return np.where(finite, (safe + d) / (safe + delta), 1.0)

@@ -269,7 +269,7 @@ def _gauss_newton(arrays, model, models, noise, choose, iterations):
         step = -_solve(A, g)
         if not np.all(np.isfinite(step)):
             return model, noise, False
-        model = _unpack(step, *model)
+        model = apply_step(step, *model)
         if float(step @ A @ step) < STEP_TOLERANCE ** 2:
             return model, noise, True
     if choose:   # no step asked for: the noise at the start
@@ -437,7 +437,7 @@ def _leave_one_out(A, WJ, J, e):
     return e + np.einsum('naj,nj->na', J, moved)
 
 
-def _unpack(p, x_q, x_t, o_q, o_t):
+def apply_step(p, x_q, x_t, o_q, o_t):
     """Return X and O moved by p: rotation vectors applied on the left, translations added."""
     return (quat.normalize(quat.multiply(quat.from_rotation_vector(p[0:3]), x_q)), x_t + p[3:6],
             quat.normalize(quat.multiply(quat.from_rotation_vector(p[6:9]), o_q)),

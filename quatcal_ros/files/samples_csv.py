@@ -121,6 +121,23 @@ def _covariance(row, columns, name, line):
 
 
 def _sample_from_row(row, index, name, line):
+    values = parse_numbers(row, index, name, line)
+    if not abs(values['stamp']) < MAX_STAMP_S:
+        raise BadInputError(f'{name}, row {line}, field stamp: {values["stamp"]:g} s is out of '
+                            f'range (seconds, at most {MAX_STAMP_S:.3g} in magnitude)')
+    return Sample(
+        stamp_ns=int(round(values['stamp'] * 1e9)),
+        link=pose_from_values(values, 'link', name, line),
+        sensor=pose_from_values(values, 'sensor', name, line))
+
+
+def parse_numbers(row, index, name, line):
+    """
+    Return {column: float} of the cells `index` ({column: position}) names in a CSV row.
+
+    Raises BadInputError naming the file, row and field for a missing cell, one that is not
+    a finite number, or a position (a column ending in _x, _y, _z) beyond MAX_POSITION_M.
+    """
     values = {}
     for column, i in index.items():
         where = f'{name}, row {line}, field {column}'
@@ -139,16 +156,11 @@ def _sample_from_row(row, index, name, line):
                                 f'most {MAX_POSITION_M:g} m from the origin; positions are in '
                                 'metres)')
         values[column] = value
-    if not abs(values['stamp']) < MAX_STAMP_S:
-        raise BadInputError(f'{name}, row {line}, field stamp: {values["stamp"]:g} s is out of '
-                            f'range (seconds, at most {MAX_STAMP_S:.3g} in magnitude)')
-    return Sample(
-        stamp_ns=int(round(values['stamp'] * 1e9)),
-        link=_pose(values, 'link', name, line),
-        sensor=_pose(values, 'sensor', name, line))
+    return values
 
 
-def _pose(values, prefix, name, line):
+def pose_from_values(values, prefix, name, line):
+    """Return the Pose of the columns PREFIX_x .. PREFIX_qw of parse_numbers' values."""
     xyzw = [values[f'{prefix}_q{axis}'] for axis in 'xyzw']
     problem = quaternion_norm_problem(xyzw, FILE_NORM_TOLERANCE)
     if problem:

@@ -15,11 +15,8 @@ import sys
 import time
 
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.motions import SampleRotations
 from quatcal_ros.core.planner import plan_next_pose, PlanLimits
 from quatcal_ros.core.pose import Pose
-from quatcal_ros.core.refine import object_pose
-from quatcal_ros.core.translation import SamplePositions
 from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.files import exports
 from quatcal_ros.files import importers
@@ -97,7 +94,7 @@ def solve_main(argv=None):
 def _solve_images(prog, args):
     """`solve DIR`: the board in each image, the pose-based estimate, then on the pixels."""
     from quatcal_ros.vision import dataset as images   # cv2 only on the image path
-    from quatcal_ros.vision.reprojection import refine_reprojection
+    from quatcal_ros.vision.reprojection import refine_from_poses
     args.setup = args.setup or 'eye_in_hand'
     where = f'{args.samples}: '
     progress = None
@@ -118,15 +115,8 @@ def _solve_images(prog, args):
     if result is None or len(data.samples) < 3:
         return print_result(prog, session, where, frames=solve_frames(args),
                             extra={'views': views}, limits=plan_limits(settings_of(args)))
-    rotations = SampleRotations.from_samples(data.samples, args.setup)
-    positions = SamplePositions.from_samples(data.samples, rotations)
-    used = result.sample_ok
-    link_q, link_t = rotations.link[used], positions.link[used]
-    o_q, o_t = object_pose(link_q, link_t, rotations.sensor[used], positions.sensor[used],
-                           result.quaternion, result.translation)
-    fit = refine_reprojection(link_q, link_t, images.views_for_refinement(data, used),
-                              data.camera, result.quaternion, result.translation, o_q, o_t,
-                              robust=args.robust)
+    fit = refine_from_poses(data.samples, data.corners(), data.camera, result, args.setup,
+                            args.robust)
     on_pixels = replace(result, quaternion=fit.quaternion,
                         matrix=quat.matrix_from_quaternion(fit.quaternion),
                         translation=fit.translation, uncertainty_deg=fit.uncertainty_deg,

@@ -12,16 +12,12 @@ silently. Errors in the files name the file, the row and the field.
 
 import csv
 from dataclasses import dataclass, field
-import math
 from pathlib import Path
 
 import cv2
-import numpy as np
-from quatcal_ros.core.pose import Pose, Sample
-from quatcal_ros.core.quaternion import wxyz_from_xyzw
-from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, NS_PER_S, \
-    quaternion_norm_problem
-from quatcal_ros.files.samples_csv import BadInputError
+from quatcal_ros.core.pose import Sample
+from quatcal_ros.core.units import NS_PER_S
+from quatcal_ros.files.samples_csv import BadInputError, parse_numbers, pose_from_values
 from quatcal_ros.vision.board import read_board
 from quatcal_ros.vision.camera import read_camera_yaml
 from quatcal_ros.vision.detect import Checks, detect
@@ -43,6 +39,10 @@ class ImageDataset:
 
     def refused_json(self):
         return list(self.refused)
+
+    def corners(self):
+        """Return [(object_points, image_points)] of each view used, as the samples."""
+        return [(view.object_points, view.image_points) for view in self.views]
 
 
 def is_image_dataset(path):
@@ -105,33 +105,8 @@ def read_robot_poses(path):
                 raise BadInputError(f'{name}, row {line}, field image: {image!r} is not a new '
                                     'file name in images/')
             seen.add(image)
-            rows.append((image, _link_pose(row, index, name, line)))
+            values = parse_numbers(row, {c: index[c] for c in POSE_COLUMNS[1:]}, name, line)
+            rows.append((image, pose_from_values(values, 'link', name, line)))
     if not rows:
         raise BadInputError(f'{name}: no rows')
     return rows
-
-
-def _link_pose(row, index, name, line):
-    values = {}
-    for column in POSE_COLUMNS[1:]:
-        where = f'{name}, row {line}, field {column}'
-        cell = row[index[column]].strip() if index[column] < len(row) else ''
-        try:
-            value = float(cell)
-        except ValueError:
-            raise BadInputError(f'{where}: {cell!r} is not a number') from None
-        if not math.isfinite(value) or (column[-2:] in ('_x', '_y', '_z')
-                                        and abs(value) > MAX_POSITION_M):
-            raise BadInputError(f'{where}: {value:g} is not a finite pose value in metres')
-        values[column] = value
-    xyzw = [values[f'link_q{axis}'] for axis in 'xyzw']
-    problem = quaternion_norm_problem(xyzw, FILE_NORM_TOLERANCE)
-    if problem:
-        raise BadInputError(f'{name}, row {line}, fields link_qx..link_qw: {problem}')
-    return Pose.create([values[f'link_{a}'] for a in 'xyz'], wxyz_from_xyzw(xyzw))
-
-
-def views_for_refinement(dataset, used):
-    """Return [(object_points, image_points)] of the views whose samples `used` selects."""
-    return [(view.object_points, view.image_points)
-            for view, ok in zip(dataset.views, np.asarray(used, dtype=bool)) if ok]

@@ -129,6 +129,19 @@ def view_poses(rng, n, renderer, distance_m=(0.35, 0.7), tilt_deg=35.0, offset_m
     return poses
 
 
+def cell_views(rng, renderer, n, distance_m=(0.3, 0.9)):
+    """
+    Return an eye-in-hand cell seen n times: (mounting X, board pose O, views, link poses).
+
+    X (T_link_camera) and O (T_base_board) are random; the views T_camera_board come from
+    view_poses; link pose i is the T_base_link that sees view i: O inv(S_i) inv(X).
+    """
+    mounting = Pose.create([0.05, -0.03, 0.08], quat.from_rotation_vector(rng.normal(size=3)))
+    board = Pose.create([0.6, 0.1, 0.0], quat.from_rotation_vector(rng.normal(size=3)))
+    seen = view_poses(rng, n, renderer, distance_m=distance_m)
+    return mounting, board, seen, [board @ s.inverse() @ mounting.inverse() for s in seen]
+
+
 def write_dataset(folder, board_document, camera, names, link_poses, images):
     """Write DESIGN.md contract 5's folder: images/, robot_poses.csv, camera_info.yaml, board."""
     from quatcal_ros.files import plain_yaml

@@ -20,7 +20,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.refine import ReportedUncertainty, uncertainties
+from quatcal_ros.core.motions import SampleRotations
+from quatcal_ros.core.refine import apply_step, object_pose, ReportedUncertainty, \
+    uncertainties
+from quatcal_ros.core.translation import SamplePositions
 
 MAX_ITERATIONS = 30
 STEP_TOLERANCE = 1e-6          # in units of the unknowns' sigmas
@@ -97,20 +100,14 @@ def predicted_pixels(link_q, link_t, corners, camera, model):
     return camera.project(points)
 
 
-def _unpack(p, x_q, x_t, o_q, o_t):
-    return (quat.normalize(quat.multiply(quat.from_rotation_vector(p[0:3]), x_q)), x_t + p[3:6],
-            quat.normalize(quat.multiply(quat.from_rotation_vector(p[6:9]), o_q)),
-            o_t + p[9:12])
-
-
 def jacobian(link_q, link_t, corners, camera, model):
     """Return d pixels / d unknowns, (K, 2, 12), by central differences."""
     columns = []
     for k in range(12):
         step = np.zeros(12)
         step[k] = DIFFERENCE_STEP
-        plus = predicted_pixels(link_q, link_t, corners, camera, _unpack(step, *model))
-        minus = predicted_pixels(link_q, link_t, corners, camera, _unpack(-step, *model))
+        plus = predicted_pixels(link_q, link_t, corners, camera, apply_step(step, *model))
+        minus = predicted_pixels(link_q, link_t, corners, camera, apply_step(-step, *model))
         columns.append((plus - minus) / (2 * DIFFERENCE_STEP))
     return np.stack(columns, axis=-1)
 
@@ -134,7 +131,7 @@ def refine_reprojection(link_q, link_t, views, camera, x_q, x_t, o_q, o_t, robus
         w, sigma = _weights(e, robust)
         A, g = _normal_equations(J, e, w)
         step = np.linalg.lstsq(A, g, rcond=None)[0]
-        model = _unpack(step, *model)
+        model = apply_step(step, *model)
         if float(step @ A @ step) / sigma ** 2 < STEP_TOLERANCE ** 2:
             converged = True
             break
@@ -151,6 +148,23 @@ def refine_reprojection(link_q, link_t, views, camera, x_q, x_t, o_q, o_t, robus
         rms_px=float(np.sqrt(squared.mean())), model_covariance=covariance,
         resampled=_jackknife(J, e, w, corners.view, len(views)), converged=converged,
         iterations=iterations, view_rms_px=view_rms)
+
+
+def refine_from_poses(samples, views, camera, result, setup='eye_in_hand', robust=True):
+    """
+    Return the ReprojectionFit started from a pose-based CalibrationResult of `samples`.
+
+    views: [(object_points, image_points)] of each sample's image; the samples the result
+    used (sample_ok) are fitted, from its mounting and the mean object pose it implies.
+    """
+    rotations = SampleRotations.from_samples(samples, setup)
+    positions = SamplePositions.from_samples(samples, rotations)
+    used = np.asarray(result.sample_ok, dtype=bool)
+    link_q, link_t = rotations.link[used], positions.link[used]
+    o_q, o_t = object_pose(link_q, link_t, rotations.sensor[used], positions.sensor[used],
+                           result.quaternion, result.translation)
+    return refine_reprojection(link_q, link_t, [v for v, ok in zip(views, used) if ok], camera,
+                               result.quaternion, result.translation, o_q, o_t, robust=robust)
 
 
 def _weights(e, robust):
