@@ -58,8 +58,10 @@ LOST_SAMPLES = 12 / DIMENSIONS
 ISOTROPIC = (heavy_tails.isotropic_blocks(DIMENSIONS),)
 SHAPES = ISOTROPIC + (heavy_tails.full(DIMENSIONS),)
 FULL_SHAPE_SAMPLES = 30
-# Blocks of the jackknife (with_jackknife).
+# Blocks of the jackknife (with_jackknife), and the floats a batch of its replicates may hold
+# (16 MB: all 20 at once up to about 1,400 samples).
 JACKKNIFE_BLOCKS = 20
+JACKKNIFE_BATCH_FLOATS = 2_000_000
 
 
 class ReportedUncertainty:
@@ -303,12 +305,17 @@ def with_jackknife(refinement, link_q, link_t, sensor_q, sensor_t, robust=True,
     keep = np.ones((len(groups), n), dtype=bool)
     for row, group in enumerate(groups):
         keep[row, group] = False
-    information = refinement.noise.refitted_information(e, keep, LOST_SAMPLES, NOISE_FLOOR)
-    MJ = (information @ J[None]).reshape(len(groups), -1, 12)    # (B, 6N, 12)
     flat_J = J.reshape(-1, 12)
-    A = flat_J.T @ MJ                                              # (B, 12, 12)
-    g = np.swapaxes(MJ, 1, 2) @ e.reshape(-1)                      # (B, 12)
-    moves = [-_solve(A_b, g_b)[:6] for A_b, g_b in zip(A, g)]   # X's rotation and translation
+    moves = []
+    # Replicates in batches of a bounded size (each holds its (N, 6, 12) weighted Jacobian).
+    batch = max(1, JACKKNIFE_BATCH_FLOATS // (n * 6 * 12))
+    for start in range(0, len(groups), batch):
+        rows = keep[start:start + batch]
+        information = refinement.noise.refitted_information(e, rows, LOST_SAMPLES, NOISE_FLOOR)
+        MJ = (information @ J[None]).reshape(len(rows), -1, 12)    # (B, 6N, 12)
+        A = flat_J.T @ MJ                                            # (B, 12, 12)
+        g = np.swapaxes(MJ, 1, 2) @ e.reshape(-1)                    # (B, 12)
+        moves += [-_solve(A_b, g_b)[:6] for A_b, g_b in zip(A, g)]   # X's rotation, translation
     moves = np.array(moves)
     g = len(groups)
     centred = moves - moves.mean(axis=0)
