@@ -29,7 +29,8 @@ LAYERS = {
     'ros': ({'core', 'stream', 'files', 'sim', 'vision', 'ros'},
             {'numpy', 'yaml', 'rosbags', 'cv2'} | ROS),
     'vision': ({'core', 'files', 'vision'}, {'numpy', 'cv2'}),
-    'tools': ({'core', 'stream', 'files', 'sim', 'ros', 'vision', 'tools'},
+    'report': ({'core', 'files', 'report'}, {'numpy', 'matplotlib'}),
+    'tools': ({'core', 'stream', 'files', 'sim', 'ros', 'vision', 'report', 'tools'},
               {'numpy', 'yaml'} | ROS),
     # quatcal_ros/__main__.py (imports its tools by name; ros.stop_signals first for the
     # nodes) and solver.py (the contract's name)
@@ -123,8 +124,8 @@ def test_solve_of_a_csv_loads_no_ros_yaml_or_bag_reader(repo_root, tmp_path):
             '    runpy.run_module("quatcal_ros", run_name="__main__")\n'
             'except SystemExit as stop:\n'
             '    assert not stop.code, stop.code\n'
-            'loaded = [m for m in ("rclpy", "rosbags", "yaml", "scipy", "cv2", "xml.sax",\n'
-            '                      "urllib.request") if m in sys.modules]\n'
+            'loaded = [m for m in ("rclpy", "rosbags", "yaml", "scipy", "cv2", "matplotlib",\n'
+            '                      "xml.sax", "urllib.request") if m in sys.modules]\n'
             'sys.exit(f"loaded {loaded}" if loaded else 0)\n')
     done = subprocess.run([sys.executable, '-c', code], cwd=repo_root, capture_output=True,
                           text=True)

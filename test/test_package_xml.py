@@ -9,7 +9,8 @@ from test_layers import imports, modules
 ROOT = Path(__file__).resolve().parents[1]
 # Python packages whose rosdep key is not their import name; ROS packages are their own key.
 ROSDEP_KEYS = {'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'yaml': 'python3-yaml',
-               'rosbags': 'python3-rosbags-pip', 'cv2': 'python3-opencv'}
+               'rosbags': 'python3-rosbags-pip', 'cv2': 'python3-opencv',
+               'matplotlib': 'python3-matplotlib'}
 
 
 def declared(kind):

@@ -7,6 +7,9 @@ topic of geometry_msgs/PoseStamped, TransformStamped, PoseWithCovarianceStamped 
 nav_msgs/Odometry, or from two frames of the transform tree of tf2_msgs/TFMessage topics
 (/tf, /tf_static): T_target_source at each stamp at which a dynamic transform on the chain
 arrived (tf_tree.FramePoses).  Static transforms are read first, wherever they are in the bag.
+The sensor poses can also come from camera images (sensor_msgs Image or CompressedImage) with
+their CameraInfo topic: the board's pose in each, found as the live node finds it
+(image_input.ImageInput), and each still sample's corners kept by the ImageSensor.
 
 Messages are read ahead a window at a time.  PoseStamped and TransformStamped topics take a
 fast path: the window's messages of such a topic are decoded together straight from the raw
@@ -28,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from quatcal_ros.ros import cdr
+from quatcal_ros.ros.image_input import ImageInput
 from quatcal_ros.ros.pose_screen import PoseScreen
 from quatcal_ros.ros.tf_feed import DEFAULT_TF_TOPICS, is_static_tf_topic, TF_MAX_GAP_NS, \
     TfFeed
@@ -37,6 +41,8 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
+CAMERA_INFO_TYPE = 'sensor_msgs/msg/CameraInfo'
 POSE_TYPES = ('geometry_msgs/msg/PoseStamped', 'geometry_msgs/msg/TransformStamped',
               'geometry_msgs/msg/PoseWithCovarianceStamped', 'nav_msgs/msg/Odometry')
 TF_TYPE = 'tf2_msgs/msg/TFMessage'
@@ -169,12 +175,19 @@ class PoseInput:
 
     topic: str = None
     frames: tuple = None
+    # With camera_info set, `topic` holds camera images (sensor_msgs Image or
+    # CompressedImage): the sensor poses are the board's, found by an ImageSensor.
+    camera_info: str = None
 
     def __post_init__(self):
         if (self.topic is None) == (self.frames is None):
             raise ValueError('a pose input is a topic or a pair of frames, not both or none')
+        if self.camera_info is not None and self.topic is None:
+            raise ValueError('images come from a topic, not from TF frames')
 
     def __str__(self):
+        if self.camera_info is not None:
+            return f'{self.topic} (images, with {self.camera_info})'
         if self.topic is not None:
             return self.topic
         return f'TF {self.frames[0]} -> {self.frames[1]}'
@@ -249,11 +262,18 @@ class Replay:
     """
 
     def __init__(self, bag, link, sensor, tf_topics=DEFAULT_TF_TOPICS,
-                 tf_max_gap_ns=TF_MAX_GAP_NS, checks=CheckConfig()):
+                 tf_max_gap_ns=TF_MAX_GAP_NS, checks=CheckConfig(), images=None):
+        """
+        Check the inputs against the bag (BagError).
+
+        :param images: the vision.image_sensor.ImageSensor that finds the board when the
+            sensor input is an image topic (PoseInput.camera_info set).
+        """
         self.bag = bag
         self.inputs = {'link': link, 'sensor': sensor}
         self.checks = checks   # message_checks.CheckConfig, as the live node checks
         self.tf_max_gap_ns = tf_max_gap_ns
+        self.images = images
         if bag.message_count == 0:
             raise BagError(f'{bag.path}: the bag holds no messages')
         if link.topic is not None and link.topic == sensor.topic:
@@ -261,7 +281,9 @@ class Replay:
                            f'{link.topic}')
         self.msgtypes = {}
         for stream, source in self.inputs.items():
-            if source.topic is not None:
+            if source.camera_info is not None:
+                self._check_image_topics(source)
+            elif source.topic is not None:
                 self.msgtypes[source.topic] = self._pose_topic_type(stream, source.topic)
         self.tf_topics = ()
         if any(source.frames for source in self.inputs.values()):
@@ -269,6 +291,14 @@ class Replay:
             self._check_tf_topics(tf_topics)
         self.topics = set(self.msgtypes) | set(self.tf_topics)
         self.total = sum(bag.topics[topic][1] for topic in self.topics)
+
+    def _check_image_topics(self, source):
+        if self.images is None:
+            raise BagError('an image topic needs the board file (--board-file)')
+        self.msgtypes[source.topic] = self.bag.topic_type(source.topic, IMAGE_TYPES,
+                                                          'camera images')
+        self.msgtypes[source.camera_info] = self.bag.topic_type(
+            source.camera_info, (CAMERA_INFO_TYPE,), 'camera calibration')
 
     def _pose_topic_type(self, stream, topic):
         role = f'{stream} poses'
@@ -425,6 +455,10 @@ class _Run:
         self.report = ReplayReport(
             stamps={'link': [None, None], 'sensor': [None, None]},
             sources={STREAMS[stream]: str(source) for stream, source in replay.inputs.items()})
+        self.images = None
+        if replay.images is not None:
+            replay.images.forget()   # a second run (capture mode fallback) starts afresh
+            self.images = ImageInput(replay.images, self.poses)
         self.tree = TfFeed.new_tree(replay.tf_max_gap_ns)
         self.adders = {'link': session.add_link_pose, 'sensor': session.add_sensor_pose}
         self.tf = TfFeed(self.tree, self.poses, {
@@ -438,6 +472,8 @@ class _Run:
         """Return the _Feed that takes the raw messages of `topic`."""
         if topic in self.replay.tf_topics:
             return _Feed(lambda raw: self.on_tf(topic, raw, static=False))
+        if self.replay.inputs['sensor'].camera_info == topic:
+            return _Feed(self.on_camera_info)
         stream = next(s for s, source in self.replay.inputs.items() if source.topic == topic)
         on_pose = self._pose_handler(topic, stream)
         msgtype = self.replay.msgtypes[topic]
@@ -452,6 +488,8 @@ class _Run:
         deserialize = TYPESTORE.deserialize_cdr
         add = self.adders[stream]
         checked = STREAMS[stream]
+        take = (self.poses.take if msgtype not in IMAGE_TYPES
+                else lambda _, msg: self.images.take_image(msg))
 
         def on_pose(raw):
             try:
@@ -460,7 +498,7 @@ class _Run:
                 self.poses.stats.note(checked, 0)
                 self.poses.bad(checked, 'undecodable', f'{type(error).__name__}: {error}')
                 return
-            taken = self.poses.take(checked, msg)
+            taken = take(checked, msg)
             if taken is None:
                 return
             if self._track(stream, taken[0], taken[0]):
@@ -495,6 +533,15 @@ class _Run:
         checked = STREAMS[stream]
         self.poses.take_rows(checked, 1)
         self.poses.verdict(checked, self.adders[stream](stamp_ns, pose))
+
+    def on_camera_info(self, raw):
+        """Take a raw CameraInfo: the intrinsics of the images that follow."""
+        try:
+            msg = TYPESTORE.deserialize_cdr(raw, CAMERA_INFO_TYPE)
+        except Exception as error:   # noqa: B902 - whatever rosbags raises on bad bytes
+            self.poses.bad(SENSOR, 'bad_camera_info', f'{type(error).__name__}: {error}')
+            return
+        self.images.take_camera_info(msg)
 
     def on_tf(self, topic, raw, static):
         """Take a raw TFMessage: update the tree, then feed the poses it completes."""

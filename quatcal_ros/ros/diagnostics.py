@@ -96,7 +96,7 @@ def status_message(session, stats):
 
 
 def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_static='',
-                      started_ns=None, topics=None, next_pose=None):
+                      started_ns=None, topics=None, next_pose=None, result=None):
     """
     Return the DiagnosticStatus of the calibrator.
 
@@ -105,8 +105,9 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
     :param started_ns: when the node began to listen (node clock): a stream that never sent
         anything is named after STALE_AFTER_S, with `topics` (stream: resolved topic).
     :param next_pose: the planner's core.planner.NextPose, or None.
+    :param result: the published CalibrationResult when it is not the session's (on pixels).
     """
-    result = session.result
+    result = result or session.result
     counters = session.counters
     stale = stats.stale_reasons(now_ns, STALE_AFTER_S, started_ns, topics)
     found = [text for _, text in stale]

@@ -6,7 +6,10 @@ pairs through one PoseScreen, the checks the replay runs too:
 - pose topics `link_pose` and `sensor_pose` (relative names; PoseStamped, TransformStamped
   with pose_type:=transform, PoseWithCovarianceStamped with pose_type:=pose_with_covariance);
 - with the four TF frames set (settings.tf_frames), /tf and /tf_static through a TfFeed that
-  composes base -> effector and tracking base -> marker at each stamp.
+  composes base -> effector and tracking base -> marker at each stamp;
+- with sensor_input:=image, camera images on `image` (or `image/compressed`) and
+  `camera_info`: the board's pose in each (image_input.ImageInput), the link pose from its
+  topic or from TF (robot_base_frame -> robot_effector_frame).
 Each good pose goes to `deliver(stream, (stamp_ns, pose), now_ns)`; a bad message is logged,
 throttled, with its resolved topic name.
 """
@@ -14,69 +17,108 @@ throttled, with its resolved topic name.
 from geometry_msgs.msg import PoseStamped
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from geometry_msgs.msg import TransformStamped
+from quatcal_ros.ros.image_input import ImageInput
 from quatcal_ros.ros.pose_screen import PoseScreen
 from quatcal_ros.ros.qos import LINK_QOS, SENSOR_QOS, TF_QOS, TF_STATIC_LISTEN_QOS
 from quatcal_ros.ros.tf_feed import TfFeed
 from quatcal_ros.stream import message_checks
 from quatcal_ros.stream.message_checks import LINK, LOG_THROTTLE_S, SENSOR
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from tf2_msgs.msg import TFMessage
 
 # The pose_type setting's choices (settings.POSE_TYPES).
 MESSAGE_TYPES = {'pose': PoseStamped, 'transform': TransformStamped,
                  'pose_with_covariance': PoseWithCovarianceStamped}
+PACKAGES = {PoseStamped: 'geometry_msgs', TransformStamped: 'geometry_msgs',
+            PoseWithCovarianceStamped: 'geometry_msgs', TFMessage: 'tf2_msgs',
+            Image: 'sensor_msgs', CompressedImage: 'sensor_msgs'}
 
 
 class NodeInputs:
     """The subscriptions of the calibrator node and the checks of what they bring."""
 
-    def __init__(self, node, check_config, tf_frames, pose_types, deliver):
+    def __init__(self, node, check_config, tf_frames, pose_types, deliver, images=None):
         """
-        Subscribe on `node`: the TF topics when `tf_frames` is set, else the pose topics.
+        Subscribe on `node`: the TF topics for the streams `tf_frames` names, else pose topics.
 
         :param check_config: message_checks.CheckConfig, what the messages must satisfy.
         :param tf_frames: settings.tf_frames(config): {stream: frame pair} or None.
         :param pose_types: {stream: a key of MESSAGE_TYPES}.
         :param deliver: deliver(stream, (stamp_ns, Pose), now_ns) for each good pose.
+        :param images: (vision.image_sensor.ImageSensor, transport 'raw' or 'compressed',
+            on_new_camera()): the sensor poses come from camera images (sensor_input:=image),
+            or None.
         """
         self._node = node
         self._deliver = deliver
         self.screen = PoseScreen(check_config, self._log_bad_message)
+        tf_frames = tf_frames or {}
+        self.message_types, self.topics = {}, {}
         self.tf = None
-        if tf_frames is None:
-            self.message_types = {stream: MESSAGE_TYPES[pose_types[stream]]
-                                  for stream in (LINK, SENSOR)}
-            self.topics = {   # resolved names (namespace, remapping), for the logs
-                stream: node.create_subscription(
+        self.images = None
+        if tf_frames:
+            self.tf = TfFeed(TfFeed.new_tree(), self.screen, tf_frames, self._on_tf_pose)
+            tf_topic = node.create_subscription(
+                TFMessage, '/tf', lambda msg: self._on_tf(tf_topic.topic_name, msg, False),
+                TF_QOS)
+            static_topic = node.create_subscription(
+                TFMessage, '/tf_static',
+                lambda msg: self._on_tf(static_topic.topic_name, msg, True),
+                TF_STATIC_LISTEN_QOS)
+            for stream in tf_frames:
+                self.message_types[stream] = TFMessage
+                self.topics[stream] = tf_topic.topic_name
+        if images is not None:
+            self._subscribe_images(*images)
+        for stream, qos in ((LINK, LINK_QOS), (SENSOR, SENSOR_QOS)):
+            if stream not in self.topics:
+                self.message_types[stream] = MESSAGE_TYPES[pose_types[stream]]
+                self.topics[stream] = node.create_subscription(   # resolved name, for logs
                     self.message_types[stream], stream,
                     lambda msg, s=stream: self._on_pose(s, msg), qos).topic_name
-                for stream, qos in ((LINK, LINK_QOS), (SENSOR, SENSOR_QOS))}
-            return
-        self.message_types = {LINK: TFMessage, SENSOR: TFMessage}
-        self.tf = TfFeed(TfFeed.new_tree(), self.screen, tf_frames, self._on_tf_pose)
-        tf_topic = node.create_subscription(
-            TFMessage, '/tf', lambda msg: self._on_tf(tf_topic.topic_name, msg, False), TF_QOS)
-        static_topic = node.create_subscription(
-            TFMessage, '/tf_static', lambda msg: self._on_tf(static_topic.topic_name, msg, True),
-            TF_STATIC_LISTEN_QOS)
-        self.topics = {LINK: tf_topic.topic_name, SENSOR: tf_topic.topic_name}
+
+    def _subscribe_images(self, sensor, transport, on_new_camera):
+        """Take the sensor stream from camera images and camera_info (sensor-data QoS)."""
+        self.images = ImageInput(sensor, self.screen,
+                                 lambda text: self._node.get_logger().warning(text),
+                                 on_new_camera)
+        kind = CompressedImage if transport == 'compressed' else Image
+        self.message_types[SENSOR] = kind
+        self.topics[SENSOR] = self._node.create_subscription(
+            kind, 'image/compressed' if transport == 'compressed' else 'image',
+            self._on_image, qos_profile_sensor_data).topic_name
+        self.camera_info_topic = self._node.create_subscription(
+            CameraInfo, 'camera_info', self.images.take_camera_info,
+            qos_profile_sensor_data).topic_name
 
     @property
     def type_names(self):
         """Return each stream's message type, e.g. {'link_pose': 'geometry_msgs/msg/...'}."""
-        package = 'tf2_msgs' if self.tf is not None else 'geometry_msgs'
-        return {stream: f'{package}/msg/{kind.__name__}'
+        return {stream: f'{PACKAGES[kind]}/msg/{kind.__name__}'
                 for stream, kind in self.message_types.items()}
 
     def describe(self):
         """Return where the poses come from, in words (for the start-up log line)."""
-        if self.tf is None:
-            link, sensor = (self.message_types[s].__name__ for s in (LINK, SENSOR))
-            kinds = link if link == sensor else f'{link}, {sensor}'
-            return f'{self.topics[LINK]} and {self.topics[SENSOR]} ({kinds})'
-        pairs = {stream: f'{frames.target} -> {frames.source}'
-                 for stream, frames in self.tf.watchers.items()}
-        return (f'/tf and /tf_static: link pose {pairs[LINK]}, sensor pose {pairs[SENSOR]} '
-                '(TFMessage)')
+        kinds = [self.message_types[stream] for stream in (LINK, SENSOR)]
+        if kinds == [TFMessage, TFMessage]:
+            pairs = {stream: f'{frames.target} -> {frames.source}'
+                     for stream, frames in self.tf.watchers.items()}
+            return (f'/tf and /tf_static: link pose {pairs[LINK]}, sensor pose {pairs[SENSOR]} '
+                    '(TFMessage)')
+        if self.tf is None and self.images is None:
+            link, sensor = (kind.__name__ for kind in kinds)
+            names = link if link == sensor else f'{link}, {sensor}'
+            return f'{self.topics[LINK]} and {self.topics[SENSOR]} ({names})'
+        if self.tf is not None:
+            frames = self.tf.watchers[LINK]
+            link = f'/tf and /tf_static ({frames.target} -> {frames.source})'
+        else:
+            link = f'{self.topics[LINK]} ({kinds[0].__name__})'
+        board = self.images.sensor.board
+        return (f'link pose {link}, sensor pose: a {board.kind} board '
+                f'({board.size[0]} x {board.size[1]}) in {self.topics[SENSOR]} '
+                f'({kinds[1].__name__}) with {self.camera_info_topic}')
 
     def problems(self):
         """Return the TF frame pairs that cannot be composed, in words (none for pose topics)."""
@@ -87,6 +129,12 @@ class NodeInputs:
         taken = self.screen.take(stream, msg, now_ns)
         if taken is not None:
             self._deliver(stream, taken, now_ns)
+
+    def _on_image(self, msg):
+        now_ns = self._node.now_ns()
+        taken = self.images.take_image(msg, now_ns)
+        if taken is not None:
+            self._deliver(SENSOR, taken, now_ns)
 
     def _on_tf(self, topic, msg, static):
         self.screen.stats.note(topic, self._node.now_ns())

@@ -3,8 +3,11 @@ The live calibrator node: pose topics in, hand-eye estimate out (DESIGN.md contr
 
 A thin shell: the session (stream/session.py) does the work, and this node wires it to ROS.
 - takes its poses through inputs.NodeInputs: the topics `link_pose` and `sensor_pose`, or
-  /tf and /tf_static when the four TF frames are set; each message is checked, converted and
-  counted with the checks the replay runs, bad ones are logged throttled;
+  /tf and /tf_static when the four TF frames are set, or (sensor_input:=image) camera images
+  on `image` with `camera_info`, whose board poses are the sensor poses and whose corners each
+  sample keeps (image_samples.py: the published estimate is refined on them); each message is
+  checked, converted and counted with the checks the replay runs, bad ones are logged
+  throttled;
 - publishes `~/rotation` (QuaternionStamped, latched, frame_id = link_frame) and
   `~/transform` (TransformStamped link_frame -> sensor_frame, latched) on each new estimate,
   and `~/next_pose` (PoseStamped, latched, in the robot base frame: core/planner.py's link
@@ -30,12 +33,14 @@ from quatcal_ros.core.planner import plan_next_pose
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.files import exports
 from quatcal_ros.files import journal
+from quatcal_ros.files.samples_csv import BadInputError
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros import parameters
 from quatcal_ros.ros import spin
 from quatcal_ros.ros.diagnostics import calibrator_status, InputWatch
 from quatcal_ros.ros.event_log import EventLog
+from quatcal_ros.ros.image_samples import ImageSamples
 from quatcal_ros.ros.inputs import NodeInputs
 from quatcal_ros.ros.qos import DIAGNOSTICS_QOS, LATCHED_QOS, quiet_publisher_events
 from quatcal_ros.ros.static_tf import StaticTf
@@ -67,11 +72,24 @@ class CalibratorNode(Node):
         except ConfigError:
             self.destroy_node()
             raise
-        self.session = Session(settings.session_config(self.config))
         self.log = EventLog(self.get_logger())
         self.moves = MoveWatch()
-        self.inputs = NodeInputs(self, settings.check_config(self.config), self._tf_frames,
-                                 settings.pose_types(self.config), self._add_pose)
+        self.images = None   # image_samples.ImageSamples with sensor_input:=image
+        self.published = None   # with images: the estimate refined on the corners
+        if self.config.sensor_input == 'image':
+            try:
+                self.images = ImageSamples(self.config, settings.session_config(self.config),
+                                           self.journal.path)
+            except (BadInputError, OSError) as error:
+                self.destroy_node()
+                raise ConfigError(str(error)) from None
+            self.log.messages(self.images.messages)
+        self.session = self._new_session()
+        self.inputs = NodeInputs(
+            self, settings.check_config(self.config), self._tf_frames,
+            settings.pose_types(self.config), self._add_pose,
+            None if self.images is None
+            else (self.images.sensor, self.config.image_transport, self._on_new_camera))
         self.next_pose = None   # the planner's proposal for the latest estimate
         self.next_pose_publisher = self.create_publisher(
             PoseStamped, '~/next_pose', LATCHED_QOS, event_callbacks=quiet_publisher_events())
@@ -139,16 +157,52 @@ class CalibratorNode(Node):
         """
         captured = [event.sample for event in events if isinstance(event, SampleCaptured)]
         self.log.messages(self.journal.append(captured, self.session.samples))
+        if self.images is not None:
+            self.log.messages(self.images.keep(captured))
+            events = [EstimateUpdated(self._on_pixels(event.result))
+                      if isinstance(event, EstimateUpdated) else event for event in events]
         for event in events:
             if isinstance(event, EstimateUpdated):
                 self.publish_estimate(event.result)
         if captured:
             self.log.messages(self.journal.sync())
+            if self.images is not None:
+                self.log.messages(self.images.sync())
         self.log.log(events, self._move_check)
         # The estimate of new samples, if any (the session estimates when asked).
         later = self.session.estimate()
         if later:
             self.handle_events(later)
+
+    def _new_session(self):
+        """Return a Session of the settings; with images, each sample keeps its corners."""
+        config = settings.session_config(self.config)
+        if self.images is None:
+            return Session(config)
+        self.images.configure(config)
+        return Session(config, on_sample=self.images.sensor.keep)
+
+    def _on_pixels(self, result):
+        """Return the result to publish: with sensor_input:=image refined on the corners."""
+        if self.images is None:
+            return result
+        options = self.session.config.calibration
+        refined = self.images.on_pixels(self.session.samples, result, options.setup,
+                                        options.robust)
+        self.published = refined or result
+        return self.published
+
+    def _on_new_camera(self):
+        """Estimate on the pixels again: the first or new intrinsics arrived."""
+        if self.session.result is not None:
+            self.handle_events([EstimateUpdated(self.session.result)])
+
+    @property
+    def result(self):
+        """Return the published estimate: the session's, or on the pixels (image input)."""
+        if self.images is None or self.session.result is None:
+            return self.session.result
+        return self.published
 
     def _move_check(self, result):
         options = self.session.config.calibration
@@ -187,7 +241,7 @@ class CalibratorNode(Node):
 
     def _start_tf_broadcast(self):
         """With publish_tf, start /tf_static; turned on at runtime, it sends the estimate."""
-        result = self.session.result
+        result = self.result
         if self.config.publish_tf and self.static_tf.start() and result is not None:
             self._broadcast(result, self.now_ns())
 
@@ -207,6 +261,8 @@ class CalibratorNode(Node):
         """Log what opening the journal did; estimate from its samples when resuming."""
         report = self.journal.report
         self.log.messages(report.messages)
+        if self.images is not None:
+            self.log.messages(self.images.restore(report.samples))
         if report.samples:   # already in the journal: not appended again, not logged
             self._add_known_samples(report.samples)
             if self.session.result is None:
@@ -222,6 +278,9 @@ class CalibratorNode(Node):
         if getattr(self, 'journal', None) is not None:
             self.journal.close()
             self.journal = None
+        if getattr(self, 'images', None) is not None:
+            self.images.close()
+            self.images = None
         return super().destroy_node()
 
     # --- diagnostics -----------------------------------------------------------------------
@@ -239,7 +298,7 @@ class CalibratorNode(Node):
         return calibrator_status(self.session, self.stats, now_ns,
                                  self.config.link_frame, problems, tf_static,
                                  self.input_watch.started_ns, self.inputs.topics,
-                                 self.next_pose)
+                                 self.next_pose, self.result)
 
     def _publisher_types(self, topic):
         return [info.topic_type for info in self.get_publishers_info_by_topic(topic)]
@@ -274,6 +333,8 @@ class CalibratorNode(Node):
         self.moves.reset()
         self.next_pose = None
         journal_text = self.journal.restart()
+        if self.images is not None:
+            journal_text += self.images.restart()
         if self.journal.problem:
             self.get_logger().error(self.journal.problem)
         response.success = True
@@ -283,7 +344,7 @@ class CalibratorNode(Node):
         return response
 
     def _on_save(self, request, response):
-        result = self.session.result
+        result = self.result
         if result is None:
             response.success = False
             response.message = f'no estimate yet, nothing saved: {self.session.last_error}'
@@ -325,7 +386,7 @@ class CalibratorNode(Node):
             self._start_tf_broadcast()
         if any(name not in settings.PRESENTATION for name in changed):
             samples = self.session.samples
-            self.session = Session(settings.session_config(self.config))
+            self.session = self._new_session()
             if samples:
                 self.get_logger().info(
                     f're-estimating from the {len(samples)} samples with the new settings')

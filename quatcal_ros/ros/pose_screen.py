@@ -41,18 +41,8 @@ class PoseScreen:
 
         now_ns: the node clock (0 offline: no clock check).
         """
-        self.stats.note(stream, now_ns)
-        header = msg.header
-        try:
-            stamp_ns = stamp_ns_from_header(header)
-        except ValueError as error:   # nanosec out of range
-            self.bad(stream, 'bad_stamp', error)
-            return None
-        reason = message_checks.check(stream, stamp_ns, header.frame_id, now_ns, self.config)
-        if reason is not None:
-            config = self.config
-            self.bad(stream, reason, lambda: message_checks.describe(
-                reason, stream, stamp_ns, header.frame_id, now_ns, config))
+        stamp_ns = self.take_header(stream, msg.header, now_ns)
+        if stamp_ns is None:
             return None
         try:
             pose = pose_from_msg(msg)
@@ -66,6 +56,26 @@ class PoseScreen:
                 'origin (parameter max_position_m): are the units metres?'))
             return None
         return stamp_ns, pose
+
+    def take_header(self, stream, header, now_ns=0):
+        """
+        Count one message of `stream` and check its header; return its stamp_ns or None.
+
+        The checks of `take` before the pose: stamp and frame id (an image's header, too).
+        """
+        self.stats.note(stream, now_ns)
+        try:
+            stamp_ns = stamp_ns_from_header(header)
+        except ValueError as error:   # nanosec out of range
+            self.bad(stream, 'bad_stamp', error)
+            return None
+        reason = message_checks.check(stream, stamp_ns, header.frame_id, now_ns, self.config)
+        if reason is not None:
+            config = self.config
+            self.bad(stream, reason, lambda: message_checks.describe(
+                reason, stream, stamp_ns, header.frame_id, now_ns, config))
+            return None
+        return stamp_ns
 
     def take_rows(self, stream, count, now_ns=0):
         """Count `count` messages of `stream` that a fast decoder checked and found good."""

@@ -123,8 +123,15 @@ def _late_reason(error):
 class Session:
     """Pairs the streams, captures samples and keeps the estimate (module docstring)."""
 
-    def __init__(self, config=SessionConfig()):
+    def __init__(self, config=SessionConfig(), on_sample=None):
+        """
+        Start an empty session of `config`.
+
+        :param on_sample: on_sample(sample) for each sample stored from the streams or the
+            capture service, as it is stored (the image input keeps its corners then).
+        """
         self.config = config
+        self._on_sample = on_sample
         self._calibrator = Calibrator(config.calibration)
         self._start_streams()
 
@@ -362,6 +369,8 @@ class Session:
     def _store(self, sample):
         self._calibrator.add_sample(sample)
         self._capture.note_sample(sample)
+        if self._on_sample is not None:
+            self._on_sample(sample)
         return [SampleCaptured(self._sample_count() - 1, sample)]
 
     def _reject(self, what, reason, code=''):

@@ -33,6 +33,8 @@ DEFAULT_RESULT_FILE = '~/.ros/quatcal/calibration.yaml'
 DEFAULT_SAMPLES_FILE = '~/.ros/quatcal/samples.csv'
 POSE_TYPES = ('pose', 'transform', 'pose_with_covariance')
 PAIRS = ('all', 'consecutive')
+SENSOR_INPUTS = ('pose', 'image')
+IMAGE_TRANSPORTS = ('raw', 'compressed')
 NODE_NAME = 'calibrator'
 
 
@@ -131,6 +133,20 @@ SETTINGS = (
             "choices), e.g. pose_with_covariance for the target_detector's poses beside a "
             "robot's PoseStamped; '' = pose_type.", choices=('',) + POSE_TYPES,
             allow_empty=True, read_only=True),
+    Setting('sensor_input', 'pose',
+            'pose: the sensor pose comes from sensor_pose (or the tracking TF frames); '
+            'image: from camera images on image (sensor_msgs/Image) with camera_info, the '
+            'board of board_file detected in each (as target_detector does), and the published '
+            'estimate is refined on the corners of the samples (method reprojection).',
+            choices=SENSOR_INPUTS, read_only=True),
+    Setting('board_file', '',
+            "The calibration board's board.yaml (type, squares or markers, lengths in metres, "
+            "dictionary): required with sensor_input image and for a replay's image topic.",
+            allow_empty=True, read_only=True, tools=REPLAY),
+    Setting('image_transport', 'raw',
+            'With sensor_input image: raw = sensor_msgs/Image on image; compressed = '
+            'sensor_msgs/CompressedImage on image/compressed.', choices=IMAGE_TRANSPORTS,
+            read_only=True),
     Setting('setup', 'eye_in_hand',
             'eye_in_hand: the sensor rides on the link, the answer is link -> sensor; '
             'eye_to_hand: the sensor is fixed in the cell, the answer is base -> sensor.',
@@ -282,6 +298,8 @@ def _from_values(values):
     if reasons:
         raise ConfigError('; '.join(reasons))
     settings = Settings(**{s.name: s.plain(values[s.name]) for s in SETTINGS})
+    if settings.sensor_input == 'image' and not settings.board_file:
+        raise ConfigError('sensor_input image needs board_file: the board.yaml of the target')
     session_config(settings)   # the core's own consistency checks
     return settings
 
@@ -358,15 +376,28 @@ def tf_frames(settings):
     """
     Return {LINK: (base, effector), SENSOR: (tracking base, marker)}, or None (topics).
 
+    With sensor_input image only the link comes from TF: {LINK: (base, effector)}.
+
     :raises ConfigError: when some of the four TF frames are set and others not.
     """
     values = [getattr(settings, name) for name in TF_FRAMES]
     if not any(values):
         return None
-    missing = [name for name, value in zip(TF_FRAMES, values) if not value]
+    if settings.sensor_input == 'image':   # the sensor pose comes from the images
+        if any(values[2:]):
+            raise ConfigError('with sensor_input image the sensor pose comes from the images: '
+                              "leave tracking_base_frame and tracking_marker_frame ''")
+        names, values = TF_FRAMES[:2], values[:2]
+    else:
+        names = TF_FRAMES
+    missing = [name for name, value in zip(names, values) if not value]
     if missing:
-        raise ConfigError(f'TF input needs all four frames: {", ".join(missing)} not set')
-    return {LINK: tuple(values[:2]), SENSOR: tuple(values[2:])}
+        raise ConfigError(f'TF input needs {"both" if len(names) == 2 else "all four"} frames: '
+                          f'{", ".join(missing)} not set')
+    frames = {LINK: tuple(values[:2])}
+    if len(values) == 4:
+        frames[SENSOR] = tuple(values[2:])
+    return frames
 
 
 def check_config(settings):

@@ -14,7 +14,6 @@ from pathlib import Path
 import sys
 import time
 
-from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.planner import plan_next_pose, PlanLimits
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.units import NS_PER_S
@@ -63,6 +62,7 @@ def solve_main(argv=None):
              'moveit_calibration samples YAML (effector_wrt_world, object_wrt_sensor, 16 '
              'numbers row-major); moveit-json: [[eef_wrt_world, obj_wrt_sensor], ...] 4x4')
     add_frame_arguments(parser)
+    add_report_argument(parser)
     parser.add_argument('--easy-handeye2-out', metavar='FILE',
                         help='also write the result in the easy_handeye2 calibration layout '
                              '(e.g. ~/.ros2/easy_handeye2/calibrations/NAME.calib)')
@@ -88,12 +88,14 @@ def solve_main(argv=None):
         for _, target, error in saved.failed:
             return fail(parser.prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)
     return print_result(parser.prog, session, f'{args.samples}: ', imported.warnings,
-                        frames=frames, limits=plan_limits(settings_of(args)))
+                        frames=frames, limits=plan_limits(settings_of(args)),
+                        report=args.report)
 
 
 def _solve_images(prog, args):
     """`solve DIR`: the board in each image, the pose-based estimate, then on the pixels."""
     from quatcal_ros.vision import dataset as images   # cv2 only on the image path
+    from quatcal_ros.vision.image_sensor import result_on_pixels
     from quatcal_ros.vision.reprojection import refine_from_poses
     args.setup = args.setup or 'eye_in_hand'
     where = f'{args.samples}: '
@@ -114,18 +116,39 @@ def _solve_images(prog, args):
     result = session.result
     if result is None or len(data.samples) < 3:
         return print_result(prog, session, where, frames=solve_frames(args),
-                            extra={'views': views}, limits=plan_limits(settings_of(args)))
+                            extra={'views': views}, limits=plan_limits(settings_of(args)),
+                            report=args.report)
     fit = refine_from_poses(data.samples, data.corners(), data.camera, result, args.setup,
                             args.robust)
-    on_pixels = replace(result, quaternion=fit.quaternion,
-                        matrix=quat.matrix_from_quaternion(fit.quaternion),
-                        translation=fit.translation, uncertainty_deg=fit.uncertainty_deg,
-                        translation_uncertainty_mm=fit.translation_uncertainty_mm,
-                        method='reprojection')
-    return print_result(prog, session, where, frames=solve_frames(args), result=on_pixels,
-                        limits=plan_limits(settings_of(args)),
+    return print_result(prog, session, where, frames=solve_frames(args),
+                        result=result_on_pixels(result, fit),
+                        limits=plan_limits(settings_of(args)), report=args.report,
                         extra={'views': views, 'reprojection': fit.to_json_dict(),
                                'pose_based_method': result.method})
+
+
+def add_report_argument(parser):
+    """--report FILE.html of `solve` and `replay`."""
+    parser.add_argument('--report', metavar='FILE.html',
+                        help='also write a report page: the answer, the validation, each '
+                             "sample's prediction error, the estimate as samples were added, "
+                             'the coverage of rotation axes, the mount (one self-contained '
+                             'HTML file with SVG figures; needs matplotlib)')
+
+
+def write_report_file(prog, path, result, session, frames, title='', time_offset=None):
+    """Write the --report page; return None, or the exit status after saying why not."""
+    try:
+        from quatcal_ros.report.page import write_report   # matplotlib only for a report
+    except ImportError as error:
+        return fail(prog, f'--report needs matplotlib ({error}): pip install matplotlib, or '
+                          'apt install python3-matplotlib', EXIT_BAD_INPUT)
+    try:
+        write_report(path, result, session.samples, session.config.calibration, frames,
+                     title, time_offset)
+    except OSError as error:
+        return fail(prog, f'{path}: cannot write the report: {error}', EXIT_BAD_INPUT)
+    return None
 
 
 def add_frame_arguments(parser):
@@ -153,7 +176,7 @@ def solve_frames(args, named=None):
 
 
 def print_result(prog, session, where='', warnings=(), frames=None, extra=None, result=None,
-                 limits=PlanLimits()):
+                 limits=PlanLimits(), report=None):
     """
     Print the session's result as JSON (exit 0) or why there is none (exit 2 or 3).
 
@@ -162,6 +185,7 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     exports.default_frames of the result's setup. extra: more keys for the JSON object.
     result: the CalibrationResult to print instead of the session's (`solve DIR`: the same
     with the estimate on the pixels at the top level). limits: the next-pose planner's.
+    report: the --report path, or None; the page's title is `where` without its colon.
     """
     if len(session.samples) < 3:
         return fail(prog, f'{where}{len(session.samples)} sample(s); at least 3 are needed',
@@ -181,6 +205,11 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
                              limits)
     document['next_pose'] = planned.to_json_dict() if planned is not None else None
     document.update(extra or {})
+    if report:
+        status = write_report_file(prog, report, result, session, (parent, child),
+                                   where.rstrip(': '), document.get('time_offset'))
+        if status is not None:
+            return status
     print(json.dumps(document, indent=2))
     return 0
 
@@ -243,9 +272,17 @@ def replay_parser():
     sensor.add_argument('--sensor-topic', metavar='T', help='topic of the sensor poses')
     sensor.add_argument('--sensor-frames', nargs=2, metavar=('SENSOR', 'OBJECT'),
                         help='sensor pose T_SENSOR_OBJECT from the TF topics')
+    sensor.add_argument('--image-topic', metavar='T',
+                        help='camera images (sensor_msgs Image or CompressedImage): the board '
+                             'of --board-file is found in each, and the estimate is refined '
+                             'on the corners of the samples')
+    inputs.add_argument('--camera-info-topic', metavar='T',
+                        help='CameraInfo of --image-topic (default: camera_info beside it, '
+                             'e.g. /camera/color/camera_info for /camera/color/image_raw)')
     inputs.add_argument('--tf-topics', nargs='+', metavar='T', default=['/tf', '/tf_static'],
                         help='TFMessage topics read with --*-frames; names ending in '
                              'tf_static hold static transforms (default: /tf /tf_static)')
+    add_setting_options(inputs, 'replay', ('board_file',))
     add_setting_options(parser, 'replay', ESTIMATOR)
     add_capture_arguments(parser)
     outputs = parser.add_argument_group('outputs')
@@ -262,6 +299,7 @@ def replay_parser():
                                                 'as the messages name it)')
     outputs.add_argument('--child-frame', help='child (sensor) frame in --result-out '
                                                '(default: as the messages name it)')
+    add_report_argument(outputs)
     outputs.add_argument('--partial', action='store_true',
                          help='use what a damaged recording still gives (the result says how '
                               'many indexed messages could not be read); without it such a '
@@ -287,12 +325,15 @@ def replay_main(argv=None):
         return fail(prog, f'the replay needs the rosbags package ({error}): pip install '
                           "'rosbags>=0.10,<0.12'", EXIT_BAD_INPUT)
     link = bag.PoseInput(topic=args.link_topic, frames=args.link_frames)
-    sensor = bag.PoseInput(topic=args.sensor_topic, frames=args.sensor_frames)
+    try:
+        sensor, images = _sensor_input(bag, args, config)
+    except BadInputError as error:
+        return fail(prog, error, EXIT_BAD_INPUT)
     start = time.monotonic()
     try:
         with bag.Bag(args.bag) as recording:
             replay = bag.Replay(recording, link, sensor, tuple(args.tf_topics),
-                                checks=check_config(chosen))
+                                checks=check_config(chosen), images=images)
             time_offset = None
             if args.estimate_time_offset:
                 session, report, notes, time_offset = _replay_with_time_offset(
@@ -335,9 +376,36 @@ def replay_main(argv=None):
         status = _write_result(prog, args, session, warnings, report, link, sensor)
         if status:
             return status
+    extra = {'time_offset': time_offset} if time_offset else {}
+    on_pixels = None
+    if images is not None:
+        extra['views'] = {'used': len(images.corners), 'counts': dict(images.counts)}
+        on_pixels = images.on_pixels(session.samples, session.result, args.setup, args.robust)
+        if on_pixels is None and session.result is not None:
+            warnings.append(f'the estimate is on the board poses, not on the pixels: '
+                            f'{len(images.corners)} samples kept corners (3 are needed; the '
+                            'time-offset search keeps none)')
+    if on_pixels is not None:
+        extra.update({'reprojection': on_pixels[1].to_json_dict(),
+                      'pose_based_method': session.result.method})
     return print_result(prog, session, where, warnings, frames=_replay_frames(args, report),
-                        extra={'time_offset': time_offset} if time_offset else None,
-                        limits=plan_limits(settings_of(args)))
+                        extra=extra, result=on_pixels and on_pixels[0],
+                        limits=plan_limits(settings_of(args)), report=args.report)
+
+
+def _sensor_input(bag, args, config):
+    """Return (bag.PoseInput of the sensor, vision ImageSensor or None) of the options."""
+    if args.image_topic is None:
+        if args.camera_info_topic is not None:
+            raise BadInputError('--camera-info-topic goes with --image-topic')
+        return bag.PoseInput(topic=args.sensor_topic, frames=args.sensor_frames), None
+    if not args.board_file:
+        raise BadInputError('--image-topic needs --board-file: the board.yaml of the target')
+    from quatcal_ros.vision.board import read_board   # cv2 only on the image path
+    from quatcal_ros.vision.image_sensor import ImageSensor
+    info = args.camera_info_topic or args.image_topic.rsplit('/', 1)[0] + '/camera_info'
+    return (bag.PoseInput(topic=args.image_topic, camera_info=info),
+            ImageSensor.of(read_board(args.board_file), config))
 
 
 class _StreamRecorder:
@@ -402,7 +470,10 @@ def _replay(replay, config, args):
 
 
 def _run(replay, config, args, label):
-    session = Session(config)
+    images = replay.images
+    if images is not None:
+        images.configure(config)
+    session = Session(config, on_sample=None if images is None else images.keep)
     progress = Progress(replay.total, label, enabled=not args.quiet)
 
     def extra():

@@ -1,0 +1,1 @@
+"""The calibration report: an HTML page with inline SVG figures (matplotlib)."""

@@ -1,0 +1,190 @@
+"""
+The calibration report: one self-contained HTML page (`solve --report`, `replay --report`).
+
+The page holds the answer and its uncertainty, the validation verdict, each sample's
+leave-one-out prediction error (rejected and down-weighted samples marked), the estimate as
+samples were added (each prefix solved again with the same options), where the motions' rotation
+axes point (where the data are thin), the time offset when one was measured, and the mount in
+two views. The figures are inline SVG (figures.py); the page loads nothing, runs no script,
+and is written atomically.
+"""
+
+from html import escape
+
+import numpy as np
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.calibration import calibrate
+from quatcal_ros.core.motions import SampleRotations
+from quatcal_ros.files.persistence import atomic_write_text
+from quatcal_ros.report import figures
+
+# Prefixes solved again for the convergence figure, at most.
+CONVERGENCE_POINTS = 15
+STYLE = """
+body { font-family: sans-serif; margin: 2em auto; max-width: 60em; color: #222; }
+h1 { font-size: 1.5em; } h2 { font-size: 1.15em; margin-top: 1.8em; }
+table { border-collapse: collapse; } td, th { padding: 0.2em 0.8em; text-align: left; }
+tr:nth-child(even) { background: #f3f5f8; }
+.pass { color: #1e7d32; font-weight: bold; } .fail { color: #c62828; font-weight: bold; }
+.warn { color: #8a5300; } code { background: #f3f5f8; padding: 0 0.2em; }
+figure { margin: 0.5em 0; } svg { max-width: 100%; height: auto; }
+"""
+
+
+def write_report(path, result, samples, options, frames, title='', time_offset=None):
+    """Write the report page of `result` (its `samples`, CalibrationOptions) to `path`."""
+    atomic_write_text(path, report_html(result, samples, options, frames, title,
+                                        time_offset))
+
+
+def report_html(result, samples, options, frames, title='', time_offset=None):
+    """
+    Return the report page as text.
+
+    frames: (parent, child) of the mounting; time_offset: the replay's "time_offset" JSON
+    object, or None.
+    """
+    parent, child = frames
+    sections = [f'<h1>Hand-eye calibration{": " + escape(title) if title else ""}</h1>',
+                _answer(result, parent, child), _validation(result)]
+    if time_offset:
+        sections.append(_time_offset(time_offset))
+    sections += [
+        '<h2>Each sample, predicted from the others</h2>',
+        '<p>The object pose of each sample predicted by the estimate of all the other samples '
+        '(leave-one-out), against the one observed; the dashed lines are the thresholds.</p>',
+        _figure(_sample_figure(result, len(samples))),
+        '<h2>The estimate as samples were added</h2>',
+        '<p>Each prefix of the samples solved again with the same options: its distance from '
+        'the final answer, and the uncertainty it reported.</p>',
+        _figure(_convergence_figure(result, samples, options)),
+        '<h2>Coverage of rotation axes</h2>',
+        f'<p>The rotation axis of each motion between consecutive samples, in the link frame. '
+        f'Sparse regions are directions the data do not excite; the least determined axis is '
+        f'{_vector(result.weakest_axis)}. {escape(result.hint)}</p>',
+        _figure(_coverage_figure(result, samples, options)),
+        '<h2>The mount</h2>',
+        f'<p>{escape(child)} in {escape(parent)}: axes x red, y green, z blue.</p>',
+        _figure(figures.mount_views(result.matrix, result.translation, parent, child))]
+    return ('<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+            f'<title>Hand-eye calibration report</title><style>{STYLE}</style></head>'
+            '<body>\n' + '\n'.join(sections) + '\n</body></html>\n')
+
+
+def _figure(svg):
+    return f'<figure>{svg}</figure>'
+
+
+def _vector(values, digits=3):
+    return '(' + ', '.join(f'{float(v):.{digits}f}' for v in values) + ')'
+
+
+def _answer(result, parent, child):
+    x, y, z, w = quat.xyzw_from_wxyz(result.quaternion)
+    rows = [('mounting', f'{escape(parent)} &rarr; {escape(child)} ({result.setup})'),
+            ('rotation (x, y, z, w)', _vector((x, y, z, w), 6)),
+            ('translation (m)', _vector(result.translation, 4)),
+            ('rotation uncertainty', f'{result.uncertainty_deg:.3g} deg (expected RMS error)'),
+            ('translation uncertainty', f'{result.translation_uncertainty_mm:.3g} mm'),
+            ('method', escape(result.method)),
+            ('samples', f'{result.samples} ({result.samples - result.inlier_samples} rejected, '
+                        f'{len(result.noisy)} down-weighted)'),
+            ('motions', f'{result.inliers} of {result.motions} used, residual '
+                        f'{result.residual_rms_deg:.3g} deg RMS')]
+    table = ''.join(f'<tr><th>{name}</th><td>{value}</td></tr>' for name, value in rows)
+    warnings = ''.join(f'<li class="warn">{escape(text)}</li>' for text in result.warnings)
+    return (f'<table>{table}</table>'
+            + (f'<h2>Warnings</h2><ul>{warnings}</ul>' if warnings else ''))
+
+
+def _validation(result):
+    validation = result.validation or {}
+    verdict = validation.get('verdict', 'unknown')
+    thresholds = validation.get('thresholds', {})
+    worst = ', '.join(f'{w["sample"]} ({w["rotation_deg"]:.3g} deg, '
+                      f'{w["translation_mm"]:.3g} mm)' for w in validation.get('worst', []))
+    numbers = ''
+    if validation.get('rms_rotation_deg') is not None:
+        numbers = (f' RMS prediction error {validation["rms_rotation_deg"]:.3g} deg and '
+                   f'{validation["rms_translation_mm"]:.3g} mm against thresholds '
+                   f'{thresholds.get("max_rotation_deg", float("nan")):g} deg and '
+                   f'{thresholds.get("max_translation_mm", float("nan")):g} mm.')
+    css = verdict if verdict in ('pass', 'fail') else 'warn'
+    return (f'<h2>Validation: <span class="{css}">{escape(verdict)}</span></h2>'
+            f'<p>{escape(validation.get("reason", ""))}.{numbers}'
+            + (f' Worst samples: {worst}.' if worst else '') + '</p>')
+
+
+def _time_offset(offset):
+    return ('<h2>Time offset</h2>'
+            f'<p>Sensor stamps shifted by {1e3 * offset["sensor_offset_s"]:+.1f} ms (speed '
+            f'correlation {offset["correlation"]:.2f}); RMS residual '
+            f'{offset["residual_without_deg"]:.3f} deg without it, '
+            f'{offset["residual_with_deg"]:.3f} deg with it.</p>')
+
+
+def sample_states(result, count):
+    """Return 'used', 'noisy' or 'rejected' for each of `count` samples."""
+    ok = (np.ones(count, bool) if result.sample_ok is None
+          else np.asarray(result.sample_ok, bool))
+    states = np.where(ok, 'used', 'rejected').astype(object)
+    for item in result.noisy:
+        if ok[item['sample']]:
+            states[item['sample']] = 'noisy'
+    return list(states)
+
+
+def _sample_figure(result, count):
+    rotation, translation = np.full(count, np.nan), np.full(count, np.nan)
+    validation = result.validation or {}
+    for item in validation.get('samples', []):
+        rotation[item['sample']] = item['rotation_deg']
+        translation[item['sample']] = item['translation_mm']
+    thresholds = validation.get('thresholds', {})
+    return figures.sample_residuals(rotation, translation, sample_states(result, count),
+                                    (thresholds.get('max_rotation_deg', np.nan),
+                                     thresholds.get('max_translation_mm', np.nan)))
+
+
+def convergence(result, samples, options, points=CONVERGENCE_POINTS):
+    """Return (counts, deg, sigma deg, mm, sigma mm) of prefix estimates against `result`."""
+    n = len(samples)
+    counts = sorted({int(round(k)) for k in np.linspace(min(4, n), n, points)})
+    rows = []
+    for k in counts:
+        try:
+            prefix = result if k == n else calibrate(samples[:k], options)
+        except ValueError:   # too few motions, or degenerate ones, yet
+            continue
+        rows.append((k, np.degrees(quat.angle_between(prefix.quaternion, result.quaternion)),
+                     prefix.uncertainty_deg,
+                     1e3 * np.linalg.norm(np.asarray(prefix.translation) - result.translation),
+                     prefix.translation_uncertainty_mm))
+    return tuple(np.array(column, float) for column in zip(*rows)) if rows else None
+
+
+def _convergence_figure(result, samples, options):
+    found = convergence(result, samples, options)
+    if found is None:
+        return '<p>(no prefix could be solved)</p>'
+    return figures.convergence(*found)
+
+
+def motion_axes(samples, result, options):
+    """Return (axes (M, 3) in the link frame, angles deg) of consecutive used samples' motions."""
+    rotations = SampleRotations.from_samples(samples, options.setup, options.invert_sensor)
+    ok = (np.ones(len(samples), bool) if result.sample_ok is None
+          else np.asarray(result.sample_ok, bool))
+    link = rotations.link[ok]
+    relative = quat.multiply(quat.conjugate(link[:-1]), link[1:])
+    vectors = quat.rotation_vector(relative)
+    angles = np.linalg.norm(vectors, axis=1)
+    moved = angles > 1e-9
+    return vectors[moved] / angles[moved, None], np.degrees(angles[moved])
+
+
+def _coverage_figure(result, samples, options):
+    axes, angles = motion_axes(samples, result, options)
+    if not len(axes):
+        return '<p>(no motion)</p>'
+    return figures.axis_coverage(axes, angles, result.weakest_axis)

@@ -1,0 +1,73 @@
+"""
+Camera messages in, board poses out: the one image path of the live node and the replay.
+
+`ImageInput` takes sensor_msgs CameraInfo and Image / CompressedImage messages (rclpy's or
+rosbags': the fields are the same), checks each image's header as a pose message's
+(pose_screen.PoseScreen.take_header), converts it to grayscale and lets the
+vision.image_sensor.ImageSensor find the board. A view that cannot be used is counted on the
+sensor stream under its reason (IMAGE_REASONS) and skipped, like a malformed pose message.
+"""
+
+from quatcal_ros.files.samples_csv import BadInputError
+from quatcal_ros.ros.conversions import BadImageError, camera_from_camera_info, \
+    gray_from_image_msg
+from quatcal_ros.stream.message_checks import SENSOR
+from quatcal_ros.vision.detect import REASONS as VIEW_REASONS
+
+# Why an image gave no sensor pose: the detector's reasons and the messages' own.
+IMAGE_REASONS = {
+    **VIEW_REASONS,
+    'bad_image': 'an image that cannot be decoded (unknown encoding, truncated data)',
+    'bad_camera_info': 'a camera_info that is not a usable calibration (zeros, wrong sizes)',
+    'no_camera_info': 'an image before any usable camera_info',
+}
+
+
+class ImageInput:
+    """Camera messages to the sensor poses of a session (module docstring)."""
+
+    def __init__(self, sensor, screen, on_notice=None, on_new_camera=None):
+        """
+        Count the messages through `screen`; find the board with `sensor`.
+
+        :param sensor: vision.image_sensor.ImageSensor.
+        :param screen: the PoseScreen that counts the sensor stream's messages.
+        :param on_notice: on_notice(text) for what the user should know (new intrinsics).
+        :param on_new_camera: on_new_camera() after the first camera_info and new intrinsics.
+        """
+        self.sensor = sensor
+        self.screen = screen
+        self.on_notice = on_notice
+        self.on_new_camera = on_new_camera
+
+    def take_camera_info(self, msg):
+        """Use the calibration of a CameraInfo (counted as bad when it cannot be used)."""
+        try:
+            camera = camera_from_camera_info(msg)
+        except BadInputError as error:
+            self.screen.bad(SENSOR, 'bad_camera_info', error)
+            return
+        first = self.sensor.camera is None
+        text = self.sensor.set_camera(camera)
+        if text and self.on_notice is not None:
+            self.on_notice(text)
+        if (first or text) and self.on_new_camera is not None:
+            self.on_new_camera()
+
+    def take_image(self, msg, now_ns=0):
+        """Return (stamp_ns, Pose) of the board in an image message, or None (counted)."""
+        stamp_ns = self.screen.take_header(SENSOR, msg.header, now_ns)
+        if stamp_ns is None:
+            return None
+        try:
+            gray = gray_from_image_msg(msg)
+        except BadImageError as error:
+            self.sensor.counts['images'] += 1
+            self.sensor.counts['bad_image'] += 1
+            self.screen.bad(SENSOR, 'bad_image', error)
+            return None
+        view = self.sensor.view(stamp_ns, gray)
+        if not view.ok:
+            self.screen.bad(SENSOR, view.refused, view.detail)
+            return None
+        return stamp_ns, view.pose

@@ -1,0 +1,168 @@
+"""
+A camera as the calibrator's sensor: the board's pose in each image, and each sample's corners.
+
+`ImageSensor` is what the live node (sensor_input:=image) and the bag replay (--image-topic)
+share. `view(stamp_ns, gray)` detects the board (detect.py, the per-view checks) and keeps the
+corners of a usable view for a while; its pose, T_camera_board with the PnP covariance, is the
+session's sensor pose. When the session captures a still sample, `keep(sample)` stores that
+sample's corners: the mean pixel of each board corner over the views of the still window (the
+camera is still, so averaging only removes noise), or, in continuous capture, the view nearest
+the sample's stamp (the session's on_sample hook calls it). `on_pixels` then refines the
+pose-based estimate on those pixels (reprojection.refine_from_poses) and returns it as the
+published result, method 'reprojection'.
+
+Stamps are those of the session's sensor stream: the header stamp plus sensor_offset_ns.
+"""
+
+from collections import Counter, deque
+from dataclasses import replace
+
+import numpy as np
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.vision.detect import Checks, detect, View
+from quatcal_ros.vision.reprojection import refine_from_poses
+
+# Usable views kept for the next sample's corners; a still window at 30 Hz has ~15.
+RECENT_VIEWS = 256
+# A corner goes into a sample's mean when at least this share of the window's views saw it.
+MIN_CORNER_SHARE = 0.5
+
+
+def corner_key(point):
+    """Return a hashable key of a board point (micrometre grid)."""
+    return tuple(np.round(np.asarray(point) * 1e6).astype(np.int64).tolist())
+
+
+class ImageSensor:
+    """Board detection for a session's sensor stream, and the corners of its samples."""
+
+    def __init__(self, board, checks=Checks(), window_ns=500_000_000, average=True,
+                 sensor_offset_ns=0):
+        """
+        Detect `board` with `checks`.
+
+        :param board: vision.board.Board of the target.
+        :param window_ns: the capture's still window; a sample's views lie within half of it
+            either side of its stamp (the middle of the window).
+        :param average: mean the window's views (still capture), else the nearest view
+            (continuous capture).
+        """
+        self.board = board
+        self.checks = checks
+        self.half_window_ns = window_ns // 2
+        self.average = average
+        self.sensor_offset_ns = sensor_offset_ns
+        self.camera = None
+        self.counts = Counter()          # 'images', 'detected' and each refusal's reason
+        self._recent = deque(maxlen=RECENT_VIEWS)   # (stamp_ns, object points, pixels)
+        self.corners = {}                # sample stamp_ns: (object points, pixels)
+
+    @staticmethod
+    def of(board, session_config, checks=Checks()):
+        """Return the ImageSensor of `board` for a stream.session.SessionConfig."""
+        sensor = ImageSensor(board, checks)
+        sensor.configure(session_config)
+        return sensor
+
+    def configure(self, session_config):
+        """Follow a session's capture settings: its still window, mode and sensor offset."""
+        capture = session_config.capture
+        self.half_window_ns = capture.window_ns // 2
+        self.average = capture.mode != 'continuous'
+        self.sensor_offset_ns = session_config.sensor_offset_ns
+
+    def set_camera(self, camera):
+        """
+        Use `camera` (vision.camera.Camera) from now on; return a sentence when it changed.
+
+        The corners kept were measured through the old intrinsics: they are dropped, and the
+        estimate goes back to the poses until new samples have corners.
+        """
+        old, self.camera = self.camera, camera
+        if old is None or (np.allclose(old.K, camera.K, rtol=0, atol=1e-9)
+                           and np.array_equal(old.D, camera.D)
+                           and (old.width, old.height) == (camera.width, camera.height)):
+            return ''
+        dropped = len(self.corners)
+        self.corners.clear()
+        self._recent.clear()
+        return (f'camera_info changed (new intrinsics): the corners of {dropped} samples were '
+                'measured with the old ones and are no longer used')
+
+    def view(self, stamp_ns, gray):
+        """Return the detect.View of one image at header stamp `stamp_ns`."""
+        self.counts['images'] += 1
+        if self.camera is None:
+            found = View(refused='no_camera_info', detail='no usable camera_info received yet')
+        else:
+            found = detect(gray, self.board, self.camera, self.checks)
+        if found.ok:
+            self.counts['detected'] += 1
+            self._recent.append((stamp_ns + self.sensor_offset_ns, found.object_points,
+                                 found.image_points))
+        else:
+            self.counts[found.refused] += 1
+        return found
+
+    def keep(self, sample):
+        """Store the corners of a captured sample; return whether it has any."""
+        stamp = sample.stamp_ns
+        near = [v for v in self._recent if abs(v[0] - stamp) <= self.half_window_ns]
+        if not near:
+            return False
+        if not self.average:
+            near = [min(near, key=lambda v: abs(v[0] - stamp))]
+        self.corners[stamp] = mean_corners([(points, pixels) for _, points, pixels in near])
+        return True
+
+    def restore(self, stamp_ns, points, pixels):
+        """Store corners read back from a file (a resumed session)."""
+        self.corners[int(stamp_ns)] = (np.asarray(points, float), np.asarray(pixels, float))
+
+    def forget(self):
+        """Forget every sample's corners and the recent views (a reset session)."""
+        self.corners.clear()
+        self._recent.clear()
+
+    def on_pixels(self, samples, result, setup, robust=True):
+        """
+        Return (CalibrationResult on the pixels, ReprojectionFit), or None.
+
+        None without a camera or with fewer than three samples with corners among those the
+        result used; the fit covers the samples that have corners.
+        """
+        if self.camera is None or result is None:
+            return None
+        have = [i for i, sample in enumerate(samples) if sample.stamp_ns in self.corners]
+        ok = [bool(result.sample_ok[i]) for i in have]
+        if sum(ok) < 3:
+            return None
+        fit = refine_from_poses([samples[i] for i in have],
+                                [self.corners[samples[i].stamp_ns] for i in have],
+                                self.camera, replace(result, sample_ok=ok), setup, robust)
+        return result_on_pixels(result, fit), fit
+
+
+def mean_corners(views):
+    """Return (object points, mean pixels) of the corners most of `views` saw."""
+    if len(views) == 1:
+        return views[0]
+    sums, counts, points = {}, Counter(), {}
+    for object_points, pixels in views:
+        for point, pixel in zip(object_points, pixels):
+            key = corner_key(point)
+            sums[key] = sums.get(key, 0.0) + pixel
+            counts[key] += 1
+            points[key] = point
+    keys = [key for key in points if counts[key] >= MIN_CORNER_SHARE * len(views)]
+    return (np.array([points[k] for k in keys], float),
+            np.array([sums[k] / counts[k] for k in keys], float))
+
+
+def result_on_pixels(result, fit):
+    """Return the CalibrationResult `result` with the mounting and uncertainty of `fit`."""
+    return replace(result, quaternion=fit.quaternion,
+                   matrix=quat.matrix_from_quaternion(fit.quaternion),
+                   translation=fit.translation, uncertainty_deg=fit.uncertainty_deg,
+                   translation_uncertainty_mm=fit.translation_uncertainty_mm,
+                   method='reprojection')

@@ -1,0 +1,180 @@
+"""The image input shared by the node and the replay: corners, their file, a bag replay."""
+
+import json
+
+import numpy as np
+import pytest
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Sample
+from quatcal_ros.core.units import NS_PER_S
+from quatcal_ros.files import plain_yaml
+from quatcal_ros.files.corners_file import corners_path, CornersFile, read_corners
+from quatcal_ros.ros import bag, conversions
+from quatcal_ros.stream.session import SessionConfig
+from quatcal_ros.tools.cli import replay_main
+from quatcal_ros.vision.board import parse_board
+from quatcal_ros.vision.camera import camera_from
+from quatcal_ros.vision.image_sensor import ImageSensor, mean_corners
+from quatcal_ros.vision.render import cell_views, Renderer
+
+BOARD = {'type': 'charuco', 'squares_x': 7, 'squares_y': 5, 'square_length_m': 0.03,
+         'marker_length_m': 0.022, 'dictionary': 'DICT_5X5_100'}
+CAMERA = camera_from(640, 480, [[600, 0, 320], [0, 600, 240], [0, 0, 1]], 'plumb_bob',
+                     [0, 0, 0, 0, 0])
+MS = 1_000_000
+
+
+def points(*xs):
+    return np.array([[x, 0.0, 0.0] for x in xs])
+
+
+def test_mean_corners_averages_each_corner_seen_by_most_views():
+    views = [(points(0.0, 0.03), np.array([[10.0, 20.0], [30.0, 40.0]])),
+             (points(0.0, 0.03, 0.06), np.array([[12.0, 22.0], [32.0, 42.0], [50.0, 60.0]])),
+             (points(0.03, 0.0), np.array([[34.0, 44.0], [14.0, 24.0]]))]
+    object_points, pixels = mean_corners(views)
+    by_x = dict(zip(object_points[:, 0].round(3).tolist(), pixels.tolist()))
+    assert by_x == {0.0: [12.0, 22.0], 0.03: [32.0, 42.0]}   # 0.06: one view of three
+
+
+def sensor_with_views(capture_mode='auto'):
+    sensor = ImageSensor(parse_board(BOARD))
+    config = SessionConfig()
+    config = SessionConfig(capture=type(config.capture)(mode=capture_mode,
+                                                        window_ns=500 * MS))
+    sensor.configure(config)
+    sensor.camera = CAMERA
+    for k, stamp in enumerate((1000, 1100, 1200, 1300, 1400, 2500)):
+        sensor._recent.append((stamp * MS, points(0.0, 0.03),
+                               np.array([[10.0 + k, 0.0], [20.0 + k, 0.0]])))
+    return sensor
+
+
+def test_a_still_sample_keeps_the_mean_of_its_window_and_continuous_the_nearest_view():
+    still = sensor_with_views('auto')
+    assert still.keep(Sample(1200 * MS, None, None))
+    np.testing.assert_allclose(still.corners[1200 * MS][1], [[12.0, 0.0], [22.0, 0.0]])
+    assert not still.keep(Sample(1900 * MS, None, None))    # no view within 250 ms
+    moving = sensor_with_views('continuous')
+    assert moving.keep(Sample(1290 * MS, None, None))
+    np.testing.assert_allclose(moving.corners[1290 * MS][1], [[13.0, 0.0], [23.0, 0.0]])
+
+
+def test_new_intrinsics_drop_the_corners_measured_with_the_old_ones():
+    sensor = sensor_with_views()
+    assert sensor.set_camera(CAMERA) == ''
+    sensor.keep(Sample(1200 * MS, None, None))
+    other = camera_from(640, 480, [[610, 0, 320], [0, 610, 240], [0, 0, 1]], 'plumb_bob',
+                        [0, 0, 0, 0, 0])
+    assert 'corners of 1 samples' in sensor.set_camera(other)
+    assert sensor.corners == {}
+
+
+def test_the_corners_file_reads_back_exactly_skips_a_torn_line_and_moves_aside(tmp_path):
+    path = corners_path(tmp_path / 'samples.csv')
+    assert path.name == 'samples.corners.jsonl'
+    pixels = np.array([[1 / 3, 2 / 7], [np.pi, np.e]])
+    written = CornersFile(path, resume=False)
+    written.append(5, points(0.0, 0.1 / 3), pixels)
+    written.sync()
+    written.close()
+    with open(path, 'a') as file:
+        file.write('{"stamp_ns": 6, "points": [[0.0, ')   # a crash mid-line
+    rows, skipped = read_corners(path)
+    assert skipped == 1 and rows[0][0] == 5
+    assert np.array_equal(rows[0][2], pixels) and np.array_equal(rows[0][1], points(0, 0.1 / 3))
+    resumed = CornersFile(path, resume=True)
+    assert len(resumed.restored) == 1 and 'unreadable' in resumed.messages[0][1]
+    resumed.close()
+    fresh = CornersFile(path, resume=False)
+    assert fresh.restored == [] and 'moved to' in fresh.messages[0][1]
+    fresh.close()
+    assert path.read_text() == '' and len(list(tmp_path.glob('*.previous-*'))) == 1
+
+
+# --- replay of a bag with camera images -----------------------------------------------------
+
+def image_msg(stamp_ns, gray, encoding='mono8'):
+    kind = bag.TYPESTORE.types['sensor_msgs/msg/Image']
+    header = conversions._header(stamp_ns, 'camera_optical', bag.TYPESTORE)
+    return kind(header=header, height=gray.shape[0], width=gray.shape[1], encoding=encoding,
+                is_bigendian=0, step=gray.shape[1], data=np.frombuffer(gray.tobytes(), np.uint8))
+
+
+def camera_info_msg(stamp_ns):
+    types = bag.TYPESTORE.types
+    roi = types['sensor_msgs/msg/RegionOfInterest'](
+        x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    return types['sensor_msgs/msg/CameraInfo'](
+        header=conversions._header(stamp_ns, 'camera_optical', bag.TYPESTORE),
+        height=CAMERA.height, width=CAMERA.width, distortion_model='plumb_bob',
+        d=np.zeros(5), k=CAMERA.K.ravel().astype(float), r=np.eye(3).ravel(),
+        p=np.zeros(12), binning_x=0, binning_y=0, roi=roi)
+
+
+def write_image_bag(path, n_stops, seed=4, bad_every=0):
+    """Write a stop-and-go eye-in-hand bag: 50 Hz link poses, 10 Hz images at each stop."""
+    rng = np.random.default_rng(seed)
+    renderer = Renderer(parse_board(BOARD), CAMERA)
+    mounting, _, seen, links = cell_views(rng, renderer, n_stops, distance_m=(0.35, 0.8))
+    messages, images = [], 0
+    for k in range(n_stops):
+        start = (1_700_000_000 + 2 * k) * NS_PER_S
+        gray = renderer.render(seen[k], rng, noise=1.5)
+        for i in range(40):   # 0.8 s still
+            stamp = start + i * 20 * MS
+            messages.append(('/robot/pose', stamp, conversions.pose_stamped_msg(
+                links[k], stamp, 'base_link', bag.TYPESTORE)))
+            if i % 5 == 2:
+                images += 1
+                bad = bad_every and images % bad_every == 0
+                messages.append(('/camera/color/camera_info', stamp + 1, camera_info_msg(stamp)))
+                messages.append(('/camera/color/image_raw', stamp + 2,
+                                 image_msg(stamp, gray, 'yuv422' if bad else 'mono8')))
+    bag.write_bag(path, {'/robot/pose': 'geometry_msgs/msg/PoseStamped',
+                         '/camera/color/image_raw': 'sensor_msgs/msg/Image',
+                         '/camera/color/camera_info': 'sensor_msgs/msg/CameraInfo'}, messages)
+    return mounting
+
+
+@pytest.fixture
+def board_file(tmp_path):
+    path = tmp_path / 'board.yaml'
+    path.write_text(plain_yaml.dump(BOARD))
+    return path
+
+
+def test_replay_of_camera_images_refines_on_the_corners(tmp_path, board_file, capsys):
+    mounting = write_image_bag(tmp_path / 'cell', 8, bad_every=7)
+    status = replay_main([str(tmp_path / 'cell'), '--link-topic', '/robot/pose',
+                          '--image-topic', '/camera/color/image_raw',
+                          '--board-file', str(board_file), '--still-window-s', '0.5',
+                          '--quiet'])
+    out = capsys.readouterr()
+    assert status == 0, out.err
+    result = json.loads(out.out)
+    assert result['method'] == 'reprojection' and result['samples'] == 8
+    assert result['pose_based_method'] == 'refined'
+    assert result['views']['used'] == 8 and result['views']['counts']['bad_image'] == 64 // 7
+    assert any('bad_image' in text for text in result['warnings'])
+    q = result['rotation']
+    error_deg = np.degrees(quat.angle_between(
+        quat.wxyz_from_xyzw([q['x'], q['y'], q['z'], q['w']]), mounting.quaternion))
+    t = np.array([result['translation'][k] for k in 'xyz'])
+    error_mm = 1e3 * np.linalg.norm(t - mounting.position)
+    assert error_deg < 4 * result['uncertainty_deg'], (error_deg, result['uncertainty_deg'])
+    assert error_mm < 4 * result['translation_uncertainty_mm'], (
+        error_mm, result['translation_uncertainty_mm'])
+
+
+def test_replay_of_images_names_what_is_missing(tmp_path, board_file, capsys):
+    write_image_bag(tmp_path / 'cell', 3)
+    base = [str(tmp_path / 'cell'), '--link-topic', '/robot/pose', '--quiet']
+    assert replay_main([*base, '--image-topic', '/camera/color/image_raw']) == 2
+    assert '--board-file' in capsys.readouterr().err
+    assert replay_main([*base, '--image-topic', '/camera/color/image_raw', '--board-file',
+                        str(board_file), '--camera-info-topic', '/nope']) == 2
+    assert 'no topic /nope (camera calibration)' in capsys.readouterr().err
+    assert replay_main([*base, '--image-topic', '/camera/color/camera_info', '--board-file',
+                        str(board_file)]) == 2
+    assert 'has type sensor_msgs/msg/CameraInfo' in capsys.readouterr().err

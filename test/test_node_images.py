@@ -1,0 +1,208 @@
+"""
+The calibrator with sensor_input:=image over real DDS: images in, the mounting on the pixels out.
+
+The mounting is refined on the corners, which are kept across a restart.
+
+A driver node publishes camera_info, link poses (PoseStamped) and images of a ChArUco board
+rendered from a known camera and mounting (vision/render.py) at each stop of an eye-in-hand
+cell; the node must detect the board, capture a still sample per stop, keep each sample's
+corners and publish the estimate with method reprojection within its uncertainty of the truth.
+"""
+
+import json
+
+from geometry_msgs.msg import PoseStamped, TransformStamped
+import numpy as np
+import pytest
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.units import NS_PER_S
+from quatcal_ros.files import plain_yaml
+from quatcal_ros.files.corners_file import corners_path, read_corners
+from quatcal_ros.ros import conversions
+from quatcal_ros.ros.node import CalibratorNode
+from quatcal_ros.stream.settings import ConfigError
+from quatcal_ros.vision.board import parse_board
+from quatcal_ros.vision.camera import camera_from
+from quatcal_ros.vision.render import cell_views, Renderer
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from ros_harness import harnesses_of, LATCHED, SpinMixin
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Header
+
+BOARD = {'type': 'charuco', 'squares_x': 7, 'squares_y': 5, 'square_length_m': 0.03,
+         'marker_length_m': 0.022, 'dictionary': 'DICT_5X5_100'}
+CAMERA = camera_from(640, 480, [[600, 0, 320], [0, 600, 240], [0, 0, 1]], 'plumb_bob',
+                     [0, 0, 0, 0, 0])
+RELIABLE = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+START_NS = 1_700_000_000 * NS_PER_S
+STILL_S, LINK_HZ, IMAGE_HZ = 0.8, 25.0, 10.0
+
+
+class Response:
+    """A std_srvs Trigger response stand-in for calling the services' callbacks."""
+
+    success, message = False, ''
+
+
+class Harness(SpinMixin):
+    """A calibrator in image mode and a driver: camera_info, images, link poses."""
+
+    def __init__(self, domain_id, overrides):
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.node = CalibratorNode(context=self.context, parameter_overrides=[
+            Parameter('max_stamp_offset_s', value=0.0), Parameter('sensor_input', value='image'),
+            Parameter('still_window_s', value=0.5), *overrides])
+        self.driver = rclpy.create_node('camera_and_robot', context=self.context)
+        self.info = self.driver.create_publisher(CameraInfo, 'camera_info', RELIABLE)
+        self.image = self.driver.create_publisher(Image, 'image', RELIABLE)
+        self.link = self.driver.create_publisher(PoseStamped, 'link_pose', RELIABLE)
+        self.transforms = []
+        self.links_sent = 0
+        self.driver.create_subscription(TransformStamped, '/calibrator/transform',
+                                        self.transforms.append, LATCHED)
+        for node in (self.node, self.driver):
+            self.executor.add_node(node)
+        self.spin_until(lambda: self.image.get_subscription_count()
+                        and self.info.get_subscription_count()
+                        and self.link.get_subscription_count(),
+                        what='discovery of the calibrator')
+
+    def send_info(self):
+        msg = CameraInfo(width=CAMERA.width, height=CAMERA.height,
+                         distortion_model=CAMERA.distortion_model)
+        msg.k = [float(v) for v in CAMERA.K.ravel()]
+        msg.d = [float(v) for v in CAMERA.D]
+        self.info.publish(msg)
+
+    def send_stop(self, stamp_ns, link_pose, gray):
+        """
+        One still stop: link poses at LINK_HZ and the same scene's image at IMAGE_HZ.
+
+        The image subscription is best effort with a short queue (sensor-data QoS, as camera
+        drivers publish): each image is received before the next is sent.
+        """
+        received = self.node.stats.received
+        every = int(LINK_HZ / IMAGE_HZ)
+        for i in range(int(STILL_S * LINK_HZ)):
+            stamp = stamp_ns + int(i * NS_PER_S / LINK_HZ)
+            self.link.publish(conversions.pose_stamped_msg(link_pose, stamp, 'base_link'))
+            self.links_sent += 1
+            if i % every:
+                continue
+            # The robot's poses come first (as a 500 Hz arm's would): the pairing needs them.
+            self.spin_until(lambda: received['link_pose'] >= self.links_sent,
+                            what='the link poses received')
+            header = Header(frame_id='camera_color_optical_frame',
+                            stamp=conversions.time_msg(stamp))
+            images = received['sensor_pose']
+            self.image.publish(Image(header=header, height=gray.shape[0], width=gray.shape[1],
+                                     encoding='mono8', step=gray.shape[1], data=gray.tobytes()))
+            self.spin_until(lambda: received['sensor_pose'] > images, what='an image received')
+
+
+@pytest.fixture
+def make_harness(domain_id):
+    yield from harnesses_of(Harness, domain_id)
+
+
+@pytest.fixture
+def board_file(tmp_path):
+    path = tmp_path / 'board.yaml'
+    path.write_text(plain_yaml.dump(BOARD))
+    return path
+
+
+def send_cell(h, n_stops, seed=3, noise=1.5):
+    """Drive `n_stops` stops of a rendered cell; return (mounting, stamps of the stops)."""
+    rng = np.random.default_rng(seed)
+    renderer = Renderer(parse_board(BOARD), CAMERA)
+    mounting, _, seen, links = cell_views(rng, renderer, n_stops, distance_m=(0.35, 0.8))
+    h.send_info()
+    h.spin_until(lambda: h.node.images.sensor.camera is not None, what='the camera_info')
+    stamps = []
+    for k in range(n_stops):
+        stamp = START_NS + k * 2 * NS_PER_S
+        h.send_stop(stamp, links[k], renderer.render(seen[k], rng, noise=noise))
+        stamps.append(stamp)
+    return mounting, stamps
+
+
+def test_estimate_refined_on_the_corners_of_each_sample(make_harness, board_file, tmp_path):
+    samples_file = tmp_path / 'samples.csv'
+    result_file = tmp_path / 'calibration.yaml'
+    h = make_harness([Parameter('board_file', value=str(board_file)),
+                      Parameter('samples_file', value=str(samples_file)),
+                      Parameter('result_file', value=str(result_file))])
+    mounting, _ = send_cell(h, 8)
+    h.spin_until(lambda: len(h.node.session.samples) == 8, what='8 samples')
+    h.spin_until(lambda: h.node.result is not None and h.node.result.samples == 8,
+                 what='the estimate of 8 samples')
+    result = h.node.result
+    assert result.method == 'reprojection'
+    assert h.node.session.result.method != 'reprojection'   # the pose-based one beside it
+    error_deg = np.degrees(quat.angle_between(result.quaternion, mounting.quaternion))
+    error_mm = 1e3 * np.linalg.norm(result.translation - mounting.position)
+    # Within 4 reported sigmas (the sigmas are RMS error angles / lengths: a few x at most).
+    assert error_deg < 4 * result.uncertainty_deg, (error_deg, result.uncertainty_deg)
+    assert error_mm < 4 * result.translation_uncertainty_mm, (
+        error_mm, result.translation_uncertainty_mm)
+    h.spin_until(lambda: h.transforms and np.allclose(
+        conversions.pose_from_msg(h.transforms[-1]).position, result.translation, atol=1e-9),
+        what='the refined estimate on ~/transform')
+    # Every sample kept its corners, in the file beside the journal.
+    rows, skipped = read_corners(corners_path(samples_file))
+    assert skipped == 0 and len(rows) == 8
+    assert {row[0] for row in rows} == {s.stamp_ns for s in h.node.session.samples}
+    assert all(len(points) == len(pixels) >= 6 for _, points, pixels in rows)
+    status = {v.key: v.value for v in h.node.diagnostic_status().values}
+    assert status['method'] == 'reprojection'
+    saved = h.node._on_save(None, Response())
+    assert saved.success, saved.message
+    assert plain_yaml.load_file(result_file)['method'] == 'reprojection'
+
+
+def test_resumed_session_refines_on_the_corners_it_kept(make_harness, board_file, tmp_path):
+    samples_file = tmp_path / 'samples.csv'
+    common = [Parameter('board_file', value=str(board_file)),
+              Parameter('samples_file', value=str(samples_file))]
+    h = make_harness(common)
+    send_cell(h, 6)
+    h.spin_until(lambda: h.node.result is not None and h.node.result.samples == 6,
+                 what='the estimate of 6 samples')
+    before = h.node.result
+    assert before.method == 'reprojection'
+    h.close()
+    again = make_harness([*common, Parameter('resume', value=True)])
+    assert again.node.result.method == 'refined'   # on the poses until the camera is known
+    again.send_info()
+    again.spin_until(lambda: again.node.result.method == 'reprojection',
+                     what='the estimate on the kept corners')
+    resumed = again.node.result
+    np.testing.assert_allclose(resumed.translation, before.translation, atol=1e-9)
+    reset = again.node._on_reset(None, Response())
+    assert reset.success and again.node.result is None
+    assert again.node.images.sensor.corners == {}
+
+
+def test_image_mode_needs_a_readable_board_file(domain_id, tmp_path):
+    context = Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    try:
+        with pytest.raises(ConfigError, match='board_file'):
+            CalibratorNode(context=context, parameter_overrides=[
+                Parameter('sensor_input', value='image'),
+                Parameter('samples_file', value=str(tmp_path / 's.csv'))])
+        (tmp_path / 'bad.yaml').write_text(json.dumps({'type': 'hexagons'}))
+        with pytest.raises(ConfigError, match='bad.yaml'):
+            CalibratorNode(context=context, parameter_overrides=[
+                Parameter('sensor_input', value='image'),
+                Parameter('board_file', value=str(tmp_path / 'bad.yaml')),
+                Parameter('samples_file', value=str(tmp_path / 's.csv'))])
+    finally:
+        rclpy.shutdown(context=context)
