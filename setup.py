@@ -42,6 +42,7 @@ setup(
             'target_detector = quatcal_ros.ros.stop_signals:target_detector',
             'solve = quatcal_ros.__main__:solve',
             'replay = quatcal_ros.__main__:replay',
+            'plan = quatcal_ros.__main__:plan',
             'demo = quatcal_ros.__main__:demo',
         ],
     },

@@ -16,6 +16,8 @@ TOOLS = {
     'sim_cell': ('quatcal_ros.ros.sim_cell', 'main', 'a simulated robot cell (ROS node)'),
     'target_detector': ('quatcal_ros.ros.target_detector', 'main',
                         'the calibration board in camera images (ROS node)'),
+    'plan': ('quatcal_ros.tools.plan', 'main',
+             'link poses for a fresh calibration (prints YAML)'),
     'demo': ('quatcal_ros.tools.demo', 'main',
              'calibrator against the simulated cell, until it converges'),
 }
@@ -56,6 +58,11 @@ def solve():
 def replay():
     """Entry point of `ros2 run quatcal_ros replay`."""
     sys.exit(main(['replay', *sys.argv[1:]]))
+
+
+def plan():
+    """Entry point of `ros2 run quatcal_ros plan`."""
+    sys.exit(main(['plan', *sys.argv[1:]]))
 
 
 def demo():

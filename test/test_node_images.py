@@ -15,6 +15,7 @@ from geometry_msgs.msg import PoseStamped, TransformStamped
 import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.files import plain_yaml
 from quatcal_ros.files.corners_file import corners_path, read_corners
@@ -32,6 +33,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from ros_harness import harnesses_of, LATCHED, SpinMixin
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
+from visualization_msgs.msg import Marker, MarkerArray
 
 BOARD = {'type': 'charuco', 'squares_x': 7, 'squares_y': 5, 'square_length_m': 0.03,
          'marker_length_m': 0.022, 'dictionary': 'DICT_5X5_100'}
@@ -62,8 +64,10 @@ class Harness(SpinMixin):
         self.info = self.driver.create_publisher(CameraInfo, 'camera_info', RELIABLE)
         self.image = self.driver.create_publisher(Image, 'image', RELIABLE)
         self.link = self.driver.create_publisher(PoseStamped, 'link_pose', RELIABLE)
-        self.transforms = []
+        self.transforms, self.markers = [], []
         self.links_sent = 0
+        self.driver.create_subscription(MarkerArray, '/calibrator/markers', self.markers.append,
+                                        LATCHED)
         self.driver.create_subscription(TransformStamped, '/calibrator/transform',
                                         self.transforms.append, LATCHED)
         for node in (self.node, self.driver):
@@ -162,6 +166,18 @@ def test_estimate_refined_on_the_corners_of_each_sample(make_harness, board_file
     assert all(len(points) == len(pixels) >= 6 for _, points, pixels in rows)
     status = {v.key: v.value for v in h.node.diagnostic_status().values}
     assert status['method'] == 'reprojection'
+    # RViz's view of it: the sensor axes where the last sample puts the camera, the samples.
+    h.spin_until(lambda: h.markers and len(next(
+        m for m in h.markers[-1].markers if m.type == Marker.SPHERE_LIST).points) == 8,
+        what='the markers of 8 samples')
+    shown = {m.text: m for m in h.markers[-1].markers}
+    assert {'sensor x', 'sensor y', 'sensor z', 'rotation uncertainty', 'samples'} <= set(shown)
+    assert all(m.header.frame_id == 'base_link' and m.ns == 'quatcal' for m in shown.values())
+    camera = h.node.session.samples[-1].link @ Pose.create(result.translation,
+                                                           result.quaternion)
+    tip = shown['sensor z'].points[1]
+    np.testing.assert_allclose([tip.x, tip.y, tip.z],
+                               camera.position + 0.1 * camera.rotation[:, 2], atol=1e-9)
     saved = h.node._on_save(None, Response())
     assert saved.success, saved.message
     assert plain_yaml.load_file(result_file)['method'] == 'reprojection'
@@ -187,6 +203,8 @@ def test_resumed_session_refines_on_the_corners_it_kept(make_harness, board_file
     np.testing.assert_allclose(resumed.translation, before.translation, atol=1e-9)
     reset = again.node._on_reset(None, Response())
     assert reset.success and again.node.result is None
+    again.spin_until(lambda: again.markers and again.markers[-1].markers[0].action
+                     == Marker.DELETEALL, what='the markers cleared')
     assert again.node.images.sensor.corners == {}
 
 

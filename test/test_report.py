@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import pytest
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions
-from quatcal_ros.report.page import convergence, motion_axes, report_html, sample_states
+from quatcal_ros.report.page import convergence, motion_axes, report_html
 from quatcal_ros.sim import simulation
 from quatcal_ros.tools.cli import solve_main
 
@@ -71,7 +71,7 @@ def test_the_page_holds_every_part_and_loads_nothing(cell):
 
 def test_rejected_and_down_weighted_samples_are_marked(cell):
     samples, _, result = cell
-    states = sample_states(result, len(samples))
+    states = result.sample_states(len(samples))
     assert states.count('rejected') == result.samples - result.inlier_samples > 0
     assert states.count('noisy') == len([n for n in result.noisy
                                          if result.sample_ok[n['sample']]])

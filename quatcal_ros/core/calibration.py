@@ -139,6 +139,16 @@ class CalibrationResult:
     validation: dict = None         # validation.validate's JSON object
     sample_ok: np.ndarray = None    # bool per sample: used (not a bad detection)
 
+    def sample_states(self, count):
+        """Return 'used', 'noisy' (down-weighted) or 'rejected' for each of `count` samples."""
+        ok = (np.ones(count, bool) if self.sample_ok is None
+              else np.asarray(self.sample_ok, bool))
+        states = ['used' if good else 'rejected' for good in ok]
+        for item in self.noisy:
+            if ok[item['sample']]:
+                states[item['sample']] = 'noisy'
+        return states
+
     def to_json_dict(self):
         """Return the JSON object of DESIGN.md contract 3 (plus extra keys, never renamed)."""
         x, y, z, w = quat.xyzw_from_wxyz(self.quaternion)

@@ -12,15 +12,17 @@ the distances seen so far, its orientation within `tilt_deg` of one seen; each g
 pose that would see it, kept when it lies within `max_rotation_deg` of the last sample's link
 orientation and inside the workspace box (the seen link positions grown by `margin_m`, or the
 user's). The best of `candidates` random ones is proposed, with the uncertainty expected
-after it.
+after it. `plan_session` plans a fresh calibration the same way, pose after pose, from a start
+pose and guesses of the mounting and the object (the `plan` tool), with a weak prior that keeps
+the criterion finite before the poses determine every unknown.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.motions import SampleRotations
-from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.core.refine import jacobian, lever, object_pose, uncertainties
 from quatcal_ros.core.translation import SamplePositions
 
@@ -70,8 +72,13 @@ def noise_covariance(noise_model):
 
 
 def plan_next_pose(samples, result, setup='eye_in_hand', invert_sensor=False,
-                   limits=PlanLimits()):
-    """Return the NextPose for `samples` and their CalibrationResult, or None (no refinement)."""
+                   limits=PlanLimits(), prior_information=None):
+    """
+    Return the NextPose for `samples` and their CalibrationResult, or None (no refinement).
+
+    prior_information: a 12 x 12 information added to the samples' (plan_session's weak
+    prior, which keeps the criterion defined before the samples determine everything).
+    """
     if result is None or result.noise_model is None or result.sample_ok is None:
         return None
     used = np.asarray(result.sample_ok, dtype=bool)
@@ -83,6 +90,8 @@ def plan_next_pose(samples, result, setup='eye_in_hand', invert_sensor=False,
     o_q, o_t = object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t)
     M = np.linalg.inv(noise_covariance(result.noise_model))
     information = _information(link_q, link_t, x_q, x_t, o_t, M).sum(axis=0)
+    if prior_information is not None:
+        information = information + prior_information
     candidates = _candidate_sensor_poses(sensor_q, sensor_t, limits)
     # The link pose (as refine takes it) that sees each: L = O inv(S) inv(X).
     O, X_inv = Pose(o_t, o_q), Pose(x_t, x_q).inverse()
@@ -101,6 +110,59 @@ def plan_next_pose(samples, result, setup='eye_in_hand', invert_sensor=False,
     after = uncertainties(covariances[best])
     return NextPose(np.array(base_links, dtype=object)[keep][best], after[0], after[1],
                     current[0], current[1])
+
+
+@dataclass(frozen=True)
+class Guess:
+    """
+    What plan_session assumes before any data: the result fields plan_next_pose reads.
+
+    quaternion, translation: the mounting X; noise_model: the sensor noise, as a result's.
+    """
+
+    quaternion: np.ndarray
+    translation: np.ndarray
+    noise_model: dict
+    sample_ok: np.ndarray
+
+
+# plan_session's prior: 1 rad on each rotation and 1 m on each translation of the 12 unknowns;
+# far weaker than one sample, it only makes the first steps' criterion finite.
+PRIOR_INFORMATION = np.eye(12)
+
+
+def plan_session(start, count, mounting, object_pose, setup='eye_in_hand',
+                 noise=(0.1, 1.0), limits=PlanLimits()):
+    """
+    Return `count` link poses for a fresh calibration, start first, as NextPose objects.
+
+    Each next pose is plan_next_pose's for the poses before it, with the sensor poses the
+    model predicts (`mounting` X and `object_pose` O as guesses: eye-in-hand X = T_link_sensor,
+    O = T_base_object; eye-to-hand X = T_base_sensor, O = T_link_object) and `noise`
+    (rotation deg, translation mm per axis) for every sample. The expected uncertainties are
+    the model's after each pose. Fewer poses come back when no candidate fits the limits.
+    """
+    X_inv = mounting.inverse()
+
+    def seen(link):
+        return (X_inv @ link.inverse() @ object_pose if setup == 'eye_in_hand'
+                else X_inv @ link @ object_pose)
+
+    noise_model = {'rotation_noise_deg': [noise[0]] * 3, 'translation_noise_mm': [noise[1]] * 3,
+                   'correlation': np.eye(6).tolist()}
+    samples = [Sample(0, start, seen(start))]
+    planned = [NextPose(start, float('inf'), float('inf'), float('inf'), float('inf'))]
+    for k in range(1, count):
+        guess = Guess(mounting.quaternion, mounting.position, noise_model,
+                      np.ones(len(samples), bool))
+        proposal = plan_next_pose(samples, guess, setup,
+                                  limits=replace(limits, seed=limits.seed + k),
+                                  prior_information=PRIOR_INFORMATION)
+        if proposal is None:
+            break
+        samples.append(Sample(k, proposal.link, seen(proposal.link)))
+        planned.append(proposal)
+    return planned
 
 
 def _information(link_q, link_t, x_q, x_t, o_t, M):

@@ -123,17 +123,6 @@ def _time_offset(offset):
             f'{offset["residual_with_deg"]:.3f} deg with it.</p>')
 
 
-def sample_states(result, count):
-    """Return 'used', 'noisy' or 'rejected' for each of `count` samples."""
-    ok = (np.ones(count, bool) if result.sample_ok is None
-          else np.asarray(result.sample_ok, bool))
-    states = np.where(ok, 'used', 'rejected').astype(object)
-    for item in result.noisy:
-        if ok[item['sample']]:
-            states[item['sample']] = 'noisy'
-    return list(states)
-
-
 def _sample_figure(result, count):
     rotation, translation = np.full(count, np.nan), np.full(count, np.nan)
     validation = result.validation or {}
@@ -141,7 +130,7 @@ def _sample_figure(result, count):
         rotation[item['sample']] = item['rotation_deg']
         translation[item['sample']] = item['translation_mm']
     thresholds = validation.get('thresholds', {})
-    return figures.sample_residuals(rotation, translation, sample_states(result, count),
+    return figures.sample_residuals(rotation, translation, result.sample_states(count),
                                     (thresholds.get('max_rotation_deg', np.nan),
                                      thresholds.get('max_translation_mm', np.nan)))
 

@@ -11,7 +11,8 @@ A thin shell: the session (stream/session.py) does the work, and this node wires
 - publishes `~/rotation` (QuaternionStamped, latched, frame_id = link_frame) and
   `~/transform` (TransformStamped link_frame -> sensor_frame, latched) on each new estimate,
   and `~/next_pose` (PoseStamped, latched, in the robot base frame: core/planner.py's link
-  pose that most shrinks the uncertainty),
+  pose that most shrinks the uncertainty), and `~/markers` (MarkerArray, latched, base frame:
+  markers.py draws the sensor frame, its uncertainty, the samples and the next pose for RViz),
   with publish_tf:=true also on /tf_static (frame-safe), and the status on
   `/diagnostics` (diagnostics.py) every diagnostics_period_s;
 - serves `~/capture`, `~/reset` and `~/save` (std_srvs/Trigger);
@@ -36,6 +37,7 @@ from quatcal_ros.files import journal
 from quatcal_ros.files.samples_csv import BadInputError
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
 from quatcal_ros.ros import conversions
+from quatcal_ros.ros import markers
 from quatcal_ros.ros import parameters
 from quatcal_ros.ros import spin
 from quatcal_ros.ros.diagnostics import calibrator_status, InputWatch
@@ -51,7 +53,9 @@ from quatcal_ros.stream.settings import ConfigError
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from std_msgs.msg import Header
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
 
 NODE_NAME = settings.NODE_NAME
 
@@ -93,6 +97,8 @@ class CalibratorNode(Node):
         self.next_pose = None   # the planner's proposal for the latest estimate
         self.next_pose_publisher = self.create_publisher(
             PoseStamped, '~/next_pose', LATCHED_QOS, event_callbacks=quiet_publisher_events())
+        self.markers_publisher = self.create_publisher(
+            MarkerArray, '~/markers', LATCHED_QOS, event_callbacks=quiet_publisher_events())
         self.rotation_publisher = self.create_publisher(
             QuaternionStamped, '~/rotation', LATCHED_QOS,
             event_callbacks=quiet_publisher_events())
@@ -224,6 +230,10 @@ class CalibratorNode(Node):
         if self.next_pose is not None:
             self.next_pose_publisher.publish(conversions.pose_stamped_msg(
                 self.next_pose.link, stamp_ns, self._base_frame()))
+        samples = self.session.samples
+        self.markers_publisher.publish(markers.calibration_markers(
+            result, samples, result.sample_states(len(samples)), self.next_pose,
+            options.setup, Header(stamp=msg.header.stamp, frame_id=self._base_frame())))
 
     def _base_frame(self):
         """Return the robot base frame: the TF input's, the link poses' header, or base_link."""
@@ -333,6 +343,8 @@ class CalibratorNode(Node):
         self.moves.reset()
         self.next_pose = None
         journal_text = self.journal.restart()
+        self.markers_publisher.publish(markers.clear_markers(
+            Header(stamp=self.get_clock().now().to_msg(), frame_id=self._base_frame())))
         if self.images is not None:
             journal_text += self.images.restart()
         if self.journal.problem:

@@ -98,7 +98,7 @@ class Setting:
         return float(value) if type(self.default) is float else value
 
 
-SOLVE, REPLAY = ('solve',), ('replay',)
+SOLVE, REPLAY, PLAN = ('solve',), ('replay',), ('plan',)
 BOTH = SOLVE + REPLAY
 
 SETTINGS = (
@@ -225,10 +225,10 @@ SETTINGS = (
             'translation. Both are reported.', choices=METHODS, tools=BOTH),
     Setting('plan_max_rotation_deg', 45.0,
             "The next-pose planner turns the link at most this far from the last sample's "
-            'orientation.', unit='deg', low=1.0, high=180.0, tools=BOTH),
+            'orientation.', unit='deg', low=1.0, high=180.0, tools=BOTH + PLAN),
     Setting('plan_view_cone_deg', 20.0,
             "The next-pose planner keeps the target within this angle of the sensor's "
-            'optical axis (z).', unit='deg', low=1.0, high=80.0, tools=BOTH),
+            'optical axis (z).', unit='deg', low=1.0, high=80.0, tools=BOTH + PLAN),
     Setting('plan_workspace_margin_m', 0.1,
             'The next-pose planner keeps the link inside the box of the link positions seen, '
             'grown by this much on every side.', unit='m', low=0.0, high=10.0, tools=BOTH),

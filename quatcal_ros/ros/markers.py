@@ -1,0 +1,110 @@
+"""
+The calibration in RViz: `~/markers` (visualization_msgs/MarkerArray), in the robot base frame.
+
+After each estimate the node publishes, namespace `quatcal`:
+- `sensor_axes`: the estimated sensor frame's x, y, z axes (red, green, blue arrows), where the
+  latest sample puts it (eye-in-hand: link pose times mounting; eye-to-hand: the mounting);
+- `uncertainty`: a cone about the sensor's z axis whose half-angle is three times the
+  rotation uncertainty (at least 0.5 deg, to stay visible), and a sphere whose radius is three
+  times the translation uncertainty, at the sensor's origin;
+- `samples`: the link position of every sample (green used, orange down-weighted, red
+  rejected);
+- `next_pose`: the planner's proposal, an arrow along the proposed link's z axis and its label.
+On ~/reset one DELETEALL clears them. Lengths in metres.
+"""
+
+import numpy as np
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.ros import conversions
+from std_msgs.msg import ColorRGBA
+from visualization_msgs.msg import Marker, MarkerArray
+
+NAMESPACE = 'quatcal'
+AXIS_LENGTH_M = 0.1
+CONE_LENGTH_M = 0.15
+CONE_SIDES = 24
+MIN_CONE_DEG = 0.5
+SIGMAS = 3.0
+COLOURS = {'x': (0.9, 0.1, 0.1, 1.0), 'y': (0.1, 0.8, 0.1, 1.0), 'z': (0.1, 0.3, 0.95, 1.0),
+           'used': (0.1, 0.75, 0.2, 1.0), 'noisy': (1.0, 0.6, 0.0, 1.0),
+           'rejected': (0.95, 0.1, 0.1, 1.0), 'cone': (0.1, 0.3, 0.95, 0.25),
+           'sphere': (0.6, 0.6, 0.6, 0.35), 'next': (0.8, 0.2, 0.9, 1.0)}
+
+
+def _colour(name):
+    r, g, b, a = COLOURS[name]
+    return ColorRGBA(r=r, g=g, b=b, a=a)
+
+
+def _point(xyz):
+    return conversions.pose_msg(Pose(np.asarray(xyz, float), np.array([1.0, 0, 0, 0]))).position
+
+
+def _marker(header, name, index, kind, colour, scale=(1.0, 1.0, 1.0)):
+    marker = Marker(header=header, ns=NAMESPACE, id=index, type=kind, action=Marker.ADD)
+    marker.pose.orientation.w = 1.0
+    marker.scale.x, marker.scale.y, marker.scale.z = (float(v) for v in scale)
+    marker.color = _colour(colour)
+    marker.text = name
+    return marker
+
+
+def sensor_pose_in_base(result, samples, setup):
+    """Return the sensor's pose in the base frame (latest sample's link for eye-in-hand)."""
+    mounting = Pose.create(result.translation, result.quaternion)
+    if setup == 'eye_to_hand' or not samples:
+        return mounting
+    return samples[-1].link @ mounting
+
+
+def calibration_markers(result, samples, states, next_pose, setup, header):
+    """
+    Return the MarkerArray of the module docstring.
+
+    states: 'used', 'noisy' or 'rejected' per sample; next_pose: core.planner.NextPose or
+    None; header: std_msgs/Header (base frame, stamp) of every marker.
+    """
+    sensor = sensor_pose_in_base(result, samples, setup)
+    R, origin = sensor.rotation, sensor.position
+    markers = []
+    for k, axis in enumerate('xyz'):
+        arrow = _marker(header, f'sensor {axis}', k, Marker.ARROW, axis, (0.006, 0.012, 0.02))
+        arrow.points = [_point(origin), _point(origin + AXIS_LENGTH_M * R[:, k])]
+        markers.append(arrow)
+    markers.append(_cone(header, 3, origin, R, result.uncertainty_deg))
+    radius = max(SIGMAS * result.translation_uncertainty_mm * 1e-3, 1e-4)
+    sphere = _marker(header, 'translation uncertainty', 4, Marker.SPHERE, 'sphere',
+                     (2 * radius,) * 3)
+    sphere.pose.position = _point(origin)
+    markers.append(sphere)
+    dots = _marker(header, 'samples', 5, Marker.SPHERE_LIST, 'used', (0.015,) * 3)
+    dots.points = [_point(s.link.position) for s in samples]
+    dots.colors = [_colour(state) for state in states]
+    markers.append(dots)
+    if next_pose is not None:
+        link = next_pose.link
+        arrow = _marker(header, 'next pose', 6, Marker.ARROW, 'next', (0.008, 0.016, 0.025))
+        arrow.points = [_point(link.position),
+                        _point(link.position + AXIS_LENGTH_M * link.rotation[:, 2])]
+        label = _marker(header, 'next pose', 7, Marker.TEXT_VIEW_FACING, 'next',
+                        (0.0, 0.0, 0.03))
+        label.pose.position = _point(link.position + np.array([0.0, 0.0, 0.04]))
+        markers += [arrow, label]
+    return MarkerArray(markers=markers)
+
+
+def _cone(header, index, origin, R, uncertainty_deg):
+    """Return a TRIANGLE_LIST cone from the sensor's origin about its z axis."""
+    half = np.radians(max(SIGMAS * uncertainty_deg, MIN_CONE_DEG))
+    radius = CONE_LENGTH_M * np.tan(half)
+    angles = np.linspace(0.0, 2 * np.pi, CONE_SIDES + 1)
+    rim = [origin + R @ np.array([radius * np.cos(a), radius * np.sin(a), CONE_LENGTH_M])
+           for a in angles]
+    cone = _marker(header, 'rotation uncertainty', index, Marker.TRIANGLE_LIST, 'cone')
+    cone.points = [_point(p) for a, b in zip(rim, rim[1:]) for p in (origin, a, b)]
+    return cone
+
+
+def clear_markers(header):
+    """Return the MarkerArray that deletes every marker (~/reset)."""
+    return MarkerArray(markers=[Marker(header=header, ns=NAMESPACE, action=Marker.DELETEALL)])

@@ -1,0 +1,164 @@
+"""
+`plan`: the link poses of a fresh calibration, as YAML a motion script or MoveIt can replay.
+
+From a start pose of the link (T_base_link), a guess of the mounting and of the object's pose,
+and the limits (largest turn between poses, view cone, workspace box), core.planner's
+plan_session chooses each next pose as the one that most shrinks the expected uncertainty
+(D-optimal on the mounting). The guesses shape only the geometry (where the target stays in
+view); the calibration itself needs no guess. Prints or writes:
+
+    frame: base_link            # the frame of the link poses (robot base)
+    setup: eye_in_hand
+    poses:
+    - position: {x: .., y: .., z: ..}
+      orientation: {x: .., y: .., z: .., w: ..}
+      expected_uncertainty_deg: ..          # after this pose (null for the start)
+      expected_translation_uncertainty_mm: ..
+"""
+
+import argparse
+import math
+import sys
+
+import numpy as np
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.planner import plan_session, PlanLimits
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.units import SETUPS
+from quatcal_ros.files import plain_yaml
+from quatcal_ros.files.persistence import atomic_write_text
+from quatcal_ros.tools.options import add_setting_options
+
+EXIT_BAD_INPUT = 2
+# The workspace box around the start position when none is given, half-width in metres.
+DEFAULT_BOX_HALF_M = 0.25
+
+
+def parser():
+    """Return the argument parser of `plan`."""
+    parse = argparse.ArgumentParser(
+        prog='plan', description='Link poses for a fresh hand-eye calibration, each chosen to '
+                                 'shrink the expected uncertainty most (D-optimal); prints '
+                                 'YAML.')
+    parse.add_argument('--start', nargs=7, type=float, required=True,
+                       metavar=('X', 'Y', 'Z', 'QX', 'QY', 'QZ', 'QW'),
+                       help='the start pose of the link, T_base_link (m; quaternion x y z w)')
+    parse.add_argument('--count', type=int, default=15,
+                       help='number of poses, the start included (default 15)')
+    parse.add_argument('--setup', choices=SETUPS, default='eye_in_hand')
+    parse.add_argument('--mounting', nargs=7, type=float,
+                       metavar=('X', 'Y', 'Z', 'QX', 'QY', 'QZ', 'QW'),
+                       help='guess of the mounting: T_link_sensor (eye_in_hand; default: the '
+                            'link frame) or T_base_sensor (eye_to_hand; required)')
+    parse.add_argument('--target-distance', type=float, default=0.5, metavar='M',
+                       help='eye_in_hand: the target lies this far along the sensor z axis '
+                            'at the start pose (default 0.5 m)')
+    parse.add_argument('--object', nargs=7, type=float,
+                       metavar=('X', 'Y', 'Z', 'QX', 'QY', 'QZ', 'QW'),
+                       help='the observed object instead: T_base_object (eye_in_hand) or '
+                            'T_link_object (eye_to_hand; default: the link frame)')
+    parse.add_argument('--box-min', nargs=3, type=float, metavar=('X', 'Y', 'Z'),
+                       help='workspace box of the link position, base frame (default: the '
+                            f'start position -{DEFAULT_BOX_HALF_M:g} m)')
+    parse.add_argument('--box-max', nargs=3, type=float, metavar=('X', 'Y', 'Z'),
+                       help=f'(default: the start position +{DEFAULT_BOX_HALF_M:g} m)')
+    parse.add_argument('--noise-deg', type=float, default=0.1,
+                       help='expected sensor rotation noise per axis (default 0.1 deg)')
+    parse.add_argument('--noise-mm', type=float, default=1.0,
+                       help='expected sensor translation noise per axis (default 1 mm)')
+    parse.add_argument('--frame', default='base_link',
+                       help='the robot base frame named in the output (default base_link)')
+    parse.add_argument('--seed', type=int, default=0, help='seed of the random candidates')
+    parse.add_argument('--out', metavar='FILE.yaml', help='write the YAML there (atomically)')
+    add_setting_options(parse, 'plan', ('plan_max_rotation_deg', 'plan_view_cone_deg'))
+    return parse
+
+
+def _pose(values, name):
+    """Return the Pose of 7 numbers x y z qx qy qz qw; ValueError naming `name`."""
+    values = np.asarray(values, float)
+    if not np.all(np.isfinite(values)) or np.linalg.norm(values[3:]) < 1e-9:
+        raise ValueError(f'{name}: 3 finite coordinates and a non-zero quaternion x y z w')
+    return Pose.create(values[:3], quat.normalize(quat.wxyz_from_xyzw(values[3:])))
+
+
+def _guesses(args, start):
+    """Return (mounting, object pose) of the options (module docstring)."""
+    identity = Pose.create([0.0, 0.0, 0.0], np.array([1.0, 0.0, 0.0, 0.0]))
+    if args.setup == 'eye_to_hand':
+        if args.mounting is None:
+            raise ValueError('--mounting is required for eye_to_hand: a guess of T_base_sensor '
+                             '(where the camera stands, looking at the link)')
+        mounting = _pose(args.mounting, '--mounting')
+        return mounting, (_pose(args.object, '--object') if args.object else identity)
+    mounting = _pose(args.mounting, '--mounting') if args.mounting else identity
+    if args.object:
+        return mounting, _pose(args.object, '--object')
+    if not args.target_distance > 0:
+        raise ValueError('--target-distance must be positive')
+    ahead = Pose.create([0.0, 0.0, args.target_distance], np.array([1.0, 0.0, 0.0, 0.0]))
+    return mounting, start @ mounting @ ahead
+
+
+def _number(value):
+    return None if not math.isfinite(value) else float(value)
+
+
+def plan_document(args):
+    """Return the YAML document of the options' plan; ValueError for unusable options."""
+    if args.count < 2:
+        raise ValueError(f'--count must be at least 2, not {args.count}')
+    start = _pose(args.start, '--start')
+    mounting, target = _guesses(args, start)
+    low = np.asarray(args.box_min if args.box_min else start.position - DEFAULT_BOX_HALF_M)
+    high = np.asarray(args.box_max if args.box_max else start.position + DEFAULT_BOX_HALF_M)
+    if not np.all(low <= start.position) or not np.all(start.position <= high):
+        raise ValueError(f'the start position {start.position.tolist()} lies outside the box '
+                         f'{low.tolist()} .. {high.tolist()}')
+    seen = mounting.inverse() @ (start.inverse() @ target if args.setup == 'eye_in_hand'
+                                 else start @ target)
+    off_axis = np.degrees(np.arctan2(np.linalg.norm(seen.position[:2]), seen.position[2]))
+    if off_axis > args.plan_view_cone_deg:
+        raise ValueError(f"the object is {off_axis:.0f} deg off the sensor's optical axis at "
+                         f'the start pose (view cone {args.plan_view_cone_deg:g} deg): check '
+                         '--mounting and --object, or start where the sensor sees the object')
+    limits = PlanLimits(max_rotation_deg=args.plan_max_rotation_deg,
+                        cone_deg=args.plan_view_cone_deg, box_min=tuple(low),
+                        box_max=tuple(high), seed=args.seed)
+    planned = plan_session(start, args.count, mounting, target, args.setup,
+                           (args.noise_deg, args.noise_mm), limits)
+    poses = []
+    for step in planned:
+        x, y, z, w = quat.xyzw_from_wxyz(step.link.quaternion)
+        poses.append({
+            'position': dict(zip('xyz', (float(v) for v in step.link.position))),
+            'orientation': {'x': float(x), 'y': float(y), 'z': float(z), 'w': float(w)},
+            'expected_uncertainty_deg': _number(step.uncertainty_deg),
+            'expected_translation_uncertainty_mm': _number(step.translation_uncertainty_mm)})
+    return {'frame': args.frame, 'setup': args.setup, 'poses': poses,
+            'limits': {'max_rotation_deg': limits.max_rotation_deg,
+                       'view_cone_deg': limits.cone_deg,
+                       'box_min': low.tolist(), 'box_max': high.tolist()}}
+
+
+def main(argv=None):
+    """`plan --start ... [--count K]`: print (or --out) the poses as YAML; exit 2 if unusable."""
+    args = parser().parse_args(argv)
+    try:
+        document = plan_document(args)
+    except ValueError as error:
+        print(f'plan: error: {error}', file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if len(document['poses']) < args.count:
+        print(f'plan: warning: only {len(document["poses"])} of {args.count} poses fit the '
+              'limits (widen --box-min/--box-max or --plan-max-rotation-deg)', file=sys.stderr)
+    text = plain_yaml.dump(document, sort_keys=False)
+    if args.out:
+        try:
+            atomic_write_text(args.out, text)
+        except OSError as error:
+            print(f'plan: error: {args.out}: cannot write: {error}', file=sys.stderr)
+            return EXIT_BAD_INPUT
+    else:
+        sys.stdout.write(text)
+    return 0
