@@ -12,6 +12,9 @@ The subpackages are the rooms of the house; each may import only those below it
             tool all drive
     files   what is read and written on disk: samples CSV, the journal, result files,
             other tools' formats (numpy, yaml)
+    vision  camera images: calibration boards, their detection and pose, the fit on the
+            pixels (numpy, cv2)
     ros     the ROS side: message conversions, bags, parameters, the nodes (rclpy, rosbags)
-    tools   the command-line tools: solve, replay, demo
+    report  the --report page and its figures (matplotlib)
+    tools   the command-line tools: solve, replay, plan, demo
 """

@@ -4,10 +4,20 @@
 The same tools are ROS executables: `ros2 run quatcal_ros TOOL`.
 """
 
-import importlib
+import _signal   # the C module: `signal` builds its enums first, which takes milliseconds
 import sys
 
-from quatcal_ros.core.threads import single_threaded_blas
+NODE_TOOLS = ('calibrator', 'sim_cell', 'target_detector')
+# A stop signal to a node from this line on is noted, not fatal (ros/stop_signals.py takes the
+# list over). Before it, while the interpreter starts, no Python program can catch one.
+EARLY_SIGNALS = []
+if __name__ == '__main__' and sys.argv[1:2] and sys.argv[1] in NODE_TOOLS:
+    for _signum in (_signal.SIGINT, _signal.SIGTERM):
+        _signal.signal(_signum, lambda signum, frame: EARLY_SIGNALS.append(signum))
+
+import importlib  # noqa: E402,I100 - after the signal guard
+
+from quatcal_ros.core.threads import single_threaded_blas  # noqa: E402
 
 TOOLS = {
     'solve': ('quatcal_ros.tools.cli', 'solve_main', 'rotation from a samples CSV (prints JSON)'),
@@ -41,10 +51,11 @@ def main(argv=None):
         return 2
     module, function, _ = TOOLS[argv[0]]
     single_threaded_blas()
-    if argv[0] in ('calibrator', 'sim_cell', 'target_detector'):
+    if argv[0] in NODE_TOOLS:
         # ROS nodes take rclpy's argument list (with --ros-args) including a program name;
         # a stop signal while they import ends them cleanly too.
         from quatcal_ros.ros import stop_signals
+        stop_signals.received.extend(EARLY_SIGNALS)
         return stop_signals.run(module, [argv[0]] + argv[1:]) or 0
     tool_main = getattr(importlib.import_module(module), function)
     return tool_main(argv[1:]) or 0

@@ -118,7 +118,7 @@ def test_same_data_give_the_same_answer():
     assert all(calibrate(samples).to_json_dict() == first for _ in range(3))
 
 
-def test_motions_about_one_axis_are_refused_with_a_hint():
+def test_motions_about_one_axis_are_solved_from_the_translations_and_the_rest_named():
     rng = np.random.default_rng(1)
     cell = simulation.random_cell(rng)
     axis = np.array([0.0, 0.0, 1.0])
@@ -127,8 +127,17 @@ def test_motions_about_one_axis_are_refused_with_a_hint():
         turn = quat.from_axis_angle(axis, np.radians(angle))
         link = cell.home @ Pose.create([0.01 * k, 0, 0], turn)
         samples.append(Sample(k, link, cell.sensor_pose(link)))
+    result = calibrate(samples)   # noise-free: the rotation exactly, Case 1 or not
+    assert np.degrees(quat.angle_between(result.quaternion, cell.mounting.quaternion)) < 1e-6
+    (unobservable,) = result.unobservable
+    np.testing.assert_allclose(np.abs(unobservable['direction']), axis, atol=1e-9)
+    assert 'one axis only' in result.warnings[0] and 'set to zero' in result.warnings[0]
+    # Parallel axes and no translation at all: nothing fixes the rotation about the axis.
+    turned = [Sample(k, cell.home @ Pose.create([0, 0, 0], quat.from_axis_angle(
+        axis, np.radians(a))), None) for k, a in enumerate([0, 20, 45, 70])]
+    turned = [Sample(s.stamp_ns, s.link, cell.sensor_pose(s.link)) for s in turned]
     with pytest.raises(DegenerateMotionError, match=r'Case 1.*link z.*perpendicular'):
-        calibrate(samples)
+        calibrate(turned)
 
 
 def test_too_few_samples_and_no_motion_are_refused():

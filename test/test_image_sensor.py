@@ -149,7 +149,7 @@ def test_replay_of_camera_images_refines_on_the_corners(tmp_path, board_file, ca
     status = replay_main([str(tmp_path / 'cell'), '--link-topic', '/robot/pose',
                           '--image-topic', '/camera/color/image_raw',
                           '--board-file', str(board_file), '--still-window-s', '0.5',
-                          '--quiet'])
+                          '--quiet', '--report', str(tmp_path / 'report.html')])
     out = capsys.readouterr()
     assert status == 0, out.err
     result = json.loads(out.out)
@@ -157,6 +157,8 @@ def test_replay_of_camera_images_refines_on_the_corners(tmp_path, board_file, ca
     assert result['pose_based_method'] == 'refined'
     assert result['views']['used'] == 8 and result['views']['counts']['bad_image'] == 64 // 7
     assert any('bad_image' in text for text in result['warnings'])
+    page = (tmp_path / 'report.html').read_text()
+    assert 'reprojection' in page and page.count('<svg') == 4
     q = result['rotation']
     error_deg = np.degrees(quat.angle_between(
         quat.wxyz_from_xyzw([q['x'], q['y'], q['z'], q['w']]), mounting.quaternion))

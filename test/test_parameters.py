@@ -60,7 +60,7 @@ def test_descriptors_have_descriptions_ranges_and_read_only():
             assert all(c in descriptor.additional_constraints for c in setting.choices)
     read_only = {s.name for s in SETTINGS if parameters.descriptor(s).read_only}
     assert read_only == {'pose_type', 'sensor_pose_type', 'diagnostics_period_s', 'samples_file',
-                         'resume',
+                         'resume', 'sensor_input', 'board_file', 'image_transport',
                          'robot_base_frame', 'robot_effector_frame', 'tracking_base_frame',
                          'tracking_marker_frame'}
 

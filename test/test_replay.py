@@ -268,14 +268,19 @@ def test_malformed_messages_are_skipped_and_reported(repo_root, streams, tmp_pat
         '0.00' in warnings
 
 
-def test_motions_about_one_axis_exit_3(repo_root, tmp_path):
-    """Stops turned about one axis only: the rotation is not determined (exit 3)."""
+@pytest.mark.parametrize('shift, status', [((1.0, 1.0, 1.0), 0), ((0.0, 0.0, 1.0), 3)])
+def test_motions_about_one_axis(repo_root, tmp_path, shift, status):
+    """
+    Stops turned about one axis only (as a SCARA's): solved with the offset along it named.
+
+    Unless the link moves only along that axis: then nothing fixes the rotation (exit 3).
+    """
     rng = np.random.default_rng(52)
     cell = sim.random_cell(rng)
     axis = [0.0, 0.0, 1.0]
     messages = []
     for k, angle in enumerate(np.radians([0.0, 20.0, 45.0, 70.0, 95.0])):
-        link = Pose(cell.home.position + 0.02 * k,
+        link = Pose(cell.home.position + 0.02 * k * np.asarray(shift),
                     quat.multiply(quat.from_axis_angle(axis, angle), cell.home.quaternion))
         sensor = cell.sensor_pose(link)
         start = sim.DEFAULT_START_NS + k * 2 * 10**9
@@ -290,8 +295,17 @@ def test_motions_about_one_axis_exit_3(repo_root, tmp_path):
               sorted(messages, key=lambda m: m[1]))
     done = run_replay(repo_root, tmp_path / 'one_axis', '--link-topic', '/link_pose',
                       '--sensor-topic', '/sensor_pose')
-    assert done.returncode == 3, done.stderr
-    assert 'cannot be determined' in done.stderr and 'Traceback' not in done.stderr
+    assert done.returncode == status, done.stderr
+    assert 'Traceback' not in done.stderr
+    if status == 3:
+        assert 'cannot be determined' in done.stderr and 'Nor can the translations' in \
+            done.stderr
+        return
+    result = json.loads(done.stdout)
+    (unobservable,) = result['unobservable']
+    assert unobservable['what'] == 'translation'
+    assert np.degrees(quat.angle_between(quat.wxyz_from_xyzw(
+        [result['rotation'][k] for k in 'xyzw']), cell.mounting.quaternion)) < 1e-3
 
 
 @pytest.fixture(scope='module')
@@ -340,7 +354,7 @@ TOPICS = ('--link-topic', '/link_pose', '--sensor-topic', '/sensor_pose')
     ('pose', TOPICS + ('--still-window-s', '-1'),
      ['argument --still-window-s: must be between 0.05 and 10, not -1']),
     ('pose', ('--link-topic', '/link_pose'), ['one of the arguments --sensor-topic '
-                                              '--sensor-frames is required']),
+                                              '--sensor-frames --image-topic is required']),
 ])
 def test_bad_input_exits_2_naming_the_problem(repo_root, bags, error_bags, bag_name, args,
                                               expected):

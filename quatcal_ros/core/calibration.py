@@ -31,6 +31,7 @@ from quatcal_ros.core import conventions
 from quatcal_ros.core import heavy_tails
 from quatcal_ros.core import quality
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core import reduced_dof
 from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, least_squares_rotation, \
     MotionSystem, sample_matrices
 from quatcal_ros.core.motions import motion_count, Motions, pair_indices, PAIRINGS, \
@@ -76,6 +77,9 @@ class CalibrationOptions:
     seed: int = 0                       # fixed, so the same data always give the same answer
     method: str = 'refined'             # or 'closed-form' (Chou-Kamel + closed-form translation)
     validation: Thresholds = field(default_factory=Thresholds)
+    # The translation (m, x y z) along the directions reduced-DOF motions leave undetermined
+    # (reduced_dof.py); None: zero, said loudly.
+    known_translation: tuple = None
 
     def __post_init__(self):
         """Refuse a value outside its choices (ValueError naming field, value and choices)."""
@@ -138,6 +142,8 @@ class CalibrationResult:
     noisy: list = field(default_factory=list)     # down-weighted samples
     validation: dict = None         # validation.validate's JSON object
     sample_ok: np.ndarray = None    # bool per sample: used (not a bad detection)
+    # What the motions do not determine (reduced-DOF robots): [{what, direction, reason}].
+    unobservable: list = field(default_factory=list)
 
     def sample_states(self, count):
         """Return 'used', 'noisy' (down-weighted) or 'rejected' for each of `count` samples."""
@@ -178,6 +184,7 @@ class CalibrationResult:
             'noise_model': self.noise_model,
             'noisy': self.noisy,
             'validation': self.validation,
+            'unobservable': self.unobservable,
         }
 
 
@@ -238,8 +245,76 @@ def _solve(samples, options, previous=None):
             fit = _consecutive(rotations, options, start)
     except DegenerateMotionError as error:
         advice = conventions.warnings(samples, options) if previous is None else []
+        motion = reduced_dof.reduced_motion(rotations, options.min_motion_deg)
+        if motion is not None:   # a SCARA or a gantry: solve what the translations fix
+            try:
+                return _Solution(_reduced_result(samples, rotations, positions, motion,
+                                                 options), None)
+            except DegenerateMotionError as reduced:
+                advice.append(f'(Nor can the translations fix it: {reduced}.)')
         raise type(error)(' '.join([str(error)] + advice)) from None
     return _estimate(samples, rotations, positions, fit, options, previous)
+
+
+def _reduced_result(samples, rotations, positions, motion, options):
+    """Return the CalibrationResult of reduced-DOF motions (reduced_dof.py)."""
+    found = reduced_dof.fit(rotations, positions, motion, options.known_translation)
+    n = len(samples)
+    deg, mm = uncertainties(found.covariance)
+    model = uncertainties(found.model_covariance)
+    spread, axes = np.linalg.eigh(found.covariance[:3, :3])
+    frame = _parent_frame(options)
+    given = options.known_translation is not None
+    value = found.x_t @ found.undetermined.T
+    if motion.kind == 'single_axis':
+        reason = (f'every motion turns the link about this one axis (in the {frame} frame; a '
+                  'SCARA-like robot): no motion shows the offset along it')
+        what = (f'the link turns about one axis only, {_axis_text(motion.axis)} in the {frame} '
+                'frame: the rotation comes from the translations, and the translation along '
+                'that axis is not determined by the data')
+    else:
+        reason = 'the link never turns (a gantry): no motion shows the offset at all'
+        what = ('the link never turns: the rotation comes from the translations alone, and '
+                'the translation is not determined by the data at all')
+    source = ('from known_translation' if given else
+              'set to zero: measure it and give known_translation (--known-translation)')
+    warning = (f'{what}; its value there ({", ".join(f"{v:.4f}" for v in value)} m) is '
+               f'{source}; the uncertainty covers only what the data determine')
+    rotation_rms = np.sqrt(2.0 * np.sum((found.rotation_residuals
+                                         - found.rotation_residuals.mean(axis=0)) ** 2)
+                           / max(n - 1, 1))
+    closed = Estimate(found.start_q, found.start_t, float('nan'), float('nan'))
+    refined = Estimate(found.x_q, found.x_t, deg, mm)
+    noise_deg, noise_mm = np.degrees(found.noise[0]), 1e3 * found.noise[3]
+    return CalibrationResult(
+        quaternion=found.x_q, matrix=quat.matrix_from_quaternion(found.x_q), samples=n,
+        motions=motion_count(n, options.pairs), inliers=motion_count(n, options.pairs),
+        inlier_samples=n, residual_rms_deg=float(np.degrees(rotation_rms)),
+        uncertainty_deg=deg, noise_deg=float(noise_deg),
+        excitation=float(spread[0] / spread[-1]) if spread[-1] > 0 else 0.0,
+        weakest_axis=axes[:, -1],
+        hint=('reduced-DOF motions (the link cannot turn freely): more positions spread across '
+              'the workspace, and turns by different angles, reduce the uncertainty'),
+        setup=options.setup, pairs=options.pairs, rejected=[], warnings=[warning],
+        translation=found.x_t, translation_uncertainty_mm=mm,
+        translation_noise_mm=float(noise_mm), method='refined', closed_form=closed,
+        refined=refined,
+        noise_model={'rotation_noise_deg': [float(noise_deg)] * 3,
+                     'translation_noise_mm': [float(noise_mm)] * 3, 'frame': 'sensor',
+                     'sample_covariances': 'none', 'correlation': np.eye(6).tolist(),
+                     'tail_degrees_of_freedom': None, 'distribution': 'gaussian',
+                     'shape': 'isotropic', 'robust': False, 'uncertainty_from': 'sandwich',
+                     'sandwich_uncertainty_deg': deg, 'sandwich_translation_uncertainty_mm': mm,
+                     'model_uncertainty_deg': model[0],
+                     'model_translation_uncertainty_mm': model[1]},
+        noisy=[], validation=validate(found.leave_one_out, np.arange(n), options.validation),
+        sample_ok=np.ones(n, bool),
+        unobservable=[{'what': 'translation', 'direction': [float(v) for v in d],
+                       'reason': reason} for d in found.undetermined])
+
+
+def _axis_text(axis):
+    return '[' + ', '.join(f'{v:.2f}' for v in axis) + ']'
 
 
 # --- rotation stage --------------------------------------------------------------------------

@@ -79,7 +79,8 @@ def plan_next_pose(samples, result, setup='eye_in_hand', invert_sensor=False,
     prior_information: a 12 x 12 information added to the samples' (plan_session's weak
     prior, which keeps the criterion defined before the samples determine everything).
     """
-    if result is None or result.noise_model is None or result.sample_ok is None:
+    if result is None or result.noise_model is None or result.sample_ok is None \
+            or getattr(result, 'unobservable', None):   # a reduced-DOF robot reaches few poses
         return None
     used = np.asarray(result.sample_ok, dtype=bool)
     rotations = SampleRotations.from_samples(samples, setup, invert_sensor)

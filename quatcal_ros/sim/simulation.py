@@ -592,3 +592,35 @@ def stop_and_go_streams(rng, cell, n_stops, link_rate_hz=500.0, sensor_rate_hz=3
         stops=[trajectory.stop(k) for k in range(n_stops)],
         stills=[tuple(start + t for t in trajectory.still_interval_ns(k))
                 for k in range(n_stops)])
+
+
+# --- robots with fewer degrees of freedom -----------------------------------------------------
+
+REDUCED_KINDS = ('scara', 'gantry')
+
+
+def reduced_dof_samples(rng, cell, n, kind='scara', rotation_noise_deg=0.0,
+                        translation_noise_m=0.0, reach_m=0.15, turn_deg=60.0,
+                        start_ns=DEFAULT_START_NS, period_ns=2 * NS_PER_S):
+    """
+    Return n still samples of `cell` from a robot that cannot turn its link freely.
+
+    scara: the link turns about the base z axis only (by up to +-turn_deg from home) and moves
+    within +-reach_m of home: the link orientation is Rz(theta) times home's, so every motion
+    turns the link about one fixed axis (home's z axis seen in the link frame). gantry: the
+    link keeps home's orientation and only moves. Sensor poses get add_pose_noise.
+    """
+    if kind not in REDUCED_KINDS:
+        raise ValueError(f'kind must be one of {REDUCED_KINDS}, not {kind!r}')
+    positions = np.asarray(cell.home.position) + rng.uniform(-reach_m, reach_m, (n, 3))
+    if kind == 'scara':
+        turns = np.radians(rng.uniform(-turn_deg, turn_deg, n))
+        spins = np.column_stack([np.cos(turns / 2), np.zeros((n, 2)), np.sin(turns / 2)])
+        quaternions = quat.multiply(spins, np.asarray(cell.home.quaternion)[None])
+    else:
+        quaternions = np.repeat(np.asarray(cell.home.quaternion, float)[None], n, axis=0)
+    sensor_p, sensor_q = cell.sensor_poses(positions, quaternions)
+    sensor_p, sensor_q = add_pose_noise(rng, sensor_p, sensor_q, rotation_noise_deg,
+                                        translation_noise_m)
+    return [Sample(start_ns + k * period_ns, Pose(positions[k], quaternions[k]),
+                   Pose(sensor_p[k], sensor_q[k])) for k in range(n)]

@@ -232,6 +232,12 @@ SETTINGS = (
     Setting('plan_workspace_margin_m', 0.1,
             'The next-pose planner keeps the link inside the box of the link positions seen, '
             'grown by this much on every side.', unit='m', low=0.0, high=10.0, tools=BOTH),
+    Setting('known_translation', '',
+            'For robots that cannot turn the link freely (a SCARA turns it about one axis, a '
+            'gantry not at all), the data leave the translation along that axis (a gantry: '
+            "all of it) undetermined: its value, 'x y z' in metres in the result's parent "
+            "frame (only the undetermined part is used). '' = zero there, with a warning.",
+            allow_empty=True, tools=BOTH),
     Setting('validation_max_rotation_deg', 1.0,
             'The validation passes when the leave-one-out prediction error of the sensor '
             'poses (RMS over the good samples) is at most this angle and '
@@ -300,6 +306,7 @@ def _from_values(values):
     settings = Settings(**{s.name: s.plain(values[s.name]) for s in SETTINGS})
     if settings.sensor_input == 'image' and not settings.board_file:
         raise ConfigError('sensor_input image needs board_file: the board.yaml of the target')
+    known_translation(settings.known_translation)
     session_config(settings)   # the core's own consistency checks
     return settings
 
@@ -362,10 +369,25 @@ def session_config(settings):
                 invert_sensor=settings.invert_sensor, min_motion_deg=settings.min_motion_deg,
                 method=settings.method, validation=Thresholds(
                     settings.validation_max_rotation_deg,
-                    settings.validation_max_translation_mm)),
+                    settings.validation_max_translation_mm),
+                known_translation=known_translation(settings.known_translation)),
             sensor_offset_ns=ns_from_s(settings.sensor_time_offset_s))
     except ValueError as error:
         raise ConfigError(f'inconsistent settings: {error}') from None
+
+
+def known_translation(text):
+    """Return the known_translation setting's (x, y, z) in metres, or None for ''."""
+    if not text.strip():
+        return None
+    try:
+        values = tuple(float(v) for v in text.replace(',', ' ').split())
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ConfigError(f"known_translation must be three numbers 'x y z' in metres, not "
+                          f'{text!r}')
+    return values
 
 
 TF_FRAMES = ('robot_base_frame', 'robot_effector_frame', 'tracking_base_frame',

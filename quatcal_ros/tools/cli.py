@@ -37,7 +37,8 @@ EXIT_INTERRUPTED = 130
 
 ESTIMATOR = ('setup', 'pairs', 'robust', 'invert_sensor', 'method', 'min_motion_deg',
              'validation_max_rotation_deg', 'validation_max_translation_mm',
-             'plan_max_rotation_deg', 'plan_view_cone_deg', 'plan_workspace_margin_m')
+             'plan_max_rotation_deg', 'plan_view_cone_deg', 'plan_workspace_margin_m',
+             'known_translation')
 
 
 def solve_main(argv=None):
@@ -67,6 +68,10 @@ def solve_main(argv=None):
                         help='also write the result in the easy_handeye2 calibration layout '
                              '(e.g. ~/.ros2/easy_handeye2/calibrations/NAME.calib)')
     args = parser.parse_args(argv)
+    try:
+        settings_of(args, setup=args.setup or 'eye_in_hand')   # the file may name the setup
+    except ConfigError as error:
+        return fail(parser.prog, f'bad option: {error}', EXIT_BAD_INPUT)
     if Path(args.samples).is_dir():
         return _solve_images(parser.prog, args)
     try:

@@ -1,0 +1,223 @@
+"""
+Robots that cannot turn the link freely: SCARA-like arms (one rotation axis) and gantries (none).
+
+When every motion turns the link about one axis a, the paper's rotation equation (its Case 1)
+leaves the rotation about a free. The translations still fix it: with the object fixed,
+o = l_i + R_Li (t_X + R_X s_i) for every sample (refine.py's model, links inverted for
+eye-to-hand), and the s_i seen from different positions pin R_X down. What no motion can show
+is the offset along a: R_Li a is the same for every i, so t_X + lambda a with o + lambda R_L0 a
+fits exactly as well. A gantry (no rotation) leaves the whole of t_X so: with R_Li constant,
+t_X and o trade freely; its rotation comes from the translations alone, an orthogonal
+Procrustes (Kabsch) fit of the sensor's displacements to the link's.
+
+`fit` finds X and O by Gauss-Newton on refine.py's residuals over the determined directions
+only (the steps keep t_X fixed along the undetermined directions, which removes the null
+vectors [0, a, 0, R_L0 a], or [0, e_k, 0, R_L0 e_k] for a gantry), starting from the best
+rotation about a on a grid (single axis) or from Kabsch (none), with the translations solved
+linearly for each candidate. The undetermined part of t_X is
+then set from `known` (the user's prior; zero when none is given). The uncertainty is the
+sandwich covariance over the determined directions: zero along the undetermined ones, which
+the result names instead. Noise: one level for rotation, one for translation, from the
+residuals (plain least squares: no outlier rejection on this path).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.refine import apply_step, jacobian, lever, residuals
+from quatcal_ros.core.solver import DegenerateMotionError
+
+# Motions whose rotation axes lie within this of one line turn about a single axis.
+SINGLE_AXIS_DEG = 2.0
+GRID_STEPS = 72
+MAX_ITERATIONS = 30
+STEP_TOLERANCE = 1e-10       # squared step length in units of its sigmas
+MIN_NOISE = np.array([1e-6] * 3 + [1e-6] * 3)
+MAX_CONDITION = 1e12         # of the normal matrix over the determined directions
+
+
+@dataclass(frozen=True)
+class ReducedMotion:
+    """How the link turns: kind 'single_axis' about `axis` (link frame, unit) or 'none'."""
+
+    kind: str
+    axis: np.ndarray = None
+
+
+def reduced_motion(rotations, min_motion_deg):
+    """Return the ReducedMotion of motions.SampleRotations, or None (the link turns freely)."""
+    turned = quat.rotation_vector(quat.multiply(quat.conjugate(rotations.link[:1]),
+                                                rotations.link))
+    angles = np.linalg.norm(turned, axis=1)
+    if angles.max() < np.radians(min_motion_deg):
+        return ReducedMotion('none')
+    moved = turned[angles > np.radians(0.5 * min_motion_deg)]
+    _, spread, axes = np.linalg.svd(moved, full_matrices=False)
+    if len(spread) > 1 and spread[1] > np.sin(np.radians(SINGLE_AXIS_DEG)) * spread[0]:
+        return None
+    return ReducedMotion('single_axis', axes[0] / np.linalg.norm(axes[0]))
+
+
+@dataclass(frozen=True)
+class ReducedFit:
+    """X and O over the determined directions, their covariance, what stays undetermined."""
+
+    x_q: np.ndarray
+    x_t: np.ndarray
+    o_q: np.ndarray
+    o_t: np.ndarray
+    start_q: np.ndarray          # the closed form: the grid's (or Kabsch's) rotation
+    start_t: np.ndarray
+    covariance: np.ndarray       # 12 x 12 sandwich, zero along the undetermined directions
+    model_covariance: np.ndarray
+    noise: np.ndarray            # (6,) per-axis noise: rotation (rad), translation (m)
+    rotation_residuals: np.ndarray   # (N, 3) rad
+    leave_one_out: np.ndarray    # (N, 6) predicted residuals, rad and m
+    undetermined: np.ndarray     # (k, 3) unit directions of t_X the data do not fix
+    converged: bool
+
+
+def fit(rotations, positions, motion, known=None):
+    """Return the ReducedFit of SampleRotations / SamplePositions (module docstring)."""
+    link_q, link_t = rotations.link, positions.link
+    sensor_q, sensor_t = rotations.sensor, positions.sensor
+    R_L = rotations.link_matrices
+    undetermined = (np.eye(3) if motion.kind == 'none' else motion.axis[None])
+    # The gauge: t_X does not move along the undetermined directions (O takes up the rest).
+    fixed = np.array([np.concatenate([np.zeros(3), d, np.zeros(6)]) for d in undetermined]).T
+    basis = _complement(fixed)
+    x_q = (_kabsch_rotation(R_L, link_t, sensor_t) if motion.kind == 'none'
+           else _grid_rotation(rotations, positions, motion.axis))
+    x_t, o_t = _translations(R_L, link_t, sensor_t, x_q)
+    o_q = quat.average(quat.multiply(quat.multiply(link_q, x_q), sensor_q))
+    start = (x_q, x_t)
+    n = len(link_q)
+    converged = False
+    for _ in range(MAX_ITERATIONS):
+        e, J, noise = _linearised(link_q, link_t, sensor_q, sensor_t, R_L, x_q, x_t, o_q, o_t,
+                                  basis, n)
+        A = np.einsum('nai,naj->ij', J, J)
+        g = np.einsum('nai,na->i', J, e)
+        if np.linalg.cond(A) > MAX_CONDITION:
+            raise DegenerateMotionError(
+                'the translations do not fix the rotation either: move the link to positions '
+                'spread in at least two directions (and, for a single rotation axis, turn it '
+                'by different angles)')
+        step = -np.linalg.solve(A, g)
+        x_q, x_t, o_q, o_t = apply_step(basis @ step, x_q, x_t, o_q, o_t)
+        if step @ A @ step < STEP_TOLERANCE:
+            converged = True
+            break
+    e, J, noise = _linearised(link_q, link_t, sensor_q, sensor_t, R_L, x_q, x_t, o_q, o_t,
+                              basis, n)
+    A = np.einsum('nai,naj->ij', J, J)
+    A_inv = np.linalg.inv(A)
+    scores = np.einsum('nai,na->ni', J, e)
+    m = basis.shape[1]
+    scatter = np.einsum('ni,nj->ij', scores, scores) * n / max(n - m / 6.0, 1.0)
+    covariance = basis @ (A_inv @ scatter @ A_inv) @ basis.T   # rad and m: J is whitened
+    model = basis @ A_inv @ basis.T
+    x_t, o_t, start = _with_known(x_t, o_t, start, undetermined, R_L[0], known, rotations,
+                                  positions)
+    rotation, _ = residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, R_L)
+    return ReducedFit(x_q, x_t, o_q, o_t, *start, covariance, model, noise, rotation,
+                      _leave_one_out(A, J, e, scores) * noise, undetermined, converged)
+
+
+def _complement(fixed):
+    """Return an orthonormal basis (12, 12 - k) of the directions orthogonal to `fixed`."""
+    q, _ = np.linalg.qr(fixed, mode='complete')
+    return q[:, fixed.shape[1]:]
+
+
+def _linearised(link_q, link_t, sensor_q, sensor_t, R_L, x_q, x_t, o_q, o_t, basis, n):
+    """Return the whitened residuals (N, 6), Jacobian (N, 6, m) over `basis`, noise (6,)."""
+    rotation, position = residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, R_L)
+    dof = max(6 * n - basis.shape[1], 1) / (6.0 * n)
+    sigma_r = max(np.sqrt(np.mean(rotation ** 2) / dof), MIN_NOISE[0])
+    sigma_t = max(np.sqrt(np.mean(position ** 2) / dof), MIN_NOISE[3])
+    noise = np.array([sigma_r] * 3 + [sigma_t] * 3)
+    J = jacobian(R_L, quat.matrix_from_quaternion(x_q), lever(link_q, link_t, x_t, o_t, R_L))
+    e = np.concatenate([rotation, position], axis=1) / noise
+    return e, (J / noise[None, :, None]) @ basis, noise
+
+
+def _translations(R_L, link_t, sensor_t, x_q):
+    """Return (t_X, t_O) that fit o = l_i + R_Li (t_X + R_X s_i) best for rotation x_q."""
+    R_X = quat.matrix_from_quaternion(x_q)
+    n = len(R_L)
+    A = np.concatenate([-R_L, np.repeat(np.eye(3)[None], n, axis=0)], axis=2).reshape(-1, 6)
+    rhs = (link_t + np.einsum('nij,nj->ni', R_L, sensor_t @ R_X.T)).ravel()
+    solution = np.linalg.lstsq(A, rhs, rcond=None)[0]   # minimum norm along the null space
+    return solution[:3], solution[3:]
+
+
+def _position_cost(R_L, link_t, sensor_t, x_q):
+    x_t, o_t = _translations(R_L, link_t, sensor_t, x_q)
+    R_X = quat.matrix_from_quaternion(x_q)
+    predicted = link_t + np.einsum('nij,nj->ni', R_L, x_t + sensor_t @ R_X.T)
+    return float(np.sum((predicted - o_t) ** 2))
+
+
+def _grid_rotation(rotations, positions, axis):
+    """Return the rotation mapping the sensor's motion axis to `axis`, best turned about it."""
+    link_turns = quat.rotation_vector(quat.multiply(quat.conjugate(rotations.link[:1]),
+                                                    rotations.link))
+    sensor_turns = quat.rotation_vector(quat.multiply(rotations.sensor[:1],
+                                                      quat.conjugate(rotations.sensor)))
+    signs = np.sign(link_turns @ axis)
+    b = (signs[:, None] * sensor_turns).sum(axis=0)
+    b /= np.linalg.norm(b)
+    base = _rotation_between(b, axis)
+    R_L, link_t, sensor_t = rotations.link_matrices, positions.link, positions.sensor
+    candidates = [quat.multiply(quat.from_axis_angle(axis, phi), base)
+                  for phi in np.linspace(0.0, 2 * np.pi, GRID_STEPS, endpoint=False)]
+    costs = [_position_cost(R_L, link_t, sensor_t, q) for q in candidates]
+    return candidates[int(np.argmin(costs))]
+
+
+def _rotation_between(b, a):
+    """Return the quaternion of the smallest rotation taking unit b to unit a."""
+    cross, dot = np.cross(b, a), float(np.dot(b, a))
+    if dot < -1.0 + 1e-12:   # opposite: half a turn about any perpendicular axis
+        perpendicular = np.cross(b, [1.0, 0.0, 0.0])
+        if np.linalg.norm(perpendicular) < 1e-6:
+            perpendicular = np.cross(b, [0.0, 1.0, 0.0])
+        return quat.from_axis_angle(perpendicular, np.pi)
+    return quat.normalize(np.concatenate([[1.0 + dot], cross]))
+
+
+def _kabsch_rotation(R_L, link_t, sensor_t):
+    """Return R_X of a link that never turns: R_X (s_i - s) = -R_L0^T (l_i - l) (Kabsch)."""
+    p = sensor_t - sensor_t.mean(axis=0)
+    q = -(link_t - link_t.mean(axis=0)) @ R_L[0]
+    U, spread, Vt = np.linalg.svd(p.T @ q)
+    if spread[1] < 1e-6 * max(spread[0], 1e-300):
+        raise DegenerateMotionError(
+            'the link never turns and moves along one line only: the rotation about that line '
+            'is undetermined; move it in at least two directions')
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    return quat.quaternion_from_matrix(Vt.T @ np.diag([1.0, 1.0, d]) @ U.T)
+
+
+def _with_known(x_t, o_t, start, undetermined, R_L0, known, rotations, positions):
+    """Move t_X (and O with it) along the undetermined directions to the prior `known`."""
+    target = np.zeros(3) if known is None else np.asarray(known, float)
+    shift = undetermined.T @ (undetermined @ (target - x_t))
+    start_q, start_t = start
+    start_shift = undetermined.T @ (undetermined @ (target - start_t))
+    return x_t + shift, o_t + R_L0 @ shift, (start_q, start_t + start_shift)
+
+
+def _leave_one_out(A, J, e, scores):
+    """Return each sample's residual predicted without it (one Gauss-Newton step), whitened."""
+    predicted = np.empty_like(e)
+    for i in range(len(e)):
+        without = A - J[i].T @ J[i]
+        try:
+            moved = np.linalg.solve(without, scores[i])
+        except np.linalg.LinAlgError:
+            moved = np.linalg.pinv(without) @ scores[i]
+        predicted[i] = e[i] + J[i] @ moved
+    return predicted

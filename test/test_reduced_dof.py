@@ -1,0 +1,111 @@
+"""
+Robots that cannot turn the link freely: simulated SCARA and gantry cells with known answers.
+
+The rotation must come back within its uncertainty (and that uncertainty be honest over many
+cells), the undetermined translation be named in the right frame and take the user's prior,
+and the rest of the translation be recovered within its uncertainty.
+"""
+
+import json
+
+import numpy as np
+import pytest
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.calibration import calibrate, CalibrationOptions
+from quatcal_ros.files.samples_csv import format_samples
+from quatcal_ros.sim import simulation
+from quatcal_ros.stream.settings import ConfigError, known_translation
+from quatcal_ros.tools.cli import solve_main
+
+CELLS = 40
+
+
+def errors(result, cell):
+    """Return (rotation error deg, error of the determined translation mm)."""
+    rotation = np.degrees(quat.angle_between(result.quaternion, cell.mounting.quaternion))
+    d = np.array([u['direction'] for u in result.unobservable])
+    error = result.translation - cell.mounting.position
+    return rotation, 1e3 * np.linalg.norm(error - d.T @ (d @ error))
+
+
+@pytest.mark.parametrize('kind, setup', [('scara', 'eye_in_hand'), ('scara', 'eye_to_hand'),
+                                         ('gantry', 'eye_in_hand'), ('gantry', 'eye_to_hand')])
+def test_the_rotation_is_recovered_within_an_honest_uncertainty(kind, setup):
+    ratios = []
+    for seed in range(CELLS):
+        rng = np.random.default_rng(seed)
+        cell = simulation.random_cell(rng, setup)
+        samples = simulation.reduced_dof_samples(rng, cell, 25, kind, 0.1, 0.001)
+        result = calibrate(samples, CalibrationOptions(setup=setup))
+        rotation, translation = errors(result, cell)
+        ratios.append((rotation / result.uncertainty_deg,
+                       translation / max(result.translation_uncertainty_mm, 1e-12)))
+        assert result.method == 'refined' and result.validation['verdict'] == 'pass'
+    rms = np.sqrt(np.mean(np.square(ratios), axis=0))
+    # Over 40 cells an honest uncertainty gives an RMS ratio of 1 +- about 0.11 (1 sigma of a
+    # chi with 40 draws); [0.7, 1.3] leaves room for the small-sample sandwich.
+    assert 0.7 < rms[0] < 1.3, rms
+    if kind == 'scara':
+        assert 0.7 < rms[1] < 1.3, rms
+    else:
+        # A gantry determines no translation: nothing is left to be uncertain about.
+        assert result.translation_uncertainty_mm == 0 and rms[1] == 0
+
+
+def test_the_undetermined_direction_is_named_in_the_parent_frame():
+    rng = np.random.default_rng(5)
+    cell = simulation.random_cell(rng)
+    samples = simulation.reduced_dof_samples(rng, cell, 20, 'scara', 0.1, 0.001)
+    result = calibrate(samples)
+    (item,) = result.unobservable
+    # The SCARA turns about base z; home's z axis seen in the link frame is the link's axis.
+    expected = quat.matrix_from_quaternion(cell.home.quaternion).T @ [0.0, 0.0, 1.0]
+    assert item['what'] == 'translation' and 'one axis' in item['reason']
+    assert abs(np.dot(item['direction'], expected)) > 1 - 1e-9
+    assert abs(np.dot(result.translation, item['direction'])) < 1e-12   # zero: no prior
+    gantry = calibrate(simulation.reduced_dof_samples(rng, cell, 20, 'gantry', 0.1, 0.001))
+    directions = np.array([u['direction'] for u in gantry.unobservable])
+    np.testing.assert_allclose(directions @ directions.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(gantry.translation, 0.0, atol=1e-12)
+    assert 'never turns' in gantry.warnings[0]
+
+
+def test_the_known_translation_fills_only_the_undetermined_part():
+    rng = np.random.default_rng(6)
+    cell = simulation.random_cell(rng)
+    samples = simulation.reduced_dof_samples(rng, cell, 20, 'scara', 0.1, 0.001)
+    without = calibrate(samples)
+    known = tuple(cell.mounting.position + [0.3, -0.2, 0.0])   # right along z only
+    given = calibrate(samples, CalibrationOptions(known_translation=known))
+    d = np.array(given.unobservable[0]['direction'])
+    assert np.dot(given.translation, d) == pytest.approx(np.dot(known, d), abs=1e-12)
+    np.testing.assert_allclose(given.translation - np.dot(given.translation, d) * d,
+                               without.translation - np.dot(without.translation, d) * d,
+                               atol=1e-12)
+    assert 'from known_translation' in given.warnings[0]
+    assert np.linalg.norm(given.translation - cell.mounting.position) * 1e3 < \
+        4 * given.translation_uncertainty_mm
+
+
+def test_known_translation_setting_is_three_numbers():
+    assert known_translation('') is None
+    assert known_translation('0.1, -0.2 0.3') == (0.1, -0.2, 0.3)
+    for bad in ('0.1 0.2', 'a b c', '1 2 nan'):
+        with pytest.raises(ConfigError, match='known_translation'):
+            known_translation(bad)
+
+
+def test_solve_prints_the_unobservable_directions(tmp_path, capsys):
+    rng = np.random.default_rng(8)
+    cell = simulation.random_cell(rng)
+    path = tmp_path / 'scara.csv'
+    path.write_text(format_samples(simulation.reduced_dof_samples(rng, cell, 20, 'scara',
+                                                                  0.1, 0.001)))
+    assert solve_main([str(path), '--known-translation', '0 0 0.07']) == 0
+    result = json.loads(capsys.readouterr().out)
+    (item,) = result['unobservable']
+    assert item['what'] == 'translation' and len(item['direction']) == 3
+    assert result['translation']['z'] == pytest.approx(0.07, abs=1e-9)  # link z is the axis
+    assert result['next_pose'] is None
+    assert solve_main([str(path), '--known-translation', '0 0']) == 2
+    assert 'known_translation' in capsys.readouterr().err
