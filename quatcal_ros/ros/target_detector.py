@@ -16,15 +16,14 @@ bad message (an unknown encoding, a truncated image, a CameraInfo of zeros) are 
 reason, logged at most every 5 s, and skipped.
 """
 
-from collections import Counter
-
 import cv2
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from quatcal_ros.files.samples_csv import BadInputError
 from quatcal_ros.ros import conversions, spin
 from quatcal_ros.ros.qos import quiet_publisher_events
 from quatcal_ros.vision.board import read_board
-from quatcal_ros.vision.detect import Checks, detect
+from quatcal_ros.vision.detect import Checks
+from quatcal_ros.vision.image_sensor import ImageSensor
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
@@ -64,11 +63,11 @@ class TargetDetector(Node):
             self.board = read_board(values['board_file'])
         except BadInputError as error:
             raise ValueError(str(error)) from None
-        self.checks = Checks(min_corners=int(values['min_corners']),
-                             max_reprojection_px=float(values['max_reprojection_px']),
-                             min_sharpness=float(values['min_sharpness']))
-        self.camera = None
-        self.counts = Counter()
+        # The calibrator's own image sensor: the same checks, camera and counts.
+        self.sensor = ImageSensor(self.board, Checks(
+            min_corners=int(values['min_corners']),
+            max_reprojection_px=float(values['max_reprojection_px']),
+            min_sharpness=float(values['min_sharpness'])))
         self.pose_publisher = self.create_publisher(
             PoseWithCovarianceStamped, '~/pose', 10, event_callbacks=quiet_publisher_events())
         self.debug_publisher = (self.create_publisher(Image, '~/debug_image', 2,
@@ -84,29 +83,43 @@ class TargetDetector(Node):
                                f'({self.board.size[0]} x {self.board.size[1]}) in '
                                f'{"image/compressed" if compressed else "image"}')
 
+    @property
+    def camera(self):
+        """Return the vision.camera.Camera of the last usable camera_info, or None."""
+        return self.sensor.camera
+
+    @property
+    def counts(self):
+        """Return the images by outcome: 'images', 'detected' and each refusal's reason."""
+        return self.sensor.counts
+
     def _on_camera_info(self, msg):
         try:
-            self.camera = conversions.camera_from_camera_info(msg)
+            text = self.sensor.set_camera(conversions.camera_from_camera_info(msg))
         except BadInputError as error:
-            self._skip('bad_camera_info', str(error))
+            self.counts['bad_camera_info'] += 1
+            self._log('bad_camera_info', str(error))
+            return
+        if text:
+            self.get_logger().info('camera_info changed: new intrinsics from now on')
 
     def _on_image(self, msg):
-        self.counts['images'] += 1
-        if self.camera is None:
-            self._skip('no_camera_info', 'no usable camera_info received yet')
-            return
         try:
+            stamp_ns = conversions.stamp_ns_from_header(msg.header)
             gray = conversions.gray_from_image_msg(msg)
-        except conversions.BadImageError as error:
-            self._skip('bad_image', str(error))
+        except (conversions.BadImageError, ValueError) as error:
+            self.counts['images'] += 1
+            self.counts['bad_image'] += 1
+            self._log('bad_image', str(error))
             return
-        view = detect(gray, self.board, self.camera, self.checks)
+        view = self.sensor.view(stamp_ns, gray)
         if not view.ok:
-            self._skip(view.refused, view.detail)
+            self._log(view.refused, view.detail)
+            if view.refused == 'no_camera_info':
+                return
         else:
-            self.counts['detected'] += 1
             self.pose_publisher.publish(conversions.pose_with_covariance_stamped_msg(
-                view.pose, conversions.stamp_ns_from_header(msg.header), msg.header.frame_id))
+                view.pose, stamp_ns, msg.header.frame_id))
         if self.debug_publisher is not None:
             self.debug_publisher.publish(conversions.bgr_image_msg(
                 self._drawn(gray, view), msg.header))
@@ -122,8 +135,7 @@ class TargetDetector(Node):
                               0.5 * min(self.board.extent_m))
         return image
 
-    def _skip(self, reason, detail):
-        self.counts[reason] += 1
+    def _log(self, reason, detail):
         self.get_logger().warning(f'{reason} ({self.counts[reason]} so far): {detail}',
                                   throttle_duration_sec=LOG_THROTTLE_S)
 
