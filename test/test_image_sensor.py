@@ -45,19 +45,27 @@ def sensor_with_views(capture_mode='auto'):
     sensor.configure(config)
     sensor.camera = CAMERA
     for k, stamp in enumerate((1000, 1100, 1200, 1300, 1400, 2500)):
-        sensor._recent.append((stamp * MS, points(0.0, 0.03),
-                               np.array([[10.0 + k, 0.0], [20.0 + k, 0.0]])))
+        sensor._recent.append((stamp * MS, points(0.0, 0.03, 0.06, 0.09),
+                               np.array([[10.0 + k, 0.0], [20.0 + k, 0.0], [30.0, 0.0],
+                                         [40.0, 0.0]])))
     return sensor
 
 
 def test_a_still_sample_keeps_the_mean_of_its_window_and_continuous_the_nearest_view():
     still = sensor_with_views('auto')
     assert still.keep(Sample(1200 * MS, None, None))
-    np.testing.assert_allclose(still.corners[1200 * MS][1], [[12.0, 0.0], [22.0, 0.0]])
+    np.testing.assert_allclose(still.corners[1200 * MS][1][:2], [[12.0, 0.0], [22.0, 0.0]])
     assert not still.keep(Sample(1900 * MS, None, None))    # no view within 250 ms
     moving = sensor_with_views('continuous')
     assert moving.keep(Sample(1290 * MS, None, None))
-    np.testing.assert_allclose(moving.corners[1290 * MS][1], [[13.0, 0.0], [23.0, 0.0]])
+    np.testing.assert_allclose(moving.corners[1290 * MS][1][:2], [[13.0, 0.0], [23.0, 0.0]])
+    # Views that share fewer than 4 corners leave the sample without corners, not broken.
+    sparse = sensor_with_views('auto')
+    sparse._recent.clear()
+    sparse._recent.extend([(1000 * MS, points(0.0), np.zeros((1, 2))),
+                           (1100 * MS, points(0.03), np.zeros((1, 2))),
+                           (1200 * MS, points(0.06), np.zeros((1, 2)))])
+    assert not sparse.keep(Sample(1100 * MS, None, None)) and sparse.corners == {}
 
 
 def test_new_intrinsics_drop_the_corners_measured_with_the_old_ones():
@@ -85,7 +93,10 @@ def test_the_corners_file_reads_back_exactly_skips_a_torn_line_and_moves_aside(t
     assert np.array_equal(rows[0][2], pixels) and np.array_equal(rows[0][1], points(0, 0.1 / 3))
     resumed = CornersFile(path, resume=True)
     assert len(resumed.restored) == 1 and 'unreadable' in resumed.messages[0][1]
+    resumed.append(7, points(0.0), pixels[:1])   # after the torn tail was cut off
     resumed.close()
+    rows, skipped = read_corners(path)
+    assert skipped == 0 and [row[0] for row in rows] == [5, 7]
     fresh = CornersFile(path, resume=False)
     assert fresh.restored == [] and 'moved to' in fresh.messages[0][1]
     fresh.close()
@@ -149,7 +160,8 @@ def test_replay_of_camera_images_refines_on_the_corners(tmp_path, board_file, ca
     status = replay_main([str(tmp_path / 'cell'), '--link-topic', '/robot/pose',
                           '--image-topic', '/camera/color/image_raw',
                           '--board-file', str(board_file), '--still-window-s', '0.5',
-                          '--quiet', '--report', str(tmp_path / 'report.html')])
+                          '--quiet', '--report', str(tmp_path / 'report.html'),
+                          '--result-out', str(tmp_path / 'calibration.yaml')])
     out = capsys.readouterr()
     assert status == 0, out.err
     result = json.loads(out.out)
@@ -157,6 +169,9 @@ def test_replay_of_camera_images_refines_on_the_corners(tmp_path, board_file, ca
     assert result['pose_based_method'] == 'refined'
     assert result['views']['used'] == 8 and result['views']['counts']['bad_image'] == 64 // 7
     assert any('bad_image' in text for text in result['warnings'])
+    saved = plain_yaml.load_file(tmp_path / 'calibration.yaml')   # the answer printed
+    assert saved['method'] == 'reprojection'
+    assert saved['translation']['x'] == pytest.approx(result['translation']['x'], abs=1e-12)
     page = (tmp_path / 'report.html').read_text()
     assert 'reprojection' in page and page.count('<svg') == 4
     q = result['rotation']
@@ -180,3 +195,20 @@ def test_replay_of_images_names_what_is_missing(tmp_path, board_file, capsys):
     assert replay_main([*base, '--image-topic', '/camera/color/camera_info', '--board-file',
                         str(board_file)]) == 2
     assert 'has type sensor_msgs/msg/CameraInfo' in capsys.readouterr().err
+
+
+def test_new_intrinsics_start_the_corners_file_over(tmp_path, board_file):
+    from quatcal_ros.ros.image_samples import ImageSamples
+    from quatcal_ros.stream.settings import DEFAULTS, session_config, Settings
+    config = Settings.from_values({**DEFAULTS, 'sensor_input': 'image',
+                                   'board_file': str(board_file),
+                                   'samples_file': str(tmp_path / 'samples.csv')})
+    images = ImageSamples(config, session_config(config), tmp_path / 'samples.csv')
+    images.sensor.corners[5] = (points(0.0, 0.03, 0.06, 0.09), np.zeros((4, 2)))
+    assert images.keep([Sample(5, None, None)]) == [] and images.sync() == []
+    assert len(read_corners(corners_path(tmp_path / 'samples.csv'))[0]) == 1
+    (level, text), = images.camera_changed()
+    assert level == 'warning' and 'starts over' in text
+    assert read_corners(corners_path(tmp_path / 'samples.csv'))[0] == []
+    assert len(list(tmp_path.glob('samples.corners.jsonl.previous-*'))) == 1
+    images.close()

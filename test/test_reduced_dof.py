@@ -109,3 +109,16 @@ def test_solve_prints_the_unobservable_directions(tmp_path, capsys):
     assert result['next_pose'] is None
     assert solve_main([str(path), '--known-translation', '0 0']) == 2
     assert 'known_translation' in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('options', [CalibrationOptions(invert_sensor=True),
+                                     CalibrationOptions(setup='eye_to_hand')])
+def test_a_wrong_convention_is_named_not_published_quietly(options):
+    rng = np.random.default_rng(1)
+    cell = simulation.random_cell(rng)
+    samples = simulation.reduced_dof_samples(rng, cell, 20, 'scara', 0.1, 0.001)
+    assert not any('far better' in w for w in calibrate(samples).warnings)
+    result = calibrate(samples, options)
+    assert result.validation['verdict'] == 'fail'
+    assert any('far better with setup eye_in_hand and invert_sensor false' in w
+               for w in result.warnings), result.warnings

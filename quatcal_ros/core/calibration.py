@@ -286,6 +286,8 @@ def _reduced_result(samples, rotations, positions, motion, options):
     closed = Estimate(found.start_q, found.start_t, float('nan'), float('nan'))
     refined = Estimate(found.x_q, found.x_t, deg, mm)
     noise_deg, noise_mm = np.degrees(found.noise[0]), 1e3 * found.noise[3]
+    warnings = [warning, *conventions.rigid_fit_warnings(np.degrees(rotation_rms), noise_mm),
+                *_reduced_convention_warnings(samples, options, found.noise[3])]
     return CalibrationResult(
         quaternion=found.x_q, matrix=quat.matrix_from_quaternion(found.x_q), samples=n,
         motions=motion_count(n, options.pairs), inliers=motion_count(n, options.pairs),
@@ -295,7 +297,7 @@ def _reduced_result(samples, rotations, positions, motion, options):
         weakest_axis=axes[:, -1],
         hint=('reduced-DOF motions (the link cannot turn freely): more positions spread across '
               'the workspace, and turns by different angles, reduce the uncertainty'),
-        setup=options.setup, pairs=options.pairs, rejected=[], warnings=[warning],
+        setup=options.setup, pairs=options.pairs, rejected=[], warnings=warnings,
         translation=found.x_t, translation_uncertainty_mm=mm,
         translation_noise_mm=float(noise_mm), method='refined', closed_form=closed,
         refined=refined,
@@ -311,6 +313,38 @@ def _reduced_result(samples, rotations, positions, motion, options):
         sample_ok=np.ones(n, bool),
         unobservable=[{'what': 'translation', 'direction': [float(v) for v in d],
                        'reason': reason} for d in found.undetermined])
+
+
+# Another convention fits reduced-DOF samples this much better (position scatter): say so.
+CONVENTION_GAIN = 3.0
+
+
+def _reduced_convention_warnings(samples, options, noise_m):
+    """Name the setup and sensor direction under which reduced-DOF samples fit far better."""
+    best = None
+    for setup in SETUPS:
+        for invert in (False, True):
+            if (setup, invert) == (options.setup, options.invert_sensor):
+                continue
+            rotations = SampleRotations.from_samples(samples, setup, invert)
+            motion = reduced_dof.reduced_motion(rotations, options.min_motion_deg)
+            if motion is None:
+                continue
+            try:
+                fit = reduced_dof.fit(rotations,
+                                      SamplePositions.from_samples(samples, rotations), motion)
+            except (DegenerateMotionError, np.linalg.LinAlgError):
+                continue
+            if best is None or fit.noise[3] < best[0]:
+                best = fit.noise[3], setup, invert
+    if best is None or not best[0] * CONVENTION_GAIN < noise_m:
+        return []
+    scatter, setup, invert = best
+    return [f'the samples fit a rigid mounting far better with setup {setup} and '
+            f'invert_sensor {str(invert).lower()} (--setup {setup}'
+            f'{" --invert-sensor" if invert else ""}): position scatter {1e3 * scatter:.2g} mm '
+            f'against {1e3 * noise_m:.2g} mm as given; check the convention before using this '
+            'estimate']
 
 
 def _axis_text(axis):

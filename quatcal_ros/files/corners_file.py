@@ -28,15 +28,23 @@ def corners_path(samples_path):
 
 def read_corners(path):
     """Return ([(stamp_ns, points, pixels)], lines skipped) of a corners file."""
-    rows, skipped = [], 0
-    with open(path, encoding='utf-8') as file:
+    rows, skipped, _ = _read(path)
+    return rows, skipped
+
+
+def _read(path):
+    """Return (rows, lines skipped, bytes up to the end of the last readable line)."""
+    rows, skipped, intact, offset = [], 0, 0, 0
+    with open(path, 'rb') as file:
         for line in file:
+            offset += len(line)
             try:
                 item = json.loads(line)
                 rows.append((int(item['stamp_ns']), item['points'], item['pixels']))
+                intact = offset if line.endswith(b'\n') else intact
             except (ValueError, KeyError, TypeError):
                 skipped += 1
-    return rows, skipped
+    return rows, skipped, intact
 
 
 class CornersFile:
@@ -53,10 +61,12 @@ class CornersFile:
         self.restored, self.messages = [], []
         if self.path.exists():
             if resume:
-                self.restored, skipped = read_corners(self.path)
+                self.restored, skipped, intact = _read(self.path)
                 if skipped:
                     self.messages.append(('warning', f'{self.path}: {skipped} unreadable '
                                                      'line(s) skipped (a torn write?)'))
+                if intact < self.path.stat().st_size:   # cut a torn tail before appending
+                    os.truncate(self.path, intact)
             else:
                 moved = move_aside(self.path, PREVIOUS)
                 self.messages.append(('info', f'{self.path} of an earlier session moved to '

@@ -72,9 +72,9 @@ def convergence(counts, rotation_deg, uncertainty_deg, translation_mm, uncertain
     return svg_of(figure)
 
 
-def axis_coverage(axes_link, angles_deg, weakest_axis):
+def axis_coverage(axes_link, angles_deg, weakest_axis, frame='link'):
     """
-    Where the motions' rotation axes point (link frame), and how large the motions are.
+    Where the motions' rotation axes point (in `frame`), and how large the motions are.
 
     An axis and its opposite excite the same direction: each is drawn with z >= 0, in the two
     views x-y and x-z; the least determined axis is marked.
@@ -93,7 +93,7 @@ def axis_coverage(axes_link, angles_deg, weakest_axis):
         ax.set_xlim(-1.1, 1.1)
         ax.set_ylim(-1.1, 1.1)
         ax.set_aspect('equal')
-        ax.set_title(f'motion axes, link {name}', fontsize=9)
+        ax.set_title(f'motion axes, {frame} {name}', fontsize=9)
         ax.set_xlabel('xyz'[i])
         ax.set_ylabel('xyz'[j])
     top.legend(frameon=False, fontsize=8, loc='lower left')

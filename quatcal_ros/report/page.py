@@ -59,7 +59,8 @@ def report_html(result, samples, options, frames, title='', time_offset=None):
         'the final answer, and the uncertainty it reported.</p>',
         _figure(_convergence_figure(result, samples, options)),
         '<h2>Coverage of rotation axes</h2>',
-        f'<p>The rotation axis of each motion between consecutive samples, in the link frame. '
+        f'<p>The rotation axis of each motion between consecutive samples, in the '
+        f'{_frame(options)} frame (the frame of the least determined axis). '
         f'Sparse regions are directions the data do not excite; the least determined axis is '
         f'{_vector(result.weakest_axis)}. {escape(result.hint)}</p>',
         _figure(_coverage_figure(result, samples, options)),
@@ -160,7 +161,7 @@ def _convergence_figure(result, samples, options):
 
 
 def motion_axes(samples, result, options):
-    """Return (axes (M, 3) in the link frame, angles deg) of consecutive used samples' motions."""
+    """Return (axes (M, 3), angles deg) of consecutive used samples' motions (_frame's frame)."""
     rotations = SampleRotations.from_samples(samples, options.setup, options.invert_sensor)
     ok = (np.ones(len(samples), bool) if result.sample_ok is None
           else np.asarray(result.sample_ok, bool))
@@ -176,4 +177,9 @@ def _coverage_figure(result, samples, options):
     axes, angles = motion_axes(samples, result, options)
     if not len(axes):
         return '<p>(no motion)</p>'
-    return figures.axis_coverage(axes, angles, result.weakest_axis)
+    return figures.axis_coverage(axes, angles, result.weakest_axis, _frame(options))
+
+
+def _frame(options):
+    """Return the motions' frame: the link's (eye-in-hand), the robot base's (eye-to-hand)."""
+    return 'link' if options.setup == 'eye_in_hand' else 'base'

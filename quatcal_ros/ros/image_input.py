@@ -33,7 +33,8 @@ class ImageInput:
         :param sensor: vision.image_sensor.ImageSensor.
         :param screen: the PoseScreen that counts the sensor stream's messages.
         :param on_notice: on_notice(text) for what the user should know (new intrinsics).
-        :param on_new_camera: on_new_camera() after the first camera_info and new intrinsics.
+        :param on_new_camera: on_new_camera(changed) after the first camera_info (False) and
+            new intrinsics (True).
         """
         self.sensor = sensor
         self.screen = screen
@@ -52,7 +53,7 @@ class ImageInput:
         if text and self.on_notice is not None:
             self.on_notice(text)
         if (first or text) and self.on_new_camera is not None:
-            self.on_new_camera()
+            self.on_new_camera(bool(text))
 
     def take_image(self, msg, now_ns=0):
         """Return (stamp_ns, Pose) of the board in an image message, or None (counted)."""

@@ -79,6 +79,16 @@ class ImageSamples:
             return f'; {self.problem}'
         return ''
 
+    def camera_changed(self):
+        """Start the corners file over on new intrinsics (the old one is moved aside)."""
+        try:
+            self.file.restart()
+        except OSError as error:
+            self.problem = f'could not start a new corners file: {error}'
+            return [('error', self.problem)]
+        return [('warning', f'new intrinsics: {self.file.path} starts over (the corners '
+                            'measured with the old ones are moved aside)')]
+
     def close(self):
         """Fsync and close the corners file."""
         self._call(self.file.close)

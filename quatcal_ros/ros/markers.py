@@ -24,6 +24,7 @@ AXIS_LENGTH_M = 0.1
 CONE_LENGTH_M = 0.15
 CONE_SIDES = 24
 MIN_CONE_DEG = 0.5
+MAX_CONE_DEG = 80.0   # a cone of 90 deg or more has no rim in front of the sensor
 SIGMAS = 3.0
 COLOURS = {'x': (0.9, 0.1, 0.1, 1.0), 'y': (0.1, 0.8, 0.1, 1.0), 'z': (0.1, 0.3, 0.95, 1.0),
            'used': (0.1, 0.75, 0.2, 1.0), 'noisy': (1.0, 0.6, 0.0, 1.0),
@@ -95,7 +96,7 @@ def calibration_markers(result, samples, states, next_pose, setup, header):
 
 def _cone(header, index, origin, R, uncertainty_deg):
     """Return a TRIANGLE_LIST cone from the sensor's origin about its z axis."""
-    half = np.radians(max(SIGMAS * uncertainty_deg, MIN_CONE_DEG))
+    half = np.radians(min(max(SIGMAS * uncertainty_deg, MIN_CONE_DEG), MAX_CONE_DEG))
     radius = CONE_LENGTH_M * np.tan(half)
     angles = np.linspace(0.0, 2 * np.pi, CONE_SIDES + 1)
     rim = [origin + R @ np.array([radius * np.cos(a), radius * np.sin(a), CONE_LENGTH_M])

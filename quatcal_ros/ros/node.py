@@ -198,8 +198,10 @@ class CalibratorNode(Node):
         self.published = refined or result
         return self.published
 
-    def _on_new_camera(self):
-        """Estimate on the pixels again: the first or new intrinsics arrived."""
+    def _on_new_camera(self, changed):
+        """Estimate on the pixels again: the first or (changed) new intrinsics arrived."""
+        if changed:   # the corners kept were measured with the old ones
+            self.log.messages(self.images.camera_changed())
         if self.session.result is not None:
             self.handle_events([EstimateUpdated(self.session.result)])
 

@@ -377,10 +377,6 @@ def replay_main(argv=None):
         moved = MoveWatch().check(session.samples, session.result.quaternion, options.setup,
                                   options.invert_sensor)
         warnings += [moved] if moved else []
-    if session.result is not None and args.result_out:
-        status = _write_result(prog, args, session, warnings, report, link, sensor)
-        if status:
-            return status
     extra = {'time_offset': time_offset} if time_offset else {}
     on_pixels = None
     if images is not None:
@@ -389,10 +385,16 @@ def replay_main(argv=None):
         if on_pixels is None and session.result is not None:
             warnings.append(f'the estimate is on the board poses, not on the pixels: '
                             f'{len(images.corners)} samples kept corners (3 are needed; the '
-                            'time-offset search keeps none)')
+                            'time-offset search keeps none; a robot that cannot turn the '
+                            'link freely is solved on the poses)')
     if on_pixels is not None:
         extra.update({'reprojection': on_pixels[1].to_json_dict(),
                       'pose_based_method': session.result.method})
+    if session.result is not None and args.result_out:
+        status = _write_result(prog, args, on_pixels[0] if on_pixels else session.result,
+                               session, warnings, report, link, sensor)
+        if status:
+            return status
     return print_result(prog, session, where, warnings, frames=_replay_frames(args, report),
                         extra=extra, result=on_pixels and on_pixels[0],
                         limits=plan_limits(settings_of(args)), report=args.report)
@@ -408,7 +410,8 @@ def _sensor_input(bag, args, config):
         raise BadInputError('--image-topic needs --board-file: the board.yaml of the target')
     from quatcal_ros.vision.board import read_board   # cv2 only on the image path
     from quatcal_ros.vision.image_sensor import ImageSensor
-    info = args.camera_info_topic or args.image_topic.rsplit('/', 1)[0] + '/camera_info'
+    beside = args.image_topic.rsplit('/', 1)[0] + '/' if '/' in args.image_topic else ''
+    info = args.camera_info_topic or beside + 'camera_info'
     return (bag.PoseInput(topic=args.image_topic, camera_info=info),
             ImageSensor.of(read_board(args.board_file), config))
 
@@ -558,7 +561,7 @@ def _write_journal(prog, args, session, report):
     return EXIT_BAD_INPUT if messages else 0
 
 
-def _write_result(prog, args, session, warnings, report, link, sensor):
+def _write_result(prog, args, result, session, warnings, report, link, sensor):
     from quatcal_ros.ros.bag import result_frames
     seen = result_frames(report, args.setup, args.invert_sensor)
     frames = _replay_frames(args, report)
@@ -570,7 +573,7 @@ def _write_result(prog, args, session, warnings, report, link, sensor):
                   f'{chosen!r} written to {args.result_out}', file=sys.stderr)
     source = {'bag': str(args.bag), 'link': str(link), 'sensor': str(sensor),
               'capture': session.config.capture.mode}
-    saved = save_result(with_warnings(session.result, warnings), frames, args.setup,
+    saved = save_result(with_warnings(result, warnings), frames, args.setup,
                         result_file=args.result_out, extra={'source': source})
     for _, target, error in saved.failed:
         return fail(prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)

@@ -26,6 +26,8 @@ from quatcal_ros.vision.reprojection import refine_from_poses
 RECENT_VIEWS = 256
 # A corner goes into a sample's mean when at least this share of the window's views saw it.
 MIN_CORNER_SHARE = 0.5
+# A sample keeps corners only when at least this many pass that share.
+MIN_SAMPLE_CORNERS = 4
 
 
 def corner_key(point):
@@ -112,7 +114,10 @@ class ImageSensor:
             return False
         if not self.average:
             near = [min(near, key=lambda v: abs(v[0] - stamp))]
-        self.corners[stamp] = mean_corners([(points, pixels) for _, points, pixels in near])
+        points, pixels = mean_corners([(points, pixels) for _, points, pixels in near])
+        if len(points) < MIN_SAMPLE_CORNERS:   # the views saw different parts of the board
+            return False
+        self.corners[stamp] = points, pixels
         return True
 
     def restore(self, stamp_ns, points, pixels):
@@ -128,11 +133,12 @@ class ImageSensor:
         """
         Return (CalibrationResult on the pixels, ReprojectionFit), or None.
 
-        None without a camera or with fewer than three samples with corners among those the
-        result used; the fit covers the samples that have corners.
+        None without a camera, for a result with undetermined directions (reduced-DOF robots:
+        the fit on the pixels would move along them), or with fewer than three samples with
+        corners among those the result used; the fit covers the samples that have corners.
         """
-        if self.camera is None or result is None:
-            return None
+        if self.camera is None or result is None or result.unobservable:
+            return None   # (a robot that cannot turn freely: the pixel fit has no gauge)
         have = [i for i, sample in enumerate(samples) if sample.stamp_ns in self.corners]
         ok = [bool(result.sample_ok[i]) for i in have]
         if sum(ok) < 3:
@@ -155,8 +161,8 @@ def mean_corners(views):
             counts[key] += 1
             points[key] = point
     keys = [key for key in points if counts[key] >= MIN_CORNER_SHARE * len(views)]
-    return (np.array([points[k] for k in keys], float),
-            np.array([sums[k] / counts[k] for k in keys], float))
+    return (np.array([points[k] for k in keys], float).reshape(-1, 3),
+            np.array([sums[k] / counts[k] for k in keys], float).reshape(-1, 2))
 
 
 def result_on_pixels(result, fit):
