@@ -103,6 +103,10 @@ CASES = {
         'seed': 3, 'setup': 'eye_to_hand', 'link_rate_hz': 250.0, 'sensor_rate_hz': 25.0,
         'latency_s': 0.03, 'drop_probability': 0.05, 'still_s': 0.5, 'move_s': 1.0,
         'clock_offset_s': 0.013},
+    'eye_in_hand_scara': {
+        'seed': 5, 'setup': 'eye_in_hand', 'link_rate_hz': 200.0, 'sensor_rate_hz': 20.0,
+        'latency_s': 0.03, 'drop_probability': 0.05, 'still_s': 0.5, 'move_s': 1.0,
+        'robot': 'scara'},
 }
 
 
@@ -121,7 +125,8 @@ def _expected_streams(values, start_ns):
         move_s=values['move_s'], rotation_noise_deg=values.get('rotation_noise_deg', 0.2),
         translation_noise_m=values.get('translation_noise_m', 0.001),
         latency_s=values['latency_s'], drop_probability=values['drop_probability'],
-        start_ns=start_ns, clock_offset_s=values.get('clock_offset_s', 0.0))
+        start_ns=start_ns, clock_offset_s=values.get('clock_offset_s', 0.0),
+        robot=values.get('robot', 'arm'))
 
 
 @pytest.mark.parametrize('case', sorted(CASES))
@@ -190,6 +195,12 @@ def test_publishes_latched_truth_and_the_simulated_streams(context, namespace, c
     for stamp, pose, *_ in sensor:
         assert_allclose(pose.position, expected_sensor[stamp].position, rtol=0, atol=1e-12)
 
+    if values.get('robot') == 'scara':   # every link orientation: home turned about base z
+        home = sim_node.cell.home.quaternion
+        for _, pose, *_ in link:
+            turn = quat.rotation_vector(quat.multiply(pose.quaternion, quat.conjugate(home)))
+            assert_allclose(turn[:2], 0.0, atol=1e-9)
+
     # Noise free: link @ X @ sensor is the fixed object (sensor stamps are on link stamps).
     if values.get('rotation_noise_deg', 0.2) == 0.0 and values['setup'] == 'eye_in_hand':
         link_by_stamp = {stamp: pose for stamp, pose, *_ in link}
@@ -236,6 +247,7 @@ def test_follows_the_ros_clock_with_use_sim_time(context, namespace):
 
 @pytest.mark.parametrize('overrides, error, message', [
     ({'setup': 'on_the_table'}, ValueError, 'setup'),
+    ({'robot': 'hexapod'}, ValueError, 'parameter robot must be one of'),
     ({'mounting_xyz': [0.1, 0.2]}, ValueError, 'mounting_xyz'),
     ({'mounting_xyz': [0.1, 0.2, 0.3]}, ValueError, 'give both'),
     ({'drop_probability': 1.5}, InvalidParameterValueException, 'drop_probability'),

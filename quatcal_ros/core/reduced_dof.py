@@ -57,7 +57,9 @@ def reduced_motion(rotations, min_motion_deg):
     _, spread, axes = np.linalg.svd(moved, full_matrices=False)
     if len(spread) > 1 and spread[1] > np.sin(np.radians(SINGLE_AXIS_DEG)) * spread[0]:
         return None
-    return ReducedMotion('single_axis', axes[0] / np.linalg.norm(axes[0]))
+    axis = axes[0] / np.linalg.norm(axes[0])
+    axis = np.where(np.abs(axis) < 1e-12, 0.0, axis)   # no -0.0 or 3e-16 in the output
+    return ReducedMotion('single_axis', axis * np.sign(axis[np.argmax(np.abs(axis))]) + 0.0)
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,10 @@ sensor_frame on /tf_static, and the detector's sensor_frame -> marker_frame on /
 camera's rate, with the same noise, latency and drops. The calibrator reads it with
 robot_base_frame, robot_effector_frame, tracking_base_frame and tracking_marker_frame.
 
-With seed S, the poses are those of simulation.stop_and_go_streams() for the same rng, cell
+With robot:=scara the link turns about base z only (by up to rotation_spread_deg), with
+robot:=gantry not at all: the calibrator then solves what such motions determine and names the
+rest (its "unobservable" output). With seed S, the poses are those of
+simulation.stop_and_go_streams() for the same rng, cell
 and start: rng = default_rng(S); cell = random_cell(rng, setup[, mounting]); streams(rng, ...).
 """
 
@@ -64,6 +67,8 @@ PARAMETERS = {
     'still_s': (1.5, 'time the robot stands still at each stop (s)', (0.0, 60.0)),
     'move_s': (2.0, 'time of each move between stops (s)', (0.1, 60.0)),
     'rotation_spread_deg': (30.0, 'largest rotation of a stop from home (deg)', (0.0, 90.0)),
+    'robot': ('arm', "'arm' (turns the link about any axis), 'scara' (about base z only) or "
+              "'gantry' (never turns)", None),
     'n_stops': (0, 'number of stops, then hold the last one; 0 = forever', (0, 1_000_000)),
     'mounting_xyz': (Parameter.Type.DOUBLE_ARRAY,
                      'mounting translation x, y, z (m); empty = random from seed', None),
@@ -108,6 +113,7 @@ class SimCellConfig:
     still_s: float
     move_s: float
     rotation_spread_deg: float
+    robot: str
     n_stops: int
     mounting: object    # Pose, or None for a random one
     base_frame: str
@@ -147,6 +153,9 @@ def read_config(node):
     for name, (default, description, limits) in PARAMETERS.items():
         parameter = node.declare_parameter(name, default, _descriptor(description, limits))
         values[name] = parameter.value
+    if values['robot'] not in simulation.ROBOTS:
+        raise ValueError(f'parameter robot must be one of {simulation.ROBOTS}, not '
+                         f'{values["robot"]!r}')
     if values['setup'] not in SETUPS:
         setup = values['setup']
         raise ValueError(f'parameter setup must be one of {SETUPS}, not {setup!r}')
@@ -173,7 +182,7 @@ class SimCell(Node):
         self.cell = simulation.random_cell(rng, config.setup, mounting=config.mounting)
         self._trajectory = simulation.StopAndGo(
             rng, self.cell, config.still_s, config.move_s, config.n_stops,
-            config.rotation_spread_deg)
+            config.rotation_spread_deg, config.robot)
         self._sensor = simulation.SensorModel(
             rng, config.rotation_noise_deg, config.translation_noise_m,
             config.drop_probability, config.outlier_fraction)

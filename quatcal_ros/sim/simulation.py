@@ -31,6 +31,8 @@ DEFAULT_START_NS = 1_700_000_000 * NS_PER_S
 HOME_POSITION = (0.45, 0.0, 0.55)
 HOME_QUATERNION = (0.0, 1.0, 0.0, 0.0)
 OUTLIER_KINDS = ('flip_x', 'flip_y', 'random')
+# StopAndGo's robots: a 6-axis arm, or one that cannot turn the link freely (REDUCED_KINDS).
+ROBOTS = ('arm', 'scara', 'gantry')
 _FLIP_X = np.array([0.0, 1.0, 0.0, 0.0])
 _FLIP_Y = np.array([0.0, 0.0, 1.0, 0.0])
 
@@ -431,6 +433,9 @@ class StopAndGo:
     """
     A robot that stands still at each stop for still_s, then moves to the next in move_s.
 
+    robot 'arm' visits stop_poses(); 'scara' and 'gantry' reduced_dof_poses() (turns about base
+    z of up to rotation_spread_deg, or none).
+
     Stops k = 0, 1, ... are stop_poses() of the cell, drawn one at a time (when first needed)
     from a generator spawned from rng.  Times t_ns are integer nanoseconds since the start:
     stop k is held during [k P, k P + still) with P = still + move; the move to stop k + 1
@@ -439,7 +444,10 @@ class StopAndGo:
     k = n_stops - 1 on.
     """
 
-    def __init__(self, rng, cell, still_s=1.5, move_s=2.0, n_stops=0, rotation_spread_deg=30.0):
+    def __init__(self, rng, cell, still_s=1.5, move_s=2.0, n_stops=0, rotation_spread_deg=30.0,
+                 robot='arm'):
+        if robot not in ROBOTS:
+            raise ValueError(f'robot must be one of {ROBOTS}, not {robot!r}')
         if still_s < 0.0 or move_s <= 0.0:
             raise ValueError(f'need still_s >= 0 and move_s > 0, not {still_s}, {move_s}')
         if n_stops < 0:
@@ -450,6 +458,7 @@ class StopAndGo:
         self.period_ns = self.still_ns + self.move_ns
         self.n_stops = int(n_stops)
         self.rotation_spread_deg = rotation_spread_deg
+        self.robot = robot
         self._rng = rng.spawn(1)[0]
         self._positions = np.empty((0, 3))
         self._quaternions = np.empty((0, 4))
@@ -463,9 +472,14 @@ class StopAndGo:
 
     def _ensure(self, count):
         new = count - len(self._positions)
-        if new > 0:
+        if new > 0 and self.robot != 'arm':
+            p, q = _stack([poses_from_arrays(*reduced_dof_poses(
+                self._rng, self.cell, 1, self.robot, turn_deg=self.rotation_spread_deg))[0]
+                for _ in range(new)])
+        elif new > 0:
             p, q = _stack([stop_poses(self._rng, self.cell, 1, self.rotation_spread_deg)[0]
                            for _ in range(new)])
+        if new > 0:
             self._positions = np.concatenate([self._positions, p])
             self._quaternions = np.concatenate([self._quaternions, q])
 
@@ -552,9 +566,12 @@ def stop_and_go_streams(rng, cell, n_stops, link_rate_hz=500.0, sensor_rate_hz=3
                         still_s=1.5, move_s=2.0, rotation_noise_deg=0.0,
                         translation_noise_m=0.0, latency_s=0.03, drop_probability=0.05,
                         outlier_fraction=0.0, rotation_spread_deg=30.0,
-                        start_ns=DEFAULT_START_NS, clock_offset_s=0.0):
+                        start_ns=DEFAULT_START_NS, clock_offset_s=0.0, robot='arm'):
     """
     Link and sensor streams of a robot visiting n_stops stops (StopAndGo, SensorModel).
+
+    robot: 'arm' (stop_poses), or 'scara' / 'gantry' (reduced_dof_poses: the link turns by up
+    to rotation_spread_deg about base z, or not at all).
 
     Link samples are at start_ns + grid_times_ns(i, link_rate_hz), sensor exposures at
     start_ns + grid_times_ns(j, sensor_rate_hz), both up to the end of the last still interval;
@@ -570,7 +587,7 @@ def stop_and_go_streams(rng, cell, n_stops, link_rate_hz=500.0, sensor_rate_hz=3
         raise ValueError(f'n_stops must be >= 1, not {n_stops}')
     if latency_s < 0.0 or link_rate_hz <= 0.0 or sensor_rate_hz <= 0.0:
         raise ValueError('need latency_s >= 0 and positive rates')
-    trajectory = StopAndGo(rng, cell, still_s, move_s, n_stops, rotation_spread_deg)
+    trajectory = StopAndGo(rng, cell, still_s, move_s, n_stops, rotation_spread_deg, robot)
     sensor = SensorModel(rng, rotation_noise_deg, translation_noise_m, drop_probability,
                          outlier_fraction)
     end = trajectory.duration_ns
@@ -599,6 +616,18 @@ def stop_and_go_streams(rng, cell, n_stops, link_rate_hz=500.0, sensor_rate_hz=3
 REDUCED_KINDS = ('scara', 'gantry')
 
 
+def reduced_dof_poses(rng, cell, n, kind='scara', reach_m=0.15, turn_deg=60.0):
+    """Return n link poses (positions (n, 3), quaternions (n, 4)) of reduced_dof_samples."""
+    if kind not in REDUCED_KINDS:
+        raise ValueError(f'kind must be one of {REDUCED_KINDS}, not {kind!r}')
+    positions = np.asarray(cell.home.position) + rng.uniform(-reach_m, reach_m, (n, 3))
+    if kind == 'scara':
+        turns = np.radians(rng.uniform(-turn_deg, turn_deg, n))
+        spins = np.column_stack([np.cos(turns / 2), np.zeros((n, 2)), np.sin(turns / 2)])
+        return positions, quat.multiply(spins, np.asarray(cell.home.quaternion)[None])
+    return positions, np.repeat(np.asarray(cell.home.quaternion, float)[None], n, axis=0)
+
+
 def reduced_dof_samples(rng, cell, n, kind='scara', rotation_noise_deg=0.0,
                         translation_noise_m=0.0, reach_m=0.15, turn_deg=60.0,
                         start_ns=DEFAULT_START_NS, period_ns=2 * NS_PER_S):
@@ -610,15 +639,7 @@ def reduced_dof_samples(rng, cell, n, kind='scara', rotation_noise_deg=0.0,
     turns the link about one fixed axis (home's z axis seen in the link frame). gantry: the
     link keeps home's orientation and only moves. Sensor poses get add_pose_noise.
     """
-    if kind not in REDUCED_KINDS:
-        raise ValueError(f'kind must be one of {REDUCED_KINDS}, not {kind!r}')
-    positions = np.asarray(cell.home.position) + rng.uniform(-reach_m, reach_m, (n, 3))
-    if kind == 'scara':
-        turns = np.radians(rng.uniform(-turn_deg, turn_deg, n))
-        spins = np.column_stack([np.cos(turns / 2), np.zeros((n, 2)), np.sin(turns / 2)])
-        quaternions = quat.multiply(spins, np.asarray(cell.home.quaternion)[None])
-    else:
-        quaternions = np.repeat(np.asarray(cell.home.quaternion, float)[None], n, axis=0)
+    positions, quaternions = reduced_dof_poses(rng, cell, n, kind, reach_m, turn_deg)
     sensor_p, sensor_q = cell.sensor_poses(positions, quaternions)
     sensor_p, sensor_q = add_pose_noise(rng, sensor_p, sensor_q, rotation_noise_deg,
                                         translation_noise_m)
