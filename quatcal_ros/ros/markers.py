@@ -13,9 +13,9 @@ After each estimate the node publishes, namespace `quatcal`:
 On ~/reset one DELETEALL clears them. Lengths in metres.
 """
 
+from geometry_msgs.msg import Point
 import numpy as np
 from quatcal_ros.core.pose import Pose
-from quatcal_ros.ros import conversions
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -38,7 +38,13 @@ def _colour(name):
 
 
 def _point(xyz):
-    return conversions.pose_msg(Pose(np.asarray(xyz, float), np.array([1.0, 0, 0, 0]))).position
+    x, y, z = (float(v) for v in xyz)
+    return Point(x=x, y=y, z=z)
+
+
+def _points(rows):
+    """Return geometry_msgs/Point of each row of an (N, 3) array (the sample dots, the cone)."""
+    return [Point(x=x, y=y, z=z) for x, y, z in np.asarray(rows, float).tolist()]
 
 
 def _marker(header, name, index, kind, colour, scale=(1.0, 1.0, 1.0)):
@@ -79,8 +85,9 @@ def calibration_markers(result, samples, states, next_pose, setup, header):
     sphere.pose.position = _point(origin)
     markers.append(sphere)
     dots = _marker(header, 'samples', 5, Marker.SPHERE_LIST, 'used', (0.015,) * 3)
-    dots.points = [_point(s.link.position) for s in samples]
-    dots.colors = [_colour(state) for state in states]
+    dots.points = _points([s.link.position for s in samples])
+    palette = {state: _colour(state) for state in set(states)}
+    dots.colors = [palette[state] for state in states]
     markers.append(dots)
     if next_pose is not None:
         link = next_pose.link
@@ -99,10 +106,11 @@ def _cone(header, index, origin, R, uncertainty_deg):
     half = np.radians(min(max(SIGMAS * uncertainty_deg, MIN_CONE_DEG), MAX_CONE_DEG))
     radius = CONE_LENGTH_M * np.tan(half)
     angles = np.linspace(0.0, 2 * np.pi, CONE_SIDES + 1)
-    rim = [origin + R @ np.array([radius * np.cos(a), radius * np.sin(a), CONE_LENGTH_M])
-           for a in angles]
+    rim = origin + np.column_stack([radius * np.cos(angles), radius * np.sin(angles),
+                                    np.full(len(angles), CONE_LENGTH_M)]) @ R.T
     cone = _marker(header, 'rotation uncertainty', index, Marker.TRIANGLE_LIST, 'cone')
-    cone.points = [_point(p) for a, b in zip(rim, rim[1:]) for p in (origin, a, b)]
+    triangles = np.stack([np.repeat(origin[None], CONE_SIDES, axis=0), rim[:-1], rim[1:]], axis=1)
+    cone.points = _points(triangles.reshape(-1, 3))
     return cone
 
 
