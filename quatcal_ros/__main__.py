@@ -55,7 +55,8 @@ def main(argv=None):
         # ROS nodes take rclpy's argument list (with --ros-args) including a program name;
         # a stop signal while they import ends them cleanly too.
         from quatcal_ros.ros import stop_signals
-        stop_signals.received.extend(EARLY_SIGNALS)
+        stop_signals.guard()   # first: a signal from now on goes to its list...
+        stop_signals.received[:0] = EARLY_SIGNALS   # ... after those noted before
         return stop_signals.run(module, [argv[0]] + argv[1:]) or 0
     tool_main = getattr(importlib.import_module(module), function)
     return tool_main(argv[1:]) or 0

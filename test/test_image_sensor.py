@@ -212,3 +212,14 @@ def test_new_intrinsics_start_the_corners_file_over(tmp_path, board_file):
     assert read_corners(corners_path(tmp_path / 'samples.csv'))[0] == []
     assert len(list(tmp_path.glob('samples.corners.jsonl.previous-*'))) == 1
     images.close()
+
+
+def test_a_last_record_without_its_newline_is_kept(tmp_path):
+    path = tmp_path / 'samples.corners.jsonl'
+    path.write_text('{"stamp_ns": 5, "points": [[0, 0, 0]], "pixels": [[1, 2]]}\n'
+                    '{"stamp_ns": 6, "points": [[0, 0, 0]], "pixels": [[3, 4]]}')
+    resumed = CornersFile(path, resume=True)
+    assert [row[0] for row in resumed.restored] == [5, 6]
+    resumed.append(7, points(0.0), np.zeros((1, 2)))
+    resumed.close()
+    assert [row[0] for row in read_corners(path)[0]] == [5, 6, 7]

@@ -249,15 +249,20 @@ def _solve(samples, options, previous=None):
         if motion is not None:   # a SCARA or a gantry: solve what the translations fix
             try:
                 return _Solution(_reduced_result(samples, rotations, positions, motion,
-                                                 options), None)
+                                                 options, check=previous is None), None)
             except DegenerateMotionError as reduced:
                 advice.append(f'(Nor can the translations fix it: {reduced}.)')
         raise type(error)(' '.join([str(error)] + advice)) from None
     return _estimate(samples, rotations, positions, fit, options, previous)
 
 
-def _reduced_result(samples, rotations, positions, motion, options):
-    """Return the CalibrationResult of reduced-DOF motions (reduced_dof.py)."""
+def _reduced_result(samples, rotations, positions, motion, options, check=True):
+    """
+    Return the CalibrationResult of reduced-DOF motions (reduced_dof.py).
+
+    check: compare the other conventions too (a full solve; the live node's warm solves
+    between full ones skip it, as the full-DOF path does).
+    """
     found = reduced_dof.fit(rotations, positions, motion, options.known_translation)
     n = len(samples)
     deg, mm = uncertainties(found.covariance)
@@ -287,7 +292,8 @@ def _reduced_result(samples, rotations, positions, motion, options):
     refined = Estimate(found.x_q, found.x_t, deg, mm)
     noise_deg, noise_mm = np.degrees(found.noise[0]), 1e3 * found.noise[3]
     warnings = [warning, *conventions.rigid_fit_warnings(np.degrees(rotation_rms), noise_mm),
-                *_reduced_convention_warnings(samples, options, found.noise[3])]
+                *(_reduced_convention_warnings(samples, options, found.noise[3]) if check
+                  else [])]
     return CalibrationResult(
         quaternion=found.x_q, matrix=quat.matrix_from_quaternion(found.x_q), samples=n,
         motions=motion_count(n, options.pairs), inliers=motion_count(n, options.pairs),

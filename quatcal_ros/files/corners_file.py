@@ -41,10 +41,16 @@ def _read(path):
             try:
                 item = json.loads(line)
                 rows.append((int(item['stamp_ns']), item['points'], item['pixels']))
-                intact = offset if line.endswith(b'\n') else intact
+                intact = offset   # a whole record (its newline, if lost, is added back)
             except (ValueError, KeyError, TypeError):
                 skipped += 1
     return rows, skipped, intact
+
+
+def _ends_with_newline(path):
+    with open(path, 'rb') as file:
+        file.seek(-1, os.SEEK_END)
+        return file.read(1) == b'\n'
 
 
 class CornersFile:
@@ -65,8 +71,12 @@ class CornersFile:
                 if skipped:
                     self.messages.append(('warning', f'{self.path}: {skipped} unreadable '
                                                      'line(s) skipped (a torn write?)'))
-                if intact < self.path.stat().st_size:   # cut a torn tail before appending
+                size = self.path.stat().st_size
+                if intact < size:   # cut a torn tail before appending
                     os.truncate(self.path, intact)
+                if intact and not _ends_with_newline(self.path):
+                    with open(self.path, 'a', encoding='utf-8') as file:
+                        file.write('\n')   # a last record whose newline was lost
             else:
                 moved = move_aside(self.path, PREVIOUS)
                 self.messages.append(('info', f'{self.path} of an earlier session moved to '

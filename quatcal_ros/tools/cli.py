@@ -383,10 +383,11 @@ def replay_main(argv=None):
         extra['views'] = {'used': len(images.corners), 'counts': dict(images.counts)}
         on_pixels = images.on_pixels(session.samples, session.result, args.setup, args.robust)
         if on_pixels is None and session.result is not None:
-            warnings.append(f'the estimate is on the board poses, not on the pixels: '
-                            f'{len(images.corners)} samples kept corners (3 are needed; the '
-                            'time-offset search keeps none; a robot that cannot turn the '
-                            'link freely is solved on the poses)')
+            why = ('a robot that cannot turn the link freely is solved on the poses'
+                   if session.result.unobservable else
+                   f'{len(images.corners)} samples kept corners (3 are needed; the '
+                   'time-offset search keeps none)')
+            warnings.append(f'the estimate is on the board poses, not on the pixels: {why}')
     if on_pixels is not None:
         extra.update({'reprojection': on_pixels[1].to_json_dict(),
                       'pose_based_method': session.result.method})
