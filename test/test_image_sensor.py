@@ -16,11 +16,8 @@ from quatcal_ros.vision.board import parse_board
 from quatcal_ros.vision.camera import camera_from
 from quatcal_ros.vision.image_sensor import ImageSensor, mean_corners
 from quatcal_ros.vision.render import cell_views, Renderer
+from rendered_cell import BOARD, CAMERA, write_board
 
-BOARD = {'type': 'charuco', 'squares_x': 7, 'squares_y': 5, 'square_length_m': 0.03,
-         'marker_length_m': 0.022, 'dictionary': 'DICT_5X5_100'}
-CAMERA = camera_from(640, 480, [[600, 0, 320], [0, 600, 240], [0, 0, 1]], 'plumb_bob',
-                     [0, 0, 0, 0, 0])
 MS = 1_000_000
 
 
@@ -38,11 +35,8 @@ def test_mean_corners_averages_each_corner_seen_by_most_views():
 
 
 def sensor_with_views(capture_mode='auto'):
-    sensor = ImageSensor(parse_board(BOARD))
-    config = SessionConfig()
-    config = SessionConfig(capture=type(config.capture)(mode=capture_mode,
-                                                        window_ns=500 * MS))
-    sensor.configure(config)
+    capture = type(SessionConfig().capture)(mode=capture_mode, window_ns=500 * MS)
+    sensor = ImageSensor(parse_board(BOARD), session_config=SessionConfig(capture=capture))
     sensor.camera = CAMERA
     for k, stamp in enumerate((1000, 1100, 1200, 1300, 1400, 2500)):
         sensor._recent.append((stamp * MS, points(0.0, 0.03, 0.06, 0.09),
@@ -150,9 +144,7 @@ def write_image_bag(path, n_stops, seed=4, bad_every=0):
 
 @pytest.fixture
 def board_file(tmp_path):
-    path = tmp_path / 'board.yaml'
-    path.write_text(plain_yaml.dump(BOARD))
-    return path
+    return write_board(tmp_path)
 
 
 def test_replay_of_camera_images_refines_on_the_corners(tmp_path, board_file, capsys):

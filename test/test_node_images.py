@@ -23,22 +23,18 @@ from quatcal_ros.ros import conversions
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.stream.settings import ConfigError
 from quatcal_ros.vision.board import parse_board
-from quatcal_ros.vision.camera import camera_from
 from quatcal_ros.vision.render import cell_views, Renderer
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rendered_cell import BOARD, CAMERA, camera_info_msg, write_board
 from ros_harness import harnesses_of, LATCHED, SpinMixin
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-BOARD = {'type': 'charuco', 'squares_x': 7, 'squares_y': 5, 'square_length_m': 0.03,
-         'marker_length_m': 0.022, 'dictionary': 'DICT_5X5_100'}
-CAMERA = camera_from(640, 480, [[600, 0, 320], [0, 600, 240], [0, 0, 1]], 'plumb_bob',
-                     [0, 0, 0, 0, 0])
 RELIABLE = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
 START_NS = 1_700_000_000 * NS_PER_S
 STILL_S, LINK_HZ, IMAGE_HZ = 0.8, 25.0, 10.0
@@ -78,11 +74,7 @@ class Harness(SpinMixin):
                         what='discovery of the calibrator')
 
     def send_info(self):
-        msg = CameraInfo(width=CAMERA.width, height=CAMERA.height,
-                         distortion_model=CAMERA.distortion_model)
-        msg.k = [float(v) for v in CAMERA.K.ravel()]
-        msg.d = [float(v) for v in CAMERA.D]
-        self.info.publish(msg)
+        self.info.publish(camera_info_msg())
 
     def send_stop(self, stamp_ns, link_pose, gray):
         """
@@ -117,9 +109,7 @@ def make_harness(domain_id):
 
 @pytest.fixture
 def board_file(tmp_path):
-    path = tmp_path / 'board.yaml'
-    path.write_text(plain_yaml.dump(BOARD))
-    return path
+    return write_board(tmp_path)
 
 
 def send_cell(h, n_stops, seed=3, noise=1.5):

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import residual_order
-from quatcal_ros.files import plain_yaml
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.target_detector import TargetDetector
 from quatcal_ros.vision.board import parse_board
@@ -17,14 +16,10 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
+from rendered_cell import BOARD, CAMERA, camera_info_msg, write_board
 from ros_harness import harnesses_of, SpinMixin
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
-
-BOARD = {'type': 'charuco', 'squares_x': 7, 'squares_y': 5, 'square_length_m': 0.03,
-         'marker_length_m': 0.022, 'dictionary': 'DICT_5X5_100'}
-CAMERA = camera_from(640, 480, [[600, 0, 320], [0, 600, 240], [0, 0, 1]], 'plumb_bob',
-                     [0, 0, 0, 0, 0])
 
 
 class Harness(SpinMixin):
@@ -57,11 +52,7 @@ class Harness(SpinMixin):
                         what='discovery of the target detector')
 
     def send_info(self, camera=CAMERA):
-        msg = CameraInfo(width=camera.width, height=camera.height,
-                         distortion_model=camera.distortion_model)
-        msg.k = [float(v) for v in camera.K.ravel()]
-        msg.d = [float(v) for v in camera.D]
-        self.info.publish(msg)
+        self.info.publish(camera_info_msg(camera))
 
     def send_image(self, gray, stamp_s=100, encoding='mono8'):
         header = Header(frame_id='camera_color_optical_frame')
@@ -78,9 +69,7 @@ class Harness(SpinMixin):
 
 @pytest.fixture
 def board_file(tmp_path):
-    path = tmp_path / 'board.yaml'
-    path.write_text(plain_yaml.dump(BOARD))
-    return path
+    return write_board(tmp_path)
 
 
 @pytest.fixture

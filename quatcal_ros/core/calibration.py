@@ -24,6 +24,7 @@ T_base_sensor (eye-to-hand).
 """
 
 from dataclasses import dataclass, field
+import math
 
 import numpy as np
 
@@ -307,14 +308,9 @@ def _reduced_result(samples, rotations, positions, motion, options, check=True):
         translation=found.x_t, translation_uncertainty_mm=mm,
         translation_noise_mm=float(noise_mm), method='refined', closed_form=closed,
         refined=refined,
-        noise_model={'rotation_noise_deg': [float(noise_deg)] * 3,
-                     'translation_noise_mm': [float(noise_mm)] * 3, 'frame': 'sensor',
-                     'sample_covariances': 'none', 'correlation': np.eye(6).tolist(),
-                     'tail_degrees_of_freedom': None, 'distribution': 'gaussian',
-                     'shape': 'isotropic', 'robust': False, 'uncertainty_from': 'sandwich',
-                     'sandwich_uncertainty_deg': deg, 'sandwich_translation_uncertainty_mm': mm,
-                     'model_uncertainty_deg': model[0],
-                     'model_translation_uncertainty_mm': model[1]},
+        noise_model=_noise_json(np.full(3, noise_deg), np.full(3, noise_mm), np.eye(6),
+                                math.inf, 'isotropic', False, 'sandwich', (deg, mm), model,
+                                'none'),
         noisy=[], validation=validate(found.leave_one_out, np.arange(n), options.validation),
         sample_ok=np.ones(n, bool),
         unobservable=[{'what': 'translation', 'direction': [float(v) for v in d],
@@ -683,20 +679,27 @@ def _noise_model(refinement, robust):
     if refinement is None:
         return None
     covariance = refinement.noise_covariance
-    sandwich, model = (uncertainties(refinement.covariance),
-                       uncertainties(refinement.model_covariance))
     sd = np.sqrt(np.diag(covariance))
-    nu = refinement.noise.nu
-    return {'rotation_noise_deg': [float(v) for v in np.degrees(sd[:3])],
-            'translation_noise_mm': [float(v) for v in 1e3 * sd[3:]],
+    return _noise_json(np.degrees(sd[:3]), 1e3 * sd[3:], covariance / np.outer(sd, sd),
+                       refinement.noise.nu, refinement.noise.best.shape.name, robust,
+                       _uncertainty_source(refinement), uncertainties(refinement.covariance),
+                       uncertainties(refinement.model_covariance),
+                       'input' if refinement.whitening is not None else 'none')
+
+
+def _noise_json(rotation_deg, translation_mm, correlation, nu, shape, robust, source,
+                sandwich, model, sample_covariances):
+    """Return the "noise_model" JSON object: per-axis noise, its shape, the uncertainties."""
+    return {'rotation_noise_deg': [float(v) for v in rotation_deg],
+            'translation_noise_mm': [float(v) for v in translation_mm],
             'frame': 'sensor',
-            'sample_covariances': ('input' if refinement.whitening is not None else 'none'),
-            'correlation': [[float(v) for v in row] for row in covariance / np.outer(sd, sd)],
+            'sample_covariances': sample_covariances,
+            'correlation': [[float(v) for v in row] for row in correlation],
             'tail_degrees_of_freedom': float(nu) if np.isfinite(nu) else None,
             'distribution': ('gaussian' if not np.isfinite(nu) else 'student_t'),
-            'shape': refinement.noise.best.shape.name,
+            'shape': shape,
             'robust': bool(robust),
-            'uncertainty_from': _uncertainty_source(refinement),
+            'uncertainty_from': source,
             'sandwich_uncertainty_deg': _finite_or_none(sandwich[0]),
             'sandwich_translation_uncertainty_mm': _finite_or_none(sandwich[1]),
             'model_uncertainty_deg': _finite_or_none(model[0]),

@@ -12,7 +12,7 @@ from quatcal_ros.files.samples_csv import BadInputError
 from quatcal_ros.ros.conversions import BadImageError, camera_from_camera_info, \
     gray_from_image_msg
 from quatcal_ros.stream.message_checks import SENSOR
-from quatcal_ros.vision.detect import REASONS as VIEW_REASONS
+from quatcal_ros.vision.detect import REASONS as VIEW_REASONS, View
 
 # Why an image gave no sensor pose: the detector's reasons and the messages' own.
 IMAGE_REASONS = {
@@ -21,6 +21,36 @@ IMAGE_REASONS = {
     'bad_camera_info': 'a camera_info that is not a usable calibration (zeros, wrong sizes)',
     'no_camera_info': 'an image before any usable camera_info',
 }
+
+
+def camera_of(sensor, msg):
+    """
+    Give `sensor` the calibration of a CameraInfo message; return (changed, error).
+
+    changed: ImageSensor.set_camera's sentence ('' for the first or the same intrinsics);
+    error: why the message is no usable calibration (counted as 'bad_camera_info'), or None.
+    """
+    try:
+        camera = camera_from_camera_info(msg)
+    except BadInputError as error:
+        sensor.counts['bad_camera_info'] += 1
+        return '', error
+    return sensor.set_camera(camera), None
+
+
+def view_of(sensor, msg, stamp_ns):
+    """
+    Return (grayscale image or None, detect.View) of an image message stamped `stamp_ns`.
+
+    An image that does not decode is a View refused as 'bad_image', counted like the others.
+    """
+    try:
+        gray = gray_from_image_msg(msg)
+    except BadImageError as error:
+        sensor.counts['images'] += 1
+        sensor.counts['bad_image'] += 1
+        return None, View(refused='bad_image', detail=str(error))
+    return gray, sensor.view(stamp_ns, gray)
 
 
 class ImageInput:
@@ -43,13 +73,11 @@ class ImageInput:
 
     def take_camera_info(self, msg):
         """Use the calibration of a CameraInfo (counted as bad when it cannot be used)."""
-        try:
-            camera = camera_from_camera_info(msg)
-        except BadInputError as error:
+        first = self.sensor.camera is None
+        text, error = camera_of(self.sensor, msg)
+        if error is not None:
             self.screen.bad(SENSOR, 'bad_camera_info', error)
             return
-        first = self.sensor.camera is None
-        text = self.sensor.set_camera(camera)
         if text and self.on_notice is not None:
             self.on_notice(text)
         if (first or text) and self.on_new_camera is not None:
@@ -60,14 +88,7 @@ class ImageInput:
         stamp_ns = self.screen.take_header(SENSOR, msg.header, now_ns)
         if stamp_ns is None:
             return None
-        try:
-            gray = gray_from_image_msg(msg)
-        except BadImageError as error:
-            self.sensor.counts['images'] += 1
-            self.sensor.counts['bad_image'] += 1
-            self.screen.bad(SENSOR, 'bad_image', error)
-            return None
-        view = self.sensor.view(stamp_ns, gray)
+        _, view = view_of(self.sensor, msg, stamp_ns)
         if not view.ok:
             self.screen.bad(SENSOR, view.refused, view.detail)
             return None

@@ -26,15 +26,10 @@ class ImageSamples:
         :param session_config: its stream.session.SessionConfig (still window, offsets).
         :raises BadInputError: when board_file cannot be read; OSError for the corners file.
         """
-        self.sensor = ImageSensor(read_board(config.board_file))
-        self.configure(session_config)
+        self.sensor = ImageSensor(read_board(config.board_file), session_config=session_config)
         self.file = CornersFile(corners_path(samples_path), config.resume)
         self.messages = list(self.file.messages)
         self.problem = None
-
-    def configure(self, session_config):
-        """Follow the capture settings of a new session (the node's parameters changed)."""
-        self.sensor.configure(session_config)
 
     def restore(self, samples):
         """Take back the corners of resumed `samples`; return messages to log."""

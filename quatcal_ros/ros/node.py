@@ -185,7 +185,7 @@ class CalibratorNode(Node):
         config = settings.session_config(self.config)
         if self.images is None:
             return Session(config)
-        self.images.configure(config)
+        self.images.sensor.configure(config)
         return Session(config, on_sample=self.images.sensor.keep)
 
     def _on_pixels(self, result):

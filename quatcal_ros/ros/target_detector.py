@@ -20,6 +20,7 @@ import cv2
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from quatcal_ros.files.samples_csv import BadInputError
 from quatcal_ros.ros import conversions, spin
+from quatcal_ros.ros.image_input import camera_of, view_of
 from quatcal_ros.ros.qos import quiet_publisher_events
 from quatcal_ros.vision.board import read_board
 from quatcal_ros.vision.detect import Checks
@@ -94,28 +95,24 @@ class TargetDetector(Node):
         return self.sensor.counts
 
     def _on_camera_info(self, msg):
-        try:
-            text = self.sensor.set_camera(conversions.camera_from_camera_info(msg))
-        except BadInputError as error:
-            self.counts['bad_camera_info'] += 1
+        text, error = camera_of(self.sensor, msg)
+        if error is not None:
             self._log('bad_camera_info', str(error))
-            return
-        if text:
+        elif text:
             self.get_logger().info('camera_info changed: new intrinsics from now on')
 
     def _on_image(self, msg):
         try:
             stamp_ns = conversions.stamp_ns_from_header(msg.header)
-            gray = conversions.gray_from_image_msg(msg)
-        except (conversions.BadImageError, ValueError) as error:
+        except ValueError as error:   # nanosec out of range
             self.counts['images'] += 1
             self.counts['bad_image'] += 1
             self._log('bad_image', str(error))
             return
-        view = self.sensor.view(stamp_ns, gray)
+        gray, view = view_of(self.sensor, msg, stamp_ns)
         if not view.ok:
             self._log(view.refused, view.detail)
-            if view.refused == 'no_camera_info':
+            if gray is None or view.refused == 'no_camera_info':
                 return
         else:
             self.pose_publisher.publish(conversions.pose_with_covariance_stamped_msg(

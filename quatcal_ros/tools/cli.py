@@ -414,7 +414,7 @@ def _sensor_input(bag, args, config):
     beside = args.image_topic.rsplit('/', 1)[0] + '/' if '/' in args.image_topic else ''
     info = args.camera_info_topic or beside + 'camera_info'
     return (bag.PoseInput(topic=args.image_topic, camera_info=info),
-            ImageSensor.of(read_board(args.board_file), config))
+            ImageSensor(read_board(args.board_file), session_config=config))
 
 
 class _StreamRecorder:

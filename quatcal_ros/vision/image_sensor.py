@@ -38,33 +38,28 @@ def corner_key(point):
 class ImageSensor:
     """Board detection for a session's sensor stream, and the corners of its samples."""
 
-    def __init__(self, board, checks=Checks(), window_ns=500_000_000, average=True,
-                 sensor_offset_ns=0):
+    def __init__(self, board, checks=Checks(), session_config=None):
         """
-        Detect `board` with `checks`.
+        Detect `board` with `checks`, for the capture of `session_config` (configure).
 
         :param board: vision.board.Board of the target.
-        :param window_ns: the capture's still window; a sample's views lie within half of it
-            either side of its stamp (the middle of the window).
-        :param average: mean the window's views (still capture), else the nearest view
-            (continuous capture).
+        :param session_config: a stream.session.SessionConfig, or None: a 0.5 s still window,
+            still capture, no sensor offset.
         """
         self.board = board
         self.checks = checks
-        self.half_window_ns = window_ns // 2
-        self.average = average
-        self.sensor_offset_ns = sensor_offset_ns
+        # A sample's views lie within half the still window either side of its stamp (the
+        # middle of the window); `average`: the mean of them (still capture), else the view
+        # nearest the stamp (continuous capture).
+        self.half_window_ns = 250_000_000
+        self.average = True
+        self.sensor_offset_ns = 0
+        if session_config is not None:
+            self.configure(session_config)
         self.camera = None
         self.counts = Counter()          # 'images', 'detected' and each refusal's reason
         self._recent = deque(maxlen=RECENT_VIEWS)   # (stamp_ns, object points, pixels)
         self.corners = {}                # sample stamp_ns: (object points, pixels)
-
-    @staticmethod
-    def of(board, session_config, checks=Checks()):
-        """Return the ImageSensor of `board` for a stream.session.SessionConfig."""
-        sensor = ImageSensor(board, checks)
-        sensor.configure(session_config)
-        return sensor
 
     def configure(self, session_config):
         """Follow a session's capture settings: its still window, mode and sensor offset."""
