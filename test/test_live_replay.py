@@ -251,7 +251,10 @@ class Player:
                     conv.pose_stamped_msg(pose, stamp, self.frames[topic]))
                 self.sent[topic.strip('/')] += 1
                 index += 1
-            self.spin_until(lambda: all(received[s] >= n for s, n in self.sent.items()),
+            # The node holds up to a few ms of link poses to decode them together; the
+            # player asks for them at once (what the next /clock or sensor message would do).
+            self.spin_until(lambda: (self.calibrator.inputs.flush() is None
+                                     and all(received[s] >= n for s, n in self.sent.items())),
                             what='the node to receive the poses')
             if now >= end_ns:
                 return

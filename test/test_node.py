@@ -25,6 +25,7 @@ from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.ros import conversions
+from quatcal_ros.ros import inputs
 from quatcal_ros.ros.diagnostics import DIAGNOSTIC_NAME
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.sim import simulation
@@ -36,6 +37,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.qos import QoSProfile
 from rclpy.qos import ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from ros_harness import harnesses_of
 from ros_harness import LATCHED
 from ros_harness import ProcessWatcher
@@ -392,8 +394,14 @@ def test_topic_names_follow_namespace_and_remapping(domain_id):
 
 # --- bad input ------------------------------------------------------------------------------
 
-def test_bad_messages_are_counted_not_fatal(harness_factory):
+def test_bad_messages_are_counted_not_fatal(harness_factory, monkeypatch):
     h = harness_factory([Parameter('diagnostics_period_s', value=0.2)])
+    deserialised = []   # the messages the node's own decoder left to rclpy
+
+    def deserialise(raw, kind):
+        deserialised.append(raw)
+        return deserialize_message(raw, kind)
+    monkeypatch.setattr(inputs, 'deserialize_message', deserialise)
     bad = []
     nan_pose = PoseStamped()
     nan_pose.pose.position.x = float('nan')
@@ -419,11 +427,26 @@ def test_bad_messages_are_counted_not_fatal(harness_factory):
     assert values['bad_link_pose_non_finite'] == '1'
     assert values['bad_sensor_pose_zero_quaternion'] == '1'
     assert values['link_messages'] == '1' and values['sensor_messages'] == '2'
+    # Bytes that are not a PoseStamped at all, and one whose frame is not the configured one
+    # (read by the node's own decoder: the same checks and counts as a message).
+    h.link_pub.publish(b'\x00\x01\x00\x00not a pose')
+    h.spin_until(lambda: h.node.stats.bad_total == 4, what='undecodable bytes counted')
+    assert h.node.stats.bad[('link_pose', 'undecodable')] == 1
+    h.node.set_parameters([Parameter('link_frame_id', value='base_link')])
+    elsewhere = PoseStamped()
+    elsewhere.header.frame_id, elsewhere.header.stamp.sec = 'world', 11
+    elsewhere.pose.orientation.w = 1.0
+    h.link_pub.publish(elsewhere)
+    h.spin_until(lambda: h.node.stats.bad_total == 5, what='wrong frame id counted')
+    assert h.node.stats.bad[('link_pose', 'wrong_frame_id')] == 1
+    h.node.set_parameters([Parameter('link_frame_id', value='')])
+    assert len(deserialised) == 4   # the bad numbers and the bytes; not the frame id
     # Still alive: a good still stream is captured afterwards.
     rng = np.random.default_rng(4)
     cell = simulation.random_cell(rng)
     h.publish_events(still_events(cell, cell.home, simulation.DEFAULT_START_NS))
     h.spin_until(lambda: len(h.node.session.samples) == 1, what='a sample after bad input')
+    assert len(deserialised) == 4   # every good pose read by the node's decoder
 
 
 # --- as processes ---------------------------------------------------------------------------

@@ -28,8 +28,6 @@ from dataclasses import dataclass, field
 from itertools import groupby
 from pathlib import Path
 
-import numpy as np
-
 from quatcal_ros.ros import cdr
 from quatcal_ros.ros.image_input import ImageInput
 from quatcal_ros.ros.pose_screen import PoseScreen
@@ -425,20 +423,12 @@ class _PoseFeed(_Feed):
     def take(self, count):
         """Feed the next `count` messages: decoded rows together, the others by on_raw."""
         start, self.taken = self.taken, self.taken + count
-        for first, stop, ok in _stretches(self.decoded.ok[start:self.taken]):
+        for first, stop, ok in cdr.stretches(self.decoded.ok[start:self.taken]):
             if ok:
                 self.on_rows(self.raws, self.decoded, start + first, start + stop)
             else:
                 for raw in self.raws[start + first:start + stop]:
                     self.on_raw(raw)
-
-
-def _stretches(flags):
-    """Return [(start, stop, flag)] of the stretches of equal flags of a non-empty bool array."""
-    if flags.all():
-        return [(0, len(flags), True)]
-    bounds = [0, *(np.flatnonzero(flags[1:] != flags[:-1]) + 1).tolist(), len(flags)]
-    return [(start, stop, bool(flags[start])) for start, stop in zip(bounds, bounds[1:])]
 
 
 # The replay's stream names are the live node's (message_checks), so counts read alike.

@@ -8,6 +8,9 @@ length counting the NUL, the text, the NUL), for TransformStamped child_frame_id
 4), then the seven float64 (aligned to 8 from the end of the encapsulation header) of
 position x, y, z and orientation x, y, z, w (TransformStamped: translation, rotation).
 
+`decode_pose` does the same for one message (the live node's raw subscriptions): struct, no
+numpy, no message objects.
+
 A message is decoded only when rosbags would read it and conversions would accept it at once:
 the layout checks out, the frame ids are ASCII, the nanosec is in range, the position finite
 and the quaternion norm within the tolerance (renormalised as conversions.pose_from_msg does,
@@ -31,6 +34,8 @@ HEADER = 4                  # bytes before the CDR body, where alignment starts
 POSE_VALUES = 7
 WXYZ = [6, 3, 4, 5]         # the quaternion's columns among the pose values, scalar first
 _U32 = struct.Struct('<I')
+_STAMP = struct.Struct('<iI')
+_POSE = struct.Struct('<7d')
 
 
 class DecodedPoses(NamedTuple):
@@ -74,6 +79,49 @@ def decode_poses(raws, msgtype, norm_tolerance=MESSAGE_NORM_TOLERANCE, frame_id=
     with np.errstate(invalid='ignore'):
         near = (np.abs(positions) <= max_position_m).all(axis=1)
     return DecodedPoses(stamps, positions, quaternions, ok & usable & near & (stamps != 0))
+
+
+def decode_pose(raw, msgtype):
+    """
+    Return (stamp_ns, frame_id, seven pose floats) of one raw message of `msgtype`, or None.
+
+    The floats: position x, y, z, then the quaternion x, y, z, w, as the message holds them
+    (conversions.pose_from_values checks and normalises them). None when the bytes are not
+    laid out as decode_poses vouches for (the caller deserialises the message instead, which
+    decodes it or says why not). The stamp and frame id are not judged here: the message
+    checks do that, as for every message.
+    """
+    strings = STRINGS_BEFORE_POSE[msgtype]
+    if raw[:2] != _CDR_LE_BYTES:
+        return None
+    lengths = _string_lengths(raw, strings)
+    offsets = _offsets(strings, len(raw), lengths)
+    if offsets is None:
+        return None
+    texts, pose_at = offsets
+    frame_id = None
+    for at, size in zip(texts, lengths):
+        text = raw[at:at + size]
+        if text[-1] != 0 or not text.isascii():
+            return None
+        frame_id = text[:-1].decode('ascii') if frame_id is None else frame_id
+    sec, nanosec = _STAMP.unpack_from(raw, HEADER)
+    if nanosec >= NS_PER_S:
+        return None
+    return sec * NS_PER_S + nanosec, frame_id, _POSE.unpack_from(raw, pose_at)
+
+
+_CDR_LE_BYTES = bytes(CDR_LE)
+
+
+@lru_cache(maxsize=64)
+def _offsets(strings, length, string_lengths):
+    """Return (the strings' text offsets, the pose's offset) of _layout's record, or None."""
+    layout = _layout(strings, length, string_lengths)
+    if layout is None:
+        return None
+    return (tuple(layout.fields[f'text{index}'][1] for index in range(strings)),
+            layout.fields['pose'][1])
 
 
 def _records(raws, rows, strings):
@@ -176,3 +224,11 @@ def _pose_values(values, norm_tolerance):
         usable = np.isfinite(x + y + z) & (np.abs(norm - 1.0) <= norm_tolerance)
         quaternions = values[:, WXYZ] / norm[:, None]
     return values[:, :3].copy(), quaternions, usable
+
+
+def stretches(flags):
+    """Return [(start, stop, flag)] of the stretches of equal flags of a non-empty bool array."""
+    if flags.all():
+        return [(0, len(flags), True)]
+    bounds = [0, *(np.flatnonzero(flags[1:] != flags[:-1]) + 1).tolist(), len(flags)]
+    return [(start, stop, bool(flags[start])) for start, stop in zip(bounds, bounds[1:])]

@@ -185,15 +185,28 @@ def _pose_numbers(msg, layout, norm_tolerance):
     except (TypeError, ValueError):
         x = math.nan   # not numbers: validate_pose_numbers names the field
     else:
-        norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
-        if math.isfinite(x + y + z) and abs(norm - 1.0) <= norm_tolerance:   # NaN fails
-            return Pose(np.array((x, y, z)),
-                        np.array((qw / norm, qx / norm, qy / norm, qz / norm)))
+        pose = pose_from_values(x, y, z, qx, qy, qz, qw, norm_tolerance)
+        if pose is not None:
+            return pose
     p, q_xyzw = validate_pose_numbers(
         (position.x, position.y, position.z),
         (orientation.x, orientation.y, orientation.z, orientation.w),
         norm_tolerance, position_name, orientation_name)
     return Pose(p, quat.wxyz_from_xyzw(q_xyzw))
+
+
+def pose_from_values(x, y, z, qx, qy, qz, qw, norm_tolerance=MESSAGE_NORM_TOLERANCE):
+    """
+    Return the Pose of a message's seven floats (position, quaternion x, y, z, w), or None.
+
+    None when a number is NaN or infinite or the quaternion's norm is off by more than
+    norm_tolerance: pose_from_msg then names the field. Within it the quaternion is divided
+    by its norm (the arithmetic every decoder of pose messages shares, bit for bit).
+    """
+    norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+    if math.isfinite(x + y + z) and abs(norm - 1.0) <= norm_tolerance:   # NaN fails
+        return Pose(np.array((x, y, z)), np.array((qw / norm, qx / norm, qy / norm, qz / norm)))
+    return None
 
 
 def stamp_ns_from_header(header):

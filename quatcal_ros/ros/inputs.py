@@ -12,11 +12,24 @@ pairs through one PoseScreen, the checks the replay runs too:
   topic or from TF (robot_base_frame -> robot_effector_frame).
 Each good pose goes to `deliver(stream, (stamp_ns, pose), now_ns)`; a bad message is logged,
 throttled, with its resolved topic name.
+
+PoseStamped and TransformStamped topics are taken raw: their bytes are decoded here, and only a
+message the decoder does not vouch for is deserialised by rclpy and checked as a message. The
+checks and the counts are the same either way; what is saved is the message objects of every
+1 kHz link pose, and most of the per-message Python. The link stream's bytes are held
+(`LINK_BATCH` at most, none older than `LINK_BATCH_AGE_NS`) and decoded together
+(cdr.decode_poses) when any other input, service or timer of the node comes, or the batch is
+full (`flush`): every pose still reaches the session in arrival order, before anything that
+arrived after it. The sensor stream's are decoded one by one (cdr.decode_pose).
 """
+
+import time
 
 from geometry_msgs.msg import PoseStamped
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from geometry_msgs.msg import TransformStamped
+from quatcal_ros.ros import cdr
+from quatcal_ros.ros.conversions import pose_from_values
 from quatcal_ros.ros.image_input import ImageInput
 from quatcal_ros.ros.pose_screen import PoseScreen
 from quatcal_ros.ros.qos import LINK_QOS, SENSOR_QOS, TF_QOS, TF_STATIC_LISTEN_QOS
@@ -24,6 +37,7 @@ from quatcal_ros.ros.tf_feed import TfFeed
 from quatcal_ros.stream import message_checks
 from quatcal_ros.stream.message_checks import LINK, LOG_THROTTLE_S, SENSOR
 from rclpy.qos import qos_profile_sensor_data
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from tf2_msgs.msg import TFMessage
 
@@ -33,12 +47,20 @@ MESSAGE_TYPES = {'pose': PoseStamped, 'transform': TransformStamped,
 PACKAGES = {PoseStamped: 'geometry_msgs', TransformStamped: 'geometry_msgs',
             PoseWithCovarianceStamped: 'geometry_msgs', TFMessage: 'tf2_msgs',
             Image: 'sensor_msgs', CompressedImage: 'sensor_msgs'}
+# The types taken raw and decoded by cdr (module docstring).
+RAW_TYPES = {PoseStamped: 'geometry_msgs/msg/PoseStamped',
+             TransformStamped: 'geometry_msgs/msg/TransformStamped'}
+# Raw link messages held before they are decoded together: at most this many (16 ms at 1 kHz),
+# and none held past the next arrival once it is this old (steady clock).
+LINK_BATCH = 16
+LINK_BATCH_AGE_NS = 10_000_000
 
 
 class NodeInputs:
     """The subscriptions of the calibrator node and the checks of what they bring."""
 
-    def __init__(self, node, check_config, tf_frames, pose_types, deliver, images=None):
+    def __init__(self, node, check_config, tf_frames, pose_types, deliver, images=None,
+                 deliver_rows=None):
         """
         Subscribe on `node`: the TF topics for the streams `tf_frames` names, else pose topics.
 
@@ -49,9 +71,15 @@ class NodeInputs:
         :param images: (vision.image_sensor.ImageSensor, transport 'raw' or 'compressed',
             on_new_camera()): the sensor poses come from camera images (sensor_input:=image),
             or None.
+        :param deliver_rows: deliver_rows(stream, stamps_ns, positions, quaternions_wxyz,
+            now_ns) for a run of good poses decoded together (Session.add_poses' arguments).
         """
         self._node = node
         self._deliver = deliver
+        self._deliver_rows = deliver_rows
+        self._held = []          # raw link messages not decoded yet (module docstring)
+        self._held_since_ns = 0  # steady clock at the first of them
+        self._held_kind = None
         self.screen = PoseScreen(check_config, self._log_bad_message)
         tf_frames = tf_frames or {}
         self.message_types, self.topics = {}, {}
@@ -73,10 +101,16 @@ class NodeInputs:
             self._subscribe_images(*images)
         for stream, qos in ((LINK, LINK_QOS), (SENSOR, SENSOR_QOS)):
             if stream not in self.topics:
-                self.message_types[stream] = MESSAGE_TYPES[pose_types[stream]]
+                kind = self.message_types[stream] = MESSAGE_TYPES[pose_types[stream]]
+                if kind in RAW_TYPES and stream == LINK and deliver_rows is not None:
+                    self._held_kind = kind
+                    callback = self._hold_link
+                elif kind in RAW_TYPES:
+                    callback = (lambda raw, s=stream, k=kind: self._on_raw_pose(s, raw, k))
+                else:
+                    callback = (lambda msg, s=stream: self._on_pose(s, msg))
                 self.topics[stream] = node.create_subscription(   # resolved name, for logs
-                    self.message_types[stream], stream,
-                    lambda msg, s=stream: self._on_pose(s, msg), qos).topic_name
+                    kind, stream, callback, qos, raw=kind in RAW_TYPES).topic_name
 
     def _subscribe_images(self, sensor, transport, on_new_camera):
         """Take the sensor stream from camera images and camera_info (sensor-data QoS)."""
@@ -89,7 +123,7 @@ class NodeInputs:
             kind, 'image/compressed' if transport == 'compressed' else 'image',
             self._on_image, qos_profile_sensor_data).topic_name
         self.camera_info_topic = self._node.create_subscription(
-            CameraInfo, 'camera_info', self.images.take_camera_info,
+            CameraInfo, 'camera_info', self._on_camera_info,
             qos_profile_sensor_data).topic_name
 
     @property
@@ -125,18 +159,77 @@ class NodeInputs:
         return self.tf.problems() if self.tf is not None else []
 
     def _on_pose(self, stream, msg):
+        if stream != LINK:
+            self.flush()
         now_ns = self._node.now_ns()
         taken = self.screen.take(stream, msg, now_ns)
         if taken is not None:
             self._deliver(stream, taken, now_ns)
 
+    def flush(self):
+        """Decode and deliver the link messages held (module docstring); call before others."""
+        held = self._held
+        if not held:
+            return
+        self._held = []
+        kind = self._held_kind
+        checks = self.screen.config
+        decoded = cdr.decode_poses(held, RAW_TYPES[kind], frame_id=checks.frame_id(LINK),
+                                   max_position_m=checks.max_position_m)
+        now_ns = self._node.now_ns()
+        ok = decoded.ok & message_checks.stamps_usable(decoded.stamps_ns, now_ns,
+                                                       checks.max_stamp_offset_ns)
+        for start, stop, good in cdr.stretches(ok):
+            if not good:   # each one checked and counted as a message, with its reason
+                for raw in held[start:stop]:
+                    self._on_raw_pose(LINK, raw, kind)
+                continue
+            self.screen.take_rows(LINK, stop - start, now_ns)
+            self._deliver_rows(LINK, decoded.stamps_ns[start:stop].tolist(),
+                               decoded.positions[start:stop], decoded.quaternions[start:stop],
+                               now_ns)
+
+    def _hold_link(self, raw):
+        now = time.monotonic_ns()
+        if not self._held:
+            self._held_since_ns = now
+        self._held.append(raw)
+        if len(self._held) >= LINK_BATCH or now - self._held_since_ns >= LINK_BATCH_AGE_NS:
+            self.flush()
+
+    def _on_raw_pose(self, stream, raw, kind):
+        """Take a raw pose message: decoded here when cdr vouches for it, else by rclpy."""
+        if stream != LINK:
+            self.flush()
+        decoded = cdr.decode_pose(raw, RAW_TYPES[kind])
+        pose = None if decoded is None else pose_from_values(*decoded[2])
+        if pose is None:
+            try:
+                msg = deserialize_message(raw, kind)
+            except Exception as error:   # rclpy raises its own error types for bad bytes
+                self.screen.stats.note(stream, self._node.now_ns())
+                self.screen.bad(stream, 'undecodable', f'{len(raw)} bytes: {error}')
+                return
+            self._on_pose(stream, msg)
+            return
+        now_ns = self._node.now_ns()
+        taken = self.screen.take_decoded(stream, decoded[0], decoded[1], pose, now_ns)
+        if taken is not None:
+            self._deliver(stream, taken, now_ns)
+
+    def _on_camera_info(self, msg):
+        self.flush()
+        self.images.take_camera_info(msg)
+
     def _on_image(self, msg):
+        self.flush()
         now_ns = self._node.now_ns()
         taken = self.images.take_image(msg, now_ns)
         if taken is not None:
             self._deliver(SENSOR, taken, now_ns)
 
     def _on_tf(self, topic, msg, static):
+        self.flush()
         self.screen.stats.note(topic, self._node.now_ns())
         self.tf.take(topic, msg, static)
 

@@ -47,7 +47,7 @@ from quatcal_ros.ros.inputs import NodeInputs
 from quatcal_ros.ros.qos import DIAGNOSTICS_QOS, LATCHED_QOS, quiet_publisher_events
 from quatcal_ros.ros.static_tf import StaticTf
 from quatcal_ros.stream import settings
-from quatcal_ros.stream.message_checks import LINK
+from quatcal_ros.stream.message_checks import LINK, SENSOR
 from quatcal_ros.stream.session import EstimateUpdated, SampleCaptured, Session
 from quatcal_ros.stream.settings import ConfigError
 from rcl_interfaces.msg import SetParametersResult
@@ -58,6 +58,8 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 NODE_NAME = settings.NODE_NAME
+# The message checks' stream names and the session's.
+SESSION_STREAMS = {LINK: 'link', SENSOR: 'sensor'}
 
 
 class CalibratorNode(Node):
@@ -93,7 +95,8 @@ class CalibratorNode(Node):
             self, settings.check_config(self.config), self._tf_frames,
             settings.pose_types(self.config), self._add_pose,
             None if self.images is None
-            else (self.images.sensor, self.config.image_transport, self._on_new_camera))
+            else (self.images.sensor, self.config.image_transport, self._on_new_camera),
+            self._add_poses)
         self.next_pose = None   # the planner's proposal for the latest estimate
         self.next_pose_publisher = self.create_publisher(
             PoseStamped, '~/next_pose', LATCHED_QOS, event_callbacks=quiet_publisher_events())
@@ -147,6 +150,14 @@ class CalibratorNode(Node):
         """Give a checked (stamp_ns, Pose) to the session; handle what it says."""
         add = self.session.add_link_pose if stream == LINK else self.session.add_sensor_pose
         events = self.inputs.screen.verdict(stream, add(*taken), now_ns)
+        if events:
+            self.handle_events(events)
+
+    def _add_poses(self, stream, stamps_ns, positions, quaternions_wxyz, now_ns):
+        """Give a run of checked poses of one stream to the session at once (add_poses)."""
+        events = self.inputs.screen.verdict(
+            stream, self.session.add_poses(SESSION_STREAMS[stream], stamps_ns, positions,
+                                           quaternions_wxyz), now_ns, count=len(stamps_ns))
         if events:
             self.handle_events(events)
 
@@ -286,7 +297,9 @@ class CalibratorNode(Node):
         self.handle_events([e for e in events if not isinstance(e, SampleCaptured)])
 
     def destroy_node(self):
-        """Close the samples journal (releasing its lock), then destroy the node."""
+        """Take the link poses held, close the journal (releasing its lock), destroy the node."""
+        if getattr(self, 'inputs', None) is not None and getattr(self, 'journal', None):
+            self.inputs.flush()
         if getattr(self, 'journal', None) is not None:
             self.journal.close()
             self.journal = None
@@ -317,12 +330,14 @@ class CalibratorNode(Node):
 
     def _watch_status(self):
         """Publish the status when the node clock has not for two periods (no /clock)."""
+        self.inputs.flush()   # the link poses held, even when the node clock stands still
         late_ns = 2 * self.config.diagnostics_period_s * 1e9
         if self._steady.now().nanoseconds - self._last_status_ns > late_ns:
             self.publish_diagnostics()
 
     def publish_diagnostics(self):
         """Publish the status once (the timer's callback)."""
+        self.inputs.flush()
         self._last_status_ns = self._steady.now().nanoseconds
         array = DiagnosticArray(status=[self.diagnostic_status()])
         array.header.stamp = self.get_clock().now().to_msg()
@@ -331,6 +346,7 @@ class CalibratorNode(Node):
     # --- services --------------------------------------------------------------------------
 
     def _on_capture(self, request, response):
+        self.inputs.flush()
         ok, reason = self.session.capture(self.now_ns())
         self.handle_events(self.session.pop_events())
         if not ok:
@@ -339,6 +355,7 @@ class CalibratorNode(Node):
         return response
 
     def _on_reset(self, request, response):
+        self.inputs.flush()
         discarded = len(self.session.samples)
         self.session.reset()
         self.log.reset()
@@ -358,6 +375,7 @@ class CalibratorNode(Node):
         return response
 
     def _on_save(self, request, response):
+        self.inputs.flush()
         result = self.result
         if result is None:
             response.success = False
@@ -382,6 +400,7 @@ class CalibratorNode(Node):
     # --- parameters at runtime -------------------------------------------------------------
 
     def _check_parameters(self, changes):
+        self.inputs.flush()
         try:
             parameters.updated(self.config, changes)
         except ConfigError as error:

@@ -49,6 +49,22 @@ class PoseScreen:
         except BadPoseError as error:
             self.bad(stream, message_checks.pose_error_reason(error), error)
             return None
+        return self._placed(stream, stamp_ns, pose)
+
+    def take_decoded(self, stream, stamp_ns, frame_id, pose, now_ns=0):
+        """
+        Return (stamp_ns, Pose) of a message a fast decoder read (cdr.decode_pose), or None.
+
+        The checks and counts of `take` on the decoded stamp, frame id and pose, whose
+        numbers conversions.pose_from_values already accepted.
+        """
+        self.stats.note(stream, now_ns)
+        if not self._header_ok(stream, stamp_ns, frame_id, now_ns):
+            return None
+        return self._placed(stream, stamp_ns, pose)
+
+    def _placed(self, stream, stamp_ns, pose):
+        """Return (stamp_ns, pose), or None (counted) when the position is implausibly far."""
         if message_checks.position_reason(pose.position, self.config) is not None:
             limit = self.config.max_position_m
             self.bad(stream, 'implausible_position', lambda: (
@@ -69,13 +85,17 @@ class PoseScreen:
         except ValueError as error:   # nanosec out of range
             self.bad(stream, 'bad_stamp', error)
             return None
-        reason = message_checks.check(stream, stamp_ns, header.frame_id, now_ns, self.config)
-        if reason is not None:
-            config = self.config
-            self.bad(stream, reason, lambda: message_checks.describe(
-                reason, stream, stamp_ns, header.frame_id, now_ns, config))
-            return None
-        return stamp_ns
+        return stamp_ns if self._header_ok(stream, stamp_ns, header.frame_id, now_ns) else None
+
+    def _header_ok(self, stream, stamp_ns, frame_id, now_ns):
+        """Return whether the stamp and frame id pass message_checks.check (else counted)."""
+        reason = message_checks.check(stream, stamp_ns, frame_id, now_ns, self.config)
+        if reason is None:
+            return True
+        config = self.config
+        self.bad(stream, reason, lambda: message_checks.describe(
+            reason, stream, stamp_ns, frame_id, now_ns, config))
+        return False
 
     def take_rows(self, stream, count, now_ns=0):
         """Count `count` messages of `stream` that a fast decoder checked and found good."""

@@ -24,6 +24,7 @@ integer nanoseconds.
 from collections import Counter
 from dataclasses import dataclass
 
+import numpy as np
 from quatcal_ros.core.units import MAX_POSITION_M, NS_PER_S
 
 LINK, SENSOR = 'link_pose', 'sensor_pose'
@@ -94,6 +95,14 @@ def stamp_reason(stamp_ns, now_ns, max_offset_ns):
         if now_ns - stamp_ns > max_offset_ns:
             return 'stamp_in_past'
     return None
+
+
+def stamps_usable(stamps_ns, now_ns, max_offset_ns):
+    """Return which stamps (an int64 array) stamp_reason finds nothing wrong with (bool)."""
+    usable = stamps_ns != 0
+    if max_offset_ns and now_ns > 0:
+        usable &= np.abs(stamps_ns - np.int64(now_ns)) <= max_offset_ns
+    return usable
 
 
 def frame_reason(frame_id, expected):
