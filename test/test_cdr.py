@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.units import MAX_POSITION_M
 from quatcal_ros.ros import cdr, conversions
 from quatcal_ros.ros.bag import TYPESTORE
 
@@ -57,7 +58,13 @@ def assert_rows_equal_rosbags(msgtype, raws, decoded):
     for k, data in enumerate(raws):
         single = cdr.decode_pose(data, msgtype)
         pose = None if single is None else conversions.pose_from_values(*single[2])
-        assert (pose is not None) == bool(decoded.ok[k]), k
+        # Zero stamps and far positions are the message checks' to judge (decode_poses
+        # leaves them to the slow path; decode_pose's caller checks them).
+        judged = pose is not None and (single[0] == 0
+                                       or np.abs(pose.position).max() > MAX_POSITION_M)
+        assert (pose is not None) == bool(decoded.ok[k]) or judged, k
+        if judged:
+            continue
         if pose is not None:
             msg = TYPESTORE.deserialize_cdr(data, msgtype)
             assert single[0] == decoded.stamps_ns[k] and single[1] == msg.header.frame_id
