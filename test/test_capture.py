@@ -95,6 +95,25 @@ def test_auto_at_a_fast_pair_rate_averages_exactly_the_still_window():
     assert_allclose(samples[0].link.position, link.position, rtol=0.0, atol=1e-12)
 
 
+@pytest.mark.parametrize('seed', range(4))
+def test_the_quick_stillness_check_agrees_with_the_reasons(seed):
+    """_is_still (one pair decides while moving) is _still_reason() is None at every pair."""
+    rng = np.random.default_rng(seed)
+    # Sensor noise near its bands, link bands from strict to loose: windows on both sides.
+    _, _, pairs = stop_and_go_pairs(rng, 4, noise_deg=0.2, noise_m=0.001)
+    band_deg, band_m = [(0.2, 0.001), (5.0, 0.05), (30.0, 0.3), (60.0, 0.5)][seed]
+    capture = Capture(CaptureConfig(rotation_band_deg=band_deg, translation_band_m=band_m,
+                                    min_departure_deg=2 * band_deg, min_departure_m=2 * band_m,
+                                    sensor_rotation_band_deg=0.8,
+                                    sensor_translation_band_m=0.003))
+    verdicts = []
+    for pair in pairs:
+        capture.add_pair(pair)
+        verdicts.append(capture._is_still())
+        assert verdicts[-1] == (capture._still_reason() is None)
+    assert any(verdicts) and not all(verdicts)
+
+
 def test_auto_needs_a_real_motion_before_the_next_sample():
     rng = np.random.default_rng(12)
     link = Pose.create([0.4, 0.0, 0.5], [0.0, 1.0, 0.0, 0.0])

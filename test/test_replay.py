@@ -118,6 +118,24 @@ def test_pose_stamped_bag_gives_the_mounting_and_the_samples_solve_agrees(
     assert_allclose(document['quaternion_xyzw'], quat.xyzw_from_wxyz(rotation(out)))
 
 
+def test_a_pose_bag_replay_loads_no_opencv(repo_root, bags):
+    """A pose replay does without OpenCV (15 MB resident): only bags of images need it."""
+    bag = str(bags / 'pose')
+    code = ('import runpy, sys\n'
+            f'sys.argv = ["quatcal_ros", "replay", {bag!r}, "--link-topic",\n'
+            '            "/link_pose", "--sensor-topic", "/sensor_pose", "--quiet"]\n'
+            'try:\n'
+            '    runpy.run_module("quatcal_ros", run_name="__main__")\n'
+            'except SystemExit as stop:\n'
+            '    assert not stop.code, stop.code\n'
+            'loaded = [m for m in ("cv2", "matplotlib", "rclpy") if m in sys.modules]\n'
+            'sys.exit(f"loaded {loaded}" if loaded else 0)\n')
+    done = subprocess.run([sys.executable, '-c', code], cwd=repo_root, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert '"rotation"' in done.stdout
+
+
 def test_the_replay_writes_a_journal_the_node_resumes(bags, tmp_path, capsys):
     journal_path = tmp_path / 'samples.csv'
     journal_path.write_text('an earlier file\n')

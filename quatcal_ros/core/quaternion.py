@@ -10,6 +10,8 @@ and its matrix A = matrix_from_quaternion(p) satisfy eq. (19)-(20): p (x) [0, v]
 [0, A v].
 """
 
+import math
+
 import numpy as np
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
@@ -209,6 +211,12 @@ def angle_between(p, q):
     Computed with atan2 on the relative quaternion p* (x) q: accurate to rounding for tiny
     angles, where arccos(p . q) would resolve only about 1e-8 rad.
     """
+    p = np.asarray(p, dtype=float)
+    q = np.asarray(q, dtype=float)
+    if p.ndim == 1 and q.ndim == 1:   # two quaternions: the same arithmetic on plain floats
+        pw, px, py, pz = p.tolist()
+        w, x, y, z = _product(pw, -px, -py, -pz, *q.tolist())
+        return 2.0 * math.atan2(math.sqrt(x * x + y * y + z * z), abs(w))
     return rotation_angle(multiply(conjugate(p), q))
 
 
@@ -228,6 +236,8 @@ def slerp(p, q, fraction):
     """
     p = np.asarray(p, dtype=float)
     q = np.asarray(q, dtype=float)
+    if p.ndim == 1 and q.ndim == 1 and np.ndim(fraction) == 0:   # one pair: on plain floats
+        return np.array(_slerp_floats(p.tolist(), q.tolist(), float(fraction)))
     f = np.asarray(fraction, dtype=float)[..., None]
     dot = np.sum(p * q, axis=-1, keepdims=True)
     q = np.where(dot < 0.0, -q, q)
@@ -238,6 +248,24 @@ def slerp(p, q, fraction):
     a = np.where(near, 1.0 - f, np.sin((1.0 - f) * omega) / safe)
     b = np.where(near, f, np.sin(f * omega) / safe)
     return normalize(a * p + b * q)
+
+
+def _slerp_floats(p, q, f):
+    """Return slerp of two quaternions given as lists of floats: the same steps, as a list."""
+    dot = sum(a * b for a, b in zip(p, q))
+    if dot < 0.0:
+        q = [-b for b in q]
+    omega = math.acos(min(abs(dot), 1.0))
+    sin_omega = math.sin(omega)
+    if sin_omega < 1e-9:
+        a, b = 1.0 - f, f
+    else:
+        a, b = math.sin((1.0 - f) * omega) / sin_omega, math.sin(f * omega) / sin_omega
+    blend = [a * u + b * v for u, v in zip(p, q)]
+    norm = math.sqrt(sum(c * c for c in blend))
+    if norm < 1e-12:
+        raise ValueError('cannot normalise a zero quaternion')
+    return [c / norm for c in blend]
 
 
 def rotate(q, v):

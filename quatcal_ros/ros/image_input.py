@@ -12,7 +12,7 @@ from quatcal_ros.files.samples_csv import BadInputError
 from quatcal_ros.ros.conversions import BadImageError, camera_from_camera_info, \
     gray_from_image_msg
 from quatcal_ros.stream.message_checks import SENSOR
-from quatcal_ros.vision.detect import REASONS as VIEW_REASONS, View
+from quatcal_ros.vision.view import REASONS as VIEW_REASONS, View
 
 # Why an image gave no sensor pose: the detector's reasons and the messages' own.
 IMAGE_REASONS = {
@@ -40,7 +40,7 @@ def camera_of(sensor, msg):
 
 def view_of(sensor, msg, stamp_ns):
     """
-    Return (grayscale image or None, detect.View) of an image message stamped `stamp_ns`.
+    Return (grayscale image or None, view.View) of an image message stamped `stamp_ns`.
 
     An image that does not decode is a View refused as 'bad_image', counted like the others.
     """

@@ -23,8 +23,8 @@ from quatcal_ros.ros import conversions, spin
 from quatcal_ros.ros.image_input import camera_of, view_of
 from quatcal_ros.ros.qos import quiet_publisher_events
 from quatcal_ros.vision.board import read_board
-from quatcal_ros.vision.detect import Checks
 from quatcal_ros.vision.image_sensor import ImageSensor
+from quatcal_ros.vision.view import Checks
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data

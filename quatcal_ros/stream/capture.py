@@ -18,6 +18,7 @@ cannot hide a motion.  Quaternions are (w, x, y, z); stamps are integer nanoseco
 """
 
 from dataclasses import dataclass
+import math
 
 import numpy as np
 
@@ -76,8 +77,9 @@ def _short(number):
 
 def pose_change(pose, reference):
     """Rotation (deg) and translation (m) between two poses."""
-    angle = float(np.degrees(quat.angle_between(pose.quaternion, reference.quaternion)))
-    return angle, float(np.linalg.norm(pose.position - reference.position))
+    angle = math.degrees(quat.angle_between(pose.quaternion, reference.quaternion))
+    dx, dy, dz = (pose.position - reference.position).tolist()
+    return angle, math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
 class _PairWindow:
@@ -123,6 +125,11 @@ class _PairWindow:
         poses = self.link.poses() + self.sensor.poses()
         return (np.concatenate([pose.quaternion for pose in poses]).reshape(2, -1, 4),
                 np.concatenate([pose.position for pose in poses]).reshape(2, -1, 3))
+
+    def oldest_change(self):
+        """Return the change (deg, m) of the oldest pair from the newest: link, then sensor."""
+        link, sensor = self.link.poses_at_ends(), self.sensor.poses_at_ends()
+        return pose_change(*link) + pose_change(*sensor)
 
     def spread(self):
         """Largest rotation (deg) and translation (m) from the newest pose: (2,) each."""
@@ -185,7 +192,7 @@ class Capture:
             angle, distance = pose_change(pair.link, self._last_sample.link)
             self._moved = (angle > self.config.min_departure_deg
                            or distance > self.config.min_departure_m)
-        if self.config.mode == 'auto' and self._moved and self._still_reason() is None:
+        if self.config.mode == 'auto' and self._moved and self._is_still():
             return self._take(self._window.average_sample())
         return None
 
@@ -212,6 +219,21 @@ class Capture:
             if angle < self.config.continuous_step_deg:
                 return None
         return self._take(Sample(pair.stamp_ns, pair.link, pair.sensor))
+
+    def _is_still(self):
+        """Return whether _still_reason() is None; while the robot moves, from one pair."""
+        config = self.config
+        window = self._window
+        if window.span_ns < config.window_ns or len(window) < config.min_still_pairs:
+            return False
+        # The oldest pair outside a band decides it without the others (the spread is the
+        # largest change): most pairs of a motion.
+        link_deg, link_m, sensor_deg, sensor_m = window.oldest_change()
+        if (link_deg > config.rotation_band_deg or link_m > config.translation_band_m
+                or sensor_deg > config.sensor_rotation_band_deg
+                or sensor_m > config.sensor_translation_band_m):
+            return False
+        return self._still_reason() is None
 
     def _still_reason(self):
         """Why the latest window is not still, or None when it is."""

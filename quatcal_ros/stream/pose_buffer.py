@@ -41,7 +41,7 @@ def interpolate_pose(pose0, pose1, fraction):
     Covariances (when both poses have one) are blended linearly too.
     """
     position = pose0.position + fraction * (pose1.position - pose0.position)
-    rotation = quat.normalize(quat.slerp(pose0.quaternion, pose1.quaternion, fraction))
+    rotation = quat.slerp(pose0.quaternion, pose1.quaternion, fraction)   # unit length
     covariance = None
     if pose0.covariance is not None and pose1.covariance is not None:
         covariance = pose0.covariance + fraction * (pose1.covariance - pose0.covariance)
@@ -215,6 +215,10 @@ class PoseBuffer:
         start = self._start
         return [self._pose(index) if type(pose) is tuple else pose
                 for index, pose in enumerate(self._poses[start:], start)]
+
+    def poses_at_ends(self):
+        """Return the oldest and the newest kept Pose (the same one when only one is kept)."""
+        return self._pose(self._start), self._pose(len(self._stamps) - 1)
 
     def _pose(self, index):
         """Return the Pose at `index` of the lists, built first if it is a row."""

@@ -164,6 +164,9 @@ class Session:
         events = self.pop_events()
         if stream == SENSOR:
             stamps_ns = [stamp + self.config.sensor_offset_ns for stamp in stamps_ns]
+        if len(stamps_ns) == 1:   # a slower stream's pose between runs of the faster one
+            return events + self._add_pose(stream, stamps_ns[0],
+                                           Pose(positions[0], quaternions_wxyz[0]))
         # Each non-finite pose goes through _add_pose, which rejects it.
         stops = np.flatnonzero(~_finite_rows(positions, quaternions_wxyz)).tolist()
         stops.append(len(stamps_ns))

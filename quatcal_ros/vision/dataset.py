@@ -20,7 +20,8 @@ from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.files.samples_csv import BadInputError, parse_numbers, pose_from_values
 from quatcal_ros.vision.board import read_board
 from quatcal_ros.vision.camera import read_camera_yaml
-from quatcal_ros.vision.detect import Checks, detect
+from quatcal_ros.vision.detect import detect
+from quatcal_ros.vision.view import Checks
 
 POSE_COLUMNS = ('image', 'link_x', 'link_y', 'link_z', 'link_qx', 'link_qy', 'link_qz',
                 'link_qw')

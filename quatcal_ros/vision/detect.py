@@ -3,58 +3,19 @@ The board in one image: corners (sub-pixel), a planar-aware PnP, and the per-vie
 
 `detect(gray, board, camera, checks)` returns a View: the board's corners in the board frame
 and in the image, the pose T_camera_board and its covariance, or the named reason the view is
-refused (REASONS). The pose comes from IPPE (OpenCV's planar PnP, which returns both poses a
-plane allows) refined by Levenberg-Marquardt; when the second pose fits about as well and
+refused (view.REASONS). The pose comes from IPPE (OpenCV's planar PnP, which returns both
+poses a plane allows) refined by Levenberg-Marquardt; when the second pose fits about as well and
 points elsewhere the view is ambiguous, a marker flip waiting to happen. The covariance is
 the PnP's at the pixel noise its own residuals show: sigma^2 (J^T J)^-1 with J the Jacobian
 of the pixels with respect to refine.py's pose error (a rotation vector on the left in the
 camera frame, then the translation), in ROS's order as Pose.covariance holds it.
 """
 
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose, ros_order
-
-REASONS = {
-    'unreadable_image': 'the file is not an image OpenCV can read',
-    'wrong_image_size': 'the image size differs from camera_info',
-    'no_board': 'no corner of the board was found',
-    'too_few_corners': 'fewer corners than a reliable pose needs',
-    'blurred': 'the board region is too blurred (sharpness below the threshold)',
-    'ambiguous_pose': 'two board poses fit about equally well (planar ambiguity)',
-    'reprojection_error': 'the pose leaves corner residuals above the threshold',
-}
-
-
-@dataclass(frozen=True)
-class Checks:
-    """What a view must satisfy to be used."""
-
-    min_corners: int = 8
-    max_reprojection_px: float = 2.0
-    min_sharpness: float = 10.0          # variance of the Laplacian over the board region
-    ambiguity_ratio: float = 1.2         # second PnP pose's RMS within this factor: ambiguous
-    ambiguity_angle_deg: float = 3.0     # ... and this far from the first
-
-
-@dataclass(frozen=True)
-class View:
-    """One image's detection: corners, pose, quality, or why it is refused."""
-
-    object_points: np.ndarray = None     # (M, 3) board frame, metres
-    image_points: np.ndarray = None      # (M, 2) pixels
-    pose: Pose = None                    # T_camera_board, with its covariance (ROS order)
-    rms_px: float = float('nan')
-    sharpness: float = float('nan')
-    refused: str = ''                    # a key of REASONS, or ''
-    detail: str = ''
-
-    @property
-    def ok(self):
-        return not self.refused
+from quatcal_ros.vision.view import Checks, View
 
 
 def find_corners(gray, board):

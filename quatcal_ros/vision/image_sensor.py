@@ -19,8 +19,9 @@ from dataclasses import replace
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.vision.detect import Checks, detect, View
+from quatcal_ros.vision.detect import detect
 from quatcal_ros.vision.reprojection import refine_from_poses
+from quatcal_ros.vision.view import Checks, View
 
 # Usable views kept for the next sample's corners; a still window at 30 Hz has ~15.
 RECENT_VIEWS = 256
@@ -87,7 +88,7 @@ class ImageSensor:
                 'measured with the old ones and are no longer used')
 
     def view(self, stamp_ns, gray):
-        """Return the detect.View of one image at header stamp `stamp_ns`."""
+        """Return the view.View of one image at header stamp `stamp_ns`."""
         self.counts['images'] += 1
         if self.camera is None:
             found = View(refused='no_camera_info', detail='no usable camera_info received yet')
