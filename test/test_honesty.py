@@ -67,6 +67,22 @@ def test_reported_uncertainty_matches_the_true_error_in_every_noise_mode(mode, n
         assert HONEST[0] <= ratio <= HONEST[1], f'{mode}, {n} samples, {name}: {ratio:.2f}'
 
 
+def test_the_jackknife_in_batches_equals_all_replicates_at_once(monkeypatch):
+    from quatcal_ros.core import refine as module
+    _, samples = next(cells('pnp', 200, 1))
+    rotations = SampleRotations.from_samples(samples)
+    positions = SamplePositions.from_samples(samples, rotations)
+    arrays = (rotations.link, positions.link, rotations.sensor, positions.sensor)
+    start = calibrate(samples, CalibrationOptions(method='closed-form'))
+    fitted = refine(*arrays, start.quaternion, start.translation)
+    resampled = []
+    for floats in (10 ** 9, 200 * 72 * 3, 1):   # all 20 at once, 3 at a time, one by one
+        monkeypatch.setattr(module, 'JACKKNIFE_BATCH_FLOATS', floats)
+        resampled.append(module.with_jackknife(fitted, *arrays).resampled)
+    for other in resampled[1:]:
+        np.testing.assert_allclose(other, resampled[0], rtol=1e-10, atol=1e-20)
+
+
 def test_the_refinement_reaches_the_bound_with_pnp_like_noise():
     """Anisotropic, correlated sensor noise (depth 6x lateral): within 1.1x of Cramer-Rao."""
     covariance = simulation.pnp_like_covariance()

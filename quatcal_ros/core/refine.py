@@ -59,9 +59,9 @@ ISOTROPIC = (heavy_tails.isotropic_blocks(DIMENSIONS),)
 SHAPES = ISOTROPIC + (heavy_tails.full(DIMENSIONS),)
 FULL_SHAPE_SAMPLES = 30
 # Blocks of the jackknife (with_jackknife), and the floats a batch of its replicates may hold
-# (16 MB: all 20 at once up to about 1,400 samples).
+# (2 MB: all 20 at once up to about 170 samples; a long replay's final solve stays small).
 JACKKNIFE_BLOCKS = 20
-JACKKNIFE_BATCH_FLOATS = 2_000_000
+JACKKNIFE_BATCH_FLOATS = 250_000
 
 
 class ReportedUncertainty:
