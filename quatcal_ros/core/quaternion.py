@@ -94,6 +94,12 @@ _MINUS_SIGNS = np.array([[1, -1, -1, -1], [1, 1, 1, -1], [1, -1, 1, 1], [1, 1, -
 def normalize(q):
     """Scale q to unit length; raise ValueError for a zero quaternion."""
     q = np.asarray(q, dtype=float)
+    if q.ndim == 1:   # one quaternion: the same arithmetic on plain floats
+        components = q.tolist()
+        norm = math.sqrt(sum(c * c for c in components))
+        if norm < 1e-12:
+            raise ValueError('cannot normalise a zero quaternion')
+        return np.array([c / norm for c in components])
     norm = np.sqrt(np.sum(q * q, axis=-1, keepdims=True))
     if (norm < 1e-12).any():
         raise ValueError('cannot normalise a zero quaternion')
@@ -215,15 +221,21 @@ def angle_between(p, q):
     q = np.asarray(q, dtype=float)
     if p.ndim == 1 and q.ndim == 1:   # two quaternions: the same arithmetic on plain floats
         pw, px, py, pz = p.tolist()
-        w, x, y, z = _product(pw, -px, -py, -pz, *q.tolist())
-        return 2.0 * math.atan2(math.sqrt(x * x + y * y + z * z), abs(w))
+        return _angle(*_product(pw, -px, -py, -pz, *q.tolist()))
     return rotation_angle(multiply(conjugate(p), q))
 
 
 def rotation_angle(p):
     """Rotation angle (radians, in [0, pi]) of unit quaternion(s) (..., 4)."""
     p = np.asarray(p, dtype=float)
+    if p.ndim == 1:   # one quaternion: the same arithmetic on plain floats
+        return _angle(*p.tolist())
     return 2.0 * np.arctan2(np.linalg.norm(p[..., 1:], axis=-1), np.abs(p[..., 0]))
+
+
+def _angle(w, x, y, z):
+    """Return rotation_angle of one quaternion given as floats."""
+    return 2.0 * math.atan2(math.sqrt(x * x + y * y + z * z), abs(w))
 
 
 def slerp(p, q, fraction):
@@ -237,7 +249,7 @@ def slerp(p, q, fraction):
     p = np.asarray(p, dtype=float)
     q = np.asarray(q, dtype=float)
     if p.ndim == 1 and q.ndim == 1 and np.ndim(fraction) == 0:   # one pair: on plain floats
-        return np.array(_slerp_floats(p.tolist(), q.tolist(), float(fraction)))
+        return normalize(np.array(_slerp_blend(p.tolist(), q.tolist(), float(fraction))))
     f = np.asarray(fraction, dtype=float)[..., None]
     dot = np.sum(p * q, axis=-1, keepdims=True)
     q = np.where(dot < 0.0, -q, q)
@@ -250,8 +262,8 @@ def slerp(p, q, fraction):
     return normalize(a * p + b * q)
 
 
-def _slerp_floats(p, q, f):
-    """Return slerp of two quaternions given as lists of floats: the same steps, as a list."""
+def _slerp_blend(p, q, f):
+    """Return slerp's blend a p + b q (before normalising) of two quaternions as float lists."""
     dot = sum(a * b for a, b in zip(p, q))
     if dot < 0.0:
         q = [-b for b in q]
@@ -261,11 +273,7 @@ def _slerp_floats(p, q, f):
         a, b = 1.0 - f, f
     else:
         a, b = math.sin((1.0 - f) * omega) / sin_omega, math.sin(f * omega) / sin_omega
-    blend = [a * u + b * v for u, v in zip(p, q)]
-    norm = math.sqrt(sum(c * c for c in blend))
-    if norm < 1e-12:
-        raise ValueError('cannot normalise a zero quaternion')
-    return [c / norm for c in blend]
+    return [a * u + b * v for u, v in zip(p, q)]
 
 
 def rotate(q, v):

@@ -222,13 +222,10 @@ class Capture:
 
     def _is_still(self):
         """Return whether _still_reason() is None; while the robot moves, from one pair."""
-        config = self.config
-        window = self._window
-        if window.span_ns < config.window_ns or len(window) < config.min_still_pairs:
-            return False
         # The oldest pair outside a band decides it without the others (the spread is the
-        # largest change): most pairs of a motion.
-        link_deg, link_m, sensor_deg, sensor_m = window.oldest_change()
+        # largest change from the newest): most pairs of a motion.
+        config = self.config
+        link_deg, link_m, sensor_deg, sensor_m = self._window.oldest_change()
         if (link_deg > config.rotation_band_deg or link_m > config.translation_band_m
                 or sensor_deg > config.sensor_rotation_band_deg
                 or sensor_m > config.sensor_translation_band_m):

@@ -164,7 +164,7 @@ class Session:
         events = self.pop_events()
         if stream == SENSOR:
             stamps_ns = [stamp + self.config.sensor_offset_ns for stamp in stamps_ns]
-        if len(stamps_ns) == 1:   # a slower stream's pose between runs of the faster one
+        if len(stamps_ns) == 1:   # as add_link_pose / add_sensor_pose (no arrays to scan)
             return events + self._add_pose(stream, stamps_ns[0],
                                            Pose(positions[0], quaternions_wxyz[0]))
         # Each non-finite pose goes through _add_pose, which rejects it.
