@@ -518,12 +518,13 @@ def _detections(rotations, q_z, previous=None):
 
     The residuals are taken about the mean orientation of the samples weighted by their
     probability of being good (all samples alike at first), so the verdicts never rest on a
-    set trimmed by an earlier verdict.
+    set trimmed by an earlier verdict; the earlier verdict's noise fit starts the EM.
     """
     Z = rotations.object_orientations(q_z)
     weights = None if previous is None else previous.good_probability
     mean = quat.average(Z, weights)
-    return heavy_tails.bad_detections(quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean))))
+    residuals = quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean)))
+    return heavy_tails.bad_detections(residuals, start=previous)
 
 
 def _rejected_samples(rotations, q_z, sample_ok, detections, spoiled):
@@ -592,12 +593,14 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     closed form is, with a warning.
     """
     ok = fit.sample_ok
-    sigma = quality.noise_sigma(quality.sample_residuals(rotations, fit.q_z, ok)[ok])
+    rotation_residuals = quality.sample_residuals(rotations, fit.q_z, ok)
+    sigma = quality.noise_sigma(rotation_residuals[ok])
     covariance = fit.info.covariance(sigma)
     translation = solve_translation(rotations, positions, fit.q_z, fit.info, ok, covariance)
     closed = Estimate(fit.q_z, translation.translation, quality.uncertainty_deg(covariance),
                       translation.uncertainty_mm)
-    warnings = [] if previous is not None else conventions.warnings(samples, options)
+    warnings = [] if previous is not None else conventions.warnings(
+        samples, options, conventions.misfit(rotation_residuals, translation.residuals))
     arrays = (rotations.link[ok], positions.link[ok], rotations.sensor[ok], positions.sensor[ok])
     refinement = None
     if _count(ok) >= MIN_REFINE_SAMPLES:

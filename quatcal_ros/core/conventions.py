@@ -4,10 +4,12 @@ Frame-convention and rigid-mounting checks over the whole fit, rotations and tra
 A wrong convention (the other setup, the sensor poses inverted) still lets rotations fit
 moderately well when the robot turns little, since rotation angles cannot tell
 (angle(L_i^T L_j) == angle(L_i L_j^T)), but the object positions the samples predict then
-scatter by the lever arms (tens of centimetres) instead of by the sensor noise. So each of the
-four conventions (setup x sensor inversion) gets a quick closed-form fit of rotation and
-translation, and the configured one is compared with the best by the median rotation residual
-times the median position residual. The warning names the fix.
+scatter by the lever arms (tens of centimetres) instead of by the sensor noise. So the
+configured convention's misfit (median rotation and position residuals; from the main fit when
+there is one) is questioned when it is poor: then each other convention (setup x sensor
+inversion) gets a quick closed-form fit of rotation and translation, and the configured one is
+compared with the best by the median rotation residual times the median position residual.
+The warning names the fix.
 
 A fit that no convention explains (a residual of tens of degrees) is not a rigid mounting, or
 the data are dominated by bad detections: `rigid_fit_warnings` says so loudly.
@@ -36,9 +38,15 @@ FLOOR_DEG, FLOOR_MM = 0.01, 0.01
 NOT_RIGID_DEG = 10.0
 
 
-def warnings(samples, options):
-    """Return a warning naming the fix when another convention fits far better, else []."""
-    current = _misfit(samples, options.setup, options.invert_sensor, options)
+def warnings(samples, options, current=None):
+    """
+    Return a warning naming the fix when another convention fits far better, else [].
+
+    current: the configured convention's misfit from the main fit (`misfit`), when there is
+    one; else its quick fit here. The other conventions are fitted only when it is poor.
+    """
+    if current is None:
+        current = _misfit(samples, options.setup, options.invert_sensor, options)
     if current is None or (current[0] < SUSPICIOUS_RESIDUAL_DEG
                            and current[1] < SUSPICIOUS_POSITION_MM):
         return []
@@ -77,6 +85,12 @@ def _fix(options, setup, invert):
     return '; '.join(words)
 
 
+def misfit(rotation_residuals, position_residuals):
+    """Return the median rotation (deg) and position (mm) residuals of the samples (N, 3)."""
+    return (float(np.degrees(np.median(np.linalg.norm(rotation_residuals, axis=1)))),
+            float(1e3 * np.median(np.linalg.norm(position_residuals, axis=1))))
+
+
 def _misfit(samples, setup, invert, options):
     """Return the median rotation (deg) and position (mm) residuals of a quick fit, or None."""
     if len(samples) > CHECK_SAMPLES:
@@ -101,8 +115,7 @@ def _misfit(samples, setup, invert, options):
         translation = solve_translation(rotations, positions, q_z, info, use)
     except (DegenerateMotionError, np.linalg.LinAlgError):
         return None
-    return (float(np.degrees(np.median(np.linalg.norm(residuals, axis=1)))),
-            float(1e3 * np.median(np.linalg.norm(translation.residuals, axis=1))))
+    return misfit(residuals, translation.residuals)
 
 
 def rigid_fit_warnings(residual_rms_deg, translation_noise_mm):

@@ -38,6 +38,7 @@ class Shape:
     project: object          # scatters (..., d, d) -> matrices of this shape; None: as they are
     parameters: int
     diagonal: object = None  # for diagonal shapes: the scatters' diagonals (K, d) -> theirs
+    block: int = None        # sigma_k^2 I on blocks of this many axes: the EM's short path
 
 
 def isotropic_blocks(d, block=3):
@@ -48,7 +49,7 @@ def isotropic_blocks(d, block=3):
 
     def project(scatter):
         return diagonal(np.diagonal(scatter, axis1=-2, axis2=-1))[..., None] * np.eye(d)
-    return Shape('isotropic', project, d // block, diagonal)
+    return Shape('isotropic', project, d // block, diagonal, block)
 
 
 def full(d):
@@ -63,6 +64,7 @@ class Component:
     shape: Shape
     nu: float
     scale: np.ndarray       # d x d
+    precision: np.ndarray   # its inverse
     weights: np.ndarray     # (nu + d) / (nu + delta_i); 1 for nu = inf
     delta: np.ndarray       # squared Mahalanobis distances r_i^T S^-1 r_i
     log_density: np.ndarray  # per sample
@@ -109,7 +111,7 @@ class NoiseFit:
 
     def information(self):
         """Return each sample's information matrix sum_k p_k w_ik S_k^-1, (N, d, d)."""
-        return sum(p * c.weights[:, None, None] * np.linalg.inv(c.scale)[None]
+        return sum(p * c.weights[:, None, None] * c.precision[None]
                    for p, c in zip(self.probabilities, self.components))
 
     def subset(self, mask):
@@ -148,14 +150,17 @@ class NoiseFit:
         d = r.shape[1]
         count = np.maximum(keep.sum(axis=1) - lost_samples, 1.0)
         information = np.zeros((rows, n, d, d))
+        arithmetic = {}
         for p, c in zip(self.probabilities, self.components):
-            nu = np.full(rows, c.nu)
+            if c.shape.name not in arithmetic:
+                arithmetic[c.shape.name] = _arithmetic(r, c.shape, floor)
+            fit = arithmetic[c.shape.name]
             w = np.broadcast_to(c.weights, (rows, n))
             for _ in range(0 if math.isinf(c.nu) else WARM_EM_ITERATIONS):
-                w = t_weights(_distances(r, keep * w, count, c.shape, floor), d, nu)
-            scale = _scale(r, keep * w, count, c.shape, floor)
-            w = t_weights(_mahalanobis(r, scale), d, nu)
-            information += p * (keep * w)[..., None, None] * np.linalg.inv(scale)[:, None]
+                w = (c.nu + d) / (c.nu + fit.distances(keep * w, count))
+            _, precision, delta, _ = fit.fitted(keep * w, count)
+            w = 1.0 if math.isinf(c.nu) else (c.nu + d) / (c.nu + delta)
+            information += p * (keep * w)[..., None, None] * precision[:, None]
         return information
 
     def probability_change(self, other):
@@ -168,15 +173,6 @@ class NoiseFit:
         """Return each sample's density under the noise, averaged over the models."""
         return sum(p * np.exp(c.log_density)
                    for p, c in zip(self.probabilities, self.components))
-
-
-def t_log_density(delta, d, nu, log_det):
-    """Return the log-density of a d-dimensional t (Gaussian for nu = inf) at delta_i."""
-    if math.isinf(nu):
-        return -0.5 * (d * math.log(2.0 * math.pi) + log_det + delta)
-    return (math.lgamma(0.5 * (nu + d)) - math.lgamma(0.5 * nu)
-            - 0.5 * (d * math.log(nu * math.pi) + log_det)
-            - 0.5 * (nu + d) * np.log1p(delta / nu))
 
 
 def fit_t(residuals, shapes, grid=NU_GRID, lost_samples=0.0, floor=None, prior=None,
@@ -201,7 +197,7 @@ def fit_t(residuals, shapes, grid=NU_GRID, lost_samples=0.0, floor=None, prior=N
     components = []
     for shape in shapes:
         components += _fit_components(r, good, count, shape, grid, floor,
-                                      [earlier.get((shape.name, nu)) for nu in grid])
+                                      [_nearest(earlier, shape.name, nu) for nu in grid])
     criteria = np.array([c.criterion for c in components])
     probabilities = np.exp(criteria - criteria.max())
     keep = probabilities > MIN_PROBABILITY * probabilities.sum()   # no say: dropped
@@ -209,11 +205,26 @@ def fit_t(residuals, shapes, grid=NU_GRID, lost_samples=0.0, floor=None, prior=N
                     probabilities[keep] / probabilities[keep].sum())
 
 
+def _nearest(components, shape_name, nu):
+    """
+    Return the Component of this shape and nu in `components` ({(shape, nu): Component}).
+
+    Failing that (a fit drops its improbable models), the one of the nearest finite nu, whose
+    distances start this nu's EM nearly as well; None when there is none.
+    """
+    if (shape_name, nu) in components or math.isinf(nu):
+        return components.get((shape_name, nu))
+    near = [(abs(math.log(c.nu / nu)), c.nu) for (name, _), c in components.items()
+            if name == shape_name and math.isfinite(c.nu)]
+    return components[shape_name, min(near)[1]] if near else None
+
+
 def _fit_components(r, good, count, shape, nus, floor, warm):
     """
     Fit one Shape with each nu of `nus` by EM, all at once; return their Components.
 
-    warm: for each nu an earlier Component of it to start from, or None. Each model takes
+    warm: for each nu an earlier Component to start from (of it, or of another finite nu: the
+    weights its distances give this nu), or None. Each model takes
     its own number of EM steps (none for nu = inf, fewer from a warm start), as if fitted
     alone: the batch only shares the arithmetic.
     """
@@ -225,26 +236,42 @@ def _fit_components(r, good, count, shape, nus, floor, warm):
     for i, component in enumerate(warm):
         if component is not None:   # of these samples, or of the first (a sample added since)
             m = min(n, len(component.weights))
-            w[i, :m] = component.weights[:m]
+            w[i, :m] = (component.weights[:m] if component.nu == nu[i]
+                        else (nu[i] + d) / (nu[i] + component.delta[:m]))
             steps[i] = WARM_EM_ITERATIONS if m == n else RESUMED_EM_ITERATIONS
     steps[np.isinf(nu)] = 0
-    for step in range(int(steps.max(initial=0))):
-        moving = steps > step
-        w[moving] = t_weights(_distances(r, good * w[moving], count, shape, floor), d,
-                              nu[moving])
-    scale = _scale(r, good * w, count, shape, floor)
-    delta = _mahalanobis(r, scale)
-    log_det = np.linalg.slogdet(scale)[1]
+    arithmetic = _arithmetic(r, shape, floor)
+    done = 0
+    for until in np.unique(steps[steps > 0]):   # the rows still moving, a batch at a time
+        rows = np.flatnonzero(steps >= until)     # finite nu only
+        tails = nu[rows][:, None]
+        moving = w[rows]
+        for _ in range(int(until) - done):
+            moving = (tails + d) / (tails + arithmetic.distances(good * moving, count))
+        w[rows], done = moving, int(until)
+    scale, precision, delta, log_det = arithmetic.fitted(good * w, count)
     weights = t_weights(delta, d, nu)
+    log_density = t_log_density(delta, d, nu, log_det)
     free = shape.parameters + np.where(np.isinf(nu), 0, 1)
-    log_n = math.log(max(good.sum(), 2.0))
-    components = []
-    for i in range(k):
-        log_density = t_log_density(delta[i], d, float(nu[i]), float(log_det[i]))
-        criterion = float(good @ log_density) - 0.5 * free[i] * log_n
-        components.append(Component(shape, float(nu[i]), scale[i], weights[i], delta[i],
-                                    log_density, criterion))
-    return components
+    criteria = log_density @ good - 0.5 * free * math.log(max(good.sum(), 2.0))
+    return [Component(shape, float(nu[i]), scale[i], precision[i], weights[i], delta[i],
+                      log_density[i], float(criteria[i])) for i in range(k)]
+
+
+def t_log_density(delta, d, nu, log_det):
+    """
+    Return the log-density of d-dimensional t's (Gaussian for nu = inf) at delta (K, N).
+
+    Row k is the t with nu[k] degrees of freedom whose scale has the log determinant
+    log_det[k].
+    """
+    finite = np.isfinite(nu)
+    safe = np.where(finite, nu, 1.0)
+    norm = np.array([math.lgamma(0.5 * (v + d)) - math.lgamma(0.5 * v) for v in safe])
+    t = ((norm - 0.5 * (d * np.log(safe * math.pi) + log_det))[:, None]
+         - 0.5 * (safe + d)[:, None] * np.log1p(delta / safe[:, None]))
+    gaussian = -0.5 * ((d * math.log(2.0 * math.pi) + log_det)[:, None] + delta)
+    return np.where(finite[:, None], t, gaussian)
 
 
 def t_weights(delta, d, nu):
@@ -284,6 +311,64 @@ def _distances(r, w, count, shape, floor):
 def _mahalanobis(r, scale):
     """Return r_n^T S_k^-1 r_n (K, N) for scales (K, d, d)."""
     return ((r @ np.linalg.inv(scale)) * r).sum(axis=-1)
+
+
+class _Matrices:
+    """The scale matrices of any Shape, and the distances under them (K models at once)."""
+
+    def __init__(self, r, shape, floor):
+        self.r, self.shape, self.floor = r, shape, floor
+
+    def distances(self, w, count):
+        """Return r_n^T S_k^-1 r_n (K, N) under the scales S_k of the weights w (K, N)."""
+        return _distances(self.r, w, count, self.shape, self.floor)
+
+    def fitted(self, w, count):
+        """Return the scales, their inverses (K, d, d), the distances (K, N), log dets (K,)."""
+        scale = _scale(self.r, w, count, self.shape, self.floor)
+        precision = np.linalg.inv(scale)
+        delta = ((self.r @ precision) * self.r).sum(axis=-1)
+        return scale, precision, delta, np.linalg.slogdet(scale)[1]
+
+
+class _Blocks:
+    """
+    The same for sigma_b^2 I on blocks of axes (with a floor even within each block).
+
+    From each sample's sum of squares per block (N, B), without forming a matrix: the EM's
+    inner loop, the same numbers as _Matrices to rounding.
+    """
+
+    def __init__(self, r, block, floor):
+        n, d = r.shape
+        parts = r.reshape(n, d // block, block)
+        self.squares = np.einsum('nbk,nbk->nb', parts, parts)
+        self.block, self.d = block, d
+        self.floor = 0.0 if floor is None else floor[::block]
+
+    def _variances(self, w, count):
+        return (w @ self.squares) / (self.block * np.reshape(count, (-1, 1))) + self.floor
+
+    def distances(self, w, count):
+        """Return r_n^T S_k^-1 r_n (K, N) under the scales S_k of the weights w (K, N)."""
+        return (1.0 / self._variances(w, count)) @ self.squares.T
+
+    def fitted(self, w, count):
+        """Return the scales, their inverses (K, d, d), the distances (K, N), log dets (K,)."""
+        variances = self._variances(w, count)
+        axes = np.repeat(variances, self.block, axis=1)[:, :, None] * np.eye(self.d)
+        inverse = 1.0 / variances
+        return (axes, np.repeat(inverse, self.block, axis=1)[:, :, None] * np.eye(self.d),
+                inverse @ self.squares.T, self.block * np.log(variances).sum(axis=1))
+
+
+def _arithmetic(r, shape, floor):
+    """Return the _Blocks of an isotropic-blocks Shape (floor even in blocks), else _Matrices."""
+    block = shape.block
+    if block is not None and (floor is None or np.all(
+            np.reshape(floor, (-1, block)) == np.reshape(floor, (-1, block))[:, :1])):
+        return _Blocks(r, block, floor)
+    return _Matrices(r, shape, floor)
 
 
 # --- bad detections -------------------------------------------------------------------------
@@ -326,20 +411,21 @@ def uniform_rotation_density(angles):
                     (1.0 - np.cos(safe)) / (4.0 * math.pi ** 2 * safe * safe))
 
 
-def bad_detections(rotation_residuals, lost_samples=2.0, floor=1e-14):
+def bad_detections(rotation_residuals, lost_samples=2.0, floor=1e-14, start=None):
     """
     Fit the mixture of the module docstring to rotation residuals (N, 3), radians.
 
     The good samples' rotation noise is an isotropic 3-D t; lost_samples as in fit_t (two of
-    the mounting's three rotation parameters and the object's three, per three axes).
+    the mounting's three rotation parameters and the object's three, per three axes); start:
+    the Detections of similar residuals, whose noise starts the EM (fit_t's start).
     Returns Detections.
     """
     r = np.asarray(rotation_residuals, dtype=float)
     angles = np.linalg.norm(r, axis=1)
     uniform = uniform_rotation_density(angles)
-    start = START_SIGMAS * max(np.median(angles) / CHI3_MEDIAN, math.sqrt(floor))
-    good = (angles <= start).astype(float)
-    noise = None
+    limit = START_SIGMAS * max(np.median(angles) / CHI3_MEDIAN, math.sqrt(floor))
+    good = (angles <= limit).astype(float)
+    noise = None if start is None else start.noise
     for _ in range(MIXTURE_ITERATIONS):
         noise = fit_t(r, (isotropic_blocks(3),), NU_GRID, lost_samples, np.full(3, floor),
                       prior=good, start=noise)
