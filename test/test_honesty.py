@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from quatcal_ros.core import bounds
+from quatcal_ros.core import heavy_tails
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions
 from quatcal_ros.core.motions import SampleRotations
@@ -188,6 +189,45 @@ def test_the_fitted_noise_model_finds_the_pnp_shape():
     np.testing.assert_allclose(model['rotation_noise_deg'][:2], np.degrees(sd[:2]), rtol=0.25)
     assert model['correlation'][0][4] > 0.6 and model['correlation'][1][3] < -0.6
     assert model['distribution'] == 'gaussian'
+
+
+@pytest.mark.parametrize('dimensions', [3, 6])
+def test_the_noise_models_short_arithmetic_equals_the_matrix_one(dimensions):
+    # The isotropic shape's EM runs on block sums of squares; the general path forms matrices.
+    rng = np.random.default_rng(dimensions)
+    sigma = np.array([0.01, 0.001, 0.002, 0.001, 0.003, 0.002])[:dimensions]
+    residuals = rng.standard_t(4, (40, dimensions)) * sigma
+    floor = np.full(dimensions, 1e-12)
+    short = heavy_tails.isotropic_blocks(dimensions)
+    general = replace(short, block=None)
+    fits = [heavy_tails.fit_t(residuals, (shape,), heavy_tails.NU_GRID, 2.0, floor,
+                              prior=np.linspace(0.6, 1.0, 40)) for shape in (short, general)]
+    np.testing.assert_allclose(fits[0].probabilities, fits[1].probabilities, rtol=1e-9)
+    np.testing.assert_allclose(fits[0].information(), fits[1].information(), rtol=1e-9)
+    keep = rng.uniform(size=(5, 40)) > 0.2
+    np.testing.assert_allclose(*(f.refitted_information(residuals, keep, 2.0, floor)
+                                 for f in fits), rtol=1e-9)
+
+
+@pytest.mark.parametrize('mode', sorted(MODES))
+def test_warm_started_noise_fits_give_the_converged_answer(mode, monkeypatch):
+    # Each refinement step refits the noise models with one EM step from the last fit's
+    # weights (a model the last fit dropped: from the nearest fitted nu's distances). The
+    # answer and its uncertainty are those of a fully converged EM at every step.
+    results = []
+    for steps in (None, 300):
+        if steps:
+            for name in ('EM_ITERATIONS', 'WARM_EM_ITERATIONS', 'RESUMED_EM_ITERATIONS'):
+                monkeypatch.setattr(heavy_tails, name, steps)
+        results.append([calibrate(samples) for _, samples in cells(mode, 20, 4, seed=40)])
+    for fast, converged in zip(*results):
+        sigma = converged.uncertainty_deg
+        assert angle_deg(fast.quaternion, converged.quaternion) < 0.1 * sigma
+        assert np.linalg.norm(fast.translation - converged.translation) * 1e3 < (
+            0.1 * converged.translation_uncertainty_mm)
+        assert fast.uncertainty_deg == pytest.approx(sigma, rel=0.05)
+        assert fast.translation_uncertainty_mm == pytest.approx(
+            converged.translation_uncertainty_mm, rel=0.05)
 
 
 def rejected_samples(result):
