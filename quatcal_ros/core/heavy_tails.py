@@ -163,12 +163,6 @@ class NoiseFit:
             information += p * (keep * w)[..., None, None] * precision[:, None]
         return information
 
-    def probability_change(self, other):
-        """Return the largest change of a model's probability from `other` to this fit."""
-        mine = {(c.shape.name, c.nu): p for c, p in zip(self.components, self.probabilities)}
-        theirs = {(c.shape.name, c.nu): p for c, p in zip(other.components, other.probabilities)}
-        return max(abs(mine.get(k, 0.0) - theirs.get(k, 0.0)) for k in set(mine) | set(theirs))
-
     def density(self):
         """Return each sample's density under the noise, averaged over the models."""
         return sum(p * np.exp(c.log_density)

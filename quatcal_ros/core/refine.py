@@ -44,8 +44,6 @@ MAX_ITERATIONS = 20
 # Converged when the last step moved the unknowns by less than this many of their sigmas (1 %:
 # it adds 1e-4 to the error's variance; the iteratively reweighted steps shrink ~100x each).
 STEP_TOLERANCE = 1e-2
-# The noise models' probabilities may move this much at the answer without another round.
-MODEL_TOLERANCE = 1e-3
 # Floors of the noise estimates, so exact synthetic data do not divide by zero.
 MIN_ROTATION_NOISE = 1e-6      # radians
 MIN_TRANSLATION_NOISE = 1e-6   # metres
@@ -234,51 +232,29 @@ def _fit(arrays, model, robust, warm, max_iterations):
 
     arrays: (link_q, link_t, sensor_q, sensor_t, link_R, whitening); warm: a NoiseFit of similar
     residuals to start the noise models' EM from, or None.
-    The noise's models and their probabilities are chosen from the residuals at the start
-    and again at the answer; in between only the scales follow the steps. When the choice at
-    the answer differs, the steps resume under it (once).
+    Gauss-Newton steps, each under the noise models chosen again from the residuals it starts
+    from (their EM warm-started from the last fit: iteratively reweighted least squares), until
+    a step moves the unknowns by less than STEP_TOLERANCE of their sigmas; then the noise at
+    the answer.
     """
     grid = heavy_tails.NU_GRID if robust else (math.inf,)
     shapes = SHAPES if len(arrays[0]) >= FULL_SHAPE_SAMPLES else ISOTROPIC
-    noise, converged = None, False
-    for _ in range(2):
-        model, noise, converged = _gauss_newton(arrays, model, (shapes, grid), noise or warm,
-                                                noise is None, max_iterations)
-        e, _ = _linearised(*arrays[:4], *model, *arrays[4:])
-        chosen = heavy_tails.fit_t(e, shapes, grid, LOST_SAMPLES, NOISE_FLOOR, start=noise)
-        moved = chosen.probability_change(noise)
-        noise = chosen
-        if moved < MODEL_TOLERANCE or not max_iterations:
-            break
-    return model, noise, converged
-
-
-def _gauss_newton(arrays, model, models, noise, choose, iterations):
-    """
-    Return the model after Gauss-Newton steps, the noise last used, and convergence.
-
-    models: (shapes, grid) of the noise models; choose: fit them (warm-started from `noise`
-    when given) on the first step, else keep `noise`'s models and refit their scales.
-    """
     link_q, link_t, sensor_q, sensor_t, link_R, whitening = arrays
-    for _ in range(iterations):
+    noise, converged = warm, False
+    for _ in range(max_iterations):
         e, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R, whitening)
-        if choose:
-            noise = heavy_tails.fit_t(e, *models, LOST_SAMPLES, NOISE_FLOOR, start=noise)
-            choose = False
-        else:
-            noise = noise.refitted(e, LOST_SAMPLES, NOISE_FLOOR)
+        noise = heavy_tails.fit_t(e, shapes, grid, LOST_SAMPLES, NOISE_FLOOR, start=noise)
         A, g = _normal_equations(J, e, noise)
         step = -_solve(A, g)
         if not np.all(np.isfinite(step)):
-            return model, noise, False
+            break
         model = apply_step(step, *model)
         if float(step @ A @ step) < STEP_TOLERANCE ** 2:
-            return model, noise, True
-    if choose:   # no step asked for: the noise at the start
-        e, _ = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R, whitening)
-        noise = heavy_tails.fit_t(e, *models, LOST_SAMPLES, NOISE_FLOOR, start=noise)
-    return model, noise, False
+            converged = True
+            break
+    e, _ = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R, whitening)
+    return model, heavy_tails.fit_t(e, shapes, grid, LOST_SAMPLES, NOISE_FLOOR, start=noise), \
+        converged
 
 
 def with_jackknife(refinement, link_q, link_t, sensor_q, sensor_t, robust=True,
