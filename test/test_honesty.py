@@ -211,7 +211,8 @@ def test_the_noise_models_short_arithmetic_equals_the_matrix_one(dimensions):
 
 
 @pytest.mark.parametrize('mode', sorted(MODES))
-def test_the_refinement_lands_on_the_converged_joint_fit(mode, monkeypatch):
+@pytest.mark.parametrize('n', [20, 40])    # 40: the full scale matrix is a candidate too
+def test_the_refinement_lands_on_the_converged_joint_fit(mode, n, monkeypatch):
     # Each refinement step refits the noise models with one EM step from the last fit's
     # weights (a model the last fit dropped: from the nearest fitted nu's distances) and stops
     # at a step of 1 % of a sigma. The answer and its uncertainty are those of the joint fixed
@@ -222,7 +223,7 @@ def test_the_refinement_lands_on_the_converged_joint_fit(mode, monkeypatch):
             for name in ('EM_ITERATIONS', 'WARM_EM_ITERATIONS', 'RESUMED_EM_ITERATIONS'):
                 monkeypatch.setattr(heavy_tails, name, 300)
             monkeypatch.setattr(refine_module, 'STEP_TOLERANCE', 1e-7)
-        results.append([calibrate(samples) for _, samples in cells(mode, 20, 4, seed=40)])
+        results.append([calibrate(samples) for _, samples in cells(mode, n, 4, seed=40)])
     for fast, converged in zip(*results):
         sigma = converged.uncertainty_deg
         assert angle_deg(fast.quaternion, converged.quaternion) < 0.01 * sigma
@@ -234,10 +235,11 @@ def test_the_refinement_lands_on_the_converged_joint_fit(mode, monkeypatch):
 
 
 @pytest.mark.parametrize('mode', sorted(MODES))
-def test_the_refined_mounting_is_optimal_under_the_noise_reported_with_it(mode):
+@pytest.mark.parametrize('n', [20, 40])
+def test_the_refined_mounting_is_optimal_under_the_noise_reported_with_it(mode, n):
     # Iteratively reweighted least squares is done when one more Gauss-Newton step, under the
     # noise model fitted at the answer, would not move it: here by under 1 % of a sigma.
-    for _, samples in cells(mode, 20, 6, seed=40):
+    for _, samples in cells(mode, n, 6, seed=40):
         rotations = SampleRotations.from_samples(samples)
         positions = SamplePositions.from_samples(samples, rotations)
         arrays = (rotations.link, positions.link, rotations.sensor, positions.sensor)

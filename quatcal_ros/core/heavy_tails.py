@@ -203,22 +203,23 @@ def _nearest(components, shape_name, nu):
     """
     Return the Component of this shape and nu in `components` ({(shape, nu): Component}).
 
-    Failing that (a fit drops its improbable models), the one of the nearest finite nu, whose
-    distances start this nu's EM nearly as well; None when there is none.
+    Failing that (a fit drops its improbable models), the one of the nearest finite nu, of this
+    shape when there is one, whose distances start this nu's EM nearly as well; None when there
+    is none.
     """
     if (shape_name, nu) in components or math.isinf(nu):
         return components.get((shape_name, nu))
-    near = [(abs(math.log(c.nu / nu)), c.nu) for (name, _), c in components.items()
-            if name == shape_name and math.isfinite(c.nu)]
-    return components[shape_name, min(near)[1]] if near else None
+    near = [(name != shape_name, abs(math.log(c.nu / nu)), key)
+            for key, c in components.items() for name in [key[0]] if math.isfinite(c.nu)]
+    return components[min(near)[2]] if near else None
 
 
 def _fit_components(r, good, count, shape, nus, floor, warm):
     """
     Fit one Shape with each nu of `nus` by EM, all at once; return their Components.
 
-    warm: for each nu an earlier Component to start from (of it, or of another finite nu: the
-    weights its distances give this nu), or None. Each model takes
+    warm: for each nu an earlier Component to start from (of it, or of another finite nu or
+    shape: the weights its distances give this nu), or None. Each model takes
     its own number of EM steps (none for nu = inf, fewer from a warm start), as if fitted
     alone: the batch only shares the arithmetic.
     """
@@ -230,7 +231,8 @@ def _fit_components(r, good, count, shape, nus, floor, warm):
     for i, component in enumerate(warm):
         if component is not None:   # of these samples, or of the first (a sample added since)
             m = min(n, len(component.weights))
-            w[i, :m] = (component.weights[:m] if component.nu == nu[i]
+            same = (component.shape.name, component.nu) == (shape.name, nu[i])
+            w[i, :m] = (component.weights[:m] if same
                         else (nu[i] + d) / (nu[i] + component.delta[:m]))
             steps[i] = WARM_EM_ITERATIONS if m == n else RESUMED_EM_ITERATIONS
     steps[np.isinf(nu)] = 0
