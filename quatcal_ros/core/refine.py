@@ -234,13 +234,13 @@ def _fit(arrays, model, robust, warm, max_iterations):
     residuals to start the noise models' EM from, or None.
     Gauss-Newton steps, each under the noise models chosen again from the residuals it starts
     from (their EM warm-started from the last fit: iteratively reweighted least squares), until
-    a step moves the unknowns by less than STEP_TOLERANCE of their sigmas; then the noise at
-    the answer.
+    a step moves the unknowns by less than STEP_TOLERANCE of their sigmas (the noise fitted
+    before it then stands at the answer too); else the noise is fitted at the last model.
     """
     grid = heavy_tails.NU_GRID if robust else (math.inf,)
     shapes = SHAPES if len(arrays[0]) >= FULL_SHAPE_SAMPLES else ISOTROPIC
     link_q, link_t, sensor_q, sensor_t, link_R, whitening = arrays
-    noise, converged = warm, False
+    noise = warm
     for _ in range(max_iterations):
         e, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R, whitening)
         noise = heavy_tails.fit_t(e, shapes, grid, LOST_SAMPLES, NOISE_FLOOR, start=noise)
@@ -249,12 +249,10 @@ def _fit(arrays, model, robust, warm, max_iterations):
         if not np.all(np.isfinite(step)):
             break
         model = apply_step(step, *model)
-        if float(step @ A @ step) < STEP_TOLERANCE ** 2:
-            converged = True
-            break
+        if float(step @ A @ step) < STEP_TOLERANCE ** 2:   # the noise stands at the answer
+            return model, noise, True
     e, _ = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R, whitening)
-    return model, heavy_tails.fit_t(e, shapes, grid, LOST_SAMPLES, NOISE_FLOOR, start=noise), \
-        converged
+    return model, heavy_tails.fit_t(e, shapes, grid, LOST_SAMPLES, NOISE_FLOOR, start=noise), False
 
 
 def with_jackknife(refinement, link_q, link_t, sensor_q, sensor_t, robust=True,
