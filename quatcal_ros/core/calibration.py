@@ -358,9 +358,9 @@ def _axis_text(axis):
 def _all_pairs(rotations, options, start):
     """Run the rotation stage over all pairs of samples (module docstring, steps 1-3)."""
     n = len(rotations)
-    candidates = _candidates(rotations, options)
     if options.robust:
-        q_z = start if start is not None else _consensus(rotations, candidates, options)
+        q_z = (start if start is not None
+               else _consensus(rotations, _candidates(rotations, options), options))
         sample_ok, detections = np.ones(n, dtype=bool), None
         for _ in range(2 if start is None else 1):   # a warm start is already clean
             detections = _detections(rotations, q_z, detections)
@@ -368,6 +368,7 @@ def _all_pairs(rotations, options, start):
             _require_samples(sample_ok)
             q_z = all_pairs_rotation(rotations, sample_ok, q_z)
     else:
+        candidates = _candidates(rotations, options)
         _require_motions(candidates)
         sample_ok, detections = np.ones(n, dtype=bool), None
         q_z = all_pairs_rotation(rotations, sample_ok,
