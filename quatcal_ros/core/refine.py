@@ -204,8 +204,10 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None
     All inputs are arrays of the samples to use (the good ones of the rotation stage), link
     poses already inverted for eye-to-hand. robust: a heavy-tailed noise model (else
     Gaussian); start: an earlier Refinement to start from instead (a warm start: its mounting
-    and object pose); sensor_covariance: (N, 6, 6) each sample's own covariance of its
-    residual (rotation, translation; pose.residual_order), or None. Returns a Refinement.
+    and object pose, and its noise models and their probabilities, whose scales alone are
+    refitted; a solve without it chooses the models); sensor_covariance: (N, 6, 6) each
+    sample's own covariance of its residual (rotation, translation; pose.residual_order), or
+    None. Returns a Refinement.
     """
     link_R = quat.matrix_from_quaternion(link_q)
     whitening = None if sensor_covariance is None else whitening_of(sensor_covariance)
@@ -236,14 +238,21 @@ def _fit(arrays, model, robust, warm, max_iterations):
     from (their EM warm-started from the last fit: iteratively reweighted least squares), until
     a step moves the unknowns by less than STEP_TOLERANCE of their sigmas (the noise fitted
     before it then stands at the answer too); else the noise is fitted at the last model.
+    Given `warm`, its models stay and only their scales and weights follow the steps.
     """
     grid = heavy_tails.NU_GRID if robust else (math.inf,)
     shapes = SHAPES if len(arrays[0]) >= FULL_SHAPE_SAMPLES else ISOTROPIC
     link_q, link_t, sensor_q, sensor_t, link_R, whitening = arrays
+
+    def noise_at(e, noise):
+        if warm is not None:
+            return noise.refitted(e, LOST_SAMPLES, NOISE_FLOOR)
+        return heavy_tails.fit_t(e, shapes, grid, LOST_SAMPLES, NOISE_FLOOR, start=noise)
+
     noise = warm
     for _ in range(max_iterations):
         e, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R, whitening)
-        noise = heavy_tails.fit_t(e, shapes, grid, LOST_SAMPLES, NOISE_FLOOR, start=noise)
+        noise = noise_at(e, noise)
         A, g = _normal_equations(J, e, noise)
         step = -_solve(A, g)
         if not np.all(np.isfinite(step)):
@@ -252,7 +261,7 @@ def _fit(arrays, model, robust, warm, max_iterations):
         if float(step @ A @ step) < STEP_TOLERANCE ** 2:   # the noise stands at the answer
             return model, noise, True
     e, _ = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R, whitening)
-    return model, heavy_tails.fit_t(e, shapes, grid, LOST_SAMPLES, NOISE_FLOOR, start=noise), False
+    return model, noise_at(e, noise), False
 
 
 def with_jackknife(refinement, link_q, link_t, sensor_q, sensor_t, robust=True,
