@@ -21,7 +21,6 @@ import math
 
 import numpy as np
 from quatcal_ros.core.pose import Pose, Sample
-from quatcal_ros.core.quaternion import wxyz_from_xyzw
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, quaternion_norm_problem
 
 COLUMNS = ('stamp',
@@ -138,7 +137,20 @@ def parse_numbers(row, index, name, line):
     Raises BadInputError naming the file, row and field for a missing cell, one that is not
     a finite number, or a position (a column ending in _x, _y, _z) beyond MAX_POSITION_M.
     """
-    values = {}
+    try:   # the usual row: every cell a plain finite number, positions in range
+        values = {column: float(row[i]) for column, i in index.items()}
+    except (IndexError, ValueError):
+        values = None
+    if (values is None or any('_' in row[i] for i in index.values())
+            or not all(map(math.isfinite, values.values()))
+            or any(abs(value) > MAX_POSITION_M for column, value in values.items()
+                   if column[-2:] in ('_x', '_y', '_z'))):
+        _check_numbers(row, index, name, line)
+    return values
+
+
+def _check_numbers(row, index, name, line):
+    """Raise the BadInputError of parse_numbers for the first bad cell of a row."""
     for column, i in index.items():
         where = f'{name}, row {line}, field {column}'
         if i >= len(row):
@@ -155,8 +167,6 @@ def parse_numbers(row, index, name, line):
             raise BadInputError(f'{where}: {value:g} m is not a position in a robot cell (at '
                                 f'most {MAX_POSITION_M:g} m from the origin; positions are in '
                                 'metres)')
-        values[column] = value
-    return values
 
 
 def pose_from_values(values, prefix, name, line):
@@ -167,7 +177,7 @@ def pose_from_values(values, prefix, name, line):
         raise BadInputError(f'{name}, row {line}, fields {prefix}_qx..{prefix}_qw: {problem}; '
                             'quaternions are x, y, z, w')
     position = [values[f'{prefix}_{axis}'] for axis in 'xyz']
-    return Pose.create(position, wxyz_from_xyzw(xyzw))
+    return Pose.create(position, xyzw[3:] + xyzw[:3])
 
 
 def header_columns(covariance):
