@@ -16,8 +16,9 @@ weighted least squares. A few dozen samples cannot estimate 21 covariance entrie
 full matrix is used only when the data show its shape clearly; else one variance for rotation
 and one for translation (chosen by the information criterion, heavy_tails.fit_t).
 
-The 12 unknowns (X, O) are found by Gauss-Newton in numpy, re-fitting the noise model at every
-step (iteratively reweighted least squares); it starts from the closed form (Chou-Kamel
+The 12 unknowns (X, O) are found by Gauss-Newton in numpy, re-fitting the noise models and
+choosing among them again at every step (iteratively reweighted least squares: the answer is
+optimal under the noise reported with it); it starts from the closed form (Chou-Kamel
 rotation, closed-form translation), which stays the fallback. Every sum is over samples: O(N).
 
 The reported covariance is the sandwich A^-1 B A^-1 (A the weighted normal matrix, B the
