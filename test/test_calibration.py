@@ -178,6 +178,17 @@ def test_inverted_sensor_convention_is_detected_and_named():
     assert error_deg(fixed, cell) < 3 * fixed.uncertainty_deg + 0.01
 
 
+def test_inverted_sensor_poses_with_bad_detections_are_still_named():
+    # The main fit screens bad detections, the quick fits of the other conventions do not:
+    # the configured convention is compared with them by the same quick fit.
+    rng = np.random.default_rng(10)
+    cell = simulation.random_cell(rng)
+    samples = simulation.samples(rng, cell, 10, rotation_noise_deg=0.2,
+                                 translation_noise_m=0.001, outlier_fraction=0.15)[0]
+    inverted = [Sample(s.stamp_ns, s.link, s.sensor.inverse()) for s in samples]
+    assert any('--invert-sensor' in w for w in calibrate(inverted).warnings)
+
+
 def test_wrong_setup_is_detected_and_named():
     cell, samples, _ = synthetic(6, 15, 'eye_to_hand', rotation_noise_deg=0.2)
     try:

@@ -6,9 +6,10 @@ moderately well when the robot turns little, since rotation angles cannot tell
 (angle(L_i^T L_j) == angle(L_i L_j^T)), but the object positions the samples predict then
 scatter by the lever arms (tens of centimetres) instead of by the sensor noise. So the
 configured convention's misfit (median rotation and position residuals; from the main fit when
-there is one) is questioned when it is poor: then each other convention (setup x sensor
-inversion) gets a quick closed-form fit of rotation and translation, and the configured one is
-compared with the best by the median rotation residual times the median position residual.
+there is one) is questioned when it is poor: then each of the four conventions (setup x sensor
+inversion) gets the same quick closed-form fit of rotation and translation, and the configured
+one is compared with the best by the median rotation residual times the median position
+residual.
 The warning names the fix.
 
 A fit that no convention explains (a residual of tens of degrees) is not a rigid mounting, or
@@ -38,17 +39,19 @@ FLOOR_DEG, FLOOR_MM = 0.01, 0.01
 NOT_RIGID_DEG = 10.0
 
 
-def warnings(samples, options, current=None):
+def warnings(samples, options, screen=None):
     """
     Return a warning naming the fix when another convention fits far better, else [].
 
-    current: the configured convention's misfit from the main fit (`misfit`), when there is
-    one; else its quick fit here. The other conventions are fitted only when it is poor.
+    screen: the configured convention's misfit from the main fit (`misfit`), when there is
+    one: a good fit there ends the check at no cost. Otherwise the configured convention is
+    compared with the others by the same quick fit (the main fit screens bad detections, the
+    quick ones do not, so their misfits are not comparable).
     """
-    if current is None:
-        current = _misfit(samples, options.setup, options.invert_sensor, options)
-    if current is None or (current[0] < SUSPICIOUS_RESIDUAL_DEG
-                           and current[1] < SUSPICIOUS_POSITION_MM):
+    if screen is not None and _good(screen):
+        return []
+    current = _misfit(samples, options.setup, options.invert_sensor, options)
+    if current is None or _good(current):
         return []
     fits = {(setup, invert): _misfit(samples, setup, invert, options)
             for setup in SETUPS for invert in (False, True)
@@ -64,6 +67,10 @@ def warnings(samples, options, current=None):
             f'{rotation:.2f} deg, {position:.1f} mm) but well as {_name(*best)} '
             f'({others[best][0]:.2f} deg, {others[best][1]:.1f} mm): '
             f'{_fix(options, *best)}']
+
+
+def _good(fit):
+    return fit[0] < SUSPICIOUS_RESIDUAL_DEG and fit[1] < SUSPICIOUS_POSITION_MM
 
 
 def _score(fit):

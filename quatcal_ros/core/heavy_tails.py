@@ -181,7 +181,8 @@ def fit_t(residuals, shapes, grid=NU_GRID, lost_samples=0.0, floor=None, prior=N
     spent on fitted parameters (the scale is divided by N minus them); floor: d variances
     added to the diagonal (so exact data do not divide by zero); prior: per-sample
     probabilities of being good (bad_detections), which weight each sample's part in the fit;
-    start: a NoiseFit of similar residuals whose weights start the EM (fewer steps).
+    start: a NoiseFit of similar residuals whose weights start the EM (fewer steps; a model it
+    dropped starts from the distances of its nearest model).
     """
     r = np.asarray(residuals, dtype=float)
     n, d = r.shape
