@@ -50,10 +50,10 @@ def warnings(samples, options, screen=None):
     """
     if screen is not None and _good(screen):
         return []
-    current = _misfit(samples, options.setup, options.invert_sensor, options)
+    current = _quick_misfit(samples, options.setup, options.invert_sensor, options)
     if current is None or _good(current):
         return []
-    fits = {(setup, invert): _misfit(samples, setup, invert, options)
+    fits = {(setup, invert): _quick_misfit(samples, setup, invert, options)
             for setup in SETUPS for invert in (False, True)
             if (setup, invert) != (options.setup, options.invert_sensor)}
     others = {k: v for k, v in fits.items() if v is not None}
@@ -98,7 +98,7 @@ def misfit(rotation_residuals, position_residuals):
             float(1e3 * np.median(np.linalg.norm(position_residuals, axis=1))))
 
 
-def _misfit(samples, setup, invert, options):
+def _quick_misfit(samples, setup, invert, options):
     """Return the median rotation (deg) and position (mm) residuals of a quick fit, or None."""
     if len(samples) > CHECK_SAMPLES:
         samples = [samples[k] for k in np.linspace(0, len(samples) - 1, CHECK_SAMPLES,

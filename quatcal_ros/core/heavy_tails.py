@@ -37,19 +37,16 @@ class Shape:
     name: str
     project: object          # scatters (..., d, d) -> matrices of this shape; None: as they are
     parameters: int
-    diagonal: object = None  # for diagonal shapes: the scatters' diagonals (K, d) -> theirs
     block: int = None        # sigma_k^2 I on blocks of this many axes: the EM's short path
 
 
 def isotropic_blocks(d, block=3):
     """Return the Shape sigma_k^2 I on each diagonal block of `block` axes (d / block params)."""
-    def diagonal(variances):
-        means = variances.reshape(variances.shape[:-1] + (-1, block)).mean(axis=-1)
-        return np.repeat(means, block, axis=-1)
-
     def project(scatter):
-        return diagonal(np.diagonal(scatter, axis1=-2, axis2=-1))[..., None] * np.eye(d)
-    return Shape('isotropic', project, d // block, diagonal, block)
+        variances = np.diagonal(scatter, axis1=-2, axis2=-1)
+        means = variances.reshape(variances.shape[:-1] + (-1, block)).mean(axis=-1)
+        return np.repeat(means, block, axis=-1)[..., None] * np.eye(d)
+    return Shape('isotropic', project, d // block, block)
 
 
 def full(d):
@@ -290,26 +287,6 @@ def _scale(r, w, count, shape, floor):
     return scatter if floor is None else scatter + np.diag(floor)
 
 
-def _distances(r, w, count, shape, floor):
-    """
-    Return the Mahalanobis distances (K, N) under the scales _scale would return.
-
-    For a diagonal shape without forming a matrix (the EM's inner loop: the same numbers).
-    """
-    if shape.diagonal is None:
-        return _mahalanobis(r, _scale(r, w, count, shape, floor))
-    squares = r * r
-    variances = shape.diagonal((w @ squares) / np.reshape(count, (-1, 1)))
-    if floor is not None:
-        variances = variances + floor
-    return (squares @ (1.0 / variances).T).T
-
-
-def _mahalanobis(r, scale):
-    """Return r_n^T S_k^-1 r_n (K, N) for scales (K, d, d)."""
-    return ((r @ np.linalg.inv(scale)) * r).sum(axis=-1)
-
-
 class _Matrices:
     """The scale matrices of any Shape, and the distances under them (K models at once)."""
 
@@ -318,33 +295,39 @@ class _Matrices:
 
     def distances(self, w, count):
         """Return r_n^T S_k^-1 r_n (K, N) under the scales S_k of the weights w (K, N)."""
-        return _distances(self.r, w, count, self.shape, self.floor)
+        return self._solved(w, count)[2]
 
     def fitted(self, w, count):
         """Return the scales, their inverses (K, d, d), the distances (K, N), log dets (K,)."""
+        scale, precision, delta = self._solved(w, count)
+        return scale, precision, delta, np.linalg.slogdet(scale)[1]
+
+    def _solved(self, w, count):
         scale = _scale(self.r, w, count, self.shape, self.floor)
         precision = np.linalg.inv(scale)
-        delta = ((self.r @ precision) * self.r).sum(axis=-1)
-        return scale, precision, delta, np.linalg.slogdet(scale)[1]
+        return scale, precision, ((self.r @ precision) * self.r).sum(axis=-1)
 
 
 class _Blocks:
     """
-    The same for sigma_b^2 I on blocks of axes (with a floor even within each block).
+    The same for sigma_b^2 I on blocks of axes (Shape.block), without forming a matrix.
 
-    From each sample's sum of squares per block (N, B), without forming a matrix: the EM's
+    The variances come from each sample's sum of squares per block (N, B), the distances
+    from its squares per axis (each axis's variance is its block's plus its floor): the EM's
     inner loop, the same numbers as _Matrices to rounding.
     """
 
     def __init__(self, r, block, floor):
         n, d = r.shape
-        parts = r.reshape(n, d // block, block)
-        self.squares = np.einsum('nbk,nbk->nb', parts, parts)
+        self.squares = r * r
+        self.block_squares = self.squares.reshape(n, d // block, block).sum(axis=-1)
         self.block, self.d = block, d
-        self.floor = 0.0 if floor is None else floor[::block]
+        self.floor = 0.0 if floor is None else floor
 
     def _variances(self, w, count):
-        return (w @ self.squares) / (self.block * np.reshape(count, (-1, 1))) + self.floor
+        """Return each model's variance per axis (K, d)."""
+        blocks = (w @ self.block_squares) / (self.block * np.reshape(count, (-1, 1)))
+        return np.repeat(blocks, self.block, axis=1) + self.floor
 
     def distances(self, w, count):
         """Return r_n^T S_k^-1 r_n (K, N) under the scales S_k of the weights w (K, N)."""
@@ -353,19 +336,15 @@ class _Blocks:
     def fitted(self, w, count):
         """Return the scales, their inverses (K, d, d), the distances (K, N), log dets (K,)."""
         variances = self._variances(w, count)
-        axes = np.repeat(variances, self.block, axis=1)[:, :, None] * np.eye(self.d)
         inverse = 1.0 / variances
-        return (axes, np.repeat(inverse, self.block, axis=1)[:, :, None] * np.eye(self.d),
-                inverse @ self.squares.T, self.block * np.log(variances).sum(axis=1))
+        eye = np.eye(self.d)
+        return (variances[:, :, None] * eye, inverse[:, :, None] * eye,
+                inverse @ self.squares.T, np.log(variances).sum(axis=1))
 
 
 def _arithmetic(r, shape, floor):
-    """Return the _Blocks of an isotropic-blocks Shape (floor even in blocks), else _Matrices."""
-    block = shape.block
-    if block is not None and (floor is None or np.all(
-            np.reshape(floor, (-1, block)) == np.reshape(floor, (-1, block))[:, :1])):
-        return _Blocks(r, block, floor)
-    return _Matrices(r, shape, floor)
+    """Return the _Blocks of a Shape of isotropic blocks, else its _Matrices."""
+    return _Matrices(r, shape, floor) if shape.block is None else _Blocks(r, shape.block, floor)
 
 
 # --- bad detections -------------------------------------------------------------------------
