@@ -34,12 +34,12 @@ from quatcal_ros.core import quality
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core import reduced_dof
 from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, least_squares_rotation, \
-    MotionSystem, sample_matrices
+    MotionSystem
 from quatcal_ros.core.motions import motion_count, Motions, pair_indices, PAIRINGS, \
     SampleRotations
+from quatcal_ros.core.numerics import median, random_integers
 from quatcal_ros.core.pose import inverse_perturbation, residual_order
-from quatcal_ros.core.refine import MAX_ITERATIONS, refine, uncertainties, with_jackknife, \
-    with_jackknife_of
+from quatcal_ros.core.refine import MAX_ITERATIONS, refine, uncertainties, with_jackknife_of
 from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.translation import SamplePositions, solve_translation
 from quatcal_ros.core.units import SETUPS
@@ -426,10 +426,8 @@ def _candidates(rotations, options):
     if motion_count(n) <= CANDIDATE_MOTIONS:
         i, j = pair_indices(n, 'all')
     else:
-        rng = np.random.default_rng(options.seed)
-        extra = CANDIDATE_MOTIONS - (n - 1)
-        a = rng.integers(0, n, max(extra, 0))
-        b = rng.integers(0, n - 1, max(extra, 0))
+        extra = max(CANDIDATE_MOTIONS - (n - 1), 0)
+        a, b = random_integers(options.seed, (n, extra), (n - 1, extra))
         b = b + (b >= a)   # any other sample
         first = np.arange(n - 1)
         i = np.concatenate([first, np.minimum(a, b)])[:CANDIDATE_MOTIONS]
@@ -450,7 +448,7 @@ def _screen(motions, options):
     limit = np.inf
     if options.robust and np.any(large):
         # |theta_a - theta_b| of a good motion is Gaussian: 5 robust sigmas, within bounds.
-        sigma = np.median(np.abs(angle_a - angle_b)[large]) / 0.6745
+        sigma = median(np.abs(angle_a - angle_b)[large]) / 0.6745
         limit = np.clip(5.0 * sigma, np.radians(0.1), np.radians(options.max_angle_mismatch_deg))
     return _usable(angle_a, angle_b, options.min_motion_deg, limit), limit
 
@@ -496,8 +494,7 @@ def _consensus(rotations, candidates, options):
     once), and is scored by the median residual of the samples' object orientations.
     """
     _require_motions(candidates)
-    rng = np.random.default_rng(options.seed)
-    draws = rng.integers(0, len(candidates), (4 * options.hypotheses, 2))
+    draws, = random_integers(options.seed, (len(candidates), (4 * options.hypotheses, 2)))
     axes = candidates.axis_a
     separated = ((draws[:, 0] != draws[:, 1]) & (np.abs(np.einsum(
         'ki,ki->k', axes[draws[:, 0]], axes[draws[:, 1]]))
@@ -508,9 +505,9 @@ def _consensus(rotations, candidates, options):
     hypotheses = np.vstack([least_squares_rotation(candidates.q_a, candidates.q_b)[None],
                             np.linalg.eigh(normal)[1][:, :, 0]])
     # Every hypothesis's object orientations Z_i at once: (H, N, 4).
-    Z = np.einsum('nij,hj->hni', sample_matrices(rotations), hypotheses)
-    residuals = quat.angle_between(quat.average(Z)[:, None], Z)   # (H, N) radians
-    return quat.canonical(hypotheses[int(np.argmin(np.median(residuals, axis=1)))])
+    Z = np.einsum('nij,hj->hni', rotations.matrices, hypotheses)
+    residuals = quat.angles_from(quat.average(Z)[:, None], Z)   # (H, N) radians
+    return quat.canonical(hypotheses[int(np.argmin(median(residuals, axis=1)))])
 
 
 def _detections(rotations, q_z, previous=None):
@@ -607,13 +604,14 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     if _count(ok) >= MIN_REFINE_SAMPLES:
         warm = previous.refinement if previous is not None else None
         own = sensor_covariances(samples, options.invert_sensor)
+        published = options.method == 'refined'   # its uncertainty is published: resample it
         refinement = refine(*arrays, fit.q_z, translation.translation, robust=options.robust,
                             start=warm, max_iterations=(MAX_ITERATIONS if warm is None
                                                         else WARM_ITERATIONS),
-                            sensor_covariance=None if own is None else own[ok])
-        if options.method == 'refined':   # its uncertainty is published: resample it
-            refinement = (with_jackknife(refinement, *arrays, robust=options.robust)
-                          if warm is None else with_jackknife_of(refinement, warm))
+                            sensor_covariance=None if own is None else own[ok],
+                            resample=published and warm is None)
+        if published and warm is not None:
+            refinement = with_jackknife_of(refinement, warm)
     published_refinement = refinement if options.method == 'refined' else None
     if published_refinement is not None and not _plausible(refinement, fit.q_z,
                                                            closed.uncertainty_deg):

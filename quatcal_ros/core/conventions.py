@@ -16,11 +16,14 @@ A fit that no convention explains (a residual of tens of degrees) is not a rigid
 the data are dominated by bad detections: `rigid_fit_warnings` says so loudly.
 """
 
+import math
+
 import numpy as np
 
 from quatcal_ros.core import quality
 from quatcal_ros.core.leastsq import all_pairs_rotation, least_squares_rotation
 from quatcal_ros.core.motions import Motions, SampleRotations
+from quatcal_ros.core.numerics import median, random_integers
 from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.translation import SamplePositions, solve_translation
 from quatcal_ros.core.units import SETUPS
@@ -94,8 +97,8 @@ def _fix(options, setup, invert):
 
 def misfit(rotation_residuals, position_residuals):
     """Return the median rotation (deg) and position (mm) residuals of the samples (N, 3)."""
-    return (float(np.degrees(np.median(np.linalg.norm(rotation_residuals, axis=1)))),
-            float(1e3 * np.median(np.linalg.norm(position_residuals, axis=1))))
+    return (math.degrees(median(np.linalg.norm(rotation_residuals, axis=1))),
+            1e3 * median(np.linalg.norm(position_residuals, axis=1)))
 
 
 def _quick_misfit(samples, setup, invert, options):
@@ -105,9 +108,7 @@ def _quick_misfit(samples, setup, invert, options):
                                                    dtype=int)]
     n = len(samples)
     rotations = SampleRotations.from_samples(samples, setup, invert)
-    rng = np.random.default_rng(options.seed)
-    i = rng.integers(0, n, CHECK_MOTIONS)
-    j = rng.integers(0, n, CHECK_MOTIONS)
+    i, j = random_integers(options.seed, (n, CHECK_MOTIONS), (n, CHECK_MOTIONS))
     motions = Motions.between(rotations, i, j)
     motions = motions.subset(np.minimum(motions.angle_a, motions.angle_b)
                              >= np.radians(options.min_motion_deg))

@@ -15,12 +15,16 @@ that (motion blur, a grazing view of the target), and now and then a detection i
   with its probability of being good, so no threshold is re-derived from an already-trimmed
   set and decisions do not cascade (only the first fit leaves out what lies beyond a generous
   START_SIGMAS robust sigmas).
+
+Every candidate model (a Shape of the scale and a nu) is one row of the arrays of a NoiseFit:
+the EM steps, densities and information of all of them are computed at once.
 """
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 import math
 
 import numpy as np
+from quatcal_ros.core.numerics import median
 
 NU_GRID = (3.0, 5.0, 10.0, 30.0, math.inf)
 EM_ITERATIONS = 12
@@ -56,35 +60,61 @@ def full(d):
 
 @dataclass(frozen=True)
 class Component:
-    """One candidate noise model fitted to the residuals: a Shape and a nu."""
+    """One candidate noise model fitted to the residuals: a Shape and a nu (a NoiseFit's row)."""
 
     shape: Shape
     nu: float
     scale: np.ndarray       # d x d
-    precision: np.ndarray   # its inverse
     weights: np.ndarray     # (nu + d) / (nu + delta_i); 1 for nu = inf
     delta: np.ndarray       # squared Mahalanobis distances r_i^T S^-1 r_i
-    log_density: np.ndarray  # per sample
-    criterion: float        # the Bayesian information criterion of the fit
 
     @property
     def covariance(self):
         """Return the covariance of this t, nu / (nu - 2) S (S for nu = inf)."""
-        return self.scale * (1.0 if math.isinf(self.nu) else self.nu / (self.nu - 2.0))
+        return self.scale * _covariance_factor(self.nu)
 
 
-@dataclass(frozen=True)
+def _covariance_factor(nu):
+    return 1.0 if math.isinf(nu) else nu / (nu - 2.0)
+
+
+@dataclass(frozen=True, eq=False)
 class NoiseFit:
     """
     The fitted noise: candidate models averaged with their posterior probabilities.
 
-    The probabilities come from the information criterion (exp(BIC_k) normalised): nearly
-    always one model has all of it, but near a tie the estimate moves smoothly from one to
-    the other instead of jumping when a sample's last digit changes.
+    Row k of each array is model k (shapes[k], nus[k]). The probabilities come from the
+    information criterion (exp(BIC_k) normalised): nearly always one model has all of it, but
+    near a tie the estimate moves smoothly from one to the other instead of jumping when a
+    sample's last digit changes. The scales are kept as their diagonals (`variances`, K x d)
+    when every model's is diagonal, else as matrices (`matrices`: scales and precisions).
     """
 
-    components: tuple
-    probabilities: np.ndarray
+    shapes: tuple                # (K,) Shape
+    nus: tuple                   # (K,) float
+    probabilities: np.ndarray    # (K,)
+    model_weights: np.ndarray    # (K, N) (nu + d) / (nu + delta); 1 for nu = inf
+    delta: np.ndarray            # (K, N) squared Mahalanobis distances
+    log_density: np.ndarray      # (K, N)
+    variances: np.ndarray = None  # (K, d) the diagonal scales, or None
+    matrices: tuple = None       # (scales, precisions), each (K, d, d), when not diagonal
+
+    @property
+    def scales(self):
+        """Return the scale matrices (K, d, d)."""
+        return _as_matrices(self.variances) if self.matrices is None else self.matrices[0]
+
+    @property
+    def precisions(self):
+        """Return the scales' inverses (K, d, d)."""
+        return (_as_matrices(1.0 / self.variances) if self.matrices is None
+                else self.matrices[1])
+
+    @property
+    def components(self):
+        """Return each model as a Component."""
+        return tuple(Component(s, nu, scale, w, delta) for s, nu, scale, w, delta in zip(
+            self.shapes, self.nus, self.scales, self.model_weights, self.delta))
 
     @property
     def best(self):
@@ -94,43 +124,60 @@ class NoiseFit:
     @property
     def nu(self):
         """Return the most probable tail degrees of freedom (inf: Gaussian)."""
-        return self.best.nu
+        return self.nus[int(np.argmax(self.probabilities))]
 
     @property
     def covariance(self):
         """Return the covariance of the noise (d x d), averaged over the models."""
-        return sum(p * c.covariance for p, c in zip(self.probabilities, self.components))
+        factors = self.probabilities * np.array([_covariance_factor(nu) for nu in self.nus])
+        return np.tensordot(factors, self.scales, axes=1)
 
     @property
     def weights(self):
         """Return each sample's weight relative to a typical sample, averaged over the models."""
-        return sum(p * c.weights for p, c in zip(self.probabilities, self.components))
+        return self.probabilities @ self.model_weights
 
     def information(self):
         """Return each sample's information matrix sum_k p_k w_ik S_k^-1, (N, d, d)."""
-        return sum(p * c.weights[:, None, None] * c.precision[None]
-                   for p, c in zip(self.probabilities, self.components))
+        diagonal = self.information_diagonal()
+        if diagonal is not None:
+            return _as_matrices(diagonal)
+        return np.einsum('kn,kij->nij', self.probabilities[:, None] * self.model_weights,
+                         self.precisions)
+
+    def information_diagonal(self):
+        """Return the information's diagonals (N, d) when it is diagonal, else None."""
+        if self.variances is None:
+            return None
+        return (self.probabilities[:, None] * self.model_weights).T @ (1.0 / self.variances)
+
+    def efficiency(self, d):
+        """
+        Return the t's Fisher information of a location over the weighted normal matrix's.
+
+        For a t with nu degrees of freedom in d dimensions the Fisher information of a
+        location is (nu + d) / (nu + d + 2) times the Gaussian one with the scale matrix S;
+        reweighted least squares has the weights' mean in place of that factor (averaged over
+        the models).
+        """
+        factors = _t_constants(self.nus, d).fisher_factor
+        mean_weights = np.maximum(self.model_weights.mean(axis=1), 1e-12)
+        return float(self.probabilities @ (factors / mean_weights))
 
     def subset(self, mask):
         """Return this fit restricted to the samples `mask` selects (to warm-start a refit)."""
-        return NoiseFit(tuple(replace(c, weights=c.weights[mask], delta=c.delta[mask],
-                                      log_density=c.log_density[mask])
-                              for c in self.components), self.probabilities)
+        return NoiseFit(self.shapes, self.nus, self.probabilities,
+                        self.model_weights[:, mask], self.delta[:, mask],
+                        self.log_density[:, mask], self.variances, self.matrices)
 
     def refitted(self, residuals, lost_samples=0.0, floor=None):
         """Return the same models and probabilities with their scales fitted to `residuals`."""
         r = np.asarray(residuals, dtype=float)
         count = max(len(r) - lost_samples, 1.0)
-        by_shape = {}
-        for c in self.components:
-            by_shape.setdefault(c.shape.name, []).append(c)
-        fitted = {}
-        for group in by_shape.values():
-            for c in _fit_components(r, np.ones(len(r)), count, group[0].shape,
-                                     [c.nu for c in group], floor, group):
-                fitted[c.shape.name, c.nu] = c
-        return NoiseFit(tuple(fitted[c.shape.name, c.nu] for c in self.components),
-                        self.probabilities)
+        parts = [_fit_models(r, None, count, shape, [self.nus[k] for k in rows], floor,
+                             [(k, True) for k in rows], self)
+                 for shape, rows in _groups(self.shapes)]
+        return _noise_fit(parts, self.probabilities, None)
 
     def refitted_information(self, residuals, keep, lost_samples=0.0, floor=None):
         """
@@ -141,29 +188,66 @@ class NoiseFit:
         leaves out get zero. The models and their probabilities stay. All rows at once: the
         jackknife's replicates (refine.with_jackknife).
         """
+        information = self.refitted_information_blocks(residuals, keep, lost_samples, floor)
+        return _as_matrices(information) if self.variances is not None else information
+
+    def refitted_information_blocks(self, residuals, keep, lost_samples=0.0, floor=None):
+        """
+        Return `refitted_information`, as diagonals (B, N, d) when the scales are diagonal.
+
+        Diagonals when every model's scale is (`variances`), else matrices (B, N, d, d).
+        """
         r = np.asarray(residuals, dtype=float)
         keep = np.asarray(keep, dtype=float)
-        rows, n = keep.shape
-        d = r.shape[1]
         count = np.maximum(keep.sum(axis=1) - lost_samples, 1.0)
-        information = np.zeros((rows, n, d, d))
-        arithmetic = {}
-        for p, c in zip(self.probabilities, self.components):
-            if c.shape.name not in arithmetic:
-                arithmetic[c.shape.name] = _arithmetic(r, c.shape, floor)
-            fit = arithmetic[c.shape.name]
-            w = np.broadcast_to(c.weights, (rows, n))
-            for _ in range(0 if math.isinf(c.nu) else WARM_EM_ITERATIONS):
-                w = (c.nu + d) / (c.nu + fit.distances(keep * w, count))
-            _, precision, delta, _ = fit.fitted(keep * w, count)
-            w = 1.0 if math.isinf(c.nu) else (c.nu + d) / (c.nu + delta)
-            information += p * (keep * w)[..., None, None] * precision[:, None]
+        d = r.shape[1]
+        information = 0.0
+        for shape, rows in _groups(self.shapes):
+            arithmetic = _arithmetic(r, shape, floor)
+            for k in rows:
+                nu = self.nus[k]
+                w = keep * self.model_weights[k]
+                if not math.isinf(nu):
+                    for _ in range(WARM_EM_ITERATIONS):
+                        w = keep * ((nu + d) / (nu + arithmetic.distances(w, count)))
+                    w = keep * ((nu + d) / (nu + arithmetic.fitted(w, count)[1]))
+                else:
+                    arithmetic.fitted(w, count)
+                precision = arithmetic.precision
+                p = self.probabilities[k]
+                if self.variances is not None:     # precision: (B, d) diagonals
+                    information = information + p * w[..., None] * precision[:, None, :]
+                else:
+                    if shape.block is not None:   # diagonals of one shape among matrices
+                        precision = _as_matrices(precision)
+                    information = information + p * w[..., None, None] * precision[:, None]
         return information
 
     def density(self):
         """Return each sample's density under the noise, averaged over the models."""
-        return sum(p * np.exp(c.log_density)
-                   for p, c in zip(self.probabilities, self.components))
+        return self.probabilities @ np.exp(self.log_density)
+
+
+def _as_matrices(diagonals):
+    """Return the diagonal matrices (..., d, d) of diagonals (..., d)."""
+    return diagonals[..., None] * _eye(diagonals.shape[-1])
+
+
+_EYES = {}
+
+
+def _eye(d):
+    if d not in _EYES:
+        _EYES[d] = np.eye(d)
+    return _EYES[d]
+
+
+def _groups(shapes):
+    """Return [(shape, [rows of it])] in order of first appearance."""
+    groups = {}
+    for k, shape in enumerate(shapes):
+        groups.setdefault(shape.name, (shape, []))[1].append(k)
+    return list(groups.values())
 
 
 def fit_t(residuals, shapes, grid=NU_GRID, lost_samples=0.0, floor=None, prior=None,
@@ -182,74 +266,212 @@ def fit_t(residuals, shapes, grid=NU_GRID, lost_samples=0.0, floor=None, prior=N
     dropped starts from the distances of its nearest model).
     """
     r = np.asarray(residuals, dtype=float)
-    n, d = r.shape
-    good = np.ones(n) if prior is None else prior
-    count = max(good.sum() - lost_samples, 1.0)
-    earlier = {} if start is None else {(c.shape.name, c.nu): c for c in start.components}
-    components = []
-    for shape in shapes:
-        components += _fit_components(r, good, count, shape, grid, floor,
-                                      [_nearest(earlier, shape.name, nu) for nu in grid])
-    criteria = np.array([c.criterion for c in components])
+    total = len(r) if prior is None else float(prior.sum())
+    count = max(total - lost_samples, 1.0)
+    penalty = 0.5 * math.log(max(total, 2.0))
+    earlier = {} if start is None else {(s.name, nu): k
+                                        for k, (s, nu) in enumerate(zip(start.shapes,
+                                                                        start.nus))}
+    parts = [_fit_models(r, prior, count, shape, grid, floor,
+                         [_nearest(earlier, shape.name, nu) for nu in grid], start, penalty)
+             for shape in shapes]
+    criteria = parts[0].criteria if len(parts) == 1 else np.concatenate(
+        [p.criteria for p in parts])
     probabilities = np.exp(criteria - criteria.max())
-    keep = probabilities > MIN_PROBABILITY * probabilities.sum()   # no say: dropped
-    return NoiseFit(tuple(c for c, k in zip(components, keep) if k),
-                    probabilities[keep] / probabilities[keep].sum())
+    return _noise_fit(parts, probabilities, probabilities > MIN_PROBABILITY * probabilities.sum())
 
 
-def _nearest(components, shape_name, nu):
+@dataclass(frozen=True)
+class _Models:
+    """Models of one Shape fitted together (_fit_models): a NoiseFit's rows in the making."""
+
+    shapes: tuple
+    nus: tuple
+    variances: np.ndarray       # (K, d) diagonal scales, or None
+    matrices: tuple             # (scales, precisions) (K, d, d), or None
+    model_weights: np.ndarray
+    delta: np.ndarray
+    log_density: np.ndarray
+    criteria: np.ndarray        # None without a penalty
+
+    def matrix_form(self):
+        """Return (scales, precisions) (K, d, d)."""
+        if self.matrices is not None:
+            return self.matrices
+        return _as_matrices(self.variances), _as_matrices(1.0 / self.variances)
+
+
+def _noise_fit(parts, probabilities, keep):
     """
-    Return the Component of this shape and nu in `components` ({(shape, nu): Component}).
+    Return the NoiseFit of the models fitted by _fit_models (`parts`).
+
+    keep: which models to keep (bool, probabilities renormalised over them), or None: all,
+    with `probabilities` as they are.
+    """
+    if len(parts) == 1:
+        part = parts[0]
+        shapes, nus, variances, matrices = part.shapes, part.nus, part.variances, part.matrices
+        weights, delta, log_density = part.model_weights, part.delta, part.log_density
+    else:
+        shapes = sum((p.shapes for p in parts), ())
+        nus = sum((p.nus for p in parts), ())
+        weights, delta, log_density = (np.concatenate([getattr(p, name) for p in parts])
+                                       for name in ('model_weights', 'delta', 'log_density'))
+        if all(p.variances is not None for p in parts):
+            variances, matrices = np.concatenate([p.variances for p in parts]), None
+        else:
+            forms = [p.matrix_form() for p in parts]
+            variances = None
+            matrices = tuple(np.concatenate([f[i] for f in forms]) for i in (0, 1))
+    if keep is not None:
+        kept = keep.tolist()
+        if all(kept):
+            probabilities = probabilities / probabilities.sum()
+        else:
+            rows = [k for k, on in enumerate(kept) if on]
+            shapes = tuple(shapes[k] for k in rows)
+            nus = tuple(nus[k] for k in rows)
+            weights, delta, log_density = weights[rows], delta[rows], log_density[rows]
+            if variances is not None:
+                variances = variances[rows]
+            else:
+                matrices = (matrices[0][rows], matrices[1][rows])
+            probabilities = probabilities[rows]
+            probabilities = probabilities / probabilities.sum()
+    return NoiseFit(shapes, nus, probabilities, weights, delta, log_density, variances,
+                    matrices)
+
+
+def _nearest(rows, shape_name, nu):
+    """
+    Return (row, same) of the model of this shape and nu in `rows` ({(shape, nu): row}).
 
     Failing that (a fit drops its improbable models), the one of the nearest finite nu, of this
-    shape when there is one, whose distances start this nu's EM nearly as well; None when there
-    is none.
+    shape when there is one, whose distances start this nu's EM nearly as well (same: False);
+    None when there is none.
     """
-    if (shape_name, nu) in components or math.isinf(nu):
-        return components.get((shape_name, nu))
-    near = [(name != shape_name, abs(math.log(c.nu / nu)), key)
-            for key, c in components.items() for name in [key[0]] if math.isfinite(c.nu)]
-    return components[min(near)[2]] if near else None
+    if (shape_name, nu) in rows:
+        return rows[shape_name, nu], True
+    if math.isinf(nu) or not rows:
+        return None
+    near = [(name != shape_name, abs(math.log(other / nu)), (name, other))
+            for name, other in rows if math.isfinite(other)]
+    return (rows[min(near)[2]], False) if near else None
 
 
-def _fit_components(r, good, count, shape, nus, floor, warm):
+def _fit_models(r, good, count, shape, nus, floor, warm, start=None, penalty=None):
     """
-    Fit one Shape with each nu of `nus` by EM, all at once; return their Components.
+    Fit one Shape with each nu of `nus` by EM, all at once; return their _Models.
 
-    warm: for each nu an earlier Component to start from (of it, or of another finite nu or
-    shape: the weights its distances give this nu), or None. Each model takes
-    its own number of EM steps (none for nu = inf, fewer from a warm start), as if fitted
-    alone: the batch only shares the arithmetic.
+    good: per-sample prior weights (None: all 1); warm: for each nu, (row, same) of the
+    NoiseFit `start` to start from (its weights when `same`, else the weights its distances
+    give this nu), or None. Each model takes its own number of EM steps (none for nu = inf,
+    fewer from a warm start), as if fitted alone: the batch only shares the arithmetic.
+    The criteria (BIC) need `penalty` (log N / 2).
     """
     n, d = r.shape
     k = len(nus)
-    nu = np.array(nus, dtype=float)
-    w = np.ones((k, n))
-    steps = np.full(k, EM_ITERATIONS)
-    for i, component in enumerate(warm):
-        if component is not None:   # of these samples, or of the first (a sample added since)
-            m = min(n, len(component.weights))
-            same = (component.shape.name, component.nu) == (shape.name, nu[i])
-            w[i, :m] = (component.weights[:m] if same
-                        else (nu[i] + d) / (nu[i] + component.delta[:m]))
-            steps[i] = WARM_EM_ITERATIONS if m == n else RESUMED_EM_ITERATIONS
-    steps[np.isinf(nu)] = 0
+    constants = _t_constants(tuple(nus), d)
+    steps = list(constants.cold_steps)
+    w = _start_weights(n, d, constants, warm, start, steps)
     arithmetic = _arithmetic(r, shape, floor)
     done = 0
-    for until in np.unique(steps[steps > 0]):   # the rows still moving, a batch at a time
-        rows = np.flatnonzero(steps >= until)     # finite nu only
-        tails = nu[rows][:, None]
-        moving = w[rows]
-        for _ in range(int(until) - done):
-            moving = (tails + d) / (tails + arithmetic.distances(good * moving, count))
-        w[rows], done = moving, int(until)
-    scale, precision, delta, log_det = arithmetic.fitted(good * w, count)
-    weights = t_weights(delta, d, nu)
-    log_density = t_log_density(delta, d, nu, log_det)
-    free = shape.parameters + np.where(np.isinf(nu), 0, 1)
-    criteria = log_density @ good - 0.5 * free * math.log(max(good.sum(), 2.0))
-    return [Component(shape, float(nu[i]), scale[i], precision[i], weights[i], delta[i],
-                      log_density[i], float(criteria[i])) for i in range(k)]
+    for until in sorted(set(steps) - {0}):     # the rows still moving, a batch at a time
+        rows = [i for i in range(k) if steps[i] >= until]
+        if rows == list(range(rows[0], rows[-1] + 1)):   # a slice: no copies
+            rows = slice(rows[0], rows[-1] + 1)
+        w[rows] = arithmetic.em_steps(w[rows], good, count, constants.safe[rows],
+                                      constants.numerator[rows], until - done)
+        done = until
+    scale, delta, log_det = arithmetic.fitted(w if good is None else good * w, count)
+    weights = constants.weights(delta)
+    log_density = constants.log_density(delta, log_det)
+    criteria = None
+    if penalty is not None:
+        criteria = ((log_density.sum(axis=1) if good is None else log_density @ good)
+                    - penalty * (shape.parameters + constants.finite))
+    diagonal = scale.ndim == 2
+    return _Models((shape,) * k, tuple(nus), scale if diagonal else None,
+                   None if diagonal else (scale, arithmetic.precision), weights, delta,
+                   log_density, criteria)
+
+
+def _start_weights(n, d, constants, warm, start, steps):
+    """
+    Return the EM's starting weights (K, N) and set each model's EM steps in `steps`.
+
+    Ones (a cold start, EM_ITERATIONS steps), or from the NoiseFit `start` (_fit_models):
+    WARM_EM_ITERATIONS steps, RESUMED_EM_ITERATIONS when samples were added since.
+    """
+    k = len(warm)
+    if all(found is None for found in warm):
+        return np.ones((k, n))
+    m = min(n, start.model_weights.shape[1])
+    found_rows = [found[0] if found is not None and found[1] else -1 for found in warm]
+    if -1 not in found_rows and m == n:     # the same models, the same samples
+        w = start.model_weights[found_rows]
+    else:
+        w = np.ones((k, n))
+        nu = constants.nu
+        for i, found in enumerate(warm):
+            if found is not None:   # of these samples, or of the first (a sample added since)
+                row, same = found
+                w[i, :m] = (start.model_weights[row, :m] if same
+                            else (nu[i] + d) / (nu[i] + start.delta[row, :m]))
+    for i, found in enumerate(warm):
+        if found is not None and steps[i]:
+            steps[i] = WARM_EM_ITERATIONS if m == n else RESUMED_EM_ITERATIONS
+    return w
+
+
+class _TConstants:
+    """What the densities and weights of t's with these nus in d dimensions need, once."""
+
+    def __init__(self, nus, d):
+        self.nu = np.array(nus, dtype=float)
+        self.finite = np.isfinite(self.nu)
+        self.all_finite = bool(self.finite.all())
+        self.cold_steps = tuple(EM_ITERATIONS if f else 0 for f in self.finite.tolist())
+        safe = np.where(self.finite, self.nu, 1.0)[:, None]
+        norm = np.array([math.lgamma(0.5 * (v + d)) - math.lgamma(0.5 * v)
+                         for v in safe[:, 0].tolist()])[:, None]
+        self.d = d
+        self.base = norm - 0.5 * d * np.log(safe * math.pi)
+        self.half_power = 0.5 * (safe + d)
+        self.inverse_nu = 1.0 / safe
+        self.numerator = safe + d
+        self.safe = safe
+        self.gaussian_rows = np.flatnonzero(~self.finite)
+        self.gaussian_base = -0.5 * d * math.log(2.0 * math.pi)
+        # Fisher information of a location over the Gaussian one's with the scale S
+        self.fisher_factor = np.where(self.finite, (safe[:, 0] + d) / (safe[:, 0] + d + 2.0),
+                                      1.0)
+
+    def weights(self, delta):
+        """Return (nu + d) / (nu + delta) (K, N); 1 for nu = inf."""
+        w = self.numerator / (self.safe + delta)
+        if not self.all_finite:
+            w[self.gaussian_rows] = 1.0
+        return w
+
+    def log_density(self, delta, log_det):
+        """Return the log-densities (K, N) at the distances delta, log_det the scales' (K,)."""
+        half_log_det = 0.5 * log_det[:, None]
+        density = self.base - half_log_det - self.half_power * np.log1p(delta * self.inverse_nu)
+        if not self.all_finite:
+            rows = self.gaussian_rows
+            density[rows] = self.gaussian_base - half_log_det[rows] - 0.5 * delta[rows]
+        return density
+
+
+_T_CONSTANTS = {}
+
+
+def _t_constants(nus, d):
+    key = (nus, d)
+    if key not in _T_CONSTANTS:
+        _T_CONSTANTS[key] = _TConstants(nus, d)
+    return _T_CONSTANTS[key]
 
 
 def t_log_density(delta, d, nu, log_det):
@@ -259,32 +481,13 @@ def t_log_density(delta, d, nu, log_det):
     Row k is the t with nu[k] degrees of freedom whose scale has the log determinant
     log_det[k].
     """
-    finite = np.isfinite(nu)
-    safe = np.where(finite, nu, 1.0)
-    norm = np.array([math.lgamma(0.5 * (v + d)) - math.lgamma(0.5 * v) for v in safe])
-    t = ((norm - 0.5 * (d * np.log(safe * math.pi) + log_det))[:, None]
-         - 0.5 * (safe + d)[:, None] * np.log1p(delta / safe[:, None]))
-    gaussian = -0.5 * ((d * math.log(2.0 * math.pi) + log_det)[:, None] + delta)
-    return np.where(finite[:, None], t, gaussian)
+    return _t_constants(tuple(np.asarray(nu, dtype=float).tolist()), d).log_density(
+        delta, np.asarray(log_det, dtype=float))
 
 
 def t_weights(delta, d, nu):
     """Return the EM weights (nu + d) / (nu + delta_kn) (K, N), each row with its nu (K,)."""
-    finite = np.isfinite(nu)[:, None]
-    safe = np.where(finite, nu[:, None], 1.0)
-    return np.where(finite, (safe + d) / (safe + delta), 1.0)
-
-
-def _scale(r, w, count, shape, floor):
-    """
-    Return the scale matrices (K, d, d) of residuals r (N, d) with weights w (K, N).
-
-    count: the samples' worth each is divided by, one for all or one per row (K,).
-    """
-    scatter = (np.swapaxes(w[:, :, None] * r, 1, 2) @ r) / np.reshape(count, (-1, 1, 1))
-    if shape.project is not None:
-        scatter = shape.project(scatter)
-    return scatter if floor is None else scatter + np.diag(floor)
+    return _t_constants(tuple(np.asarray(nu, dtype=float).tolist()), d).weights(delta)
 
 
 class _Matrices:
@@ -292,54 +495,107 @@ class _Matrices:
 
     def __init__(self, r, shape, floor):
         self.r, self.shape, self.floor = r, shape, floor
+        self.precision = None
 
     def distances(self, w, count):
         """Return r_n^T S_k^-1 r_n (K, N) under the scales S_k of the weights w (K, N)."""
         return self._solved(w, count)[2]
 
+    def em_steps(self, w, good, count, nu, numerator, steps):
+        """Return the weights w (K, N) after `steps` EM steps (nu, numerator: (K, 1))."""
+        for _ in range(steps):
+            w = numerator / (nu + self.distances(w if good is None else good * w, count))
+        return w
+
     def fitted(self, w, count):
-        """Return the scales, their inverses (K, d, d), the distances (K, N), log dets (K,)."""
-        scale, precision, delta = self._solved(w, count)
-        return scale, precision, delta, np.linalg.slogdet(scale)[1]
+        """Return the scales (K, d, d), the distances (K, N) and log dets (K,); keep S^-1."""
+        scale, self.precision, delta = self._solved(w, count)
+        return scale, delta, np.linalg.slogdet(scale)[1]
 
     def _solved(self, w, count):
-        scale = _scale(self.r, w, count, self.shape, self.floor)
+        r = self.r
+        scatter = (np.swapaxes(w[:, :, None] * r, 1, 2) @ r) / np.reshape(count, (-1, 1, 1))
+        if self.shape.project is not None:
+            scatter = self.shape.project(scatter)
+        scale = scatter if self.floor is None else scatter + np.diag(self.floor)
         precision = np.linalg.inv(scale)
-        return scale, precision, ((self.r @ precision) * self.r).sum(axis=-1)
+        return scale, precision, ((r @ precision) * r).sum(axis=-1)
 
 
 class _Blocks:
     """
     The same for sigma_b^2 I on blocks of axes (Shape.block), without forming a matrix.
 
-    The variances come from each sample's sum of squares per block (N, B), the distances
-    from its squares per axis (each axis's variance is its block's plus its floor): the EM's
-    inner loop, the same numbers as _Matrices to rounding.
+    The variances come from each sample's sum of squares per block (N, B), and so do the
+    distances when the floor is the same on every axis of a block (else from the squares per
+    axis, each axis's variance its block's plus its own floor): the EM's inner loop, the same
+    numbers as _Matrices to rounding. Scales and precisions are their diagonals (K, d).
     """
 
     def __init__(self, r, block, floor):
         n, d = r.shape
-        self.squares = r * r
-        self.block_squares = self.squares.reshape(n, d // block, block).sum(axis=-1)
+        squares = r * r
         self.block, self.d = block, d
-        self.floor = 0.0 if floor is None else floor
+        self.block_squares = (squares.sum(axis=-1, keepdims=True) if block == d
+                              else squares.reshape(n, d // block, block).sum(axis=-1))
+        self.floor, self.axis_floor = _block_floors(floor, d, block)
+        self.squares_t = (self.block_squares if self.axis_floor is None else squares).T.copy()
+        self.precision = None
 
     def _variances(self, w, count):
-        """Return each model's variance per axis (K, d)."""
-        blocks = (w @ self.block_squares) / (self.block * np.reshape(count, (-1, 1)))
-        return np.repeat(blocks, self.block, axis=1) + self.floor
+        """Return each model's variance per block (K, B), or per axis with uneven floors."""
+        if np.ndim(count):
+            count = np.reshape(count, (-1, 1))
+        variances = (w @ self.block_squares) / (self.block * count) + self.floor
+        if self.axis_floor is None:
+            return variances
+        return np.repeat(variances, self.block, axis=1) + self.axis_floor
 
     def distances(self, w, count):
         """Return r_n^T S_k^-1 r_n (K, N) under the scales S_k of the weights w (K, N)."""
-        return (1.0 / self._variances(w, count)) @ self.squares.T
+        return (1.0 / self._variances(w, count)) @ self.squares_t
+
+    def em_steps(self, w, good, count, nu, numerator, steps):
+        """Return the weights w (K, N) after `steps` EM steps (nu, numerator: (K, 1))."""
+        if self.axis_floor is not None or np.ndim(count):
+            for _ in range(steps):
+                w = numerator / (nu + self.distances(w if good is None else good * w, count))
+            return w
+        squares = self.block_squares if good is None else good[:, None] * self.block_squares
+        scale = 1.0 / (self.block * count)
+        for _ in range(steps):
+            w = numerator / (nu + (1.0 / ((w @ squares) * scale + self.floor)) @ self.squares_t)
+        return w
 
     def fitted(self, w, count):
-        """Return the scales, their inverses (K, d, d), the distances (K, N), log dets (K,)."""
+        """Return the scales as diagonals (K, d), distances (K, N), log dets; keep S^-1."""
         variances = self._variances(w, count)
         inverse = 1.0 / variances
-        eye = np.eye(self.d)
-        return (variances[:, :, None] * eye, inverse[:, :, None] * eye,
-                inverse @ self.squares.T, np.log(variances).sum(axis=1))
+        delta = inverse @ self.squares_t
+        log_det = np.log(variances).sum(axis=-1)
+        if self.axis_floor is None:   # per block: to every axis
+            log_det = log_det * self.block
+            variances = np.repeat(variances, self.block, axis=-1)
+            inverse = np.repeat(inverse, self.block, axis=-1)
+        self.precision = inverse
+        return variances, delta, log_det
+
+
+_FLOORS = {}
+
+
+def _block_floors(floor, d, block):
+    """Return (floor per block (B,), None) when even within blocks, else (0, floor per axis)."""
+    key = (None if floor is None else np.asarray(floor, dtype=float).tobytes(), d, block)
+    if key not in _FLOORS:
+        values = (0.0,) * d if floor is None else tuple(np.ravel(floor).tolist())
+        values = values * d if len(values) == 1 else values
+        per_block = [values[b:b + block] for b in range(0, d, block)]
+        if all(len(set(part)) == 1 for part in per_block):
+            _FLOORS[key] = np.array([part[0] for part in per_block]), None
+        else:
+            _FLOORS[key] = 0.0, np.array(values)
+    return _FLOORS[key]
 
 
 def _arithmetic(r, shape, floor):
@@ -358,6 +614,7 @@ MIXTURE_ITERATIONS = 8
 # the noise, or the tails it fits would explain it. Generous, so no noisy sample is left out.
 START_SIGMAS = 8.0
 CHI3_MEDIAN = 1.5382
+ROTATION_NOISE = (isotropic_blocks(3),)
 
 
 @dataclass(frozen=True)
@@ -397,18 +654,19 @@ def bad_detections(rotation_residuals, lost_samples=2.0, floor=1e-14, start=None
     Returns Detections.
     """
     r = np.asarray(rotation_residuals, dtype=float)
-    angles = np.linalg.norm(r, axis=1)
+    angles = np.sqrt(np.einsum('ni,ni->n', r, r))
     uniform = uniform_rotation_density(angles)
-    limit = START_SIGMAS * max(np.median(angles) / CHI3_MEDIAN, math.sqrt(floor))
+    limit = START_SIGMAS * max(median(angles) / CHI3_MEDIAN, math.sqrt(floor))
     good = (angles <= limit).astype(float)
     noise = None if start is None else start.noise
+    floors = np.full(3, floor)
     for _ in range(MIXTURE_ITERATIONS):
-        noise = fit_t(r, (isotropic_blocks(3),), NU_GRID, lost_samples, np.full(3, floor),
-                      prior=good, start=noise)
+        noise = fit_t(r, ROTATION_NOISE, NU_GRID, lost_samples, floors, prior=good,
+                      start=noise)
         fraction = min(max(good.mean(), 0.5), 1.0 - MIN_BAD_FRACTION)
-        density = noise.density()
-        updated = fraction * density / (fraction * density + (1.0 - fraction) * uniform)
-        if np.allclose(updated, good, atol=1e-6):
+        density = fraction * noise.density()
+        updated = density / (density + (1.0 - fraction) * uniform)
+        if np.all(np.abs(updated - good) <= 1e-6 + 1e-5 * good):   # np.allclose's test
             break
         good = updated
     return Detections(good, noise)

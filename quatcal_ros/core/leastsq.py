@@ -92,16 +92,6 @@ def least_squares_rotation(q_a, q_b, reference=None):
 
 # --- all pairs in O(N) ------------------------------------------------------------------------
 
-def sample_matrices(rotations):
-    """
-    Return A_i = P+(link_i) P-(sensor_i) (N, 4, 4): Z_i = A_i p_z is sample i's object orientation.
-
-    A_i is orthogonal (a product of two orthogonal matrices), so |Z_j - Z_i| = |B_ij p_z| for
-    the motion (i, j) of eq. (41) with its sign (erratum 3) chosen to match (module docstring).
-    """
-    return quat.plus_matrix(rotations.link) @ quat.minus_matrix(rotations.sensor)
-
-
 def all_pairs_rotation(rotations, use, reference, weights=None, iterations=3):
     """
     Return the all-pairs least-squares p_z of eq. (41) over the samples `use`, in O(N).
@@ -114,7 +104,7 @@ def all_pairs_rotation(rotations, use, reference, weights=None, iterations=3):
     re-decided against the new estimate until they stop changing (`iterations` at most).
     Returns p_z (w, x, y, z), w >= 0.
     """
-    A = sample_matrices(rotations)[use]
+    A = rotations.matrices[use]
     w = np.ones(len(A)) if weights is None else np.asarray(weights, dtype=float)[use]
     p = np.asarray(reference, dtype=float)
     signs = None

@@ -13,6 +13,7 @@ Quaternions are (w, x, y, z).
 """
 
 from dataclasses import dataclass
+from functools import cached_property, lru_cache
 
 import numpy as np
 
@@ -59,13 +60,23 @@ class SampleRotations:
     def __len__(self):
         return len(self.link)
 
+    @cached_property
+    def matrices(self):
+        """
+        Return A_i = P+(link_i) P-(sensor_i) (N, 4, 4): Z_i = A_i p_z (object_orientations).
+
+        A_i is orthogonal (a product of two orthogonal matrices), so |Z_j - Z_i| = |B_ij p_z|
+        for the motion (i, j) of eq. (41) with its sign (erratum 3) chosen to match.
+        """
+        return quat.plus_matrix(self.link) @ quat.minus_matrix(self.sensor)
+
     def object_orientations(self, q_z):
         """
         Z_i = link_i (x) q_z (x) sensor_i: the object's orientation in the base frame.
 
         Constant for noise-free data; the spread of Z_i measures each sample's error.
         """
-        return quat.multiply(quat.multiply(self.link, q_z), self.sensor)
+        return self.matrices @ np.asarray(q_z, dtype=float)
 
 
 def pair_indices(n, pairing='all'):
@@ -74,8 +85,16 @@ def pair_indices(n, pairing='all'):
         first = np.arange(max(n - 1, 0))
         return first, first + 1
     if pairing == 'all':
-        return np.triu_indices(n, k=1)
+        return _all_pairs(n)
     raise ValueError(f'pairing must be one of {PAIRINGS}, not {pairing!r}')
+
+
+@lru_cache(maxsize=8)
+def _all_pairs(n):
+    """Return np.triu_indices(n, 1), read-only (a live session asks for the same n again)."""
+    i, j = np.triu_indices(n, k=1)
+    i.flags.writeable = j.flags.writeable = False
+    return i, j
 
 
 def motion_count(n, pairing='all'):

@@ -32,11 +32,13 @@ def xyzw_from_wxyz(q_wxyz):
 def skew(v):
     """Return the cross-product matrix of eq. (9): its product with b is the cross product."""
     v = np.asarray(v, dtype=float)
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
+    return (v @ SKEW).reshape(v.shape[:-1] + (3, 3))
+
+
+# skew(v).ravel() = v @ SKEW: rows [0, -z, y], [z, 0, -x], [-y, x, 0] of eq. (9).
+SKEW = np.array([[0, 0, 0, 0, 0, -1, 0, 1, 0],
+                 [0, 0, 1, 0, 0, 0, -1, 0, 0],
+                 [0, -1, 0, 1, 0, 0, 0, 0, 0]], dtype=float)
 
 
 def multiply(a, b):
@@ -45,9 +47,9 @@ def multiply(a, b):
     b = np.asarray(b, dtype=float)
     if a.ndim == 1 and b.ndim == 1:   # two quaternions: the same arithmetic on plain floats
         return np.array(_product(*a.tolist(), *b.tolist()))
-    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
-    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    return np.stack(_product(aw, ax, ay, az, bw, bx, by, bz), axis=-1)
+    if b.ndim == 1:                    # many by one: a (x) b = P-(b) a (eq. (13))
+        return a @ minus_matrix(b).T
+    return (plus_matrix(a) @ b[..., None])[..., 0]   # a (x) b = P+(a) b
 
 
 def _product(aw, ax, ay, az, bw, bx, by, bz):
@@ -60,9 +62,10 @@ def _product(aw, ax, ay, az, bw, bx, by, bz):
 
 def conjugate(q):
     """Conjugate of eq. (3): the vector part negated; the inverse of a unit quaternion."""
-    q = np.array(q, dtype=float)
-    q[..., 1:] *= -1.0
-    return q
+    return np.asarray(q, dtype=float) * _CONJUGATE
+
+
+_CONJUGATE = np.array([1.0, -1.0, -1.0, -1.0])
 
 
 def plus_matrix(a):
@@ -100,8 +103,8 @@ def normalize(q):
         if norm < 1e-12:
             raise ValueError('cannot normalise a zero quaternion')
         return np.array([c / norm for c in components])
-    norm = np.sqrt(np.sum(q * q, axis=-1, keepdims=True))
-    if (norm < 1e-12).any():
+    norm = np.sqrt(np.einsum('...i,...i->...', q, q))[..., None]
+    if norm.min(initial=1.0) < 1e-12:
         raise ValueError('cannot normalise a zero quaternion')
     return q / norm
 
@@ -114,31 +117,31 @@ def canonical(q):
     result is unique for every rotation, 180 degrees included.
     """
     q = np.array(q, dtype=float)
-    flat = q.reshape(-1, 4)
-    for row in flat:
-        for component in row:
+    if q.ndim == 1:   # one quaternion: on plain floats
+        for component in q.tolist():
             if abs(component) > 1e-15:
-                if component < 0.0:
-                    row *= -1.0
-                break
-    return flat.reshape(q.shape)
+                return -q if component < 0.0 else q
+        return q
+    w = q[..., :1]
+    if np.abs(w).min(initial=1.0) > 1e-15:   # the sign of w decides
+        return np.where(w < 0.0, -q, q)
+    first = np.argmax(np.abs(q) > 1e-15, axis=-1)[..., None]   # the first non-zero component
+    return np.where(np.take_along_axis(q, first, axis=-1) < 0.0, -q, q)
 
 
 def matrix_from_quaternion(p):
     """
     Rotation matrix of unit quaternion(s) p = (w, x, y, z), eq. (20), (..., 4) -> (..., 3, 3).
 
-    A = (e0^2 - e.e) I + 2 (e e^T + e0 skew(e)); p is normalised first.
+    A = (e0^2 - e.e) I + 2 (e e^T + e0 skew(e)); p is normalised first. Every entry is a
+    quadratic form of p: for many quaternions, one product of their outer products with the
+    constant _MATRIX_OF_OUTER.
     """
     p = normalize(p)
     if p.ndim == 1:   # one quaternion: the same arithmetic on plain floats
         return np.array(_matrix_rows(*p.tolist()))
-    w, x, y, z = np.moveaxis(p, -1, 0)
-    out = np.empty(w.shape + (3, 3))
-    for row, entries in enumerate(_matrix_rows(w, x, y, z)):
-        for column, entry in enumerate(entries):
-            out[..., row, column] = entry
-    return out
+    outer = (p[..., :, None] * p[..., None, :]).reshape(p.shape[:-1] + (16,))
+    return (outer @ _MATRIX_OF_OUTER).reshape(p.shape[:-1] + (3, 3))
 
 
 def _matrix_rows(w, x, y, z):
@@ -146,6 +149,22 @@ def _matrix_rows(w, x, y, z):
     return [[w * w + x * x - y * y - z * z, 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
             [2.0 * (x * y + w * z), w * w - x * x + y * y - z * z, 2.0 * (y * z - w * x)],
             [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), w * w - x * x - y * y + z * z]]
+
+
+def _quadratic_form_of_matrix():
+    """Return C (16, 9): the entries of eq. (20) are (p p^T).ravel() @ C (C symmetric in a, b)."""
+    def entries(p):
+        return np.array(_matrix_rows(*p)).ravel()
+    e = np.eye(4)
+    C = np.zeros((4, 4, 9))
+    for a in range(4):
+        for b in range(4):
+            C[a, b] = (entries(e[a]) if a == b else
+                       0.5 * (entries(e[a] + e[b]) - entries(e[a]) - entries(e[b])))
+    return C.reshape(16, 9)
+
+
+_MATRIX_OF_OUTER = _quadratic_form_of_matrix()
 
 
 def quaternion_from_matrix(A):
@@ -203,11 +222,13 @@ def from_rotation_vector(rotvec):
 def rotation_vector(p):
     """Rotation vector(s) (axis times angle, angle in [0, pi]) of unit quaternion(s) (..., 4)."""
     p = np.asarray(p, dtype=float)
-    p = np.where(p[..., :1] < 0.0, -p, p)
-    s = np.linalg.norm(p[..., 1:], axis=-1, keepdims=True)
-    angle = 2.0 * np.arctan2(s, p[..., :1])
-    scale = np.where(s > 1e-15, angle / np.where(s > 1e-15, s, 1.0), 2.0)
-    return scale * p[..., 1:]
+    v = p[..., 1:]
+    s = np.sqrt(np.einsum('...i,...i->...', v, v))
+    w = p[..., 0]
+    # angle / s, signed to put the quaternion on w >= 0 (2 / |w| in the limit s -> 0; v is 0
+    # at s == 0 exactly, where any finite scale gives the zero vector)
+    scale = np.copysign(2.0 * np.arctan2(s, np.abs(w)) / np.maximum(s, 1e-300), w)
+    return scale[..., None] * v
 
 
 def angle_between(p, q):
@@ -223,6 +244,20 @@ def angle_between(p, q):
         pw, px, py, pz = p.tolist()
         return _angle(*_product(pw, -px, -py, -pz, *q.tolist()))
     return rotation_angle(multiply(conjugate(p), q))
+
+
+def angles_from(p, q):
+    """
+    Return angle_between(p, q) of many quaternions (..., 4), broadcasting, without a product.
+
+    The relative rotation p* (x) q has the scalar part p . q and a vector part as long as the
+    part of q orthogonal to p: atan2 of the two keeps angle_between's accuracy at tiny angles.
+    """
+    p = np.asarray(p, dtype=float)
+    q = np.asarray(q, dtype=float)
+    dot = np.sum(p * q, axis=-1)
+    across = q - dot[..., None] * p
+    return 2.0 * np.arctan2(np.sqrt(np.sum(across * across, axis=-1)), np.abs(dot))
 
 
 def rotation_angle(p):
@@ -301,11 +336,8 @@ def average(quaternions, weights=None):
     batch of sets (..., N, 4) averaged each.
     """
     Q = np.asarray(quaternions, dtype=float)
-    if Q.ndim > 2:   # a batch of sets (..., N, 4): their averages (..., 4)
-        w = np.ones(Q.shape[:-1]) if weights is None else np.asarray(weights, dtype=float)
-        _, vectors = np.linalg.eigh(np.einsum('...ni,...n,...nj->...ij', Q, w, Q))
-        return canonical(vectors[..., -1])
-    Q = Q.reshape(-1, 4)
-    w = np.ones(len(Q)) if weights is None else np.asarray(weights, dtype=float)
-    _, vectors = np.linalg.eigh((Q * w[:, None]).T @ Q)
-    return canonical(vectors[:, -1])
+    if Q.ndim < 2:
+        Q = Q.reshape(-1, 4)
+    weighted = Q if weights is None else Q * np.asarray(weights, dtype=float)[..., None]
+    _, vectors = np.linalg.eigh(np.swapaxes(weighted, -1, -2) @ Q)
+    return canonical(vectors[..., -1])

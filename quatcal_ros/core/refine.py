@@ -149,15 +149,9 @@ def residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, link_R=Non
     position error is t_meas minus R_X^T w_i, w_i = R_L^T (t_O - t_L) - t_X. link_R: the
     link rotation matrices, when the caller has them (else from link_q).
     """
-    R_X = quat.matrix_from_quaternion(x_q)
-    return _residuals(link_q, sensor_q, sensor_t, x_q, o_q, R_X,
-                      lever(link_q, link_t, x_t, o_t, link_R))
-
-
-def _residuals(link_q, sensor_q, sensor_t, x_q, o_q, R_X, w):
-    fixed = quat.plus_matrix(quat.conjugate(o_q)) @ quat.minus_matrix(x_q)
-    rotation = quat.rotation_vector(quat.multiply(sensor_q, link_q @ fixed.T))
-    return rotation, sensor_t - w @ R_X
+    samples = _Samples(link_q, link_t, sensor_q, sensor_t, link_R)
+    e = samples.errors((x_q, x_t, o_q, o_t))[0]
+    return e[:, :3], e[:, 3:]
 
 
 def lever(link_q, link_t, x_t, o_t, link_R=None):
@@ -175,14 +169,20 @@ def jacobian(R_L, R_X, w):
         rotation residual:     d/da = R_X^T,  d/db = -R_X^T R_L^T
         translation residual:  d/da = -R_X^T skew(w),  d/dt_X = R_X^T,  d/dt_O = -R_X^T R_L^T
     """
-    n = len(R_L)
-    J = np.zeros((n, 6, 12))
-    to_sensor = R_X.T @ np.transpose(R_L, (0, 2, 1))
-    J[:, 0:3, 0:3] = R_X.T
+    return _jacobian(R_L, R_X, w @ R_X)
+
+
+def _jacobian(R_L, R_X, u):
+    """Return `jacobian` given u = R_X^T w (the predicted sensor position)."""
+    J = np.zeros((len(R_L), 6, 12))
+    R_X_T = R_X.T
+    to_sensor = R_X_T @ np.swapaxes(R_L, 1, 2)
+    J[:, 0:3, 0:3] = R_X_T
     J[:, 0:3, 6:9] = -to_sensor
-    J[:, 3:6, 0:3] = -R_X.T @ quat.skew(w)
-    J[:, 3:6, 3:6] = R_X.T
-    J[:, 3:6, 9:12] = -to_sensor
+    # R_X^T skew(w) = skew(R_X^T w) R_X^T
+    J[:, 3:6, 0:3] = -(u @ quat.SKEW).reshape(-1, 3, 3) @ R_X_T
+    J[:, 3:6, 3:6] = R_X_T
+    J[:, 3:6, 9:12] = J[:, 0:3, 6:9]
     return J
 
 
@@ -200,8 +200,43 @@ def whitened_jacobian(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t, link
     return np.concatenate([J[:, 0:3].reshape(-1, 12), J[:, 3:6].reshape(-1, 12)])
 
 
+class _Samples:
+    """The samples of a refinement, with what every step needs of them computed once."""
+
+    def __init__(self, link_q, link_t, sensor_q, sensor_t, link_R=None, whitening=None):
+        self.link_q = np.asarray(link_q, dtype=float)
+        self.link_R = quat.matrix_from_quaternion(self.link_q) if link_R is None else link_R
+        self.link_origin = np.einsum('nji,nj->ni', self.link_R, link_t)   # R_L^T t_L
+        self.sensor_plus = quat.plus_matrix(sensor_q)     # S_i (x) q = P+(S_i) q
+        self.sensor_t = np.asarray(sensor_t, dtype=float)
+        self.whitening = whitening
+
+    def __len__(self):
+        return len(self.link_q)
+
+    def errors(self, model):
+        """Return the residuals (N, 6) at model (X, O), R_X and u = R_X^T w (residuals())."""
+        x_q, x_t, o_q, o_t = model
+        R_X = quat.matrix_from_quaternion(x_q)
+        fixed = quat.plus_matrix(quat.conjugate(o_q)) @ quat.minus_matrix(x_q)
+        measured = (self.sensor_plus @ (self.link_q @ fixed.T)[..., None])[..., 0]
+        u = (o_t @ self.link_R - self.link_origin - x_t) @ R_X     # R_X^T w
+        e = np.empty((len(u), 6))
+        e[:, :3] = quat.rotation_vector(measured)
+        e[:, 3:] = self.sensor_t - u
+        return e, R_X, u
+
+    def linearised(self, model):
+        """Return the residuals (N, 6: rotation, translation) and their Jacobian (N, 6, 12)."""
+        e, R_X, u = self.errors(model)
+        J = _jacobian(self.link_R, R_X, u)
+        if self.whitening is None:
+            return e, J
+        return (self.whitening @ e[..., None])[..., 0], self.whitening @ J
+
+
 def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None,
-           max_iterations=MAX_ITERATIONS, sensor_covariance=None):
+           max_iterations=MAX_ITERATIONS, sensor_covariance=None, resample=False):
     """
     Refine the mounting (x_q, x_t) over samples (link_q, link_t, sensor_q, sensor_t).
 
@@ -211,20 +246,20 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None
     and object pose, and its noise models and their probabilities, whose scales alone are
     refitted; a solve without it chooses the models); sensor_covariance: (N, 6, 6) each
     sample's own covariance of its residual (rotation, translation; pose.residual_order), or
-    None. Returns a Refinement.
+    None; resample: add the block jackknife (with_jackknife). Returns a Refinement.
     """
-    link_R = quat.matrix_from_quaternion(link_q)
     whitening = None if sensor_covariance is None else whitening_of(sensor_covariance)
+    samples = _Samples(link_q, link_t, sensor_q, sensor_t, whitening=whitening)
     if start is None:
-        o_q, o_t = object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t)
+        o_q, o_t = object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t, samples.link_R)
     else:
         x_q, x_t = start.quaternion, start.translation
         o_q, o_t = start.object_quaternion, start.object_translation
-    arrays = (link_q, link_t, sensor_q, sensor_t, link_R, whitening)
-    model, noise, converged = _fit(arrays, (x_q, x_t, o_q, o_t), robust,
+    model, noise, converged = _fit(samples, (x_q, x_t, o_q, o_t), robust,
                                    start.noise if start is not None else None, max_iterations)
-    e, J = _linearised(*arrays[:4], *model, *arrays[4:])
-    return _refinement(model, e, J, noise, converged, whitening)
+    e, J = samples.linearised(model)
+    refinement = _refinement(model, e, J, noise, converged, whitening)
+    return _jackknife(refinement, e, J) if resample else refinement
 
 
 def whitening_of(covariances):
@@ -232,12 +267,12 @@ def whitening_of(covariances):
     return np.linalg.inv(np.linalg.cholesky(np.asarray(covariances, dtype=float)))
 
 
-def _fit(arrays, model, robust, warm, max_iterations):
+def _fit(samples, model, robust, warm, max_iterations):
     """
     Return the refined model (X, O), the noise model at it, and whether the steps converged.
 
-    arrays: (link_q, link_t, sensor_q, sensor_t, link_R, whitening); warm: a NoiseFit of similar
-    residuals to start the noise models' EM from, or None.
+    samples: the _Samples; warm: a NoiseFit of similar residuals to start the noise models'
+    EM from, or None.
     Gauss-Newton steps, each under the noise models chosen again from the residuals it starts
     from (their EM warm-started from the last fit: iteratively reweighted least squares), until
     a step moves the unknowns by less than STEP_TOLERANCE of their sigmas (the noise fitted
@@ -245,8 +280,7 @@ def _fit(arrays, model, robust, warm, max_iterations):
     Given `warm`, its models stay and only their scales and weights follow the steps.
     """
     grid = heavy_tails.NU_GRID if robust else (math.inf,)
-    shapes = SHAPES if len(arrays[0]) >= FULL_SHAPE_SAMPLES else ISOTROPIC
-    link_q, link_t, sensor_q, sensor_t, link_R, whitening = arrays
+    shapes = SHAPES if len(samples) >= FULL_SHAPE_SAMPLES else ISOTROPIC
 
     def noise_at(e, noise):
         if warm is not None:
@@ -255,7 +289,7 @@ def _fit(arrays, model, robust, warm, max_iterations):
 
     noise = warm
     for _ in range(max_iterations):
-        e, J = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R, whitening)
+        e, J = samples.linearised(model)
         noise = noise_at(e, noise)
         A, g = _normal_equations(J, e, noise)
         step = -_solve(A, g)
@@ -264,7 +298,7 @@ def _fit(arrays, model, robust, warm, max_iterations):
         model = apply_step(step, *model)
         if float(step @ A @ step) < STEP_TOLERANCE ** 2:   # the noise stands at the answer
             return model, noise, True
-    e, _ = _linearised(link_q, link_t, sensor_q, sensor_t, *model, link_R, whitening)
+    e = samples.linearised(model)[0]
     return model, noise_at(e, noise), False
 
 
@@ -282,32 +316,45 @@ def with_jackknife(refinement, link_q, link_t, sensor_q, sensor_t, robust=True,
     weights look better than they are with a few dozen samples. Cost: `blocks` steps, O(N)
     each.
     """
-    n = len(link_q)
-    groups = np.array_split(np.arange(n), min(blocks, n))
-    if len(groups) < 3:
+    samples = _Samples(link_q, link_t, sensor_q, sensor_t, whitening=refinement.whitening)
+    e, J = samples.linearised((refinement.quaternion, refinement.translation,
+                               refinement.object_quaternion, refinement.object_translation))
+    return _jackknife(refinement, e, J, blocks)
+
+
+def _jackknife(refinement, e, J, blocks=JACKKNIFE_BLOCKS):
+    """Return with_jackknife's result given the residuals e and Jacobian J at the answer."""
+    n = len(e)
+    count = min(blocks, n)
+    if count < 3:
         return refinement
-    link_R = quat.matrix_from_quaternion(link_q)
-    e, J = _linearised(link_q, link_t, sensor_q, sensor_t, refinement.quaternion,
-                       refinement.translation, refinement.object_quaternion,
-                       refinement.object_translation, link_R, refinement.whitening)
-    keep = np.ones((len(groups), n), dtype=bool)
-    for row, group in enumerate(groups):
-        keep[row, group] = False
+    # Contiguous blocks as np.array_split cuts them: the first n % count one sample longer.
+    sizes = np.full(count, n // count)
+    sizes[:n % count] += 1
+    keep = np.repeat(np.arange(count), sizes)[None, :] != np.arange(count)[:, None]
     flat_J = J.reshape(-1, 12)
+    flat_e = e.reshape(-1)
+    diagonal = refinement.noise.variances is not None
     moves = []
     # Replicates in batches of a bounded size (each holds its (N, 6, 12) weighted Jacobian).
     batch = max(1, JACKKNIFE_BATCH_FLOATS // (n * 6 * 12))
-    for start in range(0, len(groups), batch):
+    for start in range(0, count, batch):
         rows = keep[start:start + batch]
-        information = refinement.noise.refitted_information(e, rows, LOST_SAMPLES, NOISE_FLOOR)
-        MJ = (information @ J[None]).reshape(len(rows), -1, 12)    # (B, 6N, 12)
+        information = refinement.noise.refitted_information_blocks(e, rows, LOST_SAMPLES,
+                                                                   NOISE_FLOOR)
+        MJ = _weighed(information, J, diagonal).reshape(len(rows), -1, 12)   # (B, 6N, 12)
         A = flat_J.T @ MJ                                            # (B, 12, 12)
-        g = np.swapaxes(MJ, 1, 2) @ e.reshape(-1)                    # (B, 12)
+        g = np.swapaxes(MJ, 1, 2) @ flat_e                           # (B, 12)
         moves.append(-_solve(A, g)[:, :6])                           # X's rotation, translation
     moves = np.concatenate(moves)
-    g = len(groups)
+    g = count
     centred = moves - moves.mean(axis=0)
     return replace(refinement, resampled=(g - 1) / g * centred.T @ centred)
+
+
+def _weighed(information, J, diagonal):
+    """Return M_i J_i for informations (..., N, 6, 6), or their diagonals (..., N, 6)."""
+    return information[..., None] * J if diagonal else information @ J
 
 
 def with_jackknife_of(refinement, earlier):
@@ -331,22 +378,26 @@ def with_jackknife_of(refinement, earlier):
                    resampled_from_earlier=True)
 
 
-def _linearised(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, link_R,
-                whitening=None):
-    """Return the residuals (N, 6: rotation, translation) and their Jacobian (N, 6, 12)."""
-    R_X = quat.matrix_from_quaternion(x_q)
-    w = lever(link_q, link_t, x_t, o_t, link_R)
-    rotation, translation = _residuals(link_q, sensor_q, sensor_t, x_q, o_q, R_X, w)
-    e, J = np.hstack([rotation, translation]), jacobian(link_R, R_X, w)
-    if whitening is None:
-        return e, J
-    return np.einsum('nab,nb->na', whitening, e), np.einsum('nab,nbj->naj', whitening, J)
+def _information(noise):
+    """Return each sample's information and whether it is given by its diagonals (N, 6)."""
+    diagonal = noise.information_diagonal()
+    return (noise.information(), False) if diagonal is None else (diagonal, True)
 
 
 def _normal_equations(J, e, noise):
     """Return A = sum J_i^T M_i J_i and g = sum J_i^T M_i e_i, M_i the samples' information."""
-    MJ = (noise.information() @ J).reshape(-1, J.shape[2])    # M_i J_i stacked: (6N, 12)
+    information, diagonal = _information(noise)
+    MJ = _weighed(information, J, diagonal).reshape(-1, J.shape[2])    # M_i J_i: (6N, 12)
     return J.reshape(MJ.shape).T @ MJ, MJ.T @ e.reshape(-1)
+
+
+def _inverse(normal):
+    """Return the inverse of a normal matrix, its pseudo-inverse when singular."""
+    try:
+        inverse = np.linalg.inv(normal)
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(normal)
+    return inverse if np.all(np.isfinite(inverse)) else np.linalg.pinv(normal)
 
 
 def _solve(normal, rhs):
@@ -364,24 +415,25 @@ def _refinement(model, e, J, noise, converged, whitening=None):
     e and J whitened by `whitening` when it is given; the residuals reported are not.
     """
     x_q, x_t, o_q, o_t = model
-    information = noise.information()
-    WJ = np.einsum('nai,nab->nib', J, information)
-    A = np.einsum('nib,nbj->ij', WJ, J)
-    A_inv = np.linalg.pinv(A)
-    leave_one_out = _leave_one_out(A, WJ, J, e)
-    sandwich = A_inv @ _score_scatter(J, e, information, A_inv) @ A_inv
+    information, diagonal = _information(noise)
+    WJ = np.swapaxes(_weighed(information, J, diagonal), 1, 2)     # J_i^T M_i: (N, 12, 6)
+    per_sample = WJ @ J                                  # (N, 12, 12)
+    A = per_sample.sum(axis=0)
+    A_inv = _inverse(A)
+    leave_one_out = _leave_one_out(A, per_sample, WJ, J, e)
+    sandwich = A_inv @ _score_scatter(J, e, information, diagonal, A_inv) @ A_inv
     if whitening is not None:   # back to radians and metres
         unwhiten = np.linalg.inv(whitening)
-        e = np.einsum('nab,nb->na', unwhiten, e)
-        leave_one_out = np.einsum('nab,nb->na', unwhiten, leave_one_out)
+        e = (unwhiten @ e[..., None])[..., 0]
+        leave_one_out = (unwhiten @ leave_one_out[..., None])[..., 0]
     return Refinement(
         quaternion=quat.canonical(x_q), translation=x_t, object_quaternion=o_q,
         object_translation=o_t, noise=noise, covariance=sandwich,
-        model_covariance=_model_covariance(A_inv, noise), residuals=e,
+        model_covariance=A_inv / noise.efficiency(DIMENSIONS), residuals=e,
         leave_one_out=leave_one_out, converged=bool(converged), whitening=whitening)
 
 
-def _score_scatter(J, e, information, A_inv):
+def _score_scatter(J, e, information, diagonal, A_inv):
     """
     Return B = sum_i s_i s_i^T, the scatter of the samples' scores, for the sandwich.
 
@@ -389,59 +441,65 @@ def _score_scatter(J, e, information, A_inv):
     samples that steer the fit: in whitened coordinates (M_i = L_i L_i^T) each residual is
     divided by sqrt(I - h_i), h_i = L_i^T J_i A^-1 J_i^T L_i its block of the hat matrix (the
     HC2 correction, unbiased for a linear model with the noise the weights assume), and
-    s_i = J_i^T L_i (I - h_i)^-1/2 L_i^T e_i.
+    s_i = J_i^T L_i (I - h_i)^-1/2 L_i^T e_i. information: (N, 6, 6), or with `diagonal` its
+    diagonals (N, 6).
     """
-    L_T = np.swapaxes(np.linalg.cholesky(information), 1, 2)   # (N, 6, 6)
-    whitened_J = L_T @ J
-    whitened_e = L_T @ e[..., None]
-    hat = whitened_J @ A_inv @ np.swapaxes(whitened_J, 1, 2)
-    values, vectors = np.linalg.eigh(np.eye(J.shape[1])[None] - hat)
+    if diagonal:   # L_i = sqrt(M_i)
+        root = np.sqrt(information)
+        whitened_J = root[..., None] * J
+        whitened_e = (root * e)[..., None]
+    else:
+        L_T = np.swapaxes(np.linalg.cholesky(information), 1, 2)   # (N, 6, 6)
+        whitened_J = L_T @ J
+        whitened_e = L_T @ e[..., None]
+    whitened_J_T = np.swapaxes(whitened_J, 1, 2)
+    hat = whitened_J @ A_inv @ whitened_J_T
+    values, vectors = np.linalg.eigh(np.eye(J.shape[1]) - hat)
     root = (vectors / np.sqrt(np.maximum(values, 1e-12))[:, None, :]) @ np.swapaxes(vectors,
                                                                                     1, 2)
-    scores = (np.swapaxes(whitened_J, 1, 2) @ (root @ whitened_e))[..., 0]
+    scores = (whitened_J_T @ (root @ whitened_e))[..., 0]
     return scores.T @ scores
 
 
-def _model_covariance(A_inv, noise):
-    """
-    Return the covariance the fitted noise model predicts: the inverse Fisher information.
-
-    For a t with nu degrees of freedom in d dimensions the Fisher information of a location
-    is (nu + d) / (nu + d + 2) times the Gaussian one with the scale matrix S; the IRLS
-    normal matrix A has the weights' mean in place of that factor (averaged over the models).
-    """
-    d = DIMENSIONS
-    efficiency = sum(p * (1.0 if math.isinf(c.nu) else (c.nu + d) / (c.nu + d + 2.0)
-                          / max(c.weights.mean(), 1e-12))
-                     for p, c in zip(noise.probabilities, noise.components))
-    return A_inv / efficiency
-
-
-def _leave_one_out(A, WJ, J, e):
+def _leave_one_out(A, per_sample, WJ, J, e):
     """
     Return each sample's residual predicted by the fit of all the other samples (N, 6).
 
     Removing sample k moves the optimum by (A - J_k^T W_k J_k)^-1 J_k^T W_k e_k (one
     Gauss-Newton step, exact for a linear model), and its residual by J_k times that.
+    per_sample: J_k^T W_k J_k (N, 12, 12); WJ: J_k^T W_k (N, 12, 6).
     """
-    without = A[None] - np.einsum('nib,nbj->nij', WJ, J)
-    rhs = np.einsum('nib,nb->ni', WJ, e)
+    without = A - per_sample
+    rhs = (WJ @ e[..., None])[..., 0]
     try:
-        moved = np.linalg.solve(without, rhs[..., None])[..., 0]
+        moved = np.linalg.solve(without, rhs[..., None])
     except np.linalg.LinAlgError:   # a sample the others cannot do without
-        moved = np.einsum('nij,nj->ni', np.linalg.pinv(without), rhs)
-    return e + np.einsum('naj,nj->na', J, moved)
+        moved = np.linalg.pinv(without) @ rhs[..., None]
+    return e + (J @ moved)[..., 0]
 
 
 def apply_step(p, x_q, x_t, o_q, o_t):
     """Return X and O moved by p: rotation vectors applied on the left, translations added."""
-    return (quat.normalize(quat.multiply(quat.from_rotation_vector(p[0:3]), x_q)), x_t + p[3:6],
-            quat.normalize(quat.multiply(quat.from_rotation_vector(p[6:9]), o_q)),
+    p = np.asarray(p, dtype=float)
+    return (_turned(p[0:3].tolist(), x_q), x_t + p[3:6], _turned(p[6:9].tolist(), o_q),
             o_t + p[9:12])
 
 
-def object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t):
+def _turned(rotation_vector, q):
+    """Return normalize(from_rotation_vector(rotation_vector) (x) q), on plain floats."""
+    x, y, z = rotation_vector
+    angle = math.sqrt(x * x + y * y + z * z)
+    half_sinc = math.sin(0.5 * angle) / angle if angle > 0.0 else 0.5   # sin(angle/2) / angle
+    product = quat._product(math.cos(0.5 * angle), half_sinc * x, half_sinc * y, half_sinc * z,
+                            *np.asarray(q, dtype=float).tolist())
+    norm = math.sqrt(sum(c * c for c in product))
+    return np.array([c / norm for c in product])
+
+
+def object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t, link_R=None):
     """Return the mean object pose O = L_i X S_i over the samples."""
     q = quat.multiply(quat.multiply(link_q, x_q), sensor_q)
-    t = link_t + quat.rotate(link_q, x_t + quat.rotate(x_q, sensor_t))
+    R_L = quat.matrix_from_quaternion(link_q) if link_R is None else link_R
+    in_link = x_t + sensor_t @ quat.matrix_from_quaternion(x_q).T    # X S_i's position
+    t = link_t + (R_L @ in_link[..., None])[..., 0]
     return quat.average(q), t.mean(axis=0)
