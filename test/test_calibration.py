@@ -94,6 +94,39 @@ def test_flipped_marker_samples_are_rejected_as_samples():
         assert all('marker flip' in r['reason'] for r in result.rejected if 'sample' in r)
 
 
+@pytest.mark.parametrize('fraction', [0.0, 0.1, 0.3, 0.4])
+def test_the_consensus_search_is_skipped_only_where_it_would_change_nothing(
+        fraction, monkeypatch):
+    # Clean samples (motion angles that agree, no bad detection about the least squares of
+    # them all) skip the consensus search and its second round: the same answer either way.
+    from quatcal_ros.core import calibration
+    screen, consensus = calibration._screen, calibration._consensus
+    searches = []
+
+    def search_always(motions, options):
+        usable, limit, _ = screen(motions, options)
+        return usable, limit, False
+
+    def counted(*args):
+        searches.append(1)
+        return consensus(*args)
+    monkeypatch.setattr(calibration, '_consensus', counted)
+    for n in (6, 10, 25):
+        for seed in range(4):
+            _, samples, outliers = synthetic(7100 + seed, n, rotation_noise_deg=0.5,
+                                             translation_noise_m=0.001,
+                                             outlier_fraction=fraction)
+            searches.clear()
+            skipped = calibrate(samples)
+            searched_too = bool(searches)
+            with monkeypatch.context() as patch:
+                patch.setattr(calibration, '_screen', search_always)
+                searched = calibrate(samples)
+            assert skipped.to_json_dict() == searched.to_json_dict()
+            # Searched whenever a sample is rejected; never for clean samples.
+            assert searched_too == bool(outliers) or (outliers and not skipped.rejected)
+
+
 def test_without_robustness_outliers_spoil_the_estimate():
     cell, samples, outliers = synthetic(8000, 30, rotation_noise_deg=0.5, outlier_fraction=0.1)
     assert outliers

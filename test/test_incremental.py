@@ -15,7 +15,8 @@ import pytest
 from quatcal_ros.core import quality
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions, Calibrator
-from quatcal_ros.core.leastsq import all_pairs_rotation, least_squares_rotation, MotionSystem
+from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, least_squares_rotation, \
+    MotionSystem, null_vectors
 from quatcal_ros.core.motions import Motions, pair_indices, SampleRotations
 from quatcal_ros.sim import simulation
 
@@ -46,6 +47,21 @@ def test_all_pairs_rotation_from_sums_equals_the_motions(setup, noise_deg):
         found = all_pairs_rotation(rotations, use, reference)
         # Both are eigenvectors of 4x4 matrices summed from the same data: rounding, 1e-9 deg.
         assert np.degrees(quat.angle_between(found, expected)) < 1e-9
+
+
+@pytest.mark.parametrize('noise_deg', [0.0, 0.5, 3.0])
+def test_two_motion_hypotheses_by_inverse_iteration_equal_the_eigen_solver(noise_deg):
+    # The consensus search's hypotheses: the null vector of each pair of motions' eq. (41).
+    _, samples = synthetic(11, 12, rotation_noise_deg=noise_deg)
+    rotations = SampleRotations.from_samples(samples)
+    motions = Motions.between(rotations, *pair_indices(12))
+    pairs = np.random.default_rng(2).integers(0, len(motions), (40, 2))
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    B = b_matrices(motions.q_a[pairs.ravel()], motions.q_b[pairs.ravel()])
+    normals = (np.swapaxes(B, 1, 2) @ B).reshape(len(pairs), 2, 4, 4).sum(axis=1)
+    found = null_vectors(normals, least_squares_rotation(motions.q_a, motions.q_b))
+    expected = np.linalg.eigh(normals)[1][:, :, 0]
+    np.testing.assert_allclose(np.abs(np.einsum('hi,hi->h', found, expected)), 1.0, atol=1e-12)
 
 
 def test_all_pairs_information_from_sums_equals_the_motions():

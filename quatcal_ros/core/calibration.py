@@ -34,7 +34,7 @@ from quatcal_ros.core import quality
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core import reduced_dof
 from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, least_squares_rotation, \
-    MotionSystem
+    MotionSystem, null_vectors
 from quatcal_ros.core.motions import motion_count, Motions, pair_indices, PAIRINGS, \
     SampleRotations
 from quatcal_ros.core.numerics import median, random_integers
@@ -50,6 +50,7 @@ from quatcal_ros.core.validation import not_enough_samples, Thresholds, validate
 CANDIDATE_MOTIONS = 2000
 # Minimum axis separation (degrees) of the two motions of a consensus hypothesis.
 HYPOTHESIS_AXIS_SEPARATION_DEG = 20.0
+COS_HYPOTHESIS_SEPARATION = math.cos(math.radians(HYPOTHESIS_AXIS_SEPARATION_DEG))
 # A refinement sample whose noise weight falls below this is reported as noisy.
 NOISY_WEIGHT = 0.5
 # Gauss-Newton steps of a warm-started refinement (between full solves).
@@ -358,21 +359,30 @@ def _axis_text(axis):
 def _all_pairs(rotations, options, start):
     """Run the rotation stage over all pairs of samples (module docstring, steps 1-3)."""
     n = len(rotations)
-    if options.robust:
-        q_z = (start if start is not None
-               else _consensus(rotations, _candidates(rotations, options), options))
-        sample_ok, detections = np.ones(n, dtype=bool), None
-        for _ in range(2 if start is None else 1):   # a warm start is already clean
-            detections = _detections(rotations, q_z, detections)
-            sample_ok = ~detections.bad
-            _require_samples(sample_ok)
-            q_z = all_pairs_rotation(rotations, sample_ok, q_z)
-    else:
-        candidates = _candidates(rotations, options)
+    sample_ok, detections = np.ones(n, dtype=bool), None
+    if start is None:
+        candidates, consistent = _candidates(rotations, options)
         _require_motions(candidates)
-        sample_ok, detections = np.ones(n, dtype=bool), None
-        q_z = all_pairs_rotation(rotations, sample_ok,
-                                 least_squares_rotation(candidates.q_a, candidates.q_b))
+        everything = least_squares_rotation(candidates.q_a, candidates.q_b)
+        q_z = all_pairs_rotation(rotations, sample_ok, everything)
+    if options.robust and start is None:
+        # Samples whose motions' rotation angles all agree (a bad detection spoils most of
+        # its motions' angles) and which all agree about the least squares of them all are
+        # clean: the consensus search and a second round could only end where they began.
+        detections = _detections(rotations, q_z) if consistent else None
+        if detections is None or detections.bad.any():
+            q_z = _consensus(rotations, candidates, options, everything)
+            detections = None
+            for _ in range(2):
+                detections = _detections(rotations, q_z, detections)
+                sample_ok = ~detections.bad
+                _require_samples(sample_ok)
+                q_z = all_pairs_rotation(rotations, sample_ok, q_z)
+    elif options.robust:   # a warm start (the last published rotation) is already clean
+        detections = _detections(rotations, start)
+        sample_ok = ~detections.bad
+        _require_samples(sample_ok)
+        q_z = all_pairs_rotation(rotations, sample_ok, start)
     info = _check_excitation(quality.Information.all_pairs(rotations.link_matrices, sample_ok),
                              _count(sample_ok), options)
     residuals = quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok]
@@ -389,11 +399,15 @@ def _consecutive(rotations, options, start):
     """Run the rotation stage over consecutive pairs of samples only."""
     n = len(rotations)
     motions = Motions.between(rotations, *pair_indices(n, 'consecutive'))
-    usable, limit = _screen(motions, options)
+    usable, limit, _ = _screen(motions, options)
     sample_ok, detections = np.ones(n, dtype=bool), None
     if options.robust:
-        q_z = start if start is not None else _consensus(rotations, motions.subset(usable),
-                                                         options)
+        if start is None:
+            fit = motions.subset(usable)
+            _require_motions(fit)
+            q_z = _consensus(rotations, fit, options, least_squares_rotation(fit.q_a, fit.q_b))
+        else:
+            q_z = start
         for _ in range(2):
             detections = _detections(rotations, q_z, detections)
             sample_ok = ~detections.bad
@@ -421,7 +435,11 @@ def _count(mask):
 
 
 def _candidates(rotations, options):
-    """Return the screened candidate motions of the consensus search (a bounded set)."""
+    """
+    Return the screened candidate motions of the consensus search (a bounded set).
+
+    And whether every one large enough to inform had link and sensor angles that agree.
+    """
     n = len(rotations)
     if motion_count(n) <= CANDIDATE_MOTIONS:
         i, j = pair_indices(n, 'all')
@@ -433,7 +451,8 @@ def _candidates(rotations, options):
         i = np.concatenate([first, np.minimum(a, b)])[:CANDIDATE_MOTIONS]
         j = np.concatenate([first + 1, np.maximum(a, b)])[:CANDIDATE_MOTIONS]
     motions = Motions.between(rotations, i, j)
-    return motions.subset(_screen(motions, options)[0])
+    usable, _, consistent = _screen(motions, options)
+    return motions.subset(usable), consistent
 
 
 def _near_half_turns(motions):
@@ -442,7 +461,11 @@ def _near_half_turns(motions):
 
 
 def _screen(motions, options):
-    """Return the motions usable for the estimate (bool mask) and the |theta_a - theta_b| limit."""
+    """
+    Return the motions usable for the estimate (bool mask) and the |theta_a - theta_b| limit.
+
+    And whether the limit screened none of those large enough to inform.
+    """
     angle_a, angle_b = motions.angle_a, motions.angle_b
     large = _usable(angle_a, angle_b, options.min_motion_deg, np.inf)
     limit = np.inf
@@ -450,7 +473,8 @@ def _screen(motions, options):
         # |theta_a - theta_b| of a good motion is Gaussian: 5 robust sigmas, within bounds.
         sigma = median(np.abs(angle_a - angle_b)[large]) / 0.6745
         limit = np.clip(5.0 * sigma, np.radians(0.1), np.radians(options.max_angle_mismatch_deg))
-    return _usable(angle_a, angle_b, options.min_motion_deg, limit), limit
+    usable = _usable(angle_a, angle_b, options.min_motion_deg, limit)
+    return usable, limit, bool(np.array_equal(usable, large))
 
 
 def _usable(angle_a, angle_b, min_motion_deg, limit):
@@ -484,30 +508,49 @@ def _rejected_motions(motions, usable, sample_ok, limit, options):
     return rejected
 
 
-def _consensus(rotations, candidates, options):
+def _consensus(rotations, candidates, options, everything):
     """
     Return the least-median-of-squares consensus of two-motion hypotheses.
 
     Each hypothesis solves two candidate motions about axes at least
     HYPOTHESIS_AXIS_SEPARATION_DEG apart exactly (for exact data; the least squares of eq. (41)
     over the two, the answer of the paper's two-motion method, solved for every hypothesis at
-    once), and is scored by the median residual of the samples' object orientations.
+    once), and is scored by the median residual of the samples' object orientations about
+    their mean; `everything` (the least squares of all candidates) is a hypothesis too.
     """
     _require_motions(candidates)
     draws, = random_integers(options.seed, (len(candidates), (4 * options.hypotheses, 2)))
-    axes = candidates.axis_a
-    separated = ((draws[:, 0] != draws[:, 1]) & (np.abs(np.einsum(
-        'ki,ki->k', axes[draws[:, 0]], axes[draws[:, 1]]))
-        <= np.cos(np.radians(HYPOTHESIS_AXIS_SEPARATION_DEG))))
+    first, second = candidates.q_a[draws[:, 0], 1:], candidates.q_a[draws[:, 1], 1:]
+    # |cos| of the angle between the two motions' axes (their quaternions' vector parts)
+    across = np.abs(np.einsum('ki,ki->k', first, second))
+    lengths = np.sqrt(np.einsum('ki,ki->k', first, first) * np.einsum('ki,ki->k', second, second))
+    separated = (draws[:, 0] != draws[:, 1]) & (across <= COS_HYPOTHESIS_SEPARATION * lengths)
     draws = draws[separated][:options.hypotheses]
     B = b_matrices(candidates.q_a[draws.ravel()], candidates.q_b[draws.ravel()])
-    normal = np.einsum('kji,kjl->kil', B, B).reshape(len(draws), 2, 4, 4).sum(axis=1)
-    hypotheses = np.vstack([least_squares_rotation(candidates.q_a, candidates.q_b)[None],
-                            np.linalg.eigh(normal)[1][:, :, 0]])
-    # Every hypothesis's object orientations Z_i at once: (H, N, 4).
-    Z = np.einsum('nij,hj->hni', rotations.matrices, hypotheses)
-    residuals = quat.angles_from(quat.average(Z)[:, None], Z)   # (H, N) radians
-    return quat.canonical(hypotheses[int(np.argmin(median(residuals, axis=1)))])
+    normal = (np.swapaxes(B, 1, 2) @ B).reshape(len(draws), 2, 4, 4).sum(axis=1)
+    hypotheses = np.vstack([everything[None], null_vectors(normal, everything)])
+    # Every hypothesis's object orientations Z_i = A_i p at once: (H, N, 4).
+    Z = np.swapaxes(hypotheses @ np.swapaxes(rotations.matrices, 1, 2), 0, 1)
+    return quat.canonical(hypotheses[int(np.argmin(median(_spread(Z), axis=1)))])
+
+
+def _spread(Z, iterations=3):
+    """
+    Return sin^2(theta / 2) of each Z_hn (H, N, 4) from its set's mean, (H, N).
+
+    The mean is sum_n Z_hn Z_hn^T's top eigenvector (quat.average) by power iteration from
+    Z_h0: a set that fits one rotation has one large eigenvalue and the others at the noise,
+    so a few products give it to rounding; for a scattered set (a poor hypothesis) the spread
+    stays large whatever the mean. sin^2(theta / 2) orders the samples as theta does.
+    """
+    scatter = np.swapaxes(Z, 1, 2) @ Z
+    mean = Z[:, 0]
+    for _ in range(iterations):
+        mean = (scatter @ mean[..., None])[..., 0]
+        mean = mean / np.sqrt(np.einsum('hi,hi->h', mean, mean))[:, None]
+    along = (Z @ mean[..., None])      # (H, N, 1)
+    off = Z - along * mean[:, None, :]
+    return np.einsum('hni,hni->hn', off, off)
 
 
 def _detections(rotations, q_z, previous=None):

@@ -30,7 +30,9 @@ NU_GRID = (3.0, 5.0, 10.0, 30.0, math.inf)
 EM_ITERATIONS = 12
 WARM_EM_ITERATIONS = 1
 RESUMED_EM_ITERATIONS = 3
-# Models less probable than this are dropped from the average (and from the work).
+# Models less probable than this have no say in the average (probability 0). They stay in the
+# fit (every row costs the same in the batched arithmetic), so each model's EM always resumes
+# from its own last weights.
 MIN_PROBABILITY = 0.02
 
 
@@ -84,10 +86,11 @@ class NoiseFit:
     The fitted noise: candidate models averaged with their posterior probabilities.
 
     Row k of each array is model k (shapes[k], nus[k]). The probabilities come from the
-    information criterion (exp(BIC_k) normalised): nearly always one model has all of it, but
-    near a tie the estimate moves smoothly from one to the other instead of jumping when a
-    sample's last digit changes. The scales are kept as their diagonals (`variances`, K x d)
-    when every model's is diagonal, else as matrices (`matrices`: scales and precisions).
+    information criterion (exp(BIC_k) normalised, 0 below MIN_PROBABILITY): nearly always one
+    model has all of it, but near a tie the estimate moves smoothly from one to the other
+    instead of jumping when a sample's last digit changes. The scales are kept as their
+    diagonals (`variances`, K x d) when every model's is diagonal, else as matrices
+    (`matrices`: scales and precisions).
     """
 
     shapes: tuple                # (K,) Shape
@@ -112,14 +115,22 @@ class NoiseFit:
 
     @property
     def components(self):
-        """Return each model as a Component."""
-        return tuple(Component(s, nu, scale, w, delta) for s, nu, scale, w, delta in zip(
-            self.shapes, self.nus, self.scales, self.model_weights, self.delta))
+        """Return the models with a say (probability > 0) as Components."""
+        scales = self.scales
+        return tuple(Component(self.shapes[k], self.nus[k], scales[k], self.model_weights[k],
+                               self.delta[k]) for k in self.live)
+
+    @property
+    def live(self):
+        """Return the rows of the models with a say (probability > 0)."""
+        return [k for k, p in enumerate(self.probabilities.tolist()) if p > 0.0]
 
     @property
     def best(self):
         """Return the most probable Component."""
-        return self.components[int(np.argmax(self.probabilities))]
+        k = int(np.argmax(self.probabilities))
+        return Component(self.shapes[k], self.nus[k], self.scales[k], self.model_weights[k],
+                         self.delta[k])
 
     @property
     def nu(self):
@@ -129,7 +140,7 @@ class NoiseFit:
     @property
     def covariance(self):
         """Return the covariance of the noise (d x d), averaged over the models."""
-        factors = self.probabilities * np.array([_covariance_factor(nu) for nu in self.nus])
+        factors = self.probabilities * _t_constants(self.nus, 1).covariance_factor
         return np.tensordot(factors, self.scales, axes=1)
 
     @property
@@ -174,10 +185,12 @@ class NoiseFit:
         """Return the same models and probabilities with their scales fitted to `residuals`."""
         r = np.asarray(residuals, dtype=float)
         count = max(len(r) - lost_samples, 1.0)
-        parts = [_fit_models(r, None, count, shape, [self.nus[k] for k in rows], floor,
-                             [(k, True) for k in rows], self)
-                 for shape, rows in _groups(self.shapes)]
-        return _noise_fit(parts, self.probabilities, None)
+        parts = []
+        for shape, rows in _groups(self.shapes):
+            constants = _t_constants(tuple(self.nus[k] for k in rows), r.shape[1])
+            w, steps = _warm_start(self, rows, len(r), constants)
+            parts.append(_fit_models(r, None, count, shape, constants, floor, w, steps))
+        return _noise_fit(parts, self.probabilities)
 
     def refitted_information(self, residuals, keep, lost_samples=0.0, floor=None):
         """
@@ -202,7 +215,11 @@ class NoiseFit:
         count = np.maximum(keep.sum(axis=1) - lost_samples, 1.0)
         d = r.shape[1]
         information = 0.0
+        live = set(self.live)
         for shape, rows in _groups(self.shapes):
+            rows = [k for k in rows if k in live]
+            if not rows:
+                continue
             arithmetic = _arithmetic(r, shape, floor)
             for k in rows:
                 nu = self.nus[k]
@@ -263,22 +280,36 @@ def fit_t(residuals, shapes, grid=NU_GRID, lost_samples=0.0, floor=None, prior=N
     added to the diagonal (so exact data do not divide by zero); prior: per-sample
     probabilities of being good (bad_detections), which weight each sample's part in the fit;
     start: a NoiseFit of similar residuals whose weights start the EM (fewer steps; a model it
-    dropped starts from the distances of its nearest model).
+    lacks starts from the distances of its nearest model).
     """
     r = np.asarray(residuals, dtype=float)
-    total = len(r) if prior is None else float(prior.sum())
+    n, d = r.shape
+    total = n if prior is None else float(prior.sum())
     count = max(total - lost_samples, 1.0)
+    constants = _t_constants(tuple(grid), d)
+    parts = []
+    for shape in shapes:
+        rows = _rows_of(start, shape, constants.nus)
+        w, steps = (_warm_start(start, rows, n, constants) if rows is not None
+                    else _nearest_start(start, shape, n, constants))
+        parts.append(_fit_models(r, prior, count, shape, constants, floor, w, steps))
     penalty = 0.5 * math.log(max(total, 2.0))
-    earlier = {} if start is None else {(s.name, nu): k
-                                        for k, (s, nu) in enumerate(zip(start.shapes,
-                                                                        start.nus))}
-    parts = [_fit_models(r, prior, count, shape, grid, floor,
-                         [_nearest(earlier, shape.name, nu) for nu in grid], start, penalty)
-             for shape in shapes]
-    criteria = parts[0].criteria if len(parts) == 1 else np.concatenate(
-        [p.criteria for p in parts])
+    criteria = np.concatenate([
+        (p.log_density.sum(axis=1) if prior is None else p.log_density @ prior)
+        - penalty * (shape.parameters + constants.finite) for p, shape in zip(parts, shapes)])
     probabilities = np.exp(criteria - criteria.max())
-    return _noise_fit(parts, probabilities, probabilities > MIN_PROBABILITY * probabilities.sum())
+    probabilities[probabilities <= MIN_PROBABILITY * probabilities.sum()] = 0.0   # no say
+    return _noise_fit(parts, probabilities / probabilities.sum())
+
+
+def _rows_of(start, shape, nus):
+    """Return the rows of `start` that hold this shape with these nus in order, or None."""
+    if start is None:
+        return None
+    rows = [k for k, s in enumerate(start.shapes) if s.name == shape.name]
+    if tuple(start.nus[k] for k in rows) != nus:
+        return None
+    return rows
 
 
 @dataclass(frozen=True)
@@ -292,7 +323,6 @@ class _Models:
     model_weights: np.ndarray
     delta: np.ndarray
     log_density: np.ndarray
-    criteria: np.ndarray        # None without a penalty
 
     def matrix_form(self):
         """Return (scales, precisions) (K, d, d)."""
@@ -301,137 +331,104 @@ class _Models:
         return _as_matrices(self.variances), _as_matrices(1.0 / self.variances)
 
 
-def _noise_fit(parts, probabilities, keep):
-    """
-    Return the NoiseFit of the models fitted by _fit_models (`parts`).
-
-    keep: which models to keep (bool, probabilities renormalised over them), or None: all,
-    with `probabilities` as they are.
-    """
+def _noise_fit(parts, probabilities):
+    """Return the NoiseFit of the models fitted by _fit_models (`parts`)."""
     if len(parts) == 1:
         part = parts[0]
-        shapes, nus, variances, matrices = part.shapes, part.nus, part.variances, part.matrices
-        weights, delta, log_density = part.model_weights, part.delta, part.log_density
+        return NoiseFit(part.shapes, part.nus, probabilities, part.model_weights, part.delta,
+                        part.log_density, part.variances, part.matrices)
+    weights, delta, log_density = (np.concatenate([getattr(p, name) for p in parts])
+                                   for name in ('model_weights', 'delta', 'log_density'))
+    variances, matrices = None, None
+    if all(p.variances is not None for p in parts):
+        variances = np.concatenate([p.variances for p in parts])
     else:
-        shapes = sum((p.shapes for p in parts), ())
-        nus = sum((p.nus for p in parts), ())
-        weights, delta, log_density = (np.concatenate([getattr(p, name) for p in parts])
-                                       for name in ('model_weights', 'delta', 'log_density'))
-        if all(p.variances is not None for p in parts):
-            variances, matrices = np.concatenate([p.variances for p in parts]), None
-        else:
-            forms = [p.matrix_form() for p in parts]
-            variances = None
-            matrices = tuple(np.concatenate([f[i] for f in forms]) for i in (0, 1))
-    if keep is not None:
-        kept = keep.tolist()
-        if all(kept):
-            probabilities = probabilities / probabilities.sum()
-        else:
-            rows = [k for k, on in enumerate(kept) if on]
-            shapes = tuple(shapes[k] for k in rows)
-            nus = tuple(nus[k] for k in rows)
-            weights, delta, log_density = weights[rows], delta[rows], log_density[rows]
-            if variances is not None:
-                variances = variances[rows]
-            else:
-                matrices = (matrices[0][rows], matrices[1][rows])
-            probabilities = probabilities[rows]
-            probabilities = probabilities / probabilities.sum()
-    return NoiseFit(shapes, nus, probabilities, weights, delta, log_density, variances,
-                    matrices)
+        forms = [p.matrix_form() for p in parts]
+        matrices = tuple(np.concatenate([f[i] for f in forms]) for i in (0, 1))
+    return NoiseFit(sum((p.shapes for p in parts), ()), sum((p.nus for p in parts), ()),
+                    probabilities, weights, delta, log_density, variances, matrices)
 
 
-def _nearest(rows, shape_name, nu):
+def _warm_start(start, rows, n, constants):
     """
-    Return (row, same) of the model of this shape and nu in `rows` ({(shape, nu): row}).
+    Return the EM's starting weights (K, N) from the rows of `start`, and each model's steps.
 
-    Failing that (a fit drops its improbable models), the one of the nearest finite nu, of this
-    shape when there is one, whose distances start this nu's EM nearly as well (same: False);
-    None when there is none.
+    WARM_EM_ITERATIONS steps (none for nu = inf), RESUMED_EM_ITERATIONS when samples were
+    added since `start` (those start from weight 1; without samples: the first N weights).
     """
-    if (shape_name, nu) in rows:
-        return rows[shape_name, nu], True
-    if math.isinf(nu) or not rows:
-        return None
-    near = [(name != shape_name, abs(math.log(other / nu)), (name, other))
-            for name, other in rows if math.isfinite(other)]
-    return (rows[min(near)[2]], False) if near else None
+    m = start.model_weights.shape[1]
+    w = start.model_weights[rows[0]:rows[-1] + 1] if rows == list(range(rows[0], rows[-1] + 1)) \
+        else start.model_weights[rows]
+    if m != n:
+        grown = np.ones((len(rows), n))
+        grown[:, :min(m, n)] = w[:, :n]
+        w = grown
+    steps = WARM_EM_ITERATIONS if m >= n else RESUMED_EM_ITERATIONS
+    return w, [steps if finite else 0 for finite in constants.finite.tolist()]
 
 
-def _fit_models(r, good, count, shape, nus, floor, warm, start=None, penalty=None):
+def _nearest_start(start, shape, n, constants):
     """
-    Fit one Shape with each nu of `nus` by EM, all at once; return their _Models.
+    Return the starting weights and steps of models `start` lacks.
 
-    good: per-sample prior weights (None: all 1); warm: for each nu, (row, same) of the
-    NoiseFit `start` to start from (its weights when `same`, else the weights its distances
-    give this nu), or None. Each model takes its own number of EM steps (none for nu = inf,
-    fewer from a warm start), as if fitted alone: the batch only shares the arithmetic.
-    The criteria (BIC) need `penalty` (log N / 2).
+    Cold (ones), or each from the distances of the model of `start` with the nearest finite nu
+    (of this shape when there is one), as warm.
     """
-    n, d = r.shape
-    k = len(nus)
-    constants = _t_constants(tuple(nus), d)
-    steps = list(constants.cold_steps)
-    w = _start_weights(n, d, constants, warm, start, steps)
+    cold = [EM_ITERATIONS if finite else 0 for finite in constants.finite.tolist()]
+    w = np.ones((len(constants.nus), n))
+    if start is None:
+        return w, cold
+    near = [(s.name != shape.name, k) for k, (s, nu) in enumerate(zip(start.shapes, start.nus))
+            if math.isfinite(nu)]
+    if not near:
+        return w, cold
+    m = min(n, start.model_weights.shape[1])
+    steps = WARM_EM_ITERATIONS if m == n else RESUMED_EM_ITERATIONS
+    d = constants.d
+    for i, nu in enumerate(constants.nus):
+        if math.isfinite(nu):
+            _, k = min(near, key=lambda item: (item[0], abs(math.log(start.nus[item[1]] / nu))))
+            w[i, :m] = (nu + d) / (nu + start.delta[k, :m])
+            cold[i] = steps
+    return w, cold
+
+
+def _fit_models(r, good, count, shape, constants, floor, w, steps):
+    """
+    Fit one Shape with each nu of `constants` by EM, all at once; return their _Models.
+
+    good: per-sample prior weights (None: all 1); w (K, N): the starting weights; steps: each
+    model's EM steps (none for nu = inf, fewer from a warm start), as if fitted alone: the
+    batch only shares the arithmetic.
+    """
     arithmetic = _arithmetic(r, shape, floor)
     done = 0
     for until in sorted(set(steps) - {0}):     # the rows still moving, a batch at a time
-        rows = [i for i in range(k) if steps[i] >= until]
+        rows = [i for i, s in enumerate(steps) if s >= until]
         if rows == list(range(rows[0], rows[-1] + 1)):   # a slice: no copies
             rows = slice(rows[0], rows[-1] + 1)
-        w[rows] = arithmetic.em_steps(w[rows], good, count, constants.safe[rows],
-                                      constants.numerator[rows], until - done)
+        moved = arithmetic.em_steps(w[rows], good, count, constants.safe[rows],
+                                    constants.numerator[rows], until - done)
+        if done == 0:
+            w = w.copy()   # the start may be an earlier fit's
+        w[rows] = moved
         done = until
     scale, delta, log_det = arithmetic.fitted(w if good is None else good * w, count)
-    weights = constants.weights(delta)
-    log_density = constants.log_density(delta, log_det)
-    criteria = None
-    if penalty is not None:
-        criteria = ((log_density.sum(axis=1) if good is None else log_density @ good)
-                    - penalty * (shape.parameters + constants.finite))
     diagonal = scale.ndim == 2
-    return _Models((shape,) * k, tuple(nus), scale if diagonal else None,
-                   None if diagonal else (scale, arithmetic.precision), weights, delta,
-                   log_density, criteria)
-
-
-def _start_weights(n, d, constants, warm, start, steps):
-    """
-    Return the EM's starting weights (K, N) and set each model's EM steps in `steps`.
-
-    Ones (a cold start, EM_ITERATIONS steps), or from the NoiseFit `start` (_fit_models):
-    WARM_EM_ITERATIONS steps, RESUMED_EM_ITERATIONS when samples were added since.
-    """
-    k = len(warm)
-    if all(found is None for found in warm):
-        return np.ones((k, n))
-    m = min(n, start.model_weights.shape[1])
-    found_rows = [found[0] if found is not None and found[1] else -1 for found in warm]
-    if -1 not in found_rows and m == n:     # the same models, the same samples
-        w = start.model_weights[found_rows]
-    else:
-        w = np.ones((k, n))
-        nu = constants.nu
-        for i, found in enumerate(warm):
-            if found is not None:   # of these samples, or of the first (a sample added since)
-                row, same = found
-                w[i, :m] = (start.model_weights[row, :m] if same
-                            else (nu[i] + d) / (nu[i] + start.delta[row, :m]))
-    for i, found in enumerate(warm):
-        if found is not None and steps[i]:
-            steps[i] = WARM_EM_ITERATIONS if m == n else RESUMED_EM_ITERATIONS
-    return w
+    k = len(constants.nus)
+    return _Models((shape,) * k, constants.nus, scale if diagonal else None,
+                   None if diagonal else (scale, arithmetic.precision),
+                   constants.weights(delta), delta, constants.log_density(delta, log_det))
 
 
 class _TConstants:
     """What the densities and weights of t's with these nus in d dimensions need, once."""
 
     def __init__(self, nus, d):
+        self.nus = nus
         self.nu = np.array(nus, dtype=float)
         self.finite = np.isfinite(self.nu)
         self.all_finite = bool(self.finite.all())
-        self.cold_steps = tuple(EM_ITERATIONS if f else 0 for f in self.finite.tolist())
         safe = np.where(self.finite, self.nu, 1.0)[:, None]
         norm = np.array([math.lgamma(0.5 * (v + d)) - math.lgamma(0.5 * v)
                          for v in safe[:, 0].tolist()])[:, None]
@@ -446,6 +443,7 @@ class _TConstants:
         # Fisher information of a location over the Gaussian one's with the scale S
         self.fisher_factor = np.where(self.finite, (safe[:, 0] + d) / (safe[:, 0] + d + 2.0),
                                       1.0)
+        self.covariance_factor = np.array([_covariance_factor(v) for v in nus])
 
     def weights(self, delta):
         """Return (nu + d) / (nu + delta) (K, N); 1 for nu = inf."""
