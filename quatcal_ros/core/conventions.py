@@ -22,7 +22,7 @@ import numpy as np
 
 from quatcal_ros.core import quality
 from quatcal_ros.core.leastsq import all_pairs_rotation, least_squares_rotation
-from quatcal_ros.core.motions import Motions, SampleRotations
+from quatcal_ros.core.motions import motion_count, Motions, pair_indices, SampleRotations
 from quatcal_ros.core.numerics import median, random_integers
 from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.translation import SamplePositions, solve_translation
@@ -53,10 +53,11 @@ def warnings(samples, options, screen=None):
     """
     if screen is not None and _good(screen):
         return []
-    current = _quick_misfit(samples, options.setup, options.invert_sensor, options)
+    arrays = _arrays(samples)
+    current = _quick_misfit(arrays, options.setup, options.invert_sensor, options)
     if current is None or _good(current):
         return []
-    fits = {(setup, invert): _quick_misfit(samples, setup, invert, options)
+    fits = {(setup, invert): _quick_misfit(arrays, setup, invert, options)
             for setup in SETUPS for invert in (False, True)
             if (setup, invert) != (options.setup, options.invert_sensor)}
     others = {k: v for k, v in fits.items() if v is not None}
@@ -101,14 +102,30 @@ def misfit(rotation_residuals, position_residuals):
             1e3 * median(np.linalg.norm(position_residuals, axis=1)))
 
 
-def _quick_misfit(samples, setup, invert, options):
-    """Return the median rotation (deg) and position (mm) residuals of a quick fit, or None."""
+def _arrays(samples):
+    """Return the link and sensor quaternions and positions of (at most CHECK_SAMPLES) samples."""
     if len(samples) > CHECK_SAMPLES:
         samples = [samples[k] for k in np.linspace(0, len(samples) - 1, CHECK_SAMPLES,
                                                    dtype=int)]
-    n = len(samples)
-    rotations = SampleRotations.from_samples(samples, setup, invert)
-    i, j = random_integers(options.seed, (n, CHECK_MOTIONS), (n, CHECK_MOTIONS))
+    return tuple(np.array([getattr(getattr(s, pose), field) for s in samples], dtype=float)
+                 for pose in ('link', 'sensor') for field in ('quaternion', 'position'))
+
+
+def _quick_misfit(arrays, setup, invert, options):
+    """
+    Return the median rotation (deg) and position (mm) residuals of a quick fit, or None.
+
+    arrays: `_arrays` of the samples. The fit is the least squares of all pairs (leastsq.py,
+    started from the motions of up to CHECK_MOTIONS pairs) and the closed-form translation,
+    without the screening of bad detections.
+    """
+    link_q, link_t, sensor_q, sensor_t = arrays
+    rotations = SampleRotations.from_arrays(link_q, sensor_q, setup, invert)
+    n = len(rotations)
+    if motion_count(n) <= CHECK_MOTIONS:
+        i, j = pair_indices(n)
+    else:
+        i, j = random_integers(options.seed, (n, CHECK_MOTIONS), (n, CHECK_MOTIONS))
     motions = Motions.between(rotations, i, j)
     motions = motions.subset(np.minimum(motions.angle_a, motions.angle_b)
                              >= np.radians(options.min_motion_deg))
@@ -119,7 +136,7 @@ def _quick_misfit(samples, setup, invert, options):
     residuals = quality.sample_residuals(rotations, q_z)
     info = quality.Information.all_pairs(rotations.link_matrices, use)
     try:
-        positions = SamplePositions.from_samples(samples, rotations)
+        positions = SamplePositions.from_arrays(link_t, sensor_t, rotations)
         translation = solve_translation(rotations, positions, q_z, info, use)
     except (DegenerateMotionError, np.linalg.LinAlgError):
         return None

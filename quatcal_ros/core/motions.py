@@ -46,10 +46,16 @@ class SampleRotations:
     @staticmethod
     def from_samples(samples, setup='eye_in_hand', invert_sensor=False):
         """Collect the orientations of `samples` for `setup` (see module docstring)."""
+        return SampleRotations.from_arrays(
+            np.array([s.link.quaternion for s in samples], dtype=float).reshape(-1, 4),
+            np.array([s.sensor.quaternion for s in samples], dtype=float).reshape(-1, 4),
+            setup, invert_sensor)
+
+    @staticmethod
+    def from_arrays(link, sensor, setup='eye_in_hand', invert_sensor=False):
+        """Return from_samples' result for the samples' link and sensor quaternions (N, 4)."""
         if setup not in SETUPS:
             raise ValueError(f'setup must be one of {SETUPS}, not {setup!r}')
-        link = np.array([s.link.quaternion for s in samples], dtype=float).reshape(-1, 4)
-        sensor = np.array([s.sensor.quaternion for s in samples], dtype=float).reshape(-1, 4)
         eye_to_hand = setup == 'eye_to_hand'
         if eye_to_hand:
             link = quat.conjugate(link)

@@ -47,3 +47,12 @@ def random_integers(seed, *draws):
     for array in arrays:
         array.flags.writeable = False
     return arrays
+
+
+def inverse(matrix):
+    """Return the inverse of a square matrix (or a stack); the pseudo-inverse when singular."""
+    try:
+        result = np.linalg.inv(matrix)
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(matrix)
+    return result if np.all(np.isfinite(result)) else np.linalg.pinv(matrix)

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.numerics import inverse
 
 AXIS_NAMES = ('x', 'y', 'z')
 
@@ -84,7 +85,7 @@ class Information:
 
     def covariance(self, sigma):
         """cov(delta) (3x3, rad^2) for per-axis sample noise sigma (radians)."""
-        H_inv = np.linalg.pinv(self.H)
+        H_inv = inverse(self.H)
         return sigma * sigma * H_inv @ self.G @ H_inv
 
     def excitation(self):

@@ -315,16 +315,9 @@ def rotate(q, v):
     """Rotate vector(s) v (..., 3) by unit quaternion(s) q (w, x, y, z) (..., 4), eq. (19)."""
     q = np.asarray(q, dtype=float)
     v = np.asarray(v, dtype=float)
-    w, u = q[..., :1], q[..., 1:]
-    t = 2.0 * _cross(u, v)
-    return v + w * t + _cross(u, t)
-
-
-def _cross(a, b):
-    """Return the cross product over the last axis (np.cross without its axis bookkeeping)."""
-    ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
-    bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
+    if q.ndim == 1:   # one rotation: v @ A^T
+        return v @ matrix_from_quaternion(q).T
+    return (matrix_from_quaternion(q) @ v[..., None])[..., 0]
 
 
 def average(quaternions, weights=None):

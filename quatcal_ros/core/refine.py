@@ -41,6 +41,7 @@ import math
 import numpy as np
 from quatcal_ros.core import heavy_tails
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.numerics import inverse
 
 MAX_ITERATIONS = 20
 # Converged when the last step moved the unknowns by less than this many of their sigmas. The
@@ -61,6 +62,8 @@ LOST_SAMPLES = 12 / DIMENSIONS
 ISOTROPIC = (heavy_tails.isotropic_blocks(DIMENSIONS),)
 SHAPES = ISOTROPIC + (heavy_tails.full(DIMENSIONS),)
 FULL_SHAPE_SAMPLES = 30
+# Weighted steps on the linearised model that start the refinement (_gaussian_start).
+GAUSSIAN_START_ITERATIONS = 4
 # Blocks of the jackknife (with_jackknife), and the floats a batch of its replicates may hold
 # (2 MB: all 20 at once up to about 170 samples; a long replay's final solve stays small).
 JACKKNIFE_BLOCKS = 20
@@ -252,6 +255,7 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None
     samples = _Samples(link_q, link_t, sensor_q, sensor_t, whitening=whitening)
     if start is None:
         o_q, o_t = object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t, samples.link_R)
+        x_q, x_t, o_q, o_t = _gaussian_start(samples, (x_q, x_t, o_q, o_t))
     else:
         x_q, x_t = start.quaternion, start.translation
         o_q, o_t = start.object_quaternion, start.object_translation
@@ -260,6 +264,29 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None
     e, J = samples.linearised(model)
     refinement = _refinement(model, e, J, noise, converged, whitening)
     return _jackknife(refinement, e, J) if resample else refinement
+
+
+def _gaussian_start(samples, model, iterations=GAUSSIAN_START_ITERATIONS):
+    """
+    Return the model moved to the Gaussian fit of the residuals linearised at it.
+
+    The closed form weighs rotations and translations by their own least squares, so the
+    refinement's first steps mostly find their relative weight: one variance per block of the
+    residuals (rotation, translation), refitted on the linear prediction e + J dx after each
+    weighted step, settles it on the linearised model at no cost of relinearising or fitting
+    the heavy-tailed models, which then start from residuals near the answer.
+    """
+    e, J = samples.linearised(model)
+    flat_J = J.reshape(-1, 12)
+    count = max(len(e) - LOST_SAMPLES, 1.0)
+    step = np.zeros(12)
+    for _ in range(iterations):
+        predicted = e + J @ step
+        blocks = np.einsum('nbi,nbi->b', *(2 * [predicted.reshape(-1, 2, 3)]))
+        information = 1.0 / (blocks / (3.0 * count) + NOISE_FLOOR[::3])     # (2,)
+        weighted = (J.reshape(len(e), 2, 3, 12) * information[:, None, None]).reshape(-1, 12)
+        step = -_solve(flat_J.T @ weighted, weighted.T @ e.reshape(-1))
+    return apply_step(step, *model) if np.all(np.isfinite(step)) else model
 
 
 def whitening_of(covariances):
@@ -391,15 +418,6 @@ def _normal_equations(J, e, noise):
     return J.reshape(MJ.shape).T @ MJ, MJ.T @ e.reshape(-1)
 
 
-def _inverse(normal):
-    """Return the inverse of a normal matrix, its pseudo-inverse when singular."""
-    try:
-        inverse = np.linalg.inv(normal)
-    except np.linalg.LinAlgError:
-        return np.linalg.pinv(normal)
-    return inverse if np.all(np.isfinite(inverse)) else np.linalg.pinv(normal)
-
-
 def _solve(normal, rhs):
     """Return normal^-1 rhs: one system (12, 12), (12,) or a batch (B, 12, 12), (B, 12)."""
     try:
@@ -419,7 +437,7 @@ def _refinement(model, e, J, noise, converged, whitening=None):
     WJ = np.swapaxes(_weighed(information, J, diagonal), 1, 2)     # J_i^T M_i: (N, 12, 6)
     per_sample = WJ @ J                                  # (N, 12, 12)
     A = per_sample.sum(axis=0)
-    A_inv = _inverse(A)
+    A_inv = inverse(A)
     leave_one_out = _leave_one_out(A, per_sample, WJ, J, e)
     sandwich = A_inv @ _score_scatter(J, e, information, diagonal, A_inv) @ A_inv
     if whitening is not None:   # back to radians and metres

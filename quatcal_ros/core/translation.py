@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.numerics import inverse
 
 
 @dataclass(frozen=True)
@@ -29,8 +30,14 @@ class SamplePositions:
     @staticmethod
     def from_samples(samples, rotations):
         """Collect positions matching `rotations` (a motions.SampleRotations of `samples`)."""
-        link = np.array([s.link.position for s in samples], dtype=float).reshape(-1, 3)
-        sensor = np.array([s.sensor.position for s in samples], dtype=float).reshape(-1, 3)
+        return SamplePositions.from_arrays(
+            np.array([s.link.position for s in samples], dtype=float).reshape(-1, 3),
+            np.array([s.sensor.position for s in samples], dtype=float).reshape(-1, 3),
+            rotations)
+
+    @staticmethod
+    def from_arrays(link, sensor, rotations):
+        """Return from_samples' result for the samples' link and sensor positions (N, 3)."""
         if rotations.link_inverted:      # t(inv(T)) = -R^T t, with R^T = the stored rotation
             link = -quat.rotate(rotations.link, link)
         if rotations.sensor_inverted:
@@ -55,8 +62,8 @@ class TranslationEstimate:
 
 def object_position_offsets(rotations, positions, q_z):
     """Return c_i (N, 3): sample i predicts the object position c_i + R(link_i) t_z."""
-    sensor_in_link = quat.rotate(q_z, positions.sensor)
-    return positions.link + quat.rotate(rotations.link, sensor_in_link)
+    sensor_in_link = positions.sensor @ quat.matrix_from_quaternion(q_z).T
+    return positions.link + (rotations.link_matrices @ sensor_in_link[..., None])[..., 0]
 
 
 def solve_translation(rotations, positions, q_z, info, sample_ok, rotation_covariance=None):
@@ -71,7 +78,7 @@ def solve_translation(rotations, positions, q_z, info, sample_ok, rotation_covar
     """
     link_R = rotations.link_matrices
     c = object_position_offsets(rotations, positions, q_z)
-    H_inv = np.linalg.pinv(info.H)
+    H_inv = inverse(info.H)
     t_z = -H_inv @ np.einsum('nij,nj->i', info.C, c)
     predictions = c + np.einsum('nij,j->ni', link_R, t_z)
     residuals = predictions - predictions[sample_ok].mean(axis=0)
