@@ -735,11 +735,11 @@ def _noise_model(refinement, robust):
 def _noise_json(rotation_deg, translation_mm, correlation, nu, shape, robust, source,
                 sandwich, model, sample_covariances):
     """Return the "noise_model" JSON object: per-axis noise, its shape, the uncertainties."""
-    return {'rotation_noise_deg': [float(v) for v in rotation_deg],
-            'translation_noise_mm': [float(v) for v in translation_mm],
+    return {'rotation_noise_deg': np.asarray(rotation_deg, dtype=float).tolist(),
+            'translation_noise_mm': np.asarray(translation_mm, dtype=float).tolist(),
             'frame': 'sensor',
             'sample_covariances': sample_covariances,
-            'correlation': [[float(v) for v in row] for row in correlation],
+            'correlation': np.asarray(correlation, dtype=float).tolist(),
             'tail_degrees_of_freedom': float(nu) if np.isfinite(nu) else None,
             'distribution': ('gaussian' if not np.isfinite(nu) else 'student_t'),
             'shape': shape,

@@ -21,6 +21,7 @@ the EM steps, densities and information of all of them are computed at once.
 """
 
 from dataclasses import dataclass
+from functools import cached_property
 import math
 
 import numpy as np
@@ -137,10 +138,12 @@ class NoiseFit:
         """Return the most probable tail degrees of freedom (inf: Gaussian)."""
         return self.nus[int(np.argmax(self.probabilities))]
 
-    @property
+    @cached_property
     def covariance(self):
         """Return the covariance of the noise (d x d), averaged over the models."""
         factors = self.probabilities * _t_constants(self.nus, 1).covariance_factor
+        if self.variances is not None:
+            return np.diag(factors @ self.variances)
         return np.tensordot(factors, self.scales, axes=1)
 
     @property
@@ -161,6 +164,22 @@ class NoiseFit:
         if self.variances is None:
             return None
         return (self.probabilities[:, None] * self.model_weights).T @ (1.0 / self.variances)
+
+    @cached_property
+    def block(self):
+        """Return b when every model's scale is sigma^2 I on blocks of b axes, else None."""
+        blocks = {shape.block for shape in self.shapes}
+        if self.variances is None or len(blocks) != 1 or None in blocks:
+            return None
+        block = blocks.pop()
+        per_block = self.variances[:, ::block]
+        return block if np.array_equal(np.repeat(per_block, block, axis=1),
+                                       self.variances) else None
+
+    def information_per_block(self):
+        """Return each sample's information per block of axes (N, d / block), given `block`."""
+        return ((self.probabilities[:, None] * self.model_weights).T
+                @ (1.0 / self.variances[:, ::self.block]))
 
     def efficiency(self, d):
         """
@@ -204,40 +223,55 @@ class NoiseFit:
         information = self.refitted_information_blocks(residuals, keep, lost_samples, floor)
         return _as_matrices(information) if self.variances is not None else information
 
-    def refitted_information_blocks(self, residuals, keep, lost_samples=0.0, floor=None):
+    def refitted_information_blocks(self, residuals, keep, lost_samples=0.0, floor=None,
+                                    per_block=False):
         """
         Return `refitted_information`, as diagonals (B, N, d) when the scales are diagonal.
 
-        Diagonals when every model's scale is (`variances`), else matrices (B, N, d, d).
+        Diagonals when every model's scale is (`variances`), else matrices (B, N, d, d);
+        per_block (given `block`): one per block of axes (B, N, d / block).
         """
         r = np.asarray(residuals, dtype=float)
         keep = np.asarray(keep, dtype=float)
+        rows, n = keep.shape
         count = np.maximum(keep.sum(axis=1) - lost_samples, 1.0)
-        d = r.shape[1]
         information = 0.0
         live = set(self.live)
-        for shape, rows in _groups(self.shapes):
-            rows = [k for k in rows if k in live]
-            if not rows:
+        for shape, models in _groups(self.shapes):
+            models = [k for k in models if k in live]
+            if not models:
                 continue
+            # Every model's replicates at once: (K B, N) weights, the K models in turn.
+            constants = _t_constants(tuple(self.nus[k] for k in models), r.shape[1])
             arithmetic = _arithmetic(r, shape, floor)
-            for k in rows:
-                nu = self.nus[k]
-                w = keep * self.model_weights[k]
-                if not math.isinf(nu):
-                    for _ in range(WARM_EM_ITERATIONS):
-                        w = keep * ((nu + d) / (nu + arithmetic.distances(w, count)))
-                    w = keep * ((nu + d) / (nu + arithmetic.fitted(w, count)[1]))
-                else:
-                    arithmetic.fitted(w, count)
-                precision = arithmetic.precision
-                p = self.probabilities[k]
-                if self.variances is not None:     # precision: (B, d) diagonals
-                    information = information + p * w[..., None] * precision[:, None, :]
-                else:
-                    if shape.block is not None:   # diagonals of one shape among matrices
-                        precision = _as_matrices(precision)
-                    information = information + p * w[..., None, None] * precision[:, None]
+            counts = np.tile(count, len(models))
+            w = (keep * self.model_weights[models][:, None, :]).reshape(-1, n)
+            repeat = (len(models), rows, 1)
+            nu = np.broadcast_to(constants.safe[:, None], repeat).reshape(-1, 1)
+            numerator = np.broadcast_to(constants.numerator[:, None], repeat).reshape(-1, 1)
+            kept = np.broadcast_to(keep, (len(models),) + keep.shape).reshape(-1, n)
+            gaussian = None if constants.all_finite else constants.gaussian_rows
+            for _ in range(WARM_EM_ITERATIONS):
+                w = kept * (numerator / (nu + arithmetic.distances(w, counts)))
+                if gaussian is not None:      # the Gaussian's weights stay those it kept
+                    w.reshape(len(models), rows, n)[gaussian] = keep
+            w = kept * (numerator / (nu + arithmetic.fitted(w, counts)[1]))
+            if gaussian is not None:
+                w.reshape(len(models), rows, n)[gaussian] = keep
+            p = self.probabilities[models][:, None, None]
+            w = p * w.reshape(len(models), rows, n)
+            precision = arithmetic.precision.reshape(
+                (len(models), rows) + arithmetic.precision.shape[1:])
+            if self.variances is not None:   # precisions as diagonals (K, B, d), per block
+                if per_block:
+                    precision = precision[..., ::self.block]
+                # sum_k w_kbn P_kbd as B products (N, K) @ (K, d)
+                information = information + (np.swapaxes(w, 0, 1).transpose(0, 2, 1)
+                                             @ np.swapaxes(precision, 0, 1))
+            else:
+                if shape.block is not None:   # diagonals of one shape among matrices
+                    precision = _as_matrices(precision)
+                information = information + np.einsum('kbn,kbij->bnij', w, precision)
         return information
 
     def density(self):
@@ -288,15 +322,20 @@ def fit_t(residuals, shapes, grid=NU_GRID, lost_samples=0.0, floor=None, prior=N
     count = max(total - lost_samples, 1.0)
     constants = _t_constants(tuple(grid), d)
     parts = []
-    for shape in shapes:
-        rows = _rows_of(start, shape, constants.nus)
+    same = start is not None and start.shapes == tuple(s for s in shapes for _ in grid) and \
+        start.nus == constants.nus * len(shapes)    # start's rows are these models in order
+    for index, shape in enumerate(shapes):
+        k = len(grid)
+        rows = (list(range(index * k, index * k + k)) if same
+                else _rows_of(start, shape, constants.nus))
         w, steps = (_warm_start(start, rows, n, constants) if rows is not None
                     else _nearest_start(start, shape, n, constants))
         parts.append(_fit_models(r, prior, count, shape, constants, floor, w, steps))
     penalty = 0.5 * math.log(max(total, 2.0))
-    criteria = np.concatenate([
-        (p.log_density.sum(axis=1) if prior is None else p.log_density @ prior)
-        - penalty * (shape.parameters + constants.finite) for p, shape in zip(parts, shapes)])
+    criteria = [(p.log_density.sum(axis=1) if prior is None else p.log_density @ prior)
+                - penalty * (shape.parameters + constants.finite)
+                for p, shape in zip(parts, shapes)]
+    criteria = criteria[0] if len(criteria) == 1 else np.concatenate(criteria)
     probabilities = np.exp(criteria - criteria.max())
     probabilities[probabilities <= MIN_PROBABILITY * probabilities.sum()] = 0.0   # no say
     return _noise_fit(parts, probabilities / probabilities.sum())
@@ -357,14 +396,13 @@ def _warm_start(start, rows, n, constants):
     added since `start` (those start from weight 1; without samples: the first N weights).
     """
     m = start.model_weights.shape[1]
-    w = start.model_weights[rows[0]:rows[-1] + 1] if rows == list(range(rows[0], rows[-1] + 1)) \
-        else start.model_weights[rows]
+    w = (start.model_weights[rows[0]:rows[-1] + 1] if rows[-1] - rows[0] == len(rows) - 1
+         else start.model_weights[rows])
     if m != n:
         grown = np.ones((len(rows), n))
         grown[:, :min(m, n)] = w[:, :n]
         w = grown
-    steps = WARM_EM_ITERATIONS if m >= n else RESUMED_EM_ITERATIONS
-    return w, [steps if finite else 0 for finite in constants.finite.tolist()]
+    return w, (constants.warm_steps if m >= n else constants.resumed_steps)
 
 
 def _nearest_start(start, shape, n, constants):
@@ -405,7 +443,7 @@ def _fit_models(r, good, count, shape, constants, floor, w, steps):
     done = 0
     for until in sorted(set(steps) - {0}):     # the rows still moving, a batch at a time
         rows = [i for i, s in enumerate(steps) if s >= until]
-        if rows == list(range(rows[0], rows[-1] + 1)):   # a slice: no copies
+        if rows[-1] - rows[0] == len(rows) - 1:   # a slice: no copies
             rows = slice(rows[0], rows[-1] + 1)
         moved = arithmetic.em_steps(w[rows], good, count, constants.safe[rows],
                                     constants.numerator[rows], until - done)
@@ -428,6 +466,10 @@ class _TConstants:
         self.nus = nus
         self.nu = np.array(nus, dtype=float)
         self.finite = np.isfinite(self.nu)
+        # EM steps of each model from a warm start, and after samples were added (_warm_start)
+        self.warm_steps = tuple(WARM_EM_ITERATIONS if f else 0 for f in self.finite.tolist())
+        self.resumed_steps = tuple(RESUMED_EM_ITERATIONS if f else 0
+                                   for f in self.finite.tolist())
         self.all_finite = bool(self.finite.all())
         safe = np.where(self.finite, self.nu, 1.0)[:, None]
         norm = np.array([math.lgamma(0.5 * (v + d)) - math.lgamma(0.5 * v)
@@ -438,7 +480,10 @@ class _TConstants:
         self.inverse_nu = 1.0 / safe
         self.numerator = safe + d
         self.safe = safe
-        self.gaussian_rows = np.flatnonzero(~self.finite)
+        gaussian = np.flatnonzero(~self.finite)
+        # the Gaussian's rows: a slice when there is one (an index, not a copy)
+        self.gaussian_rows = (slice(gaussian[0], gaussian[0] + 1) if len(gaussian) == 1
+                              else gaussian)
         self.gaussian_base = -0.5 * d * math.log(2.0 * math.pi)
         # Fisher information of a location over the Gaussian one's with the scale S
         self.fisher_factor = np.where(self.finite, (safe[:, 0] + d) / (safe[:, 0] + d + 2.0),
@@ -574,7 +619,7 @@ class _Blocks:
         if self.axis_floor is None:   # per block: to every axis
             log_det = log_det * self.block
             variances = np.repeat(variances, self.block, axis=-1)
-            inverse = np.repeat(inverse, self.block, axis=-1)
+            inverse = 1.0 / variances
         self.precision = inverse
         return variances, delta, log_det
 

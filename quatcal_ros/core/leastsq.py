@@ -66,7 +66,7 @@ class MotionSystem:
         """Add one motion (or a (K, 4) batch of motions): O(1) per motion."""
         q_a = np.asarray(q_a, dtype=float).reshape(-1, 4)
         C = q_a.T @ aligned_b(q_a, q_b, reference)
-        S = np.einsum('ij,ijkl->kl', C, _CROSS_TERMS)
+        S = (C.reshape(16) @ _CROSS_TERMS.reshape(16, 16)).reshape(4, 4)
         self.normal_matrix += 2.0 * len(q_a) * np.eye(4) - S - S.T
         self.count += len(q_a)
 
@@ -140,6 +140,6 @@ def all_pairs_rotation(rotations, use, reference, weights=None, iterations=3):
         if signs is not None and np.array_equal(new_signs, signs):
             break
         signs = new_signs
-        S = np.einsum('n,nij->ij', w * signs, A)
+        S = ((w * signs) @ A.reshape(-1, 16)).reshape(4, 4)
         p = np.linalg.svd(S)[2][0]
     return quat.canonical(p)

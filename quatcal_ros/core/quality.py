@@ -18,6 +18,7 @@ its own axis u_k, which is why two non-parallel axes are needed (Case 1 of Secti
 """
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -65,7 +66,7 @@ class Information:
     def of(link_matrices, i, j):
         """H, C and G for motions (i[k], j[k]) given the link rotation matrices (N, 3, 3)."""
         H, C = _motion_sums(link_matrices, i, j)
-        return Information(H, np.einsum('nij,nkj->ik', C, C), C)
+        return Information(H, _outer_sum(C), C)
 
     @staticmethod
     def all_pairs(link_matrices, use):
@@ -81,7 +82,7 @@ class Information:
         C = np.zeros_like(link_matrices)
         C[use] = k * np.transpose(R, (0, 2, 1)) - total.T
         H = k * k * np.eye(3) - total.T @ total
-        return Information(H, np.einsum('nij,nkj->ik', C, C), C)
+        return Information(H, _outer_sum(C), C)
 
     def covariance(self, sigma):
         """cov(delta) (3x3, rad^2) for per-axis sample noise sigma (radians)."""
@@ -90,12 +91,22 @@ class Information:
 
     def excitation(self):
         """(ratio of weakest to strongest eigenvalue of H in [0, 1], weakest unit axis)."""
+        return self._excitation
+
+    @cached_property
+    def _excitation(self):
         values, vectors = np.linalg.eigh(self.H)
         if values[-1] <= 0.0:
             return 0.0, np.array([0.0, 0.0, 1.0])
         axis = vectors[:, 0]
         axis = axis if axis[np.argmax(np.abs(axis))] > 0 else -axis
         return float(max(values[0], 0.0) / values[-1]), axis
+
+
+def _outer_sum(C):
+    """Return sum_n C_n C_n^T of (N, 3, 3) matrices."""
+    rows = np.swapaxes(C, 0, 1).reshape(3, -1)
+    return rows @ rows.T
 
 
 def _motion_sums(link_matrices, i, j):

@@ -36,6 +36,7 @@ carries it back to radians and metres for a typical sample, and `residuals` and
 """
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 import math
 
 import numpy as np
@@ -63,11 +64,13 @@ ISOTROPIC = (heavy_tails.isotropic_blocks(DIMENSIONS),)
 SHAPES = ISOTROPIC + (heavy_tails.full(DIMENSIONS),)
 FULL_SHAPE_SAMPLES = 30
 # Weighted steps on the linearised model that start the refinement (_gaussian_start).
-GAUSSIAN_START_ITERATIONS = 4
+GAUSSIAN_START_ITERATIONS = 3
 # Blocks of the jackknife (with_jackknife), and the floats a batch of its replicates may hold
 # (2 MB: all 20 at once up to about 170 samples; a long replay's final solve stays small).
 JACKKNIFE_BLOCKS = 20
 JACKKNIFE_BATCH_FLOATS = 250_000
+# Up to this many samples the per-sample block products are kept (_Sums: 288 floats each).
+GRAM_SAMPLES = JACKKNIFE_BATCH_FLOATS // 288
 
 
 class ReportedUncertainty:
@@ -102,7 +105,7 @@ class Refinement(ReportedUncertainty):
     resampled_from_earlier: bool = False   # scaled from an earlier jackknife (with_jackknife_of)
     whitening: np.ndarray = None    # (N, 6, 6) W_i from the samples' own covariances, or None
 
-    @property
+    @cached_property
     def noise_covariance(self):
         """Return the fitted noise of one sensor pose (6x6, rad and m; a typical sample's)."""
         if self.whitening is None:
@@ -262,8 +265,7 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None
     model, noise, converged = _fit(samples, (x_q, x_t, o_q, o_t), robust,
                                    start.noise if start is not None else None, max_iterations)
     e, J = samples.linearised(model)
-    refinement = _refinement(model, e, J, noise, converged, whitening)
-    return _jackknife(refinement, e, J) if resample else refinement
+    return _refinement(model, _Sums(e, J, noise), noise, converged, whitening, resample)
 
 
 def _gaussian_start(samples, model, iterations=GAUSSIAN_START_ITERATIONS):
@@ -274,18 +276,23 @@ def _gaussian_start(samples, model, iterations=GAUSSIAN_START_ITERATIONS):
     refinement's first steps mostly find their relative weight: one variance per block of the
     residuals (rotation, translation), refitted on the linear prediction e + J dx after each
     weighted step, settles it on the linearised model at no cost of relinearising or fitting
-    the heavy-tailed models, which then start from residuals near the answer.
+    the heavy-tailed models, which then start from residuals near the answer. On the linear
+    model each block's sum of squares is S_b + 2 dx.g_b + dx^T G_b dx (G_b = J_b^T J_b,
+    g_b = J_b^T e_b): every step is 12 x 12 arithmetic.
     """
     e, J = samples.linearised(model)
-    flat_J = J.reshape(-1, 12)
-    count = max(len(e) - LOST_SAMPLES, 1.0)
+    rows = np.swapaxes(J.reshape(len(J), 2, 3, 12), 0, 1).reshape(2, -1, 12)   # (2, 3N, 12)
+    residuals = np.swapaxes(e.reshape(-1, 2, 3), 0, 1).reshape(2, -1)         # (2, 3N)
+    gram = np.swapaxes(rows, 1, 2) @ rows                                 # (2, 12, 12)
+    gradient = (np.swapaxes(rows, 1, 2) @ residuals[..., None])[..., 0]   # (2, 12)
+    squares = np.einsum('bk,bk->b', residuals, residuals)                 # (2,)
+    scale = 1.0 / (3.0 * max(len(e) - LOST_SAMPLES, 1.0))
     step = np.zeros(12)
     for _ in range(iterations):
-        predicted = e + J @ step
-        blocks = np.einsum('nbi,nbi->b', *(2 * [predicted.reshape(-1, 2, 3)]))
-        information = 1.0 / (blocks / (3.0 * count) + NOISE_FLOOR[::3])     # (2,)
-        weighted = (J.reshape(len(e), 2, 3, 12) * information[:, None, None]).reshape(-1, 12)
-        step = -_solve(flat_J.T @ weighted, weighted.T @ e.reshape(-1))
+        predicted = squares + 2.0 * gradient @ step + (gram @ step) @ step
+        information = 1.0 / (predicted * scale + NOISE_FLOOR[::3])          # (2,)
+        step = -_solve((information @ gram.reshape(2, -1)).reshape(12, 12),
+                       information @ gradient)
     return apply_step(step, *model) if np.all(np.isfinite(step)) else model
 
 
@@ -346,37 +353,69 @@ def with_jackknife(refinement, link_q, link_t, sensor_q, sensor_t, robust=True,
     samples = _Samples(link_q, link_t, sensor_q, sensor_t, whitening=refinement.whitening)
     e, J = samples.linearised((refinement.quaternion, refinement.translation,
                                refinement.object_quaternion, refinement.object_translation))
-    return _jackknife(refinement, e, J, blocks)
+    resampled = _jackknife(refinement.noise, _Sums(e, J, refinement.noise), blocks)
+    return refinement if resampled is None else replace(refinement, resampled=resampled)
 
 
-def _jackknife(refinement, e, J, blocks=JACKKNIFE_BLOCKS):
-    """Return with_jackknife's result given the residuals e and Jacobian J at the answer."""
+class _Sums:
+    """
+    The residuals e (N, 6) and Jacobian J (N, 6, 12) at an answer, and their per-sample parts.
+
+    Noise models of isotropic blocks (heavy_tails.NoiseFit.block) give each sample one
+    information per block of three residuals, so every normal matrix the estimate, its
+    leave-one-out and its jackknife form is a weighted sum of the same per-sample block
+    products J_ib^T J_ib and J_ib^T e_ib (`gram`, `gradient`): formed once, each sum is one
+    product (up to GRAM_SAMPLES samples; else, and for other noise models, from e and J).
+    """
+
+    def __init__(self, e, J, noise):
+        self.e, self.J = e, J
+        self.blocks = noise.block == 3 and len(e) <= GRAM_SAMPLES
+        if self.blocks:
+            blocks = J.reshape(len(J), -1, 3, J.shape[2])               # (N, 2, 3, 12)
+            self.gram = np.swapaxes(blocks, 2, 3) @ blocks               # (N, 2, 12, 12)
+            self.gradient = np.einsum('nbri,nbr->nbi', blocks, e.reshape(len(e), -1, 3))
+
+    def normal_equations(self, information, diagonal):
+        """
+        Return A (..., 12, 12) and g (..., 12) of informations (..., N, 6, 6).
+
+        Given as their diagonals (..., N, 6) with `diagonal`, as one per block (..., N, 2)
+        when `blocks`.
+        """
+        if self.blocks:
+            flat = information.reshape(information.shape[:-2] + (-1,))   # (..., 2N)
+            A = (flat @ self.gram.reshape(-1, 144)).reshape(flat.shape[:-1] + (12, 12))
+            return A, flat @ self.gradient.reshape(-1, 12)
+        MJ = _weighed(information, self.J, diagonal)
+        MJ = MJ.reshape(MJ.shape[:-3] + (-1, 12))                        # (..., 6N, 12)
+        return self.J.reshape(-1, 12).T @ MJ, np.swapaxes(MJ, -1, -2) @ self.e.reshape(-1)
+
+
+def _jackknife(noise, sums, blocks=JACKKNIFE_BLOCKS):
+    """Return with_jackknife's covariance given the noise and the _Sums at the answer, or None."""
+    e = sums.e
     n = len(e)
     count = min(blocks, n)
     if count < 3:
-        return refinement
+        return None
     # Contiguous blocks as np.array_split cuts them: the first n % count one sample longer.
     sizes = np.full(count, n // count)
     sizes[:n % count] += 1
     keep = np.repeat(np.arange(count), sizes)[None, :] != np.arange(count)[:, None]
-    flat_J = J.reshape(-1, 12)
-    flat_e = e.reshape(-1)
-    diagonal = refinement.noise.variances is not None
+    diagonal = noise.variances is not None
     moves = []
     # Replicates in batches of a bounded size (each holds its (N, 6, 12) weighted Jacobian).
-    batch = max(1, JACKKNIFE_BATCH_FLOATS // (n * 6 * 12))
+    batch = count if sums.blocks else max(1, JACKKNIFE_BATCH_FLOATS // (n * 6 * 12))
     for start in range(0, count, batch):
         rows = keep[start:start + batch]
-        information = refinement.noise.refitted_information_blocks(e, rows, LOST_SAMPLES,
-                                                                   NOISE_FLOOR)
-        MJ = _weighed(information, J, diagonal).reshape(len(rows), -1, 12)   # (B, 6N, 12)
-        A = flat_J.T @ MJ                                            # (B, 12, 12)
-        g = np.swapaxes(MJ, 1, 2) @ flat_e                           # (B, 12)
+        information = noise.refitted_information_blocks(e, rows, LOST_SAMPLES, NOISE_FLOOR,
+                                                        per_block=sums.blocks)
+        A, g = sums.normal_equations(information, diagonal)
         moves.append(-_solve(A, g)[:, :6])                           # X's rotation, translation
-    moves = np.concatenate(moves)
-    g = count
+    moves = np.concatenate(moves) if len(moves) > 1 else moves[0]
     centred = moves - moves.mean(axis=0)
-    return replace(refinement, resampled=(g - 1) / g * centred.T @ centred)
+    return (count - 1) / count * centred.T @ centred
 
 
 def _weighed(information, J, diagonal):
@@ -426,19 +465,27 @@ def _solve(normal, rhs):
         return (np.linalg.pinv(normal) @ rhs[..., None])[..., 0]
 
 
-def _refinement(model, e, J, noise, converged, whitening=None):
+def _refinement(model, sums, noise, converged, whitening=None, resample=False):
     """
-    Return the Refinement of model (X, O) with residuals e, Jacobian J and the noise.
+    Return the Refinement of model (X, O) with the _Sums at it and the noise.
 
     e and J whitened by `whitening` when it is given; the residuals reported are not.
+    resample: with the block jackknife (with_jackknife).
     """
     x_q, x_t, o_q, o_t = model
+    e, J = sums.e, sums.J
     information, diagonal = _information(noise)
-    WJ = np.swapaxes(_weighed(information, J, diagonal), 1, 2)     # J_i^T M_i: (N, 12, 6)
-    per_sample = WJ @ J                                  # (N, 12, 12)
+    if sums.blocks:
+        weights = noise.information_per_block()
+        n = len(weights)
+        per_sample = (weights[:, None, :] @ sums.gram.reshape(n, -1, 144)).reshape(n, 12, 12)
+        held = (weights[:, None, :] @ sums.gradient)[:, 0]               # J_i^T M_i e_i
+    else:
+        WJ = np.swapaxes(_weighed(information, J, diagonal), 1, 2)       # (N, 12, 6)
+        per_sample, held = WJ @ J, (WJ @ e[..., None])[..., 0]
     A = per_sample.sum(axis=0)
     A_inv = inverse(A)
-    leave_one_out = _leave_one_out(A, per_sample, WJ, J, e)
+    leave_one_out = _leave_one_out(A, per_sample, held, J, e)
     sandwich = A_inv @ _score_scatter(J, e, information, diagonal, A_inv) @ A_inv
     if whitening is not None:   # back to radians and metres
         unwhiten = np.linalg.inv(whitening)
@@ -448,7 +495,8 @@ def _refinement(model, e, J, noise, converged, whitening=None):
         quaternion=quat.canonical(x_q), translation=x_t, object_quaternion=o_q,
         object_translation=o_t, noise=noise, covariance=sandwich,
         model_covariance=A_inv / noise.efficiency(DIMENSIONS), residuals=e,
-        leave_one_out=leave_one_out, converged=bool(converged), whitening=whitening)
+        leave_one_out=leave_one_out, converged=bool(converged),
+        resampled=_jackknife(noise, sums) if resample else None, whitening=whitening)
 
 
 def _score_scatter(J, e, information, diagonal, A_inv):
@@ -456,11 +504,12 @@ def _score_scatter(J, e, information, diagonal, A_inv):
     Return B = sum_i s_i s_i^T, the scatter of the samples' scores, for the sandwich.
 
     The plain residuals of a fit with 12 unknowns understate the noise, the more for the
-    samples that steer the fit: in whitened coordinates (M_i = L_i L_i^T) each residual is
-    divided by sqrt(I - h_i), h_i = L_i^T J_i A^-1 J_i^T L_i its block of the hat matrix (the
-    HC2 correction, unbiased for a linear model with the noise the weights assume), and
-    s_i = J_i^T L_i (I - h_i)^-1/2 L_i^T e_i. information: (N, 6, 6), or with `diagonal` its
-    diagonals (N, 6).
+    samples that steer the fit: in whitened coordinates (M_i = L_i L_i^T) each residual's
+    covariance is I - h_i, h_i = L_i^T J_i A^-1 J_i^T L_i its block of the hat matrix, so it
+    is divided by a root of I - h_i (the HC2 correction, unbiased for a linear model with the
+    noise the weights assume): s_i = J_i^T L_i K_i^-1 L_i^T e_i with K_i K_i^T = I - h_i
+    (Cholesky; the symmetric root where I - h_i is singular). information: (N, 6, 6), or with
+    `diagonal` its diagonals (N, 6).
     """
     if diagonal:   # L_i = sqrt(M_i)
         root = np.sqrt(information)
@@ -471,28 +520,31 @@ def _score_scatter(J, e, information, diagonal, A_inv):
         whitened_J = L_T @ J
         whitened_e = L_T @ e[..., None]
     whitened_J_T = np.swapaxes(whitened_J, 1, 2)
-    hat = whitened_J @ A_inv @ whitened_J_T
-    values, vectors = np.linalg.eigh(np.eye(J.shape[1]) - hat)
-    root = (vectors / np.sqrt(np.maximum(values, 1e-12))[:, None, :]) @ np.swapaxes(vectors,
-                                                                                    1, 2)
-    scores = (whitened_J_T @ (root @ whitened_e))[..., 0]
+    left = np.eye(J.shape[1]) - whitened_J @ A_inv @ whitened_J_T       # I - h_i
+    try:
+        corrected = np.linalg.solve(np.linalg.cholesky(left), whitened_e)
+    except np.linalg.LinAlgError:   # a sample the fit passes through: I - h_i singular
+        values, vectors = np.linalg.eigh(left)
+        root = (vectors / np.sqrt(np.maximum(values, 1e-12))[:, None, :]) @ np.swapaxes(
+            vectors, 1, 2)
+        corrected = root @ whitened_e
+    scores = (whitened_J_T @ corrected)[..., 0]
     return scores.T @ scores
 
 
-def _leave_one_out(A, per_sample, WJ, J, e):
+def _leave_one_out(A, per_sample, held, J, e):
     """
     Return each sample's residual predicted by the fit of all the other samples (N, 6).
 
     Removing sample k moves the optimum by (A - J_k^T W_k J_k)^-1 J_k^T W_k e_k (one
     Gauss-Newton step, exact for a linear model), and its residual by J_k times that.
-    per_sample: J_k^T W_k J_k (N, 12, 12); WJ: J_k^T W_k (N, 12, 6).
+    per_sample: J_k^T W_k J_k (N, 12, 12); held: J_k^T W_k e_k (N, 12).
     """
     without = A - per_sample
-    rhs = (WJ @ e[..., None])[..., 0]
     try:
-        moved = np.linalg.solve(without, rhs[..., None])
+        moved = np.linalg.solve(without, held[..., None])
     except np.linalg.LinAlgError:   # a sample the others cannot do without
-        moved = np.linalg.pinv(without) @ rhs[..., None]
+        moved = np.linalg.pinv(without) @ held[..., None]
     return e + (J @ moved)[..., 0]
 
 

@@ -79,8 +79,8 @@ def solve_translation(rotations, positions, q_z, info, sample_ok, rotation_covar
     link_R = rotations.link_matrices
     c = object_position_offsets(rotations, positions, q_z)
     H_inv = inverse(info.H)
-    t_z = -H_inv @ np.einsum('nij,nj->i', info.C, c)
-    predictions = c + np.einsum('nij,j->ni', link_R, t_z)
+    t_z = -H_inv @ (np.swapaxes(info.C, 0, 1).reshape(3, -1) @ c.reshape(-1))
+    predictions = c + link_R @ t_z
     residuals = predictions - predictions[sample_ok].mean(axis=0)
     dof = 3 * int(np.sum(sample_ok)) - 6
     noise = float(np.sqrt(np.sum(residuals[sample_ok] ** 2) / dof)) if dof > 0 else np.nan

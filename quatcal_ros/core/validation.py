@@ -35,14 +35,16 @@ def validate(leave_one_out, samples, thresholds=Thresholds()):
     leave_one_out: (K, 6) predicted residuals (rotation vector in radians, position in
     metres, sensor frame) of the good samples whose indices are `samples` (K,).
     """
-    rotation = np.degrees(np.linalg.norm(leave_one_out[:, :3], axis=1))
-    translation = 1e3 * np.linalg.norm(leave_one_out[:, 3:], axis=1)
-    rms_rotation = float(np.sqrt(np.mean(rotation ** 2)))
-    rms_translation = float(np.sqrt(np.mean(translation ** 2)))
+    squares = (leave_one_out * leave_one_out).reshape(-1, 2, 3).sum(axis=2)   # (K, 2)
+    rotation, translation = np.sqrt(squares).T * np.array([[np.degrees(1.0)], [1e3]])
+    rms_rotation, rms_translation = (np.sqrt(squares.mean(axis=0))
+                                     * [np.degrees(1.0), 1e3]).tolist()
     # Worst by the larger of the two errors, each in units of its RMS.
     badness = np.maximum(rotation / max(rms_rotation, 1e-300),
                          translation / max(rms_translation, 1e-300))
     worst = np.argsort(-badness, kind='stable')[:WORST]
+    entries = [{'sample': s, 'rotation_deg': r, 'translation_mm': t} for s, r, t in zip(
+        np.asarray(samples).tolist(), rotation.tolist(), translation.tolist())]
     failures = []
     if rms_rotation > thresholds.max_rotation_deg:
         failures.append(f'rotation {rms_rotation:.3f} deg > {thresholds.max_rotation_deg:g} deg')
@@ -60,14 +62,9 @@ def validate(leave_one_out, samples, thresholds=Thresholds()):
         'rms_rotation_deg': rms_rotation,
         'rms_translation_mm': rms_translation,
         'thresholds': thresholds.to_json_dict(),
-        'worst': [_entry(samples[k], rotation[k], translation[k]) for k in worst],
-        'samples': [_entry(s, r, t) for s, r, t in zip(samples, rotation, translation)],
+        'worst': [dict(entries[k]) for k in worst.tolist()],
+        'samples': entries,
     }
-
-
-def _entry(sample, rotation_deg, translation_mm):
-    return {'sample': int(sample), 'rotation_deg': float(rotation_deg),
-            'translation_mm': float(translation_mm)}
 
 
 def not_enough_samples(count, needed, thresholds=Thresholds()):
