@@ -127,6 +127,28 @@ def test_the_consensus_search_is_skipped_only_where_it_would_change_nothing(
             assert searched_too == bool(outliers) or (outliers and not skipped.rejected)
 
 
+@pytest.mark.parametrize('n', [3, 12, 70])
+def test_pairs_screened_from_their_angles_alone_equal_the_screened_motions(n):
+    # calibration._pair_screen takes every pair's rotation angles from two N x N products of
+    # the quaternions instead of forming the motions: the same usable count and verdict.
+    from quatcal_ros.core import calibration
+    for fraction in (0.0, 0.2):
+        _, samples, _ = synthetic(7300 + n, n, rotation_noise_deg=0.5,
+                                  outlier_fraction=fraction)
+        rotations = SampleRotations.from_samples(samples)
+        options = CalibrationOptions()
+        screen = calibration._pair_screen(rotations, options)
+        motions = Motions.between(rotations, *calibration._candidate_pairs(n, options))
+        usable, _, consistent = calibration._screen(motions, options)
+        assert len(screen) == usable.sum() and screen.consistent == consistent
+        assert consistent == (fraction == 0.0) or n == 3
+        consecutive = Motions.between(rotations, *pair_indices(n, 'consecutive'))
+        expected = [usable[k] for k in range(len(motions))
+                    if motions.j[k] == motions.i[k] + 1][:n - 1]
+        assert screen.consecutive.tolist() == expected
+        assert len(consecutive) == len(screen.first)
+
+
 def test_without_robustness_outliers_spoil_the_estimate():
     cell, samples, outliers = synthetic(8000, 30, rotation_noise_deg=0.5, outlier_fraction=0.1)
     assert outliers

@@ -214,6 +214,7 @@ class _Fit:
     inliers: int                 # those motions
     residual_rms: float          # their RMS residual angle (radians)
     rejected: list
+    residuals: np.ndarray        # (N, 3) quality.sample_residuals at q_z about the good ones
 
 
 @dataclass(frozen=True)
@@ -359,40 +360,44 @@ def _axis_text(axis):
 def _all_pairs(rotations, options, start):
     """Run the rotation stage over all pairs of samples (module docstring, steps 1-3)."""
     n = len(rotations)
-    sample_ok, detections = np.ones(n, dtype=bool), None
+    sample_ok, detections, residuals = np.ones(n, dtype=bool), None, None
     if start is None:
-        candidates, consistent = _candidates(rotations, options)
-        _require_motions(candidates)
-        everything = least_squares_rotation(candidates.q_a, candidates.q_b)
-        q_z = all_pairs_rotation(rotations, sample_ok, everything)
+        screen = _pair_screen(rotations, options)
+        _require_motions(screen)
+        q_z = all_pairs_rotation(rotations, sample_ok, _reference(rotations, screen))
     if options.robust and start is None:
         # Samples whose motions' rotation angles all agree (a bad detection spoils most of
         # its motions' angles) and which all agree about the least squares of them all are
         # clean: the consensus search and a second round could only end where they began.
-        detections = _detections(rotations, q_z) if consistent else None
+        if screen.consistent:
+            detections, residuals = _detections(rotations, q_z)
         if detections is None or detections.bad.any():
-            q_z = _consensus(rotations, candidates, options, everything)
-            detections = None
+            candidates = _candidates(rotations, options)
+            q_z = _consensus(rotations, candidates, options,
+                             least_squares_rotation(candidates.q_a, candidates.q_b))
+            detections = residuals = None
             for _ in range(2):
-                detections = _detections(rotations, q_z, detections)
+                detections, _ = _detections(rotations, q_z, detections)
                 sample_ok = ~detections.bad
                 _require_samples(sample_ok)
                 q_z = all_pairs_rotation(rotations, sample_ok, q_z)
     elif options.robust:   # a warm start (the last published rotation) is already clean
-        detections = _detections(rotations, start)
+        detections, _ = _detections(rotations, start)
         sample_ok = ~detections.bad
         _require_samples(sample_ok)
         q_z = all_pairs_rotation(rotations, sample_ok, start)
     info = _check_excitation(quality.Information.all_pairs(rotations.link_matrices, sample_ok),
                              _count(sample_ok), options)
-    residuals = quality.sample_residuals(rotations, q_z, sample_ok)[sample_ok]
+    if residuals is None:
+        residuals = quality.sample_residuals(rotations, q_z, sample_ok)
+    good = residuals[sample_ok]
     k = _count(sample_ok)
     # Over all pairs, sum_{i<j} |e_j - e_i|^2 = K sum_i |e_i - mean|^2 (to first order the
     # motion residual angle is |e_j - e_i|).
-    centred = residuals - residuals.mean(axis=0)
+    centred = good - good.mean(axis=0)
     rms = float(np.sqrt(2.0 * np.sum(centred ** 2) / max(k - 1, 1)))
     return _Fit(q_z, sample_ok, info, motion_count(k), rms,
-                _rejected_samples(rotations, q_z, sample_ok, detections, k - 1))
+                _rejected_samples(rotations, q_z, sample_ok, detections, k - 1), residuals)
 
 
 def _consecutive(rotations, options, start):
@@ -409,7 +414,7 @@ def _consecutive(rotations, options, start):
         else:
             q_z = start
         for _ in range(2):
-            detections = _detections(rotations, q_z, detections)
+            detections, _ = _detections(rotations, q_z, detections)
             sample_ok = ~detections.bad
             fit = motions.subset(usable & sample_ok[motions.i] & sample_ok[motions.j])
             _require_motions(fit)
@@ -427,7 +432,8 @@ def _consecutive(rotations, options, start):
     rejected = (_rejected_motions(motions, usable, sample_ok, limit, options)
                 + _rejected_samples(rotations, q_z, sample_ok, detections, 2))
     rms = float(np.sqrt(np.mean(fit.residual_angles(q_z) ** 2)))
-    return _Fit(q_z, sample_ok, info, len(fit), rms, rejected)
+    return _Fit(q_z, sample_ok, info, len(fit), rms, rejected,
+                quality.sample_residuals(rotations, q_z, sample_ok))
 
 
 def _count(mask):
@@ -435,24 +441,79 @@ def _count(mask):
 
 
 def _candidates(rotations, options):
-    """
-    Return the screened candidate motions of the consensus search (a bounded set).
+    """Return the screened candidate motions of the consensus search (a bounded set)."""
+    motions = Motions.between(rotations, *_candidate_pairs(len(rotations), options))
+    return motions.subset(_screen(motions, options)[0])
 
-    And whether every one large enough to inform had link and sensor angles that agree.
+
+def _candidate_pairs(n, options):
+    """Return the sample pairs (i, j) of the candidate motions: all, or the consecutive first."""
+    if motion_count(n) <= CANDIDATE_MOTIONS:
+        return pair_indices(n, 'all')
+    extra = max(CANDIDATE_MOTIONS - (n - 1), 0)
+    a, b = random_integers(options.seed, (n, extra), (n - 1, extra))
+    b = b + (b >= a)   # any other sample
+    first = np.arange(n - 1)
+    return (np.concatenate([first, np.minimum(a, b)])[:CANDIDATE_MOTIONS],
+            np.concatenate([first + 1, np.maximum(a, b)])[:CANDIDATE_MOTIONS])
+
+
+@dataclass(frozen=True)
+class _PairScreen:
+    """The screening of every pair of samples as motions, from their rotation angles alone."""
+
+    usable: int           # motions usable for the estimate (_screen)
+    consistent: bool      # no motion large enough to inform has angles that disagree
+    first: np.ndarray     # (M,) each sample's pair (first[k], first[k] + 1): consecutive ones
+    consecutive: np.ndarray   # (M,) which of them are usable
+
+    def __len__(self):
+        return self.usable
+
+
+def _pair_screen(rotations, options):
+    """
+    Screen all pairs of samples as `_screen` screens candidate motions, without forming one.
+
+    The rotation angle of A_a = inv(link_i) link_j is 2 acos |link_i . link_j| (the quaternions'
+    dot product is the cosine of half the angle between them), and that of A_b the same of the
+    sensor quaternions: two N x N products give every pair's angles. Up to CANDIDATE_MOTIONS
+    pairs; beyond, the candidates' motions are screened (_candidates).
     """
     n = len(rotations)
-    if motion_count(n) <= CANDIDATE_MOTIONS:
-        i, j = pair_indices(n, 'all')
-    else:
-        extra = max(CANDIDATE_MOTIONS - (n - 1), 0)
-        a, b = random_integers(options.seed, (n, extra), (n - 1, extra))
-        b = b + (b >= a)   # any other sample
-        first = np.arange(n - 1)
-        i = np.concatenate([first, np.minimum(a, b)])[:CANDIDATE_MOTIONS]
-        j = np.concatenate([first + 1, np.maximum(a, b)])[:CANDIDATE_MOTIONS]
-    motions = Motions.between(rotations, i, j)
-    usable, _, consistent = _screen(motions, options)
-    return motions.subset(usable), consistent
+    first = np.arange(n - 1)
+    if motion_count(n) > CANDIDATE_MOTIONS:   # the candidates begin with the consecutive pairs
+        usable, _, consistent = _screen(Motions.between(rotations, *_candidate_pairs(n, options)),
+                                        options)
+        return _PairScreen(int(usable.sum()), consistent, first, usable[:n - 1])
+    i, j = pair_indices(n)
+    angle_a = _pair_angles(rotations.link)[i, j]
+    angle_b = _pair_angles(rotations.sensor)[i, j]
+    usable, _, consistent = _screen_angles(angle_a, angle_b, options)
+    return _PairScreen(int(usable.sum()), consistent, first,
+                       usable[_pair_position(n, first, first + 1)])
+
+
+def _pair_angles(q):
+    """Return the rotation angles between every two of the quaternions q (N, 4): (N, N)."""
+    return 2.0 * np.arccos(np.minimum(np.abs(q @ q.T), 1.0))
+
+
+def _pair_position(n, i, j):
+    """Return the positions of the pairs (i, j), i < j, in pair_indices(n)."""
+    return i * n - i * (i + 1) // 2 + (j - i - 1)
+
+
+def _reference(rotations, screen):
+    """
+    Return a rough estimate of p_z to decide the all-pairs least squares' signs by.
+
+    The least squares of eq. (41) over the usable consecutive motions (all of them when none
+    is usable).
+    """
+    first = screen.first[screen.consecutive] if screen.consecutive.any() else screen.first
+    motions = Motions.between(rotations, first, first + 1)
+    return least_squares_rotation(motions.q_a, motions.q_b)
 
 
 def _near_half_turns(motions):
@@ -466,7 +527,11 @@ def _screen(motions, options):
 
     And whether the limit screened none of those large enough to inform.
     """
-    angle_a, angle_b = motions.angle_a, motions.angle_b
+    return _screen_angles(motions.angle_a, motions.angle_b, options)
+
+
+def _screen_angles(angle_a, angle_b, options):
+    """Return `_screen`'s answer for motions of these rotation angles (radians)."""
     large = _usable(angle_a, angle_b, options.min_motion_deg, np.inf)
     limit = np.inf
     if options.robust and np.any(large):
@@ -559,13 +624,16 @@ def _detections(rotations, q_z, previous=None):
 
     The residuals are taken about the mean orientation of the samples weighted by their
     probability of being good (all samples alike at first), so the verdicts never rest on a
-    set trimmed by an earlier verdict; the earlier verdict's noise fit starts the EM.
+    set trimmed by an earlier verdict; the earlier verdict's noise fit starts the EM. Returns
+    the Detections and the residuals (N, 3).
     """
-    Z = rotations.object_orientations(q_z)
-    weights = None if previous is None else previous.good_probability
-    mean = quat.average(Z, weights)
-    residuals = quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean)))
-    return heavy_tails.bad_detections(residuals, start=previous)
+    if previous is None:
+        residuals = quality.sample_residuals(rotations, q_z)
+    else:
+        Z = rotations.object_orientations(q_z)
+        mean = quat.average(Z, previous.good_probability)
+        residuals = quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean)))
+    return heavy_tails.bad_detections(residuals, start=previous), residuals
 
 
 def _rejected_samples(rotations, q_z, sample_ok, detections, spoiled):
@@ -634,7 +702,7 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     closed form is, with a warning.
     """
     ok = fit.sample_ok
-    rotation_residuals = quality.sample_residuals(rotations, fit.q_z, ok)
+    rotation_residuals = fit.residuals
     sigma = quality.noise_sigma(rotation_residuals[ok])
     covariance = fit.info.covariance(sigma)
     translation = solve_translation(rotations, positions, fit.q_z, fit.info, ok, covariance)

@@ -28,7 +28,7 @@ import numpy as np
 from quatcal_ros.core.numerics import median
 
 NU_GRID = (3.0, 5.0, 10.0, 30.0, math.inf)
-EM_ITERATIONS = 12
+EM_ITERATIONS = 6
 WARM_EM_ITERATIONS = 1
 RESUMED_EM_ITERATIONS = 3
 # Models less probable than this have no say in the average (probability 0). They stay in the
