@@ -142,11 +142,6 @@ def test_pairs_screened_from_their_angles_alone_equal_the_screened_motions(n):
         usable, _, consistent = calibration._screen(motions, options)
         assert len(screen) == usable.sum() and screen.consistent == consistent
         assert consistent == (fraction == 0.0) or n == 3
-        consecutive = Motions.between(rotations, *pair_indices(n, 'consecutive'))
-        expected = [usable[k] for k in range(len(motions))
-                    if motions.j[k] == motions.i[k] + 1][:n - 1]
-        assert screen.consecutive.tolist() == expected
-        assert len(consecutive) == len(screen.first)
 
 
 def test_without_robustness_outliers_spoil_the_estimate():

@@ -15,8 +15,8 @@ import pytest
 from quatcal_ros.core import quality
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions, Calibrator
-from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, least_squares_rotation, \
-    MotionSystem, null_vectors
+from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, hemisphere_signs, \
+    least_squares_rotation, MotionSystem, null_vectors
 from quatcal_ros.core.motions import Motions, pair_indices, SampleRotations
 from quatcal_ros.sim import simulation
 
@@ -62,6 +62,25 @@ def test_two_motion_hypotheses_by_inverse_iteration_equal_the_eigen_solver(noise
     found = null_vectors(normals, least_squares_rotation(motions.q_a, motions.q_b))
     expected = np.linalg.eigh(normals)[1][:, :, 0]
     np.testing.assert_allclose(np.abs(np.einsum('hi,hi->h', found, expected)), 1.0, atol=1e-12)
+
+
+@pytest.mark.parametrize('spread_deg', [30.0, 170.0])
+def test_the_samples_alone_put_their_object_orientations_on_one_hemisphere(spread_deg):
+    # Erratum 3's sign of each motion from one anchor sample: sigma_i Z_i all on the side of
+    # the true Z, also when the link turns by nearly half a turn between samples.
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        cell = simulation.random_cell(rng)
+        samples, _ = simulation.samples(rng, cell, 15, rotation_noise_deg=1.0,
+                                        rotation_spread_deg=spread_deg)
+        rotations = SampleRotations.from_samples(samples)
+        Z = rotations.object_orientations(cell.mounting.quaternion)
+        signs = hemisphere_signs(rotations.link, rotations.sensor)
+        aligned = signs[:, None] * Z
+        assert np.all(aligned @ aligned[0] > 0.5)
+        reference = all_pairs_rotation(rotations, np.ones(15, bool), cell.mounting.quaternion)
+        assert quat.angle_between(all_pairs_rotation(rotations, np.ones(15, bool)),
+                                  reference) < 1e-12
 
 
 def test_all_pairs_information_from_sums_equals_the_motions():

@@ -364,7 +364,7 @@ def _all_pairs(rotations, options, start):
     if start is None:
         screen = _pair_screen(rotations, options)
         _require_motions(screen)
-        q_z = all_pairs_rotation(rotations, sample_ok, _reference(rotations, screen))
+        q_z = all_pairs_rotation(rotations, sample_ok)
     if options.robust and start is None:
         # Samples whose motions' rotation angles all agree (a bad detection spoils most of
         # its motions' angles) and which all agree about the least squares of them all are
@@ -464,8 +464,6 @@ class _PairScreen:
 
     usable: int           # motions usable for the estimate (_screen)
     consistent: bool      # no motion large enough to inform has angles that disagree
-    first: np.ndarray     # (M,) each sample's pair (first[k], first[k] + 1): consecutive ones
-    consecutive: np.ndarray   # (M,) which of them are usable
 
     def __len__(self):
         return self.usable
@@ -481,39 +479,20 @@ def _pair_screen(rotations, options):
     pairs; beyond, the candidates' motions are screened (_candidates).
     """
     n = len(rotations)
-    first = np.arange(n - 1)
-    if motion_count(n) > CANDIDATE_MOTIONS:   # the candidates begin with the consecutive pairs
+    if motion_count(n) > CANDIDATE_MOTIONS:
         usable, _, consistent = _screen(Motions.between(rotations, *_candidate_pairs(n, options)),
                                         options)
-        return _PairScreen(int(usable.sum()), consistent, first, usable[:n - 1])
-    i, j = pair_indices(n)
-    angle_a = _pair_angles(rotations.link)[i, j]
-    angle_b = _pair_angles(rotations.sensor)[i, j]
-    usable, _, consistent = _screen_angles(angle_a, angle_b, options)
-    return _PairScreen(int(usable.sum()), consistent, first,
-                       usable[_pair_position(n, first, first + 1)])
+    else:
+        i, j = pair_indices(n)
+        angle_a = _pair_angles(rotations.link)[i, j]
+        angle_b = _pair_angles(rotations.sensor)[i, j]
+        usable, _, consistent = _screen_angles(angle_a, angle_b, options)
+    return _PairScreen(int(usable.sum()), consistent)
 
 
 def _pair_angles(q):
     """Return the rotation angles between every two of the quaternions q (N, 4): (N, N)."""
     return 2.0 * np.arccos(np.minimum(np.abs(q @ q.T), 1.0))
-
-
-def _pair_position(n, i, j):
-    """Return the positions of the pairs (i, j), i < j, in pair_indices(n)."""
-    return i * n - i * (i + 1) // 2 + (j - i - 1)
-
-
-def _reference(rotations, screen):
-    """
-    Return a rough estimate of p_z to decide the all-pairs least squares' signs by.
-
-    The least squares of eq. (41) over the usable consecutive motions (all of them when none
-    is usable).
-    """
-    first = screen.first[screen.consecutive] if screen.consecutive.any() else screen.first
-    motions = Motions.between(rotations, first, first + 1)
-    return least_squares_rotation(motions.q_a, motions.q_b)
 
 
 def _near_half_turns(motions):

@@ -21,16 +21,15 @@ import math
 import numpy as np
 
 from quatcal_ros.core import quality
-from quatcal_ros.core.leastsq import all_pairs_rotation, least_squares_rotation
-from quatcal_ros.core.motions import motion_count, Motions, pair_indices, SampleRotations
-from quatcal_ros.core.numerics import median, random_integers
+from quatcal_ros.core.leastsq import all_pairs_rotation
+from quatcal_ros.core.motions import SampleRotations
+from quatcal_ros.core.numerics import median
 from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.translation import SamplePositions, solve_translation
 from quatcal_ros.core.units import SETUPS
 
-# Samples (evenly spaced) and random motions the check examines: plenty for medians.
+# Samples (evenly spaced) the check examines: plenty for medians.
 CHECK_SAMPLES = 400
-CHECK_MOTIONS = 2000
 # The configured convention is questioned only when its fit is poor in absolute terms...
 SUSPICIOUS_RESIDUAL_DEG = 1.0
 SUSPICIOUS_POSITION_MM = 5.0
@@ -115,24 +114,22 @@ def _quick_misfit(arrays, setup, invert, options):
     """
     Return the median rotation (deg) and position (mm) residuals of a quick fit, or None.
 
-    arrays: `_arrays` of the samples. The fit is the least squares of all pairs (leastsq.py,
-    started from the motions of up to CHECK_MOTIONS pairs) and the closed-form translation,
-    without the screening of bad detections.
+    arrays: `_arrays` of the samples. The fit is the least squares of all pairs (leastsq.py)
+    and the closed-form translation, without the screening of bad detections; None when
+    fewer than three motions are large enough to inform.
     """
     link_q, link_t, sensor_q, sensor_t = arrays
     rotations = SampleRotations.from_arrays(link_q, sensor_q, setup, invert)
     n = len(rotations)
-    if motion_count(n) <= CHECK_MOTIONS:
-        i, j = pair_indices(n)
-    else:
-        i, j = random_integers(options.seed, (n, CHECK_MOTIONS), (n, CHECK_MOTIONS))
-    motions = Motions.between(rotations, i, j)
-    motions = motions.subset(np.minimum(motions.angle_a, motions.angle_b)
-                             >= np.radians(options.min_motion_deg))
-    if len(motions) < 3:
+    # Motions large enough to inform: every pair's rotation angles, 2 acos |q_i . q_j|.
+    smallest = np.minimum(np.abs(link_q @ link_q.T), 1.0) >= np.cos(
+        np.radians(options.min_motion_deg) / 2.0)
+    smallest |= np.minimum(np.abs(sensor_q @ sensor_q.T), 1.0) >= np.cos(
+        np.radians(options.min_motion_deg) / 2.0)
+    if (smallest.size - smallest.sum()) // 2 < 3:
         return None
     use = np.ones(n, dtype=bool)
-    q_z = all_pairs_rotation(rotations, use, least_squares_rotation(motions.q_a, motions.q_b))
+    q_z = all_pairs_rotation(rotations, use)
     residuals = quality.sample_residuals(rotations, q_z)
     info = quality.Information.all_pairs(rotations.link_matrices, use)
     try:

@@ -118,28 +118,45 @@ def least_squares_rotation(q_a, q_b, reference=None):
 
 # --- all pairs in O(N) ------------------------------------------------------------------------
 
-def all_pairs_rotation(rotations, use, reference, weights=None, iterations=3):
+def all_pairs_rotation(rotations, use, reference=None, weights=None, iterations=3):
     """
     Return the all-pairs least-squares p_z of eq. (41) over the samples `use`, in O(N).
 
-    With sigma_i = +-1 putting every Z_i = A_i p on one hemisphere (erratum 3's sign, decided
-    per sample against `reference`),
+    With sigma_i = +-1 putting every Z_i = A_i p on one hemisphere (erratum 3's sign),
         sum_{i<j} |sigma_j Z_j - sigma_i Z_i|^2 = N^2 - |(sum_i sigma_i A_i) p|^2,
     so the minimiser is the top right singular vector of the 4x4 sum_i sigma_i A_i: no motion
-    is formed. `weights` (per sample, optional) weigh pair (i, j) by w_i w_j. The signs are
-    re-decided against the new estimate until they stop changing (`iterations` at most).
-    Returns p_z (w, x, y, z), w >= 0.
+    is formed. The signs come from `reference` (an estimate of p_z) or, without one, from the
+    samples alone (hemisphere_signs); they are then re-decided against the mean
+    sum_i sigma_i Z_i of the new estimate until they stop changing (`iterations` at most).
+    `weights` (per sample, optional) weigh pair (i, j) by w_i w_j. Returns p_z (w, x, y, z),
+    w >= 0.
     """
     A = rotations.matrices[use]
     w = np.ones(len(A)) if weights is None else np.asarray(weights, dtype=float)[use]
-    p = np.asarray(reference, dtype=float)
-    signs = None
+    if reference is None:
+        signs = hemisphere_signs(rotations.link[use], rotations.sensor[use])
+    else:
+        Z = A @ np.asarray(reference, dtype=float)
+        signs = np.where(Z @ quat.average(Z, w) < 0.0, -1.0, 1.0)
+    flat = A.reshape(-1, 16)
     for _ in range(iterations):
-        Z = A @ p
-        new_signs = np.where(Z @ quat.average(Z, w) < 0.0, -1.0, 1.0)
-        if signs is not None and np.array_equal(new_signs, signs):
+        S = ((w * signs) @ flat).reshape(4, 4)
+        p = np.linalg.svd(S)[2][0]
+        new_signs = np.where((A @ p) @ (S @ p) < 0.0, -1.0, 1.0)   # S p: the signed sum of Z_i
+        if np.array_equal(new_signs, signs):
             break
         signs = new_signs
-        S = ((w * signs) @ A.reshape(-1, 16)).reshape(4, 4)
-        p = np.linalg.svd(S)[2][0]
     return quat.canonical(p)
+
+
+def hemisphere_signs(link, sensor):
+    """
+    Return the signs sigma_i (N,) that put every Z_i = A_i p_z on one hemisphere, without p_z.
+
+    The motion (k, i) has the scalar parts a_0 = link_k . link_i and b_0 = sensor_k . sensor_i,
+    and erratum 3's sign rule a_0 b_0 >= 0 makes Z_i = sign(a_0 b_0) Z_k: the signs against the
+    sample k whose products are farthest from zero (a motion near a half turn decides nothing).
+    """
+    products = (link @ link.T) * (sensor @ sensor.T)
+    anchor = int(np.argmax(np.abs(products).min(axis=1)))
+    return np.where(products[anchor] < 0.0, -1.0, 1.0)
