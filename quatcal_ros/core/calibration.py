@@ -215,6 +215,7 @@ class _Fit:
     residual_rms: float          # their RMS residual angle (radians)
     rejected: list
     residuals: np.ndarray        # (N, 3) quality.sample_residuals at q_z about the good ones
+    object_orientation: np.ndarray   # the mean object orientation they are about
 
 
 @dataclass(frozen=True)
@@ -370,26 +371,26 @@ def _all_pairs(rotations, options, start):
         # its motions' angles) and which all agree about the least squares of them all are
         # clean: the consensus search and a second round could only end where they began.
         if screen.consistent:
-            detections, residuals = _detections(rotations, q_z)
+            detections, residuals, mean = _detections(rotations, q_z)
         if detections is None or detections.bad.any():
             candidates = _candidates(rotations, options)
             q_z = _consensus(rotations, candidates, options,
                              least_squares_rotation(candidates.q_a, candidates.q_b))
             detections = residuals = None
             for _ in range(2):
-                detections, _ = _detections(rotations, q_z, detections)
+                detections = _detections(rotations, q_z, detections)[0]
                 sample_ok = ~detections.bad
                 _require_samples(sample_ok)
                 q_z = all_pairs_rotation(rotations, sample_ok, q_z)
     elif options.robust:   # a warm start (the last published rotation) is already clean
-        detections, _ = _detections(rotations, start)
+        detections = _detections(rotations, start)[0]
         sample_ok = ~detections.bad
         _require_samples(sample_ok)
         q_z = all_pairs_rotation(rotations, sample_ok, start)
     info = _check_excitation(quality.Information.all_pairs(rotations.link_matrices, sample_ok),
                              _count(sample_ok), options)
     if residuals is None:
-        residuals = quality.sample_residuals(rotations, q_z, sample_ok)
+        residuals, mean = quality.object_residuals(rotations, q_z, sample_ok)
     good = residuals[sample_ok]
     k = _count(sample_ok)
     # Over all pairs, sum_{i<j} |e_j - e_i|^2 = K sum_i |e_i - mean|^2 (to first order the
@@ -397,7 +398,7 @@ def _all_pairs(rotations, options, start):
     centred = good - good.mean(axis=0)
     rms = float(np.sqrt(2.0 * np.sum(centred ** 2) / max(k - 1, 1)))
     return _Fit(q_z, sample_ok, info, motion_count(k), rms,
-                _rejected_samples(rotations, q_z, sample_ok, detections, k - 1), residuals)
+                _rejected_samples(rotations, q_z, sample_ok, detections, k - 1), residuals, mean)
 
 
 def _consecutive(rotations, options, start):
@@ -414,7 +415,7 @@ def _consecutive(rotations, options, start):
         else:
             q_z = start
         for _ in range(2):
-            detections, _ = _detections(rotations, q_z, detections)
+            detections = _detections(rotations, q_z, detections)[0]
             sample_ok = ~detections.bad
             fit = motions.subset(usable & sample_ok[motions.i] & sample_ok[motions.j])
             _require_motions(fit)
@@ -433,7 +434,7 @@ def _consecutive(rotations, options, start):
                 + _rejected_samples(rotations, q_z, sample_ok, detections, 2))
     rms = float(np.sqrt(np.mean(fit.residual_angles(q_z) ** 2)))
     return _Fit(q_z, sample_ok, info, len(fit), rms, rejected,
-                quality.sample_residuals(rotations, q_z, sample_ok))
+                *quality.object_residuals(rotations, q_z, sample_ok))
 
 
 def _count(mask):
@@ -604,15 +605,15 @@ def _detections(rotations, q_z, previous=None):
     The residuals are taken about the mean orientation of the samples weighted by their
     probability of being good (all samples alike at first), so the verdicts never rest on a
     set trimmed by an earlier verdict; the earlier verdict's noise fit starts the EM. Returns
-    the Detections and the residuals (N, 3).
+    the Detections, the residuals (N, 3) and the mean orientation they are about.
     """
     if previous is None:
-        residuals = quality.sample_residuals(rotations, q_z)
+        residuals, mean = quality.object_residuals(rotations, q_z)
     else:
         Z = rotations.object_orientations(q_z)
         mean = quat.average(Z, previous.good_probability)
         residuals = quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean)))
-    return heavy_tails.bad_detections(residuals, start=previous), residuals
+    return heavy_tails.bad_detections(residuals, start=previous), residuals, mean
 
 
 def _rejected_samples(rotations, q_z, sample_ok, detections, spoiled):
@@ -699,7 +700,8 @@ def _estimate(samples, rotations, positions, fit, options, previous):
                             start=warm, max_iterations=(MAX_ITERATIONS if warm is None
                                                         else WARM_ITERATIONS),
                             sensor_covariance=None if own is None else own[ok],
-                            resample=published and warm is None)
+                            resample=published and warm is None,
+                            object_start=(fit.object_orientation, translation.object_position))
         if published and warm is not None:
             refinement = with_jackknife_of(refinement, warm)
     published_refinement = refinement if options.method == 'refined' else None

@@ -34,9 +34,14 @@ def sample_residuals(rotations, q_z, inliers=None):
 
     The mean is taken over `inliers` (bool mask or None for all samples).
     """
+    return object_residuals(rotations, q_z, inliers)[0]
+
+
+def object_residuals(rotations, q_z, inliers=None):
+    """Return sample_residuals and the mean object orientation Z (w, x, y, z) they are about."""
     Z = rotations.object_orientations(q_z)
     mean = quat.average(Z if inliers is None else Z[inliers])
-    return quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean)))
+    return quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean))), mean
 
 
 def noise_sigma(residuals):
@@ -86,8 +91,13 @@ class Information:
 
     def covariance(self, sigma):
         """cov(delta) (3x3, rad^2) for per-axis sample noise sigma (radians)."""
-        H_inv = inverse(self.H)
+        H_inv = self.H_inverse
         return sigma * sigma * H_inv @ self.G @ H_inv
+
+    @cached_property
+    def H_inverse(self):
+        """Return H^-1 (its pseudo-inverse when H is singular)."""
+        return inverse(self.H)
 
     def excitation(self):
         """(ratio of weakest to strongest eigenvalue of H in [0, 1], weakest unit axis)."""

@@ -242,7 +242,8 @@ class _Samples:
 
 
 def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None,
-           max_iterations=MAX_ITERATIONS, sensor_covariance=None, resample=False):
+           max_iterations=MAX_ITERATIONS, sensor_covariance=None, resample=False,
+           object_start=None):
     """
     Refine the mounting (x_q, x_t) over samples (link_q, link_t, sensor_q, sensor_t).
 
@@ -252,19 +253,22 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None
     and object pose, and its noise models and their probabilities, whose scales alone are
     refitted; a solve without it chooses the models); sensor_covariance: (N, 6, 6) each
     sample's own covariance of its residual (rotation, translation; pose.residual_order), or
-    None; resample: add the block jackknife (with_jackknife). Returns a Refinement.
+    None; resample: add the block jackknife (with_jackknife); object_start: the object pose
+    (quaternion, position) the samples give with (x_q, x_t), when the caller has it (else
+    object_pose). Returns a Refinement.
     """
     whitening = None if sensor_covariance is None else whitening_of(sensor_covariance)
     samples = _Samples(link_q, link_t, sensor_q, sensor_t, whitening=whitening)
     if start is None:
-        o_q, o_t = object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t, samples.link_R)
+        o_q, o_t = (object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t, samples.link_R)
+                    if object_start is None else object_start)
         x_q, x_t, o_q, o_t = _gaussian_start(samples, (x_q, x_t, o_q, o_t))
     else:
         x_q, x_t = start.quaternion, start.translation
         o_q, o_t = start.object_quaternion, start.object_translation
-    model, noise, converged = _fit(samples, (x_q, x_t, o_q, o_t), robust,
-                                   start.noise if start is not None else None, max_iterations)
-    e, J = samples.linearised(model)
+    model, noise, converged, (e, J) = _fit(samples, (x_q, x_t, o_q, o_t), robust,
+                                           start.noise if start is not None else None,
+                                           max_iterations)
     return _refinement(model, _Sums(e, J, noise), noise, converged, whitening, resample)
 
 
@@ -303,7 +307,9 @@ def whitening_of(covariances):
 
 def _fit(samples, model, robust, warm, max_iterations):
     """
-    Return the refined model (X, O), the noise model at it, and whether the steps converged.
+    Return the refined model (X, O), the noise model at it and whether the steps converged.
+
+    And the residuals and Jacobian (e, J) at the model.
 
     samples: the _Samples; warm: a NoiseFit of similar residuals to start the noise models'
     EM from, or None.
@@ -331,9 +337,10 @@ def _fit(samples, model, robust, warm, max_iterations):
             break
         model = apply_step(step, *model)
         if float(step @ A @ step) < STEP_TOLERANCE ** 2:   # the noise stands at the answer
-            return model, noise, True
-    e = samples.linearised(model)[0]
-    return model, noise_at(e, noise), False
+            # (e, J) at the answer to first order in the step (below 1 % of a sigma)
+            return model, noise, True, (e + J @ step, J)
+    e, J = samples.linearised(model)
+    return model, noise_at(e, noise), False, (e, J)
 
 
 def with_jackknife(refinement, link_q, link_t, sensor_q, sensor_t, robust=True,

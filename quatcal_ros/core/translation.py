@@ -17,7 +17,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.numerics import inverse
 
 
 @dataclass(frozen=True)
@@ -53,6 +52,7 @@ class TranslationEstimate:
     covariance: np.ndarray        # (3, 3) m^2
     noise_m: float                # per-axis scatter of the object position predictions
     residuals: np.ndarray         # (N, 3) metres, each sample's object position minus mean
+    object_position: np.ndarray = None   # (3,) that mean over the samples used
 
     @property
     def uncertainty_mm(self):
@@ -62,8 +62,14 @@ class TranslationEstimate:
 
 def object_position_offsets(rotations, positions, q_z):
     """Return c_i (N, 3): sample i predicts the object position c_i + R(link_i) t_z."""
+    return _offsets(rotations, positions, q_z)[0]
+
+
+def _offsets(rotations, positions, q_z):
+    """Return c_i (N, 3) and the sensor positions in the link frame, R_z t(sensor_i) (N, 3)."""
     sensor_in_link = positions.sensor @ quat.matrix_from_quaternion(q_z).T
-    return positions.link + (rotations.link_matrices @ sensor_in_link[..., None])[..., 0]
+    return (positions.link + (rotations.link_matrices @ sensor_in_link[..., None])[..., 0],
+            sensor_in_link)
 
 
 def solve_translation(rotations, positions, q_z, info, sample_ok, rotation_covariance=None):
@@ -77,17 +83,18 @@ def solve_translation(rotations, positions, q_z, info, sample_ok, rotation_covar
     sample n's prediction by F_n delta, F_n = -R(link_n) skew(R_z t(sensor_n)).
     """
     link_R = rotations.link_matrices
-    c = object_position_offsets(rotations, positions, q_z)
-    H_inv = inverse(info.H)
-    t_z = -H_inv @ (np.swapaxes(info.C, 0, 1).reshape(3, -1) @ c.reshape(-1))
+    c, lever = _offsets(rotations, positions, q_z)
+    H_inv = info.H_inverse
+    C_rows = np.swapaxes(info.C, 0, 1).reshape(3, -1)      # sum_n C_n x_n = C_rows @ x.ravel()
+    t_z = -H_inv @ (C_rows @ c.reshape(-1))
     predictions = c + link_R @ t_z
-    residuals = predictions - predictions[sample_ok].mean(axis=0)
+    object_position = predictions[sample_ok].mean(axis=0)
+    residuals = predictions - object_position
     dof = 3 * int(np.sum(sample_ok)) - 6
     noise = float(np.sqrt(np.sum(residuals[sample_ok] ** 2) / dof)) if dof > 0 else np.nan
     covariance = noise * noise * H_inv @ info.G @ H_inv
     if rotation_covariance is not None:
-        lever = quat.rotate(q_z, positions.sensor)
-        F = -np.einsum('nij,njk->nik', link_R, quat.skew(lever))
-        J = -H_inv @ np.einsum('nij,njk->ik', info.C, F)
+        F = -(link_R @ quat.skew(lever))
+        J = -H_inv @ (C_rows @ F.reshape(-1, 3))
         covariance = covariance + J @ rotation_covariance @ J.T
-    return TranslationEstimate(t_z, covariance, noise, residuals)
+    return TranslationEstimate(t_z, covariance, noise, residuals, object_position)
