@@ -697,6 +697,7 @@ def _estimate(samples, rotations, positions, fit, options, previous):
         own = sensor_covariances(samples, options.invert_sensor)
         published = options.method == 'refined'   # its uncertainty is published: resample it
         refinement = refine(*arrays, fit.q_z, translation.translation, robust=options.robust,
+                            link_R=rotations.link_matrices[ok],
                             start=warm, max_iterations=(MAX_ITERATIONS if warm is None
                                                         else WARM_ITERATIONS),
                             sensor_covariance=None if own is None else own[ok],
@@ -775,7 +776,7 @@ def _noise_model(refinement, robust):
     covariance = refinement.noise_covariance
     sd = np.sqrt(np.diag(covariance))
     return _noise_json(np.degrees(sd[:3]), 1e3 * sd[3:], covariance / np.outer(sd, sd),
-                       refinement.noise.nu, refinement.noise.best.shape.name, robust,
+                       refinement.noise.nu, refinement.noise.shape.name, robust,
                        _uncertainty_source(refinement), uncertainties(refinement.covariance),
                        uncertainties(refinement.model_covariance),
                        'input' if refinement.whitening is not None else 'none')

@@ -138,6 +138,11 @@ class NoiseFit:
         """Return the most probable tail degrees of freedom (inf: Gaussian)."""
         return self.nus[int(np.argmax(self.probabilities))]
 
+    @property
+    def shape(self):
+        """Return the most probable model's Shape."""
+        return self.shapes[int(np.argmax(self.probabilities))]
+
     @cached_property
     def covariance(self):
         """Return the covariance of the noise (d x d), averaged over the models."""
