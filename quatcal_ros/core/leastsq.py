@@ -155,8 +155,15 @@ def hemisphere_signs(link, sensor):
 
     The motion (k, i) has the scalar parts a_0 = link_k . link_i and b_0 = sensor_k . sensor_i,
     and erratum 3's sign rule a_0 b_0 >= 0 makes Z_i = sign(a_0 b_0) Z_k: the signs against the
-    sample k whose products are farthest from zero (a motion near a half turn decides nothing).
+    sample k whose products are farthest from zero (a motion near a half turn decides nothing),
+    among up to ANCHORS samples spread over the set (O(N) memory).
     """
-    products = (link @ link.T) * (sensor @ sensor.T)
+    n = len(link)
+    anchors = np.unique(np.linspace(0, n - 1, min(n, ANCHORS)).astype(int))
+    products = (link[anchors] @ link.T) * (sensor[anchors] @ sensor.T)     # (anchors, N)
     anchor = int(np.argmax(np.abs(products).min(axis=1)))
     return np.where(products[anchor] < 0.0, -1.0, 1.0)
+
+
+# Samples tried as the anchor of hemisphere_signs.
+ANCHORS = 64
