@@ -21,7 +21,7 @@ the EM steps, densities and information of all of them are computed at once.
 """
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 import math
 
 import numpy as np
@@ -665,6 +665,13 @@ CHI3_MEDIAN = 1.5382
 ROTATION_NOISE = (isotropic_blocks(3),)
 
 
+@lru_cache(maxsize=4)
+def _rotation_floors(floor):
+    floors = np.full(3, floor)
+    floors.flags.writeable = False
+    return floors
+
+
 @dataclass(frozen=True)
 class Detections:
     """The verdict on each sample: probability of being good, the fitted noise of the good."""
@@ -707,7 +714,7 @@ def bad_detections(rotation_residuals, lost_samples=2.0, floor=1e-14, start=None
     limit = START_SIGMAS * max(median(angles) / CHI3_MEDIAN, math.sqrt(floor))
     good = (angles <= limit).astype(float)
     noise = None if start is None else start.noise
-    floors = np.full(3, floor)
+    floors = _rotation_floors(floor)
     for _ in range(MIXTURE_ITERATIONS):
         noise = fit_t(r, ROTATION_NOISE, NU_GRID, lost_samples, floors, prior=good,
                       start=noise)

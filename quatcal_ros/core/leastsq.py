@@ -159,8 +159,11 @@ def hemisphere_signs(link, sensor):
     among up to ANCHORS samples spread over the set (O(N) memory).
     """
     n = len(link)
-    anchors = np.unique(np.linspace(0, n - 1, min(n, ANCHORS)).astype(int))
-    products = (link[anchors] @ link.T) * (sensor[anchors] @ sensor.T)     # (anchors, N)
+    if n <= ANCHORS:
+        products = (link @ link.T) * (sensor @ sensor.T)                  # (N, N)
+    else:
+        anchors = np.linspace(0, n - 1, ANCHORS).astype(int)              # (distinct)
+        products = (link[anchors] @ link.T) * (sensor[anchors] @ sensor.T)  # (ANCHORS, N)
     anchor = int(np.argmax(np.abs(products).min(axis=1)))
     return np.where(products[anchor] < 0.0, -1.0, 1.0)
 

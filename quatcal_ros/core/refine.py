@@ -36,7 +36,7 @@ carries it back to radians and metres for a typical sample, and `residuals` and
 """
 
 from dataclasses import dataclass, replace
-from functools import cached_property
+from functools import cached_property, lru_cache
 import math
 
 import numpy as np
@@ -430,10 +430,7 @@ def _jackknife(noise, sums, blocks=JACKKNIFE_BLOCKS):
     count = min(blocks, n)
     if count < 3:
         return None
-    # Contiguous blocks as np.array_split cuts them: the first n % count one sample longer.
-    sizes = np.full(count, n // count)
-    sizes[:n % count] += 1
-    keep = np.repeat(np.arange(count), sizes)[None, :] != np.arange(count)[:, None]
+    keep = _kept_samples(n, count)
     diagonal = noise.variances is not None
     moves = []
     # Replicates in batches of a bounded size (each holds its (N, 6, 12) weighted Jacobian).
@@ -447,6 +444,20 @@ def _jackknife(noise, sums, blocks=JACKKNIFE_BLOCKS):
     moves = np.concatenate(moves) if len(moves) > 1 else moves[0]
     centred = moves - moves.mean(axis=0)
     return (count - 1) / count * centred.T @ centred
+
+
+@lru_cache(maxsize=8)
+def _kept_samples(n, count):
+    """
+    Return which samples each of `count` jackknife replicates keeps, (count, n) bool, read-only.
+
+    Contiguous blocks as np.array_split cuts them: the first n % count one sample longer.
+    """
+    sizes = np.full(count, n // count)
+    sizes[:n % count] += 1
+    keep = np.repeat(np.arange(count), sizes)[None, :] != np.arange(count)[:, None]
+    keep.flags.writeable = False
+    return keep
 
 
 def _weighed(information, J, diagonal):
