@@ -6,15 +6,19 @@ Every row solves the same synthetic eye-in-hand samples (0.5 deg, 1 mm sensor no
 default (refined + robust), closed form (robust) and plain least squares (closed form,
 --no-robust), and OpenCV's PARK, TSAI and HORAUD (O(N^2) in the motions it forms: skipped
 above --opencv-max samples). Times are CPU milliseconds per solve (process time, median of
---repeats), single-threaded BLAS as the tools run it. 'LSQ rotation kernel' is the O(N)
-all-pairs least-squares rotation alone (the floor the estimates build on).
+--repeats), single-threaded BLAS as the tools run it, averaged over --cells cells (different
+robots, mountings and noise draws: a cell can cost more, e.g. when its fit looks poor enough
+for the frame-convention check) up to 200 samples and one cell above; every method runs on
+the same cell before the next cell. 'LSQ rotation kernel' is the O(N) all-pairs
+least-squares rotation alone (the floor the estimates build on).
 
 Printed after the table: the growth exponent of each of ours from 100 to the largest N
 (time ~ N^k) and the load average; with --memory the peak resident memory of a solve of
 10,000 and 100,000 samples in a fresh process; with --startup the wall time of
 `python -m quatcal_ros solve` on a 20-row CSV beside bench/opencv_solve_csv.py (csv, numpy and
 cv2 only) on the same file.
-Run: python bench/bench_scaling.py [--repeats 5] [--sizes 10 20 ...] [--memory] [--startup]
+Run: python bench/bench_scaling.py [--repeats 5] [--cells 5] [--sizes 10 20 ...] [--memory]
+[--startup]
 """
 
 import argparse
@@ -108,6 +112,7 @@ def startup(repeats):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     parser.add_argument('--repeats', type=int, default=5)
+    parser.add_argument('--cells', type=int, default=5)
     parser.add_argument('--sizes', type=int, nargs='+',
                         default=[10, 20, 50, 100, 200, 1000, 2000, 10000])
     parser.add_argument('--opencv-max', type=int, default=2000)
@@ -123,15 +128,18 @@ def main():
     print('|---' * (len(names) + 3) + '|')
     ours_times = {name: [] for name in OURS}
     for n in args.sizes:
-        samples = cell_samples(n)
-        row = {}
-        for name, options in OURS.items():
-            row[name] = cpu_ms(lambda: calibrate(samples, options), args.repeats)
+        cells = args.cells if n <= 200 else 1
+        row = {name: 0.0 for name in names}
+        for seed in range(1, cells + 1):
+            samples = cell_samples(n, seed=seed)
+            for name, options in OURS.items():
+                row[name] += cpu_ms(lambda: calibrate(samples, options), args.repeats) / cells
+            row[KERNEL] += cpu_ms(kernel(samples), args.repeats) / cells
+            for name, method in OPENCV.items():
+                row[name] += (cpu_ms(opencv_solver(samples, method), args.repeats) / cells
+                              if n <= args.opencv_max else float('nan'))
+        for name in OURS:
             ours_times[name].append(row[name])
-        row[KERNEL] = cpu_ms(kernel(samples), args.repeats)
-        for name, method in OPENCV.items():
-            row[name] = (cpu_ms(opencv_solver(samples, method), args.repeats)
-                         if n <= args.opencv_max else float('nan'))
         best = min(row[name] for name in OPENCV)
         cells = [f'{row[name]:.2f}' if np.isfinite(row[name]) else '-' for name in names]
         ratios = [f'{row["ours default"] / row["PARK"]:.2f}' if np.isfinite(row['PARK'])
