@@ -121,7 +121,7 @@ class NoiseFit:
         return tuple(Component(self.shapes[k], self.nus[k], scales[k], self.model_weights[k],
                                self.delta[k]) for k in self.live)
 
-    @property
+    @cached_property
     def live(self):
         """Return the rows of the models with a say (probability > 0)."""
         return [k for k, p in enumerate(self.probabilities.tolist()) if p > 0.0]
@@ -164,27 +164,51 @@ class NoiseFit:
         return np.einsum('kn,kij->nij', self.probabilities[:, None] * self.model_weights,
                          self.precisions)
 
+    @cached_property
+    def live_variances(self):
+        """
+        Return the diagonal scales (L, d) of the models with a say, when all have one.
+
+        None when a model with a say has a full scale matrix. Models without a say add
+        nothing to the information, whatever their shape.
+        """
+        live = self.live
+        if self.variances is not None:
+            return self.variances[live]
+        if any(self.shapes[k].block is None for k in live):
+            return None
+        return np.diagonal(self.matrices[0][live], axis1=1, axis2=2)
+
+    @property
+    def diagonal(self):
+        """Return whether each sample's information is diagonal (live_variances)."""
+        return self.live_variances is not None
+
     def information_diagonal(self):
         """Return the information's diagonals (N, d) when it is diagonal, else None."""
-        if self.variances is None:
+        variances = self.live_variances
+        if variances is None:
             return None
-        return (self.probabilities[:, None] * self.model_weights).T @ (1.0 / self.variances)
+        live = self.live
+        return (self.probabilities[live][:, None] * self.model_weights[live]).T @ (
+            1.0 / variances)
 
     @cached_property
     def block(self):
-        """Return b when every model's scale is sigma^2 I on blocks of b axes, else None."""
-        blocks = {shape.block for shape in self.shapes}
-        if self.variances is None or len(blocks) != 1 or None in blocks:
+        """Return b when every live model's scale is sigma^2 I on blocks of b axes, else None."""
+        variances = self.live_variances
+        blocks = {self.shapes[k].block for k in self.live}
+        if variances is None or len(blocks) != 1:
             return None
         block = blocks.pop()
-        per_block = self.variances[:, ::block]
-        return block if np.array_equal(np.repeat(per_block, block, axis=1),
-                                       self.variances) else None
+        per_block = variances[:, ::block]
+        return block if np.array_equal(np.repeat(per_block, block, axis=1), variances) else None
 
     def information_per_block(self):
         """Return each sample's information per block of axes (N, d / block), given `block`."""
-        return ((self.probabilities[:, None] * self.model_weights).T
-                @ (1.0 / self.variances[:, ::self.block]))
+        live = self.live
+        return ((self.probabilities[live][:, None] * self.model_weights[live]).T
+                @ (1.0 / self.live_variances[:, ::self.block]))
 
     def efficiency(self, d):
         """
@@ -226,14 +250,14 @@ class NoiseFit:
         jackknife's replicates (refine.with_jackknife).
         """
         information = self.refitted_information_blocks(residuals, keep, lost_samples, floor)
-        return _as_matrices(information) if self.variances is not None else information
+        return _as_matrices(information) if self.diagonal else information
 
     def refitted_information_blocks(self, residuals, keep, lost_samples=0.0, floor=None,
                                     per_block=False):
         """
         Return `refitted_information`, as diagonals (B, N, d) when the scales are diagonal.
 
-        Diagonals when every model's scale is (`variances`), else matrices (B, N, d, d);
+        Diagonals when every live model's scale is (`diagonal`), else matrices (B, N, d, d);
         per_block (given `block`): one per block of axes (B, N, d / block).
         """
         r = np.asarray(residuals, dtype=float)
@@ -267,7 +291,7 @@ class NoiseFit:
             w = p * w.reshape(len(models), rows, n)
             precision = arithmetic.precision.reshape(
                 (len(models), rows) + arithmetic.precision.shape[1:])
-            if self.variances is not None:   # precisions as diagonals (K, B, d), per block
+            if self.diagonal:   # precisions as diagonals (K, B, d), per block
                 if per_block:
                     precision = precision[..., ::self.block]
                 # sum_k w_kbn P_kbd as B products (N, K) @ (K, d)

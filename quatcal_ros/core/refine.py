@@ -431,7 +431,7 @@ def _jackknife(noise, sums, blocks=JACKKNIFE_BLOCKS):
     if count < 3:
         return None
     keep = _kept_samples(n, count)
-    diagonal = noise.variances is not None
+    diagonal = noise.diagonal
     moves = []
     # Replicates in batches of a bounded size (each holds its (N, 6, 12) weighted Jacobian).
     batch = count if sums.blocks else max(1, JACKKNIFE_BATCH_FLOATS // (n * 6 * 12))
