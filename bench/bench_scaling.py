@@ -129,7 +129,7 @@ def main():
     ours_times = {name: [] for name in OURS}
     for n in args.sizes:
         cells = args.cells if n <= 200 else 1
-        row = {name: 0.0 for name in names}
+        row = dict.fromkeys(names, 0.0)
         for seed in range(1, cells + 1):
             samples = cell_samples(n, seed=seed)
             for name, options in OURS.items():

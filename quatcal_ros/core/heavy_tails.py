@@ -181,7 +181,7 @@ class NoiseFit:
 
     @property
     def diagonal(self):
-        """Return whether each sample's information is diagonal (live_variances)."""
+        """Return whether each sample's information is diagonal: live_variances is not None."""
         return self.live_variances is not None
 
     def information_diagonal(self):
