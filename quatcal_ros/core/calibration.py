@@ -3,17 +3,20 @@ Estimate the sensor mounting A_z from still samples: robust, with quality figure
 
 Pipeline (one function, `calibrate`, used by the node, the bag replay and the CSV tool through
 `Calibrator` / session.Session). Every step is O(N) in the samples:
-1. (robust) a consensus search over two-motion hypotheses (what the paper's method solves,
-   here by the least squares of eq. (41), for all at once) on a bounded set of candidate
-   motions (eq. (35)-(36)), screened
-   for size and for rotation angles theta_a, theta_b that disagree (Lemma 4 of Shiu and
-   Ahmad; erratum 3), scored by the median sample residual (least median of squares);
+1. the pairs of samples screened as motions (eq. (35)-(36)) for size and for rotation angles
+   theta_a, theta_b that disagree (Lemma 4 of Shiu and Ahmad; erratum 3), from the angles
+   alone, and the least squares of eq. (41) over all pairs without forming a motion
+   (leastsq.all_pairs_rotation);
 2. (robust) bad detections: a bad detection spoils every motion it takes part in, so samples
    are judged, by their object orientation in the base frame, against a heavy-tailed noise
-   model fitted to all of them (heavy_tails.bad_detections);
-3. the least squares of eq. (41) over all pairs of the good samples, without forming a motion
-   (leastsq.all_pairs_rotation), or over consecutive pairs; the closed-form translation
-   (translation.py);
+   model fitted to all of them (heavy_tails.bad_detections). When a motion's angles or a
+   sample disagree, a consensus search over two-motion hypotheses (what the paper's method
+   solves, here by the least squares of eq. (41), for all at once) on a bounded set of
+   candidate motions, scored by the median sample residual (least median of squares),
+   restarts the judgement from a start no bad detection can pull; on clean samples it could
+   only end where the least squares of all began, and is skipped;
+3. the least squares of eq. (41) over all pairs of the good samples, or over consecutive
+   pairs; the closed-form translation (translation.py);
 4. the joint refinement of rotation and translation over the absolute poses (refine.py):
    anisotropic, heavy-tailed sensor noise estimated from the data, a sandwich covariance;
 5. quality: residuals, uncertainty, excitation, leave-one-out validation (validation.py), and

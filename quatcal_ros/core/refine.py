@@ -19,8 +19,9 @@ and one for translation (chosen by the information criterion, heavy_tails.fit_t)
 The 12 unknowns (X, O) are found by Gauss-Newton in numpy, re-fitting the noise models and
 choosing among them again at every step (iteratively reweighted least squares: the answer is
 optimal under the noise reported with it; a warm start between full solves keeps its models
-and refits their scales); it starts from the closed form (Chou-Kamel
-rotation, closed-form translation), which stays the fallback. Every sum is over samples: O(N).
+and refits their scales); it starts from the closed form (Chou-Kamel rotation, closed-form
+translation), which stays the fallback, moved to the Gaussian fit of the residuals linearised
+there (_gaussian_start). Every sum is over samples: O(N).
 
 The reported covariance is the sandwich A^-1 B A^-1 (A the weighted normal matrix, B the
 scatter of the samples' scores, with the HC2 small-sample correction): it holds when the
