@@ -218,6 +218,42 @@ def test_calibrator_estimates_from_the_first_two_non_parallel_motions():
     assert calibrator.result is None and calibrator.samples == []
 
 
+@pytest.mark.parametrize('options', [CalibrationOptions(robust=False),
+                                     CalibrationOptions(pairs='consecutive', robust=False)])
+def test_the_live_pattern_without_robustness_estimates_between_full_solves_too(options):
+    # Between full solves the calibrator warm-starts from its last estimate: --no-robust
+    # recomputes the least squares there (no bad-detection round to skip).
+    cell, samples, _ = synthetic(14, 24, rotation_noise_deg=0.3, translation_noise_m=0.001)
+    calibrator = Calibrator(options)
+    for k, sample in enumerate(samples):
+        calibrator.add_sample(sample)
+        messages = calibrator.estimate()
+        assert messages == [] or k < 2, messages
+    result = calibrator.result
+    assert result.samples == 24
+    assert error_deg(result, cell) < 3 * result.uncertainty_deg + 0.01
+    full = calibrate(samples, options)
+    assert np.degrees(quat.angle_between(result.quaternion, full.quaternion)) < \
+        0.5 * full.uncertainty_deg
+
+
+def test_the_consensus_mean_is_not_pulled_by_a_half_turn_of_the_first_sample():
+    # A marker flipped by half a turn gives an object orientation orthogonal to the others
+    # (as quaternions): the hypotheses' scoring must not start its mean there.
+    from quatcal_ros.core import calibration
+    for n in (6, 10, 20):
+        cell, samples, _ = synthetic(7400 + n, n, rotation_noise_deg=0.2)
+        first = samples[0]
+        turn = quat.from_axis_angle([0.0, 0.0, 1.0], np.pi)
+        samples[0] = Sample(first.stamp_ns, first.link,
+                            Pose(first.sensor.position, quat.multiply(turn,
+                                                                      first.sensor.quaternion)))
+        rotations = SampleRotations.from_samples(samples)
+        Z = rotations.object_orientations(cell.mounting.quaternion)[None]
+        spread = calibration._spread(Z)[0]
+        assert np.median(spread) < 1e-4 and spread[0] > 0.9
+
+
 def test_inverted_sensor_convention_is_detected_and_named():
     cell, samples, _ = synthetic(5, 15, rotation_noise_deg=0.2)
     inverted = [Sample(s.stamp_ns, s.link, s.sensor.inverse()) for s in samples]

@@ -365,7 +365,7 @@ def _all_pairs(rotations, options, start):
     """Run the rotation stage over all pairs of samples (module docstring, steps 1-3)."""
     n = len(rotations)
     sample_ok, detections, residuals = np.ones(n, dtype=bool), None, None
-    if start is None:
+    if start is None or not options.robust:   # (a warm start only skips the robust search)
         screen = _pair_screen(rotations, options)
         _require_motions(screen)
         q_z = all_pairs_rotation(rotations, sample_ok)
@@ -586,13 +586,16 @@ def _spread(Z, iterations=3):
     """
     Return sin^2(theta / 2) of each Z_hn (H, N, 4) from its set's mean, (H, N).
 
-    The mean is sum_n Z_hn Z_hn^T's top eigenvector (quat.average) by power iteration from
-    Z_h0: a set that fits one rotation has one large eigenvalue and the others at the noise,
-    so a few products give it to rounding; for a scattered set (a poor hypothesis) the spread
-    stays large whatever the mean. sin^2(theta / 2) orders the samples as theta does.
+    The mean is sum_n Z_hn Z_hn^T's top eigenvector (quat.average) by power iteration: a set
+    that fits one rotation has one large eigenvalue and the others at the noise, so a few
+    products give it to rounding; for a scattered set (a poor hypothesis) the spread stays
+    large whatever the mean. sin^2(theta / 2) orders the samples as theta does.
     """
     scatter = np.swapaxes(Z, 1, 2) @ Z
-    mean = Z[:, 0]
+    # From the scatter's column of its largest diagonal entry: the direction most samples
+    # share (a single sample could be a half-turn flip, orthogonal to all the others).
+    largest = np.argmax(np.diagonal(scatter, axis1=1, axis2=2), axis=1)
+    mean = np.take_along_axis(scatter, largest[:, None, None], axis=2)[..., 0]
     for _ in range(iterations):
         mean = (scatter @ mean[..., None])[..., 0]
         mean = mean / np.sqrt(np.einsum('hi,hi->h', mean, mean))[:, None]

@@ -147,9 +147,10 @@ class NoiseFit:
     def covariance(self):
         """Return the covariance of the noise (d x d), averaged over the models."""
         factors = self.probabilities * _t_constants(self.nus, 1).covariance_factor
-        if self.variances is not None:
-            return np.diag(factors @ self.variances)
-        return np.tensordot(factors, self.scales, axes=1)
+        covariance = (np.diag(factors @ self.variances) if self.variances is not None
+                      else np.tensordot(factors, self.scales, axes=1))
+        covariance.flags.writeable = False   # remembered: callers share it
+        return covariance
 
     @property
     def weights(self):

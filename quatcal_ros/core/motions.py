@@ -74,7 +74,9 @@ class SampleRotations:
         A_i is orthogonal (a product of two orthogonal matrices), so |Z_j - Z_i| = |B_ij p_z|
         for the motion (i, j) of eq. (41) with its sign (erratum 3) chosen to match.
         """
-        return quat.plus_matrix(self.link) @ quat.minus_matrix(self.sensor)
+        matrices = quat.plus_matrix(self.link) @ quat.minus_matrix(self.sensor)
+        matrices.flags.writeable = False   # remembered: callers share it
+        return matrices
 
     def object_orientations(self, q_z):
         """

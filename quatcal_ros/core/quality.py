@@ -107,9 +107,12 @@ class Information:
     def _excitation(self):
         values, vectors = np.linalg.eigh(self.H)
         if values[-1] <= 0.0:
-            return 0.0, np.array([0.0, 0.0, 1.0])
+            axis = np.array([0.0, 0.0, 1.0])
+            axis.flags.writeable = False
+            return 0.0, axis
         axis = vectors[:, 0]
         axis = axis if axis[np.argmax(np.abs(axis))] > 0 else -axis
+        axis.flags.writeable = False   # remembered: callers share it
         return float(max(values[0], 0.0) / values[-1]), axis
 
 

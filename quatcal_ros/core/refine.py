@@ -112,8 +112,10 @@ class Refinement(ReportedUncertainty):
         if self.whitening is None:
             return self.noise.covariance
         unwhiten = np.linalg.inv(self.whitening)
-        return np.mean(unwhiten @ self.noise.covariance @ np.transpose(unwhiten, (0, 2, 1)),
-                       axis=0)
+        covariance = np.mean(unwhiten @ self.noise.covariance
+                             @ np.transpose(unwhiten, (0, 2, 1)), axis=0)
+        covariance.flags.writeable = False   # remembered: callers share it
+        return covariance
 
     @property
     def rotation_noise_deg(self):
