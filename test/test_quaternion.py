@@ -112,20 +112,6 @@ def test_angle_between_resolves_tiny_angles():
     assert_allclose(quat.angle_between(p, -q), 1e-12, rtol=1e-3)
 
 
-def test_angles_from_equals_angle_between_down_to_tiny_angles():
-    rng = np.random.default_rng(9)
-    p = random_unit_quaternions(rng, 30)[:, None]
-    q = random_unit_quaternions(rng, 30 * 7).reshape(30, 7, 4)
-    turns = 1e-12 * rng.normal(size=(30, 7, 3))
-    near = quat.multiply(p, quat.from_rotation_vector(turns))
-    for sign in (1.0, -1.0):
-        assert_allclose(quat.angles_from(p, sign * q), quat.angle_between(p, sign * q),
-                        rtol=1e-9)
-        # Rounding of unit-size numbers (1e-16), as angle_between: not that of arccos (1e-8).
-        assert_allclose(quat.angles_from(p, sign * near), np.linalg.norm(turns, axis=-1),
-                        rtol=1e-3)
-
-
 def test_canonical_is_unique_per_rotation():
     p = np.array([0.0, -0.6, 0.8, 0.0])
     assert_allclose(quat.canonical(p), -p)

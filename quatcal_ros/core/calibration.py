@@ -38,8 +38,8 @@ from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core import reduced_dof
 from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, least_squares_rotation, \
     MotionSystem, null_vectors
-from quatcal_ros.core.motions import motion_count, Motions, pair_indices, PAIRINGS, \
-    SampleRotations
+from quatcal_ros.core.motions import motion_count, Motions, pair_angles, pair_indices, \
+    PAIRINGS, SampleRotations
 from quatcal_ros.core.numerics import median, random_integers
 from quatcal_ros.core.pose import inverse_perturbation, residual_order
 from quatcal_ros.core.refine import MAX_ITERATIONS, refine, uncertainties, with_jackknife_of
@@ -488,15 +488,10 @@ def _pair_screen(rotations, options):
                                         options)
     else:
         i, j = pair_indices(n)
-        angle_a = _pair_angles(rotations.link)[i, j]
-        angle_b = _pair_angles(rotations.sensor)[i, j]
+        angle_a = pair_angles(rotations.link)[i, j]
+        angle_b = pair_angles(rotations.sensor)[i, j]
         usable, _, consistent = _screen_angles(angle_a, angle_b, options)
     return _PairScreen(int(usable.sum()), consistent)
-
-
-def _pair_angles(q):
-    """Return the rotation angles between every two of the quaternions q (N, 4): (N, N)."""
-    return 2.0 * np.arccos(np.minimum(np.abs(q @ q.T), 1.0))
 
 
 def _near_half_turns(motions):

@@ -20,8 +20,11 @@ import math
 
 import numpy as np
 
-from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.numerics import inverse, median
+from quatcal_ros.core import quality
+from quatcal_ros.core.leastsq import all_pairs_rotation
+from quatcal_ros.core.motions import pair_angles, pair_indices, SampleRotations
+from quatcal_ros.core.numerics import median
+from quatcal_ros.core.translation import SamplePositions, solve_translation
 from quatcal_ros.core.units import SETUPS
 
 # Samples (evenly spaced) the check examines: plenty for medians.
@@ -110,64 +113,27 @@ def _quick_misfits(arrays, options):
     {(setup, invert_sensor): (median rotation residual in degrees, position in mm)}, for the
     four conventions; arrays: `_arrays` of the samples. Each fit is the least squares of all
     pairs (leastsq.py) and the closed-form translation (translation.py), without the
-    screening of bad detections; all four at once, as they share most of their arithmetic
-    (the samples' signs, the link rotations up to a transpose). None when fewer than three
-    motions are large enough to inform (the same for every convention: so are their angles).
+    screening of bad detections. None when fewer than three motions are large enough to
+    inform (the same for every convention: so are their angles).
     """
     link_q, link_t, sensor_q, sensor_t = arrays
-    n = len(link_q)
-    # Motions large enough to inform: every pair's rotation angles, 2 acos |q_i . q_j|.
-    cosine = np.cos(np.radians(options.min_motion_deg) / 2.0)
-    link_dots, sensor_dots = link_q @ link_q.T, sensor_q @ sensor_q.T
-    small = (np.abs(link_dots) >= cosine) | (np.abs(sensor_dots) >= cosine)
-    if (small.size - small.sum()) // 2 < 3:
+    i, j = pair_indices(len(link_q))
+    smallest = np.minimum(pair_angles(link_q)[i, j], pair_angles(sensor_q)[i, j])
+    if np.count_nonzero(smallest >= np.radians(options.min_motion_deg)) < 3:
         return None
-    conventions = [(setup, invert) for setup in SETUPS for invert in (False, True)]
-    conjugate = np.array([1.0, -1.0, -1.0, -1.0])
-    # Each convention's link and sensor poses (motions.py, translation.py): (4, N, ...).
-    links = np.array([link_q * conjugate if setup == 'eye_to_hand' else link_q
-                      for setup, _ in conventions])
-    sensors = np.array([sensor_q * conjugate if invert else sensor_q for _, invert in conventions])
-    link_R = quat.matrix_from_quaternion(links)                   # (4, N, 3, 3)
-    # t(inv(T)) = -R^T t, R^T the rotation of the conjugated quaternion
-    inverted_sensor = -(quat.matrix_from_quaternion(sensor_q * conjugate)
-                        @ sensor_t[..., None])[..., 0]
-    link_positions = np.array([link_t if setup == 'eye_in_hand' else
-                               -(link_R[k] @ link_t[..., None])[..., 0]
-                               for k, (setup, _) in enumerate(conventions)])
-    sensor_positions = np.array([inverted_sensor if invert else sensor_t
-                                 for _, invert in conventions])
-    # The all-pairs least squares of every convention (leastsq.all_pairs_rotation).
-    A = quat.plus_matrix(links) @ quat.minus_matrix(sensors)      # (4, N, 4, 4)
-    signs = np.broadcast_to(np.where((link_dots * sensor_dots)[
-        int(np.argmax(np.abs(link_dots * sensor_dots).min(axis=1)))] < 0.0, -1.0, 1.0),
-        (4, n))
-    for _ in range(3):
-        S = (signs[:, None, :] @ A.reshape(4, n, 16))[:, 0].reshape(4, 4, 4)
-        p = np.linalg.svd(S)[2][:, 0]                              # (4, 4)
-        Z = (A @ p[:, None, :, None])[..., 0]                      # (4, N, 4)
-        new_signs = np.where(np.einsum('cni,ci->cn', Z, (S @ p[..., None])[..., 0]) < 0.0,
-                             -1.0, 1.0)
-        if np.array_equal(new_signs, signs):
-            break
-        signs = new_signs
-    # Object orientations about their means: the rotation residuals (quality.py).
-    mean = quat.average(Z)                                        # (4, 4)
-    rotation = quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean)[:, None, :]))
-    # The closed-form translation (translation.py) of all pairs (quality.Information).
-    total = link_R.sum(axis=1)                                    # (4, 3, 3)
-    C = n * np.swapaxes(link_R, 2, 3) - np.swapaxes(total, 1, 2)[:, None]
-    H = n * n * np.eye(3) - np.swapaxes(total, 1, 2) @ total
-    offsets = link_positions + (link_R @ (quat.matrix_from_quaternion(p)[:, None]
-                                          @ sensor_positions[..., None]))[..., 0]
-    rows = np.swapaxes(C, 1, 2).reshape(4, 3, -1)               # sum_n C_n x_n
-    t_z = -(inverse(H) @ (rows @ offsets.reshape(4, -1, 1)))[..., 0]    # (4, 3)
-    predictions = offsets + (link_R @ t_z[:, None, :, None])[..., 0]
-    position = predictions - predictions.mean(axis=1, keepdims=True)
-    rotation_deg = np.degrees(median(np.linalg.norm(rotation, axis=2), axis=1))
-    position_mm = 1e3 * median(np.linalg.norm(position, axis=2), axis=1)
-    return {convention: (float(r), float(t)) for convention, r, t in zip(
-        conventions, rotation_deg, position_mm)}
+    use = np.ones(len(link_q), dtype=bool)
+    fits = {}
+    for setup in SETUPS:
+        for invert in (False, True):
+            rotations = SampleRotations.from_arrays(link_q, sensor_q, setup, invert)
+            positions = SamplePositions.from_arrays(link_t, sensor_t, rotations)
+            # Every sample may anchor the signs: the quick fit does not screen bad detections.
+            q_z = all_pairs_rotation(rotations, use, anchors=CHECK_SAMPLES)
+            info = quality.Information.all_pairs(rotations.link_matrices, use)
+            translation = solve_translation(rotations, positions, q_z, info, use)
+            fits[setup, invert] = misfit(quality.sample_residuals(rotations, q_z),
+                                         translation.residuals)
+    return fits
 
 
 def rigid_fit_warnings(residual_rms_deg, translation_noise_mm):

@@ -281,13 +281,12 @@ class NoiseFit:
             numerator = np.broadcast_to(constants.numerator[:, None], repeat).reshape(-1, 1)
             kept = np.broadcast_to(keep, (len(models),) + keep.shape).reshape(-1, n)
             gaussian = None if constants.all_finite else constants.gaussian_rows
-            for _ in range(WARM_EM_ITERATIONS):
-                w = kept * (numerator / (nu + arithmetic.distances(w, counts)))
+            for step in range(WARM_EM_ITERATIONS + 1):   # the last keeps the precisions
+                delta = (arithmetic.fitted(w, counts)[1] if step == WARM_EM_ITERATIONS
+                         else arithmetic.distances(w, counts))
+                w = kept * (numerator / (nu + delta))
                 if gaussian is not None:      # the Gaussian's weights stay those it kept
                     w.reshape(len(models), rows, n)[gaussian] = keep
-            w = kept * (numerator / (nu + arithmetic.fitted(w, counts)[1]))
-            if gaussian is not None:
-                w.reshape(len(models), rows, n)[gaussian] = keep
             p = self.probabilities[models][:, None, None]
             w = p * w.reshape(len(models), rows, n)
             precision = arithmetic.precision.reshape(
@@ -547,22 +546,6 @@ def _t_constants(nus, d):
     return _T_CONSTANTS[key]
 
 
-def t_log_density(delta, d, nu, log_det):
-    """
-    Return the log-density of d-dimensional t's (Gaussian for nu = inf) at delta (K, N).
-
-    Row k is the t with nu[k] degrees of freedom whose scale has the log determinant
-    log_det[k].
-    """
-    return _t_constants(tuple(np.asarray(nu, dtype=float).tolist()), d).log_density(
-        delta, np.asarray(log_det, dtype=float))
-
-
-def t_weights(delta, d, nu):
-    """Return the EM weights (nu + d) / (nu + delta_kn) (K, N), each row with its nu (K,)."""
-    return _t_constants(tuple(np.asarray(nu, dtype=float).tolist()), d).weights(delta)
-
-
 class _Matrices:
     """The scale matrices of any Shape, and the distances under them (K models at once)."""
 
@@ -629,11 +612,9 @@ class _Blocks:
         return (1.0 / self._variances(w, count)) @ self.squares_t
 
     def em_steps(self, w, good, count, nu, numerator, steps):
-        """Return the weights w (K, N) after `steps` EM steps (nu, numerator: (K, 1))."""
+        """Return _Matrices.em_steps: per block, from the sums of squares per block."""
         if self.axis_floor is not None or np.ndim(count):
-            for _ in range(steps):
-                w = numerator / (nu + self.distances(w if good is None else good * w, count))
-            return w
+            return _Matrices.em_steps(self, w, good, count, nu, numerator, steps)
         squares = self.block_squares if good is None else good[:, None] * self.block_squares
         scale = 1.0 / (self.block * count)
         for _ in range(steps):

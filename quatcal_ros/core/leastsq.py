@@ -118,7 +118,12 @@ def least_squares_rotation(q_a, q_b, reference=None):
 
 # --- all pairs in O(N) ------------------------------------------------------------------------
 
-def all_pairs_rotation(rotations, use, reference=None, weights=None, iterations=3):
+# Samples tried as the anchor of hemisphere_signs.
+ANCHORS = 64
+
+
+def all_pairs_rotation(rotations, use, reference=None, weights=None, iterations=3,
+                       anchors=ANCHORS):
     """
     Return the all-pairs least-squares p_z of eq. (41) over the samples `use`, in O(N).
 
@@ -126,15 +131,16 @@ def all_pairs_rotation(rotations, use, reference=None, weights=None, iterations=
         sum_{i<j} |sigma_j Z_j - sigma_i Z_i|^2 = N^2 - |(sum_i sigma_i A_i) p|^2,
     so the minimiser is the top right singular vector of the 4x4 sum_i sigma_i A_i: no motion
     is formed. The signs come from `reference` (an estimate of p_z) or, without one, from the
-    samples alone (hemisphere_signs); they are then re-decided against the mean
-    sum_i sigma_i Z_i of the new estimate until they stop changing (`iterations` at most).
+    samples alone (hemisphere_signs, up to `anchors` samples tried as the anchor); they are
+    then re-decided against the mean sum_i sigma_i Z_i of the new estimate until they stop
+    changing (`iterations` at most).
     `weights` (per sample, optional) weigh pair (i, j) by w_i w_j. Returns p_z (w, x, y, z),
     w >= 0.
     """
     A = rotations.matrices[use]
     w = np.ones(len(A)) if weights is None else np.asarray(weights, dtype=float)[use]
     if reference is None:
-        signs = hemisphere_signs(rotations.link[use], rotations.sensor[use])
+        signs = hemisphere_signs(rotations.link[use], rotations.sensor[use], anchors)
     else:
         Z = A @ np.asarray(reference, dtype=float)
         signs = np.where(Z @ quat.average(Z, w) < 0.0, -1.0, 1.0)
@@ -149,24 +155,20 @@ def all_pairs_rotation(rotations, use, reference=None, weights=None, iterations=
     return quat.canonical(p)
 
 
-def hemisphere_signs(link, sensor):
+def hemisphere_signs(link, sensor, anchors=ANCHORS):
     """
     Return the signs sigma_i (N,) that put every Z_i = A_i p_z on one hemisphere, without p_z.
 
     The motion (k, i) has the scalar parts a_0 = link_k . link_i and b_0 = sensor_k . sensor_i,
     and erratum 3's sign rule a_0 b_0 >= 0 makes Z_i = sign(a_0 b_0) Z_k: the signs against the
     sample k whose products are farthest from zero (a motion near a half turn decides nothing),
-    among up to ANCHORS samples spread over the set (O(N) memory).
+    among up to `anchors` samples spread over the set (O(N) memory).
     """
     n = len(link)
-    if n <= ANCHORS:
+    if n <= anchors:
         products = (link @ link.T) * (sensor @ sensor.T)                  # (N, N)
     else:
-        anchors = np.linspace(0, n - 1, ANCHORS).astype(int)              # (distinct)
-        products = (link[anchors] @ link.T) * (sensor[anchors] @ sensor.T)  # (ANCHORS, N)
+        tried = np.linspace(0, n - 1, anchors).astype(int)                # (distinct)
+        products = (link[tried] @ link.T) * (sensor[tried] @ sensor.T)    # (anchors, N)
     anchor = int(np.argmax(np.abs(products).min(axis=1)))
     return np.where(products[anchor] < 0.0, -1.0, 1.0)
-
-
-# Samples tried as the anchor of hemisphere_signs.
-ANCHORS = 64

@@ -105,6 +105,16 @@ def _all_pairs(n):
     return i, j
 
 
+def pair_angles(q):
+    """
+    Return the rotation angles between every two of the quaternions q (N, 4): (N, N).
+
+    The angle of inv(q_i) q_j is 2 acos |q_i . q_j|: the dot product is the cosine of half the
+    angle between them, so one N x N product gives every pair's motion angle.
+    """
+    return 2.0 * np.arccos(np.minimum(np.abs(q @ q.T), 1.0))
+
+
 def motion_count(n, pairing='all'):
     """Return how many motions n samples form (the length of pair_indices(n, pairing))."""
     return n * (n - 1) // 2 if pairing == 'all' else max(n - 1, 0)
@@ -151,13 +161,6 @@ class Motions:
     def angle_b(self):
         """Rotation angles of A_b (radians, in [0, pi])."""
         return quat.rotation_angle(self.q_b)
-
-    @property
-    def axis_a(self):
-        """Return the unit rotation axes of A_a in the link frame, (K, 3), sign of w >= 0."""
-        v = np.where(self.q_a[:, :1] < 0.0, -self.q_a, self.q_a)[:, 1:]
-        norm = np.linalg.norm(v, axis=1, keepdims=True)
-        return v / np.where(norm > 0.0, norm, 1.0)
 
     def residual_angles(self, q_z):
         """Angle (radians) by which each motion violates p_a (x) p_z = p_z (x) p_b, eq. (38)."""

@@ -32,11 +32,11 @@ def xyzw_from_wxyz(q_wxyz):
 def skew(v):
     """Return the cross-product matrix of eq. (9): its product with b is the cross product."""
     v = np.asarray(v, dtype=float)
-    return (v @ SKEW).reshape(v.shape[:-1] + (3, 3))
+    return (v @ _SKEW).reshape(v.shape[:-1] + (3, 3))
 
 
-# skew(v).ravel() = v @ SKEW: rows [0, -z, y], [z, 0, -x], [-y, x, 0] of eq. (9).
-SKEW = np.array([[0, 0, 0, 0, 0, -1, 0, 1, 0],
+# skew(v).ravel() = v @ _SKEW: rows [0, -z, y], [z, 0, -x], [-y, x, 0] of eq. (9).
+_SKEW = np.array([[0, 0, 0, 0, 0, -1, 0, 1, 0],
                  [0, 0, 1, 0, 0, 0, -1, 0, 0],
                  [0, -1, 0, 1, 0, 0, 0, 0, 0]], dtype=float)
 
@@ -213,6 +213,11 @@ def from_axis_angle(axis, angle):
 def from_rotation_vector(rotvec):
     """Return the unit quaternion(s) of rotation vector(s) (axis times angle, radians)."""
     rotvec = np.asarray(rotvec, dtype=float)
+    if rotvec.ndim == 1:   # one rotation vector: on plain floats
+        x, y, z = rotvec.tolist()
+        angle = math.sqrt(x * x + y * y + z * z)
+        half_sinc = math.sin(0.5 * angle) / angle if angle > 0.0 else 0.5
+        return np.array([math.cos(0.5 * angle), half_sinc * x, half_sinc * y, half_sinc * z])
     angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
     # sin(angle/2)/angle, with its limit 1/2 at angle -> 0.
     half_sinc = 0.5 * np.sinc(angle / (2.0 * np.pi))
@@ -244,20 +249,6 @@ def angle_between(p, q):
         pw, px, py, pz = p.tolist()
         return _angle(*_product(pw, -px, -py, -pz, *q.tolist()))
     return rotation_angle(multiply(conjugate(p), q))
-
-
-def angles_from(p, q):
-    """
-    Return angle_between(p, q) of many quaternions (..., 4), broadcasting, without a product.
-
-    The relative rotation p* (x) q has the scalar part p . q and a vector part as long as the
-    part of q orthogonal to p: atan2 of the two keeps angle_between's accuracy at tiny angles.
-    """
-    p = np.asarray(p, dtype=float)
-    q = np.asarray(q, dtype=float)
-    dot = np.sum(p * q, axis=-1)
-    across = q - dot[..., None] * p
-    return 2.0 * np.arctan2(np.sqrt(np.sum(across * across, axis=-1)), np.abs(dot))
 
 
 def rotation_angle(p):

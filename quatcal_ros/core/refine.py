@@ -189,7 +189,7 @@ def _jacobian(R_L, R_X, u):
     J[:, 0:3, 0:3] = R_X_T
     J[:, 0:3, 6:9] = -to_sensor
     # R_X^T skew(w) = skew(R_X^T w) R_X^T
-    J[:, 3:6, 0:3] = -(u @ quat.SKEW).reshape(-1, 3, 3) @ R_X_T
+    J[:, 3:6, 0:3] = -quat.skew(u) @ R_X_T
     J[:, 3:6, 3:6] = R_X_T
     J[:, 3:6, 9:12] = J[:, 0:3, 6:9]
     return J
@@ -595,20 +595,9 @@ def _leave_one_out(A, per_sample, held, J, e):
 
 def apply_step(p, x_q, x_t, o_q, o_t):
     """Return X and O moved by p: rotation vectors applied on the left, translations added."""
-    p = np.asarray(p, dtype=float)
-    return (_turned(p[0:3].tolist(), x_q), x_t + p[3:6], _turned(p[6:9].tolist(), o_q),
+    return (quat.normalize(quat.multiply(quat.from_rotation_vector(p[0:3]), x_q)), x_t + p[3:6],
+            quat.normalize(quat.multiply(quat.from_rotation_vector(p[6:9]), o_q)),
             o_t + p[9:12])
-
-
-def _turned(rotation_vector, q):
-    """Return normalize(from_rotation_vector(rotation_vector) (x) q), on plain floats."""
-    x, y, z = rotation_vector
-    angle = math.sqrt(x * x + y * y + z * z)
-    half_sinc = math.sin(0.5 * angle) / angle if angle > 0.0 else 0.5   # sin(angle/2) / angle
-    product = quat._product(math.cos(0.5 * angle), half_sinc * x, half_sinc * y, half_sinc * z,
-                            *np.asarray(q, dtype=float).tolist())
-    norm = math.sqrt(sum(c * c for c in product))
-    return np.array([c / norm for c in product])
 
 
 def object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t, link_R=None):

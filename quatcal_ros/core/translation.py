@@ -60,11 +60,6 @@ class TranslationEstimate:
         return float(1e3 * np.sqrt(max(np.trace(self.covariance), 0.0)))
 
 
-def object_position_offsets(rotations, positions, q_z):
-    """Return c_i (N, 3): sample i predicts the object position c_i + R(link_i) t_z."""
-    return _offsets(rotations, positions, q_z)[0]
-
-
 def _offsets(rotations, positions, q_z):
     """Return c_i (N, 3) and the sensor positions in the link frame, R_z t(sensor_i) (N, 3)."""
     sensor_in_link = positions.sensor @ quat.matrix_from_quaternion(q_z).T
