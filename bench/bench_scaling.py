@@ -119,6 +119,11 @@ def main():
     parser.add_argument('--memory', action='store_true')
     parser.add_argument('--startup', action='store_true')
     args = parser.parse_args()
+    if args.memory:   # first: a child inherits this process's peak RSS (ru_maxrss) at fork
+        for n in (10000, 100000):
+            cpu, rss = peak_memory(n)
+            print(f'{n} samples, default solve in a fresh process: {cpu:.2f} s CPU, '
+                  f'peak RSS {rss:.0f} MB (whole process, samples included)')
     if args.startup:
         ours, opencv = (startup(args.repeats)[name] for name in ('solve', 'opencv'))
         print(f'solve on a 20-row CSV: {ours:.2f} s wall; the OpenCV script: {opencv:.2f} s; '
@@ -153,11 +158,6 @@ def main():
             print(f'growth exponent of {name} from {int(sizes[big][0])} to '
                   f'{int(sizes[big][-1])} samples: {k:.2f}')
     print(f'load average: {" ".join(f"{v:.1f}" for v in os.getloadavg())}; CPU ms per solve')
-    if args.memory:
-        for n in (10000, 100000):
-            cpu, rss = peak_memory(n)
-            print(f'{n} samples, default solve in a fresh process: {cpu:.2f} s CPU, '
-                  f'peak RSS {rss:.0f} MB (whole process, samples included)')
 
 
 if __name__ == '__main__':
