@@ -1,0 +1,173 @@
+"""
+The golden answers: recorded estimates the estimator is held to (test_golden.py).
+
+A case is a set of samples and CalibrationOptions; its answer is what `summary` keeps of the
+CalibrationResult (or of the error). `differences` compares two answers: decisions exactly
+(which samples were rejected or called noisy, the method published, the validation verdict,
+the kinds of warning, the noise model's distribution and shape), estimates within
+ANSWER_SIGMAS of their own uncertainty, uncertainties and noise levels within
+RELATIVE_TOLERANCE.
+
+Why these tolerances: the refinement stops when a step is below 0.01 of a sigma
+(refine.STEP_TOLERANCE), so arithmetic that rounds differently on another machine (another
+BLAS kernel, another summation order) can at most move the stopping point by about that;
+a change of the estimator itself moves answers by more, or changes a decision.
+"""
+
+from dataclasses import asdict
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.calibration import calibrate, CalibrationOptions, Thresholds
+from quatcal_ros.core.pose import Pose, Sample
+
+ANSWERS = Path(__file__).resolve().parent / 'golden' / 'answers.json'
+ANSWER_SIGMAS = 0.02
+# ... or within these (and uncertainties, noise levels within FLOOR_DEG of either unit) for
+# noise-free data, whose sigmas are rounding (~1e-11 deg).
+FLOOR_DEG, FLOOR_MM = 1e-6, 1e-6
+STORED_DIGITS = 12
+RELATIVE_TOLERANCE = 0.02
+
+
+def solve(samples, options):
+    """Return the summary of solving stored samples with stored options."""
+    try:
+        return summary(calibrate(samples_of(samples), options_of(options)))
+    except ValueError as error:   # DegenerateMotionError, InsufficientDataError
+        return {'error': type(error).__name__, 'message': str(error).split(':')[0]}
+
+
+def summary(result):
+    """Return what the golden answers keep of a CalibrationResult."""
+    return {
+        'method': result.method,
+        'quaternion': [float(v) for v in result.quaternion],
+        'translation': [float(v) for v in result.translation],
+        'uncertainty_deg': float(result.uncertainty_deg),
+        'translation_uncertainty_mm': float(result.translation_uncertainty_mm),
+        'closed_form': None if result.closed_form is None else {
+            'quaternion': [float(v) for v in result.closed_form.quaternion],
+            'translation': [float(v) for v in result.closed_form.translation],
+            'uncertainty_deg': float(result.closed_form.uncertainty_deg),
+            'translation_uncertainty_mm': float(result.closed_form.translation_uncertainty_mm)},
+        'noise_deg': float(result.noise_deg),
+        'translation_noise_mm': float(result.translation_noise_mm),
+        'rejected': sorted([r['sample']] if 'sample' in r else r['motion']
+                           for r in result.rejected),   # [sample] or [i, j] (a motion)
+        'noisy': sorted(r['sample'] for r in result.noisy),
+        'warnings': sorted(_warning_kind(w) for w in result.warnings),
+        'validation': (result.validation or {}).get('verdict'),
+        'noise_model': (None if result.noise_model is None else
+                        {k: result.noise_model[k] for k in ('distribution', 'shape')}),
+    }
+
+
+def _warning_kind(text):
+    """Return a warning's words before its first number: what it is about, not its figures."""
+    words = []
+    for word in text.split():
+        if any(c.isdigit() for c in word):
+            break
+        words.append(word)
+    return ' '.join(words[:8])
+
+
+def differences(expected, actual):
+    """Return what differs between two summaries beyond the tolerances, as strings ([]: none)."""
+    if 'error' in expected or 'error' in actual:
+        return [] if expected == actual else [f'expected {expected}, got {actual}']
+    decisions = ('method', 'rejected', 'noisy', 'warnings', 'validation', 'noise_model')
+    found = [f'{key}: expected {expected[key]}, got {actual[key]}' for key in decisions
+             if expected[key] != actual[key]]
+    found += _estimate_differences('published', expected, actual)
+    if (expected['closed_form'] is None) != (actual['closed_form'] is None):
+        found.append(f'closed form: expected {expected["closed_form"]}, '
+                     f'got {actual["closed_form"]}')
+    elif expected['closed_form'] is not None:
+        found += _estimate_differences('closed form', expected['closed_form'],
+                                       actual['closed_form'])
+    for key in ('noise_deg', 'translation_noise_mm'):
+        if not _relatively_close(expected[key], actual[key]):
+            found.append(f'{key}: expected {expected[key]:.6g}, got {actual[key]:.6g}')
+    return found
+
+
+def _estimate_differences(label, want, got):
+    found = []
+    sigma_deg = want['uncertainty_deg']
+    moved_deg = math.degrees(quat.angle_between(np.array(want['quaternion']),
+                                                np.array(got['quaternion'])))
+    if moved_deg > _tolerance(sigma_deg, FLOOR_DEG):
+        found.append(f'{label} rotation moved {moved_deg:.3g} deg (sigma {sigma_deg:.3g} deg)')
+    sigma_mm = want['translation_uncertainty_mm']
+    moved_mm = 1e3 * float(np.linalg.norm(np.subtract(want['translation'], got['translation'])))
+    if moved_mm > _tolerance(sigma_mm, FLOOR_MM):
+        found.append(f'{label} translation moved {moved_mm:.3g} mm (sigma {sigma_mm:.3g} mm)')
+    for key in ('uncertainty_deg', 'translation_uncertainty_mm'):
+        if not _relatively_close(want[key], got[key]):
+            found.append(f'{label} {key}: expected {want[key]:.6g}, got {got[key]:.6g}')
+    return found
+
+
+def _tolerance(sigma, floor):
+    return max(ANSWER_SIGMAS * sigma, floor) if _finite(sigma) else floor
+
+
+def _finite(value):
+    return value is not None and math.isfinite(value)
+
+
+def _relatively_close(want, got):
+    if not (_finite(want) and _finite(got)):   # both NaN, both infinite or both None
+        return repr(want) == repr(got)
+    return abs(want - got) <= RELATIVE_TOLERANCE * max(abs(want), abs(got)) + FLOOR_DEG
+
+
+def stored_samples(samples):
+    """Return samples as stored: poses (and covariances) to STORED_DIGITS significant digits."""
+    def numbers(values):
+        return [float(f'{v:.{STORED_DIGITS}g}') for v in np.asarray(values, dtype=float).ravel()]
+
+    def pose(p):
+        stored = {'position': numbers(p.position), 'quaternion': numbers(p.quaternion)}
+        if p.covariance is not None:
+            stored['covariance'] = numbers(p.covariance)
+        return stored
+    return [{'stamp_ns': int(s.stamp_ns), 'link': pose(s.link), 'sensor': pose(s.sensor)}
+            for s in samples]
+
+
+def stored_options(options):
+    """Return CalibrationOptions as stored."""
+    fields = asdict(options)
+    fields['validation'] = asdict(options.validation)
+    return fields
+
+
+def samples_of(stored):
+    """Return stored samples as pose.Sample."""
+    def pose(p):
+        covariance = p.get('covariance')
+        return Pose(np.array(p['position']), np.array(p['quaternion']),
+                    None if covariance is None else np.array(covariance).reshape(6, 6))
+    return [Sample(s['stamp_ns'], pose(s['link']), pose(s['sensor'])) for s in stored]
+
+
+def options_of(stored):
+    """Return stored options as CalibrationOptions."""
+    fields = dict(stored)
+    fields['validation'] = Thresholds(**fields['validation'])
+    if fields.get('known_translation') is not None:
+        fields['known_translation'] = tuple(fields['known_translation'])
+    return CalibrationOptions(**fields)
+
+
+def load():
+    """Return the recorded cases [(name, stored samples, stored options, answer)]."""
+    recorded = json.loads(ANSWERS.read_text())
+    return [(case['name'], recorded['samples'][case['samples']], case['options'],
+             case['answer']) for case in recorded['cases']]
