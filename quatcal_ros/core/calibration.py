@@ -376,7 +376,8 @@ def _all_pairs(rotations, options, start):
         if screen.consistent:
             detections, residuals, mean = _detections(rotations, q_z)
         if detections is None or detections.bad.any():
-            candidates = _candidates(rotations, options)
+            candidates = (screen.candidates if screen.candidates is not None
+                          else _candidates(rotations, options))
             q_z = _consensus(rotations, candidates, options,
                              least_squares_rotation(candidates.q_a, candidates.q_b))
             detections = residuals = None
@@ -468,6 +469,7 @@ class _PairScreen:
 
     usable: int           # motions usable for the estimate (_screen)
     consistent: bool      # no motion large enough to inform has angles that disagree
+    candidates: Motions = None   # the screened candidate motions, when it formed them
 
     def __len__(self):
         return self.usable
@@ -480,17 +482,18 @@ def _pair_screen(rotations, options):
     The rotation angle of A_a = inv(link_i) link_j is 2 acos |link_i . link_j| (the quaternions'
     dot product is the cosine of half the angle between them), and that of A_b the same of the
     sensor quaternions: two N x N products give every pair's angles. Up to CANDIDATE_MOTIONS
-    pairs; beyond, the candidates' motions are screened (_candidates).
+    pairs; beyond, the candidates' motions are formed and screened (as _candidates), and kept
+    for the consensus search.
     """
     n = len(rotations)
     if motion_count(n) > CANDIDATE_MOTIONS:
-        usable, _, consistent = _screen(Motions.between(rotations, *_candidate_pairs(n, options)),
-                                        options)
-    else:
-        i, j = pair_indices(n)
-        angle_a = pair_angles(rotations.link)[i, j]
-        angle_b = pair_angles(rotations.sensor)[i, j]
-        usable, _, consistent = _screen_angles(angle_a, angle_b, options)
+        motions = Motions.between(rotations, *_candidate_pairs(n, options))
+        usable, _, consistent = _screen(motions, options)
+        return _PairScreen(int(usable.sum()), consistent, motions.subset(usable))
+    i, j = pair_indices(n)
+    angle_a = pair_angles(rotations.link)[i, j]
+    angle_b = pair_angles(rotations.sensor)[i, j]
+    usable, _, consistent = _screen_angles(angle_a, angle_b, options)
     return _PairScreen(int(usable.sum()), consistent)
 
 
