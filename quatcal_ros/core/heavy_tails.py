@@ -550,7 +550,11 @@ class _Matrices:
     """The scale matrices of any Shape, and the distances under them (K models at once)."""
 
     def __init__(self, r, shape, floor):
-        self.r, self.shape, self.floor = r, shape, floor
+        n, d = r.shape
+        self.d, self.shape = d, shape
+        # r_n r_n^T flattened (N, d^2): every scatter and distance is then one product.
+        self.outer = (r[:, :, None] * r[:, None, :]).reshape(n, d * d)
+        self.floor = None if floor is None else np.diag(np.broadcast_to(floor, (d,)))
         self.precision = None
 
     def distances(self, w, count):
@@ -569,13 +573,13 @@ class _Matrices:
         return scale, delta, np.linalg.slogdet(scale)[1]
 
     def _solved(self, w, count):
-        r = self.r
-        scatter = (np.swapaxes(w[:, :, None] * r, 1, 2) @ r) / np.reshape(count, (-1, 1, 1))
+        d = self.d
+        scatter = (w @ self.outer).reshape(-1, d, d) / np.reshape(count, (-1, 1, 1))
         if self.shape.project is not None:
             scatter = self.shape.project(scatter)
-        scale = scatter if self.floor is None else scatter + np.diag(self.floor)
+        scale = scatter if self.floor is None else scatter + self.floor
         precision = np.linalg.inv(scale)
-        return scale, precision, ((r @ precision) * r).sum(axis=-1)
+        return scale, precision, precision.reshape(-1, d * d) @ self.outer.T
 
 
 class _Blocks:
