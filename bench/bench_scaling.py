@@ -78,11 +78,16 @@ def kernel(samples):
 
 
 def peak_memory(n):
-    """Return (CPU s, peak RSS MB) of one default solve of n samples in a fresh process."""
-    code = ('import resource, time, sys; sys.path.insert(0, %r); import bench_scaling as b; '
+    """
+    Return (CPU s, peak RSS MB) of one default solve of n samples in a fresh process.
+
+    The peak is the child's VmHWM (its own address space's high-water mark): ru_maxrss would
+    carry this process's peak over the fork.
+    """
+    code = ('import time, sys; sys.path.insert(0, %r); import bench_scaling as b; '
             's = b.cell_samples(%d); t = time.process_time(); b.calibrate(s); '
-            'print(time.process_time() - t, '
-            'resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)'
+            'hwm = [l for l in open("/proc/self/status") if l.startswith("VmHWM")][0]; '
+            'print(time.process_time() - t, int(hwm.split()[1]) / 1024)'
             % (os.path.dirname(os.path.abspath(__file__)), n))
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                          check=True).stdout.split()
@@ -119,11 +124,6 @@ def main():
     parser.add_argument('--memory', action='store_true')
     parser.add_argument('--startup', action='store_true')
     args = parser.parse_args()
-    if args.memory:   # first: a child inherits this process's peak RSS (ru_maxrss) at fork
-        for n in (10000, 100000):
-            cpu, rss = peak_memory(n)
-            print(f'{n} samples, default solve in a fresh process: {cpu:.2f} s CPU, '
-                  f'peak RSS {rss:.0f} MB (whole process, samples included)')
     if args.startup:
         ours, opencv = (startup(args.repeats)[name] for name in ('solve', 'opencv'))
         print(f'solve on a 20-row CSV: {ours:.2f} s wall; the OpenCV script: {opencv:.2f} s; '
@@ -158,6 +158,11 @@ def main():
             print(f'growth exponent of {name} from {int(sizes[big][0])} to '
                   f'{int(sizes[big][-1])} samples: {k:.2f}')
     print(f'load average: {" ".join(f"{v:.1f}" for v in os.getloadavg())}; CPU ms per solve')
+    if args.memory:
+        for n in (10000, 100000):
+            cpu, rss = peak_memory(n)
+            print(f'{n} samples, default solve in a fresh process: {cpu:.2f} s CPU, '
+                  f'peak RSS {rss:.0f} MB (whole process, samples included)')
 
 
 if __name__ == '__main__':
