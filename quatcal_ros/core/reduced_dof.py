@@ -14,7 +14,7 @@ Procrustes (Kabsch) fit of the sensor's displacements to the link's.
 only (the steps keep t_X fixed along the undetermined directions, which removes the null
 vectors [0, a, 0, R_L0 a], or [0, e_k, 0, R_L0 e_k] for a gantry), starting from the best
 rotation about a on a grid (single axis) or from Kabsch (none), with the translations solved
-linearly for each candidate. The undetermined part of t_X is
+linearly for each candidate (t_X without a part along the undetermined directions). The undetermined part of t_X is
 then set from `known` (the user's prior; zero when none is given). The uncertainty is the
 sandwich covariance over the determined directions: zero along the undetermined ones, which
 the result names instead (its scatter from leave-one-out residuals, HC3: cautious rather than
@@ -92,7 +92,7 @@ def fit(rotations, positions, motion, known=None):
     basis = _complement(fixed)
     x_q = (_kabsch_rotation(R_L, link_t, sensor_t) if motion.kind == 'none'
            else _grid_rotation(rotations, positions, motion.axis))
-    x_t, o_t = _translations(R_L, link_t, sensor_t, x_q)
+    x_t, o_t = _translations(R_L, link_t, sensor_t, x_q, undetermined)
     o_q = quat.average(quat.multiply(quat.multiply(link_q, x_q), sensor_q))
     start = (x_q, x_t)
     n = len(link_q)
@@ -150,18 +150,27 @@ def _linearised(link_q, link_t, sensor_q, sensor_t, R_L, x_q, x_t, o_q, o_t, bas
     return e, (J / noise[None, :, None]) @ basis, noise
 
 
-def _translations(R_L, link_t, sensor_t, x_q):
-    """Return (t_X, t_O) that fit o = l_i + R_Li (t_X + R_X s_i) best for rotation x_q."""
+def _translations(R_L, link_t, sensor_t, x_q, undetermined):
+    """
+    Return (t_X, t_O) that fit o = l_i + R_Li (t_X + R_X s_i) best for rotation x_q.
+
+    t_X without a part along the undetermined directions (k, 3), fit's gauge: there the data
+    trade t_X for t_O exactly only when the link turns exactly about one axis (or not at all);
+    with the few microradians of wobble a real link has, a least-squares (even minimum-norm)
+    solution over all six would put kilometres there, fitting the wobble.
+    """
     R_X = quat.matrix_from_quaternion(x_q)
     n = len(R_L)
-    A = np.concatenate([-R_L, np.repeat(np.eye(3)[None], n, axis=0)], axis=2).reshape(-1, 6)
+    free = np.linalg.qr(undetermined.T, mode='complete')[0][:, len(undetermined):]   # (3, m)
+    A = np.concatenate([-R_L @ free, np.repeat(np.eye(3)[None], n, axis=0)], axis=2)
     rhs = (link_t + np.einsum('nij,nj->ni', R_L, sensor_t @ R_X.T)).ravel()
-    solution = np.linalg.lstsq(A, rhs, rcond=None)[0]   # minimum norm along the null space
-    return solution[:3], solution[3:]
+    solution = np.linalg.lstsq(A.reshape(3 * n, -1), rhs, rcond=None)[0]
+    m = free.shape[1]
+    return free @ solution[:m], solution[m:]
 
 
-def _position_cost(R_L, link_t, sensor_t, x_q):
-    x_t, o_t = _translations(R_L, link_t, sensor_t, x_q)
+def _position_cost(R_L, link_t, sensor_t, x_q, undetermined):
+    x_t, o_t = _translations(R_L, link_t, sensor_t, x_q, undetermined)
     R_X = quat.matrix_from_quaternion(x_q)
     predicted = link_t + np.einsum('nij,nj->ni', R_L, x_t + sensor_t @ R_X.T)
     return float(np.sum((predicted - o_t) ** 2))
@@ -180,7 +189,7 @@ def _grid_rotation(rotations, positions, axis):
     R_L, link_t, sensor_t = rotations.link_matrices, positions.link, positions.sensor
     candidates = [quat.multiply(quat.from_axis_angle(axis, phi), base)
                   for phi in np.linspace(0.0, 2 * np.pi, GRID_STEPS, endpoint=False)]
-    costs = [_position_cost(R_L, link_t, sensor_t, q) for q in candidates]
+    costs = [_position_cost(R_L, link_t, sensor_t, q, axis[None]) for q in candidates]
     return candidates[int(np.argmin(costs))]
 
 
