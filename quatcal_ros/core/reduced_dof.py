@@ -14,8 +14,9 @@ Procrustes (Kabsch) fit of the sensor's displacements to the link's.
 only (the steps keep t_X fixed along the undetermined directions, which removes the null
 vectors [0, a, 0, R_L0 a], or [0, e_k, 0, R_L0 e_k] for a gantry), starting from the best
 rotation about a on a grid (single axis) or from Kabsch (none), with the translations solved
-linearly for each candidate (t_X without a part along the undetermined directions). The undetermined part of t_X is
-then set from `known` (the user's prior; zero when none is given). The uncertainty is the
+linearly for each candidate (t_X without a part along the undetermined directions). The
+undetermined part of t_X is then set from `known` (the user's prior; zero when none is
+given). The uncertainty is the
 sandwich covariance over the determined directions: zero along the undetermined ones, which
 the result names instead (its scatter from leave-one-out residuals, HC3: cautious rather than
 over-confident with few samples). Noise: one level for rotation, one for translation, from the
