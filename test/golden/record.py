@@ -26,7 +26,7 @@ sys.path.insert(0, str(HERE.parents[1] / 'bench'))
 from bench_honesty import eth_samples  # noqa: E402,I100
 from golden_answers import ANSWERS, differences, solve  # noqa: E402,I100
 from golden_answers import stored_options, stored_samples  # noqa: E402,I100
-from quatcal_ros.core.calibration import CalibrationOptions  # noqa: E402
+from quatcal_ros.core.calibration import CalibrationOptions, Thresholds  # noqa: E402
 from quatcal_ros.core.pose import Sample  # noqa: E402
 from quatcal_ros.files.importers import read_moveit_json_samples  # noqa: E402
 from quatcal_ros.sim import simulation  # noqa: E402
@@ -68,8 +68,10 @@ def synthetic_cases():
         samples = simulation.reduced_dof_samples(rng, simulation.random_cell(rng), 12, kind,
                                                  rotation_noise_deg=0.1,
                                                  translation_noise_m=0.001)
-        yield f'{kind} 12', samples[0] if isinstance(samples, tuple) else samples, \
-            CalibrationOptions()
+        samples = samples[0] if isinstance(samples, tuple) else samples
+        yield f'{kind} 12', samples, CalibrationOptions()
+        yield f'{kind} 12 with a known translation', samples, \
+            CalibrationOptions(known_translation=(0.01, -0.02, 0.05))
 
 
 def _variants(name, samples, options):
@@ -79,6 +81,8 @@ def _variants(name, samples, options):
     yield f'{name} given as inverted', samples, replace(options, invert_sensor=True)
     other = 'eye_to_hand' if options.setup == 'eye_in_hand' else 'eye_in_hand'
     yield f'{name} given as {other}', samples, replace(options, setup=other)
+    yield f'{name} strict validation', samples, replace(
+        options, validation=Thresholds(max_rotation_deg=0.2, max_translation_mm=1.0))
 
 
 def real_cases():
@@ -107,14 +111,16 @@ def error_cases():
 
 
 def perturbed(stored, rng):
-    """Return a copy of stored samples with every pose number moved by PERTURBATION relative."""
+    """Return a copy of stored samples, every pose number moved by PERTURBATION (rel. and abs.)."""
     copy = json.loads(json.dumps(stored))
     for sample in copy:
         for pose in (sample['link'], sample['sensor']):
             for key in ('position', 'quaternion'):
                 values = np.array(pose[key])
-                pose[key] = (values * (1 + PERTURBATION * rng.standard_normal(len(values))))\
-                    .tolist()
+                # relative and absolute: a structurally exact 0 (a link that turns about one
+                # axis only) moves too, as another machine's rounding could move it
+                pose[key] = (values * (1 + PERTURBATION * rng.standard_normal(len(values)))
+                             + PERTURBATION * rng.standard_normal(len(values))).tolist()
     return copy
 
 
