@@ -2,11 +2,11 @@
 The golden answers: recorded estimates the estimator is held to (test_golden.py).
 
 A case is a set of samples and CalibrationOptions; its answer is what `summary` keeps of the
-CalibrationResult (or of the error). `differences` compares two answers: decisions exactly
-(which samples were rejected or called noisy, the method published, the validation verdict,
-the kinds of warning, the noise model's distribution and shape), estimates within
-ANSWER_SIGMAS of their own uncertainty, uncertainties and noise levels within
-RELATIVE_TOLERANCE.
+CalibrationResult (or of the error), or of a live calibrator's estimates at some sample
+counts. `differences` compares two answers: decisions exactly (which samples were rejected
+or called noisy, the method published, the validation verdict, the kinds of warning, the
+noise model's distribution and shape), estimates within ANSWER_SIGMAS of their own
+uncertainty, uncertainties and noise levels within RELATIVE_TOLERANCE.
 
 Why these tolerances: the refinement stops when a step is below 0.01 of a sigma
 (refine.STEP_TOLERANCE), so arithmetic that rounds differently on another machine (another
@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.calibration import calibrate, CalibrationOptions, Thresholds
+from quatcal_ros.core.calibration import calibrate, CalibrationOptions, Calibrator, \
+    Thresholds
 from quatcal_ros.core.pose import Pose, Sample
 
 ANSWERS = Path(__file__).resolve().parent / 'golden' / 'answers.json'
@@ -33,12 +34,31 @@ STORED_DIGITS = 12
 RELATIVE_TOLERANCE = 0.02
 
 
-def solve(samples, options):
-    """Return the summary of solving stored samples with stored options."""
+def solve(samples, options, live=None):
+    """
+    Return the summary of solving stored samples with stored options.
+
+    live: sample counts (a list) at which to summarise the estimate of a live calibrator fed
+    one sample at a time (its warm solves between full ones), {'live': {count: summary}}.
+    """
+    if live is not None:
+        return {'live': _live(samples_of(samples), options_of(options), set(live))}
     try:
         return summary(calibrate(samples_of(samples), options_of(options)))
     except ValueError as error:   # DegenerateMotionError, InsufficientDataError
         return {'error': type(error).__name__, 'message': str(error).split(':')[0]}
+
+
+def _live(samples, options, counts):
+    calibrator = Calibrator(options)
+    answers = {}
+    for sample in samples:
+        calibrator.add_sample(sample)
+        calibrator.estimate()
+        if len(calibrator.samples) in counts:
+            result = calibrator.result
+            answers[str(len(calibrator.samples))] = None if result is None else summary(result)
+    return answers
 
 
 def summary(result):
@@ -78,6 +98,8 @@ def _warning_kind(text):
 
 def differences(expected, actual):
     """Return what differs between two summaries beyond the tolerances, as strings ([]: none)."""
+    if 'live' in expected or 'live' in actual:
+        return _live_differences(expected.get('live', {}), actual.get('live', {}))
     if 'error' in expected or 'error' in actual:
         return [] if expected == actual else [f'expected {expected}, got {actual}']
     decisions = ('method', 'rejected', 'noisy', 'warnings', 'validation', 'noise_model')
@@ -93,6 +115,18 @@ def differences(expected, actual):
     for key in ('noise_deg', 'translation_noise_mm'):
         if not _relatively_close(expected[key], actual[key]):
             found.append(f'{key}: expected {_figure(expected[key])}, got {_figure(actual[key])}')
+    return found
+
+
+def _live_differences(expected, actual):
+    found = []
+    for count in sorted(set(expected) | set(actual), key=int):
+        want, got = expected.get(count), actual.get(count)
+        if want is None or got is None:
+            if want != got:
+                found.append(f'after {count} samples: expected {want}, got {got}')
+            continue
+        found += [f'after {count} samples: {d}' for d in differences(want, got)]
     return found
 
 
@@ -172,7 +206,7 @@ def options_of(stored):
 
 
 def load():
-    """Return the recorded cases [(name, stored samples, stored options, answer)]."""
+    """Return the recorded cases [(name, stored samples, stored options, live, answer)]."""
     recorded = json.loads(ANSWERS.read_text())
     return [(case['name'], recorded['samples'][case['samples']], case['options'],
-             case['answer']) for case in recorded['cases']]
+             case.get('live'), case['answer']) for case in recorded['cases']]

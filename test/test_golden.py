@@ -2,9 +2,10 @@
 The estimator's answers on recorded cases stay what they were (golden_answers.py).
 
 Synthetic cells of every noise mode, both setups, the options that branch the pipeline, the
-reduced-DOF paths, both shared real recordings (configured rightly and wrongly) and inputs that
-must be refused: decisions exactly, estimates within 0.02 of their sigma. A deliberate change
-of the answers is recorded again with test/golden/record.py, and its commit says what moved.
+reduced-DOF paths, both shared real recordings (configured rightly and wrongly), a live
+calibrator's warm solves sample by sample, and inputs that must be refused: decisions
+exactly, estimates within 0.02 of their sigma. A deliberate change of the answers is recorded
+again with test/golden/record.py, and its commit says what moved.
 """
 
 from golden_answers import differences, load, solve
@@ -13,15 +14,15 @@ import pytest
 CASES = load()
 
 
-@pytest.mark.parametrize('name, samples, options, answer', CASES,
+@pytest.mark.parametrize('name, samples, options, live, answer', CASES,
                          ids=[case[0] for case in CASES])
-def test_the_answer_is_the_recorded_one(name, samples, options, answer):
-    found = differences(answer, solve(samples, options))
+def test_the_answer_is_the_recorded_one(name, samples, options, live, answer):
+    found = differences(answer, solve(samples, options, live))
     assert not found, f'{name}: ' + '; '.join(found)
 
 
 def test_the_comparison_sees_a_moved_answer_and_a_changed_decision():
-    answer = next(case[3] for case in CASES if case[0] == 'bad-25% eye_in_hand 20')
+    answer = next(case[4] for case in CASES if case[0] == 'bad-25% eye_in_hand 20')
     assert answer['rejected'], 'the case should have rejected samples'
 
     def moved_along_x(sigmas):   # the translation moved by `sigmas` of its uncertainty

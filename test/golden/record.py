@@ -100,6 +100,18 @@ def real_cases():
     yield 'fixed camera given as inverted', cell, replace(fixed, invert_sensor=True)
 
 
+def live_cases():
+    """Yield (name, samples, options, sample counts): a live calibrator's warm solves."""
+    counts = [6, 13, 14, 17, 20, 23, 29, 31, 38, 45]
+    for mode, robust in (('bad-10%', True), ('isotropic', False), ('pnp-like', True)):
+        rng = np.random.default_rng(5000 + len(mode))
+        samples = simulation.samples(rng, simulation.random_cell(rng), 45, **NOISE[mode])[0]
+        yield f'live {mode}{"" if robust else " --no-robust"} 45', samples, \
+            CalibrationOptions(robust=robust), counts
+    yield 'live robot arm', eth_samples(), CalibrationOptions(invert_sensor=True), \
+        [13, 14, 21, 33, 47, 60, 74]
+
+
 def error_cases():
     """Yield inputs the estimator must refuse, with the error it names."""
     rng = np.random.default_rng(4000)
@@ -127,19 +139,21 @@ def perturbed(stored, rng):
 def main():
     rng = np.random.default_rng(0)
     sample_sets, cases, left_out = {}, [], []
-    for name, samples, options in (*synthetic_cases(), *real_cases(), *error_cases()):
+    single = ((*case, None) for case in (*synthetic_cases(), *real_cases(), *error_cases()))
+    for name, samples, options, live in (*single, *live_cases()):
         stored = stored_samples(samples)
         key = next((k for k, v in sample_sets.items() if v == stored), name)
         sample_sets.setdefault(key, stored)
         options = stored_options(options)
-        answer = solve(stored, options)
+        answer = solve(stored, options, live)
         edge = [d for _ in range(PERTURBATIONS)
-                for d in differences(answer, solve(perturbed(stored, rng), options))]
+                for d in differences(answer, solve(perturbed(stored, rng), options, live))]
         if edge:
             left_out.append(name)
             print(f'left out (on an edge): {name}: {edge[0]}')
             continue
-        cases.append({'name': name, 'samples': key, 'options': options, 'answer': answer})
+        case = {'name': name, 'samples': key, 'options': options, 'answer': answer}
+        cases.append(case if live is None else dict(case, live=live))
     used = {case['samples'] for case in cases}
     ANSWERS.write_text(json.dumps(
         {'samples': {k: v for k, v in sample_sets.items() if k in used}, 'cases': cases},
