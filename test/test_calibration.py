@@ -152,6 +152,19 @@ def test_without_robustness_outliers_spoil_the_estimate():
     assert error_deg(plain, cell) > 5.0 * error_deg(robust, cell)
 
 
+def test_a_refinement_that_diverges_in_translation_is_not_published():
+    # --no-robust on 6 samples with a flipped marker: the refinement once landed at 4e7 m
+    # (a repeatability sweep found it) and was published, flagged only as not rigid.
+    rng = np.random.default_rng(11376)
+    samples = simulation.samples(rng, simulation.random_cell(rng), 6, rotation_noise_deg=0.3,
+                                 translation_noise_m=0.002, outlier_fraction=0.1)[0]
+    result = calibrate(samples, CalibrationOptions(robust=False))
+    assert result.method == 'closed-form'
+    assert np.linalg.norm(result.translation) < 10.0
+    assert any('did not converge to a plausible answer' in w for w in result.warnings)
+    assert any('do not fit a rigid mounting' in w for w in result.warnings)
+
+
 @pytest.mark.parametrize('field, value, choices', [
     ('method', 'refine', 'refined, closed-form'),
     ('setup', 'eye-in-hand', 'eye_in_hand, eye_to_hand'),

@@ -710,8 +710,7 @@ def _estimate(samples, rotations, positions, fit, options, previous):
         if published and warm is not None:
             refinement = with_jackknife_of(refinement, warm)
     published_refinement = refinement if options.method == 'refined' else None
-    if published_refinement is not None and not _plausible(refinement, fit.q_z,
-                                                           closed.uncertainty_deg):
+    if published_refinement is not None and not _plausible(refinement, closed):
         published_refinement = None
         warnings.append('the joint refinement did not converge to a plausible answer: '
                         'the closed-form estimate is published instead')
@@ -822,17 +821,24 @@ def _noisy(refinement, used):
             for k in np.flatnonzero(weights < NOISY_WEIGHT)]
 
 
-def _plausible(refinement, q_closed, closed_uncertainty_deg):
+def _plausible(refinement, closed):
     """
-    Return whether the refinement converged near the closed form (within 10 of its sigmas + 1 deg).
+    Return whether the refinement converged near the closed-form Estimate `closed`.
 
-    The closed form's uncertainty counts as at least 0.01 deg, and as that when unknown (NaN).
+    Within 10 of its sigmas + 1 deg in rotation and 10 of its sigmas + 0.1 m in translation;
+    its sigmas count as at least 0.01 deg and 1 mm, and as that when unknown (NaN). (A
+    refinement that diverges, such as --no-robust on a handful of samples with a flipped
+    marker, can land at 10^7 m.)
     """
-    if not np.all(np.isfinite(refinement.quaternion)):
+    if not (np.all(np.isfinite(refinement.quaternion))
+            and np.all(np.isfinite(refinement.translation))):
         return False
-    sigma_deg = closed_uncertainty_deg if closed_uncertainty_deg > 0.01 else 0.01
-    moved = np.degrees(quat.angle_between(refinement.quaternion, q_closed))
-    return bool(moved < 10.0 * sigma_deg + 1.0)
+    sigma_deg = closed.uncertainty_deg if closed.uncertainty_deg > 0.01 else 0.01
+    moved_deg = np.degrees(quat.angle_between(refinement.quaternion, closed.quaternion))
+    sigma_mm = (closed.translation_uncertainty_mm if closed.translation_uncertainty_mm > 1.0
+                else 1.0)
+    moved_mm = 1e3 * np.linalg.norm(refinement.translation - closed.translation)
+    return bool(moved_deg < 10.0 * sigma_deg + 1.0 and moved_mm < 10.0 * sigma_mm + 100.0)
 
 
 # Full solves come at least every 1/FULL_SOLVE_SHARE of the samples (Calibrator).
