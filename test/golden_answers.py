@@ -15,6 +15,7 @@ a change of the estimator itself moves answers by more, or changes a decision.
 """
 
 from dataclasses import asdict
+import io
 import json
 import math
 from pathlib import Path
@@ -23,14 +24,13 @@ import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions, Calibrator, \
     Thresholds
-from quatcal_ros.core.pose import Pose, Sample
+from quatcal_ros.files.samples_csv import format_samples, parse_samples
 
 ANSWERS = Path(__file__).resolve().parent / 'golden' / 'answers.json'
 ANSWER_SIGMAS = 0.02
 # ... or within these (and uncertainties, noise levels within FLOOR_DEG of either unit) for
 # noise-free data, whose sigmas are rounding (~1e-11 deg; ~1e-6 when the recorder perturbs).
 FLOOR_DEG, FLOOR_MM = 1e-5, 1e-5
-STORED_DIGITS = 12
 RELATIVE_TOLERANCE = 0.02
 
 
@@ -167,17 +167,8 @@ def _relatively_close(want, got):
 
 
 def stored_samples(samples):
-    """Return samples as stored: poses (and covariances) to STORED_DIGITS significant digits."""
-    def numbers(values):
-        return [float(f'{v:.{STORED_DIGITS}g}') for v in np.asarray(values, dtype=float).ravel()]
-
-    def pose(p):
-        stored = {'position': numbers(p.position), 'quaternion': numbers(p.quaternion)}
-        if p.covariance is not None:
-            stored['covariance'] = numbers(p.covariance)
-        return stored
-    return [{'stamp_ns': int(s.stamp_ns), 'link': pose(s.link), 'sensor': pose(s.sensor)}
-            for s in samples]
+    """Return samples as stored: samples CSV text (full precision, covariances included)."""
+    return format_samples(samples)
 
 
 def stored_options(options):
@@ -188,12 +179,8 @@ def stored_options(options):
 
 
 def samples_of(stored):
-    """Return stored samples as pose.Sample."""
-    def pose(p):
-        covariance = p.get('covariance')
-        return Pose(np.array(p['position']), np.array(p['quaternion']),
-                    None if covariance is None else np.array(covariance).reshape(6, 6))
-    return [Sample(s['stamp_ns'], pose(s['link']), pose(s['sensor'])) for s in stored]
+    """Return stored samples (samples CSV text) as pose.Sample."""
+    return parse_samples(io.StringIO(stored), 'stored samples')
 
 
 def options_of(stored):

@@ -6,11 +6,11 @@ answers moved and why:
 
     .venv/bin/python test/golden/record.py
 
-Each case stores its samples beside its answer, so the file does not depend on the
-simulation or the capture staying as they are. A case whose answer moves beyond the
-tolerances (golden_answers.py) when its inputs move by PERTURBATION (relative; three
-draws) sits on an edge that another machine's rounding could tip: the recorder leaves it out
-and says so.
+Each case stores its samples beside its answer, as samples CSV text at full precision, so
+the file does not depend on the simulation or the capture staying as they are. A case whose
+answer moves beyond the tolerances (golden_answers.py) when its inputs move by PERTURBATION
+(relative and absolute; three draws) sits on an edge that another machine's rounding could
+tip: the recorder leaves it out and says so.
 """
 
 from dataclasses import replace
@@ -27,7 +27,7 @@ from bench_honesty import eth_samples  # noqa: E402,I100
 from golden_answers import ANSWERS, differences, solve  # noqa: E402,I100
 from golden_answers import stored_options, stored_samples  # noqa: E402,I100
 from quatcal_ros.core.calibration import CalibrationOptions, Thresholds  # noqa: E402
-from quatcal_ros.core.pose import Sample  # noqa: E402
+from quatcal_ros.core.pose import Pose, Sample  # noqa: E402
 from quatcal_ros.files.importers import read_moveit_json_samples  # noqa: E402
 from quatcal_ros.sim import simulation  # noqa: E402
 
@@ -122,18 +122,17 @@ def error_cases():
     yield 'the robot never moved', still, CalibrationOptions()
 
 
-def perturbed(stored, rng):
-    """Return a copy of stored samples, every pose number moved by PERTURBATION (rel. and abs.)."""
-    copy = json.loads(json.dumps(stored))
-    for sample in copy:
-        for pose in (sample['link'], sample['sensor']):
-            for key in ('position', 'quaternion'):
-                values = np.array(pose[key])
-                # relative and absolute: a structurally exact 0 (a link that turns about one
-                # axis only) moves too, as another machine's rounding could move it
-                pose[key] = (values * (1 + PERTURBATION * rng.standard_normal(len(values)))
-                             + PERTURBATION * rng.standard_normal(len(values))).tolist()
-    return copy
+def perturbed(samples, rng):
+    """Return stored copies of samples, every pose number moved by PERTURBATION (rel. and abs.)."""
+    def moved(values):
+        # relative and absolute: a structurally exact 0 (a link that turns about one axis
+        # only) moves too, as another machine's rounding could move it
+        return (values * (1 + PERTURBATION * rng.standard_normal(len(values)))
+                + PERTURBATION * rng.standard_normal(len(values)))
+
+    def pose(p):
+        return Pose(moved(p.position), moved(p.quaternion), p.covariance)
+    return stored_samples([Sample(s.stamp_ns, pose(s.link), pose(s.sensor)) for s in samples])
 
 
 def main():
@@ -147,7 +146,7 @@ def main():
         options = stored_options(options)
         answer = solve(stored, options, live)
         edge = [d for _ in range(PERTURBATIONS)
-                for d in differences(answer, solve(perturbed(stored, rng), options, live))]
+                for d in differences(answer, solve(perturbed(samples, rng), options, live))]
         if edge:
             left_out.append(name)
             print(f'left out (on an edge): {name}: {edge[0]}')
