@@ -22,6 +22,7 @@ from quatcal_ros.files.samples_csv import BadInputError
 from quatcal_ros.ros import conversions, spin
 from quatcal_ros.ros.image_input import camera_of, view_of
 from quatcal_ros.ros.qos import quiet_publisher_events
+from quatcal_ros.stream.message_checks import LOG_THROTTLE_S
 from quatcal_ros.vision.board import read_board
 from quatcal_ros.vision.image_sensor import ImageSensor
 from quatcal_ros.vision.view import Checks
@@ -31,7 +32,6 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 NODE_NAME = 'target_detector'
-LOG_THROTTLE_S = 5.0
 TRANSPORTS = ('raw', 'compressed')
 # name: (default, description); read once at start (read-only).
 PARAMETERS = {
