@@ -72,6 +72,21 @@ def test_a_link_that_wobbles_by_microradians_gives_the_same_answer(kind):
         assert result.uncertainty_deg == pytest.approx(exact.uncertainty_deg, rel=1e-3)
 
 
+@pytest.mark.parametrize('kind', ['scara', 'gantry'])
+def test_three_samples_give_no_estimate_without_an_uncertainty(kind):
+    # Each of three samples is essential to the fit: leaving one out, as the uncertainty does,
+    # solved a singular system, and the reported uncertainty was rounding (0.9 deg to 2e6 deg
+    # over 8 cells). Now an error says so, and a fourth sample gives an estimate.
+    rng = np.random.default_rng(0)
+    samples = simulation.reduced_dof_samples(rng, simulation.random_cell(rng), 8, kind, 0.1,
+                                             0.001)
+    with pytest.raises(ValueError, match='The translations can fix it, but with 3 samples the '
+                                         'fit needs every one of them'):
+        calibrate(samples[:3])
+    result = calibrate(samples[:4])
+    assert result.unobservable and 0.0 < result.uncertainty_deg < 10.0
+
+
 def test_the_undetermined_direction_is_named_in_the_parent_frame():
     rng = np.random.default_rng(5)
     cell = simulation.random_cell(rng)

@@ -257,6 +257,8 @@ def _solve(samples, options, previous=None):
             try:
                 return _Solution(_reduced_result(samples, rotations, positions, motion,
                                                  options, check=previous is None), None)
+            except reduced_dof.EssentialSampleError as reduced:
+                advice.append(f'(The translations can fix it, but {reduced}.)')
             except DegenerateMotionError as reduced:
                 advice.append(f'(Nor can the translations fix it: {reduced}.)')
         raise type(error)(' '.join([str(error)] + advice)) from None
