@@ -107,3 +107,12 @@ def test_eye_to_hand_needs_the_camera_guess_and_plans_with_it(tmp_path, capsys):
 def test_unusable_options_are_named(capsys, options, words):
     assert plan_main(['--start', *map(str, START), *options]) == 2
     assert words in capsys.readouterr().err
+
+
+def test_the_target_is_given_one_way(capsys):
+    # --object once won silently over a --target-distance given with it
+    with pytest.raises(SystemExit) as done:
+        plan_main(['--start', *map(str, START), '--target-distance', '0.4',
+                   '--object', '0.5', '0', '0', *map(str, DOWN)])
+    assert done.value.code == 2
+    assert 'not allowed with argument' in capsys.readouterr().err

@@ -50,10 +50,11 @@ def parser():
                        metavar=('X', 'Y', 'Z', 'QX', 'QY', 'QZ', 'QW'),
                        help='guess of the mounting: T_link_sensor (eye_in_hand; default: the '
                             'link frame) or T_base_sensor (eye_to_hand; required)')
-    parse.add_argument('--target-distance', type=float, default=0.5, metavar='M',
+    target = parse.add_mutually_exclusive_group()
+    target.add_argument('--target-distance', type=float, default=0.5, metavar='M',
                        help='eye_in_hand: the target lies this far along the sensor z axis '
                             'at the start pose (default 0.5 m)')
-    parse.add_argument('--object', nargs=7, type=float,
+    target.add_argument('--object', nargs=7, type=float,
                        metavar=('X', 'Y', 'Z', 'QX', 'QY', 'QZ', 'QW'),
                        help='the observed object instead: T_base_object (eye_in_hand) or '
                             'T_link_object (eye_to_hand; default: the link frame)')
