@@ -52,12 +52,12 @@ def parser():
                             'link frame) or T_base_sensor (eye_to_hand; required)')
     target = parse.add_mutually_exclusive_group()
     target.add_argument('--target-distance', type=float, default=0.5, metavar='M',
-                       help='eye_in_hand: the target lies this far along the sensor z axis '
-                            'at the start pose (default 0.5 m)')
+                        help='eye_in_hand: the target lies this far along the sensor z axis '
+                             'at the start pose (default 0.5 m)')
     target.add_argument('--object', nargs=7, type=float,
-                       metavar=('X', 'Y', 'Z', 'QX', 'QY', 'QZ', 'QW'),
-                       help='the observed object instead: T_base_object (eye_in_hand) or '
-                            'T_link_object (eye_to_hand; default: the link frame)')
+                        metavar=('X', 'Y', 'Z', 'QX', 'QY', 'QZ', 'QW'),
+                        help='the observed object instead: T_base_object (eye_in_hand) or '
+                             'T_link_object (eye_to_hand; default: the link frame)')
     parse.add_argument('--box-min', nargs=3, type=float, metavar=('X', 'Y', 'Z'),
                        help='workspace box of the link position, base frame (default: the '
                             f'start position -{DEFAULT_BOX_HALF_M:g} m)')
