@@ -21,6 +21,7 @@ from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate
 from quatcal_ros.core.pose import Pose, residual_order, Sample
 from quatcal_ros.files.samples_csv import BadInputError
+from quatcal_ros.tools.cli import solve_main
 from quatcal_ros.vision.board import parse_board
 from quatcal_ros.vision.camera import camera_from, parse_camera
 from quatcal_ros.vision.detect import _pnp, _with_pose, Checks, detect, pose_covariance, \
@@ -256,3 +257,16 @@ def test_solve_dir_with_a_bad_file_exits_2_naming_it(repo_root, tmp_path, render
     (tmp_path / 'board.yaml').unlink()
     done = run_solve(repo_root, tmp_path)
     assert done.returncode == 2 and 'board.yaml missing' in done.stderr
+
+
+def test_solve_dir_without_the_layout_exits_2_naming_the_file(tmp_path, capsys):
+    # An empty folder and an unreadable robot_poses.csv once ended in a traceback (exit 1)
+    empty = tmp_path / 'empty'
+    empty.mkdir()
+    assert solve_main([str(empty)]) == 2
+    assert 'robot_poses.csv missing' in capsys.readouterr().err
+    (tmp_path / 'robot_poses.csv').write_bytes(b'image,link_x\n\xff\xfe\n')
+    for name in ('camera_info.yaml', 'board.yaml'):
+        (tmp_path / name).write_text('')
+    assert solve_main([str(tmp_path)]) == 2
+    assert 'robot_poses.csv: not a text file (UTF-8 expected)' in capsys.readouterr().err

@@ -106,6 +106,7 @@ def _solve_images(prog, args):
     where = f'{args.samples}: '
     progress = None
     try:
+        images.check_layout(args.samples)
         total = len(images.read_robot_poses(Path(args.samples) / 'robot_poses.csv'))
         progress = Progress(total, 'images', enabled=sys.stderr.isatty())
         data = images.load_image_dataset(args.samples, progress=progress.update)

@@ -52,13 +52,19 @@ def is_image_dataset(path):
     return path.is_dir() and (path / 'robot_poses.csv').is_file()
 
 
-def load_image_dataset(folder, checks=Checks(), progress=None):
-    """Read and detect the folder (module docstring); progress(done, total) after each image."""
+def check_layout(folder):
+    """Raise BadInputError naming the first file of the layout that `folder` lacks."""
     folder = Path(folder)
     for name in ('robot_poses.csv', 'camera_info.yaml', 'board.yaml'):
         if not (folder / name).is_file():
             raise BadInputError(f'{folder}: {name} missing (an image dataset folder holds '
                                 'images/, robot_poses.csv, camera_info.yaml and board.yaml)')
+
+
+def load_image_dataset(folder, checks=Checks(), progress=None):
+    """Read and detect the folder (module docstring); progress(done, total) after each image."""
+    folder = Path(folder)
+    check_layout(folder)
     board = read_board(folder / 'board.yaml')
     camera = read_camera_yaml(folder / 'camera_info.yaml')
     rows = read_robot_poses(folder / 'robot_poses.csv')
@@ -88,26 +94,37 @@ def load_image_dataset(folder, checks=Checks(), progress=None):
 def read_robot_poses(path):
     """Return [(image name, T_base_link Pose)] of robot_poses.csv; BadInputError names the row."""
     name = str(path)
-    with open(path, newline='', encoding='utf-8-sig') as stream:
-        reader = csv.reader(stream)
-        header = [column.strip() for column in next(reader, [])]
-        missing = [c for c in POSE_COLUMNS if c not in header]
-        if missing:
-            raise BadInputError(f'{name}, row 1 (header): missing column(s) '
-                                f'{", ".join(missing)}; expected {",".join(POSE_COLUMNS)}')
-        index = {c: header.index(c) for c in POSE_COLUMNS}
-        rows, seen = [], set()
-        for row in reader:
-            if not row or all(not cell.strip() for cell in row):
-                continue
-            line = reader.line_num
-            image = row[index['image']].strip() if index['image'] < len(row) else ''
-            if not image or '/' in image or image in seen:
-                raise BadInputError(f'{name}, row {line}, field image: {image!r} is not a new '
-                                    'file name in images/')
-            seen.add(image)
-            values = parse_numbers(row, {c: index[c] for c in POSE_COLUMNS[1:]}, name, line)
-            rows.append((image, pose_from_values(values, 'link', name, line)))
+    try:
+        with open(path, newline='', encoding='utf-8-sig') as stream:
+            return _robot_pose_rows(csv.reader(stream), name)
+    except OSError as error:
+        raise BadInputError(f'{name}: cannot read: {error.strerror}') from None
+    except UnicodeDecodeError:
+        raise BadInputError(f'{name}: not a text file (UTF-8 expected)') from None
+    except csv.Error as error:
+        raise BadInputError(f'{name}: not a CSV file: {error}') from None
+
+
+def _robot_pose_rows(reader, name):
+    """Return read_robot_poses' rows of an open csv.reader."""
+    header = [column.strip() for column in next(reader, [])]
+    missing = [c for c in POSE_COLUMNS if c not in header]
+    if missing:
+        raise BadInputError(f'{name}, row 1 (header): missing column(s) '
+                            f'{", ".join(missing)}; expected {",".join(POSE_COLUMNS)}')
+    index = {c: header.index(c) for c in POSE_COLUMNS}
+    rows, seen = [], set()
+    for row in reader:
+        if not row or all(not cell.strip() for cell in row):
+            continue
+        line = reader.line_num
+        image = row[index['image']].strip() if index['image'] < len(row) else ''
+        if not image or '/' in image or image in seen:
+            raise BadInputError(f'{name}, row {line}, field image: {image!r} is not a new '
+                                'file name in images/')
+        seen.add(image)
+        values = parse_numbers(row, {c: index[c] for c in POSE_COLUMNS[1:]}, name, line)
+        rows.append((image, pose_from_values(values, 'link', name, line)))
     if not rows:
         raise BadInputError(f'{name}: no rows')
     return rows
