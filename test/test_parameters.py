@@ -226,3 +226,24 @@ def test_command_line_options_are_the_table_rows():
 def test_command_line_values_out_of_the_table_are_refused(argv, words):
     with pytest.raises(argparse.ArgumentError, match=words):
         _replay_options(argv)
+
+
+def test_with_tf_input_the_result_is_named_by_the_tf_frames():
+    tf = {'robot_base_frame': 'base_link', 'robot_effector_frame': 'flange',
+          'tracking_base_frame': 'cam_optical', 'tracking_marker_frame': 'marker'}
+    assert Settings().result_frames == ('tool0', 'camera')
+    given = Settings.from_values({**DEFAULTS, **tf})
+    assert given.result_frames == ('flange', 'cam_optical')
+    assert given.updated(setup='eye_to_hand').result_frames == ('base_link', 'cam_optical')
+    same = {'link_frame': 'flange', 'sensor_frame': 'cam_optical'}
+    assert Settings.from_values({**DEFAULTS, **tf, **same}).result_frames == \
+        ('flange', 'cam_optical')
+    with pytest.raises(ConfigError, match="link_frame 'tool1' contradicts "
+                                          "robot_effector_frame 'flange'"):
+        Settings.from_values({**DEFAULTS, **tf, 'link_frame': 'tool1'})
+    with pytest.raises(ConfigError, match="sensor_frame 'cam' contradicts "
+                                          "tracking_base_frame 'cam_optical'"):
+        Settings.from_values({**DEFAULTS, **tf, 'sensor_frame': 'cam'})
+    link_only = {'robot_base_frame': 'base_link', 'robot_effector_frame': 'flange',
+                 'sensor_input': 'image', 'board_file': 'board.yaml', 'sensor_frame': 'cam'}
+    assert Settings.from_values({**DEFAULTS, **link_only}).result_frames == ('flange', 'cam')

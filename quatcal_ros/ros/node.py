@@ -9,7 +9,8 @@ A thin shell: the session (stream/session.py) does the work, and this node wires
   checked, converted and counted with the checks the replay runs, bad ones are logged
   throttled;
 - publishes `~/rotation` (QuaternionStamped, latched, frame_id = link_frame) and
-  `~/transform` (TransformStamped link_frame -> sensor_frame, latched) on each new estimate,
+  `~/transform` (TransformStamped link_frame -> sensor_frame, latched; with TF input the TF
+  frames when those two are left at their defaults: Settings.result_frames) on each estimate,
   and `~/next_pose` (PoseStamped, latched, in the robot base frame: core/planner.py's link
   pose that most shrinks the uncertainty), and `~/markers` (MarkerArray, latched, base frame:
   markers.py draws the sensor frame, its uncertainty, the samples and the next pose for RViz),
@@ -125,8 +126,8 @@ class CalibratorNode(Node):
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(
-            f'calibrating {self.config.setup} rotation {self.config.link_frame} -> '
-            f'{self.config.sensor_frame} from {self.inputs.describe()}, '
+            f'calibrating {self.config.setup} rotation {" -> ".join(self.config.result_frames)} '
+            f'from {self.inputs.describe()}, '
             f'capture mode {self.config.capture_mode}')
         self._start_tf_broadcast()
         self.input_watch = InputWatch(self.inputs.type_names, self.now_ns())
@@ -231,7 +232,7 @@ class CalibratorNode(Node):
     def publish_estimate(self, result):
         """Publish `result` (quaternion, translation) on ~/rotation, ~/transform, /tf_static."""
         msg = conversions.quaternion_stamped_msg(
-            result.quaternion, self.now_ns(), self.config.link_frame)
+            result.quaternion, self.now_ns(), self.config.result_frames[0])
         self.rotation_publisher.publish(msg)
         stamp_ns = conversions.stamp_ns_from_header(msg.header)
         self.transform_publisher.publish(self.transform_msg(result, stamp_ns))
@@ -254,13 +255,13 @@ class CalibratorNode(Node):
             return self._tf_frames[LINK][0]
         if self.config.link_frame_id:
             return self.config.link_frame_id
-        return self.config.link_frame if self.config.setup == 'eye_to_hand' else 'base_link'
+        return self.config.result_frames[0] if self.config.setup == 'eye_to_hand' else 'base_link'
 
     def transform_msg(self, result, stamp_ns):
-        """Return the TransformStamped link_frame -> sensor_frame of `result`."""
+        """Return the TransformStamped of `result` between the result frames."""
         return conversions.transform_stamped_msg(
             Pose.create(result.translation, result.quaternion), stamp_ns,
-            self.config.link_frame, self.config.sensor_frame)
+            *self.config.result_frames)
 
     def _start_tf_broadcast(self):
         """With publish_tf, start /tf_static; turned on at runtime, it sends the estimate."""
@@ -271,14 +272,13 @@ class CalibratorNode(Node):
     def _broadcast(self, result, stamp_ns):
         """Put the result on /tf_static, frame-safe in the TF tree with TF input."""
         self.static_tf.send(Pose.create(result.translation, result.quaternion), stamp_ns,
-                            self.config.link_frame, self.config.sensor_frame,
+                            *self.config.result_frames,
                             self.inputs.tf.tree if self.inputs.tf is not None else None)
 
     # --- samples journal -------------------------------------------------------------------
 
     def _journal_header(self):
-        return journal.JournalHeader(self.config.setup, self.config.link_frame,
-                                     self.config.sensor_frame)
+        return journal.JournalHeader(self.config.setup, *self.config.result_frames)
 
     def _resume(self):
         """Log what opening the journal did; estimate from its samples when resuming."""
@@ -321,7 +321,7 @@ class CalibratorNode(Node):
                         self.get_parameter('use_sim_time').value),
                     *self.inputs.problems()]
         return calibrator_status(self.session, self.stats, now_ns,
-                                 self.config.link_frame, problems, tf_static,
+                                 self.config.result_frames[0], problems, tf_static,
                                  self.input_watch.started_ns, self.inputs.topics,
                                  self.next_pose, self.result)
 
@@ -382,7 +382,7 @@ class CalibratorNode(Node):
             response.message = f'no estimate yet, nothing saved: {self.session.last_error}'
             return response
         config = self.config
-        frames = (config.link_frame, config.sensor_frame)
+        frames = config.result_frames
         # The link poses' header frame is the robot base (eye_in_hand); '' when not checked.
         base = {'robot_base_frame': config.link_frame_id} if config.setup == 'eye_in_hand' else {}
         saved = save_result(result, frames, config.setup, config.result_file,

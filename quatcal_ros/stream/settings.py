@@ -105,8 +105,11 @@ SETTINGS = (
     Setting('link_frame', 'tool0',
             'Frame of the robot link that carries the sensor (eye_in_hand) or of the robot '
             'base (eye_to_hand): the parent frame of the result, header.frame_id of '
-            '~/rotation.'),
-    Setting('sensor_frame', 'camera', 'Frame of the sensor: the child frame of the result.'),
+            '~/rotation. With TF input, left at its default it is robot_effector_frame '
+            '(eye_in_hand) or robot_base_frame (eye_to_hand); set, it must be that frame.'),
+    Setting('sensor_frame', 'camera',
+            'Frame of the sensor: the child frame of the result. With TF input, left at its '
+            'default it is tracking_base_frame; set, it must be that frame.'),
     Setting('robot_base_frame', '',
             'TF input (all four TF frames set): the link pose is robot_base_frame -> '
             'robot_effector_frame, composed from /tf and /tf_static at each stamp, instead '
@@ -307,6 +310,7 @@ def _from_values(values):
     if settings.sensor_input == 'image' and not settings.board_file:
         raise ConfigError('sensor_input image needs board_file: the board.yaml of the target')
     known_translation(settings.known_translation)
+    _check_result_frames(settings)
     session_config(settings)   # the core's own consistency checks
     return settings
 
@@ -314,6 +318,40 @@ def _from_values(values):
 def _as_dict(self):
     """Return {name: value} of every setting."""
     return asdict(self)
+
+
+def _result_frames(self):
+    """
+    Return the result's (parent, child) frames: link_frame and sensor_frame.
+
+    With TF input, those left at their defaults are the TF frames they stand for (DESIGN.md
+    contract 4b): robot_effector_frame (eye_in_hand) or robot_base_frame (eye_to_hand), and
+    tracking_base_frame.
+    """
+    parent, child = self.link_frame, self.sensor_frame
+    tf_parent, tf_child = _tf_result_frames(self)
+    return (tf_parent if tf_parent and parent == DEFAULTS['link_frame'] else parent,
+            tf_child if tf_child and child == DEFAULTS['sensor_frame'] else child)
+
+
+def _tf_result_frames(settings):
+    """Return the (parent, child) the TF frames name for the result ('' where unset)."""
+    parent = (settings.robot_effector_frame if settings.setup == 'eye_in_hand'
+              else settings.robot_base_frame)
+    return parent, settings.tracking_base_frame
+
+
+def _check_result_frames(settings):
+    """Raise ConfigError when link_frame or sensor_frame, set, contradict the TF frames."""
+    for name, tf_name, given, tf_frame in zip(
+            ('link_frame', 'sensor_frame'),
+            ('robot_effector_frame' if settings.setup == 'eye_in_hand' else 'robot_base_frame',
+             'tracking_base_frame'),
+            (settings.link_frame, settings.sensor_frame), _tf_result_frames(settings)):
+        if tf_frame and given not in (DEFAULTS[name], tf_frame):
+            raise ConfigError(f'{name} {given!r} contradicts {tf_name} {tf_frame!r}: with TF '
+                              f'input the result is named by the TF frames; leave {name} '
+                              f'unset or set it to {tf_frame!r}')
 
 
 def _updated(self, **changes):
@@ -329,6 +367,7 @@ Settings = make_dataclass(
         'from_values': staticmethod(_from_values),
         'as_dict': _as_dict,
         'updated': _updated,
+        'result_frames': property(_result_frames),
     })
 
 
