@@ -11,7 +11,9 @@ the root of the sensor frame's static subtree (camera_link), the mounting compos
 static chain; the log says so once. When the sensor frame hangs from a moving transform, or
 its root is already connected to the link frame some other way, a transform from link_frame
 would break the tree: nothing is published and the reason is in the log and /diagnostics.
-An edge from link_frame itself (this node's earlier publication, heard back) is replaced.
+An edge from link_frame itself (this node's earlier publication, heard back) is replaced, and
+so is one this node broadcast from an earlier parent (the setup changed at runtime): the new
+broadcast replaces it for every listener, so it is taken out of the tree first.
 """
 
 from quatcal_ros.ros import conversions
@@ -28,6 +30,7 @@ class StaticTf:
         self.publisher = None
         self.problem = None       # why the last estimate was not broadcast
         self.said = None          # the last redirection or refusal logged
+        self.sent = set()         # (parent, child) edges this node has broadcast
 
     def start(self):
         """Make the publisher (once); return True."""
@@ -52,6 +55,7 @@ class StaticTf:
         if target is None:
             return
         parent, child, pose = target
+        self.sent.add((normalize_frame(parent), normalize_frame(child)))
         self.problem = None
         self.publisher.publish(TFMessage(transforms=[
             conversions.transform_stamped_msg(pose, stamp_ns, parent, child)]))
@@ -59,6 +63,9 @@ class StaticTf:
     def _frame_safe(self, pose, parent, child, tree):
         """Return (parent, child, pose) that adds no second parent to `tree`, or None."""
         parent, child = normalize_frame(parent), normalize_frame(child)
+        for old_parent, old_child in self.sent:   # ours, from another parent: replaced
+            if old_parent != parent and tree.parent(old_child) == old_parent:
+                tree.remove_edge(old_child)
         root = child
         while True:
             above = tree.parent(root)

@@ -151,6 +151,11 @@ class TransformTree:
         self._chains.clear()
         return edge
 
+    def remove_edge(self, child):
+        """Forget the edge that holds `child` (a transform its publisher has replaced)."""
+        if self._edges.pop(normalize_frame(child), None) is not None:
+            self._chains.clear()
+
     def clear_dynamic(self):
         """Forget every dynamic transform (time jumped back); static ones stay."""
         for edge in self._edges.values():

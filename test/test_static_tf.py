@@ -1,0 +1,61 @@
+"""The result on /tf_static: never a second parent, and its own earlier broadcast replaced."""
+
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.ros.static_tf import StaticTf
+from quatcal_ros.stream.tf_tree import TransformTree
+
+OPTICAL = Pose.create([0.01, 0.02, 0.0], [0.5, -0.5, 0.5, -0.5])   # camera_link -> optical
+MOUNTING = Pose.create([0.1, 0.0, 0.2], [1.0, 0.0, 0.0, 0.0])
+
+
+class Node:
+    """What StaticTf needs of a node: a logger that keeps the lines."""
+
+    def __init__(self):
+        self.lines = []
+
+    def get_logger(self):
+        node = self
+
+        class Logger:
+            def info(self, text):
+                node.lines.append(('info', text))
+
+            def warning(self, text):
+                node.lines.append(('warning', text))
+        return Logger()
+
+
+class Publisher:
+    def __init__(self):
+        self.sent = []
+
+    def publish(self, msg):
+        self.sent.append([(t.header.frame_id, t.child_frame_id) for t in msg.transforms])
+
+
+def test_a_new_parent_replaces_the_nodes_own_earlier_broadcast():
+    # The setup changed at runtime (eye_in_hand -> eye_to_hand): the node's own
+    # tool0 -> camera_link, heard back on /tf_static, once made it refuse base_link ->
+    # camera_link as a second parent, and the stale transform stayed.
+    tree = TransformTree()
+    tree.set_transform('base_link', 'tool0', 0, Pose.identity())   # the robot, moving
+    tree.set_transform('camera_link', 'camera_optical', 0, OPTICAL, static=True)
+    static = StaticTf(Node())
+    static.publisher = Publisher()
+    static.send(MOUNTING, 1, 'tool0', 'camera_optical', tree)
+    assert static.publisher.sent[-1] == [('tool0', 'camera_link')]
+    tree.set_transform('tool0', 'camera_link', 1, Pose.identity(), static=True)   # heard back
+    static.send(MOUNTING, 2, 'base_link', 'camera_optical', tree)
+    assert static.publisher.sent[-1] == [('base_link', 'camera_link')]
+    assert static.problem is None
+
+
+def test_a_moving_parent_of_someone_else_is_still_refused():
+    tree = TransformTree()
+    tree.set_transform('shoulder', 'camera_link', 0, Pose.identity())   # dynamic, not ours
+    tree.set_transform('camera_link', 'camera_optical', 0, OPTICAL, static=True)
+    static = StaticTf(Node())
+    static.publisher = Publisher()
+    static.send(MOUNTING, 1, 'base_link', 'camera_optical', tree)
+    assert not static.publisher.sent and 'second parent' in static.problem
