@@ -180,7 +180,10 @@ SETTINGS = (
             tools=REPLAY),
     Setting('min_motion_deg', 5.0,
             'Motions between samples that rotate the link less than this (degrees) carry too '
-            'little information and are not used.', unit='deg', low=0.5, high=90.0,
+            'little information: they do not count toward the motions an estimate needs, and '
+            'with pairs consecutive they are not used; with pairs all the least squares sums '
+            'over every pair of samples, where small motions weigh little.', unit='deg',
+            low=0.5, high=90.0,
             tools=BOTH),
     Setting('continuous_step_deg', 0.0,
             'Link rotation (degrees) between two samples in continuous capture; 0: '
