@@ -331,28 +331,22 @@ def _result_frames(self):
     contract 4b): robot_effector_frame (eye_in_hand) or robot_base_frame (eye_to_hand), and
     tracking_base_frame.
     """
-    parent, child = self.link_frame, self.sensor_frame
-    tf_parent, tf_child = _tf_result_frames(self)
-    return (tf_parent if tf_parent and parent == DEFAULTS['link_frame'] else parent,
-            tf_child if tf_child and child == DEFAULTS['sensor_frame'] else child)
+    return tuple(tf_frame if tf_frame and frame == DEFAULTS[name] else frame
+                 for name, frame, _, tf_frame in _result_frame_sources(self))
 
 
-def _tf_result_frames(settings):
-    """Return the (parent, child) the TF frames name for the result ('' where unset)."""
-    parent = (settings.robot_effector_frame if settings.setup == 'eye_in_hand'
-              else settings.robot_base_frame)
-    return parent, settings.tracking_base_frame
+def _result_frame_sources(settings):
+    """Yield (name, value, TF setting's name, its value or '') of link_frame and sensor_frame."""
+    parent = 'robot_effector_frame' if settings.setup == 'eye_in_hand' else 'robot_base_frame'
+    for name, tf_name in (('link_frame', parent), ('sensor_frame', 'tracking_base_frame')):
+        yield name, getattr(settings, name), tf_name, getattr(settings, tf_name)
 
 
 def _check_result_frames(settings):
     """Raise ConfigError when link_frame or sensor_frame, set, contradict the TF frames."""
-    for name, tf_name, given, tf_frame in zip(
-            ('link_frame', 'sensor_frame'),
-            ('robot_effector_frame' if settings.setup == 'eye_in_hand' else 'robot_base_frame',
-             'tracking_base_frame'),
-            (settings.link_frame, settings.sensor_frame), _tf_result_frames(settings)):
-        if tf_frame and given not in (DEFAULTS[name], tf_frame):
-            raise ConfigError(f'{name} {given!r} contradicts {tf_name} {tf_frame!r}: with TF '
+    for name, frame, tf_name, tf_frame in _result_frame_sources(settings):
+        if tf_frame and frame not in (DEFAULTS[name], tf_frame):
+            raise ConfigError(f'{name} {frame!r} contradicts {tf_name} {tf_frame!r}: with TF '
                               f'input the result is named by the TF frames; leave {name} '
                               f'unset or set it to {tf_frame!r}')
 
