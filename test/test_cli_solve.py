@@ -89,7 +89,10 @@ GOOD_ROW = '1.0,0,0,0,0,0,0,1,0,0,1,0,0,0,1'
     (','.join(COLUMNS) + '\n' + GOOD_ROW[:-1] + '2\n',
      'row 2, fields sensor_qx..sensor_qw: the quaternion has norm 2'),
     (','.join(COLUMNS) + '\n' + GOOD_ROW + '\n' + '1.0,0,0\n', 'row 3, field link_z: missing'),
-    (','.join(COLUMNS) + '\n' + GOOD_ROW + '\n' + GOOD_ROW + '\n', '2 sample(s); at least 3'),
+    (','.join(COLUMNS) + '\n' + GOOD_ROW + '\n' + GOOD_ROW.replace('1.0,0,', '2.0,0.1,', 1)
+     + '\n', '2 sample(s); at least 3'),
+    (','.join(COLUMNS) + '\n' + (GOOD_ROW + '\n') * 3,
+     '1 sample(s) (2 more repeat earlier ones exactly); at least 3'),
 ])
 def test_bad_input_exits_2_naming_row_and_field(repo_root, tmp_path, text, expected):
     path = tmp_path / 'bad.csv'
@@ -254,3 +257,22 @@ def test_the_next_pose_follows_the_planner_options(repo_root, tmp_path):
         assert proposal['expected_uncertainty_deg'] < proposal['current_uncertainty_deg']
     done = run_solve(repo_root, path, '--plan-view-cone-deg', 90)
     assert done.returncode == 2 and 'plan-view-cone-deg' in done.stderr
+
+
+def test_a_file_appended_to_itself_gives_the_answer_of_the_file(tmp_path, capsys):
+    from quatcal_ros.tools.cli import solve_main
+    _, path, _ = write_cell_csv(tmp_path / 'once.csv', 8, 12, rotation_noise_deg=0.3,
+                                translation_noise_m=0.002)
+    twice = tmp_path / 'twice.csv'
+    text = path.read_text()
+    twice.write_text(text + text.split('\n', 1)[1])   # the rows again, without the header
+    assert solve_main([str(path)]) == 0
+    once = json.loads(capsys.readouterr().out)
+    assert solve_main([str(twice)]) == 0
+    doubled = json.loads(capsys.readouterr().out)
+    assert doubled['samples'] == 12
+    assert doubled['uncertainty_deg'] == once['uncertainty_deg']
+    assert doubled['rotation'] == once['rotation']
+    warning, = [w for w in doubled['warnings'] if 'repeat earlier ones exactly' in w]
+    assert warning.startswith('12 sample(s) repeat earlier ones exactly')
+    assert '12 = 0, 13 = 1, 14 = 2' in warning and ', ...)' in warning

@@ -11,6 +11,7 @@ they test the estimator alone.
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -229,13 +230,19 @@ def test_solve_dir_refines_on_the_pixels_and_lists_refused_views(repo_root, tmp_
     mounting, names = write_rendered_dataset(tmp_path, renderers['charuco'], 16, seed=3)
     cv2.imwrite(str(tmp_path / 'images' / names[4]), np.full((480, 640), 128, np.uint8))
     (tmp_path / 'images' / names[9]).unlink()
+    # A copied image under another name, at the same robot pose: one view, counted once.
+    shutil.copy(tmp_path / 'images' / names[2], tmp_path / 'images' / 'copy.png')
+    rows = (tmp_path / 'robot_poses.csv').read_text().splitlines()
+    row, = [line for line in rows if line.startswith(names[2] + ',')]
+    rows.append('copy.png' + row[len(names[2]):])
+    (tmp_path / 'robot_poses.csv').write_text('\n'.join(rows) + '\n')
     done = run_solve(repo_root, tmp_path)
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout)
     assert result['method'] == 'reprojection' and result['pose_based_method'] == 'refined'
     assert result['views']['used'] == 14
     assert {(r['image'], r['reason']) for r in result['views']['refused']} == {
-        (names[4], 'no_board'), (names[9], 'unreadable_image')}
+        (names[4], 'no_board'), (names[9], 'unreadable_image'), ('copy.png', 'repeated_view')}
     q = [result['rotation'][k] for k in 'wxyz']
     angle = np.degrees(quat.angle_between(q, mounting.quaternion))
     error_mm = 1e3 * np.linalg.norm([result['translation'][k] for k in 'xyz']

@@ -25,12 +25,15 @@ reset) starts a new timeline: the pairing buffers are cleared, the samples are k
 steps back are late messages and are rejected.  After such a jump, a still sample at the stamp
 (within the still window) and the link pose (within the still bands) of an earlier sample is
 the same data played again (`ros2 bag play --loop`): it is not added, so that it does not
-count as new evidence, and a Notice says so.
+count as new evidence, and a Notice says so.  So is, on every path, a sample whose link and
+sensor poses equal an earlier sample's to the last digit (a row copied in a file, a file
+appended to itself): no two measurements agree that well, and counted twice it would shrink the
+reported uncertainty by sqrt(2) as if it were new evidence.
 """
 
 import bisect
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import math
 
 import numpy as np
@@ -85,12 +88,17 @@ class Rejected:
     Input that was not used: `what` is 'link_pose', 'sensor_pose' or 'sample'.
 
     `code` names the reason for counters ('non_finite', 'duplicate_stamp', 'out_of_order':
-    codes of message_checks.REASONS); it does not take part in comparisons.
+    codes of message_checks.REASONS; 'repeated': a ready sample that repeats an earlier one
+    exactly); it does not take part in comparisons.  A sample refused by add_samples also
+    says which it was of those given (`given`, from 0); a 'repeated' one the number of the
+    stored sample it repeats (`repeats`).
     """
 
     what: str
     reason: str
     code: str = field(default='', compare=False)
+    given: int = field(default=None, compare=False)
+    repeats: int = field(default=None, compare=False)
 
 
 @dataclass(frozen=True)
@@ -104,6 +112,12 @@ class Notice:
 def _finite(*poses):
     # A sum is finite exactly when every term is (short of overflow past 1e308): fast.
     return all(math.isfinite(p.position.sum() + p.quaternion.sum()) for p in poses)
+
+
+def _fingerprint(sample):
+    """Return the exact numbers of a sample's poses, as bytes (the key of exact copies)."""
+    return np.concatenate([sample.link.position, sample.link.quaternion,
+                           sample.sensor.position, sample.sensor.quaternion]).tobytes()
 
 
 def _finite_rows(positions, quaternions):
@@ -134,6 +148,7 @@ class Session:
         self._on_sample = on_sample
         self._calibrator = Calibrator(config.calibration)
         self._start_streams()
+        self._fingerprints = {}   # the exact numbers of each stored sample -> its index
 
     def _start_streams(self):
         self._pairer = Pairer(self.config.pairing)
@@ -211,19 +226,27 @@ class Session:
         if not _finite(sample.link, sample.sensor):
             return events + [self._reject('sample', 'non-finite numbers in a pose',
                                           'non_finite')]
+        copied = self._copy_of(sample)
+        if copied is not None:
+            return events + [self._repeated(0, copied)]
         return events + self._store(sample)
 
     def add_samples(self, samples):
         """Add many ready samples (a CSV file, a resumed session); return the events."""
         events = self.pop_events()
         good = []
-        for sample in samples:
-            if _finite(sample.link, sample.sensor):
+        first = self._sample_count()
+        for position, sample in enumerate(samples):
+            if not _finite(sample.link, sample.sensor):
+                events.append(replace(self._reject('sample', 'non-finite numbers in a pose',
+                                                   'non_finite'), given=position))
+                continue
+            copied = self._copy_of(sample)
+            if copied is None:
+                self._fingerprints[_fingerprint(sample)] = first + len(good)
                 good.append(sample)
             else:
-                events.append(self._reject('sample', 'non-finite numbers in a pose',
-                                           'non_finite'))
-        first = self._sample_count()
+                events.append(self._repeated(position, copied))
         self._calibrator.add_samples(good)
         if good:
             self._capture.note_sample(good[-1])   # the next still sample needs a motion first
@@ -252,6 +275,7 @@ class Session:
         """Start over: forget the streams, the samples, the estimate and the counters."""
         self._calibrator.reset()
         self._start_streams()
+        self._fingerprints = {}
 
     # --- what the shells show ------------------------------------------------------------
 
@@ -341,6 +365,18 @@ class Session:
                 events += self._store_captured(sample)
         return events
 
+    def _copy_of(self, sample):
+        """Return the index of the stored sample whose poses `sample` repeats exactly, or None."""
+        return self._fingerprints.get(_fingerprint(sample))
+
+    def _repeated(self, position, copied):
+        """Count a ready sample (the `position`-th given) that repeats sample `copied`."""
+        self._counts['repeated_samples'] += 1
+        return Rejected('sample', f'sample {position} of those given repeats sample {copied} '
+                        'exactly (the same link and sensor poses to the last digit: a copied '
+                        'row, not a new measurement): not added twice', 'repeated',
+                        position, copied)
+
     def _store_captured(self, sample):
         """Store a sample taken from the streams, unless it repeats an earlier one."""
         repeated = self._repeat_of(sample)
@@ -354,12 +390,13 @@ class Session:
         """
         Return the index of the earlier sample that `sample` repeats, or None.
 
-        Only after a time jump: stamps within the still window and link poses within the still
-        bands (a new sample needs a motion of twice the bands, so within one timeline no two
-        samples are this close).
+        Exactly the same poses (module docstring); or, only after a time jump, stamps within
+        the still window and link poses within the still bands (a new sample needs a motion of
+        twice the bands, so within one timeline no two samples are this close).
         """
-        if not self._counts['time_jumps']:
-            return None
+        copied = self._copy_of(sample)
+        if copied is not None or not self._counts['time_jumps']:
+            return copied
         capture = self.config.capture
         for index, old in enumerate(self.samples):
             if abs(old.stamp_ns - sample.stamp_ns) <= capture.window_ns:
@@ -370,6 +407,7 @@ class Session:
         return None
 
     def _store(self, sample):
+        self._fingerprints[_fingerprint(sample)] = self._sample_count()
         self._calibrator.add_sample(sample)
         self._capture.note_sample(sample)
         if self._on_sample is not None:

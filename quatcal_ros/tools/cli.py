@@ -23,7 +23,7 @@ from quatcal_ros.files.journal import JournalHeader, JournalRefused
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import BadInputError, format_samples
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
-from quatcal_ros.stream.session import Session
+from quatcal_ros.stream.session import Rejected, Session
 from quatcal_ros.stream.settings import check_config, ConfigError, plan_limits, \
     session_config
 from quatcal_ros.stream.time_offset import find_time_offset
@@ -81,7 +81,7 @@ def solve_main(argv=None):
     args.setup = args.setup or imported.setup or 'eye_in_hand'
     frames = solve_frames(args, imported.frames)
     session = Session(session_config(settings_of(args)))
-    session.add_samples(imported.samples)
+    copies = _copies(session.add_samples(imported.samples))
     session.estimate()   # one full solve over all of them
     if session.result is not None and args.easy_handeye2_out:
         named = imported.frames or {}
@@ -92,8 +92,9 @@ def solve_main(argv=None):
                             easy_handeye2_frames={key: named.get(key, '') for key in keep})
         for _, target, error in saved.failed:
             return fail(parser.prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)
-    return print_result(parser.prog, session, f'{args.samples}: ', imported.warnings,
-                        frames=frames, limits=plan_limits(settings_of(args)),
+    return print_result(parser.prog, session, f'{args.samples}: ',
+                        [*imported.warnings, *_copies_warning(copies)], frames=frames,
+                        limits=plan_limits(settings_of(args)),
                         report=args.report)
 
 
@@ -116,7 +117,7 @@ def _solve_images(prog, args):
         if progress is not None:
             progress.close()
     session = Session(session_config(settings_of(args)))
-    session.add_samples(data.samples)
+    data.refuse_copies(_copies(session.add_samples(data.samples)))
     session.estimate()
     views = {'used': len(data.samples), 'refused': data.refused_json()}
     result = session.result
@@ -131,6 +132,29 @@ def _solve_images(prog, args):
                         limits=plan_limits(settings_of(args)), report=args.report,
                         extra={'views': views, 'reprojection': fit.to_json_dict(),
                                'pose_based_method': result.method})
+
+
+def _copies(events):
+    """
+    Return {position: position of the sample it repeats} of a fresh session's 'repeated' refusals.
+
+    events: those of Session.add_samples of one list; positions count from 0 in that list.
+    """
+    refused = [event for event in events if isinstance(event, Rejected)]
+    dropped = {event.given for event in refused}
+    stored = [k for k in range(max(dropped, default=-1) + 1) if k not in dropped]
+    return {event.given: stored[event.repeats] for event in refused if event.code == 'repeated'}
+
+
+def _copies_warning(copies):
+    """Return the warning (a list of one, or none) that `copies` were each counted once."""
+    if not copies:
+        return []
+    pairs = ', '.join(f'{copy} = {original}' for copy, original in list(copies.items())[:10])
+    more = ', ...' if len(copies) > 10 else ''
+    return [f'{len(copies)} sample(s) repeat earlier ones exactly (sample = the one it repeats, '
+            f'numbered from 0 in the file: {pairs}{more}): a copied row is not a new '
+            'measurement, so each was counted once']
 
 
 def add_report_argument(parser):
@@ -194,8 +218,10 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     report: the --report path, or None; the page's title is `where` without its colon.
     """
     if len(session.samples) < 3:
-        return fail(prog, f'{where}{len(session.samples)} sample(s); at least 3 are needed',
-                    EXIT_BAD_INPUT)
+        copies = session.counters['repeated_samples']
+        more = f' ({copies} more repeat earlier ones exactly)' if copies else ''
+        return fail(prog, f'{where}{len(session.samples)} sample(s){more}; at least 3 are '
+                          'needed', EXIT_BAD_INPUT)
     if session.result is None:
         return fail(prog, f'{where}the rotation cannot be determined: {session.last_error}',
                     EXIT_UNDETERMINED)

@@ -41,6 +41,15 @@ class ImageDataset:
     def refused_json(self):
         return list(self.refused)
 
+    def refuse_copies(self, copies):
+        """Refuse the views {position used: position of the used view it repeats}."""
+        self.refused += [{'image': self.names[copy], 'reason': 'repeated_view',
+                          'detail': f'the same robot pose and board pose as '
+                                    f'{self.names[original]}: a copy'}
+                         for copy, original in sorted(copies.items())]
+        for copy in sorted(copies, reverse=True):
+            del self.names[copy], self.samples[copy], self.views[copy]
+
     def corners(self):
         """Return [(object_points, image_points)] of each view used, as the samples."""
         return [(view.object_points, view.image_points) for view in self.views]
