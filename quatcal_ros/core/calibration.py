@@ -58,6 +58,9 @@ COS_HYPOTHESIS_SEPARATION = math.cos(math.radians(HYPOTHESIS_AXIS_SEPARATION_DEG
 NOISY_WEIGHT = 0.5
 # Gauss-Newton steps of a warm-started refinement (between full solves).
 WARM_ITERATIONS = 3
+# Object residuals about the plain mean this many times wider (median angle) than about their
+# median: bad detections pulled the mean, and the residuals are taken near the median instead.
+RECENTRE_RATIO = 2.0
 
 
 class InsufficientDataError(DegenerateMotionError):
@@ -614,12 +617,37 @@ def _detections(rotations, q_z, previous=None):
     the Detections, the residuals (N, 3) and the mean orientation they are about.
     """
     if previous is None:
-        residuals, mean = quality.object_residuals(rotations, q_z)
+        residuals, mean = _robustly_centred(rotations, q_z)
     else:
         Z = rotations.object_orientations(q_z)
         mean = quat.average(Z, previous.good_probability)
         residuals = quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean)))
     return heavy_tails.bad_detections(residuals, start=previous), residuals, mean
+
+
+def _robustly_centred(rotations, q_z):
+    """
+    Return quality.object_residuals about the mean, or about that of the samples near the median.
+
+    A few bad detections pull the plain mean: two 70-deg flips among ten samples move it 13
+    deg, every good sample then lies 13 deg from it, and the noise fitted to such residuals
+    explains the flips. The coordinate-wise median of the residuals is not pulled; where the
+    residuals' median angle about it is less than 1/RECENTRE_RATIO of that about the mean,
+    the residuals are taken about the mean of the samples within START_SIGMAS robust sigmas
+    of the median instead (clean samples: the two medians agree, nothing changes). Not with
+    three samples, whose median is no firmer than their mean (the ratio passes 2 on 4 % of
+    clean ones; from four samples on, on none of 400 clean cells at 0.5 deg).
+    """
+    residuals, mean = quality.object_residuals(rotations, q_z)
+    if len(residuals) < 4:
+        return residuals, mean
+    about_mean = np.linalg.norm(residuals, axis=1)
+    about_median = np.linalg.norm(residuals - np.median(residuals, axis=0), axis=1)
+    spread = median(about_median)
+    if not median(about_mean) > RECENTRE_RATIO * spread:
+        return residuals, mean
+    near = about_median <= heavy_tails.START_SIGMAS * spread / heavy_tails.CHI3_MEDIAN
+    return quality.object_residuals(rotations, q_z, near)
 
 
 def _rejected_samples(rotations, q_z, sample_ok, detections, spoiled):
