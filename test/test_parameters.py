@@ -232,6 +232,12 @@ def test_with_tf_input_the_result_is_named_by_the_tf_frames():
     tf = {'robot_base_frame': 'base_link', 'robot_effector_frame': 'flange',
           'tracking_base_frame': 'cam_optical', 'tracking_marker_frame': 'marker'}
     assert Settings().result_frames == ('tool0', 'camera')
+    # Without TF, eye_to_hand's parent is the robot base, not the flange's default name.
+    assert Settings().updated(setup='eye_to_hand').result_frames == ('base_link', 'camera')
+    assert Settings().updated(setup='eye_to_hand', link_frame_id='world').result_frames == \
+        ('world', 'camera')
+    assert Settings().updated(setup='eye_to_hand', link_frame='base').result_frames == \
+        ('base', 'camera')
     given = Settings.from_values({**DEFAULTS, **tf})
     assert given.result_frames == ('flange', 'cam_optical')
     assert given.updated(setup='eye_to_hand').result_frames == ('base_link', 'cam_optical')

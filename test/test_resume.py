@@ -265,7 +265,7 @@ def test_corrupt_or_foreign_journal_is_moved_aside_and_reported(tmp_path, capfd,
 def test_resume_is_refused_for_another_setup_or_frames(tmp_path, domain_id):
     _, samples = synthetic_samples(4)
     path = tmp_path / 'samples.csv'
-    before = write_journal(path, samples, JournalHeader('eye_to_hand', 'base_link', 'camera'))
+    before = write_journal(path, samples, JournalHeader('eye_to_hand', 'world', 'camera'))
     for extra in ([], [Parameter('setup', value='eye_to_hand')]):
         with pytest.raises(ConfigError, match='resume:=true refused') as error:
             make_node(domain_id, Parameter('samples_file', value=str(path)),
@@ -323,7 +323,7 @@ def test_samples_are_journaled_reset_moves_the_journal_aside(rig_factory, tmp_pa
 
 def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before_its_log(
         tmp_path, monkeypatch, domain_id):
-    _, samples = synthetic_samples(8)
+    _, samples = synthetic_samples(10)
     path = tmp_path / 'samples.csv'
     with resumed_node(domain_id, path, samples[:7]) as node:
         steps = []
@@ -347,11 +347,11 @@ def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before
         def failing_fsync(fd):
             raise OSError(errno.EIO, 'Input/output error')
         monkeypatch.setattr(journal.os, 'fsync', failing_fsync)
-        node.handle_events(node.session.add_sample(samples[6]))
+        node.handle_events(node.session.add_sample(samples[8]))
         assert 'could not fsync' in node.diagnostic_status().message
         assert 'Input/output error' in node.diagnostic_status().message
         monkeypatch.setattr(journal.os, 'fsync', lambda fd: steps.append('fsync again'))
-        node.handle_events(node.session.add_sample(samples[5]))
+        node.handle_events(node.session.add_sample(samples[9]))
         assert steps[-3:] == ['fsync again', 'log', 'publish']
         assert 'could not fsync' not in node.diagnostic_status().message
         assert len(journal.read_journal(path).samples) == 10

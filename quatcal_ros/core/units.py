@@ -12,6 +12,8 @@ NS_PER_S = 1_000_000_000
 # eye_in_hand: the sensor rides on the link, the answer is T_link_sensor; eye_to_hand: the
 # sensor is fixed in the cell, the answer is T_base_sensor.
 SETUPS = ('eye_in_hand', 'eye_to_hand')
+# The result's (parent, child) frames when nothing names them: the robot's flange or its base.
+DEFAULT_FRAMES = {'eye_in_hand': ('tool0', 'camera'), 'eye_to_hand': ('base_link', 'camera')}
 # A pose message's quaternion is computed in floating point by a program: a norm off by more
 # than this is a bug upstream, not rounding (within it, the quaternion is renormalised).
 MESSAGE_NORM_TOLERANCE = 1e-3

@@ -40,14 +40,12 @@ import shlex
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.units import DEFAULT_FRAMES
 from quatcal_ros.files import plain_yaml
 
 # easy_handeye2's calibration_type for each of our setups.
 EASY_HANDEYE2_TYPES = {'eye_in_hand': 'eye_in_hand', 'eye_to_hand': 'eye_on_base'}
 SETUPS_BY_EASY_HANDEYE2_TYPE = {value: key for key, value in EASY_HANDEYE2_TYPES.items()}
-# Parent and child frames used when nothing names them: the node's defaults for eye-in-hand,
-# the usual robot base frame for eye-to-hand.
-DEFAULT_FRAMES = {'eye_in_hand': ('tool0', 'camera'), 'eye_to_hand': ('base_link', 'camera')}
 # Decimals of the numbers on the static_transform_publisher line: 0.1 nm and 1e-10.
 COMMAND_DECIMALS = 10
 

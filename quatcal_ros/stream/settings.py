@@ -22,7 +22,7 @@ import math
 
 from quatcal_ros.core.calibration import CalibrationOptions, METHODS
 from quatcal_ros.core.planner import PlanLimits
-from quatcal_ros.core.units import ns_from_s, SETUPS
+from quatcal_ros.core.units import DEFAULT_FRAMES, ns_from_s, SETUPS
 from quatcal_ros.core.validation import Thresholds
 from quatcal_ros.stream.capture import CaptureConfig, MODES as CAPTURE_MODES
 from quatcal_ros.stream.message_checks import CheckConfig, LINK, SENSOR
@@ -105,7 +105,8 @@ SETTINGS = (
     Setting('link_frame', 'tool0',
             'Frame of the robot link that carries the sensor (eye_in_hand) or of the robot '
             'base (eye_to_hand): the parent frame of the result, header.frame_id of '
-            '~/rotation. With TF input, left at its default it is robot_effector_frame '
+            '~/rotation. Left at its default with eye_to_hand it is link_frame_id, or '
+            'base_link. With TF input, left at its default it is robot_effector_frame '
             '(eye_in_hand) or robot_base_frame (eye_to_hand); set, it must be that frame.'),
     Setting('sensor_frame', 'camera',
             'Frame of the sensor: the child frame of the result. With TF input, left at its '
@@ -329,10 +330,17 @@ def _result_frames(self):
 
     With TF input, those left at their defaults are the TF frames they stand for (DESIGN.md
     contract 4b): robot_effector_frame (eye_in_hand) or robot_base_frame (eye_to_hand), and
-    tracking_base_frame.
+    tracking_base_frame. Without, link_frame left at its default (a flange's name) names the
+    robot base with eye_to_hand: link_frame_id, or base_link (units.DEFAULT_FRAMES).
     """
-    return tuple(tf_frame if tf_frame and frame == DEFAULTS[name] else frame
-                 for name, frame, _, tf_frame in _result_frame_sources(self))
+    frames = []
+    for name, frame, _, tf_frame in _result_frame_sources(self):
+        if frame == DEFAULTS[name] and tf_frame:
+            frame = tf_frame
+        elif frame == DEFAULTS[name] and name == 'link_frame' and self.setup == 'eye_to_hand':
+            frame = self.link_frame_id or DEFAULT_FRAMES['eye_to_hand'][0]
+        frames.append(frame)
+    return tuple(frames)
 
 
 def _result_frame_sources(settings):
