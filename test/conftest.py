@@ -12,8 +12,11 @@ wrote there fails the session, naming what changed.
 import os
 from pathlib import Path
 import shutil
+import sys
 import tempfile
 
+from hypothesis import HealthCheck, settings
+from hypothesis.configuration import set_hypothesis_home_dir
 import numpy as np
 import pytest
 from quatcal_ros.core.pose import Pose
@@ -25,8 +28,22 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SESSION = pytest.StashKey[dict]()
 
 # Nodes started by the tests (in-process or as subprocesses, which inherit this) talk over real
-# DDS: keep discovery on this machine so parallel runs and other hosts do not interfere.
-os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+# DDS: keep discovery on this machine so parallel runs and other hosts do not interfere (an
+# inherited SUBNET or static peers would reach past the host-local domain reservation).
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+os.environ.pop('ROS_STATIC_PEERS', None)
+
+# Property-based tests: the same examples on every run, no example database (it would live in
+# the working directory); `HYPOTHESIS_PROFILE=explore` searches ten times wider at random.
+settings.register_profile(
+    'default', derandomize=True, database=None, deadline=None, print_blob=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
+                           HealthCheck.data_too_large])
+settings.register_profile(
+    'explore', database=None, deadline=None, max_examples=1000, print_blob=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
+                           HealthCheck.data_too_large])
+settings.load_profile(os.environ.get('HYPOTHESIS_PROFILE', 'default'))
 
 
 def pytest_configure(config):
@@ -40,6 +57,10 @@ def pytest_configure(config):
     os.environ['ROS_HOME'] = str(home / '.ros')
     os.environ['ROS_LOG_DIR'] = str(home / '.ros' / 'log')
     os.environ['ROS_DOMAIN_ID'] = str(config.stash[SESSION]['domain'].domain_id)
+    # Caches in the session directory, not the working tree: hypothesis's (its unicode
+    # tables) and Python's bytecode of this process's later imports and of every subprocess.
+    set_hypothesis_home_dir(str(home / '.hypothesis'))
+    os.environ['PYTHONPYCACHEPREFIX'] = sys.pycache_prefix = str(home / 'pycache')
 
 
 def pytest_sessionfinish(session, exitstatus):

@@ -10,14 +10,24 @@ starts, and passes them on in ROS_DOMAIN_ID.
 """
 
 import errno
+import os
 import random
 import socket
 
 NAMESPACE = 'quatcal_ros-test-domain'
+
+
+def _users_domain(environ=os.environ):
+    """Return the ROS_DOMAIN_ID the suite started with (the user's own graph), or 0."""
+    value = environ.get('ROS_DOMAIN_ID', '').strip()
+    return int(value) if value.isdigit() else 0
+
+
 # Ids whose ports (Fast DDS: 7400 + 250 * id + ...) stay below Linux's ephemeral range with
-# LOCALHOST discovery are 0-101.  Left out: 0, everyone's default domain, and 68, the fixed
-# default of bench/bench_node.py (bench/bench_soak.py reserves its id here).
-DOMAIN_IDS = tuple(d for d in range(102) if d not in (0, 68))
+# LOCALHOST discovery are 0-101.  Left out: 0, everyone's default domain, the user's own
+# ROS_DOMAIN_ID (a robot's graph holds no reservation), and 68, the fixed default of
+# bench/bench_node.py (bench/bench_soak.py reserves its id here).
+DOMAIN_IDS = tuple(d for d in range(102) if d not in (0, 68, _users_domain()))
 
 
 class DomainsExhausted(RuntimeError):

@@ -119,7 +119,7 @@ def test_sensor_covariance_columns_round_trip_and_weight_the_solve(repo_root, tm
     assert text.split('\n', 1)[0] == ','.join(COLUMNS + COVARIANCE_COLUMNS)
     assert text.split('\n')[4].count(',') == len(COLUMNS) - 1   # sample 3: none
     read = parse_samples(io.StringIO(text))
-    for before, after in zip(samples, read):
+    for before, after in zip(samples, read, strict=True):
         if before.sensor.covariance is None:
             assert after.sensor.covariance is None
         else:

@@ -25,7 +25,6 @@ import tracemalloc
 from geometry_msgs.msg import PoseStamped
 from geometry_msgs.msg import TransformStamped
 from hypothesis import given
-from hypothesis import HealthCheck
 from hypothesis import settings
 from hypothesis import strategies as st
 import numpy as np
@@ -62,17 +61,6 @@ FRAMES = {mc.LINK: 'base', mc.SENSOR: 'camera'}
 # no file is written at an arbitrary path).
 FILE_PARAMETERS = [spec.name for spec in table.SETTINGS
                    if spec.name.endswith('_file') and spec.name != 'easy_handeye2_file']
-
-settings.register_profile(
-    'default', derandomize=True, deadline=None, print_blob=True,
-    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
-                           HealthCheck.data_too_large])
-settings.register_profile(
-    'explore', deadline=None, max_examples=1000, print_blob=True,
-    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
-                           HealthCheck.data_too_large])
-settings.load_profile(os.environ.get('HYPOTHESIS_PROFILE', 'default'))
-
 
 SCALE = 10 if os.environ.get('HYPOTHESIS_PROFILE') == 'explore' else 1
 

@@ -163,7 +163,7 @@ def test_our_writers_match_the_documented_layouts(tmp_path):
     _, samples = cell_samples(75, 'eye_to_hand', n=3)
     ours = yaml.safe_load(importers.format_easy_handeye2_samples(samples, 'eye_to_hand'))
     theirs = yaml.safe_load(easy_handeye2_text(samples, 'eye_on_base'))
-    for a, b in zip(ours['samples'], theirs['samples']):
+    for a, b in zip(ours['samples'], theirs['samples'], strict=True):
         for key in ('robot', 'tracking'):
             for part in ('translation', 'rotation'):
                 got, want = a[key][part], b[key][part]

@@ -118,7 +118,8 @@ class Harness(SpinMixin):
         try:
             self.spin_until(done, timeout, what='the node to receive the poses')
         except AssertionError:
-            if received['link_pose'] < self.sent['link_pose']:
+            # Best-effort sensor poses beyond the slack may be lost; nothing else may be.
+            if received['link_pose'] < self.sent['link_pose'] or not best_effort_slack:
                 raise
 
     def publish_events(self, events, chunk=60, best_effort_slack=0):
@@ -466,10 +467,43 @@ def _process_env(domain_id):
     return env
 
 
+_STARTED = []   # the processes of the running test (_start)
+
+
+@pytest.fixture(autouse=True)
+def no_process_outlives_its_test():
+    """Kill what a test started and left running (a failed assert before its stop)."""
+    yield
+    while _STARTED:
+        process = _STARTED.pop()
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+
+
 def _start(tool, *ros_args, log_path, domain_id):
     command = _tool_command(tool) + (['--ros-args', *ros_args] if ros_args else [])
-    return subprocess.Popen(command, env=_process_env(domain_id), cwd=REPO_ROOT,
-                            stdout=log_path.open('w'), stderr=subprocess.STDOUT)
+    process = subprocess.Popen(command, env=_process_env(domain_id), cwd=REPO_ROOT,
+                               stdout=log_path.open('w'), stderr=subprocess.STDOUT)
+    _STARTED.append(process)
+    return process
+
+
+def _wait_for_the_signal_guard(process, timeout=60.0):
+    """
+    Wait until `process` catches SIGTERM (its SigCgt mask in /proc): the tool's first line.
+
+    Python itself catches SIGINT from its start; SIGTERM only the tool's guard (__main__.py).
+    """
+    deadline = time.monotonic() + timeout
+    status = Path(f'/proc/{process.pid}/status')
+    while time.monotonic() < deadline and process.poll() is None:
+        caught = [line for line in status.read_text().splitlines()
+                  if line.startswith('SigCgt:')]
+        if caught and int(caught[0].split()[1], 16) >> (signal.SIGTERM - 1) & 1:
+            return
+        time.sleep(0.005)
+    raise AssertionError('the process never caught SIGTERM')
 
 
 class Listener(ProcessWatcher):
@@ -545,18 +579,20 @@ def test_node_name_reads_the_remapping():
     assert node_name(['x', '-r', 'link_pose:=/a', '--remap', '__name:=b'], 'c') == 'b'
 
 
-# From 0.15 s on: while the interpreter itself starts (about 50 ms here, more under load), a
-# signal ends any Python program; from the tool's first line on it is noted (__main__.py).
+# While the interpreter itself starts (about 30 ms here, more under load) a signal ends any
+# Python program; from the tool's first line on it is noted (__main__.py): the delays count
+# from then, so that a busy machine cannot move the signal before it.
 @pytest.mark.parametrize('tool, signum, delay_s', [
-    ('calibrator', signal.SIGINT, 0.15), ('calibrator', signal.SIGTERM, 0.2),
-    ('calibrator', signal.SIGINT, 0.4), ('calibrator', signal.SIGTERM, 0.8),
-    ('sim_cell', signal.SIGINT, 0.1), ('sim_cell', signal.SIGTERM, 0.5),
+    ('calibrator', signal.SIGINT, 0.0), ('calibrator', signal.SIGTERM, 0.05),
+    ('calibrator', signal.SIGINT, 0.3), ('calibrator', signal.SIGTERM, 0.7),
+    ('sim_cell', signal.SIGINT, 0.0), ('sim_cell', signal.SIGTERM, 0.4),
 ])
 def test_a_stop_signal_at_any_moment_of_start_up_exits_0(
         tmp_path, process_domain_id, tool, signum, delay_s):
     """While the tool imports, builds its node or spins: SIGINT and SIGTERM end it with 0."""
     process = _start(tool, log_path=tmp_path / 'log', domain_id=process_domain_id)
-    time.sleep(delay_s)   # when the signal comes; any moment must do
+    _wait_for_the_signal_guard(process)
+    time.sleep(delay_s)   # when the signal comes; any moment after the guard must do
     process.send_signal(signum)
     assert process.wait(timeout=60) == 0, (tmp_path / 'log').read_text()
     assert 'Traceback' not in (tmp_path / 'log').read_text()

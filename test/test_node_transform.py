@@ -227,11 +227,13 @@ def test_publish_tf_turned_on_at_runtime_sends_the_current_estimate(make_harness
     h.spin_for(0.5)
     assert received == []
     assert values_of(h.node.diagnostic_status())['tf_static'] == 'off (publish_tf is false)'
+    before = h.node.session.result
     (done,) = h.node.set_parameters([Parameter('publish_tf', value=True)])
     assert done.successful
     h.spin_until(lambda: received, what='/tf_static')
     assert received[-1].transforms[0].child_frame_id == 'cam'
-    assert len(h.node.session.samples) == len(samples)   # presentation only: no re-estimate
+    # Presentation only: the estimate stands (no re-estimate), its samples too.
+    assert h.node.session.result is before and len(h.node.session.samples) == len(samples)
 
 
 def test_save_reports_an_unwritable_easy_handeye2_file(make_harness, cell_and_samples,

@@ -56,12 +56,6 @@ class Pose:
         H[:3, 3] = self.position
         return H
 
-    @staticmethod
-    def from_matrix(H):
-        """From a 4x4 homogeneous matrix."""
-        H = np.asarray(H, dtype=float)
-        return Pose(H[:3, 3].copy(), quat.quaternion_from_matrix(H[:3, :3]))
-
 
 # Index of ROS's covariance order (x, y, z, rx, ry, rz) in refine's residual order
 # (rotation, then translation).

@@ -29,18 +29,6 @@ def ns_from_s(seconds):
     return int(round(seconds * NS_PER_S))
 
 
-def s_from_ns(nanoseconds):
-    """Return integer nanoseconds as float seconds."""
-    return nanoseconds / NS_PER_S
-
-
-def check_setup(setup):
-    """Raise ValueError naming the choices when `setup` is not one of SETUPS."""
-    if setup not in SETUPS:
-        raise ValueError(f'setup must be one of {", ".join(SETUPS)}, not {setup!r}')
-    return setup
-
-
 def quaternion_norm_problem(xyzw, tolerance):
     """
     Say why the quaternion `xyzw` (4 numbers, any order) is not a unit quaternion, or None.

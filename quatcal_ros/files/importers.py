@@ -258,17 +258,6 @@ def parse_moveit_samples(document, name='<moveit samples>'):
     return ImportedSamples(samples, 'moveit')
 
 
-def read_moveit_samples(path):
-    """
-    Read a moveit_calibration samples YAML as a list of pose.Sample.
-
-    Link poses are effector_wrt_world (T_base_eef), sensor poses object_wrt_sensor
-    (T_sensor_obj), for eye-in-hand and eye-to-hand alike; raises BadInputError naming the
-    file, entry and field.
-    """
-    return load_samples(path, 'moveit').samples
-
-
 def parse_moveit_json_samples(document, name='<moveit json samples>'):
     """Read a parsed moveit_calibration pose_samples.json: [[eef_wrt_world, obj_wrt_sensor]]."""
     if not isinstance(document, list):

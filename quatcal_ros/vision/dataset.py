@@ -55,12 +55,6 @@ class ImageDataset:
         return [(view.object_points, view.image_points) for view in self.views]
 
 
-def is_image_dataset(path):
-    """Return whether `path` is a folder in the layout of contract 5."""
-    path = Path(path)
-    return path.is_dir() and (path / 'robot_poses.csv').is_file()
-
-
 def check_layout(folder):
     """Raise BadInputError naming the first file of the layout that `folder` lacks."""
     folder = Path(folder)
