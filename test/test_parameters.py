@@ -253,3 +253,14 @@ def test_with_tf_input_the_result_is_named_by_the_tf_frames():
     link_only = {'robot_base_frame': 'base_link', 'robot_effector_frame': 'flange',
                  'sensor_input': 'image', 'board_file': 'board.yaml', 'sensor_frame': 'cam'}
     assert Settings.from_values({**DEFAULTS, **link_only}).result_frames == ('flange', 'cam')
+
+
+def test_the_cores_own_defaults_are_the_tables():
+    # calibrate(samples), Replay(), print_result() use the configurations' dataclass defaults:
+    # they must be what the table makes of its defaults.
+    from quatcal_ros.core.planner import PlanLimits
+    from quatcal_ros.stream.message_checks import CheckConfig
+    from quatcal_ros.stream.session import SessionConfig
+    assert settings.session_config(Settings()) == SessionConfig()
+    assert settings.check_config(Settings()) == CheckConfig()
+    assert settings.plan_limits(Settings()) == PlanLimits()
