@@ -56,6 +56,11 @@ def isotropic_blocks(d, block=3):
     return Shape('isotropic', project, d // block, block)
 
 
+def diagonal(d):
+    """Return the Shape of any diagonal matrix: a variance per axis (d params)."""
+    return Shape('diagonal', isotropic_blocks(d, 1).project, d, 1)
+
+
 def full(d):
     """Return the Shape of any symmetric positive definite matrix (d (d + 1) / 2 params)."""
     return Shape('full', None, d * (d + 1) // 2)

@@ -58,11 +58,14 @@ NOISE_FLOOR = np.array([MIN_ROTATION_NOISE] * 3 + [MIN_TRANSLATION_NOISE] * 3) *
 # Residuals per sample and the samples' worth of them the 12 unknowns use up.
 DIMENSIONS = 6
 LOST_SAMPLES = 12 / DIMENSIONS
-# The shapes the noise's scale matrix may take; a full 6x6 one only from FULL_SHAPE_SAMPLES
-# samples on (fitted to fewer, its 21 entries follow the noise of the few: a nearly singular
-# matrix that weighs some directions without bound and reports a far too small uncertainty).
-ISOTROPIC = (heavy_tails.isotropic_blocks(DIMENSIONS),)
-SHAPES = ISOTROPIC + (heavy_tails.full(DIMENSIONS),)
+# The shapes the noise's scale matrix may take: one variance per block (rotation, translation)
+# or per axis (a camera's depth noise is several times its lateral noise: weighed as one, a
+# PnP-like sensor's samples gave errors 2.1-3.9x the Cramer-Rao bound at 12-20 samples, per
+# axis 1.2-1.6x); a full 6x6 one only from FULL_SHAPE_SAMPLES samples on (fitted to fewer,
+# its 21 entries follow the noise of the few: a nearly singular matrix that weighs some
+# directions without bound and reports a far too small uncertainty).
+DIAGONAL_SHAPES = (heavy_tails.isotropic_blocks(DIMENSIONS), heavy_tails.diagonal(DIMENSIONS))
+SHAPES = DIAGONAL_SHAPES + (heavy_tails.full(DIMENSIONS),)
 FULL_SHAPE_SAMPLES = 30
 # Weighted steps on the linearised model that start the refinement (_gaussian_start).
 GAUSSIAN_START_ITERATIONS = 3
@@ -324,7 +327,7 @@ def _fit(samples, model, robust, warm, max_iterations):
     Given `warm`, its models stay and only their scales and weights follow the steps.
     """
     grid = heavy_tails.NU_GRID if robust else (math.inf,)
-    shapes = SHAPES if len(samples) >= FULL_SHAPE_SAMPLES else ISOTROPIC
+    shapes = SHAPES if len(samples) >= FULL_SHAPE_SAMPLES else DIAGONAL_SHAPES
 
     def noise_at(e, noise):
         if warm is not None:
@@ -395,20 +398,22 @@ class _Sums:
     """
     The residuals e (N, 6) and Jacobian J (N, 6, 12) at an answer, and their per-sample parts.
 
-    Noise models of isotropic blocks (heavy_tails.NoiseFit.block) give each sample one
-    information per block of three residuals, so every normal matrix the estimate, its
-    leave-one-out and its jackknife form is a weighted sum of the same per-sample block
-    products J_ib^T J_ib and J_ib^T e_ib (`gram`, `gradient`): formed once, each sum is one
-    product (up to GRAM_SAMPLES samples; else, and for other noise models, from e and J).
+    Noise models of isotropic blocks (heavy_tails.NoiseFit.block: three residuals, or one
+    when the noise is per axis) give each sample one information per block, so every normal
+    matrix the estimate, its leave-one-out and its jackknife form is a weighted sum of the same
+    per-sample block products J_ib^T J_ib and J_ib^T e_ib (`gram`, `gradient`): formed once,
+    each sum is one product (up to GRAM_SAMPLES samples; else, and for full scale matrices,
+    from e and J).
     """
 
     def __init__(self, e, J, noise):
         self.e, self.J = e, J
-        self.blocks = noise.block == 3 and len(e) <= GRAM_SAMPLES
+        self.blocks = noise.block is not None and len(e) <= GRAM_SAMPLES
         if self.blocks:
-            blocks = J.reshape(len(J), -1, 3, J.shape[2])               # (N, 2, 3, 12)
-            self.gram = np.swapaxes(blocks, 2, 3) @ blocks               # (N, 2, 12, 12)
-            self.gradient = np.einsum('nbri,nbr->nbi', blocks, e.reshape(len(e), -1, 3))
+            size = noise.block
+            blocks = J.reshape(len(J), -1, size, J.shape[2])             # (N, 6 / size, size, 12)
+            self.gram = np.swapaxes(blocks, 2, 3) @ blocks               # (N, 6 / size, 12, 12)
+            self.gradient = np.einsum('nbri,nbr->nbi', blocks, e.reshape(len(e), -1, size))
 
     def normal_equations(self, information, diagonal):
         """

@@ -13,10 +13,11 @@ description and whether it is read-only in the live node.  Everything else is ma
 `Settings` holds one checked value per setting (plain Python numbers and strings); it is the
 only place where a default is chosen.  The core's configurations (CalibrationOptions,
 CaptureConfig, CheckConfig, PlanLimits, ...) restate them as their own defaults for callers
-without settings (`calibrate(samples)`); a test keeps the two equal.  Names mean one thing everywhere: min_motion_deg is the
-smallest motion the calibration uses (and the step of continuous capture unless
-continuous_step_deg is set); how far the link must depart from the last sample before the
-next still capture is derived from the still bands (`session_config`).
+without settings (`calibrate(samples)`); a test keeps the two equal.  Names mean one thing
+everywhere: min_motion_deg is the smallest motion the calibration uses (and the step of
+continuous capture unless continuous_step_deg is set); how far the link must depart from the
+last sample before the next still capture is derived from the still bands
+(`session_config`).
 """
 
 from dataclasses import asdict, dataclass, field, make_dataclass
