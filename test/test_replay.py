@@ -1,6 +1,7 @@
 """`python -m quatcal_ros replay BAG_DIR ...`: DESIGN.md contract 3 on rosbag2 recordings."""
 
 import csv
+import dataclasses
 import io
 import json
 import os
@@ -446,3 +447,26 @@ def test_a_stream_with_only_bad_messages_is_named_with_why(repo_root, streams, t
     assert done.returncode == 2, done.stderr
     assert 'no link poses from /link_pose' in done.stderr
     assert 'skipped (zero_quaternion), pose.orientation has norm 0' in done.stderr
+
+
+def test_a_marker_that_moves_during_the_bag_is_warned_about(tmp_path, capsys):
+    # The live node's moved-marker watch, run by replay over the whole bag: the marker turns
+    # by 3 deg while the robot moves to its 13th of 16 stops.
+    rng = np.random.default_rng(52)
+    cell = sim.random_cell(rng)
+    run = sim.stop_and_go_streams(rng, cell, 16, link_rate_hz=100.0, rotation_noise_deg=0.05,
+                                  translation_noise_m=0.0005)
+    moved_at = (run.stills[11][1] + run.stills[12][0]) // 2
+    turn = Pose(np.zeros(3), quat.from_axis_angle(np.array([0.6, 0.0, 0.8]), np.radians(3.0)))
+    sensor = [(stamp, pose @ turn if stamp > moved_at else pose) for stamp, pose in run.sensor]
+    moved = dataclasses.replace(run, sensor=sensor)
+    for name, streams in (('still', run), ('moved', moved)):
+        write_bag(tmp_path / name, {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED},
+                  topic_messages(streams, POSE_STAMPED), 'sqlite3')
+        assert replay_main([str(tmp_path / name), '--link-topic', '/link_pose',
+                            '--sensor-topic', '/sensor_pose', '--quiet']) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out['samples'] == 16
+        warned = [w for w in out['warnings'] if 'has the marker or the sensor moved' in w]
+        assert len(warned) == (name == 'moved'), out['warnings']
+    assert 'from sample 12 on' in warned[0]

@@ -358,6 +358,30 @@ def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before
         assert len(journal.read_journal(path).samples) == 10
 
 
+def test_a_full_disk_keeps_the_samples_and_the_estimate_going(tmp_path, monkeypatch,
+                                                               domain_id):
+    _, samples = synthetic_samples(11)
+    path = tmp_path / 'samples.csv'
+    with resumed_node(domain_id, path, samples[:7]) as node:
+        def full(fd, data):
+            raise OSError(errno.ENOSPC, 'No space left on device')
+        real_write = journal.os.write
+        monkeypatch.setattr(journal.os, 'write', full)
+        for sample in samples[7:9]:
+            node.handle_events(node.session.add_sample(sample))
+        status = node.diagnostic_status()
+        assert status.level == status.WARN
+        assert (f'2 captured samples not yet saved to {path} (No space left on device): they '
+                'are kept and written with the next sample') in status.message
+        assert node.session.result.samples == 9   # the estimate goes on
+        assert len(journal.read_journal(path).samples) == 7
+        monkeypatch.setattr(journal.os, 'write', real_write)   # space again
+        node.handle_events(node.session.add_sample(samples[9]))
+        assert 'not yet saved' not in node.diagnostic_status().message
+        written = [s.stamp_ns for s in journal.read_journal(path).samples]
+        assert written == [s.stamp_ns for s in samples[:10]]   # in order, no gap
+
+
 def test_a_due_full_solve_is_the_one_estimate_the_node_publishes(tmp_path, monkeypatch,
                                                                  domain_id):
     _, samples = synthetic_samples(20, seed=4)
