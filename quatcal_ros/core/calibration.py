@@ -297,9 +297,7 @@ def _reduced_result(samples, rotations, positions, motion, options, check=True):
               'set to zero: measure it and give known_translation (--known-translation)')
     warning = (f'{what}; its value there ({", ".join(f"{v:.4f}" for v in value)} m) is '
                f'{source}; the uncertainty covers only what the data determine')
-    rotation_rms = np.sqrt(2.0 * np.sum((found.rotation_residuals
-                                         - found.rotation_residuals.mean(axis=0)) ** 2)
-                           / max(n - 1, 1))
+    rotation_rms = _all_pairs_rms(found.rotation_residuals)
     closed = Estimate(found.start_q, found.start_t, float('nan'), float('nan'))
     refined = Estimate(found.x_q, found.x_t, deg, mm)
     noise_deg, noise_mm = np.degrees(found.noise[0]), 1e3 * found.noise[3]
@@ -364,6 +362,17 @@ def _axis_text(axis):
     return '[' + ', '.join(f'{v:.2f}' for v in axis) + ']'
 
 
+def _all_pairs_rms(residuals):
+    """
+    Return the RMS residual angle (radians) of all pairs' motions from the samples' residuals.
+
+    Over all pairs, sum_{i<j} |e_j - e_i|^2 = K sum_i |e_i - mean|^2 (to first order the
+    motion residual angle is |e_j - e_i|), over the K (K - 1) / 2 motions.
+    """
+    centred = residuals - residuals.mean(axis=0)
+    return float(np.sqrt(2.0 * np.sum(centred ** 2) / max(len(residuals) - 1, 1)))
+
+
 # --- rotation stage --------------------------------------------------------------------------
 
 def _all_pairs(rotations, options, start):
@@ -402,11 +411,7 @@ def _all_pairs(rotations, options, start):
         residuals, mean = quality.object_residuals(rotations, q_z, sample_ok)
     good = residuals[sample_ok]
     k = _count(sample_ok)
-    # Over all pairs, sum_{i<j} |e_j - e_i|^2 = K sum_i |e_i - mean|^2 (to first order the
-    # motion residual angle is |e_j - e_i|).
-    centred = good - good.mean(axis=0)
-    rms = float(np.sqrt(2.0 * np.sum(centred ** 2) / max(k - 1, 1)))
-    return _Fit(q_z, sample_ok, info, motion_count(k), rms,
+    return _Fit(q_z, sample_ok, info, motion_count(k), _all_pairs_rms(good),
                 _rejected_samples(rotations, q_z, sample_ok, detections, k - 1), residuals, mean)
 
 
@@ -694,8 +699,7 @@ def _check_excitation(info, count, options):
         frame = _parent_frame(options)
         raise DegenerateMotionError(
             f'Case 1: all {count} usable motions rotate about (nearly) the same axis, '
-            f'{quality.nearest_axis_name(axis, frame)} ([{", ".join(f"{c:.2f}" for c in axis)}]'
-            '), so the rotation about it is undetermined; '
+            f'{quality.nearest_axis_name(axis, frame)} ({_axis_text(axis)}), so the rotation about it is undetermined; '
             + quality.next_motion_hint(0.0, axis, frame))
     return info
 

@@ -230,8 +230,16 @@ def urdf_rpy(result):
     return float(np.arctan2(R[2, 1], R[2, 2])), pitch, float(np.arctan2(R[1, 0], R[0, 0]))
 
 
-def _joint_name(child_frame):
-    return f'{child_frame}_mount_joint'
+def _joint(result, parent_link, child_frame, indent=''):
+    """Return the fixed <joint> element of the result; parent_link: the (escaped) link name."""
+    xyz = ' '.join(_number(v) for v in _translation(result))
+    rpy = ' '.join(_number(v) for v in urdf_rpy(result))
+    lines = [f'<joint name="{escape(f"{child_frame}_mount_joint")}" type="fixed">',
+             f'  <parent link="{parent_link}"/>',
+             f'  <child link="{escape(str(child_frame))}"/>',
+             f'  <origin xyz="{xyz}" rpy="{rpy}"/>',
+             '</joint>']
+    return ''.join(f'{indent}{line}\n' for line in lines)
 
 
 def urdf_joint(result, parent_frame, child_frame):
@@ -241,13 +249,7 @@ def urdf_joint(result, parent_frame, child_frame):
     <joint name=".." type="fixed"><parent link=".."/><child link=".."/><origin xyz=".."
     rpy=".."/></joint>, to commit the mounting into a robot description.
     """
-    xyz = ' '.join(_number(v) for v in _translation(result))
-    rpy = ' '.join(_number(v) for v in urdf_rpy(result))
-    return (f'<joint name="{escape(_joint_name(child_frame))}" type="fixed">\n'
-            f'  <parent link="{escape(str(parent_frame))}"/>\n'
-            f'  <child link="{escape(str(child_frame))}"/>\n'
-            f'  <origin xyz="{xyz}" rpy="{rpy}"/>\n'
-            '</joint>\n')
+    return _joint(result, escape(str(parent_frame)), child_frame)
 
 
 def xacro_macro(result, parent_frame, child_frame):
@@ -257,16 +259,10 @@ def xacro_macro(result, parent_frame, child_frame):
     <xacro:CHILD_mount parent="PARENT"/> in a robot's xacro adds the joint (the child link
     itself is the sensor driver's or the description's).
     """
-    xyz = ' '.join(_number(v) for v in _translation(result))
-    rpy = ' '.join(_number(v) for v in urdf_rpy(result))
     name = escape(f'{child_frame}_mount')
     return ('<?xml version="1.0"?>\n'
             '<robot xmlns:xacro="http://www.ros.org/wiki/xacro">\n'
             f'  <xacro:macro name="{name}" params="parent:={escape(str(parent_frame))}">\n'
-            f'    <joint name="{escape(_joint_name(child_frame))}" type="fixed">\n'
-            '      <parent link="${parent}"/>\n'
-            f'      <child link="{escape(str(child_frame))}"/>\n'
-            f'      <origin xyz="{xyz}" rpy="{rpy}"/>\n'
-            '    </joint>\n'
-            '  </xacro:macro>\n'
+            + _joint(result, '${parent}', child_frame, indent='    ')
+            + '  </xacro:macro>\n'
             '</robot>\n')
