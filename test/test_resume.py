@@ -359,7 +359,7 @@ def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before
 
 
 def test_a_full_disk_keeps_the_samples_and_the_estimate_going(tmp_path, monkeypatch,
-                                                               domain_id):
+                                                              domain_id):
     _, samples = synthetic_samples(11)
     path = tmp_path / 'samples.csv'
     with resumed_node(domain_id, path, samples[:7]) as node:

@@ -699,7 +699,8 @@ def _check_excitation(info, count, options):
         frame = _parent_frame(options)
         raise DegenerateMotionError(
             f'Case 1: all {count} usable motions rotate about (nearly) the same axis, '
-            f'{quality.nearest_axis_name(axis, frame)} ({_axis_text(axis)}), so the rotation about it is undetermined; '
+            f'{quality.nearest_axis_name(axis, frame)} ({_axis_text(axis)}), so the rotation '
+            'about it is undetermined; '
             + quality.next_motion_hint(0.0, axis, frame))
     return info
 
