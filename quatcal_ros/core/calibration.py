@@ -113,9 +113,8 @@ class Estimate:
 
     def to_json_dict(self):
         """Return rotation {x, y, z, w}, translation {x, y, z} and the uncertainties."""
-        x, y, z, w = quat.xyzw_from_wxyz(self.quaternion)
-        return {'rotation': {'x': float(x), 'y': float(y), 'z': float(z), 'w': float(w)},
-                'translation': dict(zip('xyz', (float(v) for v in self.translation))),
+        return {'rotation': quat.xyzw_json(self.quaternion),
+                'translation': quat.xyz_json(self.translation),
                 'uncertainty_deg': _finite_or_none(self.uncertainty_deg),
                 'translation_uncertainty_mm': _finite_or_none(self.translation_uncertainty_mm)}
 
@@ -165,9 +164,8 @@ class CalibrationResult:
 
     def to_json_dict(self):
         """Return the JSON object of DESIGN.md contract 3 (plus extra keys, never renamed)."""
-        x, y, z, w = quat.xyzw_from_wxyz(self.quaternion)
         return {
-            'rotation': {'x': float(x), 'y': float(y), 'z': float(z), 'w': float(w)},
+            'rotation': quat.xyzw_json(self.quaternion),
             'matrix': [[float(v) for v in row] for row in self.matrix],
             'samples': self.samples,
             'motions': self.motions,
@@ -183,7 +181,7 @@ class CalibrationResult:
             'excitation': self.excitation,
             'weakest_axis': [float(v) for v in self.weakest_axis],
             'hint': self.hint,
-            'translation': dict(zip('xyz', (float(v) for v in self.translation))),
+            'translation': quat.xyz_json(self.translation),
             'translation_uncertainty_mm': _finite_or_none(self.translation_uncertainty_mm),
             'translation_noise_mm': _finite_or_none(self.translation_noise_mm),
             'method': self.method,

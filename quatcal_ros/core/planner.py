@@ -53,9 +53,8 @@ class NextPose:
 
     def to_json_dict(self):
         """Return contract 6's "next_pose": position, orientation (x, y, z, w), the gains."""
-        x, y, z, w = quat.xyzw_from_wxyz(self.link.quaternion)
-        return {'position': dict(zip('xyz', (float(v) for v in self.link.position))),
-                'orientation': {'x': float(x), 'y': float(y), 'z': float(z), 'w': float(w)},
+        return {'position': quat.xyz_json(self.link.position),
+                'orientation': quat.xyzw_json(self.link.quaternion),
                 'frame': 'robot base (the frame of the link poses)',
                 'expected_uncertainty_deg': float(self.uncertainty_deg),
                 'expected_translation_uncertainty_mm': float(self.translation_uncertainty_mm),

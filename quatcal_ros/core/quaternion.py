@@ -29,6 +29,16 @@ def xyzw_from_wxyz(q_wxyz):
     return np.concatenate([q[..., 1:4], q[..., 0:1]], axis=-1)
 
 
+def xyzw_json(q_wxyz):
+    """Return the JSON object {"x", "y", "z", "w"} (floats) of a quaternion (w, x, y, z)."""
+    return dict(zip('xyzw', (float(v) for v in xyzw_from_wxyz(q_wxyz))))
+
+
+def xyz_json(v):
+    """Return the JSON object {"x", "y", "z"} (floats) of a 3-vector."""
+    return dict(zip('xyz', (float(c) for c in v)))
+
+
 def skew(v):
     """Return the cross-product matrix of eq. (9): its product with b is the cross product."""
     v = np.asarray(v, dtype=float)

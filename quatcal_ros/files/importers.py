@@ -36,7 +36,8 @@ from pathlib import Path
 
 import numpy as np
 from quatcal_ros.core.pose import Pose, Sample
-from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw
+from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw, xyz_json, \
+    xyzw_json
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, quaternion_norm_problem
 from quatcal_ros.files import exports, journal, plain_yaml
 from quatcal_ros.files.samples_csv import BadInputError, read_samples
@@ -374,9 +375,7 @@ def load_samples(path, file_format='auto', setup=None):
 # --- writers (tests, and moving samples to those tools) -------------------------------------
 
 def _transform_dict(pose):
-    w, x, y, z = (float(v) for v in pose.quaternion)
-    return {'translation': dict(zip('xyz', (float(v) for v in pose.position))),
-            'rotation': {'x': x, 'y': y, 'z': z, 'w': w}}
+    return {'translation': xyz_json(pose.position), 'rotation': xyzw_json(pose.quaternion)}
 
 
 def format_easy_handeye2_samples(samples, setup='eye_in_hand', parameters=None):

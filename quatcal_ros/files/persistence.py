@@ -41,6 +41,7 @@ from pathlib import Path
 import tempfile
 
 import numpy as np
+from quatcal_ros.core import quaternion as quat
 from quatcal_ros.files import exports
 from quatcal_ros.files import plain_yaml
 
@@ -144,7 +145,8 @@ def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extr
         'setup': str(setup),
         'method': str(getattr(result, 'method', '') or ''),
         'rotation': {'x': x, 'y': y, 'z': z, 'w': w},
-        'translation': None if translation is None else _xyz(translation),
+        'translation': None if translation is None else quat.xyz_json(
+            np.asarray(translation, dtype=float).reshape(3)),
         'matrix': [[float(v) for v in row] for row in matrix],
         'quality': quality,
         'estimates': {name: _estimate(getattr(result, name, None))
@@ -164,10 +166,6 @@ def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extr
     if extra:
         document.update(extra)
     return document
-
-
-def _xyz(vector):
-    return dict(zip('xyz', (float(v) for v in np.asarray(vector, dtype=float).reshape(3))))
 
 
 def _estimate(estimate):

@@ -130,10 +130,9 @@ def plan_document(args):
                            (args.noise_deg, args.noise_mm), limits)
     poses = []
     for step in planned:
-        x, y, z, w = quat.xyzw_from_wxyz(step.link.quaternion)
         poses.append({
-            'position': dict(zip('xyz', (float(v) for v in step.link.position))),
-            'orientation': {'x': float(x), 'y': float(y), 'z': float(z), 'w': float(w)},
+            'position': quat.xyz_json(step.link.position),
+            'orientation': quat.xyzw_json(step.link.quaternion),
             'expected_uncertainty_deg': _number(step.uncertainty_deg),
             'expected_translation_uncertainty_mm': _number(step.translation_uncertainty_mm)})
     return {'frame': args.frame, 'setup': args.setup, 'poses': poses,

@@ -72,10 +72,9 @@ class ReprojectionFit(ReportedUncertainty):
 
     def to_json_dict(self):
         """Return the JSON object of the fit (the "reprojection" key of `solve DIR`)."""
-        x, y, z, w = quat.xyzw_from_wxyz(self.quaternion)
         model = uncertainties(self.model_covariance[:6, :6])
-        return {'rotation': {'x': float(x), 'y': float(y), 'z': float(z), 'w': float(w)},
-                'translation': dict(zip('xyz', (float(v) for v in self.translation))),
+        return {'rotation': quat.xyzw_json(self.quaternion),
+                'translation': quat.xyz_json(self.translation),
                 'uncertainty_deg': float(self.uncertainty_deg),
                 'translation_uncertainty_mm': float(self.translation_uncertainty_mm),
                 'uncertainty_from': ('view_jackknife' if self.resampled is not None
