@@ -18,9 +18,10 @@ bootstrap:
 demo: bootstrap
 	$(PY) -m quatcal_ros demo $(DEMO_ARGS)
 
-# Ends with pytest's own summary line (.ci/run reads it).
+# Ends with pytest's own summary line (.ci/run reads it). No bytecode in the tree from the
+# modules pytest imports before test/conftest.py moves the caches to the session directory.
 test: bootstrap
-	$(PY) -m pytest -p no:cacheprovider $(PYTEST_ARGS) test
+	PYTHONDONTWRITEBYTECODE=1 $(PY) -m pytest -p no:cacheprovider $(PYTEST_ARGS) test
 
 # Each benchmark is a script that prints a table; they run one after the other.
 bench: bootstrap

@@ -61,6 +61,8 @@ def pytest_configure(config):
     # tables) and Python's bytecode of this process's later imports and of every subprocess.
     set_hypothesis_home_dir(str(home / '.hypothesis'))
     os.environ['PYTHONPYCACHEPREFIX'] = sys.pycache_prefix = str(home / 'pycache')
+    sys.dont_write_bytecode = False   # (make test starts without: only until now)
+    os.environ.pop('PYTHONDONTWRITEBYTECODE', None)
 
 
 def pytest_sessionfinish(session, exitstatus):

@@ -125,9 +125,18 @@ def test_the_per_block_sums_give_the_answer_of_the_general_ones(noise, monkeypat
     # refine._Sums forms per-sample block products once when each sample's information is
     # one number per block of 3 residuals (isotropic) or per residual (per axis).
     from quatcal_ros.core import refine
+    made = []
+
+    class Recorded(refine._Sums):
+        def __init__(self, *args):
+            super().__init__(*args)
+            made.append(self.blocks)
+    monkeypatch.setattr(refine, '_Sums', Recorded)
     for cell, samples in cells(noise, 20, 3, seed=60):
+        made.clear()
         fast = calibrate(samples)
         assert fast.noise_model['shape'] == {'isotropic': 'isotropic', 'pnp': 'diagonal'}[noise]
+        assert made and all(made)   # the per-block sums, not the general ones
         with monkeypatch.context() as patch:
             patch.setattr(refine, 'GRAM_SAMPLES', 0)
             general = calibrate(samples)

@@ -278,6 +278,31 @@ def test_resume_is_refused_for_another_setup_or_frames(tmp_path, domain_id):
     assert aside_files(tmp_path, 'previous') == aside_files(tmp_path, 'corrupt') == []
 
 
+def test_an_earlier_versions_eye_to_hand_journal_resumes_under_the_named_base(tmp_path,
+                                                                              domain_id):
+    # Before, eye-to-hand sessions without link_frame named the robot base 'tool0' (the
+    # flange default) in the journal; now the base is link_frame_id or base_link. Such a
+    # journal resumes, its first line rewritten; a runtime change of link_frame_id, which now
+    # names the base, is recorded there too.
+    _, samples = synthetic_samples(4)
+    path = tmp_path / 'samples.csv'
+    write_journal(path, samples, JournalHeader('eye_to_hand', 'tool0', 'camera'))
+    node, context = make_node(domain_id, Parameter('samples_file', value=str(path)),
+                              Parameter('resume', value=True),
+                              Parameter('setup', value='eye_to_hand'))
+    try:
+        assert len(node.session.samples) == 4
+        assert journal.read_journal(path).header == JournalHeader('eye_to_hand', 'base_link',
+                                                                  'camera')
+        (changed,) = node.set_parameters([Parameter('link_frame_id', value='world')])
+        assert changed.successful
+        contents = journal.read_journal(path)
+        assert contents.header == JournalHeader('eye_to_hand', 'world', 'camera')
+        assert len(contents.samples) == 4
+    finally:
+        close_node(node, context)
+
+
 def test_a_second_node_on_the_same_samples_file_is_refused(tmp_path, domain_id):
     path = tmp_path / 'samples.csv'
     node, context = make_node(domain_id, Parameter('samples_file', value=str(path)))

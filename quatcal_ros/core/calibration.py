@@ -202,6 +202,9 @@ def calibrate(samples, options=CalibrationOptions()):
     """
     Estimate A_z from still samples (list of pose.Sample); see the module docstring.
 
+    Every sample counts as a measurement: exact copies (a row written twice) are the caller's
+    to drop, as session.Session does for the tools and the node.
+
     Raises DegenerateMotionError (a ValueError) with the reason and the motion that would
     help when the samples cannot determine the rotation.
     """

@@ -58,14 +58,18 @@ NOISE_FLOOR = np.array([MIN_ROTATION_NOISE] * 3 + [MIN_TRANSLATION_NOISE] * 3) *
 # Residuals per sample and the samples' worth of them the 12 unknowns use up.
 DIMENSIONS = 6
 LOST_SAMPLES = 12 / DIMENSIONS
-# The shapes the noise's scale matrix may take: one variance per block (rotation, translation)
-# or per axis (a camera's depth noise is several times its lateral noise: weighed as one, a
-# PnP-like sensor's samples gave errors 2.1-3.9x the Cramer-Rao bound at 12-20 samples, per
-# axis 1.2-1.6x); a full 6x6 one only from FULL_SHAPE_SAMPLES samples on (fitted to fewer,
-# its 21 entries follow the noise of the few: a nearly singular matrix that weighs some
-# directions without bound and reports a far too small uncertainty).
-DIAGONAL_SHAPES = (heavy_tails.isotropic_blocks(DIMENSIONS), heavy_tails.diagonal(DIMENSIONS))
+# The shapes the noise's scale matrix may take: one variance per block (rotation, translation);
+# from PER_AXIS_SAMPLES on also one per axis (a camera's depth noise is several times its
+# lateral noise: weighed as one, a PnP-like sensor's samples gave errors 2.1-3.9x the
+# Cramer-Rao bound at 12-20 samples, per axis 1.2-1.6x; with fewer samples its 4 more
+# variances cost isotropic noise 15-20 % of accuracy at 6 samples for PnP-like noise's
+# 25 % gain, 2-9 % against 31-43 % at 8); a full 6x6 one only from FULL_SHAPE_SAMPLES samples
+# on (fitted to fewer, its 21 entries follow the noise of the few: a nearly singular matrix
+# that weighs some directions without bound and reports a far too small uncertainty).
+BLOCK_SHAPES = (heavy_tails.isotropic_blocks(DIMENSIONS),)
+DIAGONAL_SHAPES = BLOCK_SHAPES + (heavy_tails.diagonal(DIMENSIONS),)
 SHAPES = DIAGONAL_SHAPES + (heavy_tails.full(DIMENSIONS),)
+PER_AXIS_SAMPLES = 8
 FULL_SHAPE_SAMPLES = 30
 # Weighted steps on the linearised model that start the refinement (_gaussian_start).
 GAUSSIAN_START_ITERATIONS = 3
@@ -327,7 +331,8 @@ def _fit(samples, model, robust, warm, max_iterations):
     Given `warm`, its models stay and only their scales and weights follow the steps.
     """
     grid = heavy_tails.NU_GRID if robust else (math.inf,)
-    shapes = SHAPES if len(samples) >= FULL_SHAPE_SAMPLES else DIAGONAL_SHAPES
+    shapes = (SHAPES if len(samples) >= FULL_SHAPE_SAMPLES else
+              DIAGONAL_SHAPES if len(samples) >= PER_AXIS_SAMPLES else BLOCK_SHAPES)
 
     def noise_at(e, noise):
         if warm is not None:

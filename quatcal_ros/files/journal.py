@@ -29,7 +29,7 @@ flock so that two nodes configured with the same samples_file do not write into 
 The file is data: it is parsed as numbers, never evaluated.  No rclpy here.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import errno
 import io
 import os
@@ -37,6 +37,7 @@ from pathlib import Path
 import time
 from urllib.parse import quote, unquote
 
+from quatcal_ros.core.units import DEFAULT_FRAMES
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import BadInputError, COLUMNS, format_samples, \
     header_columns, parse_samples
@@ -49,6 +50,8 @@ except ImportError:   # pragma: no cover
 MAGIC = '# quatcal_ros samples journal'
 VERSION = 1
 HEADER_KEYS = ('setup', 'link_frame', 'sensor_frame')
+# The robot base of eye-to-hand journals of earlier versions when link_frame was not set.
+LEGACY_BASE_FRAME = DEFAULT_FRAMES['eye_in_hand'][0]
 SAFE_CHARACTERS = '/_.:-'
 CORRUPT = 'corrupt'     # tag of a moved-aside file that is corrupt or foreign
 PREVIOUS = 'previous'   # tag of a moved-aside journal of an earlier session
@@ -469,6 +472,17 @@ def start(path, header, resume, now=None):
         raise
 
 
+def _unnamed_base(recorded, wanted):
+    """
+    Return whether `recorded` is an eye-to-hand header of an earlier version's default base.
+
+    Before they took link_frame_id or base_link, eye-to-hand sessions left link_frame at its
+    default named the robot base LEGACY_BASE_FRAME (a flange's name): no frame was named.
+    """
+    return (recorded.setup == wanted.setup == 'eye_to_hand'
+            and recorded.link_frame == LEGACY_BASE_FRAME != wanted.link_frame)
+
+
 def _start_locked(path, header, resume, lock_fd, now):
     report = StartReport()
     try:
@@ -489,7 +503,11 @@ def _start_locked(path, header, resume, lock_fd, now):
                       f'starting a new journal at {path}'))
         return Journal.create(path, header, lock_fd), report
     if resume:
-        differences = contents.header.differences(header)
+        recorded = contents.header
+        unnamed = _unnamed_base(recorded, header)
+        # An earlier version's unnamed base is compared as the base the parameters name.
+        differences = (replace(recorded, link_frame=header.link_frame) if unnamed
+                       else recorded).differences(header)
         if differences:
             raise JournalRefused(
                 f'resume:=true refused: {path} was recorded with {", ".join(differences)}; '
@@ -504,7 +522,15 @@ def _start_locked(path, header, resume, lock_fd, now):
         report.messages.append(
             ('info', f'resumed {len(report.samples)} samples from {path}; new samples are '
                      'appended to it'))
-        return Journal(path, contents.header, len(report.samples), lock_fd), report
+        resumed = Journal(path, recorded, len(report.samples), lock_fd)
+        if unnamed:
+            resumed.set_header(header)
+            report.messages.append(
+                ('warning', f'{path} named the eye-to-hand robot base {LEGACY_BASE_FRAME!r}, '
+                            'the flange frame earlier versions put there when link_frame was '
+                            f'not set: taken as {header.link_frame!r}, and its first line '
+                            'rewritten'))
+        return resumed, report
     if contents.samples or contents.notices:
         report.moved_to = move_aside(path, PREVIOUS, now)
         report.messages.append(
