@@ -413,8 +413,7 @@ class CalibratorNode(Node):
         changed = [n for n, v in self.config.as_dict().items() if old.as_dict()[n] != v]
         if changed:
             self.get_logger().info(f'parameters changed: {", ".join(changed)}')
-        # The frames follow link_frame_id and the TF frames too (Settings.result_frames).
-        if (old.setup, old.result_frames) != (self.config.setup, self.config.result_frames):
+            # The header follows setup and the result frames (set_header writes only a new one).
             self.log.messages(self.journal.set_header(self._journal_header()))
         if 'publish_tf' in changed:
             self._start_tf_broadcast()
