@@ -86,3 +86,17 @@ def test_the_simulated_clock_offset_mode_is_found_and_undone():
         assert a.stamp_ns == b.stamp_ns
         np.testing.assert_allclose(a.link.as_matrix(), b.link.as_matrix(), atol=1e-12)
         np.testing.assert_allclose(a.sensor.as_matrix(), b.sensor.as_matrix(), atol=1e-12)
+
+
+def test_each_offset_is_scored_once(streams, monkeypatch):
+    """Every residual the search and its report ask for is one calibration, however often."""
+    from quatcal_ros.stream import time_offset
+    scored, calibrate = [], time_offset.calibrate
+
+    def counting(samples, options):
+        scored.append(samples[0].stamp_ns)   # a frame's stamp plus the offset scored
+        return calibrate(samples, options)
+    monkeypatch.setattr(time_offset, 'calibrate', counting)
+    report, _ = find_time_offset(streams.link, streams.sensor, SessionConfig())
+    assert len(scored) >= 10   # the golden-section search, then the residuals reported
+    assert len(set(scored)) == len(scored)

@@ -14,6 +14,7 @@ late needs an offset of -30 ms.
 """
 
 from dataclasses import dataclass, replace
+from functools import lru_cache
 import heapq
 
 import numpy as np
@@ -174,6 +175,7 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
               for sample in replay_streams(link, sensor, config, coarse.offset_ns).samples]
     link_at = _interpolator(link)
 
+    @lru_cache(maxsize=None)   # each offset is a full calibration: the report asks again
     def residual(offset_ns):
         samples = [Sample(stamp + offset_ns, link_at(stamp + offset_ns), pose)
                    for stamp, pose in frames]
