@@ -276,3 +276,5 @@ def test_a_file_appended_to_itself_gives_the_answer_of_the_file(tmp_path, capsys
     warning, = [w for w in doubled['warnings'] if 'repeat earlier ones exactly' in w]
     assert warning.startswith('12 sample(s) repeat earlier ones exactly')
     assert '12 = 0, 13 = 1, 14 = 2' in warning and ', ...)' in warning
+    assert warning.endswith('the sample numbers elsewhere in this output count the samples '
+                            'kept, in file order')

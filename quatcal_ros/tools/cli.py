@@ -154,7 +154,8 @@ def _copies_warning(copies):
     more = ', ...' if len(copies) > 10 else ''
     return [f'{len(copies)} sample(s) repeat earlier ones exactly (sample = the one it repeats, '
             f'numbered from 0 in the file: {pairs}{more}): a copied row is not a new '
-            'measurement, so each was counted once']
+            'measurement, so each was counted once; the sample numbers elsewhere in this '
+            'output count the samples kept, in file order']
 
 
 def add_report_argument(parser):
