@@ -12,8 +12,9 @@ import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate
 from quatcal_ros.core.pose import Pose, Sample
-from quatcal_ros.files.samples_csv import BadInputError, COLUMNS, COVARIANCE_COLUMNS, \
-    format_samples, parse_samples
+from quatcal_ros.files.samples_csv import COLUMNS, COVARIANCE_COLUMNS, format_samples, \
+    parse_samples
+from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.sim import simulation
 
 

@@ -32,11 +32,11 @@ import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.files import plain_yaml
-from quatcal_ros.files.samples_csv import BadInputError
 from quatcal_ros.files.samples_csv import COLUMNS
 from quatcal_ros.files.samples_csv import format_samples
 from quatcal_ros.files.samples_csv import parse_samples
 from quatcal_ros.files.samples_csv import read_samples
+from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.bag import Bag
 from quatcal_ros.ros.bag import BagError

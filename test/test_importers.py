@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.files import importers
-from quatcal_ros.files.samples_csv import BadInputError, format_samples
+from quatcal_ros.files.samples_csv import format_samples
+from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.sim import simulation
 import yaml
 
@@ -387,3 +388,25 @@ def test_spreadsheet_csv_details(tmp_path):
         with pytest.raises(BadInputError, match='row 2') as caught:
             importers.load_samples(path)
         assert words in str(caught.value)
+
+
+@pytest.mark.parametrize('read', ['samples_csv', 'yaml', 'robot_poses', 'import'])
+@pytest.mark.parametrize('problem', ['missing', 'directory', 'late_binary'])
+def test_every_reader_names_the_file_it_cannot_read(tmp_path, read, problem):
+    """One way to open a user's file: the same error, also for bad bytes deep in the file."""
+    from quatcal_ros.files import plain_yaml
+    from quatcal_ros.files.importers import load_samples
+    from quatcal_ros.files.samples_csv import read_samples
+    from quatcal_ros.vision.dataset import read_robot_poses
+    readers = {'samples_csv': read_samples, 'yaml': plain_yaml.load_file,
+               'robot_poses': read_robot_poses, 'import': lambda path: load_samples(path, 'auto')}
+    path = tmp_path / 'input.csv'
+    if problem == 'directory':
+        path.mkdir()
+    elif problem == 'late_binary':   # past the first read's buffer (robot poses: the header)
+        text = (b'image,link_x,link_y,link_z,link_qx,link_qy,link_qz,link_qw\n'
+                if read == 'robot_poses' else b'# a comment\n' * 20000)
+        path.write_bytes(text + b'\xff\xfe\x00')
+    expected = 'not a text file' if problem == 'late_binary' else 'cannot read'
+    with pytest.raises(BadInputError, match=f'input.csv: {expected}'):
+        readers[read](path)

@@ -21,7 +21,7 @@ import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate
 from quatcal_ros.core.pose import Pose, residual_order, Sample
-from quatcal_ros.files.samples_csv import BadInputError
+from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.tools.cli import solve_main
 from quatcal_ros.vision.board import parse_board
 from quatcal_ros.vision.camera import camera_from, parse_camera

@@ -25,7 +25,7 @@ Formats (each checked against the tool's source):
   of `[eef_wrt_world, obj_wrt_sensor]` pairs of nested 4x4 row-major matrices.
 
 The files hold no time stamps: sample i gets the stamp i seconds.  YAML is read with
-yaml.safe_load only (plain data, never objects).  Errors are samples_csv.BadInputError naming
+yaml.safe_load only (plain data, never objects).  Errors are text_input.BadInputError naming
 the file, the entry and the field, e.g. `cell.samples, entry samples[3], field
 robot.rotation.w: 'abc' is not a number`.
 """
@@ -40,7 +40,8 @@ from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw, 
     xyzw_json
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, quaternion_norm_problem
 from quatcal_ros.files import exports, journal, plain_yaml
-from quatcal_ros.files.samples_csv import BadInputError, read_samples
+from quatcal_ros.files.samples_csv import read_samples
+from quatcal_ros.files.text_input import BadInputError, read_text
 
 FORMATS = ('csv', 'easy_handeye2', 'moveit', 'moveit-json')
 # A 4x4 matrix whose rotation block is farther than this from orthonormal (max |R^T R - I|)
@@ -68,16 +69,6 @@ class ImportedSamples:
 
 
 # --- reading files ---------------------------------------------------------------------------
-
-def _read_text(path):
-    try:
-        with open(path, encoding='utf-8') as stream:
-            return stream.read()
-    except OSError as error:
-        raise BadInputError(f'{path}: cannot read: {error.strerror}') from None
-    except UnicodeDecodeError:
-        raise BadInputError(f'{path}: not a text file (UTF-8 expected)') from None
-
 
 def _load_yaml(text, name):
     return plain_yaml.load(text, name, holds='a samples file')
@@ -349,7 +340,7 @@ def load_samples(path, file_format='auto', setup=None):
         file_format = SUFFIX_FORMATS.get(suffix, 'auto')
     if file_format == 'csv':
         return _csv_samples(path)
-    text = _read_text(path)
+    text = read_text(path)
     if file_format == 'auto' and _is_csv(text):
         return _csv_samples(path)
     if not text.strip():

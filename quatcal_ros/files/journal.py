@@ -39,8 +39,8 @@ from urllib.parse import quote, unquote
 
 from quatcal_ros.core.units import DEFAULT_FRAMES
 from quatcal_ros.files.persistence import atomic_write_text
-from quatcal_ros.files.samples_csv import BadInputError, COLUMNS, format_samples, \
-    header_columns, parse_samples
+from quatcal_ros.files.samples_csv import COLUMNS, format_samples, header_columns, parse_samples
+from quatcal_ros.files.text_input import BadInputError
 
 try:   # POSIX; elsewhere journals are not locked
     import fcntl

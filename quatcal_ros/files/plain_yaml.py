@@ -13,7 +13,7 @@ BadInputError that names the file and, where known, the line.
 import functools
 import json
 
-from quatcal_ros.files.samples_csv import BadInputError
+from quatcal_ros.files.text_input import BadInputError, read_text
 
 MAX_BYTES = 64 * 1024 * 1024      # far above any samples or result file (a sample: ~400 B)
 MAX_DEPTH = 64                    # a samples file nests 5 levels
@@ -59,14 +59,7 @@ def _loader():
 
 def load_file(path, holds='the file'):
     """Return the plain data of the YAML file `path` (load's errors, and 'cannot read')."""
-    try:
-        with open(path, encoding='utf-8') as stream:
-            text = stream.read()
-    except OSError as error:
-        raise BadInputError(f'{path}: cannot read: {error.strerror}') from None
-    except UnicodeDecodeError:
-        raise BadInputError(f'{path}: not a text file (UTF-8 expected)') from None
-    return load(text, str(path), holds)
+    return load(read_text(path), str(path), holds)
 
 
 def load(text, name, holds='the file'):

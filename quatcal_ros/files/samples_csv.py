@@ -22,6 +22,7 @@ import math
 import numpy as np
 from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, quaternion_norm_problem
+from quatcal_ros.files.text_input import BadInputError, open_text
 
 COLUMNS = ('stamp',
            'link_x', 'link_y', 'link_z', 'link_qx', 'link_qy', 'link_qz', 'link_qw',
@@ -34,20 +35,11 @@ COVARIANCE_COLUMNS = tuple(f'sensor_cov_{COVARIANCE_AXES[i]}_{COVARIANCE_AXES[j]
 MAX_STAMP_S = 2 ** 63 / 1e9
 
 
-class BadInputError(ValueError):
-    """Input that cannot be used; the message names the file, row and field."""
-
-
 def read_samples(path):
     """Read samples (list of pose.Sample) from a samples CSV file; raise BadInputError."""
-    try:
-        # utf-8-sig: the byte-order mark that spreadsheet programs write is not a column name.
-        with open(path, newline='', encoding='utf-8-sig') as stream:
-            return parse_samples(stream, str(path))
-    except OSError as error:
-        raise BadInputError(f'{path}: cannot read: {error.strerror}') from None
-    except UnicodeDecodeError:
-        raise BadInputError(f'{path}: not a text file (UTF-8 expected)') from None
+    # utf-8-sig: the byte-order mark that spreadsheet programs write is not a column name.
+    with open_text(path, 'utf-8-sig', newline='') as stream:
+        return parse_samples(stream, str(path))
 
 
 def parse_samples(stream, name='<samples>'):

@@ -8,7 +8,7 @@ vision.image_sensor.ImageSensor find the board. A view that cannot be used is co
 sensor stream under its reason (IMAGE_REASONS) and skipped, like a malformed pose message.
 """
 
-from quatcal_ros.files.samples_csv import BadInputError
+from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.ros.conversions import BadImageError, camera_from_camera_info, \
     gray_from_image_msg
 from quatcal_ros.stream.message_checks import SENSOR

@@ -35,8 +35,8 @@ from quatcal_ros.core.planner import plan_next_pose
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.files import exports
 from quatcal_ros.files import journal
-from quatcal_ros.files.samples_csv import BadInputError
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
+from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros import markers
 from quatcal_ros.ros import parameters

@@ -18,7 +18,7 @@ reason, logged at most every 5 s, and skipped.
 
 import cv2
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from quatcal_ros.files.samples_csv import BadInputError
+from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.ros import conversions, spin
 from quatcal_ros.ros.image_input import camera_of, view_of
 from quatcal_ros.ros.qos import quiet_publisher_events

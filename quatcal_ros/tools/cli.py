@@ -21,8 +21,9 @@ from quatcal_ros.files import exports
 from quatcal_ros.files import importers
 from quatcal_ros.files.journal import JournalHeader, JournalRefused
 from quatcal_ros.files.persistence import atomic_write_text
-from quatcal_ros.files.samples_csv import BadInputError, format_samples
+from quatcal_ros.files.samples_csv import format_samples
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
+from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.stream.session import Rejected, Session
 from quatcal_ros.stream.settings import check_config, ConfigError, plan_limits, \
     session_config

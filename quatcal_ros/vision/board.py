@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from quatcal_ros.files import plain_yaml
-from quatcal_ros.files.samples_csv import BadInputError
+from quatcal_ros.files.text_input import BadInputError
 
 TYPES = ('charuco', 'aruco_grid', 'chessboard', 'apriltag_grid')
 MAX_LENGTH_M = 5.0

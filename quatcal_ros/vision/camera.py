@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from quatcal_ros.files import plain_yaml
-from quatcal_ros.files.samples_csv import BadInputError
+from quatcal_ros.files.text_input import BadInputError
 
 MODELS = {'plumb_bob': 5, 'rational_polynomial': 8}
 

@@ -17,7 +17,8 @@ from pathlib import Path
 import cv2
 from quatcal_ros.core.pose import Sample
 from quatcal_ros.core.units import NS_PER_S
-from quatcal_ros.files.samples_csv import BadInputError, parse_numbers, pose_from_values
+from quatcal_ros.files.samples_csv import parse_numbers, pose_from_values
+from quatcal_ros.files.text_input import BadInputError, open_text
 from quatcal_ros.vision.board import read_board
 from quatcal_ros.vision.camera import read_camera_yaml
 from quatcal_ros.vision.detect import detect
@@ -98,12 +99,8 @@ def read_robot_poses(path):
     """Return [(image name, T_base_link Pose)] of robot_poses.csv; BadInputError names the row."""
     name = str(path)
     try:
-        with open(path, newline='', encoding='utf-8-sig') as stream:
+        with open_text(path, 'utf-8-sig', newline='') as stream:
             return _robot_pose_rows(csv.reader(stream), name)
-    except OSError as error:
-        raise BadInputError(f'{name}: cannot read: {error.strerror}') from None
-    except UnicodeDecodeError:
-        raise BadInputError(f'{name}: not a text file (UTF-8 expected)') from None
     except csv.Error as error:
         raise BadInputError(f'{name}: not a CSV file: {error}') from None
 

@@ -1,0 +1,36 @@
+"""
+The user's text files: one error for input that cannot be used, and one way to read them.
+
+Every reader of a user's file (samples CSV, YAML, robot poses of an image dataset) opens it
+with `open_text`, so a missing file, a directory or a binary file gives the same clear error
+naming the file, wherever it is read.
+"""
+
+from contextlib import contextmanager
+
+
+class BadInputError(ValueError):
+    """Input that cannot be used; the message names the file, row and field."""
+
+
+@contextmanager
+def open_text(path, encoding='utf-8', newline=None):
+    """
+    Open a text file for reading; BadInputError names it when it cannot be read.
+
+    Unreadable (missing, a directory, no permission) or not UTF-8 text, also when the bad
+    bytes are met while the caller reads it. utf-8-sig takes a spreadsheet's byte-order mark.
+    """
+    try:
+        with open(path, encoding=encoding, newline=newline) as stream:
+            yield stream
+    except OSError as error:
+        raise BadInputError(f'{path}: cannot read: {error.strerror}') from None
+    except UnicodeDecodeError:
+        raise BadInputError(f'{path}: not a text file (UTF-8 expected)') from None
+
+
+def read_text(path):
+    """Return the text of the UTF-8 file `path` (open_text's errors)."""
+    with open_text(path) as stream:
+        return stream.read()
