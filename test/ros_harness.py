@@ -66,6 +66,19 @@ class SpinMixin:
                 raise AssertionError(f'timed out after {timeout} s waiting for {what}')
             self.executor.spin_once(timeout_sec=self.spin_step)
 
+    def next_status(self, condition=lambda status: True):
+        """Return the next calibrator status on /diagnostics satisfying `condition`."""
+        self.diagnostics.clear()
+        found = []
+
+        def seen():
+            found.extend(s for a in self.diagnostics for s in a.status
+                         if s.name == DIAGNOSTIC_NAME and condition(s))
+            self.diagnostics.clear()
+            return found
+        self.spin_until(seen, what='a matching /diagnostics status')
+        return found[-1]
+
     def spin_for(self, seconds):
         """Spin for `seconds` of wall time."""
         deadline = time.monotonic() + seconds

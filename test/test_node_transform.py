@@ -15,7 +15,6 @@ from geometry_msgs.msg import TransformStamped
 import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.ros.diagnostics import DIAGNOSTIC_NAME
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.sim import simulation
 from rcl_interfaces.msg import Log
@@ -86,19 +85,6 @@ class Harness(SpinMixin):
     def node_logs(self, level=None, text=''):
         return [log.msg for log in self.logs if log.name == 'calibrator'
                 and (level is None or log.level == level) and text in log.msg]
-
-    def next_status(self, condition=lambda status: True):
-        """Return the next DiagnosticStatus of the calibrator that satisfies `condition`."""
-        self.diagnostics.clear()
-        found = []
-
-        def seen():
-            found.extend(s for a in self.diagnostics for s in a.status
-                         if s.name == DIAGNOSTIC_NAME and condition(s))
-            self.diagnostics.clear()
-            return found
-        self.spin_until(seen, what='a matching /diagnostics status')
-        return found[-1]
 
 
 @pytest.fixture
