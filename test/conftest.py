@@ -6,12 +6,15 @@ a temporary directory of this session (nodes built by module-scoped fixtures, rc
 and every subprocess land there) and reserves a ROS domain id of this host for the session's
 default ROS_DOMAIN_ID.  Each test gets a private HOME on top (private_home).  At the end the
 user's own ~/.ros directories are compared with what they held at the start: a test that
-wrote there fails the session, naming what changed.
+wrote there fails the session, naming what changed. The rcl log files that other processes
+(a ROS system running beside the tests) write there meanwhile are only reported: rcl names
+them after their process, and the session knows its own (this one and those it started).
 """
 
 import os
 from pathlib import Path
 import shutil
+import subprocess
 import sys
 import tempfile
 
@@ -52,7 +55,9 @@ def pytest_configure(config):
     home = Path(tempfile.mkdtemp(prefix='quatcal_ros-test-home-'))
     config.stash[SESSION] = {
         'watched': watched, 'before': user_files.snapshot(watched), 'home': home,
-        'domain': ros_domains.reserve(), 'passed': False}
+        'domain': ros_domains.reserve(), 'passed': False, 'pids': {os.getpid()},
+        'popen_init': subprocess.Popen.__init__, 'others': []}
+    record_processes(config.stash[SESSION])
     os.environ['HOME'] = str(home)
     os.environ['ROS_HOME'] = str(home / '.ros')
     os.environ['ROS_LOG_DIR'] = str(home / '.ros' / 'log')
@@ -65,6 +70,16 @@ def pytest_configure(config):
     os.environ.pop('PYTHONDONTWRITEBYTECODE', None)
 
 
+def record_processes(state):
+    """Add the id of every process the session starts (subprocess.Popen) to state['pids']."""
+    start = state['popen_init']
+
+    def recorded(self, *args, **kwargs):
+        start(self, *args, **kwargs)
+        state['pids'].add(self.pid)
+    subprocess.Popen.__init__ = recorded
+
+
 def pytest_sessionfinish(session, exitstatus):
     """Note whether the session passed (its temporary HOME is then removed)."""
     if SESSION in session.config.stash:
@@ -73,6 +88,12 @@ def pytest_sessionfinish(session, exitstatus):
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
     """After a failure, say where the session's HOME (and rcl's log files) are kept."""
+    others = config.stash[SESSION]['others'] if SESSION in config.stash else []
+    if others:
+        terminalreporter.write_line(
+            "other processes wrote rcl log files in the user's ROS log directory during the "
+            "session (not the tests: their process ids are not the session's):\n  "
+            + '\n  '.join(others))
     if SESSION in config.stash and exitstatus != 0:
         home = config.stash[SESSION]['home']
         terminalreporter.write_line(f'test HOME kept: {home} (rcl logs in {home}/.ros/log)')
@@ -84,16 +105,18 @@ def pytest_unconfigure(config):
     if state is None:
         return
     state['domain'].release()
+    subprocess.Popen.__init__ = state['popen_init']
     if state['passed']:
         shutil.rmtree(state['home'], ignore_errors=True)
 
 
 @pytest.fixture(scope='session', autouse=True)
 def user_files_untouched(pytestconfig):
-    """Fail the session if the user's ~/.ros (journal, results, rcl logs) changed during it."""
+    """Fail the session if its processes changed the user's ~/.ros (journal, results, rcl logs)."""
     yield
     state = pytestconfig.stash[SESSION]
-    changed = user_files.changes(state['before'], user_files.snapshot(state['watched']))
+    changed, state['others'] = user_files.changes_of(
+        state['before'], user_files.snapshot(state['watched']), state['pids'])
     if changed:
         pytest.fail("the user's own ROS files changed during the test session (a test, or "
                     'another process, wrote outside the test HOME):\n  ' + '\n  '.join(changed),

@@ -165,3 +165,29 @@ def test_a_changed_file_of_the_same_size_is_named(tmp_path):
     os.utime(result, ns=(1, 1))
     assert user_files.changes(before, user_files.snapshot(dirs)) == [
         f'{result}: modified (same size, new mtime)']
+
+
+def test_rcl_logs_of_other_processes_are_told_apart(tmp_path):
+    """A ROS system running beside the tests writes its rcl logs: not the session's doing."""
+    home = tmp_path / 'user'
+    log_dir = home / '.ros' / 'log'
+    log_dir.mkdir(parents=True)
+    dirs = user_files.watched_dirs({'HOME': str(home)})
+    before = user_files.snapshot(dirs)
+    (log_dir / 'python_4242_1796456042944.log').write_text('another node')
+    assert user_files.changes_of(before, user_files.snapshot(dirs), {os.getpid()}) == (
+        [], [f'{log_dir / "python_4242_1796456042944.log"}: created'])
+    ours = log_dir / f'python_{os.getpid()}_1796456042945.log'
+    ours.write_text('a test')
+    (home / '.ros' / 'quatcal').mkdir()
+    changed, others = user_files.changes_of(before, user_files.snapshot(dirs), {os.getpid()})
+    assert f'{ours}: created' in changed
+    assert f'{home / ".ros" / "quatcal"}: created (now holds [])' in changed
+    assert others == [f'{log_dir / "python_4242_1796456042944.log"}: created']
+
+
+def test_the_session_knows_the_processes_it_starts(pytestconfig):
+    from conftest import SESSION
+    process = subprocess.run([sys.executable, '-c', 'import os; print(os.getpid())'],
+                             capture_output=True, text=True, check=True)
+    assert int(process.stdout) in pytestconfig.stash[SESSION]['pids']

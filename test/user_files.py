@@ -4,12 +4,19 @@ The user's own ROS directories, watched over a test session: the tests must neve
 watched_dirs() names where the package and rcl write when nothing points them elsewhere (the
 samples journal and result under ~/.ros/quatcal, rcl's log files under $ROS_LOG_DIR,
 $ROS_HOME/log or ~/.ros/log, easy_handeye2 exports under ~/.ros2).  snapshot() lists each one's
-entries with kind, size and modification time; changes() says what differs between two.
+entries with kind, size and modification time; changes() says what differs between two, and
+changes_of(before, after, pids) tells the changes of the test session's processes from the
+rcl log files that other processes on the machine wrote meanwhile (a ROS system running beside
+the tests: rcl names each process's log file after its process id).
 """
 
 import os
 from pathlib import Path
 import pwd
+import re
+
+# rcl's log file of a process: <executable>_<process id>_<milliseconds>.log
+RCL_LOG_FILE = re.compile(r'_(\d+)_\d+\.log$')
 
 
 def watched_dirs(environ):
@@ -43,22 +50,51 @@ def snapshot(dirs):
 
 def changes(before, after):
     """Return one line per difference between two snapshots of the same dirs, [] if none."""
+    return [line for _, line in _changes(before, after)]
+
+
+def changes_of(before, after, pids):
+    """
+    Return `changes` split in two: (those of the processes `pids` or unknown ones, others').
+
+    Others' are the rcl log files (and a log directory holding only such files) named after a
+    process that is not in `pids`.
+    """
+    ours, others = [], []
+    for paths, line in _changes(before, after):
+        foreign = paths and all(_writer(path) not in (None, *pids) for path in paths)
+        (others if foreign else ours).append(line)
+    return ours, others
+
+
+def _writer(path):
+    """Return the process id an rcl log file's name holds, or None for any other file."""
+    match = RCL_LOG_FILE.search(path.name)
+    return int(match.group(1)) if match else None
+
+
+def _changes(before, after):
+    """Return (the changed paths, the line saying what changed) of each difference."""
     lines = []
     for folder in sorted(before):
         old, new = before[folder], after[folder]
         if old is None and new is not None:
-            lines.append(f'{folder}: created (now holds {sorted(new)})')
+            lines.append(([folder / name for name in new],
+                          f'{folder}: created (now holds {sorted(new)})'))
         elif old is not None and new is None:
-            lines.append(f'{folder}: removed')
+            lines.append(([], f'{folder}: removed'))
         elif old is not None:
             for name in sorted(set(old) | set(new)):
                 path = folder / name
                 if name not in old:
-                    lines.append(f'{path}: created')
+                    lines.append(([path], f'{path}: created'))
                 elif name not in new:
-                    lines.append(f'{path}: removed (moved aside?)')
+                    lines.append(([path], f'{path}: removed (moved aside?)'))
+                elif path in before:   # a watched directory: its own entries say what changed
+                    continue
                 elif old[name][1] != new[name][1]:
-                    lines.append(f'{path}: modified (size {old[name][1]} -> {new[name][1]})')
+                    lines.append(([path], f'{path}: modified (size {old[name][1]} -> '
+                                          f'{new[name][1]})'))
                 elif old[name] != new[name]:
-                    lines.append(f'{path}: modified (same size, new mtime)')
+                    lines.append(([path], f'{path}: modified (same size, new mtime)'))
     return lines
