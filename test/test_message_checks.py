@@ -444,3 +444,18 @@ def test_a_stream_that_never_sent_anything_is_named_with_its_topic():
     stats.note(mc.SENSOR, t0 + 5 * NS)
     # From the first message on, the usual rule: the silent stream is stale after 3 s.
     assert stats.stale_reasons(t0 + 6 * NS, started_ns=t0, names=names) == []
+
+
+def test_a_silent_input_is_named_by_its_topics_once():
+    """Pose topics by their resolved names; TF input (both streams on /tf) named once."""
+    from quatcal_ros.ros.diagnostics import calibrator_status
+    from quatcal_ros.stream.session import Session, SessionConfig
+    t0 = 1_000 * NS
+    for topics, nothing in (({mc.LINK: '/robot/tool0_pose', mc.SENSOR: '/sensor_pose'},
+                             '/robot/tool0_pose and /sensor_pose'),
+                            ({mc.LINK: '/tf', mc.SENSOR: '/tf'}, '/tf')):
+        status = calibrator_status(Session(SessionConfig()), mc.StreamStats(), t0 + 4 * NS,
+                                   'tool0', started_ns=t0, topics=topics)
+        parts = status.message.split('; ')
+        assert parts[0] == f'waiting for poses (nothing on {nothing} yet)'
+        assert len(parts) == len(set(topics.values())) + 1

@@ -264,3 +264,16 @@ def test_the_cores_own_defaults_are_the_tables():
     assert settings.session_config(Settings()) == SessionConfig()
     assert settings.check_config(Settings()) == CheckConfig()
     assert settings.plan_limits(Settings()) == PlanLimits()
+
+
+def test_the_easy_handeye2_file_names_every_frame_the_settings_know():
+    tf = Settings().updated(setup='eye_to_hand', robot_base_frame='base_link',
+                            robot_effector_frame='tool0', tracking_base_frame='camera',
+                            tracking_marker_frame='aruco_marker')
+    assert settings.easy_handeye2_frames(tf) == {
+        'robot_base_frame': 'base_link', 'robot_effector_frame': 'tool0',
+        'tracking_marker_frame': 'aruco_marker'}
+    topics = Settings().updated(link_frame_id='world')   # the link poses' header frame
+    assert settings.easy_handeye2_frames(topics) == {'robot_base_frame': 'world'}
+    assert settings.easy_handeye2_frames(topics.updated(setup='eye_to_hand')) == {}
+    assert settings.easy_handeye2_frames(Settings()) == {}

@@ -99,6 +99,13 @@ def test_result_yaml_round_trip(tmp_path, real_result):
     assert document['hint'] == result.hint
     back = persistence.read_result_yaml(path)
     assert_allclose(back['quaternion_xyzw'], q_xyzw)
+    # The URDF joint and the xacro macro as literal blocks: pasted as they read.
+    from quatcal_ros.files import exports
+    text = path.read_text()
+    joint = exports.urdf_joint(result, 'tool0', 'camera')
+    assert document['urdf'] == joint
+    assert 'urdf: |\n' + ''.join(f'  {line}\n' for line in joint.splitlines()) in text
+    assert 'xacro: |\n  <?xml' in text
 
 
 def test_result_yaml_plain_result_with_nan_and_extra(tmp_path):

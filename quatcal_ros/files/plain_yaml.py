@@ -90,8 +90,27 @@ def load(text, name, holds='the file'):
 
 
 def dump(document, **options):
-    """Return `document` as YAML text (PyYAML's safe_dump with `options`): the one writer."""
-    return _yaml().safe_dump(document, **options)
+    """
+    Return `document` as YAML text (PyYAML's safe_dump with `options`): the one writer.
+
+    Text of several lines (a URDF joint) is written as a literal block, as it reads and is
+    pasted, where YAML allows one (else quoted, as safe_dump does).
+    """
+    return _yaml().dump(document, Dumper=_block_text_dumper(), **options)
+
+
+@functools.lru_cache(maxsize=None)
+def _block_text_dumper():
+    yaml = _yaml()
+
+    class BlockTextDumper(yaml.SafeDumper):
+        pass
+
+    def text(dumper, value):
+        style = '|' if '\n' in value else None
+        return dumper.represent_scalar('tag:yaml.org,2002:str', value, style=style)
+    BlockTextDumper.add_representer(str, text)
+    return BlockTextDumper
 
 
 def _yaml():

@@ -78,13 +78,16 @@ class InputWatch:
         return found
 
 
-def status_message(session, stats):
-    """Describe the state in operator words."""
+def status_message(session, stats, topics=None):
+    """Describe the state in operator words; `topics` (stream: resolved topic) names them."""
     result = session.result
     if result is not None:
         return f'estimating: uncertainty {result.uncertainty_deg:.2g} deg'
     if session.state == 'waiting for poses':
-        missing = [s for s in (LINK, SENSOR) if not stats.received[s]]
+        topics = topics or {}
+        # (both streams on /tf with TF input: named once)
+        missing = list(dict.fromkeys(topics.get(s, s) for s in (LINK, SENSOR)
+                                     if not stats.received[s]))
         if missing:
             return f'waiting for poses (nothing on {" and ".join(missing)} yet)'
         if stats.bad_total:
@@ -110,7 +113,7 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
     result = result or session.result
     counters = session.counters
     stale = stats.stale_reasons(now_ns, STALE_AFTER_S, started_ns, topics)
-    found = [text for _, text in stale]
+    found = list(dict.fromkeys(text for _, text in stale))   # (TF input: one topic, /tf)
     if result is not None and result.residual_rms_deg > HIGH_RESIDUAL_DEG:
         found.append(f'high residual {result.residual_rms_deg:.2f} deg RMS: check the frame '
                      'conventions and the time alignment of the streams')
@@ -154,7 +157,8 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
         values[message_checks.diagnostic_key(stream, reason)] = count
     return DiagnosticStatus(
         level=DiagnosticStatus.WARN if found else DiagnosticStatus.OK, name=DIAGNOSTIC_NAME,
-        message='; '.join([status_message(session, stats)] + found), hardware_id=hardware_id,
+        message='; '.join([status_message(session, stats, topics)] + found),
+        hardware_id=hardware_id,
         values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
 
 

@@ -50,7 +50,7 @@ from quatcal_ros.ros.static_tf import StaticTf
 from quatcal_ros.stream import settings
 from quatcal_ros.stream.message_checks import LINK, SENSOR
 from quatcal_ros.stream.session import EstimateUpdated, SampleCaptured, Session
-from quatcal_ros.stream.settings import ConfigError
+from quatcal_ros.stream.settings import ConfigError, easy_handeye2_frames
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -383,10 +383,8 @@ class CalibratorNode(Node):
             return response
         config = self.config
         frames = config.result_frames
-        # The link poses' header frame is the robot base (eye_in_hand); '' when not checked.
-        base = {'robot_base_frame': config.link_frame_id} if config.setup == 'eye_in_hand' else {}
         saved = save_result(result, frames, config.setup, config.result_file,
-                            config.easy_handeye2_file, base)
+                            config.easy_handeye2_file, easy_handeye2_frames(config))
         response.success, response.message = saved.ok, '; '.join(saved.texts())
         if not saved.ok:
             self.get_logger().error(response.message)

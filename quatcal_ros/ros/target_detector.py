@@ -77,12 +77,12 @@ class TargetDetector(Node):
         self.create_subscription(CameraInfo, 'camera_info', self._on_camera_info,
                                  qos_profile_sensor_data)
         compressed = values['image_transport'] == 'compressed'
-        self.create_subscription(CompressedImage if compressed else Image,
-                                 'image/compressed' if compressed else 'image',
-                                 self._on_image, qos_profile_sensor_data)
+        images = self.create_subscription(CompressedImage if compressed else Image,
+                                          'image/compressed' if compressed else 'image',
+                                          self._on_image, qos_profile_sensor_data)
         self.get_logger().info(f'detecting a {self.board.kind} board '
                                f'({self.board.size[0]} x {self.board.size[1]}) in '
-                               f'{"image/compressed" if compressed else "image"}')
+                               f'{images.topic_name}')
 
     @property
     def camera(self):

@@ -469,6 +469,20 @@ def tf_frames(settings):
     return frames
 
 
+def easy_handeye2_frames(settings):
+    """
+    Return the frames of easy_handeye2's file beside the result's, those the settings name.
+
+    {robot_base_frame, robot_effector_frame, tracking_marker_frame: name}: the TF frames when
+    set, and the robot base the link poses' header names (link_frame_id, eye_in_hand).
+    """
+    frames = {name: getattr(settings, name) for name in
+              ('robot_base_frame', 'robot_effector_frame', 'tracking_marker_frame')}
+    if settings.setup == 'eye_in_hand' and not frames['robot_base_frame']:
+        frames['robot_base_frame'] = settings.link_frame_id
+    return {name: frame for name, frame in frames.items() if frame}
+
+
 def check_config(settings):
     """Return the message_checks.CheckConfig of `settings` (what pose messages must satisfy)."""
     return CheckConfig(max_stamp_offset_ns=ns_from_s(settings.max_stamp_offset_s),

@@ -48,8 +48,8 @@ def solve_main(argv=None):
         prog='solve', description='Hand-eye calibration (Chou-Kamel) from a samples file: '
                                   'the samples CSV, or samples saved by easy_handeye2 or '
                                   'moveit_calibration; prints one JSON object.')
-    parser.add_argument('samples', help='samples file: the samples CSV (DESIGN.md contract '
-                                        "2) or another tool's samples (see --format); or an "
+    parser.add_argument('samples', help='samples file: the samples CSV (README, section '
+                                        "3) or another tool's samples (see --format); or an "
                                         'image dataset folder (images/, robot_poses.csv, '
                                         'camera_info.yaml, board.yaml): the board is detected '
                                         'in each image and the estimate refined on its pixels')
@@ -290,7 +290,7 @@ CAPTURE = ('capture_mode', 'still_window_s', 'still_rotation_deg', 'still_transl
 def replay_parser():
     """Return the argument parser of `replay`."""
     parser = argparse.ArgumentParser(
-        prog='replay', description='Hand-eye rotation (Chou-Kamel) from a rosbag2 recording '
+        prog='replay', description='Hand-eye calibration (Chou-Kamel) from a rosbag2 recording '
                                    "(sqlite3 or mcap), through the live node's session; "
                                    'prints one JSON object.')
     parser.add_argument('bag', metavar='BAG_DIR', help='rosbag2 directory (or .db3/.mcap file)')
