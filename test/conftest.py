@@ -71,7 +71,14 @@ def pytest_configure(config):
 
 
 def record_processes(state):
-    """Add the id of every process the session starts (subprocess.Popen) to state['pids']."""
+    """
+    Add the id of every process the session starts (subprocess.Popen) to state['pids'].
+
+    Only direct children started through subprocess.Popen are seen (the suite starts no other
+    kind); a grandchild's rcl log in the user's directory would be reported as another
+    process's, not fail the run.  The tests point HOME and ROS_LOG_DIR elsewhere, so this is
+    the second guard, not the first.
+    """
     start = state['popen_init']
 
     def recorded(self, *args, **kwargs):

@@ -167,6 +167,20 @@ def test_a_changed_file_of_the_same_size_is_named(tmp_path):
         f'{result}: modified (same size, new mtime)']
 
 
+def test_a_file_created_and_removed_in_a_watched_directory_is_named(tmp_path):
+    """Only the directory's mtime tells: a temporary file that a run wrote and then removed."""
+    home = tmp_path / 'user'
+    journal_dir = home / '.ros' / 'quatcal'
+    journal_dir.mkdir(parents=True)
+    os.utime(journal_dir, ns=(1, 1))
+    dirs = user_files.watched_dirs({'HOME': str(home)})
+    before = user_files.snapshot(dirs)
+    (journal_dir / 'samples.csv.tmp').write_text('x')
+    (journal_dir / 'samples.csv.tmp').unlink()
+    assert user_files.changes_of(before, user_files.snapshot(dirs), {os.getpid()}) == (
+        [f'{journal_dir}: modified (an entry created and removed since)'], [])
+
+
 def test_rcl_logs_of_other_processes_are_told_apart(tmp_path):
     """A ROS system running beside the tests writes its rcl logs: not the session's doing."""
     home = tmp_path / 'user'

@@ -453,9 +453,24 @@ def test_a_silent_input_is_named_by_its_topics_once():
     t0 = 1_000 * NS
     for topics, nothing in (({mc.LINK: '/robot/tool0_pose', mc.SENSOR: '/sensor_pose'},
                              '/robot/tool0_pose and /sensor_pose'),
-                            ({mc.LINK: '/tf', mc.SENSOR: '/tf'}, '/tf')):
+                            ({mc.LINK: '/tf', mc.SENSOR: '/tf'}, None)):
         status = calibrator_status(Session(SessionConfig()), mc.StreamStats(), t0 + 4 * NS,
                                    'tool0', started_ns=t0, topics=topics)
         parts = status.message.split('; ')
-        assert parts[0] == f'waiting for poses (nothing on {nothing} yet)'
+        if nothing:
+            assert parts[0] == f'waiting for poses (nothing on {nothing} yet)'
+        else:   # TF input: /tf may be busy with other frames; it is not said to be silent
+            assert parts[0] == ('waiting for poses (no link_pose or sensor_pose composed from '
+                                '/tf yet)')
+            assert parts[1].startswith('no pose composed from /tf yet: are the frame names')
         assert len(parts) == len(set(topics.values())) + 1
+
+
+def test_tf_input_with_one_pair_of_frames_composing_names_the_other():
+    """/tf is busy (the link poses compose); the sensor's frames do not: not 'nothing on /tf'."""
+    from quatcal_ros.ros.diagnostics import status_message
+    from quatcal_ros.stream.session import Session, SessionConfig
+    stats = mc.StreamStats()
+    stats.note(mc.LINK, 1_000 * NS)
+    message = status_message(Session(SessionConfig()), stats, {mc.LINK: '/tf', mc.SENSOR: '/tf'})
+    assert message == 'waiting for poses (no sensor_pose composed from /tf yet)'

@@ -7,7 +7,8 @@ $ROS_HOME/log or ~/.ros/log, easy_handeye2 exports under ~/.ros2).  snapshot() l
 entries with kind, size and modification time; changes() says what differs between two, and
 changes_of(before, after, pids) tells the changes of the test session's processes from the
 rcl log files that other processes on the machine wrote meanwhile (a ROS system running beside
-the tests: rcl names each process's log file after its process id).
+the tests: rcl names each process's log file after its process id).  A log file of a process the
+caller did not list (a grandchild, say) counts as another's.
 """
 
 import os
@@ -90,7 +91,11 @@ def _changes(before, after):
                     lines.append(([path], f'{path}: created'))
                 elif name not in new:
                     lines.append(([path], f'{path}: removed (moved aside?)'))
-                elif path in before:   # a watched directory: its own entries say what changed
+                elif path in before and before[path] != after[path]:
+                    continue   # a watched directory whose own entries say what changed
+                elif path in before and old[name] != new[name]:
+                    lines.append(([], f'{path}: modified (an entry created and removed since)'))
+                elif path in before:
                     continue
                 elif old[name][1] != new[name][1]:
                     lines.append(([path], f'{path}: modified (size {old[name][1]} -> '

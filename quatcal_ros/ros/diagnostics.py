@@ -85,11 +85,14 @@ def status_message(session, stats, topics=None):
         return f'estimating: uncertainty {result.uncertainty_deg:.2g} deg'
     if session.state == 'waiting for poses':
         topics = topics or {}
-        # (both streams on /tf with TF input: named once)
-        missing = list(dict.fromkeys(topics.get(s, s) for s in (LINK, SENSOR)
-                                     if not stats.received[s]))
-        if missing:
-            return f'waiting for poses (nothing on {" and ".join(missing)} yet)'
+        silent = [s for s in (LINK, SENSOR) if not stats.received[s]]
+        shared = [s for s in silent if list(topics.values()).count(topics.get(s, s)) > 1]
+        if shared:   # TF input: poses composed from /tf's frames; /tf itself may be busy
+            return (f'waiting for poses (no {" or ".join(shared)} composed from '
+                    f'{topics[shared[0]]} yet)')
+        if silent:
+            names = ' and '.join(topics.get(s, s) for s in silent)
+            return f'waiting for poses (nothing on {names} yet)'
         if stats.bad_total:
             (stream, reason), _ = stats.bad.most_common(1)[0]
             return (f'waiting for poses ({stats.bad_total} bad messages skipped, most for '

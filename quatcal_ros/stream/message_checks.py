@@ -184,6 +184,21 @@ def diagnostic_key(stream, reason):
     return f'bad_{stream}_{reason}'
 
 
+def silent_input(stream, names):
+    """
+    Say that `stream` has sent nothing yet, on its topic from `names` (stream: topic).
+
+    A topic that several streams share is TF input: their poses are composed from its frames,
+    so its being silent or its frames being wrong look the same here.
+    """
+    topic = names.get(stream, stream)
+    if list(names.values()).count(topic) > 1:
+        return (f'no pose composed from {topic} yet: are the frame names right, and does the '
+                'publisher run?')
+    return (f'no message on {topic} yet: is it remapped to the right topic, and does the '
+            'publisher run?')
+
+
 class StreamStats:
     """
     Messages per stream: received, usable, bad per reason; when last heard; log throttling.
@@ -269,9 +284,7 @@ class StreamStats:
             if started_ns is None or now_ns - started_ns < int(after_s * NS_PER_S):
                 return []
             names = names or {}
-            return [(stream, f'no message on {names.get(stream, stream)} yet: is it remapped '
-                             'to the right topic, and does the publisher run?')
-                    for stream in STREAMS]
+            return [(stream, silent_input(stream, names)) for stream in STREAMS]
         limit = now_ns - int(after_s * NS_PER_S)
         out = []
         for stream in STREAMS:
