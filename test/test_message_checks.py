@@ -23,7 +23,7 @@ from quatcal_ros.ros.diagnostics import DIAGNOSTIC_NAME
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.sim import simulation
 from quatcal_ros.stream import message_checks as mc
-from quatcal_ros.stream.message_checks import LOG_THROTTLE_S
+from quatcal_ros.stream.log_throttle import LOG_THROTTLE_S
 from quatcal_ros.stream.session import Notice
 from quatcal_ros.stream.session import Rejected
 from quatcal_ros.stream.session import Session

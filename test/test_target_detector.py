@@ -101,7 +101,7 @@ def test_board_poses_with_covariance_from_images(make_harness, board_file, trans
     assert h.debug[-1].encoding == 'bgr8' and h.debug[-1].width == 640
 
 
-def test_bad_images_and_camera_info_are_counted_and_skipped(make_harness, board_file):
+def test_bad_images_and_camera_info_are_counted_and_skipped(make_harness, board_file, capfd):
     h = make_harness(board_file)
     zeros = camera_from(640, 480, [[600, 0, 320], [0, 600, 240], [0, 0, 1]], 'plumb_bob',
                         [0, 0, 0, 0, 0])
@@ -118,3 +118,8 @@ def test_bad_images_and_camera_info_are_counted_and_skipped(make_harness, board_
     h.spin_until(lambda: h.node.counts['no_board'] == 1 and h.node.counts['bad_image'] == 2,
                  what='the bad images counted')
     assert h.poses == [] and h.node.counts['images'] == 3
+    # Each reason is logged, the first of each at once (within the test's seconds: not the
+    # second bad image, unless this loaded machine took 5 s between them).
+    logged = capfd.readouterr().err
+    for line in ('bad_camera_info (1 so far)', 'no_board (1 so far)', 'bad_image (1 so far)'):
+        assert line in logged, (line, logged)

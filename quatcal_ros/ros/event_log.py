@@ -7,19 +7,20 @@ the samples newly rejected since the last one and its warnings, throttled refusa
 notices, and the moved-marker warning that `move_check(result)` returns. `messages` writes
 the (level, text) pairs of the journal and the result files.
 
-An estimate's warnings come back with every estimate: each is logged at most every
-LOG_THROTTLE_S seconds, counted as the same warning when only its numbers changed (rclpy's own
-throttle is per line of code: it would let only the first of several warnings through).
+An estimate's warnings come back with every estimate, and refusals (a pose out of order, a
+sample that repeats one) can come with every message: each kind is logged at most every
+LOG_THROTTLE_S seconds (log_throttle.LogThrottle), counted as the same when only its numbers
+changed.
 """
 
 import re
 import time
 
 from quatcal_ros.ros.diagnostics import describe_result
-from quatcal_ros.stream.message_checks import LOG_THROTTLE_S
+from quatcal_ros.stream.log_throttle import LogThrottle
 from quatcal_ros.stream.session import EstimateUpdated, Notice, Rejected, SampleCaptured
 
-# The numbers of a warning (residuals, counts): the same warning with new numbers is not new.
+# The numbers of a line (residuals, counts, stamps): the same line with new numbers is not new.
 NUMBER = re.compile(r'[-+]?\d[\d.]*(?:e[-+]?\d+)?')
 
 
@@ -28,13 +29,14 @@ class EventLog:
 
     def __init__(self, logger, clock=time.monotonic):
         self.logger = logger
-        self.clock = clock                # seconds, for the warnings' throttle
+        self.clock = clock                # seconds, for the throttle
         self._rejected_samples = set()   # reported already: each is logged once
-        self._warned = {}                 # warning without its numbers -> when last logged
+        self._throttle = LogThrottle()    # per line without its numbers
 
     def reset(self):
-        """Forget the samples reported rejected (the session was cleared)."""
+        """Forget the samples reported rejected and the throttled lines (a cleared session)."""
         self._rejected_samples = set()
+        self._throttle.clear()
 
     def log(self, events, move_check):
         """Log `events`; move_check(result) returns a moved-marker warning or None."""
@@ -44,10 +46,12 @@ class EventLog:
             elif isinstance(event, EstimateUpdated):
                 self._estimate(event.result, move_check(event.result))
             elif isinstance(event, Rejected):
-                self.logger.info(f'rejected {event.what}: {event.reason}',
-                                 throttle_duration_sec=LOG_THROTTLE_S)
+                text = f'rejected {event.what}: {event.reason}'
+                if self._due(text):
+                    self.logger.info(text)
             elif isinstance(event, Notice) and event.code == 'time_jump':
-                self.logger.info(event.text, throttle_duration_sec=LOG_THROTTLE_S)
+                if self._due(event.text):
+                    self.logger.info(event.text)
             elif isinstance(event, Notice):
                 self.logger.info(event.text)
 
@@ -65,21 +69,18 @@ class EventLog:
             self.logger.info(f'rejected sample {index}: {rejected[index]}')
         self._rejected_samples = set(rejected)
         for warning in result.warnings:
-            self._throttled_warning(warning)
+            if self._due(warning):
+                self.logger.warning(warning)
         if moved:
             self.logger.warning(moved)
 
-    def _throttled_warning(self, text):
-        """Log `text` unless the same warning, numbers aside, was logged within LOG_THROTTLE_S."""
-        now = self.clock()
-        kind = NUMBER.sub('#', text)
-        last = self._warned.get(kind)
-        if last is not None and now - last < LOG_THROTTLE_S:
-            return
-        if len(self._warned) > 100:   # forget the warnings that are no longer throttled
-            self._warned = {k: t for k, t in self._warned.items() if now - t < LOG_THROTTLE_S}
-        self._warned[kind] = now
-        self.logger.warning(text)
+    def _due(self, text):
+        """
+        Return whether to log `text`, numbers aside not logged within LOG_THROTTLE_S.
+
+        The callers log at their own line per severity: rclpy insists on one per call site.
+        """
+        return self._throttle.due(NUMBER.sub('#', text), self.clock()) is not None
 
     def messages(self, messages):
         """Log (level, text) pairs: level 'error', 'warning' or 'info'."""

@@ -35,7 +35,8 @@ from quatcal_ros.ros.pose_screen import PoseScreen
 from quatcal_ros.ros.qos import LINK_QOS, SENSOR_QOS, TF_QOS, TF_STATIC_LISTEN_QOS
 from quatcal_ros.ros.tf_feed import TfFeed
 from quatcal_ros.stream import message_checks
-from quatcal_ros.stream.message_checks import LINK, LOG_THROTTLE_S, SENSOR
+from quatcal_ros.stream.log_throttle import LOG_THROTTLE_S
+from quatcal_ros.stream.message_checks import LINK, SENSOR
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image

@@ -14,6 +14,7 @@ import time
 
 from quatcal_ros.ros.conversions import BadPoseError, pose_from_msg, stamp_ns_from_header
 from quatcal_ros.stream import message_checks
+from quatcal_ros.stream.log_throttle import LOG_THROTTLE_S
 from quatcal_ros.stream.message_checks import CheckConfig, StreamStats
 from quatcal_ros.stream.session import Rejected
 
@@ -22,7 +23,7 @@ class PoseScreen:
     """The checks and the counts of the pose messages of a session's streams."""
 
     def __init__(self, config=CheckConfig(), on_bad=None,
-                 throttle_s=message_checks.LOG_THROTTLE_S):
+                 throttle_s=LOG_THROTTLE_S):
         """
         Check against `config` and report bad messages to `on_bad`.
 

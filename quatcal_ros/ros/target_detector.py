@@ -13,8 +13,10 @@ PnP, the per-view checks) and publishes:
   corners found and the board's axes drawn.
 A refused view (no board, too few corners, blurred, an ambiguous or badly fitting pose) and a
 bad message (an unknown encoding, a truncated image, a CameraInfo of zeros) are counted by
-reason, logged at most every 5 s, and skipped.
+reason, logged at most every 5 s per reason, and skipped.
 """
+
+import time
 
 import cv2
 from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -22,7 +24,7 @@ from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.ros import conversions, spin
 from quatcal_ros.ros.image_input import camera_of, view_of
 from quatcal_ros.ros.qos import quiet_publisher_events
-from quatcal_ros.stream.message_checks import LOG_THROTTLE_S
+from quatcal_ros.stream.log_throttle import LogThrottle
 from quatcal_ros.vision.board import read_board
 from quatcal_ros.vision.image_sensor import ImageSensor
 from quatcal_ros.vision.view import Checks
@@ -64,6 +66,7 @@ class TargetDetector(Node):
             self.board = read_board(values['board_file'])
         except BadInputError as error:
             raise ValueError(str(error)) from None
+        self._throttle = LogThrottle()   # one refusal line per reason at most every 5 s
         # The calibrator's own image sensor: the same checks, camera and counts.
         self.sensor = ImageSensor(self.board, Checks(
             min_corners=int(values['min_corners']),
@@ -133,8 +136,8 @@ class TargetDetector(Node):
         return image
 
     def _log(self, reason, detail):
-        self.get_logger().warning(f'{reason} ({self.counts[reason]} so far): {detail}',
-                                  throttle_duration_sec=LOG_THROTTLE_S)
+        if self._throttle.due(reason, time.monotonic()) is not None:
+            self.get_logger().warning(f'{reason} ({self.counts[reason]} so far): {detail}')
 
 
 def main(args=None):

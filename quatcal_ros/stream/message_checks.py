@@ -26,13 +26,12 @@ from dataclasses import dataclass
 
 import numpy as np
 from quatcal_ros.core.units import MAX_POSITION_M, NS_PER_S
+from quatcal_ros.stream.log_throttle import LOG_THROTTLE_S, LogThrottle
 
 LINK, SENSOR = 'link_pose', 'sensor_pose'
 STREAMS = (LINK, SENSOR)
 # A stream not heard (or without a usable pose) for this long, node clock, is stale.
 STALE_AFTER_S = 3.0
-# Each (stream, reason) is logged at most once per this many seconds (steady clock).
-LOG_THROTTLE_S = 5.0
 # A value from a message (a frame id) is logged with at most this many characters.
 MAX_LOGGED_CHARACTERS = 80
 
@@ -217,9 +216,7 @@ class StreamStats:
         self.last_good_ns = {}
         self.last_bad = {}                  # stream: reason of its latest bad message
         self.first_detail = {}              # (stream, reason): detail of the first one
-        self._throttle_ns = int(throttle_s * NS_PER_S)
-        self._log_due_ns = {}
-        self._unlogged = Counter()
+        self._log = LogThrottle(int(throttle_s * NS_PER_S))   # per (stream, reason)
 
     def note(self, stream, now_ns, count=1):
         """Count `count` messages received on `stream` at node time now_ns."""
@@ -246,13 +243,7 @@ class StreamStats:
         self.bad[key] += 1
         self.first_detail.setdefault(key, detail)
         self.last_bad[stream] = reason
-        self._unlogged[key] += 1
-        due = self._log_due_ns.get(key)
-        if due is not None and steady_ns < due:
-            return None
-        self._log_due_ns[key] = steady_ns + self._throttle_ns
-        count, self._unlogged[key] = self._unlogged[key], 0
-        return count
+        return self._log.due(key, steady_ns)
 
     def example(self, stream, reason):
         """Return the text of the first bad message of (stream, reason), or ''."""

@@ -1,0 +1,57 @@
+"""
+One log line per kind of event at most every LOG_THROTTLE_S: LogThrottle.
+
+rclpy's own throttle (throttle_duration_sec) is per line of code: of several kinds of event
+logged from one line (a bad message's reasons, a refused view's, an estimate's warnings), only
+the first would get through. LogThrottle keeps one time per key instead, and counts the events
+it held back, so that the next line can say how many there were.
+"""
+
+from collections import Counter
+
+# Each kind of event is logged at most once per this many seconds (steady clock).
+LOG_THROTTLE_S = 5.0
+# Kinds remembered before those whose period has passed are forgotten (their next line is
+# due anyway): a bound on memory when keys carry free text, such as warnings.
+REMEMBERED_KINDS = 100
+
+
+class LogThrottle:
+    """
+    At most one log line per key every `period`; `due(key, now)` decides.
+
+    `period` and `now` are in one unit of the caller's steady clock (seconds, or
+    nanoseconds).
+    """
+
+    def __init__(self, period=LOG_THROTTLE_S):
+        self.period = period
+        self._due = {}              # key: when its next line may be logged
+        self._held = Counter()      # key: events since its last line, held back
+
+    def due(self, key, now):
+        """
+        Note an event of `key`; return how many to report if a line is due, else None.
+
+        The first event of a key is due at once, later ones at most every `period`: the
+        number returned counts the events since the key's previous line, this one included.
+        """
+        self._held[key] += 1
+        due = self._due.get(key)
+        if due is not None and now < due:
+            return None
+        if due is None and len(self._due) >= REMEMBERED_KINDS:
+            self._forget(now)
+        self._due[key] = now + self.period
+        count, self._held[key] = self._held[key], 0
+        return count
+
+    def clear(self):
+        """Forget every key: each is due again at its next event."""
+        self._due.clear()
+        self._held.clear()
+
+    def _forget(self, now):
+        for key in [key for key, due in self._due.items() if due <= now]:
+            del self._due[key]
+            self._held.pop(key, None)

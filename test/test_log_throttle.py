@@ -1,0 +1,72 @@
+"""The log throttle (one line per kind of event every 5 s) and the node's event log over it."""
+
+from quatcal_ros.ros.event_log import EventLog
+from quatcal_ros.stream.log_throttle import LOG_THROTTLE_S, LogThrottle, REMEMBERED_KINDS
+from quatcal_ros.stream.session import Notice, Rejected
+
+
+class Lines:
+    """A logger that keeps its lines as (severity, text)."""
+
+    def __init__(self):
+        self.lines = []
+
+    def info(self, text):
+        self.lines.append(('info', text))
+
+    def warning(self, text):
+        self.lines.append(('warning', text))
+
+
+def test_each_key_is_due_at_once_then_every_period_with_the_count_held_back():
+    throttle = LogThrottle(period=5.0)
+    assert throttle.due('a', 0.0) == 1
+    assert [throttle.due('a', 0.1 * k) for k in range(1, 10)] == [None] * 9
+    assert throttle.due('b', 1.0) == 1            # another key: its own period
+    assert throttle.due('a', 5.0) == 10           # the nine held back and this one
+    assert throttle.due('a', 9.9) is None
+    throttle.clear()
+    assert throttle.due('a', 10.0) == 1           # cleared: due again at once
+
+
+def test_keys_whose_period_passed_are_forgotten_beyond_the_bound():
+    throttle = LogThrottle(period=1.0)
+    for k in range(REMEMBERED_KINDS):
+        assert throttle.due(f'old {k}', 0.0) == 1
+    assert throttle.due('fresh', 0.5) == 1        # the old ones still within their period
+    assert len(throttle._due) == REMEMBERED_KINDS + 1
+    assert throttle.due('newer', 2.0) == 1        # their period passed: forgotten
+    assert set(throttle._due) == {'newer'}
+    assert throttle.due('old 3', 2.1) == 1
+
+
+def test_event_log_throttles_refusals_per_kind_not_per_line_of_code():
+    """Two kinds of refusal within 5 s both reach the log; the same kind with new numbers not."""
+    now = [100.0]
+    logger = Lines()
+    log = EventLog(logger, clock=lambda: now[0])
+    order = Rejected('link_pose', 'stamp 1.000 s is older than the previous one (2.000 s)')
+    log.log([order, Rejected('sample', 'sample 0 of those given repeats sample 3 exactly'),
+             Rejected('link_pose', 'stamp 1.500 s is older than the previous one (2.500 s)'),
+             Notice('the clock jumped back by 3.0 s', 'time_jump')], lambda result: None)
+    assert logger.lines == [
+        ('info', f'rejected link_pose: {order.reason}'),
+        ('info', 'rejected sample: sample 0 of those given repeats sample 3 exactly'),
+        ('info', 'the clock jumped back by 3.0 s')]
+    now[0] += LOG_THROTTLE_S
+    log.log([Rejected('link_pose', 'stamp 7.000 s is older than the previous one (8.000 s)')],
+            lambda result: None)
+    assert logger.lines[-1] == ('info', 'rejected link_pose: stamp 7.000 s is older than the '
+                                'previous one (8.000 s)')
+
+
+def test_event_log_reset_logs_every_kind_again():
+    now = [0.0]
+    logger = Lines()
+    log = EventLog(logger, clock=lambda: now[0])
+    event = Rejected('sample', 'the robot was still moving')
+    log.log([event, event], lambda result: None)
+    assert len(logger.lines) == 1
+    log.reset()                                   # a cleared session: its first lines again
+    log.log([event], lambda result: None)
+    assert len(logger.lines) == 2
