@@ -390,16 +390,18 @@ def test_spreadsheet_csv_details(tmp_path):
         assert words in str(caught.value)
 
 
-@pytest.mark.parametrize('read', ['samples_csv', 'yaml', 'robot_poses', 'import'])
+@pytest.mark.parametrize('read', ['samples_csv', 'yaml', 'robot_poses', 'import', 'result'])
 @pytest.mark.parametrize('problem', ['missing', 'directory', 'late_binary'])
 def test_every_reader_names_the_file_it_cannot_read(tmp_path, read, problem):
     """One way to open a user's file: the same error, also for bad bytes deep in the file."""
     from quatcal_ros.files import plain_yaml
     from quatcal_ros.files.importers import load_samples
+    from quatcal_ros.files.persistence import read_result_yaml
     from quatcal_ros.files.samples_csv import read_samples
     from quatcal_ros.vision.dataset import read_robot_poses
     readers = {'samples_csv': read_samples, 'yaml': plain_yaml.load_file,
-               'robot_poses': read_robot_poses, 'import': lambda path: load_samples(path, 'auto')}
+               'robot_poses': read_robot_poses, 'import': lambda path: load_samples(path, 'auto'),
+               'result': read_result_yaml}
     path = tmp_path / 'input.csv'
     if problem == 'directory':
         path.mkdir()

@@ -108,6 +108,19 @@ def test_result_yaml_round_trip(tmp_path, real_result):
     assert 'xacro: |\n  <?xml' in text
 
 
+def test_result_yaml_writes_frames_beyond_ascii_as_themselves(tmp_path):
+    """A frame named in the user's language reads as it is named, and reads back."""
+    result = SimpleNamespace(
+        quaternion=np.array([0.0, 0.0, 0.0, 1.0]), matrix=np.eye(3), samples=3, motions=3,
+        inliers=3, residual_rms_deg=0.1, uncertainty_deg=0.2, hint='', warnings=[])
+    text = persistence.format_result_yaml(result, 'poignet_é', 'caméra_前', 'eye_in_hand')
+    assert 'caméra_前' in text and '\\u' not in text
+    path = tmp_path / 'result.yaml'
+    persistence.atomic_write_text(path, text)
+    back = persistence.read_result_yaml(path)
+    assert (back['parent_frame'], back['child_frame']) == ('poignet_é', 'caméra_前')
+
+
 def test_result_yaml_plain_result_with_nan_and_extra(tmp_path):
     result = SimpleNamespace(
         quaternion=np.array([0.0, 0.0, 0.0, 1.0]), matrix=np.diag([-1.0, -1.0, 1.0]),

@@ -41,7 +41,7 @@ from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw, 
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, quaternion_norm_problem
 from quatcal_ros.files import exports, journal, plain_yaml
 from quatcal_ros.files.samples_csv import read_samples
-from quatcal_ros.files.text_input import BadInputError, read_text
+from quatcal_ros.files.text_input import BadInputError, open_text, read_text
 
 FORMATS = ('csv', 'easy_handeye2', 'moveit', 'moveit-json')
 # A 4x4 matrix whose rotation block is farther than this from orthonormal (max |R^T R - I|)
@@ -303,11 +303,8 @@ def _csv_samples(path):
     effector eye-in-hand, the base eye-to-hand).
     """
     samples = read_samples(path)
-    try:
-        with open(path, encoding='utf-8') as stream:
-            first = stream.readline().rstrip('\n')
-    except (OSError, UnicodeDecodeError):
-        first = ''
+    with open_text(path) as stream:
+        first = stream.readline().rstrip('\n')
     if not first.startswith(journal.MAGIC):
         return ImportedSamples(samples, 'csv')
     try:

@@ -44,6 +44,7 @@ import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.files import exports
 from quatcal_ros.files import plain_yaml
+from quatcal_ros.files.text_input import read_text
 
 RESULT_FORMAT = 'quatcal_ros/mounting'
 RESULT_FORMAT_VERSION = 2
@@ -203,16 +204,13 @@ def read_result_yaml(path):
     Read a result YAML back.
 
     :return: the document (dict) with 'quaternion_xyzw' added as a numpy array (x, y, z, w).
-    :raises ValueError: when the file is not a result YAML (the message names the file),
-        including YAML that asks for objects (python/... tags): the file is data, read with
-        the safe loader, which builds only mappings, lists, strings and numbers.
+    :raises ValueError: when the file cannot be read (text_input.BadInputError) or is not a
+        result YAML (the message names the file), including YAML that asks for objects
+        (python/... tags): the file is data, read with the safe loader, which builds only
+        mappings, lists, strings and numbers.
     """
     path = Path(path).expanduser()
-    try:
-        text = path.read_text(encoding='utf-8')
-    except UnicodeDecodeError:
-        raise ValueError(f'{path}: not a quatcal_ros result file (not UTF-8 text)') from None
-    document = plain_yaml.load(text, str(path), holds='a result file')
+    document = plain_yaml.load(read_text(path), str(path), holds='a result file')
     if not isinstance(document, dict):
         raise ValueError(f'{path}: not a quatcal_ros result file (no mapping at the top)')
     kind = (document.get('format'), document.get('format_version', 1))

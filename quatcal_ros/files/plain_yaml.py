@@ -94,9 +94,10 @@ def dump(document, **options):
     Return `document` as YAML text (PyYAML's safe_dump with `options`): the one writer.
 
     Text of several lines (a URDF joint) is written as a literal block, as it reads and is
-    pasted, where YAML allows one (else quoted, as safe_dump does).
+    pasted, where YAML allows one (else quoted, as safe_dump does); text beyond ASCII (a frame
+    named in the user's language) as itself, not as escapes: the files are UTF-8.
     """
-    return _yaml().dump(document, Dumper=_block_text_dumper(), **options)
+    return _yaml().dump(document, Dumper=_block_text_dumper(), allow_unicode=True, **options)
 
 
 @functools.lru_cache(maxsize=None)
