@@ -26,7 +26,9 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from ros_harness import harnesses_of, SpinMixin
+from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
+import yaml
 
 FRAMES = [Parameter('robot_base_frame', value='base_link'),
           Parameter('robot_effector_frame', value='tool0'),
@@ -109,7 +111,7 @@ def publish_camera_driver(h, streams):
                 CAMERA_LINK_TO_OPTICAL)], static=True)
 
 
-def test_the_node_on_a_tf_cell_converges_to_the_truth(tf_harness):
+def test_the_node_on_a_tf_cell_converges_to_the_truth(tf_harness, tmp_path):
     cell, streams = tf_cell(11, 12)
     h = tf_harness()
     publish_camera_driver(h, streams)
@@ -132,6 +134,24 @@ def test_the_node_on_a_tf_cell_converges_to_the_truth(tf_harness):
     bad_counts = {reason: count for (where, reason), count in h.node.stats.bad.items()
                   if where == '/tf'}
     assert bad_counts.get('non_finite', 0) == 1 and bad_counts.get('breaks_tree', 0) == 2
+
+    # ~/save writes easy_handeye2's file naming the four TF frames the node reads.
+    calib = tmp_path / 'cell.calib'
+    for done in h.node.set_parameters([Parameter('result_file', value=str(tmp_path / 'r.yaml')),
+                                       Parameter('easy_handeye2_file', value=str(calib))]):
+        assert done.successful, done.reason
+    save = h.driver.create_client(Trigger, '/calibrator/save')
+    h.spin_until(save.service_is_ready, what='the ~/save service')
+    future = save.call_async(Trigger.Request())
+    h.spin_until(future.done, what='~/save')
+    assert future.result().success, future.result().message
+    parameters = yaml.safe_load(calib.read_text())['parameters']
+    assert {name: parameters[name] for name in (
+        'calibration_type', 'robot_base_frame', 'robot_effector_frame', 'tracking_base_frame',
+        'tracking_marker_frame')} == {
+        'calibration_type': 'eye_in_hand', 'robot_base_frame': 'base_link',
+        'robot_effector_frame': 'tool0', 'tracking_base_frame': 'camera_color_optical_frame',
+        'tracking_marker_frame': 'marker'}
 
 
 def test_the_local_tf2_msgs_is_the_standard_type(tf_harness):
