@@ -33,25 +33,26 @@ def test_keys_whose_period_passed_are_forgotten_beyond_the_bound():
     throttle = LogThrottle(period=1.0)
     for k in range(REMEMBERED_KINDS):
         assert throttle.due(f'old {k}', 0.0) == 1
+    assert throttle.due('old 7', 0.2) is None      # held back: its count must not be lost
     assert throttle.due('fresh', 0.5) == 1        # the old ones still within their period
     assert len(throttle._due) == REMEMBERED_KINDS + 1
     assert throttle.due('newer', 2.0) == 1        # their period passed: forgotten
-    assert set(throttle._due) == {'newer'}
+    assert set(throttle._due) == {'newer', 'old 7'}
     assert throttle.due('old 3', 2.1) == 1
+    assert throttle.due('old 7', 2.2) == 2        # the one held back, and this one
 
 
 def test_event_log_throttles_refusals_per_kind_not_per_line_of_code():
-    """Two kinds of refusal within 5 s both reach the log; the same kind with new numbers not."""
+    """Two kinds within 5 s both reach the log; the same kind with new numbers not."""
     now = [100.0]
     logger = Lines()
     log = EventLog(logger, clock=lambda: now[0])
     order = Rejected('link_pose', 'stamp 1.000 s is older than the previous one (2.000 s)')
-    log.log([order, Rejected('sample', 'sample 0 of those given repeats sample 3 exactly'),
+    log.log([order, Notice('the clock jumped back by 3.0 s', 'time_jump'),
              Rejected('link_pose', 'stamp 1.500 s is older than the previous one (2.500 s)'),
-             Notice('the clock jumped back by 3.0 s', 'time_jump')], lambda result: None)
+             Notice('the clock jumped back by 4.0 s', 'time_jump')], lambda result: None)
     assert logger.lines == [
         ('info', f'rejected link_pose: {order.reason}'),
-        ('info', 'rejected sample: sample 0 of those given repeats sample 3 exactly'),
         ('info', 'the clock jumped back by 3.0 s')]
     now[0] += LOG_THROTTLE_S
     log.log([Rejected('link_pose', 'stamp 7.000 s is older than the previous one (8.000 s)')],
@@ -60,11 +61,21 @@ def test_event_log_throttles_refusals_per_kind_not_per_line_of_code():
                                 'previous one (8.000 s)')
 
 
+def test_every_refused_sample_is_logged_each_naming_its_own():
+    logger = Lines()
+    log = EventLog(logger, clock=lambda: 0.0)
+    log.log([Rejected('sample', f'sample {k} of those given repeats sample {k + 3} exactly')
+             for k in range(4)], lambda result: None)
+    assert [text for _, text in logger.lines] == [
+        f'rejected sample: sample {k} of those given repeats sample {k + 3} exactly'
+        for k in range(4)]
+
+
 def test_event_log_reset_logs_every_kind_again():
     now = [0.0]
     logger = Lines()
     log = EventLog(logger, clock=lambda: now[0])
-    event = Rejected('sample', 'the robot was still moving')
+    event = Notice('the clock jumped back by 3.0 s', 'time_jump')
     log.log([event, event], lambda result: None)
     assert len(logger.lines) == 1
     log.reset()                                   # a cleared session: its first lines again

@@ -454,8 +454,9 @@ def test_a_silent_input_is_named_by_its_topics_once():
     for topics, nothing in (({mc.LINK: '/robot/tool0_pose', mc.SENSOR: '/sensor_pose'},
                              '/robot/tool0_pose and /sensor_pose'),
                             ({mc.LINK: '/tf', mc.SENSOR: '/tf'}, None)):
+        composed = {s for s, topic in topics.items() if topic == '/tf'}
         status = calibrator_status(Session(SessionConfig()), mc.StreamStats(), t0 + 4 * NS,
-                                   'tool0', started_ns=t0, topics=topics)
+                                   'tool0', started_ns=t0, topics=topics, composed=composed)
         parts = status.message.split('; ')
         if nothing:
             assert parts[0] == f'waiting for poses (nothing on {nothing} yet)'
@@ -472,5 +473,38 @@ def test_tf_input_with_one_pair_of_frames_composing_names_the_other():
     from quatcal_ros.stream.session import Session, SessionConfig
     stats = mc.StreamStats()
     stats.note(mc.LINK, 1_000 * NS)
-    message = status_message(Session(SessionConfig()), stats, {mc.LINK: '/tf', mc.SENSOR: '/tf'})
+    message = status_message(Session(SessionConfig()), stats, {mc.LINK: '/tf', mc.SENSOR: '/tf'},
+                             composed={mc.LINK, mc.SENSOR})
     assert message == 'waiting for poses (no sensor_pose composed from /tf yet)'
+
+
+def test_tf_input_on_a_busy_tf_whose_frames_never_compose_says_so():
+    """/tf carries other frames (a robot driver): the streams are not 'no message at all'."""
+    from quatcal_ros.ros.diagnostics import calibrator_status
+    from quatcal_ros.stream.session import Session, SessionConfig
+    t0 = 1_000 * NS
+    topics = {mc.LINK: '/tf', mc.SENSOR: '/tf'}
+    stats = mc.StreamStats()
+    for k in range(50):
+        stats.note('/tf', t0 + k * 100 * MS)      # the node counts /tf's own messages
+    status = calibrator_status(Session(SessionConfig()), stats, t0 + 5 * NS, 'tool0',
+                               started_ns=t0, topics=topics, composed=set(topics))
+    parts = status.message.split('; ')
+    assert parts[0] == 'waiting for poses (no link_pose or sensor_pose composed from /tf yet)'
+    assert parts[1:] == ['link_pose stale: no pose composed from /tf in 5.0 s',
+                         'sensor_pose stale: no pose composed from /tf in 5.0 s']
+
+
+def test_images_with_tf_for_the_link_name_each_input_as_it_is():
+    """Camera images for the sensor, TF frames for the link: neither named as the other."""
+    from quatcal_ros.ros.diagnostics import calibrator_status
+    from quatcal_ros.stream.session import Session, SessionConfig
+    t0 = 1_000 * NS
+    topics = {mc.LINK: '/tf', mc.SENSOR: '/camera/image_raw'}
+    status = calibrator_status(Session(SessionConfig()), mc.StreamStats(), t0 + 4 * NS, 'tool0',
+                               started_ns=t0, topics=topics, composed={mc.LINK})
+    parts = status.message.split('; ')
+    assert parts[0] == ('waiting for poses (no link_pose composed from /tf yet, and nothing on '
+                        '/camera/image_raw yet)')
+    assert parts[1].startswith('no pose composed from /tf yet: are the frame names right')
+    assert parts[2].startswith('no message on /camera/image_raw yet: is it remapped')

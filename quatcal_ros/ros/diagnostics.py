@@ -78,21 +78,28 @@ class InputWatch:
         return found
 
 
-def status_message(session, stats, topics=None):
-    """Describe the state in operator words; `topics` (stream: resolved topic) names them."""
+def status_message(session, stats, topics=None, composed=()):
+    """
+    Describe the state in operator words; `topics` (stream: resolved topic) names them.
+
+    Streams in `composed` are TF input (poses composed from frames on their topic).
+    """
     result = session.result
     if result is not None:
         return f'estimating: uncertainty {result.uncertainty_deg:.2g} deg'
     if session.state == 'waiting for poses':
         topics = topics or {}
         silent = [s for s in (LINK, SENSOR) if not stats.received[s]]
-        shared = [s for s in silent if list(topics.values()).count(topics.get(s, s)) > 1]
-        if shared:   # TF input: poses composed from /tf's frames; /tf itself may be busy
-            return (f'waiting for poses (no {" or ".join(shared)} composed from '
-                    f'{topics[shared[0]]} yet)')
-        if silent:
-            names = ' and '.join(topics.get(s, s) for s in silent)
-            return f'waiting for poses (nothing on {names} yet)'
+        parts = []
+        from_tf = [s for s in silent if s in composed]
+        if from_tf:   # /tf itself may be busy: its frames do not compose
+            parts.append(f'no {" or ".join(from_tf)} composed from {topics.get(from_tf[0])} '
+                         'yet')
+        quiet = [topics.get(s, s) for s in silent if s not in composed]
+        if quiet:
+            parts.append(f'nothing on {" and ".join(quiet)} yet')
+        if parts:
+            return f'waiting for poses ({", and ".join(parts)})'
         if stats.bad_total:
             (stream, reason), _ = stats.bad.most_common(1)[0]
             return (f'waiting for poses ({stats.bad_total} bad messages skipped, most for '
@@ -102,7 +109,7 @@ def status_message(session, stats, topics=None):
 
 
 def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_static='',
-                      started_ns=None, topics=None, next_pose=None, result=None):
+                      started_ns=None, topics=None, next_pose=None, result=None, composed=()):
     """
     Return the DiagnosticStatus of the calibrator.
 
@@ -112,10 +119,11 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
         anything is named after STALE_AFTER_S, with `topics` (stream: resolved topic).
     :param next_pose: the planner's core.planner.NextPose, or None.
     :param result: the published CalibrationResult when it is not the session's (on pixels).
+    :param composed: the streams of TF input (poses composed from frames on their topic).
     """
     result = result or session.result
     counters = session.counters
-    stale = stats.stale_reasons(now_ns, STALE_AFTER_S, started_ns, topics)
+    stale = stats.stale_reasons(now_ns, STALE_AFTER_S, started_ns, topics, composed)
     found = list(dict.fromkeys(text for _, text in stale))   # (TF input: one topic, /tf)
     if result is not None and result.residual_rms_deg > HIGH_RESIDUAL_DEG:
         found.append(f'high residual {result.residual_rms_deg:.2f} deg RMS: check the frame '
@@ -160,7 +168,7 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
         values[message_checks.diagnostic_key(stream, reason)] = count
     return DiagnosticStatus(
         level=DiagnosticStatus.WARN if found else DiagnosticStatus.OK, name=DIAGNOSTIC_NAME,
-        message='; '.join([status_message(session, stats, topics)] + found),
+        message='; '.join([status_message(session, stats, topics, composed)] + found),
         hardware_id=hardware_id,
         values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
 

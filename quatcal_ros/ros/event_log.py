@@ -7,10 +7,12 @@ the samples newly rejected since the last one and its warnings, throttled refusa
 notices, and the moved-marker warning that `move_check(result)` returns. `messages` writes
 the (level, text) pairs of the journal and the result files.
 
-An estimate's warnings come back with every estimate, and refusals (a pose out of order, a
-sample that repeats one) can come with every message: each kind is logged at most every
-LOG_THROTTLE_S seconds (log_throttle.LogThrottle), counted as the same when only its numbers
-changed.
+An estimate's warnings come back with every estimate, and a clock-jump notice or a refused
+pose can come with every message (in the node the pose screen counts refused poses before
+they get here): each kind is logged at most every LOG_THROTTLE_S seconds
+(log_throttle.LogThrottle), counted as the same when only its numbers changed. A refused sample
+(non-finite, or a repeat of an earlier one, from a resumed journal) is logged each time: each
+names its sample, and there is one per sample given.
 """
 
 import re
@@ -47,7 +49,7 @@ class EventLog:
                 self._estimate(event.result, move_check(event.result))
             elif isinstance(event, Rejected):
                 text = f'rejected {event.what}: {event.reason}'
-                if self._due(text):
+                if event.what == 'sample' or self._due(text):
                     self.logger.info(text)
             elif isinstance(event, Notice) and event.code == 'time_jump':
                 if self._due(event.text):

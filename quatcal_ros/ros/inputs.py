@@ -84,6 +84,7 @@ class NodeInputs:
         self.screen = PoseScreen(check_config, self._log_bad_message)
         tf_frames = tf_frames or {}
         self.message_types, self.topics = {}, {}
+        self.composed = frozenset(tf_frames)   # the streams composed from /tf's frames
         self.tf = None
         self.images = None
         if tf_frames:

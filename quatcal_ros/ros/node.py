@@ -323,7 +323,7 @@ class CalibratorNode(Node):
         return calibrator_status(self.session, self.stats, now_ns,
                                  self.config.result_frames[0], problems, tf_static,
                                  self.input_watch.started_ns, self.inputs.topics,
-                                 self.next_pose, self.result)
+                                 self.next_pose, self.result, self.inputs.composed)
 
     def _publisher_types(self, topic):
         return [info.topic_type for info in self.get_publishers_info_by_topic(topic)]

@@ -11,8 +11,9 @@ from collections import Counter
 
 # Each kind of event is logged at most once per this many seconds (steady clock).
 LOG_THROTTLE_S = 5.0
-# Kinds remembered before those whose period has passed are forgotten (their next line is
-# due anyway): a bound on memory when keys carry free text, such as warnings.
+# Kinds remembered before a new one makes those whose period has passed, with nothing held
+# back, be forgotten (their next line is due at once anyway): a soft bound on memory when keys
+# carry free text, such as warnings (kinds still within their period stay).
 REMEMBERED_KINDS = 100
 
 
@@ -52,6 +53,6 @@ class LogThrottle:
         self._held.clear()
 
     def _forget(self, now):
-        for key in [key for key, due in self._due.items() if due <= now]:
+        for key in [key for key, due in self._due.items() if due <= now and not self._held[key]]:
             del self._due[key]
             self._held.pop(key, None)

@@ -183,15 +183,15 @@ def diagnostic_key(stream, reason):
     return f'bad_{stream}_{reason}'
 
 
-def silent_input(stream, names):
+def silent_input(stream, names, composed=()):
     """
     Say that `stream` has sent nothing yet, on its topic from `names` (stream: topic).
 
-    A topic that several streams share is TF input: their poses are composed from its frames,
-    so its being silent or its frames being wrong look the same here.
+    A stream in `composed` is TF input: its poses are composed from frames on its topic, so
+    that topic being silent and a frame name being wrong look the same here.
     """
     topic = names.get(stream, stream)
-    if list(names.values()).count(topic) > 1:
+    if stream in composed:
         return (f'no pose composed from {topic} yet: are the frame names right, and does the '
                 'publisher run?')
     return (f'no message on {topic} yet: is it remapped to the right topic, and does the '
@@ -262,31 +262,37 @@ class StreamStats:
         """Streams not heard for after_s (node clock) since the first message of either."""
         return [stream for stream, _ in self.stale_reasons(now_ns, after_s)]
 
-    def stale_reasons(self, now_ns, after_s=STALE_AFTER_S, started_ns=None, names=None):
+    def stale_reasons(self, now_ns, after_s=STALE_AFTER_S, started_ns=None, names=None,
+                      composed=()):
         """
         Return [(stream, 'sensor_pose stale: no message for 4.2 s'), ...] (node clock).
 
         A stream is stale when it has sent nothing, or nothing usable, for after_s.  Before
-        the first message of either stream, a stream is named only when `started_ns` (when
+        the first message of any input, a stream is named only when `started_ns` (when
         the listening began) is given and after_s have passed since: 'no message on TOPIC
-        yet', TOPIC from `names` (stream: topic), with the likely cause.
+        yet', TOPIC from `names` (stream: topic), with the likely cause.  Streams in
+        `composed` are TF input: poses composed from frames on their topic, said so (the
+        topic's own messages count as input: /tf may be busy while a frame never comes).
         """
+        names = names or {}
         if self.first_ns is None:
             if started_ns is None or now_ns - started_ns < int(after_s * NS_PER_S):
                 return []
-            names = names or {}
-            return [(stream, silent_input(stream, names)) for stream in STREAMS]
+            return [(stream, silent_input(stream, names, composed)) for stream in STREAMS]
         limit = now_ns - int(after_s * NS_PER_S)
         out = []
         for stream in STREAMS:
             last = self.last_ns.get(stream)
+            what = (f'no pose composed from {names.get(stream, stream)}' if stream in composed
+                    else 'no message')
             if last is None:
                 age_s = (now_ns - self.first_ns) / NS_PER_S
                 if self.first_ns < limit:
-                    out.append((stream, f'{stream} stale: no message at all in {age_s:.1f} s'))
+                    at_all = '' if stream in composed else ' at all'
+                    out.append((stream, f'{stream} stale: {what}{at_all} in {age_s:.1f} s'))
                 continue
             if last < limit:
-                out.append((stream, f'{stream} stale: no message for '
+                out.append((stream, f'{stream} stale: {what} for '
                                     f'{(now_ns - last) / NS_PER_S:.1f} s'))
                 continue
             last_good = self.last_good_ns.get(stream, self.first_ns)

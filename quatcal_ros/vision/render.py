@@ -162,5 +162,5 @@ def write_dataset(folder, board_document, camera, names, link_poses, images):
             'distortion_model': camera.distortion_model,
             'distortion_coefficients': {'rows': 1, 'cols': len(camera.D),
                                         'data': camera.D.tolist()}}
-    (folder / 'camera_info.yaml').write_text(plain_yaml.dump(info, sort_keys=False))
-    (folder / 'board.yaml').write_text(plain_yaml.dump(board_document, sort_keys=False))
+    for name, content in (('camera_info.yaml', info), ('board.yaml', board_document)):
+        (folder / name).write_text(plain_yaml.dump(content, sort_keys=False), encoding='utf-8')
