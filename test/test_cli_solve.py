@@ -94,6 +94,8 @@ GOOD_ROW = '1.0,0,0,0,0,0,0,1,0,0,1,0,0,0,1'
      + '\n', '2 sample(s); at least 3'),
     (','.join(COLUMNS) + '\n' + (GOOD_ROW + '\n') * 3,
      '1 sample(s) (2 more repeat earlier ones exactly); at least 3'),
+    ('# a comment\n' + ','.join(COLUMNS) + ',link_x\n' + GOOD_ROW + ',1\n',
+     'row 2 (header): column(s) link_x more than once'),
 ])
 def test_bad_input_exits_2_naming_row_and_field(repo_root, tmp_path, text, expected):
     path = tmp_path / 'bad.csv'
@@ -279,3 +281,33 @@ def test_a_file_appended_to_itself_gives_the_answer_of_the_file(tmp_path, capsys
     assert '12 = 0, 13 = 1, 14 = 2' in warning and ', ...)' in warning
     assert warning.endswith('the sample numbers elsewhere in this output count the samples '
                             'kept, in file order')
+
+
+def test_an_output_that_is_the_input_is_refused_and_nothing_is_written(tmp_path, capsys):
+    """--report victim.csv once replaced the samples file with the report page."""
+    from quatcal_ros.tools.cli import solve_main
+    _, path, _ = write_cell_csv(tmp_path / 'victim.csv', 8, 6)
+    before = path.read_bytes()
+    for option in ('--report', '--easy-handeye2-out'):
+        assert solve_main([str(path), option, f'{tmp_path}/./victim.csv']) == 2
+        assert f'{option} {tmp_path}/./victim.csv: that is the input' in capsys.readouterr().err
+        assert path.read_bytes() == before
+    assert solve_main([str(path), '--report', str(tmp_path / 'r.html'),
+                       '--easy-handeye2-out', str(tmp_path / 'r.html')]) == 2
+    assert '--report and --easy-handeye2-out name the same file' in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['victim.csv']
+
+
+def test_an_empty_samples_path_is_not_the_current_folder(capsys):
+    from quatcal_ros.tools.cli import solve_main
+    assert solve_main(['']) == 2
+    assert 'the samples path is empty' in capsys.readouterr().err
+
+
+def test_an_output_below_a_file_says_the_parent_is_a_file(tmp_path, capsys):
+    from quatcal_ros.tools.cli import solve_main
+    _, path, _ = write_cell_csv(tmp_path / 'cell.csv', 8, 6)
+    (tmp_path / 'notes.txt').write_text('a file\n')
+    assert solve_main([str(path), '--easy-handeye2-out', str(tmp_path / 'notes.txt' / 'x')]) == 2
+    err = capsys.readouterr().err
+    assert 'a parent is a file, not a directory' in err and 'notes.txt' in err

@@ -71,6 +71,8 @@ def test_header_line_round_trip_and_odd_frame_names():
     ('# quatcal_ros samples journal v1 setup=eye_in_hand link_frame=tool0', 'sensor_frame'),
     ('# quatcal_ros samples journal v1 setup=a link_frame=b sensor_frame=c colour=red',
      'colour'),
+    ('# quatcal_ros samples journal v1 setup=eye_on_base link_frame=b sensor_frame=c',
+     "row 1: setup='eye_on_base' in the journal header is not one of eye_in_hand, eye_to_hand"),
 ])
 def test_bad_header_lines_are_refused(line, words):
     with pytest.raises(JournalError, match=words):

@@ -103,9 +103,25 @@ def test_eye_to_hand_needs_the_camera_guess_and_plans_with_it(tmp_path, capsys):
 @pytest.mark.parametrize('options, words', [
     (['--count', '1'], '--count must be at least 2'),
     (['--box-min', '0.6', '0', '0', '--box-max', '1', '1', '1'], 'outside the box'),
-    (['--target-distance', '0'], '--target-distance must be positive')])
+    (['--target-distance', '0'], '--target-distance must be a positive number'),
+    (['--target-distance', 'inf'], '--target-distance must be a positive number up to 1000'),
+    (['--noise-deg', '-1'], '--noise-deg must be a positive number'),
+    (['--noise-mm', 'nan'], '--noise-mm must be a positive number'),
+    (['--noise-deg', '0', '--noise-mm', '0'], '--noise-deg must be a positive number'),
+    (['--box-max', 'inf', '1', '1'], '--box-max: [inf, 1.0, 1.0] m is not a position'),
+])
 def test_unusable_options_are_named(capsys, options, words):
     assert plan_main(['--start', *map(str, START), *options]) == 2
+    assert words in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('start, words', [
+    (['0.5', '0', '0.5', '2', '0', '0', '0'], '--start: the quaternion has norm 2, not 1'),
+    (['5000', '0', '0.5', '1', '0', '0', '0'], '--start: [5000.0, 0.0, 0.5] m is not a position'),
+    (['0.5', '0', '0.5', '1e308', '1e308', '0', '0'], '--start: the quaternion has norm inf'),
+])
+def test_a_start_pose_no_robot_has_is_named(capsys, start, words):
+    assert plan_main(['--start', *start]) == 2
     assert words in capsys.readouterr().err
 
 

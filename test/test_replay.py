@@ -137,6 +137,20 @@ def test_a_pose_bag_replay_loads_no_opencv(repo_root, bags):
     assert '"rotation"' in done.stdout
 
 
+@pytest.mark.parametrize('option', ['--samples-out', '--journal-out', '--result-out',
+                                    '--report'])
+def test_an_output_into_the_bag_is_refused_and_the_bag_kept(bags, option, capsys):
+    """--samples-out BAG/x.db3 once replaced the recording with a CSV."""
+    (database,) = [p for p in (bags / 'pose').iterdir() if p.suffix in ('.db3', '.mcap')]
+    for target in (database, bags / 'pose' / 'metadata.yaml'):
+        before = target.read_bytes()
+        argv = [str(bags / 'pose'), '--link-topic', '/link_pose', '--sensor-topic',
+                '/sensor_pose', option, str(target)]
+        assert replay_main(argv) == 2
+        assert f'{option} {target}: that is the input' in capsys.readouterr().err
+        assert target.read_bytes() == before
+
+
 def test_the_replay_writes_a_journal_the_node_resumes(bags, tmp_path, capsys):
     journal_path = tmp_path / 'samples.csv'
     journal_path.write_text('an earlier file\n')

@@ -138,6 +138,10 @@ def test_views_are_refused_with_named_reasons(renderers):
     moved[::3] += 4.0     # corners the pose cannot fit
     bad = _with_pose(view.object_points, moved, CAMERA, Checks(), 100.0)
     assert bad.refused == 'reprojection_error' and 'RMS' in bad.detail
+    # A camera_info whose distortion no pose can fit: refused by name (was an IndexError).
+    wild = camera_from(640, 480, CAMERA.K, 'plumb_bob', [1e10, 0, 0, 0, 0])
+    none = _with_pose(view.object_points, view.image_points, wild, Checks(), 100.0)
+    assert none.refused == 'no_pose' and 'distortion' in none.detail
 
 
 def test_a_planar_pose_ambiguity_is_refused():
@@ -275,5 +279,29 @@ def test_solve_dir_without_the_layout_exits_2_naming_the_file(tmp_path, capsys):
     (tmp_path / 'robot_poses.csv').write_bytes(b'image,link_x\n\xff\xfe\n')
     for name in ('camera_info.yaml', 'board.yaml'):
         (tmp_path / name).write_text('')
+    (tmp_path / 'images').write_text('')
+    assert solve_main([str(tmp_path)]) == 2
+    assert 'images not a directory (an image dataset folder holds' in capsys.readouterr().err
+    (tmp_path / 'images').unlink()
+    assert solve_main([str(tmp_path)]) == 2
+    assert 'images missing' in capsys.readouterr().err
+    (tmp_path / 'images').mkdir()
     assert solve_main([str(tmp_path)]) == 2
     assert 'robot_poses.csv: not a text file (UTF-8 expected)' in capsys.readouterr().err
+    (tmp_path / 'board.yaml').unlink()
+    (tmp_path / 'board.yaml').mkdir()
+    assert solve_main([str(tmp_path)]) == 2
+    assert 'board.yaml not a file' in capsys.readouterr().err
+
+
+def test_solve_dir_with_no_usable_view_names_the_refusals(tmp_path, renderers, capsys):
+    """Not just '0 sample(s)': how many images, and why each kind was refused."""
+    _, names = write_rendered_dataset(tmp_path, renderers['charuco'], 4, seed=5)
+    for name in names[:3]:
+        cv2.imwrite(str(tmp_path / 'images' / name), np.full((480, 640), 128, np.uint8))
+    (tmp_path / 'images' / names[3]).write_bytes(b'not a png')
+    assert solve_main([str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert (f'0 of 4 images gave a usable board pose; at least 3 are needed. Refused: '
+            f'no_board 3 (first: {names[0]}: no corner found); unreadable_image 1 (first: '
+            f'{names[3]}: not an image OpenCV can read)') in err

@@ -37,7 +37,7 @@ from pathlib import Path
 import time
 from urllib.parse import quote, unquote
 
-from quatcal_ros.core.units import DEFAULT_FRAMES
+from quatcal_ros.core.units import DEFAULT_FRAMES, SETUPS
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import COLUMNS, format_samples, header_columns, parse_samples
 from quatcal_ros.files.text_input import BadInputError
@@ -109,6 +109,9 @@ class JournalHeader:
         if missing:
             raise JournalError(
                 f'{name}, row 1: the journal header lacks {", ".join(missing)}')
+        if values['setup'] not in SETUPS:
+            raise JournalError(f'{name}, row 1: setup={values["setup"][:40]!r} in the journal '
+                               f'header is not one of {", ".join(SETUPS)}')
         return JournalHeader(**values)
 
     def differences(self, other):

@@ -69,7 +69,12 @@ def atomic_write_bytes(path, data, mode=0o644):
         # A device (/dev/null), a pipe or a directory is never renamed over.
         raise OSError(errno.EEXIST, 'exists and is not a regular file; nothing was written',
                       str(target))
-    target.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:   # an ancestor of the target is a file
+        blocking = next(p for p in target.parents if p.exists() and not p.is_dir())
+        raise OSError(errno.ENOTDIR, 'a parent is a file, not a directory',
+                      str(blocking)) from None
     fd, tmp_name = tempfile.mkstemp(prefix='.' + target.name + '.', suffix='.tmp',
                                     dir=target.parent)
     try:

@@ -58,15 +58,20 @@ def _parse_rows(reader, name):
     if header is None:
         raise BadInputError(f'{name}: empty file: expected the header row {",".join(COLUMNS)}')
     header = [column.strip() for column in header]
+    where = f'{name}, row {reader.line_num} (header)'
     missing = [column for column in COLUMNS if column not in header]
     if missing:
-        raise BadInputError(f'{name}, row 1 (header): missing column(s) {", ".join(missing)}; '
+        raise BadInputError(f'{where}: missing column(s) {", ".join(missing)}; '
                             f'expected {",".join(COLUMNS)}')
+    twice = sorted({column for column in header if column and header.count(column) > 1})
+    if twice:
+        raise BadInputError(f'{where}: column(s) {", ".join(twice)} more than once: which '
+                            'one holds the value?')
     index = {column: header.index(column) for column in COLUMNS}
     given = [column for column in COVARIANCE_COLUMNS if column in header]
     if given and len(given) < len(COVARIANCE_COLUMNS):
         missing = [column for column in COVARIANCE_COLUMNS if column not in header]
-        raise BadInputError(f'{name}, row 1 (header): covariance column(s) {", ".join(missing)} '
+        raise BadInputError(f'{where}: covariance column(s) {", ".join(missing)} '
                             f'missing: give all {len(COVARIANCE_COLUMNS)} sensor_cov_* or none')
     covariance_index = [header.index(column) for column in given]
     samples = []

@@ -24,7 +24,8 @@ import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.planner import plan_session, PlanLimits
 from quatcal_ros.core.pose import Pose
-from quatcal_ros.core.units import SETUPS
+from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, \
+    quaternion_norm_problem, SETUPS
 from quatcal_ros.files import plain_yaml
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.tools.options import add_setting_options
@@ -78,9 +79,34 @@ def parser():
 def _pose(values, name):
     """Return the Pose of 7 numbers x y z qx qy qz qw; ValueError naming `name`."""
     values = np.asarray(values, float)
-    if not np.all(np.isfinite(values)) or np.linalg.norm(values[3:]) < 1e-9:
-        raise ValueError(f'{name}: 3 finite coordinates and a non-zero quaternion x y z w')
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f'{name}: 3 finite coordinates and a quaternion x y z w')
+    _check_position(values[:3], name)
+    problem = quaternion_norm_problem(values[3:], FILE_NORM_TOLERANCE)
+    if problem is not None:
+        raise ValueError(f'{name}: {problem}')
     return Pose.create(values[:3], quat.normalize(quat.wxyz_from_xyzw(values[3:])))
+
+
+def _check_position(values, name):
+    """Raise ValueError naming `name` for a position no robot cell has."""
+    if not np.all(np.isfinite(values)) or np.max(np.abs(values)) > MAX_POSITION_M:
+        raise ValueError(f'{name}: {np.asarray(values).tolist()} m is not a position in a '
+                         f'robot cell (finite, within {MAX_POSITION_M:g} m)')
+
+
+def _check_options(args):
+    """Raise ValueError naming the first option whose number no plan can use."""
+    if args.count < 2:
+        raise ValueError(f'--count must be at least 2, not {args.count}')
+    for name, value, top in (('--noise-deg', args.noise_deg, 90.0),
+                             ('--noise-mm', args.noise_mm, 1e3 * MAX_POSITION_M),
+                             ('--target-distance', args.target_distance, MAX_POSITION_M)):
+        if not 0.0 < value <= top:   # (NaN fails too)
+            raise ValueError(f'{name} must be a positive number up to {top:g}, not {value:g}')
+    for name, values in (('--box-min', args.box_min), ('--box-max', args.box_max)):
+        if values is not None:
+            _check_position(values, name)
 
 
 def _guesses(args, start):
@@ -95,8 +121,6 @@ def _guesses(args, start):
     mounting = _pose(args.mounting, '--mounting') if args.mounting else identity
     if args.object:
         return mounting, _pose(args.object, '--object')
-    if not args.target_distance > 0:
-        raise ValueError('--target-distance must be positive')
     ahead = Pose.create([0.0, 0.0, args.target_distance], np.array([1.0, 0.0, 0.0, 0.0]))
     return mounting, start @ mounting @ ahead
 
@@ -107,8 +131,7 @@ def _number(value):
 
 def plan_document(args):
     """Return the YAML document of the options' plan; ValueError for unusable options."""
-    if args.count < 2:
-        raise ValueError(f'--count must be at least 2, not {args.count}')
+    _check_options(args)
     start = _pose(args.start, '--start')
     mounting, target = _guesses(args, start)
     low = np.asarray(args.box_min if args.box_min else start.position - DEFAULT_BOX_HALF_M)

@@ -10,11 +10,13 @@ refinement). The refused views are listed with their named reasons; nothing is d
 silently. Errors in the files name the file, the row and the field.
 """
 
+from collections import Counter
 import csv
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
+import numpy as np
 from quatcal_ros.core.pose import Sample
 from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.files.samples_csv import parse_numbers, pose_from_values
@@ -42,6 +44,14 @@ class ImageDataset:
     def refused_json(self):
         return list(self.refused)
 
+    def refusal_summary(self):
+        """Return the refusals in words: each reason, its count, its first image and detail."""
+        first, counts = {}, Counter(entry['reason'] for entry in self.refused)
+        for entry in self.refused:
+            first.setdefault(entry['reason'], entry)
+        return '; '.join(f"{reason} {count} (first: {first[reason]['image']}: "
+                         f"{first[reason]['detail']})" for reason, count in counts.most_common())
+
     def refuse_copies(self, copies):
         """Refuse the views {position used: position of the used view it repeats}."""
         self.refused += [{'image': self.names[copy], 'reason': 'repeated_view',
@@ -56,13 +66,25 @@ class ImageDataset:
         return [(view.object_points, view.image_points) for view in self.views]
 
 
+LAYOUT = ('an image dataset folder holds images/, robot_poses.csv, camera_info.yaml and '
+          'board.yaml')
+
+
 def check_layout(folder):
-    """Raise BadInputError naming the first file of the layout that `folder` lacks."""
+    """Raise BadInputError naming the first entry of the layout that `folder` lacks."""
     folder = Path(folder)
-    for name in ('robot_poses.csv', 'camera_info.yaml', 'board.yaml'):
-        if not (folder / name).is_file():
-            raise BadInputError(f'{folder}: {name} missing (an image dataset folder holds '
-                                'images/, robot_poses.csv, camera_info.yaml and board.yaml)')
+    for name in ('robot_poses.csv', 'camera_info.yaml', 'board.yaml', 'images'):
+        path = folder / name
+        try:
+            kind = ('missing' if not path.exists() else
+                    None if (path.is_dir() if name == 'images' else path.is_file()) else
+                    'not a directory' if name == 'images' else 'not a file')
+            if kind is None and name == 'images':
+                next(path.iterdir(), None)      # can the images be listed?
+        except OSError as error:
+            raise BadInputError(f'{path}: cannot read: {error.strerror}') from None
+        if kind is not None:
+            raise BadInputError(f'{folder}: {name} {kind} ({LAYOUT})')
 
 
 def load_image_dataset(folder, checks=Checks(), progress=None):
@@ -74,13 +96,10 @@ def load_image_dataset(folder, checks=Checks(), progress=None):
     rows = read_robot_poses(folder / 'robot_poses.csv')
     dataset = ImageDataset(board, camera)
     for index, (image_name, link) in enumerate(rows):
-        path = folder / 'images' / image_name
-        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
+        gray, problem = _read_gray(folder / 'images' / image_name)
         if gray is None:
-            view_refused = ('unreadable_image', 'missing' if not path.is_file()
-                            else 'not an image OpenCV can read')
-            dataset.refused.append({'image': image_name, 'reason': view_refused[0],
-                                    'detail': view_refused[1]})
+            dataset.refused.append({'image': image_name, 'reason': 'unreadable_image',
+                                    'detail': problem})
         else:
             view = detect(gray, board, camera, checks)
             if view.ok:
@@ -93,6 +112,19 @@ def load_image_dataset(folder, checks=Checks(), progress=None):
         if progress is not None:
             progress(index + 1, len(rows))
     return dataset
+
+
+def _read_gray(path):
+    """Return (the image at `path` in gray, None) or (None, why it cannot be read)."""
+    try:
+        with open(path, 'rb') as stream:
+            data = stream.read()
+    except FileNotFoundError:
+        return None, 'missing'
+    except OSError as error:
+        return None, f'cannot read: {error.strerror}'
+    gray = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) if data else None
+    return (gray, None) if gray is not None else (None, 'not an image OpenCV can read')
 
 
 def read_robot_poses(path):

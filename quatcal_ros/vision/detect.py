@@ -78,6 +78,10 @@ def board_sharpness(gray, image_points):
 
 def _with_pose(object_points, image_points, camera, checks, sharpness):
     solutions = _pnp(object_points, image_points, camera)
+    if not solutions:
+        return View(object_points, image_points, sharpness=sharpness, refused='no_pose',
+                    detail='PnP found no board pose that fits the corners with this '
+                           'camera_info: check its camera matrix and distortion coefficients')
     (rvec, tvec, rms), others = solutions[0], solutions[1:]
     pose = pose_from_rvec(rvec, tvec)
     for other_rvec, other_tvec, other_rms in others:
@@ -99,7 +103,7 @@ def _with_pose(object_points, image_points, camera, checks, sharpness):
 
 
 def _pnp(object_points, image_points, camera):
-    """Return [(rvec, tvec, RMS px)] of the PnP poses, best first (IPPE, then LM-refined)."""
+    """Return [(rvec, tvec, RMS px)] of the finite PnP poses, best first (IPPE, LM-refined)."""
     obj = object_points.reshape(-1, 1, 3)
     img = image_points.reshape(-1, 1, 2)
     planar = np.ptp(object_points[:, 2]) < 1e-9
@@ -112,7 +116,8 @@ def _pnp(object_points, image_points, camera):
         projected, _ = cv2.projectPoints(obj, rvec, tvec, camera.K, camera.D)
         rms = float(np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - image_points) ** 2,
                                            axis=1))))
-        solutions.append((rvec.ravel(), tvec.ravel(), rms))
+        if np.isfinite(rms) and np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec)):
+            solutions.append((rvec.ravel(), tvec.ravel(), rms))
     return sorted(solutions, key=lambda s: s[2])
 
 

@@ -16,6 +16,7 @@ REASONS = {
     'no_board': 'no corner of the board was found',
     'too_few_corners': 'fewer corners than a reliable pose needs',
     'blurred': 'the board region is too blurred (sharpness below the threshold)',
+    'no_pose': 'no board pose fits the corners with this camera_info (PnP found none)',
     'ambiguous_pose': 'two board poses fit about equally well (planar ambiguity)',
     'reprojection_error': 'the pose leaves corner residuals above the threshold',
 }
