@@ -412,3 +412,13 @@ def test_every_reader_names_the_file_it_cannot_read(tmp_path, read, problem):
     expected = 'not a text file' if problem == 'late_binary' else 'cannot read'
     with pytest.raises(BadInputError, match=f'input.csv: {expected}'):
         readers[read](path)
+
+
+def test_a_whole_file_reader_stops_at_its_bound(tmp_path):
+    """A read stops past its bound (`solve /dev/zero` once read until the memory ran out)."""
+    from quatcal_ros.files.text_input import read_text
+    path = tmp_path / 'big.txt'
+    path.write_text('x' * (3 * 1024 * 1024))
+    assert len(read_text(path, limit=4 * 1024 * 1024)) == 3 * 1024 * 1024
+    with pytest.raises(BadInputError, match='big.txt: larger than 2 MiB'):
+        read_text(path, limit=2 * 1024 * 1024)

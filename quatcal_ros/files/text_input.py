@@ -8,6 +8,10 @@ naming the file, wherever it is read.
 
 from contextlib import contextmanager
 
+# The most text a whole-file reader takes: a journal's bound (journal.MAX_BYTES, some 600,000
+# samples), far above any samples, result, camera or board file.
+MAX_TEXT_CHARACTERS = 256 * 1024 * 1024
+
 
 class BadInputError(ValueError):
     """Input that cannot be used; the message names the file, row and field."""
@@ -30,7 +34,16 @@ def open_text(path, encoding='utf-8', newline=None):
         raise BadInputError(f'{path}: not a text file (UTF-8 expected)') from None
 
 
-def read_text(path):
-    """Return the text of the UTF-8 file `path` (open_text's errors)."""
+def read_text(path, limit=MAX_TEXT_CHARACTERS):
+    """
+    Return the text of the UTF-8 file `path` (open_text's errors).
+
+    BadInputError when it holds more than `limit` characters: read that far and no further,
+    so a device such as /dev/zero cannot fill the memory.
+    """
     with open_text(path) as stream:
-        return stream.read()
+        text = stream.read(limit + 1)
+    if len(text) > limit:
+        raise BadInputError(f'{path}: larger than {limit // (1024 * 1024)} MiB: not a file this '
+                            'tool reads (samples, results, camera and board files)')
+    return text
