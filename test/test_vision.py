@@ -66,6 +66,9 @@ def pose_error(estimate, truth):
     ({'marker_length_m': 0.05}, 'field marker_length_m: 0.05 m must be smaller'),
     ({'dictionary': 'DICT_7X7_BIG'}, 'field dictionary'),
     ({'dictionary': 'DICT_4X4_50', 'squares_x': 20, 'squares_y': 20}, 'has 50 markers'),
+    ({'type': 'chessboard', 'squares_x': 8, 'squares_y': 6}, 'field squares_y: a chessboard '
+     'of 8 x 6 squares looks the same turned by 180 degrees'),
+    ({'type': 'chessboard', 'squares_x': 7, 'squares_y': 5}, 'two orders'),
 ])
 def test_bad_board_files_name_the_field(change, field):
     with pytest.raises(BadInputError, match=field):

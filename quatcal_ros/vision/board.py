@@ -81,6 +81,11 @@ def parse_board(document, name='<board>'):
     marker = _length(document, 'marker_length_m', name) if kind != 'chessboard' else 0.0
     separation = (_length(document, 'marker_separation_m', name)
                   if kind in ('aruco_grid', 'apriltag_grid') else 0.0)
+    if kind == 'chessboard' and sum(size) % 2 == 0:   # turned half round, it looks the same
+        raise BadInputError(f'{name}, field squares_y: a chessboard of {size[0]} x {size[1]} '
+                            'squares looks the same turned by 180 degrees, so its corners have '
+                            'two orders and its pose can flip: use one even and one odd count '
+                            '(e.g. 9 x 6)')
     if kind == 'charuco' and not marker < square:
         raise BadInputError(f'{name}, field marker_length_m: {marker:g} m must be smaller '
                             f'than square_length_m ({square:g} m)')
