@@ -311,3 +311,14 @@ def test_an_output_below_a_file_says_the_parent_is_a_file(tmp_path, capsys):
     assert solve_main([str(path), '--easy-handeye2-out', str(tmp_path / 'notes.txt' / 'x')]) == 2
     err = capsys.readouterr().err
     assert 'a parent is a file, not a directory' in err and 'notes.txt' in err
+
+
+def test_a_huge_number_is_shown_cut_in_the_error(tmp_path, capsys):
+    """A 5000-digit field was echoed in full: a 5 KB error line."""
+    from quatcal_ros.tools.cli import solve_main
+    path = tmp_path / 'big.csv'
+    path.write_text(','.join(COLUMNS) + '\n' + GOOD_ROW.replace('1.0', '9' * 5000, 1) + '\n')
+    assert solve_main([str(path)]) == 2
+    err = capsys.readouterr().err
+    assert 'row 2, field stamp: 9999' in err and '... is not a finite number' in err
+    assert len(err) < 300

@@ -41,7 +41,7 @@ from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw, 
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, quaternion_norm_problem
 from quatcal_ros.files import exports, journal, plain_yaml
 from quatcal_ros.files.samples_csv import read_samples
-from quatcal_ros.files.text_input import BadInputError, open_text, read_text
+from quatcal_ros.files.text_input import BadInputError, open_text, read_text, shown
 
 FORMATS = ('csv', 'easy_handeye2', 'moveit', 'moveit-json')
 # A 4x4 matrix whose rotation block is farther than this from orthonormal (max |R^T R - I|)
@@ -82,13 +82,13 @@ def _load_json(text, name):
 
 def _number(value, where):
     if isinstance(value, bool) or value is None:
-        raise BadInputError(f'{where}: {value!r} is not a number')
+        raise BadInputError(f'{where}: {shown(repr(value))} is not a number')
     try:
         number = float(value)
     except (TypeError, ValueError):
-        raise BadInputError(f'{where}: {value!r} is not a number') from None
+        raise BadInputError(f'{where}: {shown(repr(value))} is not a number') from None
     if not math.isfinite(number):
-        raise BadInputError(f'{where}: {value} is not a finite number')
+        raise BadInputError(f'{where}: {shown(value)} is not a finite number')
     return number
 
 

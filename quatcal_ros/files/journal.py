@@ -40,7 +40,7 @@ from urllib.parse import quote, unquote
 from quatcal_ros.core.units import DEFAULT_FRAMES, SETUPS
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import COLUMNS, format_samples, header_columns, parse_samples
-from quatcal_ros.files.text_input import BadInputError
+from quatcal_ros.files.text_input import BadInputError, shown
 
 try:   # POSIX; elsewhere journals are not locked
     import fcntl
@@ -89,10 +89,10 @@ class JournalHeader:
         :param line: the first line of the file (without its end of line).
         :param name: the file name, for messages.
         """
-        shown = line if len(line) <= 80 else line[:77] + '...'
         if not line.startswith(MAGIC + ' '):
             raise JournalError(
-                f'{name}: not a quatcal_ros samples journal (its first line is {shown!r}, '
+                f'{name}: not a quatcal_ros samples journal (its first line is '
+                f'{shown(line, 80)!r}, '
                 f'expected {MAGIC!r} ...)')
         version, *items = line[len(MAGIC) + 1:].split()
         if version != f'v{VERSION}':

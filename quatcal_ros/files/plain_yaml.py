@@ -13,7 +13,7 @@ BadInputError that names the file and, where known, the line.
 import functools
 import json
 
-from quatcal_ros.files.text_input import BadInputError, read_text
+from quatcal_ros.files.text_input import BadInputError, read_text, shown
 
 MAX_BYTES = 64 * 1024 * 1024      # far above any samples or result file (a sample: ~400 B)
 MAX_DEPTH = 64                    # a samples file nests 5 levels
@@ -83,7 +83,7 @@ def load(text, name, holds='the file'):
         problem = getattr(error, 'problem', None) or str(error).splitlines()[0]
         raise BadInputError(f'{name}{_line(error)}: not readable YAML: {problem}') from None
     except (ValueError, RecursionError) as error:   # int() of a 5000-digit number, ...
-        raise BadInputError(f'{name}: not readable YAML: {_short(error)}') from None
+        raise BadInputError(f'{name}: not readable YAML: {shown(error, 200)}') from None
     finally:
         if loader is not None:
             loader.dispose()
@@ -130,7 +130,7 @@ def load_json(text, name):
         line = getattr(error, 'lineno', None)
         where = f', line {line}' if line else ''
         raise BadInputError(f'{name}{where}: not readable JSON: '
-                            f'{getattr(error, "msg", None) or _short(error)}') from None
+                            f'{getattr(error, "msg", None) or shown(error, 200)}') from None
 
 
 def _bounded_int(text):
@@ -143,11 +143,6 @@ def _check_size(text, name):
     if len(text) > MAX_BYTES:
         raise BadInputError(f'{name}: larger than {MAX_BYTES // (1024 * 1024)} MiB: not a '
                             'samples or result file')
-
-
-def _short(error):
-    text = str(error)
-    return text if len(text) <= 200 else text[:197] + '...'
 
 
 def _line(error):

@@ -22,7 +22,7 @@ import math
 import numpy as np
 from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, quaternion_norm_problem
-from quatcal_ros.files.text_input import BadInputError, open_text
+from quatcal_ros.files.text_input import BadInputError, open_text, shown
 
 COLUMNS = ('stamp',
            'link_x', 'link_y', 'link_z', 'link_qx', 'link_qy', 'link_qz', 'link_qw',
@@ -102,10 +102,11 @@ def _covariance(row, columns, name, line):
                 raise ValueError(cell)
             value = float(cell)
         except ValueError:
-            raise BadInputError(f'{where}, field {column}: {cell!r} is not a number (give all '
-                                f'{len(COVARIANCE_COLUMNS)} sensor_cov_* or none)') from None
+            raise BadInputError(f'{where}, field {column}: {shown(repr(cell))} is not a number '
+                                f'(give all {len(COVARIANCE_COLUMNS)} sensor_cov_* or none)') \
+                from None
         if not math.isfinite(value):
-            raise BadInputError(f'{where}, field {column}: {cell} is not a finite number')
+            raise BadInputError(f'{where}, field {column}: {shown(cell)} is not a finite number')
         covariance[i, j] = covariance[j, i] = value
     try:
         np.linalg.cholesky(covariance)
@@ -157,9 +158,10 @@ def _check_numbers(row, index, name, line):
                 raise ValueError(row[i])
             value = float(row[i])
         except ValueError:
-            raise BadInputError(f'{where}: {row[i].strip()!r} is not a number') from None
+            raise BadInputError(f'{where}: {shown(repr(row[i].strip()))} is not a '
+                                'number') from None
         if not math.isfinite(value):
-            raise BadInputError(f'{where}: {row[i].strip()} is not a finite number')
+            raise BadInputError(f'{where}: {shown(row[i].strip())} is not a finite number')
         if column[-2:] in ('_x', '_y', '_z') and abs(value) > MAX_POSITION_M:
             raise BadInputError(f'{where}: {value:g} m is not a position in a robot cell (at '
                                 f'most {MAX_POSITION_M:g} m from the origin; positions are in '
