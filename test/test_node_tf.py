@@ -284,6 +284,10 @@ def test_a_frame_that_never_comes_is_named_on_diagnostics(tf_harness):
             '/tf_static yet (frames seen: ') in status.message
     assert 'tool0' in status.message   # among the frames seen
     assert 'camera_color_optical_frame -> marker' not in status.message   # that one works
+    # /tf is busy, so the link stream is not 'no message at all': its poses never compose.
+    h.spin_until(lambda: 'link_pose stale: no pose composed from /tf in'
+                 in h.node.diagnostic_status().message, what='the stale link stream named')
+    assert 'no message at all' not in h.node.diagnostic_status().message
 
 
 def test_a_late_transform_is_only_late_not_a_time_jump(tf_harness):
