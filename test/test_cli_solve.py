@@ -290,12 +290,21 @@ def test_an_output_that_is_the_input_is_refused_and_nothing_is_written(tmp_path,
     before = path.read_bytes()
     for option in ('--report', '--easy-handeye2-out'):
         assert solve_main([str(path), option, f'{tmp_path}/./victim.csv']) == 2
-        assert f'{option} {tmp_path}/./victim.csv: that is the input' in capsys.readouterr().err
+        err = capsys.readouterr().err
+        assert f'{option} {tmp_path}/./victim.csv: that is an input file' in err
         assert path.read_bytes() == before
     assert solve_main([str(path), '--report', str(tmp_path / 'r.html'),
                        '--easy-handeye2-out', str(tmp_path / 'r.html')]) == 2
     assert '--report and --easy-handeye2-out name the same file' in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ['victim.csv']
+
+
+def test_a_column_the_reader_does_not_use_may_come_twice(tmp_path, capsys):
+    from quatcal_ros.tools.cli import solve_main
+    _, path, _ = write_cell_csv(tmp_path / 'cell.csv', 8, 6)
+    header, *rows = path.read_text().splitlines()
+    path.write_text('\n'.join([header + ',note,note'] + [row + ',a,b' for row in rows]) + '\n')
+    assert solve_main([str(path)]) == 0, capsys.readouterr().err
 
 
 def test_an_empty_samples_path_is_not_the_current_folder(capsys):

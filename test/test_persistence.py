@@ -108,6 +108,14 @@ def test_result_yaml_round_trip(tmp_path, real_result):
     assert 'xacro: |\n  <?xml' in text
 
 
+def test_a_write_below_a_file_or_a_dangling_link_is_an_os_error(tmp_path):
+    (tmp_path / 'file').write_text('')
+    os.symlink(tmp_path / 'gone', tmp_path / 'dangling')
+    for parent in ('file', 'dangling'):
+        with pytest.raises(OSError, match='a parent is a file, not a directory'):
+            persistence.atomic_write_text(tmp_path / parent / 'x.yaml', 'x')
+
+
 def test_result_yaml_writes_frames_beyond_ascii_as_themselves(tmp_path):
     """A frame named in the user's language reads as it is named, and reads back."""
     result = SimpleNamespace(

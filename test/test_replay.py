@@ -147,7 +147,7 @@ def test_an_output_into_the_bag_is_refused_and_the_bag_kept(bags, option, capsys
         argv = [str(bags / 'pose'), '--link-topic', '/link_pose', '--sensor-topic',
                 '/sensor_pose', option, str(target)]
         assert replay_main(argv) == 2
-        assert f'{option} {target}: that is the input' in capsys.readouterr().err
+        assert f'{option} {target}: that is an input file' in capsys.readouterr().err
         assert target.read_bytes() == before
 
 

@@ -297,6 +297,24 @@ def test_solve_dir_without_the_layout_exits_2_naming_the_file(tmp_path, capsys):
     assert 'board.yaml not a file' in capsys.readouterr().err
 
 
+def test_an_image_that_is_not_a_regular_file_is_refused_without_reading(tmp_path):
+    """A FIFO would block the read for ever; a device could fill the memory."""
+    from quatcal_ros.vision.dataset import _read_gray
+    os.mkfifo(tmp_path / 'pipe.png')
+    os.symlink(tmp_path / 'pipe.png', tmp_path / 'link.png')
+    for name in ('pipe.png', 'link.png'):
+        assert _read_gray(tmp_path / name) == (None, 'not a regular file')
+    assert _read_gray(tmp_path / 'none.png') == (None, 'missing')
+
+
+def test_robot_poses_with_a_column_twice_are_refused(tmp_path):
+    from quatcal_ros.vision.dataset import read_robot_poses
+    path = tmp_path / 'robot_poses.csv'
+    path.write_text('image,link_x,link_y,link_z,link_qx,link_qy,link_qz,link_qw,link_x\n')
+    with pytest.raises(BadInputError, match='row 1 .header.: column.s. link_x more than once'):
+        read_robot_poses(path)
+
+
 def test_solve_dir_with_no_usable_view_names_the_refusals(tmp_path, renderers, capsys):
     """Not just '0 sample(s)': how many images, and why each kind was refused."""
     _, names = write_rendered_dataset(tmp_path, renderers['charuco'], 4, seed=5)

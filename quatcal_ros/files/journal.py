@@ -40,7 +40,7 @@ from urllib.parse import quote, unquote
 from quatcal_ros.core.units import DEFAULT_FRAMES, SETUPS
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import COLUMNS, format_samples, header_columns, parse_samples
-from quatcal_ros.files.text_input import BadInputError, shown
+from quatcal_ros.files.text_input import BadInputError, MAX_TEXT_CHARACTERS, shown
 
 try:   # POSIX; elsewhere journals are not locked
     import fcntl
@@ -56,7 +56,7 @@ SAFE_CHARACTERS = '/_.:-'
 CORRUPT = 'corrupt'     # tag of a moved-aside file that is corrupt or foreign
 PREVIOUS = 'previous'   # tag of a moved-aside journal of an earlier session
 # A file this large cannot be a journal of one calibration (a sample is ~400 bytes).
-MAX_BYTES = 256 * 1024 * 1024
+MAX_BYTES = MAX_TEXT_CHARACTERS
 
 
 class JournalError(ValueError):
@@ -110,7 +110,7 @@ class JournalHeader:
             raise JournalError(
                 f'{name}, row 1: the journal header lacks {", ".join(missing)}')
         if values['setup'] not in SETUPS:
-            raise JournalError(f'{name}, row 1: setup={values["setup"][:40]!r} in the journal '
+            raise JournalError(f'{name}, row 1: setup={shown(values["setup"])!r} in the journal '
                                f'header is not one of {", ".join(SETUPS)}')
         return JournalHeader(**values)
 

@@ -72,7 +72,8 @@ def atomic_write_bytes(path, data, mode=0o644):
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
     except FileExistsError:   # an ancestor of the target is a file
-        blocking = next(p for p in target.parents if p.exists() and not p.is_dir())
+        blocking = next((p for p in target.parents if p.exists() and not p.is_dir()),
+                        target.parent)
         raise OSError(errno.ENOTDIR, 'a parent is a file, not a directory',
                       str(blocking)) from None
     fd, tmp_name = tempfile.mkstemp(prefix='.' + target.name + '.', suffix='.tmp',

@@ -59,7 +59,7 @@ def _loader():
 
 def load_file(path, holds='the file'):
     """Return the plain data of the YAML file `path` (load's errors, and 'cannot read')."""
-    return load(read_text(path), str(path), holds)
+    return load(read_text(path, MAX_BYTES), str(path), holds)
 
 
 def load(text, name, holds='the file'):

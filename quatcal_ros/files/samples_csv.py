@@ -63,10 +63,7 @@ def _parse_rows(reader, name):
     if missing:
         raise BadInputError(f'{where}: missing column(s) {", ".join(missing)}; '
                             f'expected {",".join(COLUMNS)}')
-    twice = sorted({column for column in header if column and header.count(column) > 1})
-    if twice:
-        raise BadInputError(f'{where}: column(s) {", ".join(twice)} more than once: which '
-                            'one holds the value?')
+    check_columns_once(header, COLUMNS + COVARIANCE_COLUMNS, where)
     index = {column: header.index(column) for column in COLUMNS}
     given = [column for column in COVARIANCE_COLUMNS if column in header]
     if given and len(given) < len(COVARIANCE_COLUMNS):
@@ -177,6 +174,14 @@ def pose_from_values(values, prefix, name, line):
                             'quaternions are x, y, z, w')
     position = [values[f'{prefix}_{axis}'] for axis in 'xyz']
     return Pose.create(position, xyzw[3:] + xyzw[:3])
+
+
+def check_columns_once(header, columns, where):
+    """Raise BadInputError at `where` when a column of `columns` is in `header` twice."""
+    twice = [column for column in columns if header.count(column) > 1]
+    if twice:
+        raise BadInputError(f'{where}: column(s) {", ".join(twice)} more than once: which '
+                            'one holds the value?')
 
 
 def header_columns(covariance):

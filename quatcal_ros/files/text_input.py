@@ -8,8 +8,8 @@ naming the file, wherever it is read.
 
 from contextlib import contextmanager
 
-# The most text a whole-file reader takes: a journal's bound (journal.MAX_BYTES, some 600,000
-# samples), far above any samples, result, camera or board file.
+# The most text a whole-file reader takes, and the largest journal (some 600,000 samples): far
+# above any samples, result, camera or board file.
 MAX_TEXT_CHARACTERS = 256 * 1024 * 1024
 
 

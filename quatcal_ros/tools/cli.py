@@ -29,6 +29,7 @@ from quatcal_ros.stream.settings import check_config, ConfigError, plan_limits, 
     session_config
 from quatcal_ros.stream.time_offset import find_time_offset
 from quatcal_ros.tools.options import add_setting_options, settings_of
+from quatcal_ros.tools.output_paths import output_clash
 from quatcal_ros.tools.progress import Progress
 
 EXIT_BAD_INPUT = 2
@@ -76,11 +77,12 @@ def solve_main(argv=None):
     if not args.samples.strip():
         return fail(parser.prog, 'the samples path is empty: give a samples file or an image '
                                  'dataset folder', EXIT_BAD_INPUT)
-    clash = output_clash([args.samples], {'--report': args.report,
-                                          '--easy-handeye2-out': args.easy_handeye2_out})
+    folder = Path(args.samples).is_dir()
+    clash = output_clash([('dataset' if folder else 'file', args.samples)],
+                         {'--report': args.report, '--easy-handeye2-out': args.easy_handeye2_out})
     if clash:
         return fail(parser.prog, clash, EXIT_BAD_INPUT)
-    if Path(args.samples).is_dir():
+    if folder:
         return _solve_images(parser.prog, args)
     try:
         imported = importers.load_samples(args.samples, args.format, args.setup)
@@ -133,10 +135,8 @@ def _solve_images(prog, args):
         refused = f'. Refused: {data.refusal_summary()}' if data.refused else ''
         return fail(prog, f'{where}{len(data.samples)} of {total} images gave a usable board '
                           f'pose; at least 3 are needed{refused}', EXIT_BAD_INPUT)
-    if result is None:
-        return print_result(prog, session, where, frames=solve_frames(args),
-                            extra={'views': views}, limits=plan_limits(settings_of(args)),
-                            report=args.report)
+    if result is None:   # why there is none
+        return print_result(prog, session, where)
     fit = refine_from_poses(data.samples, data.corners(), data.camera, result, args.setup,
                             args.robust)
     return print_result(prog, session, where, frames=solve_frames(args),
@@ -266,32 +266,6 @@ def with_warnings(result, warnings):
     return replace(result, warnings=[*result.warnings, *warnings])
 
 
-def output_clash(inputs, outputs):
-    """
-    Say why the output paths would destroy an input or each other, or return None.
-
-    inputs: the paths read (files, or folders such as a bag or an image dataset); outputs:
-    {option: path or None}. An output that is an input, an existing file in an input folder
-    (a new one there is fine: a report beside the images), or another output's file is
-    refused before anything is read or written.
-    """
-    read = [Path(p).expanduser().resolve() for p in inputs if p]
-    seen = {}
-    for option, path in outputs.items():
-        if not path:
-            continue
-        target = Path(path).expanduser().resolve()
-        for source in read:
-            if target == source or (source in target.parents and target.exists()):
-                return (f'{option} {path}: that is the input {source} (or a file in it): '
-                        'choose another path, nothing was written')
-        if target in seen:
-            return f'{seen[target]} and {option} name the same file {path}: one would replace ' \
-                   'the other'
-        seen[target] = option
-    return None
-
-
 def fail(prog, message, status):
     """Print `prog: error: message` on stderr and return `status`."""
     print(f'{prog}: error: {message}', file=sys.stderr)
@@ -390,7 +364,7 @@ def replay_main(argv=None):
     except ConfigError as error:
         return fail(prog, f'bad option: {error}', EXIT_BAD_INPUT)
     config = session_config(chosen)
-    clash = output_clash([args.bag, args.board_file], {
+    clash = output_clash([('bag', args.bag), ('file', args.board_file)], {
         '--samples-out': args.samples_out, '--journal-out': args.journal_out,
         '--result-out': args.result_out, '--report': args.report})
     if clash:

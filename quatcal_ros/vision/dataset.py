@@ -13,19 +13,23 @@ silently. Errors in the files name the file, the row and the field.
 from collections import Counter
 import csv
 from dataclasses import dataclass, field
+import os
 from pathlib import Path
+import stat
 
 import cv2
 import numpy as np
 from quatcal_ros.core.pose import Sample
 from quatcal_ros.core.units import NS_PER_S
-from quatcal_ros.files.samples_csv import parse_numbers, pose_from_values
+from quatcal_ros.files.samples_csv import check_columns_once, parse_numbers, pose_from_values
 from quatcal_ros.files.text_input import BadInputError, open_text
 from quatcal_ros.vision.board import read_board
 from quatcal_ros.vision.camera import read_camera_yaml
 from quatcal_ros.vision.detect import detect
 from quatcal_ros.vision.view import Checks
 
+# An image file larger than this is not a camera frame (a 100-megapixel 16-bit TIFF is 200 MB).
+MAX_IMAGE_BYTES = 256 * 1024 * 1024
 POSE_COLUMNS = ('image', 'link_x', 'link_y', 'link_z', 'link_qx', 'link_qy', 'link_qz',
                 'link_qw')
 
@@ -117,8 +121,13 @@ def load_image_dataset(folder, checks=Checks(), progress=None):
 def _read_gray(path):
     """Return (the image at `path` in gray, None) or (None, why it cannot be read)."""
     try:
+        status = os.stat(path)   # before opening: a FIFO would block the open
+        if not stat.S_ISREG(status.st_mode):
+            return None, 'not a regular file'
+        if status.st_size > MAX_IMAGE_BYTES:
+            return None, f'larger than {MAX_IMAGE_BYTES // (1024 * 1024)} MiB'
         with open(path, 'rb') as stream:
-            data = stream.read()
+            data = stream.read(MAX_IMAGE_BYTES + 1)
     except FileNotFoundError:
         return None, 'missing'
     except OSError as error:
@@ -144,6 +153,7 @@ def _robot_pose_rows(reader, name):
     if missing:
         raise BadInputError(f'{name}, row 1 (header): missing column(s) '
                             f'{", ".join(missing)}; expected {",".join(POSE_COLUMNS)}')
+    check_columns_once(header, POSE_COLUMNS, f'{name}, row 1 (header)')
     index = {c: header.index(c) for c in POSE_COLUMNS}
     rows, seen = [], set()
     for row in reader:

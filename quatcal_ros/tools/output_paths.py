@@ -1,0 +1,78 @@
+"""
+Output paths that would destroy an input: refused before a tool reads or writes anything.
+
+`solve victim.csv --report victim.csv` once replaced the samples with a report page, and
+`replay BAG --samples-out BAG/bag_0.db3` the recording with a CSV. `output_clash` names such
+an output: one that is an input file, one of the files an image dataset folder is made of (its
+layout and images/), anything in a bag's folder (or, for a bag given as its storage file, that
+folder's index and storage files), or another output's path. A new file beside the inputs, or
+in a dataset folder, is fine (a report beside the images).
+"""
+
+import os
+from pathlib import Path
+
+# The files of an image dataset folder that `solve DIR` reads (vision/dataset.py).
+DATASET_FILES = ('robot_poses.csv', 'camera_info.yaml', 'board.yaml')
+DATASET_FOLDERS = ('images',)
+# A rosbag2 folder: its index and its storage files (compressed ones end in .zstd).
+BAG_SUFFIXES = ('.db3', '.mcap', '.zstd')
+BAG_INDEX = 'metadata.yaml'
+
+
+def real(path):
+    """Return the absolute path with ~ and symbolic links resolved; never raises."""
+    return Path(os.path.realpath(os.path.expanduser(os.fspath(path))))
+
+
+def protected(kind, path):
+    """
+    Return (files, folders) that the input `path` is made of (folders: everything below).
+
+    kind: 'file'; 'dataset' (an image dataset folder: its layout files and images/); 'bag'
+    (a rosbag2 folder, all of it, or one storage file: it and its folder's index and storage
+    files).
+    """
+    path = real(path)
+    if kind == 'dataset':
+        return {path / name for name in DATASET_FILES}, {path / n for n in DATASET_FOLDERS}
+    if kind == 'bag' and path.is_dir():
+        return set(), {path}
+    if kind == 'bag':
+        return {path, path.parent / BAG_INDEX} | _bag_files(path.parent), set()
+    return {path}, set()
+
+
+def _bag_files(folder):
+    try:
+        return {entry for entry in folder.iterdir() if entry.suffix in BAG_SUFFIXES}
+    except OSError:
+        return set()
+
+
+def output_clash(inputs, outputs):
+    """
+    Say why the outputs would destroy an input or each other, or return None.
+
+    inputs: [(kind, path)] of the paths read (protected's kinds; a path None is skipped);
+    outputs: {option: path or None}.
+    """
+    files, folders = set(), set()
+    for kind, source in inputs:
+        if source:
+            more_files, more_folders = protected(kind, source)
+            files |= more_files
+            folders |= more_folders
+    seen = {}
+    for option, path in outputs.items():
+        if not path:
+            continue
+        target = real(path)
+        if target in files or target in folders or folders & set(target.parents):
+            return (f'{option} {path}: that is an input file (or in an input folder): choose '
+                    'another path, nothing was written')
+        if target in seen:
+            return (f'{seen[target]} and {option} name the same file {path}: one would '
+                    'replace the other')
+        seen[target] = option
+    return None
