@@ -132,3 +132,13 @@ def test_the_target_is_given_one_way(capsys):
                    '--object', '0.5', '0', '0', *map(str, DOWN)])
     assert done.value.code == 2
     assert 'not allowed with argument' in capsys.readouterr().err
+
+
+def test_a_frame_beyond_ascii_prints_as_utf8_on_an_ascii_terminal(monkeypatch):
+    """A C-locale terminal without Python's UTF-8 mode could not print a frame named Basis_Ä."""
+    import io
+    from quatcal_ros.tools.plan import write_stdout
+    terminal = io.TextIOWrapper(io.BytesIO(), encoding='ascii')
+    monkeypatch.setattr('sys.stdout', terminal)
+    write_stdout('frame: Basis_Ä\n')
+    assert terminal.buffer.getvalue() == 'frame: Basis_Ä\n'.encode('utf-8')

@@ -183,5 +183,15 @@ def main(argv=None):
             print(f'plan: error: {args.out}: cannot write: {error}', file=sys.stderr)
             return EXIT_BAD_INPUT
     else:
-        sys.stdout.write(text)
+        write_stdout(text)
     return 0
+
+
+def write_stdout(text):
+    """Print `text`; as UTF-8 bytes when the terminal's encoding cannot hold it (YAML's)."""
+    try:
+        sys.stdout.write(text)   # encoded whole before any byte is written
+    except UnicodeEncodeError:
+        sys.stdout.flush()
+        sys.stdout.buffer.write(text.encode('utf-8'))
+        sys.stdout.buffer.flush()
