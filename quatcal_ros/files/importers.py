@@ -95,16 +95,11 @@ def _number(value, where):
 def _mapping(value, where, keys):
     if not isinstance(value, dict):
         raise BadInputError(f'{where}: expected a mapping with {", ".join(keys)}, got '
-                            f'{type(value).__name__} {_short(value)}')
+                            f'{type(value).__name__} {shown(repr(value))}')
     missing = [key for key in keys if key not in value]
     if missing:
         raise BadInputError(f'{where}: missing {", ".join(missing)}')
     return value
-
-
-def _short(value, limit=40):
-    text = repr(value)
-    return text if len(text) <= limit else text[:limit - 3] + '...'
 
 
 def _transform(value, where, field_name):
@@ -126,7 +121,7 @@ def _matrix_pose(value, where, field_name):
     prefix = f'{where}, field {field_name}'
     if not isinstance(value, (list, tuple)):
         raise BadInputError(f'{prefix}: expected a 4x4 matrix (16 numbers, row-major), got '
-                            f'{type(value).__name__} {_short(value)}')
+                            f'{type(value).__name__} {shown(repr(value))}')
     if len(value) == 4 and all(isinstance(row, (list, tuple)) for row in value):
         if any(len(row) != 4 for row in value):
             raise BadInputError(f'{prefix}: expected 4 rows of 4 numbers, got rows of '
@@ -260,7 +255,7 @@ def parse_moveit_json_samples(document, name='<moveit json samples>'):
         where = f'{name}, entry [{i}]'
         if not isinstance(entry, list) or len(entry) != 2:
             raise BadInputError(f'{where}: expected a pair [eef_wrt_world, obj_wrt_sensor] '
-                                f'of 4x4 matrices, got {_short(entry)}')
+                                f'of 4x4 matrices, got {shown(repr(entry))}')
         samples.append(Sample(_stamp(i), _matrix_pose(entry[0], where, 'eef_wrt_world'),
                               _matrix_pose(entry[1], where, 'obj_wrt_sensor')))
     return ImportedSamples(samples, 'moveit-json')

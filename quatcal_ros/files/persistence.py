@@ -44,7 +44,6 @@ import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.files import exports
 from quatcal_ros.files import plain_yaml
-from quatcal_ros.files.text_input import read_text
 
 RESULT_FORMAT = 'quatcal_ros/mounting'
 RESULT_FORMAT_VERSION = 2
@@ -216,7 +215,7 @@ def read_result_yaml(path):
         mappings, lists, strings and numbers.
     """
     path = Path(path).expanduser()
-    document = plain_yaml.load(read_text(path), str(path), holds='a result file')
+    document = plain_yaml.load_file(path, holds='a result file')
     if not isinstance(document, dict):
         raise ValueError(f'{path}: not a quatcal_ros result file (no mapping at the top)')
     kind = (document.get('format'), document.get('format_version', 1))

@@ -12,9 +12,6 @@ in a dataset folder, is fine (a report beside the images).
 import os
 from pathlib import Path
 
-# The files of an image dataset folder that `solve DIR` reads (vision/dataset.py).
-DATASET_FILES = ('robot_poses.csv', 'camera_info.yaml', 'board.yaml')
-DATASET_FOLDERS = ('images',)
 # A rosbag2 folder: its index and its storage files (compressed ones end in .zstd).
 BAG_SUFFIXES = ('.db3', '.mcap', '.zstd')
 BAG_INDEX = 'metadata.yaml'
@@ -35,7 +32,8 @@ def protected(kind, path):
     """
     path = real(path)
     if kind == 'dataset':
-        return {path / name for name in DATASET_FILES}, {path / n for n in DATASET_FOLDERS}
+        from quatcal_ros.vision.dataset import IMAGES_FOLDER, LAYOUT_FILES   # cv2: images only
+        return {path / name for name in LAYOUT_FILES}, {path / IMAGES_FOLDER}
     if kind == 'bag' and path.is_dir():
         return set(), {path}
     if kind == 'bag':

@@ -28,6 +28,9 @@ from quatcal_ros.vision.camera import read_camera_yaml
 from quatcal_ros.vision.detect import detect
 from quatcal_ros.vision.view import Checks
 
+# The folder's layout (DESIGN.md contract 5): these files, and the images in IMAGES_FOLDER.
+LAYOUT_FILES = ('robot_poses.csv', 'camera_info.yaml', 'board.yaml')
+IMAGES_FOLDER = 'images'
 # An image file larger than this is not a camera frame (a 100-megapixel 16-bit TIFF is 200 MB).
 MAX_IMAGE_BYTES = 256 * 1024 * 1024
 POSE_COLUMNS = ('image', 'link_x', 'link_y', 'link_z', 'link_qx', 'link_qy', 'link_qz',
@@ -70,25 +73,26 @@ class ImageDataset:
         return [(view.object_points, view.image_points) for view in self.views]
 
 
-LAYOUT = ('an image dataset folder holds images/, robot_poses.csv, camera_info.yaml and '
-          'board.yaml')
-
-
 def check_layout(folder):
     """Raise BadInputError naming the first entry of the layout that `folder` lacks."""
     folder = Path(folder)
-    for name in ('robot_poses.csv', 'camera_info.yaml', 'board.yaml', 'images'):
-        path = folder / name
+    layout = (f'an image dataset folder holds {IMAGES_FOLDER}/, {", ".join(LAYOUT_FILES[:-1])} '
+              f'and {LAYOUT_FILES[-1]}')
+    for name in LAYOUT_FILES + (IMAGES_FOLDER,):
+        path, want_folder = folder / name, name == IMAGES_FOLDER
         try:
-            kind = ('missing' if not path.exists() else
-                    None if (path.is_dir() if name == 'images' else path.is_file()) else
-                    'not a directory' if name == 'images' else 'not a file')
-            if kind is None and name == 'images':
-                next(path.iterdir(), None)      # can the images be listed?
+            if not path.exists():
+                problem = 'missing'
+            elif want_folder != path.is_dir() or not (want_folder or path.is_file()):
+                problem = 'not a directory' if want_folder else 'not a file'
+            else:
+                problem = None
+                if want_folder:
+                    next(path.iterdir(), None)      # can the images be listed?
         except OSError as error:
             raise BadInputError(f'{path}: cannot read: {error.strerror}') from None
-        if kind is not None:
-            raise BadInputError(f'{folder}: {name} {kind} ({LAYOUT})')
+        if problem is not None:
+            raise BadInputError(f'{folder}: {name} {problem} ({layout})')
 
 
 def load_image_dataset(folder, checks=Checks(), progress=None):
@@ -100,7 +104,7 @@ def load_image_dataset(folder, checks=Checks(), progress=None):
     rows = read_robot_poses(folder / 'robot_poses.csv')
     dataset = ImageDataset(board, camera)
     for index, (image_name, link) in enumerate(rows):
-        gray, problem = _read_gray(folder / 'images' / image_name)
+        gray, problem = _read_gray(folder / IMAGES_FOLDER / image_name)
         if gray is None:
             dataset.refused.append({'image': image_name, 'reason': 'unreadable_image',
                                     'detail': problem})
