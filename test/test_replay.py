@@ -422,6 +422,9 @@ def test_progress_bar_is_throttled_and_only_on_terminals():
     progress.close(10)
     assert quiet.getvalue() == '' and not progress.enabled
     assert not Progress(10, stream=FakeTerminal(), enabled=False).enabled
+    untouched = FakeTerminal()
+    Progress(10, stream=untouched).close()   # nothing drawn: no empty line either
+    assert untouched.getvalue() == ''
 
 
 @pytest.mark.parametrize('fill, at', [(b'\0', 0.5), (b'\xff', 0.5)])

@@ -115,17 +115,18 @@ def _solve_images(prog, args):
     from quatcal_ros.vision.reprojection import refine_from_poses
     args.setup = args.setup or 'eye_in_hand'
     where = f'{args.samples}: '
-    progress = None
+    progress = Progress(None, 'images', enabled=sys.stderr.isatty())
+
+    def show(done, total):
+        progress.total = total
+        progress.update(done)
     try:
-        images.check_layout(args.samples)
-        total = len(images.read_robot_poses(Path(args.samples) / 'robot_poses.csv'))
-        progress = Progress(total, 'images', enabled=sys.stderr.isatty())
-        data = images.load_image_dataset(args.samples, progress=progress.update)
+        data = images.load_image_dataset(args.samples, progress=show)
     except BadInputError as error:
         return fail(prog, error, EXIT_BAD_INPUT)
     finally:
-        if progress is not None:
-            progress.close()
+        progress.close()
+    total = len(data.samples) + len(data.refused)   # one of them per row of robot_poses.csv
     session = Session(session_config(settings_of(args)))
     data.refuse_copies(_copies(session.add_samples(data.samples)))
     session.estimate()

@@ -34,13 +34,14 @@ class Progress:
         self._draw(done, extra() if callable(extra) else extra, now)
 
     def close(self, done=None, extra=''):
-        """Draw the final state (when `done` is given) and end the line."""
+        """Draw the final state (when `done` is given) and end the line, if one was drawn."""
         if not self.enabled:
             return
         if done is not None:
             self._draw(done, extra() if callable(extra) else extra, time.monotonic())
-        self.stream.write('\n')
-        self.stream.flush()
+        if self._width:
+            self.stream.write('\n')
+            self.stream.flush()
         self.enabled = False
 
     def _draw(self, done, extra, now):

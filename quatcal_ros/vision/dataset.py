@@ -99,9 +99,9 @@ def load_image_dataset(folder, checks=Checks(), progress=None):
     """Read and detect the folder (module docstring); progress(done, total) after each image."""
     folder = Path(folder)
     check_layout(folder)
+    rows = read_robot_poses(folder / 'robot_poses.csv')
     board = read_board(folder / 'board.yaml')
     camera = read_camera_yaml(folder / 'camera_info.yaml')
-    rows = read_robot_poses(folder / 'robot_poses.csv')
     dataset = ImageDataset(board, camera)
     for index, (image_name, link) in enumerate(rows):
         gray, problem = _read_gray(folder / IMAGES_FOLDER / image_name)
