@@ -17,11 +17,16 @@ Printed after the table: the growth exponent of each of ours from 100 to the lar
 10,000 and 100,000 samples in a fresh process; with --startup the wall time of
 `python -m quatcal_ros solve` on a 20-row CSV beside bench/opencv_solve_csv.py (csv, numpy and
 cv2 only) on the same file.
+With --recordings, also the default solve on the two real recordings in data/ (as
+bench_honesty.py reads them) beside OpenCV's methods given the same poses in OpenCV's
+convention, with each OpenCV answer's angle from ours (so the two solved the same problem);
+each whole and as 20 evenly spaced samples of it.
 Run: python bench/bench_scaling.py [--repeats 5] [--cells 5] [--sizes 10 20 ...] [--memory]
-[--startup]
+[--startup] [--recordings]
 """
 
 import argparse
+import itertools
 import os
 import subprocess
 import sys
@@ -31,10 +36,12 @@ import time
 # One BLAS thread, as the tools run (quatcal_ros.core.threads): set before numpy loads.
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
+from bench_honesty import RECORDINGS  # noqa: E402, I100 (the same real samples)
 from bench_speed import cell_samples  # noqa: E402, I100 (the same cells)
 import cv2  # noqa: E402, I100
 import numpy as np  # noqa: E402
 
+from quatcal_ros.core import quaternion as quat  # noqa: E402
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions  # noqa: E402
 from quatcal_ros.core.leastsq import all_pairs_rotation  # noqa: E402
 from quatcal_ros.core.motions import SampleRotations  # noqa: E402
@@ -67,6 +74,46 @@ def opencv_solver(samples, method):
                  [s.sensor.rotation for s in samples],
                  [s.sensor.position.reshape(3, 1) for s in samples])
     return lambda: cv2.calibrateHandEye(*arguments, method=method)
+
+
+def opencv_arguments(samples, setup='eye_in_hand', invert_sensor=False):
+    """
+    Return calibrateHandEye's four lists for our samples under a setup and sensor direction.
+
+    OpenCV takes the gripper in the base and the target in the camera: eye-to-hand passes the
+    base in the gripper instead (its documented use), inverted sensor poses are inverted back.
+    """
+    links = [s.link if setup == 'eye_in_hand' else s.link.inverse() for s in samples]
+    sensors = [s.sensor.inverse() if invert_sensor else s.sensor for s in samples]
+    return ([p.rotation for p in links], [p.position.reshape(3, 1) for p in links],
+            [p.rotation for p in sensors], [p.position.reshape(3, 1) for p in sensors])
+
+
+def recordings_table(repeats):
+    """Print the default solve on the real recordings beside OpenCV's methods."""
+    print('| recording | samples | ours default | ' + ' | '.join(OPENCV) +
+          ' | default / PARK | default / best OpenCV | OpenCV angle from ours (deg) |')
+    print('|---' * (len(OPENCV) + 6) + '|')
+    for (name, (load, extra)), size in itertools.product(RECORDINGS.items(), (None, 20)):
+        samples = load()
+        if size is not None:   # evenly spaced, as a short session of the same cell
+            samples = [samples[k] for k in np.linspace(0, len(samples) - 1, size, dtype=int)]
+        options = CalibrationOptions(**extra)
+        ours = cpu_ms(lambda: calibrate(samples, options), repeats)
+        ours_rotation = calibrate(samples, options).quaternion
+        arguments = opencv_arguments(samples, **extra)
+        times, angles = {}, {}
+        for method, flag in OPENCV.items():
+            times[method] = cpu_ms(lambda: cv2.calibrateHandEye(*arguments, method=flag),
+                                   repeats)
+            rotation = cv2.calibrateHandEye(*arguments, method=flag)[0]
+            angles[method] = np.degrees(quat.angle_between(quat.quaternion_from_matrix(rotation),
+                                                           ours_rotation))
+        best = min(times.values())
+        print(f'| {name} | {len(samples)} | {ours:.2f} | '
+              + ' | '.join(f'{times[m]:.2f}' for m in OPENCV)
+              + f' | {ours / times["PARK"]:.2f} | {ours / best:.2f} | '
+              + ', '.join(f'{m} {angles[m]:.2f}' for m in OPENCV) + ' |')
 
 
 def kernel(samples):
@@ -123,7 +170,10 @@ def main():
     parser.add_argument('--opencv-max', type=int, default=2000)
     parser.add_argument('--memory', action='store_true')
     parser.add_argument('--startup', action='store_true')
+    parser.add_argument('--recordings', action='store_true')
     args = parser.parse_args()
+    if args.recordings:
+        recordings_table(args.repeats)
     if args.startup:
         ours, opencv = (startup(args.repeats)[name] for name in ('solve', 'opencv'))
         print(f'solve on a 20-row CSV: {ours:.2f} s wall; the OpenCV script: {opencv:.2f} s; '
