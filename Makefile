@@ -23,10 +23,11 @@ demo: bootstrap
 test: bootstrap
 	PYTHONDONTWRITEBYTECODE=1 $(PY) -m pytest -p no:cacheprovider $(PYTEST_ARGS) test
 
-# Each benchmark is a script that prints a table; they run one after the other.
+# Each benchmark is a bench/bench_*.py script that prints a table; they run one after the
+# other (bench/'s other scripts are their helpers, such as opencv_solve_csv.py).
 bench: bootstrap
-	@set -e; shopt -s nullglob; scripts=(bench/*.py); \
-	if [ $${#scripts[@]} -eq 0 ]; then echo 'bench: no bench/*.py scripts'; fi; \
+	@set -e; shopt -s nullglob; scripts=(bench/bench_*.py); \
+	if [ $${#scripts[@]} -eq 0 ]; then echo 'bench: no bench/bench_*.py scripts'; fi; \
 	for s in "$${scripts[@]}"; do echo "== $$s"; $(PY) "$$s"; done
 
 # Build outputs and caches; distclean also removes .venv.

@@ -37,12 +37,24 @@ def test_demo_gives_up_at_the_time_limit(domain, capsys):
     assert 'FAILED' in capsys.readouterr().err
 
 
-@pytest.mark.parametrize('argv', [['--uncertainty-deg', '0'], ['--max-samples', '2'],
+@pytest.mark.parametrize('argv', [['--uncertainty-deg', '0'], ['--uncertainty-deg', 'nan'],
+                                  ['--max-samples', '2'], ['--time-limit-s', 'nan'],
                                   ['--still-s', '0.1'], ['--setup', 'sideways']])
 def test_demo_refuses_bad_arguments(argv):
     with pytest.raises(SystemExit) as exit_:
         demo.parse_args(argv)
     assert exit_.value.code == 2
+
+
+@pytest.mark.parametrize('option, value', [('--seed', '-1'), ('--noise-deg', '-1'),
+                                           ('--noise-deg', 'nan'), ('--still-s', '100'),
+                                           ('--move-s', '0.05'), ('--outlier-fraction', '2')])
+def test_demo_checks_the_simulated_cells_options_against_its_limits(option, value, capsys):
+    # They once reached sim_cell's parameters unchecked: an rclpy traceback and exit 1
+    with pytest.raises(SystemExit) as exit_:
+        demo.parse_args([option, value])
+    assert exit_.value.code == 2
+    assert f'{option} must be within' in capsys.readouterr().err
 
 
 def _result(angle_deg, uncertainty_deg, samples=10):

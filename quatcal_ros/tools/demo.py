@@ -23,7 +23,7 @@ from quatcal_ros.core import quaternion as quat
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.ros.qos import LATCHED_QOS
-from quatcal_ros.ros.sim_cell import SimCell
+from quatcal_ros.ros.sim_cell import PARAMETERS as SIM_PARAMETERS, SimCell
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -58,11 +58,22 @@ def parse_args(argv):
                         help='probability that a sensor frame is a marker flip')
     parser.add_argument('--verbose', action='store_true', help="show the nodes' own logs")
     args = parser.parse_args(argv)
-    if args.uncertainty_deg <= 0 or args.max_samples < 3 or args.time_limit_s <= 0:
+    if not (args.uncertainty_deg > 0 and args.max_samples >= 3 and args.time_limit_s > 0):
         parser.error('need --uncertainty-deg > 0, --max-samples >= 3 and --time-limit-s > 0')
-    if args.still_s < 0.3 or args.move_s < 0.1:
-        parser.error('need --still-s >= 0.3 (the still window is 0.25 s) and --move-s >= 0.1')
+    for option, parameter in SIM_OPTIONS.items():
+        low, high = SIM_PARAMETERS[parameter][2]
+        value = getattr(args, option)
+        if not low <= value <= high:   # (NaN fails too)
+            parser.error(f'--{option.replace("_", "-")} must be within {low:g} to {high:g} '
+                         f"(the simulated cell's {parameter}), not {value:g}")
+    if args.still_s < 0.3:
+        parser.error('need --still-s >= 0.3 (the still window is 0.25 s)')
     return args
+
+
+# The demo's options that set the simulated cell, by its parameter (their limits are its).
+SIM_OPTIONS = {'seed': 'seed', 'still_s': 'still_s', 'move_s': 'move_s',
+               'noise_deg': 'rotation_noise_deg', 'outlier_fraction': 'outlier_fraction'}
 
 
 def _sim_parameters(args):
