@@ -86,6 +86,8 @@ def test_describe_says_what_to_do():
     assert '45 s behind the node clock' in text and 'use_sim_time' in text
     text = mc.describe('wrong_frame_id', mc.SENSOR, now, 'world', now, config)
     assert "'world' is not 'camera'" in text and 'sensor_frame_id' in text
+    text = mc.describe('wrong_frame_id', mc.SENSOR, now, 'w' * 1_000_000, now, config)
+    assert f"'{'w' * (mc.MAX_LOGGED_CHARACTERS - 3)}...' is not 'camera'" in text
     assert 'stamp' in mc.describe('zero_stamp', mc.LINK)
     assert mc.diagnostic_key(mc.LINK, 'zero_stamp') == 'bad_link_pose_zero_stamp'
 

@@ -1,5 +1,5 @@
 """
-The project's vocabulary: units, the two setups, and the tolerances every reader shares.
+The project's vocabulary: units, the two setups, and what every reader shares.
 
 Times are header stamps in integer nanoseconds in the core (DESIGN.md, conventions); users
 speak seconds, degrees and metres.  A quaternion read from a message or a file is checked by
@@ -22,6 +22,12 @@ FILE_NORM_TOLERANCE = 1e-2
 # A position farther than this (metres) from its frame's origin is a unit or typing error
 # (millimetres for metres, a misplaced decimal point), not a robot cell.
 MAX_POSITION_M = 1000.0
+
+
+def shown(text, limit=40):
+    """Return `text` (a value from the input) for a message, cut to `limit` characters."""
+    text = str(text)
+    return text if len(text) <= limit else text[:limit - 3] + '...'
 
 
 def ns_from_s(seconds):

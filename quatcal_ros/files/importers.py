@@ -38,10 +38,11 @@ import numpy as np
 from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw, xyz_json, \
     xyzw_json
-from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, quaternion_norm_problem
+from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, quaternion_norm_problem, \
+    shown
 from quatcal_ros.files import exports, journal, plain_yaml
 from quatcal_ros.files.samples_csv import read_samples
-from quatcal_ros.files.text_input import BadInputError, open_text, read_text, shown
+from quatcal_ros.files.text_input import BadInputError, open_text, read_text
 
 FORMATS = ('csv', 'easy_handeye2', 'moveit', 'moveit-json')
 # A 4x4 matrix whose rotation block is farther than this from orthonormal (max |R^T R - I|)

@@ -37,10 +37,10 @@ from pathlib import Path
 import time
 from urllib.parse import quote, unquote
 
-from quatcal_ros.core.units import DEFAULT_FRAMES, SETUPS
+from quatcal_ros.core.units import DEFAULT_FRAMES, SETUPS, shown
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import COLUMNS, format_samples, header_columns, parse_samples
-from quatcal_ros.files.text_input import BadInputError, MAX_TEXT_CHARACTERS, shown
+from quatcal_ros.files.text_input import BadInputError, MAX_TEXT_CHARACTERS
 
 try:   # POSIX; elsewhere journals are not locked
     import fcntl

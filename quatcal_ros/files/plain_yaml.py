@@ -13,7 +13,8 @@ BadInputError that names the file and, where known, the line.
 import functools
 import json
 
-from quatcal_ros.files.text_input import BadInputError, read_text, shown
+from quatcal_ros.core.units import shown
+from quatcal_ros.files.text_input import BadInputError, read_text
 
 MAX_BYTES = 64 * 1024 * 1024      # far above any samples or result file (a sample: ~400 B)
 MAX_DEPTH = 64                    # a samples file nests 5 levels

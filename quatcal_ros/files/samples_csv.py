@@ -21,8 +21,9 @@ import math
 
 import numpy as np
 from quatcal_ros.core.pose import Pose, Sample
-from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, quaternion_norm_problem
-from quatcal_ros.files.text_input import BadInputError, open_text, shown
+from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, \
+    quaternion_norm_problem, shown
+from quatcal_ros.files.text_input import BadInputError, open_text
 
 COLUMNS = ('stamp',
            'link_x', 'link_y', 'link_z', 'link_qx', 'link_qy', 'link_qz', 'link_qw',

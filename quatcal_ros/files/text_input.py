@@ -47,9 +47,3 @@ def read_text(path, limit=MAX_TEXT_CHARACTERS):
         raise BadInputError(f'{path}: larger than {limit // (1024 * 1024)} MiB: not a file this '
                             'tool reads (samples, results, camera and board files)')
     return text
-
-
-def shown(text, limit=40):
-    """Return `text` for a message, cut to `limit` characters ('...' where cut)."""
-    text = str(text)
-    return text if len(text) <= limit else text[:limit - 3] + '...'

@@ -25,7 +25,7 @@ from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
-from quatcal_ros.core.units import MAX_POSITION_M, NS_PER_S
+from quatcal_ros.core.units import MAX_POSITION_M, NS_PER_S, shown
 from quatcal_ros.stream.log_throttle import LOG_THROTTLE_S, LogThrottle
 
 LINK, SENSOR = 'link_pose', 'sensor_pose'
@@ -139,8 +139,9 @@ def describe(reason, stream, stamp_ns=None, frame_id=None, now_ns=None, config=N
                 '--clock and set use_sim_time; 0 turns the check off')
     if reason == 'wrong_frame_id':
         parameter = 'link_frame_id' if stream == LINK else 'sensor_frame_id'
-        return (f'header.frame_id {clip(frame_id)!r} is not {config.frame_id(stream)!r} '
-                f'(parameter {parameter}): is the topic remapped to the right source?')
+        return (f'header.frame_id {shown(frame_id, MAX_LOGGED_CHARACTERS)!r} is not '
+                f'{config.frame_id(stream)!r} (parameter {parameter}): is the topic remapped '
+                'to the right source?')
     return REASONS.get(reason, reason)
 
 
@@ -165,17 +166,11 @@ def position_reason(position, config):
     return 'implausible_position'
 
 
-def clip(text, length=MAX_LOGGED_CHARACTERS):
-    """Return `text` cut to `length` characters (a 1 MB frame id is not logged whole)."""
-    text = str(text)
-    return text if len(text) <= length else f'{text[:length]}... ({len(text)} characters)'
-
-
 def detail_text(detail):
     """Return the text of a bad message's detail (text, exception, or function building it)."""
     if detail is None:
         return ''
-    return clip(detail() if callable(detail) else detail, 4 * MAX_LOGGED_CHARACTERS)
+    return shown(detail() if callable(detail) else detail, 4 * MAX_LOGGED_CHARACTERS)
 
 
 def diagnostic_key(stream, reason):
