@@ -2,11 +2,12 @@
 Honest estimates: the noise model, the bad-detection decisions, the uncertainty, validation.
 
 Synthetic cells with known answers in every realistic noise mode (isotropic, PnP-like
-anisotropic and correlated, robot-side noise), and the two real recordings in data/ (through
-the `eth_samples` and `moveit_samples` fixtures below). The uncertainty yardstick is the
-ratio of the RMS true error to the RMS reported uncertainty over many cells (synthetic), and
-on real recordings the half-sample ratio: the RMS deviation of random half-sample estimates
-from the full estimate over the halves' own uncertainty times sqrt(1/2) (1 = honest).
+anisotropic and correlated, robot-side noise, heavy-tailed), and the two real recordings in
+data/ (through the `eth_samples` and `moveit_samples` fixtures below). The uncertainty
+yardstick is the ratio of the RMS true error to the RMS reported uncertainty over many cells
+(synthetic), and on real recordings the half-sample ratio: the RMS deviation of random
+half-sample estimates from the full estimate over the halves' own uncertainty times
+sqrt(1/2) (1 = honest).
 """
 
 from dataclasses import replace
@@ -36,6 +37,8 @@ MODES = {
     'pnp': {'sensor_covariance': simulation.pnp_like_covariance()},
     'robot': {'rotation_noise_deg': 0.3, 'translation_noise_m': 0.002,
               'link_rotation_noise_deg': 0.1, 'link_translation_noise_m': 0.001},
+    # a few samples far noisier than the rest: the fitted t's Hessian is not its normal matrix
+    'heavy-tailed': {'rotation_noise_deg': 0.3, 'translation_noise_m': 0.002, 'tail_nu': 3.0},
 }
 
 
@@ -54,19 +57,44 @@ def rms_ratio(errors, reported):
     return float(np.sqrt(np.mean(np.square(errors)) / np.mean(np.square(reported))))
 
 
-@pytest.mark.parametrize('mode', sorted(MODES))
-@pytest.mark.parametrize('n', [12, 40])
-def test_reported_uncertainty_matches_the_true_error_in_every_noise_mode(mode, n):
+def true_error_ratios(mode, n, count):
+    """Return the RMS true error over the RMS reported uncertainty, {rotation, translation}."""
     rotation, translation = [], []
-    for cell, samples in cells(mode, n, 100):
+    for cell, samples in cells(mode, n, count):
         result = calibrate(samples)
         rotation.append((angle_deg(result.quaternion, cell.mounting.quaternion),
                          result.uncertainty_deg))
         translation.append((1e3 * np.linalg.norm(result.translation - cell.mounting.position),
                             result.translation_uncertainty_mm))
-    for name, pairs in (('rotation', rotation), ('translation', translation)):
-        ratio = rms_ratio(*zip(*pairs))
+    return {'rotation': rms_ratio(*zip(*rotation)),
+            'translation': rms_ratio(*zip(*translation))}
+
+
+@pytest.mark.parametrize('mode', sorted(MODES))
+@pytest.mark.parametrize('n', [12, 40])
+def test_reported_uncertainty_matches_the_true_error_in_every_noise_mode(mode, n):
+    for name, ratio in true_error_ratios(mode, n, 100).items():
         assert HONEST[0] <= ratio <= HONEST[1], f'{mode}, {n} samples, {name}: {ratio:.2f}'
+
+
+def test_with_heavy_tails_the_uncertainty_uses_the_likelihoods_curvature():
+    # The t's weights fall as residuals grow, so its Hessian is below the weighted normal
+    # matrix: with the normal matrix in its place the true errors were 1.20x (rotation) and
+    # 1.13x (translation) the reported uncertainty here.
+    for name, ratio in true_error_ratios('heavy-tailed', 100, 120).items():
+        assert 0.85 <= ratio <= 1.12, f'{name}: {ratio:.2f}'
+
+
+@pytest.mark.parametrize('nu', [3.0, 10.0])
+def test_the_curvature_of_t_residuals_is_the_fisher_factor(nu):
+    rng = np.random.default_rng(5)
+    d = 6
+    r = rng.standard_normal((20000, d)) / np.sqrt(rng.chisquare(nu, 20000) / nu)[:, None]
+    fit = heavy_tails.fit_t(r, (heavy_tails.isotropic_blocks(d),), (nu,))
+    assert fit.curvature(d) == pytest.approx((nu + d) / (nu + d + 2), abs=0.01)
+    gaussian = heavy_tails.fit_t(rng.standard_normal((200, d)),
+                                 (heavy_tails.isotropic_blocks(d),), (np.inf,))
+    assert gaussian.curvature(d) == 1.0
 
 
 def test_the_jackknife_in_batches_equals_all_replicates_at_once(monkeypatch):
@@ -256,7 +284,10 @@ def test_the_refinement_lands_on_the_converged_joint_fit(mode, n, monkeypatch):
     # Each refinement step refits the noise models with one EM step from the last fit's
     # weights (a model the last fit dropped: from the nearest fitted nu's distances) and stops
     # at a step of 1 % of a sigma. The answer and its uncertainty are those of the joint fixed
-    # point: a fully converged EM at every step and a step tolerance of 1e-7 sigma.
+    # point: a fully converged EM at every step and a step tolerance of 1e-7 sigma. The
+    # uncertainty within 2 %: under heavy tails the likelihood's curvature comes from the
+    # fitted weights, which one EM step leaves up to 1 % off there (the reported uncertainty's
+    # own scatter, from 20 jackknife blocks, is about 16 %).
     results = []
     for converged in (False, True):
         if converged:
@@ -269,9 +300,9 @@ def test_the_refinement_lands_on_the_converged_joint_fit(mode, n, monkeypatch):
         assert angle_deg(fast.quaternion, converged.quaternion) < 0.01 * sigma
         assert np.linalg.norm(fast.translation - converged.translation) * 1e3 < (
             0.01 * converged.translation_uncertainty_mm)
-        assert fast.uncertainty_deg == pytest.approx(sigma, rel=0.01)
+        assert fast.uncertainty_deg == pytest.approx(sigma, rel=0.02)
         assert fast.translation_uncertainty_mm == pytest.approx(
-            converged.translation_uncertainty_mm, rel=0.01)
+            converged.translation_uncertainty_mm, rel=0.02)
 
 
 @pytest.mark.parametrize('mode', sorted(MODES))

@@ -229,6 +229,28 @@ class NoiseFit:
         mean_weights = np.maximum(self.model_weights.mean(axis=1), 1e-12)
         return float(self.probabilities @ (factors / mean_weights))
 
+    def curvature(self, d):
+        """
+        Return the Hessian of a location's negative log-likelihood over the normal matrix's.
+
+        Expected over the residuals' directions, given the fitted weights. The t's weights
+        w_i = (nu + d) / (nu + delta_i) fall as a residual grows, so its Hessian is
+        sum_i J_i^T (w_i P - 2 w_i^2 / (nu + d) P e_i e_i^T P) J_i (P = S^-1; the weighted
+        normal matrix is the first term alone). Over the directions of e_i, P e_i e_i^T P
+        averages to delta_i / d P, so the Hessian is the normal matrix times
+        sum_i (w_i - 2 w_i^2 delta_i / (d (nu + d))) / sum_i w_i (averaged over the models):
+        (nu + d) / (nu + d + 2) for residuals that follow the t, 1 for the Gaussian. Taken
+        from the weights as fitted, as the normal matrix is, it stays consistent with it when
+        a few samples' fitted scale makes every weight larger than its expectation of 1.
+        """
+        nu = np.array(self.nus, dtype=float)[:, None]
+        w, delta = self.model_weights, self.delta
+        finite = np.isfinite(nu[:, 0])
+        bend = np.zeros_like(w)
+        bend[finite] = 2.0 * w[finite] ** 2 * delta[finite] / (d * (nu[finite] + d))
+        total = self.probabilities @ w.sum(axis=1)
+        return float(self.probabilities @ (w - bend).sum(axis=1) / total) if total > 0 else 1.0
+
     def subset(self, mask):
         """Return this fit restricted to the samples `mask` selects (to warm-start a refit)."""
         return NoiseFit(self.shapes, self.nus, self.probabilities,

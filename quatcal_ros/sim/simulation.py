@@ -17,6 +17,7 @@ The arrays below hold many poses at once: positions (N, 3) and quaternions (N, 4
 """
 
 from dataclasses import dataclass, field
+import math
 
 import numpy as np
 
@@ -336,7 +337,7 @@ def corrupt_orientations(quaternions, uniforms):
 def samples(rng, cell, n, rotation_noise_deg=0.0, translation_noise_m=0.0, outlier_fraction=0.0,
             link_rotation_noise_deg=0.0, link_translation_noise_m=0.0, rotation_spread_deg=30.0,
             start_ns=DEFAULT_START_NS, period_ns=2 * NS_PER_S, sensor_covariance=None,
-            report_covariance=False):
+            report_covariance=False, tail_nu=math.inf):
     """
     Return n still samples of `cell` at stop_poses(), and the indices of the outliers.
 
@@ -347,12 +348,20 @@ def samples(rng, cell, n, rotation_noise_deg=0.0, translation_noise_m=0.0, outli
     on the noise levels.  sensor_covariance (6x6, e.g. pnp_like_covariance(), or one per
     sample, (n, 6, 6)) replaces the two sensor noise levels by add_sensor_noise; with
     report_covariance the sensor poses carry it (Pose.covariance, ROS order), as a detector
-    that publishes PoseWithCovarianceStamped would.
+    that publishes PoseWithCovarianceStamped would. A finite tail_nu makes the sensor noise
+    heavy-tailed, a Student t with tail_nu degrees of freedom: each pose's covariance is
+    scaled by tail_nu / chi2(tail_nu) (a few poses far noisier than the rest).
     Returns (list[Sample], sorted list[int] of outlier indices).
     """
     if not 0.0 <= outlier_fraction <= 1.0:
         raise ValueError(f'outlier_fraction must be in [0, 1], not {outlier_fraction}')
     link_p, link_q = _stack(stop_poses(rng, cell, n, rotation_spread_deg))
+    if math.isfinite(tail_nu):
+        if sensor_covariance is None:
+            sensor_covariance = np.diag(np.square([np.radians(rotation_noise_deg)] * 3
+                                                  + [translation_noise_m] * 3))
+        scales = tail_nu / rng.chisquare(tail_nu, n)
+        sensor_covariance = np.broadcast_to(sensor_covariance, (n, 6, 6)) * scales[:, None, None]
     if sensor_covariance is None:
         sensor_p, sensor_q = add_pose_noise(rng, *cell.sensor_poses(link_p, link_q),
                                             rotation_noise_deg, translation_noise_m)
