@@ -1,5 +1,6 @@
 """The next-pose planner: proposals within the limits, and fewer samples to a target."""
 
+from dataclasses import replace
 from pathlib import Path
 import sys
 
@@ -41,6 +42,31 @@ def test_the_proposal_keeps_the_limits_and_beats_the_other_candidates():
     assert others and all(best.uncertainty_deg * best.translation_uncertainty_mm
                           <= 1.05 * o.uncertainty_deg * o.translation_uncertainty_mm
                           for o in others)
+
+
+def test_the_turn_limit_counts_from_where_the_robot_is_even_after_a_bad_detection():
+    # It counted from the last good sample: with the last one rejected, proposals turned up
+    # to 51 deg from the robot's pose under a 20-deg limit (25 of 30 cells).
+    checked = 0
+    for seed in range(8):
+        rng = np.random.default_rng(seed)
+        cell = simulation.random_cell(rng)
+        samples = simulation.samples(rng, cell, 12, rotation_noise_deg=0.3,
+                                     translation_noise_m=0.002)[0]
+        last = samples[-1]
+        flipped = quat.multiply(last.sensor.quaternion, np.array([0.0, 1.0, 0.0, 0.0]))
+        samples[-1] = replace(last, sensor=replace(last.sensor, quaternion=flipped))
+        result = calibrate(samples)
+        assert not result.sample_ok[-1]
+        proposal = plan_next_pose(samples, result, limits=PlanLimits(max_rotation_deg=20.0,
+                                                                     seed=seed))
+        if proposal is None:
+            continue
+        checked += 1
+        turned = np.degrees(quat.angle_between(proposal.link.quaternion,
+                                               last.link.quaternion))
+        assert turned <= 20.0 + 1e-9
+    assert checked >= 6
 
 
 def test_following_the_planner_needs_fewer_samples_than_random_poses():

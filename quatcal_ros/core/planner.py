@@ -192,7 +192,7 @@ def _candidate_sensor_poses(sensor_q, sensor_t, limits):
 
 def _within_limits(links, samples, used, limits):
     """Return which candidate link poses T_base_link the limits allow (bool, K)."""
-    last = samples[int(np.flatnonzero(used)[-1])].link
+    last = samples[-1].link   # where the robot is, whatever the verdict on its detection
     q = np.array([p.quaternion for p in links])
     t = np.array([p.position for p in links])
     turned = np.degrees(quat.angle_between(q, last.quaternion[None]))
