@@ -10,7 +10,13 @@ there is one) is questioned when it is poor: then each of the four conventions (
 inversion) gets the same quick closed-form fit of rotation and translation, and the configured
 one is compared with the best by the median rotation residual times the median position
 residual.
-The warning names the fix.
+The warning names the fix. Two conventions are mirrors of each other: eye_in_hand with the
+sensor poses inverted is eye_to_hand with the mounting and the object swapped (and the same
+with the inversions exchanged), so the quick fits score them alike and the wrong one answers
+with the object's pose. When the best and its mirror are that close, the Gaussian joint
+refinement of each decides: it weighs the residuals in the sensor frame, where the noise is,
+and the mirror's inverted poses carry the rotation noise into the positions by the lever arm
+(translation noise 2.5x the true convention's in a 5-degree cell).
 
 A fit that no convention explains (a residual of tens of degrees) is not a rigid mounting, or
 the data are dominated by bad detections: `rigid_fit_warnings` says so loudly.
@@ -24,6 +30,7 @@ from quatcal_ros.core import quality
 from quatcal_ros.core.leastsq import all_pairs_rotation
 from quatcal_ros.core.motions import pair_angles, pair_indices, SampleRotations
 from quatcal_ros.core.numerics import median
+from quatcal_ros.core.refine import refine
 from quatcal_ros.core.translation import SamplePositions, solve_translation
 from quatcal_ros.core.units import SETUPS
 
@@ -36,6 +43,8 @@ SUSPICIOUS_POSITION_MM = 5.0
 BETTER_FACTOR = 6.0
 # Floors of the medians (noise-free data, or no position information).
 FLOOR_DEG, FLOOR_MM = 0.01, 0.01
+# The best convention and its mirror score within this factor: the refinement decides.
+MIRROR_FACTOR = 2.0
 # A rotation residual (RMS, degrees) no rigid mounting with a working sensor leaves.
 NOT_RIGID_DEG = 10.0
 
@@ -59,6 +68,9 @@ def warnings(samples, options, screen=None):
         return []
     others = fits
     best = min(others, key=lambda k: _score(others[k]))
+    mirror = _mirror(*best)
+    if mirror in others and _score(others[mirror]) < MIRROR_FACTOR * _score(others[best]):
+        best = min(best, mirror, key=lambda k: _refined_noise(_arrays(samples), *k))
     rotation, position = current
     if _score(current) < BETTER_FACTOR * _score(others[best]):
         return []
@@ -106,6 +118,35 @@ def _arrays(samples):
                  for pose in ('link', 'sensor') for field in ('quaternion', 'position'))
 
 
+def _mirror(setup, invert):
+    """Return the convention whose equations are these with mounting and object swapped."""
+    return SETUPS[1 - SETUPS.index(setup)], not invert
+
+
+def _refined_noise(arrays, setup, invert):
+    """Return the Gaussian joint refinement's rotation noise (deg) x translation noise (mm)."""
+    rotations, positions, q_z, translation = _quick_fit(arrays, setup, invert)
+    try:
+        found = refine(rotations.link, positions.link, rotations.sensor, positions.sensor,
+                       q_z, translation.translation, robust=False,
+                       link_R=rotations.link_matrices)
+    except np.linalg.LinAlgError:
+        return math.inf
+    return found.rotation_noise_deg * found.translation_noise_mm
+
+
+def _quick_fit(arrays, setup, invert):
+    """Return the samples as a convention sees them, its quick rotation and translation."""
+    link_q, link_t, sensor_q, sensor_t = arrays
+    use = np.ones(len(link_q), dtype=bool)
+    rotations = SampleRotations.from_arrays(link_q, sensor_q, setup, invert)
+    positions = SamplePositions.from_arrays(link_t, sensor_t, rotations)
+    # Every sample may anchor the signs: the quick fit does not screen bad detections.
+    q_z = all_pairs_rotation(rotations, use, anchors=CHECK_SAMPLES)
+    info = quality.Information.all_pairs(rotations.link_matrices, use)
+    return rotations, positions, q_z, solve_translation(rotations, positions, q_z, info, use)
+
+
 def _quick_misfits(arrays, options):
     """
     Return each convention's median residuals of a quick fit, or None.
@@ -121,16 +162,10 @@ def _quick_misfits(arrays, options):
     smallest = np.minimum(pair_angles(link_q)[i, j], pair_angles(sensor_q)[i, j])
     if np.count_nonzero(smallest >= np.radians(options.min_motion_deg)) < 3:
         return None
-    use = np.ones(len(link_q), dtype=bool)
     fits = {}
     for setup in SETUPS:
         for invert in (False, True):
-            rotations = SampleRotations.from_arrays(link_q, sensor_q, setup, invert)
-            positions = SamplePositions.from_arrays(link_t, sensor_t, rotations)
-            # Every sample may anchor the signs: the quick fit does not screen bad detections.
-            q_z = all_pairs_rotation(rotations, use, anchors=CHECK_SAMPLES)
-            info = quality.Information.all_pairs(rotations.link_matrices, use)
-            translation = solve_translation(rotations, positions, q_z, info, use)
+            rotations, _, q_z, translation = _quick_fit(arrays, setup, invert)
             fits[setup, invert] = misfit(quality.sample_residuals(rotations, q_z),
                                          translation.residuals)
     return fits
