@@ -60,6 +60,31 @@ def test_write_is_synced_then_renamed_then_directory_synced(tmp_path, monkeypatc
     assert calls == ['fsync', 'replace', 'fsync']
 
 
+def test_a_link_is_followed_and_a_files_permissions_kept(tmp_path):
+    # The link itself was replaced by a regular file (the real file never updated), and a
+    # 0600 file became 0644.
+    real = tmp_path / 'real' / 'result.yaml'
+    real.parent.mkdir()
+    real.write_text('old\n')
+    real.chmod(0o600)
+    link = tmp_path / 'result.yaml'
+    link.symlink_to(real)
+    assert persistence.atomic_write_text(link, 'new\n') == real
+    assert link.is_symlink() and real.read_text() == 'new\n'
+    assert (real.stat().st_mode & 0o777) == 0o600
+    dangling = tmp_path / 'later.yaml'
+    dangling.symlink_to(tmp_path / 'real' / 'later.yaml')
+    persistence.atomic_write_text(dangling, 'x')
+    assert dangling.is_symlink() and (tmp_path / 'real' / 'later.yaml').read_text() == 'x'
+
+
+def test_created_directories_are_synced_too(tmp_path, monkeypatch):
+    synced = []
+    monkeypatch.setattr(persistence, '_fsync_directory', synced.append)
+    persistence.atomic_write_text(tmp_path / 'a' / 'b' / 'f.txt', 'x')
+    assert synced == [tmp_path / 'a' / 'b', tmp_path / 'a', tmp_path]
+
+
 def test_unwritable_directory_raises_oserror(tmp_path):
     blocker = tmp_path / 'file'
     blocker.write_text('not a directory')

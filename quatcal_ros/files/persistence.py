@@ -57,17 +57,25 @@ def atomic_write_bytes(path, data, mode=0o644):
     """
     Replace the file `path` by `data` atomically; create missing parent directories.
 
+    A symbolic link is followed: the file it points to is replaced, the link stays. An
+    existing file keeps its permission bits; created directories are made durable too.
+
     :param path: target file (str or path-like); `~` is expanded.
     :param data: bytes to write.
-    :param mode: permission bits of the new file.
+    :param mode: permission bits of a new file.
     :return: the target as an absolute pathlib.Path.
     :raises OSError: when the directory cannot be created or written; the target is unchanged.
     """
     target = Path(path).expanduser().absolute()
+    if target.is_symlink():
+        target = target.resolve()
     if target.exists() and not target.is_file():
         # A device (/dev/null), a pipe or a directory is never renamed over.
         raise OSError(errno.EEXIST, 'exists and is not a regular file; nothing was written',
                       str(target))
+    if target.exists():
+        mode = target.stat().st_mode & 0o7777
+    created = [d for d in target.parents if not d.exists()]
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
     except FileExistsError:   # an ancestor of the target is a file
@@ -88,6 +96,8 @@ def atomic_write_bytes(path, data, mode=0o644):
         _remove_quietly(tmp_name)
         raise
     _fsync_directory(target.parent)
+    for folder in created:   # their entries in their parents, innermost first
+        _fsync_directory(folder.parent)
     return target
 
 
