@@ -194,6 +194,13 @@ def test_solve_on_a_journal_takes_its_setup_and_frames(repo_root, tmp_path):
     assert done.returncode == 0, done.stderr
     line = json.loads(done.stdout)['static_transform_publisher']
     assert line.endswith('--frame-id tool0 --child-frame-id camera_color_optical_frame')
+    # Solved as the other setup (what a convention warning asks for), it says so and does
+    # not label the answer with the recording's frames (it once did, silently)
+    done = run_solve(repo_root, path, '--setup', 'eye_to_hand')
+    result = json.loads(done.stdout)
+    assert any('recorded with setup eye_in_hand; it is solved as eye_to_hand' in w
+               for w in result['warnings'])
+    assert '--frame-id tool0 ' not in result['static_transform_publisher']
 
 
 def test_the_tools_run_numpys_blas_on_one_thread(repo_root):

@@ -6,6 +6,7 @@ most the line being written), and never overwrite or delete a file that holds da
 or foreign files and journals that are not resumed are moved aside with a timestamp.
 """
 
+from dataclasses import replace
 import errno
 import os
 
@@ -31,13 +32,15 @@ def make_samples(n, seed=1):
     cell = simulation.random_cell(rng)
     samples, _ = simulation.samples(rng, cell, n, rotation_noise_deg=0.1,
                                     translation_noise_m=0.001)
-    return samples
+    # stamps of today's clock to the nanosecond: as floats they moved by up to ~120 ns
+    return [replace(s, stamp_ns=1_733_450_000_123_456_789 + k * 1_000_000_007)
+            for k, s in enumerate(samples)]
 
 
 def assert_same_samples(got, expected):
     assert len(got) == len(expected)
     for a, b in zip(got, expected):
-        assert abs(a.stamp_ns - b.stamp_ns) < 1000       # the CSV stamp is float seconds
+        assert a.stamp_ns == b.stamp_ns       # the CSV stamp is exact decimal seconds
         assert_allclose(a.link.position, b.link.position, rtol=0, atol=0)
         assert_allclose(a.sensor.position, b.sensor.position, rtol=0, atol=0)
         assert_allclose(a.link.quaternion, b.link.quaternion, rtol=0, atol=1e-15)

@@ -291,12 +291,14 @@ def detect_format(document):
     return None
 
 
-def _csv_samples(path):
+def _csv_samples(path, setup=None):
     """
     Return the ImportedSamples of a samples CSV.
 
     A samples journal's header names its setup and frames (the link frame is the parent: the
-    effector eye-in-hand, the base eye-to-hand).
+    effector eye-in-hand, the base eye-to-hand). A journal holds the poses as received, so
+    another `setup` may solve it (what a convention warning asks for); then a warning says so
+    and the header's frames, named for its own setup, are not used.
     """
     samples = read_samples(path)
     with open_text(path) as stream:
@@ -307,6 +309,11 @@ def _csv_samples(path):
         header = journal.JournalHeader.parse(first, str(path))
     except journal.JournalError as error:
         raise BadInputError(str(error)) from None
+    if setup is not None and setup != header.setup:
+        return ImportedSamples(samples, 'csv', setup, warnings=[
+            f'{path}: the journal was recorded with setup {header.setup}; it is solved as '
+            f'{setup}, as --setup says (its frame names, {header.link_frame} -> '
+            f'{header.sensor_frame}, belong to {header.setup} and are not used)'])
     parent = 'robot_effector_frame' if header.setup == 'eye_in_hand' else 'robot_base_frame'
     return ImportedSamples(samples, 'csv', header.setup,
                            {parent: header.link_frame, 'tracking_base_frame': header.sensor_frame})
@@ -319,7 +326,8 @@ def load_samples(path, file_format='auto', setup=None):
     :param path: the file.
     :param file_format: 'auto' (by the extension, then by the content) or one of FORMATS.
     :param setup: the setup, when known (easy_handeye2 files depend on it; see
-        parse_easy_handeye2_samples); other formats ignore it.
+        parse_easy_handeye2_samples; a journal recorded with another says so, _csv_samples);
+        other formats ignore it.
     :return: ImportedSamples.
     :raises BadInputError: naming the file, entry and field.
     """
@@ -332,10 +340,10 @@ def load_samples(path, file_format='auto', setup=None):
     if file_format == 'auto':
         file_format = SUFFIX_FORMATS.get(suffix, 'auto')
     if file_format == 'csv':
-        return _csv_samples(path)
+        return _csv_samples(path, setup)
     text = read_text(path)
     if file_format == 'auto' and _is_csv(text):
-        return _csv_samples(path)
+        return _csv_samples(path, setup)
     if not text.strip():
         raise BadInputError(f'{name}: empty file')
     document = (_load_json(text, name) if file_format == 'moveit-json' or suffix == '.json'
@@ -367,8 +375,9 @@ def format_easy_handeye2_samples(samples, setup='eye_in_hand', parameters=None):
     Return easy_handeye2 `.samples` YAML of `samples` (list of pose.Sample), as it saves them.
 
     For eye_to_hand the robot transform is written as T_effector_base, as easy_handeye2 does.
-    parameters: values for the `parameters` mapping (calibration_type is set from `setup`
-    unless given; easy_handeye2 itself leaves them empty).
+    parameters: values for the `parameters` mapping (all left empty unless given, as
+    easy_handeye2 itself leaves them; a file written for eye_to_hand therefore re-imports as
+    eye_in_hand unless --setup or a calibration_type in `parameters` says otherwise).
     """
     _check_setup(setup)
     params = {'name': '', 'calibration_type': '', 'robot_base_frame': '',

@@ -16,12 +16,13 @@ a covariance must be symmetric positive definite.
 """
 
 import csv
+from decimal import Decimal, ROUND_HALF_EVEN
 import io
 import math
 
 import numpy as np
 from quatcal_ros.core.pose import Pose, Sample
-from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, \
+from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, NS_PER_S, \
     quaternion_norm_problem, shown
 from quatcal_ros.files.text_input import BadInputError, open_text
 
@@ -121,9 +122,20 @@ def _sample_from_row(row, index, name, line):
         raise BadInputError(f'{name}, row {line}, field stamp: {values["stamp"]:g} s is out of '
                             f'range (seconds, at most {MAX_STAMP_S:.3g} in magnitude)')
     return Sample(
-        stamp_ns=int(round(values['stamp'] * 1e9)),
+        stamp_ns=_stamp_ns(row[index['stamp']].strip()),
         link=pose_from_values(values, 'link', name, line),
         sensor=pose_from_values(values, 'sensor', name, line))
+
+
+def _stamp_ns(text):
+    """Return the stamp `text` (seconds, a checked finite number) in nanoseconds, exactly."""
+    return int((Decimal(text) * NS_PER_S).to_integral_value(ROUND_HALF_EVEN))
+
+
+def stamp_text(stamp_ns):
+    """Return integer nanoseconds as exact decimal seconds (a float would move them by ~100 ns)."""
+    whole, part = divmod(abs(int(stamp_ns)), NS_PER_S)
+    return f'{"-" if stamp_ns < 0 else ""}{whole}.{part:09d}'
 
 
 def parse_numbers(row, index, name, line):
@@ -205,7 +217,7 @@ def format_samples(samples, header=True, covariance_columns=None):
     if header:
         writer.writerow(header_columns(covariance_columns))
     for s in samples:
-        row = [f'{s.stamp_ns / 1e9:.9f}']
+        row = [stamp_text(s.stamp_ns)]
         for pose in (s.link, s.sensor):
             w, x, y, z = pose.quaternion
             row += [repr(float(v)) for v in (*pose.position, x, y, z, w)]
