@@ -41,4 +41,8 @@ def test_moveit_eye_to_hand_reproduces_the_published_rotation(moveit_samples):
 
 def test_moveit_solved_with_the_wrong_setup_says_so(moveit_samples):
     result = calibrate(moveit_samples, CalibrationOptions(setup='eye_in_hand'))
-    assert any('--setup eye_to_hand' in w for w in result.warnings)
+    # eye_to_hand and its mirror (eye_in_hand, sensor poses inverted) fit these data alike
+    # (the refinement's noise 1.004x apart): both are named, with how to choose
+    said = [w for w in result.warnings if w.startswith('frame convention')]
+    assert len(said) == 1 and '--setup eye_to_hand' in said[0]
+    assert '--invert-sensor' in said[0] and 'mirror images' in said[0]
