@@ -181,6 +181,29 @@ def test_tf_frames_with_static_transforms_anywhere_in_the_bag(tmp_path, streams)
     assert error < 3 * session.result.uncertainty_deg
 
 
+def test_a_zero_stamped_transform_on_tf_is_counted_and_skipped(tmp_path, streams):
+    # It was composed into a link pose at stamp 0: the tree took it for a time jump back,
+    # cleared its buffers and the session restarted pairing ('time jumped back 1 time(s)').
+    messages = [('/tf', stamp + MS, tf_message([conversions.transform_stamped_msg(
+        pose, stamp, 'base_link', 'tool0', typestore=TYPESTORE)]))
+        for stamp, pose in streams.link]
+    middle = len(messages) // 2
+    messages.insert(middle, ('/tf', messages[middle][1], tf_message([
+        conversions.transform_stamped_msg(streams.link[middle][1], 0, 'base_link', 'tool0',
+                                          typestore=TYPESTORE)])))
+    messages += [m for m in pose_messages(streams) if m[0] == '/sensor']
+    write_bag(tmp_path / 'b', {'/tf': bag.TF_TYPE, '/sensor': POSE_STAMPED},
+              sorted(messages, key=lambda m: m[1]), 'mcap')
+    session = Session()
+    with Bag(tmp_path / 'b') as recording:
+        report = Replay(recording, PoseInput(frames=('base_link', 'tool0')),
+                        PoseInput('/sensor')).run(session)
+    assert report.bad == {('/tf', 'zero_stamp'): 1}
+    assert session.counters['link_messages'] == len(streams.link)
+    assert session.counters['samples'] == 6
+    assert not any('time jumped back' in w for w in report.warnings())
+
+
 def test_opening_errors_name_the_file(tmp_path):
     with pytest.raises(BagError, match='no such file or directory'):
         Bag(tmp_path / 'missing')

@@ -1,6 +1,7 @@
 """The image input shared by the node and the replay: corners, their file, a bag replay."""
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ from quatcal_ros.files import plain_yaml
 from quatcal_ros.files.corners_file import corners_path, CornersFile, read_corners
 from quatcal_ros.ros import bag, conversions
 from quatcal_ros.stream.session import SessionConfig
-from quatcal_ros.tools.cli import replay_main
+from quatcal_ros.tools.cli import _sensor_input, replay_main
 from quatcal_ros.vision.board import parse_board
 from quatcal_ros.vision.camera import camera_from
 from quatcal_ros.vision.image_sensor import ImageSensor, mean_corners
@@ -187,6 +188,31 @@ def test_replay_of_images_names_what_is_missing(tmp_path, board_file, capsys):
     assert replay_main([*base, '--image-topic', '/camera/color/camera_info', '--board-file',
                         str(board_file)]) == 2
     assert 'has type sensor_msgs/msg/CameraInfo' in capsys.readouterr().err
+
+
+def test_a_second_run_of_the_images_starts_afresh():
+    # The replay's fallback pass (continuous capture) reran the images with the counts and
+    # the camera of the first pass: 24 images of a 12-image bag, and intrinsics the bag only
+    # gives later.
+    sensor = ImageSensor(parse_board(BOARD))
+    sensor.counts['images'] += 12
+    sensor.camera = object()
+    sensor.corners[5] = (points(0.0, 0.03, 0.06, 0.09), np.zeros((4, 2)))
+    sensor.restart()
+    assert sensor.counts == {} and sensor.camera is None and sensor.corners == {}
+
+
+@pytest.mark.parametrize('image, info', [
+    ('/camera/color/image_raw', '/camera/color/camera_info'),
+    ('/camera/color/image_raw/compressed', '/camera/color/camera_info'),
+    ('image', 'camera_info')])
+def test_the_camera_info_beside_an_image_topic_or_its_transport(board_file, image, info):
+    # For image_transport's /compressed topic it looked beside the transport:
+    # /camera/color/image_raw/camera_info
+    args = SimpleNamespace(image_topic=image, camera_info_topic=None,
+                           board_file=str(board_file), sensor_topic=None, sensor_frames=None)
+    source, _ = _sensor_input(bag, args, None)
+    assert source.camera_info == info
 
 
 def test_new_intrinsics_start_the_corners_file_over(tmp_path, board_file):

@@ -447,7 +447,7 @@ class _Run:
             sources={STREAMS[stream]: str(source) for stream, source in replay.inputs.items()})
         self.images = None
         if replay.images is not None:
-            replay.images.forget()   # a second run (capture mode fallback) starts afresh
+            replay.images.restart()   # a second run (capture mode fallback) starts afresh
             self.images = ImageInput(replay.images, self.poses)
         self.tree = TfFeed.new_tree(replay.tf_max_gap_ns)
         self.adders = {'link': session.add_link_pose, 'sensor': session.add_sensor_pose}

@@ -64,6 +64,10 @@ class TfFeed:
         for transform in msg.transforms:
             try:
                 stamp_ns = stamp_ns_from_header(transform.header)
+                if stamp_ns == 0 and not static:   # (a static transform holds at any time)
+                    self.screen.bad(topic, 'zero_stamp',
+                                    message_checks.describe('zero_stamp', topic))
+                    continue
                 pose = pose_from_msg(transform)
                 parent = normalize_frame(transform.header.frame_id)
                 child = normalize_frame(transform.child_frame_id)

@@ -457,10 +457,16 @@ def _sensor_input(bag, args, config):
         raise BadInputError('--image-topic needs --board-file: the board.yaml of the target')
     from quatcal_ros.vision.board import read_board   # cv2 only on the image path
     from quatcal_ros.vision.image_sensor import ImageSensor
-    beside = args.image_topic.rsplit('/', 1)[0] + '/' if '/' in args.image_topic else ''
+    image = next((args.image_topic[:-len(suffix)] for suffix in TRANSPORT_SUFFIXES
+                  if args.image_topic.endswith(suffix)), args.image_topic)
+    beside = image.rsplit('/', 1)[0] + '/' if '/' in image else ''
     info = args.camera_info_topic or beside + 'camera_info'
     return (bag.PoseInput(topic=args.image_topic, camera_info=info),
             ImageSensor(read_board(args.board_file), session_config=config))
+
+
+# image_transport names a transport's topic after the image topic: IMAGE/compressed, ...
+TRANSPORT_SUFFIXES = ('/compressed', '/compressedDepth', '/theora', '/zstd', '/ffmpeg')
 
 
 class _StreamRecorder:

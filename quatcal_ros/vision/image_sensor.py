@@ -125,6 +125,12 @@ class ImageSensor:
         self.corners.clear()
         self._recent.clear()
 
+    def restart(self):
+        """Forget everything a run of the images taught: corners, views, counts, camera."""
+        self.forget()
+        self.counts.clear()
+        self.camera = None
+
     def on_pixels(self, samples, result, setup, robust=True):
         """
         Return (CalibrationResult on the pixels, ReprojectionFit), or None.
