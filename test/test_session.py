@@ -227,6 +227,25 @@ def test_exact_copies_of_samples_are_counted_once():
     assert of_type(session.add_samples(samples[:3]), SampleCaptured)
 
 
+def test_a_session_with_new_settings_continues_the_counts():
+    # The node rebuilds its session when a setting changes; without the counts the near-repeat
+    # check after a time jump (a looped bag) was off, and the replayed stops counted twice.
+    rng = np.random.default_rng(24)
+    streams, messages = stop_and_go_messages(rng, n_stops=3)
+    first = Session()
+    feed(first, messages)
+    feed(first, messages[:len(messages) // 4])   # the bag starts over
+    assert first.counters['time_jumps'] == 1
+    kept = len(first.samples)
+    second = Session(SessionConfig(capture=CaptureConfig(window_ns=600 * MS)))
+    second.continue_counts(first)
+    second.add_samples(first.samples)
+    feed(second, messages[len(messages) // 4:])
+    assert second.counters['time_jumps'] == 1 and len(second.samples) == kept
+    assert second.counters['repeated_samples'] >= 1
+    assert second.counters['link_messages'] > first.counters['link_messages']
+
+
 def test_reset_forgets_everything():
     rng = np.random.default_rng(24)
     streams, messages = stop_and_go_messages(rng, n_stops=3)

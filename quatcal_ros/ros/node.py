@@ -417,7 +417,8 @@ class CalibratorNode(Node):
             self._start_tf_broadcast()
         if any(name not in settings.PRESENTATION for name in changed):
             samples = self.session.samples
-            self.session = self._new_session()
+            earlier, self.session = self.session, self._new_session()
+            self.session.continue_counts(earlier)
             if samples:
                 self.get_logger().info(
                     f're-estimating from the {len(samples)} samples with the new settings')

@@ -158,6 +158,16 @@ class Session:
         self._unpaired_streak = 0
         self._pending = []
 
+    def continue_counts(self, earlier):
+        """
+        Take over the counts of `earlier`, the session of the same streams before new settings.
+
+        Its messages, pairs, time jumps and refusals go on counting here; the repeat check
+        after a time jump needs them (a bag looped and a setting changed between the loops
+        counted the replayed stops twice).
+        """
+        self._counts = Counter(earlier._counts)
+
     # --- inputs --------------------------------------------------------------------------
 
     def add_link_pose(self, stamp_ns, pose):
