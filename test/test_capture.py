@@ -196,6 +196,22 @@ def test_manual_refusals_say_why():
         'only 2 paired poses in the last 0.6 s (need 3): is the sensor dropping frames?')
 
 
+def test_a_manual_capture_in_continuous_mode_counts_the_motion_since_the_last_sample():
+    # Continuous mode never noted the departure: every ~/capture was refused as 'no motion
+    # since the last sample (link 19.79 deg, 289.06 mm away; need 2 deg or 20 mm)'.
+    rng = np.random.default_rng(16)
+    link = Pose.create([0.4, 0.0, 0.5], [0.0, 1.0, 0.0, 0.0])
+    sensor = Pose.create([0.0, 0.0, 0.7], [0.0, 1.0, 0.0, 0.0])
+    capture = Capture(CaptureConfig(mode='continuous'))
+    first = still_pairs(rng, link, sensor, START_NS, 1.0, 30.0)
+    assert len(run(capture, first)) == 1                    # the first pair starts the series
+    later = still_pairs(rng, turned(link, 3.0), sensor, first[-1].stamp_ns + 2000 * MS, 1.0,
+                        30.0)
+    run(capture, later)
+    sample, text = capture.capture_now(later[-1].stamp_ns)
+    assert sample is not None, text
+
+
 def test_continuous_mode_takes_pairs_spaced_by_rotation():
     rng = np.random.default_rng(15)
     start = Pose.create([0.4, 0.0, 0.5], quat.normalize(rng.standard_normal(4)))

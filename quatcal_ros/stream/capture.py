@@ -186,12 +186,12 @@ class Capture:
         """Add the next Pair (stamps increasing); return the Sample it completes, or None."""
         self._window.append(pair)
         self._newest = pair
-        if self.config.mode == 'continuous':
-            return self._continuous_sample(pair)
-        if not self._moved:
+        if not self._moved:   # (also in continuous mode: a manual capture asks)
             angle, distance = pose_change(pair.link, self._last_sample.link)
             self._moved = (angle > self.config.min_departure_deg
                            or distance > self.config.min_departure_m)
+        if self.config.mode == 'continuous':
+            return self._continuous_sample(pair)
         if self.config.mode == 'auto' and self._moved and self._is_still():
             return self._take(self._window.average_sample())
         return None
