@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions
+from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.files.samples_csv import format_samples
 from quatcal_ros.sim import simulation
 from quatcal_ros.stream.settings import ConfigError, known_translation
@@ -143,6 +144,17 @@ def test_a_link_that_turns_a_little_is_held_at_the_known_translation(turn_deg):
         noise_mm.append(result.translation_noise_mm)
     assert np.sqrt(np.mean(np.square(errors_deg))) < 0.3
     assert np.median(noise_mm) < 1.1
+
+
+def test_an_arm_is_no_gantry_when_min_motion_deg_exceeds_its_turns():
+    # min_motion_deg says which motions count; set above an arm's largest turn (43 deg) it
+    # made the arm a gantry: 'the link never turns', translation zero, exit 0.
+    rng = np.random.default_rng(3)
+    cell = simulation.random_cell(rng)
+    samples, _ = simulation.samples(rng, cell, 20, rotation_noise_deg=0.2,
+                                    translation_noise_m=0.001)
+    with pytest.raises(DegenerateMotionError, match=r'at least min_motion_deg \(90 deg\)'):
+        calibrate(samples, CalibrationOptions(min_motion_deg=90.0))
 
 
 def test_known_translation_setting_is_three_numbers():

@@ -382,7 +382,7 @@ def _all_pairs(rotations, options, start):
     sample_ok, detections, residuals = np.ones(n, dtype=bool), None, None
     if start is None or not options.robust:   # (a warm start only skips the robust search)
         screen = _pair_screen(rotations, options)
-        _require_motions(screen)
+        _require_motions(screen, options.min_motion_deg)
         q_z = all_pairs_rotation(rotations, sample_ok)
     if options.robust and start is None:
         # Samples whose motions' rotation angles all agree (a bad detection spoils most of
@@ -425,7 +425,7 @@ def _consecutive(rotations, options, start):
     if options.robust:
         if start is None:
             fit = motions.subset(usable)
-            _require_motions(fit)
+            _require_motions(fit, options.min_motion_deg)
             q_z = _consensus(rotations, fit, options, least_squares_rotation(fit.q_a, fit.q_b))
         else:
             q_z = start
@@ -433,11 +433,11 @@ def _consecutive(rotations, options, start):
             detections = _detections(rotations, q_z, detections)[0]
             sample_ok = ~detections.bad
             fit = motions.subset(usable & sample_ok[motions.i] & sample_ok[motions.j])
-            _require_motions(fit)
+            _require_motions(fit, options.min_motion_deg)
             q_z = least_squares_rotation(fit.q_a, fit.q_b, reference=q_z)
     else:
         fit = motions.subset(usable)
-        _require_motions(fit)
+        _require_motions(fit, options.min_motion_deg)
         q_z = least_squares_rotation(fit.q_a, fit.q_b)
     system = MotionSystem()
     system.add(fit.q_a, fit.q_b, reference=q_z if options.robust or _near_half_turns(fit)
@@ -575,7 +575,7 @@ def _consensus(rotations, candidates, options, everything):
     once), and is scored by the median residual of the samples' object orientations about
     their mean; `everything` (the least squares of all candidates) is a hypothesis too.
     """
-    _require_motions(candidates)
+    _require_motions(candidates, options.min_motion_deg)
     draws, = random_integers(options.seed, (len(candidates), (4 * options.hypotheses, 2)))
     first, second = candidates.q_a[draws[:, 0], 1:], candidates.q_a[draws[:, 1], 1:]
     # |cos| of the angle between the two motions' axes (their quaternions' vector parts)
@@ -686,11 +686,12 @@ def _require_samples(sample_ok):
             'check the detections and move the robot to new poses')
 
 
-def _require_motions(fit):
+def _require_motions(fit, min_motion_deg):
     if len(fit) < 2:
         raise InsufficientDataError(
             f'only {len(fit)} usable motion(s) after screening: at least two motions about '
-            'different axes are needed; rotate the link by 20-40 degrees about a new axis')
+            'different axes are needed, each turning the link by at least min_motion_deg '
+            f'({min_motion_deg:g} deg); rotate the link by 20-40 degrees about a new axis')
 
 
 def _check_excitation(info, count, options):

@@ -31,6 +31,10 @@ from quatcal_ros.core.solver import DegenerateMotionError
 
 # Motions whose rotation axes lie within this of one line turn about a single axis.
 SINGLE_AXIS_DEG = 2.0
+# A link that never turns by this much (nor by min_motion_deg) never turns: a gantry. Not
+# min_motion_deg alone, which says which motions count: set above an arm's largest turn it
+# made the arm a gantry, with its translation set to zero.
+NEVER_TURNS_DEG = 5.0
 GRID_STEPS = 72
 MAX_ITERATIONS = 30
 STEP_TOLERANCE = 1e-10       # squared step length in units of its sigmas
@@ -60,9 +64,10 @@ def reduced_motion(rotations, min_motion_deg):
     turned = quat.rotation_vector(quat.multiply(quat.conjugate(rotations.link[:1]),
                                                 rotations.link))
     angles = np.linalg.norm(turned, axis=1)
-    if angles.max() < np.radians(min_motion_deg):
+    least = np.radians(min(min_motion_deg, NEVER_TURNS_DEG))
+    if angles.max() < least:
         return ReducedMotion('none')
-    moved = turned[angles > np.radians(0.5 * min_motion_deg)]
+    moved = turned[angles > 0.5 * least]
     _, spread, axes = np.linalg.svd(moved, full_matrices=False)
     if len(spread) > 1 and spread[1] > np.sin(np.radians(SINGLE_AXIS_DEG)) * spread[0]:
         return None
