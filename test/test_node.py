@@ -641,6 +641,37 @@ def test_without_a_clock_the_status_still_comes_and_says_so(domain_id):
         h.close()
 
 
+def test_a_clock_that_stopped_is_named():
+    # /clock stopped (a paused bag): the status stayed OK with nothing stale for 30 s
+    from quatcal_ros.ros.diagnostics import InputWatch
+    watch = InputWatch({}, 1)
+    args = (None, {}, lambda topic: [], 0)
+    assert watch.problems(*args, 5 * NS_PER_S, True, steady_ns=100 * NS_PER_S) == []
+    assert watch.problems(*args, 5 * NS_PER_S, True, steady_ns=102 * NS_PER_S) == []
+    (said,) = watch.problems(*args, 5 * NS_PER_S, True, steady_ns=104 * NS_PER_S)
+    assert '/clock has stood at 5.000 s for 4 s' in said
+    assert watch.problems(*args, 6 * NS_PER_S, True, steady_ns=105 * NS_PER_S) == []
+    assert watch.problems(*args, 6 * NS_PER_S, False, steady_ns=200 * NS_PER_S) == []
+
+
+def test_the_status_is_named_after_the_node(domain_id, tmp_path):
+    # Two calibrators on one domain published the same status name
+    from quatcal_ros.ros.diagnostics import DIAGNOSTIC_NAME
+    assert DIAGNOSTIC_NAME == 'calibrator: hand-eye rotation'   # the default node's
+    context = Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    try:
+        node = CalibratorNode(context=context, cli_args=['--ros-args', '-r', '__node:=cal_left'],
+                              parameter_overrides=[
+                                  Parameter('samples_file', value=str(tmp_path / 's.csv'))])
+        try:
+            assert node.diagnostic_status().name == 'cal_left: hand-eye rotation'
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
 def test_two_clocks_on_one_stream_are_named(domain_id):
     h = Harness(domain_id)
     try:

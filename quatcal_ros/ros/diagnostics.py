@@ -15,7 +15,13 @@ from quatcal_ros.core import quaternion as quat
 from quatcal_ros.stream import message_checks
 from quatcal_ros.stream.message_checks import LINK, SENSOR, STALE_AFTER_S
 
-DIAGNOSTIC_NAME = 'calibrator: hand-eye rotation'
+
+def status_name(node_name):
+    """Return the DiagnosticStatus name of a calibrator node: two on one domain differ."""
+    return f'{node_name}: hand-eye rotation'
+
+
+DIAGNOSTIC_NAME = status_name('calibrator')   # the default node's
 # An RMS motion residual above this (degrees) means inconsistent data: WARN.
 HIGH_RESIDUAL_DEG = 1.0
 # Clock jumps back within one status period that point to two clocks on one stream.
@@ -41,19 +47,23 @@ class InputWatch:
     Problems of the node's input that no single message shows, found at each status.
 
     Publishers of the wrong type on a silent stream, clock jumps that point to two clocks on
-    one stream, use_sim_time without /clock; and when listening began (for silent streams).
+    one stream, use_sim_time without /clock or with a /clock that stopped; and when listening
+    began (for silent streams).
     """
 
     def __init__(self, expected_types, started_ns):
         self.expected_types = expected_types   # {stream: 'geometry_msgs/msg/PoseStamped'}
         self.started_ns = started_ns
         self.jumps_seen = 0                  # the session's time jumps at the last status
+        self.clock_seen = (None, None)       # (node clock, steady clock) when it last moved
 
-    def problems(self, stats, topics, publisher_types, time_jumps, now_ns, sim_time):
+    def problems(self, stats, topics, publisher_types, time_jumps, now_ns, sim_time,
+                 steady_ns=None):
         """
         Return the problems in words, given the counts and the graph at node time now_ns.
 
-        publisher_types(topic): the types of the topic's publishers (the ROS graph).
+        publisher_types(topic): the types of the topic's publishers (the ROS graph);
+        steady_ns: the steady (wall) clock, to see a node clock that stopped.
         """
         found = []
         for stream, topic in topics.items():
@@ -73,6 +83,13 @@ class InputWatch:
         if now_ns <= 0 and sim_time:
             found.append('use_sim_time is true but no /clock message has come: no clock runs '
                          '(play the bag with --clock, or start the simulator)')
+        elif sim_time and steady_ns is not None:
+            if now_ns != self.clock_seen[0]:
+                self.clock_seen = (now_ns, steady_ns)
+            elif steady_ns - self.clock_seen[1] > STALE_AFTER_S * 1e9:
+                found.append(f'use_sim_time is true and /clock has stood at {now_ns * 1e-9:.3f} s '
+                             f'for {(steady_ns - self.clock_seen[1]) * 1e-9:.0f} s: is the '
+                             'bag paused, or its player or the simulator stopped?')
         if self.started_ns <= 0:   # use_sim_time: listening begins with the clock
             self.started_ns = now_ns
         return found
@@ -109,7 +126,8 @@ def status_message(session, stats, topics=None, composed=()):
 
 
 def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_static='',
-                      started_ns=None, topics=None, next_pose=None, result=None, composed=()):
+                      started_ns=None, topics=None, next_pose=None, result=None, composed=(),
+                      name=DIAGNOSTIC_NAME):
     """
     Return the DiagnosticStatus of the calibrator.
 
@@ -167,7 +185,7 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
     for (stream, reason), count in sorted(stats.bad.items()):
         values[message_checks.diagnostic_key(stream, reason)] = count
     return DiagnosticStatus(
-        level=DiagnosticStatus.WARN if found else DiagnosticStatus.OK, name=DIAGNOSTIC_NAME,
+        level=DiagnosticStatus.WARN if found else DiagnosticStatus.OK, name=name,
         message='; '.join([status_message(session, stats, topics, composed)] + found),
         hardware_id=hardware_id,
         values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])

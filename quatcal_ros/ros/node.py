@@ -41,7 +41,7 @@ from quatcal_ros.ros import conversions
 from quatcal_ros.ros import markers
 from quatcal_ros.ros import parameters
 from quatcal_ros.ros import spin
-from quatcal_ros.ros.diagnostics import calibrator_status, InputWatch
+from quatcal_ros.ros.diagnostics import calibrator_status, InputWatch, status_name
 from quatcal_ros.ros.event_log import EventLog
 from quatcal_ros.ros.image_samples import ImageSamples
 from quatcal_ros.ros.inputs import NodeInputs
@@ -318,12 +318,13 @@ class CalibratorNode(Node):
                     tf_problem, *self.input_watch.problems(
                         self.stats, self.inputs.topics, self._publisher_types,
                         self.session.counters['time_jumps'], now_ns,
-                        self.get_parameter('use_sim_time').value),
+                        self.get_parameter('use_sim_time').value, self._steady.now().nanoseconds),
                     *self.inputs.problems()]
         return calibrator_status(self.session, self.stats, now_ns,
                                  self.config.result_frames[0], problems, tf_static,
                                  self.input_watch.started_ns, self.inputs.topics,
-                                 self.next_pose, self.result, self.inputs.composed)
+                                 self.next_pose, self.result, self.inputs.composed,
+                                 status_name(self.get_name()))
 
     def _publisher_types(self, topic):
         return [info.topic_type for info in self.get_publishers_info_by_topic(topic)]
