@@ -308,7 +308,7 @@ def test_invalid_parameters_are_refused_at_start(domain_id):
         rclpy.try_shutdown(context=context)
 
 
-def test_parameters_at_runtime(harness_factory):
+def test_parameters_at_runtime(harness_factory, monkeypatch):
     h = harness_factory()
     node = h.node
     for parameter, words in ((Parameter('pairs', value='some'), 'pairs'),
@@ -324,6 +324,15 @@ def test_parameters_at_runtime(harness_factory):
     assert node.session.config.calibration.pairs == 'consecutive'
     (result,) = node.set_parameters([Parameter('link_frame', value='flange')])
     assert result.successful and node.config.link_frame == 'flange'
+    # With an estimate, a new result frame republishes it between the new frames (the
+    # topics and /tf_static kept the old frame until the next estimate, ~/save had the new)
+    sent, estimate = [], object()
+    node.publish_estimate = sent.append
+    monkeypatch.setattr(CalibratorNode, 'result', property(lambda self: estimate))
+    (result,) = node.set_parameters([Parameter('sensor_frame', value='camera_optical')])
+    assert result.successful and sent == [estimate]
+    (result,) = node.set_parameters([Parameter('plan_view_cone_deg', value=25.0)])
+    assert result.successful and len(sent) == 1
 
 
 def test_transform_messages_with_pose_type_transform(harness_factory):

@@ -424,6 +424,8 @@ class CalibratorNode(Node):
                 self.get_logger().info(
                     f're-estimating from the {len(samples)} samples with the new settings')
                 self._add_known_samples(samples)
+        elif {'link_frame', 'sensor_frame'} & set(changed) and self.result is not None:
+            self.publish_estimate(self.result)   # the same estimate, between the new frames
 
 
 def main(args=None):
