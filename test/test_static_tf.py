@@ -54,3 +54,15 @@ def test_a_moving_parent_of_someone_else_is_still_refused():
     static.publisher = Publisher()
     static.send(MOUNTING, 1, 'base_link', 'camera_optical', tree)
     assert not static.publisher.sent and 'second parent' in static.problem
+
+
+def test_turned_off_the_latched_transform_is_withdrawn():
+    # publish_tf:=false left the last transform latched on /tf_static for new listeners
+    static = StaticTf(Node())
+    static.withdraw()                       # nothing made, nothing sent: nothing to do
+    static.publisher = Publisher()
+    static.withdraw()
+    assert static.publisher.sent == []
+    static.send(MOUNTING, 1, 'tool0', 'camera')
+    static.withdraw()
+    assert static.publisher.sent == [[('tool0', 'camera')], []]

@@ -264,9 +264,15 @@ class CalibratorNode(Node):
             *self.config.result_frames)
 
     def _start_tf_broadcast(self):
-        """With publish_tf, start /tf_static; turned on at runtime, it sends the estimate."""
+        """
+        With publish_tf, start /tf_static; turned on at runtime, it sends the estimate.
+
+        Turned off, the latched transform is withdrawn for listeners that join later.
+        """
         result = self.result
-        if self.config.publish_tf and self.static_tf.start() and result is not None:
+        if not self.config.publish_tf:
+            self.static_tf.withdraw()
+        elif self.static_tf.start() and result is not None:
             self._broadcast(result, self.now_ns())
 
     def _broadcast(self, result, stamp_ns):

@@ -60,6 +60,16 @@ class StaticTf:
         self.publisher.publish(TFMessage(transforms=[
             conversions.transform_stamped_msg(pose, stamp_ns, parent, child)]))
 
+    def withdraw(self):
+        """
+        Replace what this node latched on /tf_static by nothing (publish_tf turned off).
+
+        Listeners that joined before keep the transform (tf2 keeps static transforms); later
+        ones no longer get it.
+        """
+        if self.publisher is not None and self.sent:   # (`sent` stays: ours to replace)
+            self.publisher.publish(TFMessage(transforms=[]))
+
     def _frame_safe(self, pose, parent, child, tree):
         """Return (parent, child, pose) that adds no second parent to `tree`, or None."""
         parent, child = normalize_frame(parent), normalize_frame(child)
