@@ -36,7 +36,7 @@ import time
 # One BLAS thread, as the tools run (quatcal_ros.core.threads): set before numpy loads.
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
-from bench_honesty import RECORDINGS  # noqa: E402, I100 (the same real samples)
+from bench_honesty import angle_deg, RECORDINGS  # noqa: E402, I100 (the same real samples)
 from bench_speed import cell_samples  # noqa: E402, I100 (the same cells)
 import cv2  # noqa: E402, I100
 import numpy as np  # noqa: E402
@@ -68,14 +68,6 @@ def cpu_ms(function, repeats):
     return 1e3 * float(np.median(times))
 
 
-def opencv_solver(samples, method):
-    arguments = ([s.link.rotation for s in samples],
-                 [s.link.position.reshape(3, 1) for s in samples],
-                 [s.sensor.rotation for s in samples],
-                 [s.sensor.position.reshape(3, 1) for s in samples])
-    return lambda: cv2.calibrateHandEye(*arguments, method=method)
-
-
 def opencv_arguments(samples, setup='eye_in_hand', invert_sensor=False):
     """
     Return calibrateHandEye's four lists for our samples under a setup and sensor direction.
@@ -87,6 +79,12 @@ def opencv_arguments(samples, setup='eye_in_hand', invert_sensor=False):
     sensors = [s.sensor.inverse() if invert_sensor else s.sensor for s in samples]
     return ([p.rotation for p in links], [p.position.reshape(3, 1) for p in links],
             [p.rotation for p in sensors], [p.position.reshape(3, 1) for p in sensors])
+
+
+def opencv_solver(samples, method, **convention):
+    """Return a call of calibrateHandEye on `samples` (opencv_arguments collected first)."""
+    arguments = opencv_arguments(samples, **convention)
+    return lambda: cv2.calibrateHandEye(*arguments, method=method)
 
 
 def recordings_table(repeats):
@@ -101,14 +99,11 @@ def recordings_table(repeats):
         options = CalibrationOptions(**extra)
         ours = cpu_ms(lambda: calibrate(samples, options), repeats)
         ours_rotation = calibrate(samples, options).quaternion
-        arguments = opencv_arguments(samples, **extra)
         times, angles = {}, {}
         for method, flag in OPENCV.items():
-            times[method] = cpu_ms(lambda: cv2.calibrateHandEye(*arguments, method=flag),
-                                   repeats)
-            rotation = cv2.calibrateHandEye(*arguments, method=flag)[0]
-            angles[method] = np.degrees(quat.angle_between(quat.quaternion_from_matrix(rotation),
-                                                           ours_rotation))
+            solver = opencv_solver(samples, flag, **extra)
+            times[method] = cpu_ms(solver, repeats)
+            angles[method] = angle_deg(quat.quaternion_from_matrix(solver()[0]), ours_rotation)
         best = min(times.values())
         print(f'| {name} | {len(samples)} | {ours:.2f} | '
               + ' | '.join(f'{times[m]:.2f}' for m in OPENCV)

@@ -24,6 +24,7 @@ A fit that no convention explains (a residual of tens of degrees) is not a rigid
 the data are dominated by bad detections: `rigid_fit_warnings` says so loudly.
 """
 
+from dataclasses import dataclass
 import math
 
 import numpy as np
@@ -64,9 +65,10 @@ def warnings(samples, options, screen=None):
     """
     if screen is not None and _good(screen):
         return []
-    fits = _quick_misfits(_arrays(samples), options)
-    if fits is None:
+    quick = _quick_fits(_arrays(samples), options)
+    if quick is None:
         return []
+    fits = {convention: misfit(*found.residuals) for convention, found in quick.items()}
     current = fits.pop((options.setup, options.invert_sensor))
     if _good(current):
         return []
@@ -79,8 +81,7 @@ def warnings(samples, options, screen=None):
             f'{rotation:.2f} deg, {position:.1f} mm) but well as')
     mirror = _mirror(*best)
     if mirror in others and _score(others[mirror]) < MIRROR_FACTOR * _score(others[best]):
-        arrays = _arrays(samples)
-        noise = {k: _refined_noise(arrays, *k) for k in (best, mirror)}
+        noise = {k: _refined_noise(quick[k]) for k in (best, mirror)}
         best, mirror = sorted((best, mirror), key=noise.get)
         if not noise[mirror] > MIRROR_DECISIVE * noise[best]:
             return [f'{said} {_name(*best)} ({_fit_text(others[best])}) and as '
@@ -140,20 +141,36 @@ def _mirror(setup, invert):
     return SETUPS[1 - SETUPS.index(setup)], not invert
 
 
-def _refined_noise(arrays, setup, invert):
+def _refined_noise(quick):
     """Return the Gaussian joint refinement's rotation noise (deg) x translation noise (mm)."""
-    rotations, positions, q_z, translation = _quick_fit(arrays, setup, invert)
+    rotations, positions = quick.rotations, quick.positions
     try:
         found = refine(rotations.link, positions.link, rotations.sensor, positions.sensor,
-                       q_z, translation.translation, robust=False,
+                       quick.q_z, quick.translation.translation, robust=False,
                        link_R=rotations.link_matrices)
     except np.linalg.LinAlgError:
         return math.inf
     return found.rotation_noise_deg * found.translation_noise_mm
 
 
+@dataclass(frozen=True)
+class _QuickFit:
+    """The samples as a convention sees them, and its quick rotation and translation."""
+
+    rotations: SampleRotations
+    positions: SamplePositions
+    q_z: np.ndarray
+    translation: object           # solve_translation's answer
+
+    @property
+    def residuals(self):
+        """Return the rotation and the position residuals, (N, 3) each, as `misfit` takes them."""
+        return (quality.sample_residuals(self.rotations, self.q_z),
+                self.translation.residuals)
+
+
 def _quick_fit(arrays, setup, invert):
-    """Return the samples as a convention sees them, its quick rotation and translation."""
+    """Return the _QuickFit of a convention."""
     link_q, link_t, sensor_q, sensor_t = arrays
     use = np.ones(len(link_q), dtype=bool)
     rotations = SampleRotations.from_arrays(link_q, sensor_q, setup, invert)
@@ -161,15 +178,16 @@ def _quick_fit(arrays, setup, invert):
     # Every sample may anchor the signs: the quick fit does not screen bad detections.
     q_z = all_pairs_rotation(rotations, use, anchors=CHECK_SAMPLES)
     info = quality.Information.all_pairs(rotations.link_matrices, use)
-    return rotations, positions, q_z, solve_translation(rotations, positions, q_z, info, use)
+    return _QuickFit(rotations, positions, q_z,
+                     solve_translation(rotations, positions, q_z, info, use))
 
 
-def _quick_misfits(arrays, options):
+def _quick_fits(arrays, options):
     """
-    Return each convention's median residuals of a quick fit, or None.
+    Return each convention's _QuickFit, or None.
 
-    {(setup, invert_sensor): (median rotation residual in degrees, position in mm)}, for the
-    four conventions; arrays: `_arrays` of the samples. Each fit is the least squares of all
+    {(setup, invert_sensor): _QuickFit}, for the four conventions (their `misfit` scores
+    them); arrays: `_arrays` of the samples. Each fit is the least squares of all
     pairs (leastsq.py) and the closed-form translation (translation.py), without the
     screening of bad detections. None when fewer than three motions are large enough to
     inform (the same for every convention: so are their angles).
@@ -179,13 +197,8 @@ def _quick_misfits(arrays, options):
     smallest = np.minimum(pair_angles(link_q)[i, j], pair_angles(sensor_q)[i, j])
     if np.count_nonzero(smallest >= np.radians(options.min_motion_deg)) < 3:
         return None
-    fits = {}
-    for setup in SETUPS:
-        for invert in (False, True):
-            rotations, _, q_z, translation = _quick_fit(arrays, setup, invert)
-            fits[setup, invert] = misfit(quality.sample_residuals(rotations, q_z),
-                                         translation.residuals)
-    return fits
+    return {(setup, invert): _quick_fit(arrays, setup, invert)
+            for setup in SETUPS for invert in (False, True)}
 
 
 def rigid_fit_warnings(residual_rms_deg, translation_noise_mm):

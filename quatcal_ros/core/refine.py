@@ -605,7 +605,7 @@ def _leave_one_out(A, per_sample, held, J, e):
 
     Removing sample k moves the optimum by (A - J_k^T W_k J_k)^-1 J_k^T W_k e_k (one
     Gauss-Newton step, exact for a linear model; the caller divides `held` by the
-    efficiency for the Hessian's A), and its residual by J_k times that.
+    curvature for the Hessian's A), and its residual by J_k times that.
     per_sample: J_k^T W_k J_k (N, 12, 12); held: J_k^T W_k e_k (N, 12).
     """
     without = A - per_sample

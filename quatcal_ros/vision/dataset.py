@@ -83,7 +83,7 @@ def check_layout(folder):
         try:
             if not path.exists():
                 problem = 'missing'
-            elif want_folder != path.is_dir() or not (want_folder or path.is_file()):
+            elif not (path.is_dir() if want_folder else path.is_file()):
                 problem = 'not a directory' if want_folder else 'not a file'
             else:
                 problem = None
@@ -99,9 +99,10 @@ def load_image_dataset(folder, checks=Checks(), progress=None):
     """Read and detect the folder (module docstring); progress(done, total) after each image."""
     folder = Path(folder)
     check_layout(folder)
-    rows = read_robot_poses(folder / 'robot_poses.csv')
-    board = read_board(folder / 'board.yaml')
-    camera = read_camera_yaml(folder / 'camera_info.yaml')
+    poses_file, camera_file, board_file = LAYOUT_FILES
+    rows = read_robot_poses(folder / poses_file)
+    board = read_board(folder / board_file)
+    camera = read_camera_yaml(folder / camera_file)
     dataset = ImageDataset(board, camera)
     for index, (image_name, link) in enumerate(rows):
         gray, problem = _read_gray(folder / IMAGES_FOLDER / image_name)

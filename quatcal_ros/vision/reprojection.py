@@ -143,14 +143,14 @@ def refine_reprojection(link_q, link_t, views, camera, x_q, x_t, o_q, o_t, robus
     J = jacobian(link_q, link_t, corners, camera, model)
     w, sigma = _weights(e, robust)
     A, _ = _normal_equations(J, e, w)
-    covariance = sigma ** 2 * np.linalg.pinv(A)
+    A_inv = np.linalg.pinv(A)
     squared = np.sum(e * e, axis=1)
     view_rms = np.sqrt(np.bincount(corners.view, squared) / np.bincount(corners.view))
     return ReprojectionFit(
         quaternion=quat.canonical(model[0]), translation=model[1], object_quaternion=model[2],
         object_translation=model[3], pixel_noise_px=sigma,
-        rms_px=float(np.sqrt(squared.mean())), model_covariance=covariance,
-        resampled=_view_blocks(J, e, w, corners.view, len(views)), converged=converged,
+        rms_px=float(np.sqrt(squared.mean())), model_covariance=sigma ** 2 * A_inv,
+        resampled=_view_blocks(J, e, w, A_inv, corners.view, len(views)), converged=converged,
         iterations=iterations, view_rms_px=view_rms)
 
 
@@ -197,17 +197,16 @@ def _normal_equations(J, e, w):
     return flat_WJ.T @ flat_J, flat_WJ.T @ e.reshape(-1)
 
 
-def _view_blocks(J, e, w, view, n_views):
+def _view_blocks(J, e, w, A_inv, view, n_views):
     """
     Return X's covariance over blocks of views (module docstring), or None with too few views.
 
     A^-1 (sum_b s_b s_b^T) A^-1 with s_b = J_b^T W_b^1/2 (I - H_bb)^-1/2 W_b^1/2 e_b, the
-    block's whitened residuals corrected by the root of I - H_bb (symmetric, by eigenvalues).
+    block's whitened residuals corrected by the root of I - H_bb (symmetric, by eigenvalues);
+    A_inv: the (pseudo-)inverse of the weighted normal matrix of J, e, w.
     """
     if n_views < MIN_BLOCK_VIEWS:
         return None
-    A, _ = _normal_equations(J, e, w)
-    A_inv = np.linalg.pinv(A)
     scatter = np.zeros((12, 12))
     for block in np.array_split(np.arange(n_views), min(VIEW_BLOCKS, n_views)):
         rows = np.isin(view, block)
