@@ -615,8 +615,9 @@ def test_publishers_of_the_wrong_type_are_named(domain_id):
     try:
         wrong = rclpy.create_node('wrong_type', context=other)
         wrong.create_publisher(PointStamped, 'sensor_pose', RELIABLE)
-        h.spin_until(lambda: 'PointStamped' in str(h.node._publisher_types('/sensor_pose')),
-                     what='the wrong-type publisher in the graph')
+        h.spin_until(lambda: 'geometry_msgs/msg/PointStamped' in [
+            info.topic_type for info in h.node.get_publishers_info_by_topic('/sensor_pose')],
+            what='the wrong-type publisher in the graph')
         status = h.node.diagnostic_status()
         assert status.level == DiagnosticStatus.WARN
         assert '/sensor_pose has publishers of type geometry_msgs/msg/PointStamped; the node ' \
@@ -625,6 +626,29 @@ def test_publishers_of_the_wrong_type_are_named(domain_id):
         wrong.destroy_node()
     finally:
         rclpy.try_shutdown(context=other)
+        h.close()
+
+
+def test_a_best_effort_link_publisher_is_named(domain_id):
+    """The link subscription is reliable: a best-effort publisher is heard by no one."""
+    h = Harness(domain_id)
+    try:
+        def link_publishers():
+            return [info.qos_profile.reliability
+                    for info in h.node.get_publishers_info_by_topic('/link_pose')]
+        h.driver.destroy_publisher(h.link_pub)
+        best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+        h.driver.create_publisher(PoseStamped, 'link_pose', best_effort)
+        h.spin_until(lambda: link_publishers() == [ReliabilityPolicy.BEST_EFFORT],
+                     what='only the best-effort publisher in the graph')
+        status = h.node.diagnostic_status()
+        assert status.level == DiagnosticStatus.WARN
+        assert '/link_pose has only best-effort publishers (1); the node subscribes it ' \
+            'reliable' in status.message
+        h.driver.create_publisher(PoseStamped, 'link_pose', RELIABLE)   # one it hears
+        h.spin_until(lambda: len(link_publishers()) == 2, what='the reliable publisher')
+        assert 'best-effort' not in h.node.diagnostic_status().message
+    finally:
         h.close()
 
 

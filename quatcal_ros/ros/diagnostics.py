@@ -14,6 +14,7 @@ import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.stream import message_checks
 from quatcal_ros.stream.message_checks import LINK, SENSOR, STALE_AFTER_S
+from rclpy.qos import ReliabilityPolicy
 
 
 def status_name(node_name):
@@ -46,23 +47,26 @@ class InputWatch:
     """
     Problems of the node's input that no single message shows, found at each status.
 
-    Publishers of the wrong type on a silent stream, clock jumps that point to two clocks on
-    one stream, use_sim_time without /clock or with a /clock that stopped; and when listening
-    began (for silent streams).
+    On a silent stream, publishers of the wrong type, or only best-effort ones when it is
+    subscribed reliable (which hears no best-effort publisher); clock jumps that point to two
+    clocks on one stream; use_sim_time without /clock or with a /clock that stopped; and when
+    listening began (for silent streams).
     """
 
-    def __init__(self, expected_types, started_ns):
+    def __init__(self, expected_types, started_ns, reliable=()):
         self.expected_types = expected_types   # {stream: 'geometry_msgs/msg/PoseStamped'}
+        self.reliable = frozenset(reliable)    # the streams subscribed reliable
         self.started_ns = started_ns
         self.jumps_seen = 0                  # the session's time jumps at the last status
         self.clock_seen = (None, None)       # (node clock, steady clock) when it last moved
 
-    def problems(self, stats, topics, publisher_types, time_jumps, now_ns, sim_time,
+    def problems(self, stats, topics, publishers, time_jumps, now_ns, sim_time,
                  steady_ns=None):
         """
         Return the problems in words, given the counts and the graph at node time now_ns.
 
-        publisher_types(topic): the types of the topic's publishers (the ROS graph);
+        publishers(topic): the topic's publishers in the ROS graph (rclpy's
+        TopicEndpointInfo: topic_type, qos_profile);
         steady_ns: the steady (wall) clock, to see a node clock that stopped.
         """
         found = []
@@ -70,11 +74,19 @@ class InputWatch:
             if stats.received[stream]:
                 continue
             expected = self.expected_types[stream]
-            wrong = sorted(set(publisher_types(topic)) - {expected})
+            heard = publishers(topic)
+            wrong = sorted({info.topic_type for info in heard} - {expected})
             if wrong:
                 found.append(f'{topic} has publishers of type {", ".join(wrong)}; the node '
                              f'subscribes {expected} (parameter pose_type'
                              f'{", or sensor_pose_type" if stream == "sensor_pose" else ""})')
+            elif heard and stream in self.reliable and all(
+                    info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+                    for info in heard):
+                found.append(f'{topic} has only best-effort publishers ({len(heard)}); the '
+                             'node subscribes it reliable, and a reliable subscription hears '
+                             "no best-effort publisher: publish it reliable (the driver's QoS "
+                             'setting, or a relay)')
         if time_jumps - self.jumps_seen >= REPEATED_JUMPS:
             found.append(f'the stamps jumped back {time_jumps - self.jumps_seen} times since '
                          'the last status: two publishers with different clocks on one '

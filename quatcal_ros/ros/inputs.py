@@ -38,6 +38,7 @@ from quatcal_ros.stream import message_checks
 from quatcal_ros.stream.log_throttle import LOG_THROTTLE_S
 from quatcal_ros.stream.message_checks import LINK, SENSOR
 from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from tf2_msgs.msg import TFMessage
@@ -84,6 +85,7 @@ class NodeInputs:
         self.screen = PoseScreen(check_config, self._log_bad_message)
         tf_frames = tf_frames or {}
         self.message_types, self.topics = {}, {}
+        self.reliable = set()   # the streams subscribed reliable: best-effort publishers miss
         self.composed = frozenset(tf_frames)   # the streams composed from /tf's frames
         self.tf = None
         self.images = None
@@ -99,6 +101,7 @@ class NodeInputs:
             for stream in tf_frames:
                 self.message_types[stream] = TFMessage
                 self.topics[stream] = tf_topic.topic_name
+                self.reliable.add(stream)
         if images is not None:
             self._subscribe_images(*images)
         for stream, qos in ((LINK, LINK_QOS), (SENSOR, SENSOR_QOS)):
@@ -113,6 +116,8 @@ class NodeInputs:
                     callback = (lambda msg, s=stream: self._on_pose(s, msg))
                 self.topics[stream] = node.create_subscription(   # resolved name, for logs
                     kind, stream, callback, qos, raw=kind in RAW_TYPES).topic_name
+                if qos.reliability == ReliabilityPolicy.RELIABLE:
+                    self.reliable.add(stream)
 
     def _subscribe_images(self, sensor, transport, on_new_camera):
         """Take the sensor stream from camera images and camera_info (sensor-data QoS)."""

@@ -130,7 +130,7 @@ class CalibratorNode(Node):
             f'from {self.inputs.describe()}, '
             f'capture mode {self.config.capture_mode}')
         self._start_tf_broadcast()
-        self.input_watch = InputWatch(self.inputs.type_names, self.now_ns())
+        self.input_watch = InputWatch(self.inputs.type_names, self.now_ns(), self.inputs.reliable)
         self._resume()
 
     @property
@@ -322,7 +322,7 @@ class CalibratorNode(Node):
         now_ns = self.now_ns()
         problems = [self.moves.warning(len(self.session.samples)), self.journal.problem,
                     tf_problem, *self.input_watch.problems(
-                        self.stats, self.inputs.topics, self._publisher_types,
+                        self.stats, self.inputs.topics, self.get_publishers_info_by_topic,
                         self.session.counters['time_jumps'], now_ns,
                         self.get_parameter('use_sim_time').value, self._steady.now().nanoseconds),
                     *self.inputs.problems()]
@@ -331,9 +331,6 @@ class CalibratorNode(Node):
                                  self.input_watch.started_ns, self.inputs.topics,
                                  self.next_pose, self.result, self.inputs.composed,
                                  status_name(self.get_name()))
-
-    def _publisher_types(self, topic):
-        return [info.topic_type for info in self.get_publishers_info_by_topic(topic)]
 
     def _watch_status(self):
         """Publish the status when the node clock has not for two periods (no /clock)."""
