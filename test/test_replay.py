@@ -234,6 +234,38 @@ def test_tf_bag_with_static_frames_in_both_chains(repo_root, streams, tmp_path):
     assert (document['parent_frame'], document['child_frame']) == ('tool0', 'camera')
 
 
+@pytest.mark.parametrize('static_topic', [True, False])
+def test_a_tf_bag_missing_a_static_frame_names_it_and_tf_static(repo_root, streams, tmp_path,
+                                                                static_topic):
+    """The camera -> optical transform was not recorded: say which frame and suggest why."""
+    rng = np.random.default_rng(52)
+    optical = Pose(rng.uniform(-0.5, 0.5, 3), sim.random_quaternions(rng, 1)[0])
+    messages = [('/tf', stamp, tf_message(msg(TRANSFORM_STAMPED, pose, stamp, 'base_link',
+                                              'tool0')))
+                for stamp, pose in streams.link]
+    messages += [('/tf', delivered, tf_message(msg(TRANSFORM_STAMPED, optical.inverse() @ pose,
+                                                   stamp, 'camera_optical', 'marker')))
+                 for (stamp, pose), delivered in zip(streams.sensor, streams.sensor_delivery_ns)]
+    topics = {'/tf': TF_TYPE}
+    if static_topic:   # holding another static transform only
+        topics['/tf_static'] = TF_TYPE
+        messages.append(('/tf_static', streams.link[0][0], tf_message(
+            conversions.transform_stamped_msg(Pose.identity(), 0, 'world', 'base_link',
+                                              typestore=TYPESTORE))))
+    write_bag(tmp_path / 'tf', topics, sorted(messages, key=lambda m: m[1]), 'mcap')
+    done = run_replay(repo_root, tmp_path / 'tf', '--link-frames', 'base_link', 'tool0',
+                      '--sensor-frames', 'camera', 'marker')
+    assert done.returncode == 2
+    assert ('no sensor poses from TF camera -> marker (camera and marker are not connected in '
+            'the transform tree: camera is in no transform received)') in done.stderr
+    if static_topic:
+        assert 'No transform on /tf_static names camera either: check the frame name' \
+            in done.stderr
+    else:
+        assert 'The bag has no /tf_static' in done.stderr
+        assert 'ros2 bag record /tf /tf_static' in done.stderr
+
+
 @pytest.fixture(scope='module')
 def eth_bag(eth_streams, tmp_path_factory):
     """Convert the ETH robot-arm recording to a bag: link 50 Hz, camera in target 30 Hz."""

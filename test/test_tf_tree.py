@@ -70,6 +70,11 @@ def test_unconnected_frames(robot):
     with pytest.raises(LookupError, match='not connected'):
         tree.lookup('base', 'odom', START_NS)
     assert tree.chain('base', 'nowhere') is None
+    assert tree.disconnection('/tool', 'odom') == ('they are in two separate trees (tool hangs '
+                                                   'from root base, odom from root map): no '
+                                                   'transform joins them')
+    assert tree.disconnection('nowhere', 'tool') == 'nowhere is in no transform received'
+    assert tree.disconnection('a', 'b') == 'a and b are in no transform received'
 
 
 def test_interpolation_is_lerp_and_slerp():

@@ -213,6 +213,7 @@ class ReplayReport:
     damaged: str = ''                                      # why reading stopped (partial)
     tf_stale: int = 0   # transforms older than the TF buffer (also counted as out_of_order)
     tf_frames: tuple = ()                                  # every frame the TF tree knew
+    static_tf_topics: tuple = ()                           # those read, e.g. /tf_static
     counters: dict = field(default_factory=dict)           # the session's, at the end
 
     def unread_text(self):
@@ -552,6 +553,8 @@ class _Run:
         report.examples = {key: stats.example(*key) for key in stats.bad}
         report.tf_stale = sum(self.tree.stale.values())
         report.tf_frames = tuple(sorted(self.tree.frames))
+        report.static_tf_topics = tuple(topic for topic in self.replay.tf_topics
+                                        if is_static_tf_topic(topic))
         report.counters = self.session.counters
         return report
 

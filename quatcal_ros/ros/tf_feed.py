@@ -111,7 +111,7 @@ class TfFeed:
                 why = (f'no frame {" or ".join(unknown)} on /tf or /tf_static yet (frames '
                        f'seen: {seen}{", ..." if len(frames) > MAX_FRAMES_NAMED else ""})')
             else:
-                why = 'they are in two separate trees (no chain of transforms joins them)'
+                why = self.tree.disconnection(target, source)
             found.append(f'TF input: {target} -> {source} cannot be composed: {why}')
         return found
 

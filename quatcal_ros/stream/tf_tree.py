@@ -172,6 +172,22 @@ class TransformTree:
             path.append(frame)
         return path
 
+    def disconnection(self, target, source):
+        """
+        Say why frames `target` and `source` are not connected.
+
+        Which of them is in no transform received, or the roots of their two separate trees.
+        """
+        target, source = normalize_frame(target), normalize_frame(source)
+        known = self.frames
+        missing = [frame for frame in (target, source) if frame not in known]
+        if missing:
+            return (f'{" and ".join(missing)} {"is" if len(missing) == 1 else "are"} in no '
+                    'transform received')
+        roots = [self.path_to_root(frame)[-1] for frame in (target, source)]
+        return (f'they are in two separate trees ({target} hangs from root {roots[0]}, '
+                f'{source} from root {roots[1]}): no transform joins them')
+
     def chain(self, target, source):
         """Return the Chain from frame `target` to frame `source`, or None if not connected."""
         key = (normalize_frame(target), normalize_frame(source))
@@ -260,7 +276,8 @@ class FramePoses:
             # Count only transforms that lead towards one of the two frames.
             if child in self.tree.path_to_root(self.target) + self.tree.path_to_root(self.source):
                 self._drop('frames not connected', f'{self.target} and {self.source} are not '
-                           'connected in the transform tree')
+                           'connected in the transform tree: '
+                           + self.tree.disconnection(self.target, self.source))
             return
         if child not in chain.children:
             return

@@ -557,6 +557,23 @@ def _summary(prog, report, session, seconds):
           f'({session.config.capture.mode} capture)', file=sys.stderr)
 
 
+def _missing_static_hint(report, frames):
+    """Suggest /tf_static when a frame of `frames` (a FramePoses) is in no transform, or ''."""
+    if frames.dropped['frames not connected'] == 0:
+        return ''
+    missing = [f for f in (frames.target, frames.source) if f not in report.tf_frames]
+    if not missing:
+        return ''
+    statics = report.static_tf_topics
+    if not statics:
+        return ('. The bag has no /tf_static: fixed frames (those of robot_state_publisher, '
+                "a camera driver's optical frame) are published there; record it too (ros2 bag "
+                'record /tf /tf_static ...) or give frames the /tf messages connect')
+    return (f'. No transform on {" or ".join(statics)} names {" or ".join(missing)} '
+            'either: check the frame name (the frames above are those the bag holds), or '
+            'whether what publishes it ran while the bag was recorded')
+
+
 def _too_few_samples(session, report, link, sensor):
     """Say why fewer than 3 samples came out of the bag, and what to try."""
     counters = report.counters
@@ -569,6 +586,7 @@ def _too_few_samples(session, report, link, sensor):
             why += f' ({frames.last_dropped})'
         if frames is not None:
             why += f'; frames in the TF topics: {", ".join(report.tf_frames) or "none"}'
+            why += _missing_static_hint(report, frames)
         skipped = [f'{n} skipped ({reason}), {report.examples[where, reason]}'
                    for (where, reason), n in report.bad.items() if where == f'{stream}_pose']
         return why + ('; ' + '; '.join(skipped) if skipped else '')
