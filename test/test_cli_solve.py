@@ -144,6 +144,7 @@ def test_sensor_covariance_columns_round_trip_and_weight_the_solve(repo_root, tm
     (lambda cells: cells[:-1], "field sensor_cov_rz_rz: '' is not a number (give all 21"),
     (lambda cells: cells[:-1] + ['nan'], 'field sensor_cov_rz_rz: nan is not a finite number'),
     (lambda cells: ['-1'] + cells[1:], 'the covariance is not positive definite'),
+    (lambda cells: ['5e-324'] + cells[1:], 'the covariance is nearly singular'),
 ])
 def test_bad_sensor_covariances_are_named(change, expected):
     text = format_samples(covariance_samples(3))

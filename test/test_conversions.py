@@ -10,7 +10,7 @@ import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
 import pytest
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.pose import covariance_problem, Pose
 from quatcal_ros.ros import conversions as conv
 from quatcal_ros.sim import simulation as sim
 from rclpy.serialization import deserialize_message, serialize_message
@@ -92,6 +92,27 @@ def test_pose_with_covariance_is_read_too():
     msg.pose.pose.orientation = Quaternion(x=0.0, y=0.0, z=1.0, w=0.0)
     pose = conv.pose_from_msg(msg)
     assert_array_equal(pose.quaternion, [0.0, 0.0, 0.0, 1.0])
+
+
+@pytest.mark.parametrize('change, problem', [
+    (lambda c: c.__setitem__((0, 0), np.nan), 'NaN or inf'),
+    (lambda c: c.__setitem__((0, 1), 1e-7), 'not symmetric'),
+    (lambda c: c.__setitem__((2, 2), -1e-6), 'not positive definite (variances must be > 0)'),
+    (lambda c: c.__setitem__((3, 3), 5e-324), 'nearly singular: a standard deviation of'),
+    (lambda c: c.__setitem__((4, 4), 1e-20), 'nearly singular: a standard deviation of 1e-10'),
+    (lambda c: c.__setitem__((slice(0, 2), slice(0, 2)), 1e-6), 'correlations must lie'),
+])
+def test_an_unusable_covariance_is_refused_naming_why(change, problem):
+    """A subnormal variance passed the Cholesky check and then broke the solver's inverse."""
+    covariance = np.eye(6) * 1e-6
+    change(covariance)
+    msg = PoseWithCovarianceStamped()
+    msg.pose.pose.orientation = Quaternion(w=1.0)
+    msg.pose.covariance = covariance.ravel().tolist()
+    with pytest.raises(conv.BadPoseError, match='pose.covariance: ') as raised:
+        conv.pose_from_msg(msg)
+    assert problem in str(raised.value) and raised.value.reason == 'bad_covariance'
+    assert covariance_problem(np.eye(6) * 1e-18) is None   # 1 nm, 1 nrad: still a sensor
 
 
 def test_rosbags_messages_read_and_build(typestore):

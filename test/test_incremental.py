@@ -12,6 +12,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from quatcal_ros.core import calibration
 from quatcal_ros.core import quality
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions, Calibrator
@@ -157,6 +158,24 @@ def test_samples_make_an_estimate_due_and_estimate_brings_it_up_to_date():
     assert not calibrator.due and calibrator.estimate() == [] and calibrator.result is result
     calibrator.reset()
     assert calibrator.samples == [] and calibrator.result is None and not calibrator.due
+
+
+def test_a_numerical_failure_keeps_the_earlier_estimate_and_says_so(monkeypatch):
+    """The node estimates in a callback: a solver failure must not end the process."""
+    _, samples = synthetic(8, 17, rotation_noise_deg=0.3, translation_noise_m=0.001)
+    calibrator = Calibrator()
+    calibrator.add_samples(samples[:5])
+    assert calibrator.estimate() == []
+    earlier = calibrator.result
+
+    def fails(*args):
+        raise np.linalg.LinAlgError('SVD did not converge')
+    monkeypatch.setattr(calibration, '_solve', fails)
+    calibrator.add_sample(samples[5])
+    assert calibrator.estimate() == ['estimate not updated: the solver failed numerically at 6 '
+                                     'samples (SVD did not converge); the earlier estimate '
+                                     'stands']
+    assert calibrator.result is earlier and not calibrator.due
 
 
 def test_the_live_pattern_solves_in_full_on_schedule_and_incrementally_between():

@@ -943,6 +943,9 @@ class Calibrator:
             self._solution = None
             self.last_error = str(error)
             return [f'no estimate yet: {error}']
+        except np.linalg.LinAlgError as error:   # input checks should make this unreachable
+            self.last_error = f'the solver failed numerically at {n} samples ({error})'
+            return [f'estimate not updated: {self.last_error}; the earlier estimate stands']
         if warm:
             newest = [r for r in self._solution.result.rejected if r.get('sample') == n - 1]
             return [f'sample {n - 1} rejected: {r["reason"]}' for r in newest]

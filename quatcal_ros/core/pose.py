@@ -74,6 +74,39 @@ def ros_order(covariances):
     return np.asarray(covariances, dtype=float)[..., back[:, None], back]
 
 
+# A sensor pose's standard deviation below this (metres, radians) is no sensor's: such a
+# covariance would weigh its sample by more than 1e18 (subnormal ones overflow the solver).
+MIN_SENSOR_SIGMA = 1e-9
+# The covariance's correlation matrix may not be nearer singular than this (its smallest
+# eigenvalue): correlations of +-1 leave a direction with no noise at all.
+MIN_CORRELATION_EIGENVALUE = 1e-9
+
+
+def covariance_problem(covariance):
+    """
+    Say what makes a sensor pose's 6x6 covariance unusable, or return None.
+
+    Usable: finite, symmetric (to 1e-6 relative), every standard deviation at least
+    MIN_SENSOR_SIGMA and its correlations short of singular (MIN_CORRELATION_EIGENVALUE):
+    then it is positive definite and its inverse, the sample's weight, is bounded.
+    """
+    c = np.asarray(covariance, dtype=float)
+    if not np.all(np.isfinite(c)):
+        return 'NaN or inf'
+    if not np.allclose(c, c.T, rtol=1e-6, atol=0.0):
+        return 'not symmetric'
+    variances = np.diagonal(c)
+    if not np.all(variances > 0.0):
+        return 'not positive definite (variances must be > 0)'
+    if not np.all(variances >= MIN_SENSOR_SIGMA ** 2):
+        return (f'nearly singular: a standard deviation of {np.sqrt(variances.min()):.3g}, '
+                f'below {MIN_SENSOR_SIGMA:g} (m, rad); no sensor is that exact')
+    sigma = np.sqrt(variances)
+    if not np.linalg.eigvalsh(c / np.outer(sigma, sigma))[0] >= MIN_CORRELATION_EIGENVALUE:
+        return 'not positive definite (correlations must lie within -1..1, short of +-1)'
+    return None
+
+
 def inverse_perturbation(R, t):
     """
     Return A (N, 6, 6): a small error (r, d) of poses (R, t) as the error of their inverses.

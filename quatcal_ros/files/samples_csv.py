@@ -12,7 +12,8 @@ it as it is).  Errors name the file, the row (line number in the file) and the f
 Optional: the sensor pose's own covariance in 21 columns sensor_cov_A_B (A, B in x, y, z, rx,
 ry, rz, the upper triangle of geometry_msgs/PoseWithCovariance's 6x6, metres and radians,
 rotations about the sensor frame's axes). A row gives all 21 or none (empty or left off);
-a covariance must be symmetric positive definite.
+a covariance must be usable (pose.covariance_problem: positive definite, no standard
+deviation below 1e-9 m or rad).
 """
 
 import csv
@@ -21,7 +22,7 @@ import io
 import math
 
 import numpy as np
-from quatcal_ros.core.pose import Pose, Sample
+from quatcal_ros.core.pose import covariance_problem, Pose, Sample
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, NS_PER_S, \
     quaternion_norm_problem, shown
 from quatcal_ros.files.text_input import BadInputError, open_text
@@ -107,12 +108,9 @@ def _covariance(row, columns, name, line):
         if not math.isfinite(value):
             raise BadInputError(f'{where}, field {column}: {shown(cell)} is not a finite number')
         covariance[i, j] = covariance[j, i] = value
-    try:
-        np.linalg.cholesky(covariance)
-    except np.linalg.LinAlgError:
-        raise BadInputError(f'{where}, fields sensor_cov_*: the covariance is not positive '
-                            'definite (variances must be > 0, correlations within -1..1)') \
-            from None
+    problem = covariance_problem(covariance)
+    if problem:
+        raise BadInputError(f'{where}, fields sensor_cov_*: the covariance is {problem}')
     return covariance
 
 

@@ -17,7 +17,7 @@ from operator import attrgetter
 import numpy as np
 
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.pose import covariance_problem, Pose
 from quatcal_ros.core.units import MESSAGE_NORM_TOLERANCE, NS_PER_S
 
 # A quaternion with a smaller norm is a zero quaternion (reason 'zero_quaternion').
@@ -154,21 +154,12 @@ def covariance_from_msg(values):
     Return a PoseWithCovariance's 36 values as a 6x6 (ROS order), or None when all are zero.
 
     Zero is what drivers publish when they do not know the covariance. Raises BadPoseError
-    (reason 'bad_covariance') when the matrix is not finite, symmetric and positive definite.
+    (reason 'bad_covariance') when the matrix is not usable (pose.covariance_problem).
     """
     covariance = np.asarray(values, dtype=float).reshape(6, 6)
     if not covariance.any():
         return None
-    problem = None
-    if not np.all(np.isfinite(covariance)):
-        problem = 'NaN or inf'
-    elif not np.allclose(covariance, covariance.T, rtol=1e-6, atol=0.0):
-        problem = 'not symmetric'
-    else:
-        try:
-            np.linalg.cholesky(covariance)
-        except np.linalg.LinAlgError:
-            problem = 'not positive definite'
+    problem = covariance_problem(covariance)
     if problem:
         raise BadPoseError(f'pose.covariance: {problem}', 'pose.covariance', 'bad_covariance')
     return covariance

@@ -40,7 +40,8 @@ REASONS = {
     'zero_quaternion': 'zero quaternion',
     'non_unit_quaternion': 'quaternion norm far from 1',
     'malformed': 'not a pose (wrong fields or values)',
-    'bad_covariance': 'a pose covariance that is not finite, symmetric and positive definite',
+    'bad_covariance': 'a pose covariance that is not finite, symmetric and positive definite, '
+                      'or nearly singular',
     'bad_stamp': 'header stamp out of range',
     'zero_stamp': 'zero header stamp',
     'stamp_in_future': 'header stamp far in the future of the node clock',
