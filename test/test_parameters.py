@@ -255,6 +255,19 @@ def test_with_tf_input_the_result_is_named_by_the_tf_frames():
     assert Settings.from_values({**DEFAULTS, **link_only}).result_frames == ('flange', 'cam')
 
 
+@pytest.mark.parametrize('changes', [
+    {'link_frame': 'camera'},
+    {'sensor_frame': '/tool0'},   # the same frame to tf2
+    {'setup': 'eye_to_hand', 'link_frame_id': 'camera'},
+])
+def test_a_result_from_a_frame_to_itself_is_refused(changes):
+    with pytest.raises(ConfigError, match='the result would be a transform from frame .* to '
+                                          'itself'):
+        Settings.from_values({**DEFAULTS, **changes})
+    with pytest.raises(ConfigError, match='to itself'):
+        Settings().updated(**changes)
+
+
 def test_the_cores_own_defaults_are_the_tables():
     # calibrate(samples), Replay(), print_result() use the configurations' dataclass defaults:
     # they must be what the table makes of its defaults.

@@ -31,6 +31,7 @@ from quatcal_ros.stream.capture import CaptureConfig, MODES as CAPTURE_MODES
 from quatcal_ros.stream.message_checks import CheckConfig, LINK, SENSOR
 from quatcal_ros.stream.pairing import PairingConfig
 from quatcal_ros.stream.session import SessionConfig
+from quatcal_ros.stream.tf_tree import normalize_frame
 
 DEFAULT_RESULT_FILE = '~/.ros/quatcal/calibration.yaml'
 DEFAULT_SAMPLES_FILE = '~/.ros/quatcal/samples.csv'
@@ -354,12 +355,21 @@ def _result_frame_sources(settings):
 
 
 def _check_result_frames(settings):
-    """Raise ConfigError when link_frame or sensor_frame, set, contradict the TF frames."""
+    """
+    Raise ConfigError when link_frame or sensor_frame, set, contradict the TF frames.
+
+    Or when the result's two frames are one (tf2 refuses a transform from a frame to itself).
+    """
     for name, frame, tf_name, tf_frame in _result_frame_sources(settings):
         if tf_frame and frame not in (DEFAULTS[name], tf_frame):
             raise ConfigError(f'{name} {frame!r} contradicts {tf_name} {tf_frame!r}: with TF '
                               f'input the result is named by the TF frames; leave {name} '
                               f'unset or set it to {tf_frame!r}')
+    parent, child = settings.result_frames
+    if normalize_frame(parent) == normalize_frame(child):
+        raise ConfigError(f'the result would be a transform from frame {child!r} to itself: '
+                          'its parent (link_frame; eye_to_hand: the robot base) and its child '
+                          '(sensor_frame) must be different frames')
 
 
 def _updated(self, **changes):
