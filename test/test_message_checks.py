@@ -469,6 +469,26 @@ def test_a_silent_input_is_named_by_its_topics_once():
         assert len(parts) == len(set(topics.values())) + 1
 
 
+def test_streams_that_stopped_before_a_reset_are_not_blamed_on_the_clock():
+    """After ~/reset the node's stats still hold both streams; the new session has nothing."""
+    from quatcal_ros.ros.diagnostics import status_message
+    from quatcal_ros.stream.session import Session, SessionConfig
+    stats = mc.StreamStats()
+    stats.note(mc.LINK, 1_000 * NS)
+    stats.note(mc.SENSOR, 1_000 * NS)
+    topics = {mc.LINK: '/robot/tool0_pose', mc.SENSOR: '/sensor_pose'}
+    session = Session(SessionConfig())
+    assert status_message(session, stats, topics) == (
+        'waiting for poses (no pose from /robot/tool0_pose or /sensor_pose since the session '
+        'started)')
+    session.add_link_pose(1_000 * NS, Pose.identity())
+    assert status_message(session, stats, topics) == (
+        'waiting for poses (no pose from /sensor_pose since the session started)')
+    session.add_sensor_pose(1_000 * NS + 7 * MS, Pose.identity())
+    assert status_message(session, stats, topics) == (
+        'waiting for poses (none paired yet: are both stamped on the same clock?)')
+
+
 def test_tf_input_with_one_pair_of_frames_composing_names_the_other():
     """/tf is busy (the link poses compose); the sensor's frames do not: not 'nothing on /tf'."""
     from quatcal_ros.ros.diagnostics import status_message

@@ -27,6 +27,8 @@ DIAGNOSTIC_NAME = status_name('calibrator')   # the default node's
 HIGH_RESIDUAL_DEG = 1.0
 # Clock jumps back within one status period that point to two clocks on one stream.
 REPEATED_JUMPS = 3
+# The session's count of each stream's poses (Session.counters).
+SESSION_COUNTERS = {LINK: 'link_messages', SENSOR: 'sensor_messages'}
 
 
 def format_quaternion_xyzw(q_wxyz):
@@ -133,6 +135,12 @@ def status_message(session, stats, topics=None, composed=()):
             (stream, reason), _ = stats.bad.most_common(1)[0]
             return (f'waiting for poses ({stats.bad_total} bad messages skipped, most for '
                     f'{reason} on {stream})')
+        counters = session.counters   # since the session (re)started: ~/reset clears them
+        idle = [topics.get(s, s) for s in (LINK, SENSOR)
+                if not counters[SESSION_COUNTERS[s]]]
+        if idle:   # (the stats count messages since the node started)
+            return (f'waiting for poses (no pose from {" or ".join(dict.fromkeys(idle))} since '
+                    'the session started)')
         return 'waiting for poses (none paired yet: are both stamped on the same clock?)'
     return f'collecting: {len(session.samples)} samples, need motions about 2 different axes'
 
