@@ -384,6 +384,12 @@ def test_pose_with_covariance_messages_weight_the_samples(harness_factory, param
     h.sensor_pub.publish(bad)
     h.spin_until(lambda: h.node.stats.bad[('sensor_pose', 'bad_covariance')] == 1,
                  what='the bad covariance counted')
+    # A change that leaves no estimate leaves no next pose in /diagnostics either.
+    (changed,) = h.node.set_parameters([Parameter('min_motion_deg', value=90.0)])
+    assert changed.successful
+    h.spin_until(lambda: h.node.session.result is None, what='no estimate at 90 deg')
+    values = {kv.key: kv.value for kv in h.node.diagnostic_status().values}
+    assert values['state'] == 'collecting' and values['next_pose'] == ''
 
 
 def test_topic_names_follow_namespace_and_remapping(domain_id):

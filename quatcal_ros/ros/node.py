@@ -423,6 +423,7 @@ class CalibratorNode(Node):
             samples = self.session.samples
             earlier, self.session = self.session, self._new_session()
             self.session.continue_counts(earlier)
+            self.next_pose = None   # the re-estimate plans again, if there is one
             if samples:
                 self.get_logger().info(
                     f're-estimating from the {len(samples)} samples with the new settings')
