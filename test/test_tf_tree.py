@@ -220,3 +220,35 @@ def test_frame_poses_restart_after_a_time_jump():
         tree.set_transform('a', 'b', stamp, Pose.identity())
         frames.note('b', stamp)
         assert [s for s, _ in frames.ready()] == [stamp]
+
+
+def test_tf_transforms_get_the_pose_topics_checks():
+    """Stamps against the node clock, implausible positions, empty frame ids: counted, skipped."""
+    from quatcal_ros.ros.conversions import transform_stamped_msg
+    from quatcal_ros.ros.pose_screen import PoseScreen
+    from quatcal_ros.ros.tf_feed import TfFeed
+    from quatcal_ros.stream.message_checks import CheckConfig
+    from tf2_msgs.msg import TFMessage
+    screen = PoseScreen(CheckConfig(max_stamp_offset_ns=30 * 10**9, max_position_m=1000.0))
+    poses = []
+    feed = TfFeed(TfFeed.new_tree(), screen, {'link_pose': ('base', 'tool')},
+                  lambda stream, stamp_ns, pose: poses.append(stamp_ns))
+    now = START_NS
+    near = Pose(np.array([0.1, 0.2, 0.3]), quat.IDENTITY)
+    far = Pose(np.array([5000.0, 0.0, 0.0]), quat.IDENTITY)
+    day = 86_400 * 10**9
+    sent = [(near, now + day, 'base', 'tool'), (near, now - day, 'base', 'tool'),
+            (far, now, 'base', 'tool'), (near, now, 'base', ''), (near, now, '', 'tool'),
+            (near, now, 'base', 'tool'), (near, now + 10 * MS, 'base', 'tool')]
+    for pose, stamp, parent, child in sent:
+        feed.take('/tf', TFMessage(transforms=[transform_stamped_msg(pose, stamp, parent, child)]),
+                  False, now)
+    assert dict(screen.stats.bad) == {
+        ('/tf', 'stamp_in_future'): 1, ('/tf', 'stamp_in_past'): 1,
+        ('/tf', 'implausible_position'): 1, ('/tf', 'breaks_tree'): 2}
+    assert feed.tree.frames == {'base', 'tool'} and feed.tree.generation == 0   # no time jump
+    assert poses == [now, now + 10 * MS]
+    # Offline (the replay: no node clock) only the stamp's own checks apply.
+    feed.take('/tf', TFMessage(transforms=[transform_stamped_msg(near, now + 10**15, 'base',
+                                                                 'tool')]), False)
+    assert poses[-1] == now + 10**15

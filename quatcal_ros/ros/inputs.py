@@ -237,8 +237,9 @@ class NodeInputs:
 
     def _on_tf(self, topic, msg, static):
         self.flush()
-        self.screen.stats.note(topic, self._node.now_ns())
-        self.tf.take(topic, msg, static)
+        now_ns = self._node.now_ns()
+        self.screen.stats.note(topic, now_ns)
+        self.tf.take(topic, msg, static, now_ns)
 
     def _on_tf_pose(self, stream, stamp_ns, pose):
         """Take a pose composed from the transform tree, counted as one row of its stream."""

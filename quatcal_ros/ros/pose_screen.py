@@ -50,7 +50,7 @@ class PoseScreen:
         except BadPoseError as error:
             self.bad(stream, message_checks.pose_error_reason(error), error)
             return None
-        return self._placed(stream, stamp_ns, pose)
+        return self.placed(stream, stamp_ns, pose)
 
     def take_decoded(self, stream, stamp_ns, frame_id, pose, now_ns=0):
         """
@@ -62,9 +62,9 @@ class PoseScreen:
         self.stats.note(stream, now_ns)
         if not self._header_ok(stream, stamp_ns, frame_id, now_ns):
             return None
-        return self._placed(stream, stamp_ns, pose)
+        return self.placed(stream, stamp_ns, pose)
 
-    def _placed(self, stream, stamp_ns, pose):
+    def placed(self, stream, stamp_ns, pose):
         """Return (stamp_ns, pose), or None (counted) when the position is implausibly far."""
         if message_checks.position_reason(pose.position, self.config) is not None:
             limit = self.config.max_position_m

@@ -7,10 +7,11 @@ tracking base -> marker). Each tf2_msgs/TFMessage (an rclpy message or a rosbags
 fields are the same) updates the tree; every pose a stream's chain can now be evaluated at
 (at the stamps its dynamic transforms arrived, interpolated, never across a gap, never
 "latest") goes to `on_pose(stream, stamp_ns, pose)`. A malformed transform (NaN, a zero or
-bad stamp, a loop or a frame with a second parent) is counted under the TF topic and its
-reason by the PoseScreen, and skipped, like a malformed pose message. The first parent a
-frame is seen with stays its parent (tf2 would re-parent it, silently moving every frame
-below it).
+bad stamp, a stamp beyond max_stamp_offset_s of the node clock, a position beyond
+max_position_m, an empty frame id, a loop or a frame with a second parent) is counted under
+the TF topic and its reason by the PoseScreen, and skipped, like a malformed pose message.
+The first parent a frame is seen with stays its parent (tf2 would re-parent it, silently
+moving every frame below it).
 """
 
 from quatcal_ros.ros.conversions import BadPoseError, pose_from_msg, stamp_ns_from_header
@@ -58,19 +59,26 @@ class TfFeed:
         self.on_pose = on_pose
         self.watchers = {stream: FramePoses(tree, *pair) for stream, pair in frames.items()}
 
-    def take(self, topic, msg, static):
-        """Take one TFMessage from `topic` (static: from /tf_static); feed what it completes."""
+    def take(self, topic, msg, static, now_ns=0):
+        """
+        Take one TFMessage from `topic` (static: from /tf_static); feed what it completes.
+
+        now_ns: the node clock, for the stamp check of the pose topics (0: none, offline).
+        """
         changed = []
         for transform in msg.transforms:
             try:
                 stamp_ns = stamp_ns_from_header(transform.header)
-                if stamp_ns == 0 and not static:   # (a static transform holds at any time)
-                    self.screen.bad(topic, 'zero_stamp',
-                                    message_checks.describe('zero_stamp', topic))
-                    continue
+                if not static and not self._stamp_ok(topic, stamp_ns, now_ns):
+                    continue   # (a static transform holds at any time, its stamp aside)
                 pose = pose_from_msg(transform)
+                if self.screen.placed(topic, stamp_ns, pose) is None:
+                    continue
                 parent = normalize_frame(transform.header.frame_id)
                 child = normalize_frame(transform.child_frame_id)
+                if not parent or not child:
+                    raise TreeError(f'a transform {parent!r} -> {child!r} with an empty frame '
+                                    'id (tf2 refuses it)')
                 known = self.tree.parent(child)
                 if known is not None and known != parent:
                     raise TreeError(f'{parent!r} -> {child!r} would give {child!r} a second '
@@ -96,6 +104,16 @@ class TfFeed:
                 frames.note(child, stamp_ns)
             for stamp_ns, pose in frames.ready():
                 self.on_pose(stream, stamp_ns, pose)
+
+    def _stamp_ok(self, topic, stamp_ns, now_ns):
+        """Return whether a dynamic transform's stamp passes the pose topics' check."""
+        config = self.screen.config
+        reason = message_checks.stamp_reason(stamp_ns, now_ns, config.max_stamp_offset_ns)
+        if reason is None:
+            return True
+        self.screen.bad(topic, reason, lambda: message_checks.describe(
+            reason, topic, stamp_ns, None, now_ns, config))
+        return False
 
     def problems(self):
         """Return sentences naming each frame pair that cannot be composed from the tree."""

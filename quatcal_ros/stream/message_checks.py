@@ -51,7 +51,8 @@ REASONS = {
     'wrong_frame_id': 'header.frame_id is not the configured frame',
     'implausible_position': 'a position farther from the origin than max_position_m',
     'undecodable': 'recorded bytes that do not decode as the topic type',
-    'breaks_tree': 'a transform that would break the TF tree (a loop, a second parent)',
+    'breaks_tree': 'a transform that would break the TF tree (a loop, a second parent, an '
+                   'empty frame id)',
 }
 
 
