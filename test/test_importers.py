@@ -302,6 +302,13 @@ BAD_INPUTS = [
     ('bad.yaml', 'moveit',
      lambda d: set_path(d, [2, 'effector_wrt_world', 5], None),
      'bad.yaml, entry [2], field effector_wrt_world[1][1]: None is not a number'),
+    # A position a solver cannot take (1e300 crashed it, 1e100 solved to nonsense, exit 0).
+    ('bad.samples', 'easy_handeye2',
+     lambda d: set_path(d, ['samples', 2, 'robot', 'translation', 'x'], 1e300),
+     'bad.samples, entry samples[2], field robot.translation: [1e+300, '),
+    ('bad.yaml', 'moveit',
+     lambda d: set_path(d, [1, 'object_wrt_sensor', 3], -2000.0),
+     'bad.yaml, entry [1], field object_wrt_sensor, last column: [-2000.0, '),
 ]
 
 

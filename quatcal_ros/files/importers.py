@@ -38,8 +38,8 @@ import numpy as np
 from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw, xyz_json, \
     xyzw_json
-from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, quaternion_norm_problem, \
-    shown
+from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, NS_PER_S, \
+    quaternion_norm_problem, shown
 from quatcal_ros.files import exports, journal, plain_yaml
 from quatcal_ros.files.samples_csv import read_samples
 from quatcal_ros.files.text_input import BadInputError, open_text, read_text
@@ -103,13 +103,22 @@ def _mapping(value, where, keys):
     return value
 
 
+def _position(values, where):
+    """Return the position, or raise BadInputError for one beyond MAX_POSITION_M (units)."""
+    if not all(abs(v) <= MAX_POSITION_M for v in values):
+        raise BadInputError(f'{where}: {values} m is not a position in a robot cell (at most '
+                            f'{MAX_POSITION_M:g} m from the origin; positions are in metres)')
+    return values
+
+
 def _transform(value, where, field_name):
     """Pose of a geometry_msgs/Transform-shaped mapping (translation, rotation x, y, z, w)."""
     prefix = f'{where}, field {field_name}'
     value = _mapping(value, prefix, ('translation', 'rotation'))
     translation = _mapping(value['translation'], f'{prefix}.translation', 'xyz')
     rotation = _mapping(value['rotation'], f'{prefix}.rotation', 'xyzw')
-    position = [_number(translation[axis], f'{prefix}.translation.{axis}') for axis in 'xyz']
+    position = _position([_number(translation[axis], f'{prefix}.translation.{axis}')
+                          for axis in 'xyz'], f'{prefix}.translation')
     xyzw = [_number(rotation[axis], f'{prefix}.rotation.{axis}') for axis in 'xyzw']
     problem = quaternion_norm_problem(xyzw, FILE_NORM_TOLERANCE)
     if problem:
@@ -145,7 +154,8 @@ def _matrix_pose(value, where, field_name):
                             f'(|R^T R - I| = {error:.3g}, det {np.linalg.det(R):.3g}); is the '
                             'matrix transposed or scaled?')
     # Project onto the nearest rotation (rounding in the file), as a unit quaternion.
-    return Pose.create(H[:3, 3], quaternion_from_matrix(R))
+    return Pose.create(_position(H[:3, 3].tolist(), f'{prefix}, last column'),
+                       quaternion_from_matrix(R))
 
 
 def _stamp(index):
