@@ -35,6 +35,21 @@ def ns_from_s(seconds):
     return int(round(seconds * NS_PER_S))
 
 
+def position_problem(position):
+    """
+    Say why a position read from a file (a coordinate, or the three) is not one, or None.
+
+    A coordinate beyond MAX_POSITION_M is a unit or typing error, not a robot cell.
+    """
+    scalar = isinstance(position, (int, float))
+    values = [position] if scalar else list(position)
+    if all(abs(v) <= MAX_POSITION_M for v in values):
+        return None
+    text = f'{position:g}' if scalar else str(values)
+    return (f'{text} m is not a position in a robot cell (at most {MAX_POSITION_M:g} m from the '
+            'origin; positions are in metres)')
+
+
 def quaternion_norm_problem(xyzw, tolerance):
     """
     Say why the quaternion `xyzw` (4 numbers, any order) is not a unit quaternion, or None.

@@ -38,7 +38,7 @@ import numpy as np
 from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw, xyz_json, \
     xyzw_json
-from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, NS_PER_S, \
+from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, position_problem, \
     quaternion_norm_problem, shown
 from quatcal_ros.files import exports, journal, plain_yaml
 from quatcal_ros.files.samples_csv import read_samples
@@ -104,10 +104,10 @@ def _mapping(value, where, keys):
 
 
 def _position(values, where):
-    """Return the position, or raise BadInputError for one beyond MAX_POSITION_M (units)."""
-    if not all(abs(v) <= MAX_POSITION_M for v in values):
-        raise BadInputError(f'{where}: {values} m is not a position in a robot cell (at most '
-                            f'{MAX_POSITION_M:g} m from the origin; positions are in metres)')
+    """Return the position, or raise BadInputError naming `where` (units.position_problem)."""
+    problem = position_problem(values)
+    if problem:
+        raise BadInputError(f'{where}: {problem}')
     return values
 
 

@@ -24,7 +24,7 @@ import math
 import numpy as np
 from quatcal_ros.core.pose import covariance_problem, Pose, Sample
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, NS_PER_S, \
-    quaternion_norm_problem, shown
+    position_problem, quaternion_norm_problem, shown
 from quatcal_ros.files.text_input import BadInputError, open_text
 
 COLUMNS = ('stamp',
@@ -170,10 +170,9 @@ def _check_numbers(row, index, name, line):
                                 'number') from None
         if not math.isfinite(value):
             raise BadInputError(f'{where}: {shown(row[i].strip())} is not a finite number')
-        if column[-2:] in ('_x', '_y', '_z') and abs(value) > MAX_POSITION_M:
-            raise BadInputError(f'{where}: {value:g} m is not a position in a robot cell (at '
-                                f'most {MAX_POSITION_M:g} m from the origin; positions are in '
-                                'metres)')
+        problem = position_problem(value) if column[-2:] in ('_x', '_y', '_z') else None
+        if problem:
+            raise BadInputError(f'{where}: {problem}')
 
 
 def pose_from_values(values, prefix, name, line):

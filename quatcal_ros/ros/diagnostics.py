@@ -14,6 +14,7 @@ import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.stream import message_checks
 from quatcal_ros.stream.message_checks import LINK, SENSOR, STALE_AFTER_S
+from quatcal_ros.stream.session import TOPICS as SESSION_TOPICS
 from rclpy.qos import ReliabilityPolicy
 
 
@@ -27,8 +28,8 @@ DIAGNOSTIC_NAME = status_name('calibrator')   # the default node's
 HIGH_RESIDUAL_DEG = 1.0
 # Clock jumps back within one status period that point to two clocks on one stream.
 REPEATED_JUMPS = 3
-# The session's count of each stream's poses (Session.counters).
-SESSION_COUNTERS = {LINK: 'link_messages', SENSOR: 'sensor_messages'}
+# The session's count of each stream's poses (Session.counters: its stream name + _messages).
+SESSION_COUNTERS = {topic: f'{stream}_messages' for stream, topic in SESSION_TOPICS.items()}
 
 
 def format_quaternion_xyzw(q_wxyz):

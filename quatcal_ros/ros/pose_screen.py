@@ -91,6 +91,15 @@ class PoseScreen:
     def _header_ok(self, stream, stamp_ns, frame_id, now_ns):
         """Return whether the stamp and frame id pass message_checks.check (else counted)."""
         reason = message_checks.check(stream, stamp_ns, frame_id, now_ns, self.config)
+        return self._passed(stream, reason, stamp_ns, frame_id, now_ns)
+
+    def stamp_ok(self, stream, stamp_ns, now_ns):
+        """Return whether a stamp passes message_checks.stamp_reason (else counted)."""
+        reason = message_checks.stamp_reason(stamp_ns, now_ns, self.config.max_stamp_offset_ns)
+        return self._passed(stream, reason, stamp_ns, None, now_ns)
+
+    def _passed(self, stream, reason, stamp_ns, frame_id, now_ns):
+        """Return whether `reason` is None; else count the message bad, described when due."""
         if reason is None:
             return True
         config = self.config

@@ -69,7 +69,7 @@ class TfFeed:
         for transform in msg.transforms:
             try:
                 stamp_ns = stamp_ns_from_header(transform.header)
-                if not static and not self._stamp_ok(topic, stamp_ns, now_ns):
+                if not static and not self.screen.stamp_ok(topic, stamp_ns, now_ns):
                     continue   # (a static transform holds at any time, its stamp aside)
                 pose = pose_from_msg(transform)
                 if self.screen.placed(topic, stamp_ns, pose) is None:
@@ -104,16 +104,6 @@ class TfFeed:
                 frames.note(child, stamp_ns)
             for stamp_ns, pose in frames.ready():
                 self.on_pose(stream, stamp_ns, pose)
-
-    def _stamp_ok(self, topic, stamp_ns, now_ns):
-        """Return whether a dynamic transform's stamp passes the pose topics' check."""
-        config = self.screen.config
-        reason = message_checks.stamp_reason(stamp_ns, now_ns, config.max_stamp_offset_ns)
-        if reason is None:
-            return True
-        self.screen.bad(topic, reason, lambda: message_checks.describe(
-            reason, topic, stamp_ns, None, now_ns, config))
-        return False
 
     def problems(self):
         """Return sentences naming each frame pair that cannot be composed from the tree."""
