@@ -15,7 +15,6 @@ a change of the estimator itself moves answers by more, or changes a decision.
 """
 
 from dataclasses import asdict
-import io
 import json
 import math
 from pathlib import Path
@@ -180,7 +179,7 @@ def stored_options(options):
 
 def samples_of(stored):
     """Return stored samples (samples CSV text) as pose.Sample."""
-    return parse_samples(io.StringIO(stored), 'stored samples')
+    return parse_samples(stored, 'stored samples')
 
 
 def options_of(stored):

@@ -1,6 +1,5 @@
 """`python -m quatcal_ros solve SAMPLES.csv`: DESIGN.md contracts 2 and 3, run as users run it."""
 
-import io
 import json
 import os
 import subprocess
@@ -121,7 +120,7 @@ def test_sensor_covariance_columns_round_trip_and_weight_the_solve(repo_root, tm
     text = format_samples(samples)
     assert text.split('\n', 1)[0] == ','.join(COLUMNS + COVARIANCE_COLUMNS)
     assert text.split('\n')[4].count(',') == len(COLUMNS) - 1   # sample 3: none
-    read = parse_samples(io.StringIO(text))
+    read = parse_samples(text)
     for before, after in zip(samples, read, strict=True):
         if before.sensor.covariance is None:
             assert after.sensor.covariance is None
@@ -152,10 +151,10 @@ def test_bad_sensor_covariances_are_named(change, expected):
     cells = first.split(',')
     first = ','.join(cells[:len(COLUMNS)] + change(cells[len(COLUMNS):]))
     with pytest.raises(BadInputError, match='cov.csv, row 2') as raised:
-        parse_samples(io.StringIO('\n'.join([header, first, *rest]) + '\n'), 'cov.csv')
+        parse_samples('\n'.join([header, first, *rest]) + '\n', 'cov.csv')
     assert expected in str(raised.value)
     with pytest.raises(BadInputError, match='covariance column.s. sensor_cov_x_x missing'):
-        parse_samples(io.StringIO(header.replace(',sensor_cov_x_x', '') + '\n'), 'cov.csv')
+        parse_samples(header.replace(',sensor_cov_x_x', '') + '\n', 'cov.csv')
 
 
 def test_missing_file_and_bad_arguments_exit_2(repo_root, tmp_path):
@@ -258,7 +257,7 @@ def test_ten_thousand_samples_solve_in_bounded_memory(tmp_path, capsys):
 def test_the_next_pose_follows_the_planner_options(repo_root, tmp_path):
     cell, path, _ = write_cell_csv(tmp_path / 'samples.csv', 5, 12, rotation_noise_deg=0.3,
                                    translation_noise_m=0.002)
-    last = parse_samples(io.StringIO(path.read_text()))[-1].link
+    last = parse_samples(path.read_text())[-1].link
     for limit in (15.0, 60.0):
         done = run_solve(repo_root, path, '--plan-max-rotation-deg', limit)
         assert done.returncode == 0, done.stderr

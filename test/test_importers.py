@@ -429,3 +429,60 @@ def test_a_whole_file_reader_stops_at_its_bound(tmp_path):
     assert len(read_text(path, limit=4 * 1024 * 1024)) == 3 * 1024 * 1024
     with pytest.raises(BadInputError, match='big.txt: larger than 2 MiB'):
         read_text(path, limit=2 * 1024 * 1024)
+
+
+@pytest.mark.parametrize('read', ['samples_csv', 'import', 'robot_poses'])
+def test_every_whole_file_reader_has_the_bound(tmp_path, monkeypatch, read):
+    """The CSV readers too (`solve /dev/zero.csv` read rows until the memory ran out)."""
+    from quatcal_ros.files import text_input
+    from quatcal_ros.files.samples_csv import read_samples
+    from quatcal_ros.vision.dataset import read_robot_poses
+    readers = {'samples_csv': read_samples, 'import': importers.load_samples,
+               'robot_poses': read_robot_poses}
+    monkeypatch.setattr(text_input, 'MAX_TEXT_CHARACTERS', 1024 * 1024)
+    path = tmp_path / 'big.csv'
+    path.write_text('stamp,' + 'x' * (2 * 1024 * 1024) + '\n')
+    with pytest.raises(BadInputError, match='big.csv: larger than 1 MiB'):
+        readers[read](path)
+
+
+def test_a_file_is_read_once_so_a_pipe_and_a_bom_journal_keep_everything(tmp_path):
+    """
+    A journal with a byte-order mark keeps its setup and frames; a pipe reads like a file.
+
+    The reader once opened a CSV twice: the second read of a pipe found it empty, and a
+    journal saved by an editor with a byte-order mark lost its header (solved eye-in-hand).
+    """
+    import os
+    import threading
+    from quatcal_ros.files.journal import JournalHeader
+    rng = np.random.default_rng(4)
+    samples, _ = simulation.samples(rng, simulation.random_cell(rng), 5)
+    text = JournalHeader('eye_to_hand', 'base_link', 'cam').line() + '\n' + format_samples(samples)
+    path = tmp_path / 'journal.csv'
+    path.write_text('\ufeff' + text, encoding='utf-8')
+    read = importers.load_samples(path)
+    assert (read.setup, read.frames) == ('eye_to_hand', {'robot_base_frame': 'base_link',
+                                                         'tracking_base_frame': 'cam'})
+    assert len(read.samples) == 5
+    fifo = tmp_path / 'pipe'
+    os.mkfifo(fifo)
+    writer = threading.Thread(target=fifo.write_text, args=(text,))
+    writer.start()
+    try:
+        read = importers.load_samples(fifo)
+    finally:
+        writer.join()
+    assert (read.setup, len(read.samples)) == ('eye_to_hand', 5)
+
+
+def test_json_and_yaml_with_a_byte_order_mark_are_read(tmp_path):
+    rng = np.random.default_rng(5)
+    samples, _ = simulation.samples(rng, simulation.random_cell(rng), 4)
+    pairs = [[s.link.as_matrix().tolist(), s.sensor.as_matrix().tolist()] for s in samples]
+    for name, text in (('s.samples', importers.format_easy_handeye2_samples(samples)),
+                       ('s.yaml', importers.format_moveit_samples(samples)),
+                       ('s.json', json.dumps(pairs))):
+        path = tmp_path / name
+        path.write_text('\ufeff' + text, encoding='utf-8')
+        assert len(importers.load_samples(path).samples) == 4

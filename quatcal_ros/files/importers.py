@@ -41,8 +41,8 @@ from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw, 
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, position_problem, \
     quaternion_norm_problem, shown
 from quatcal_ros.files import exports, journal, plain_yaml
-from quatcal_ros.files.samples_csv import read_samples
-from quatcal_ros.files.text_input import BadInputError, open_text, read_text
+from quatcal_ros.files.samples_csv import parse_samples
+from quatcal_ros.files.text_input import BadInputError, read_text
 
 FORMATS = ('csv', 'easy_handeye2', 'moveit', 'moveit-json')
 # A 4x4 matrix whose rotation block is farther than this from orthonormal (max |R^T R - I|)
@@ -301,27 +301,26 @@ def detect_format(document):
     return None
 
 
-def _csv_samples(path, setup=None):
+def _csv_samples(text, name, setup=None):
     """
-    Return the ImportedSamples of a samples CSV.
+    Return the ImportedSamples of a samples CSV's text, read from `name`.
 
     A samples journal's header names its setup and frames (the link frame is the parent: the
     effector eye-in-hand, the base eye-to-hand). A journal holds the poses as received, so
     another `setup` may solve it (what a convention warning asks for); then a warning says so
     and the header's frames, named for its own setup, are not used.
     """
-    samples = read_samples(path)
-    with open_text(path) as stream:
-        first = stream.readline().rstrip('\n')
+    samples = parse_samples(text, name)
+    first = text.split('\n', 1)[0].rstrip('\r')
     if not first.startswith(journal.MAGIC):
         return ImportedSamples(samples, 'csv')
     try:
-        header = journal.JournalHeader.parse(first, str(path))
+        header = journal.JournalHeader.parse(first, name)
     except journal.JournalError as error:
         raise BadInputError(str(error)) from None
     if setup is not None and setup != header.setup:
         return ImportedSamples(samples, 'csv', setup, warnings=[
-            f'{path}: the journal was recorded with setup {header.setup}; it is solved as '
+            f'{name}: the journal was recorded with setup {header.setup}; it is solved as '
             f'{setup}, as --setup says (its frame names, {header.link_frame} -> '
             f'{header.sensor_frame}, belong to {header.setup} and are not used)'])
     parent = 'robot_effector_frame' if header.setup == 'eye_in_hand' else 'robot_base_frame'
@@ -349,11 +348,9 @@ def load_samples(path, file_format='auto', setup=None):
     suffix = Path(name).suffix.lower()
     if file_format == 'auto':
         file_format = SUFFIX_FORMATS.get(suffix, 'auto')
-    if file_format == 'csv':
-        return _csv_samples(path, setup)
-    text = read_text(path)
-    if file_format == 'auto' and _is_csv(text):
-        return _csv_samples(path, setup)
+    text = read_text(path)   # once: a pipe cannot be read twice
+    if file_format == 'csv' or file_format == 'auto' and _is_csv(text):
+        return _csv_samples(text, name, setup)
     if not text.strip():
         raise BadInputError(f'{name}: empty file')
     document = (_load_json(text, name) if file_format == 'moveit-json' or suffix == '.json'

@@ -31,7 +31,6 @@ The file is data: it is parsed as numbers, never evaluated.  No rclpy here.
 
 from dataclasses import dataclass, field, replace
 import errno
-import io
 import os
 from pathlib import Path
 import time
@@ -176,7 +175,7 @@ def read_journal(path):
         end -= len(lines[-1].encode('utf-8')) + 1
         text = intact[:end].decode('utf-8')
     try:
-        samples = parse_samples(io.StringIO(text, newline=''), name)
+        samples = parse_samples(text, name)
     except BadInputError as error:
         raise JournalError(str(error)) from None
     return JournalContents(header, samples, notices, end, size)

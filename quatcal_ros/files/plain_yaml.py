@@ -3,9 +3,9 @@ YAML and JSON read as plain data, within bounds: the one loader of the files the
 
 Every YAML the package reads (result files, other tools' samples) is data, never objects:
 `load` builds only mappings, lists, strings and numbers (yaml's safe loader).  A hostile or
-broken file cannot take the machine: the text may hold at most MAX_BYTES, no aliases (`*name`:
-the "billion laughs" of a few lines that expand to gigabytes; none of the files read here
-needs one) and at most MAX_DEPTH levels of nesting; an integer may have at most
+broken file cannot take the machine: the text may hold at most MAX_CHARACTERS, no aliases
+(`*name`: the "billion laughs" of a few lines that expand to gigabytes; none of the files read
+here needs one) and at most MAX_DEPTH levels of nesting; an integer may have at most
 MAX_INT_DIGITS digits.  `load_json` applies the same bounds to JSON.  Every failure is a
 BadInputError that names the file and, where known, the line.
 """
@@ -16,7 +16,7 @@ import json
 from quatcal_ros.core.units import shown
 from quatcal_ros.files.text_input import BadInputError, read_text
 
-MAX_BYTES = 64 * 1024 * 1024      # far above any samples or result file (a sample: ~400 B)
+MAX_CHARACTERS = 64 * 1024 * 1024   # far above any samples or result file (a sample: ~400 B)
 MAX_DEPTH = 64                    # a samples file nests 5 levels
 MAX_INT_DIGITS = 100              # no count, stamp or coordinate needs more
 
@@ -60,7 +60,7 @@ def _loader():
 
 def load_file(path, holds='the file'):
     """Return the plain data of the YAML file `path` (load's errors, and 'cannot read')."""
-    return load(read_text(path, MAX_BYTES), str(path), holds)
+    return load(read_text(path, MAX_CHARACTERS), str(path), holds)
 
 
 def load(text, name, holds='the file'):
@@ -141,8 +141,8 @@ def _bounded_int(text):
 
 
 def _check_size(text, name):
-    if len(text) > MAX_BYTES:
-        raise BadInputError(f'{name}: larger than {MAX_BYTES // (1024 * 1024)} MiB: not a '
+    if len(text) > MAX_CHARACTERS:
+        raise BadInputError(f'{name}: larger than {MAX_CHARACTERS // (1024 * 1024)} MiB: not a '
                             'samples or result file')
 
 

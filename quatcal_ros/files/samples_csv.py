@@ -25,7 +25,7 @@ import numpy as np
 from quatcal_ros.core.pose import covariance_problem, Pose, Sample
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, NS_PER_S, \
     position_problem, quaternion_norm_problem, shown
-from quatcal_ros.files.text_input import BadInputError, open_text
+from quatcal_ros.files.text_input import BadInputError, read_text
 
 COLUMNS = ('stamp',
            'link_x', 'link_y', 'link_z', 'link_qx', 'link_qy', 'link_qz', 'link_qw',
@@ -40,14 +40,12 @@ MAX_STAMP_S = 2 ** 63 / 1e9
 
 def read_samples(path):
     """Read samples (list of pose.Sample) from a samples CSV file; raise BadInputError."""
-    # utf-8-sig: the byte-order mark that spreadsheet programs write is not a column name.
-    with open_text(path, 'utf-8-sig', newline='') as stream:
-        return parse_samples(stream, str(path))
+    return parse_samples(read_text(path), str(path))
 
 
-def parse_samples(stream, name='<samples>'):
-    """Parse samples from an open text stream of the samples CSV format."""
-    reader = csv.reader(stream)
+def parse_samples(text, name='<samples>'):
+    """Parse samples from the text of a samples CSV (text_input.read_text's)."""
+    reader = csv.reader(io.StringIO(text, newline=''))
     try:
         return _parse_rows(reader, name)
     except csv.Error as error:   # a field over the csv module's size limit, ...

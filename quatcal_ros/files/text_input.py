@@ -34,14 +34,17 @@ def open_text(path, encoding='utf-8', newline=None):
         raise BadInputError(f'{path}: not a text file (UTF-8 expected)') from None
 
 
-def read_text(path, limit=MAX_TEXT_CHARACTERS):
+def read_text(path, limit=None):
     """
-    Return the text of the UTF-8 file `path` (open_text's errors).
+    Return the text of the UTF-8 file `path`, read once (open_text's errors).
 
+    Without a leading byte-order mark (spreadsheets and some editors write one, in any file).
     BadInputError when it holds more than `limit` characters: read that far and no further,
-    so a device such as /dev/zero cannot fill the memory.
+    so a device such as /dev/zero cannot fill the memory. Read once, a pipe (/dev/stdin)
+    reads like a file. limit: MAX_TEXT_CHARACTERS unless given.
     """
-    with open_text(path) as stream:
+    limit = MAX_TEXT_CHARACTERS if limit is None else limit
+    with open_text(path, 'utf-8-sig') as stream:
         text = stream.read(limit + 1)
     if len(text) > limit:
         raise BadInputError(f'{path}: larger than {limit // (1024 * 1024)} MiB: not a file this '

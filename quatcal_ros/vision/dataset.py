@@ -13,6 +13,7 @@ silently. Errors in the files name the file, the row and the field.
 from collections import Counter
 import csv
 from dataclasses import dataclass, field
+import io
 import os
 from pathlib import Path
 import stat
@@ -22,7 +23,7 @@ import numpy as np
 from quatcal_ros.core.pose import Sample
 from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.files.samples_csv import check_columns_once, parse_numbers, pose_from_values
-from quatcal_ros.files.text_input import BadInputError, open_text
+from quatcal_ros.files.text_input import BadInputError, read_text
 from quatcal_ros.vision.board import read_board
 from quatcal_ros.vision.camera import read_camera_yaml
 from quatcal_ros.vision.detect import detect
@@ -145,8 +146,7 @@ def read_robot_poses(path):
     """Return [(image name, T_base_link Pose)] of robot_poses.csv; BadInputError names the row."""
     name = str(path)
     try:
-        with open_text(path, 'utf-8-sig', newline='') as stream:
-            return _robot_pose_rows(csv.reader(stream), name)
+        return _robot_pose_rows(csv.reader(io.StringIO(read_text(path), newline='')), name)
     except csv.Error as error:
         raise BadInputError(f'{name}: not a CSV file: {error}') from None
 
