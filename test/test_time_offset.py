@@ -72,6 +72,21 @@ def test_too_short_an_overlap_is_refused(streams):
         estimate_time_offset(link_stamps, link_q, sensor_stamps, sensor_q)
 
 
+@pytest.mark.parametrize('sensor', ['two poses', 'one stamp', 'none'])
+def test_a_stream_without_an_angular_speed_is_named(streams, sensor):
+    """Two sensor poses, or a camera driver that froze its stamp, once raised an IndexError."""
+    link_stamps, link_q = arrays(streams.link)
+    sensor_stamps, sensor_q = arrays(streams.sensor)
+    if sensor == 'two poses':
+        sensor_stamps, sensor_q = sensor_stamps[:2], sensor_q[:2]
+    elif sensor == 'one stamp':
+        sensor_stamps = np.full_like(sensor_stamps, sensor_stamps[5])
+    else:
+        sensor_stamps, sensor_q = sensor_stamps[:0], sensor_q[:0]
+    with pytest.raises(ValueError, match='the sensor stream has .* distinct stamps'):
+        estimate_time_offset(link_stamps, link_q, sensor_stamps, sensor_q)
+
+
 def test_eth_recording_offset_and_residuals(eth_streams):
     config = SessionConfig(capture=CaptureConfig(mode='continuous', continuous_step_deg=10.0),
                            calibration=CalibrationOptions(invert_sensor=True))

@@ -63,10 +63,23 @@ def angular_speed(stamps_ns, quaternions, baseline_s=0.1):
 
 def estimate_time_offset(link_stamps_ns, link_quaternions, sensor_stamps_ns,
                          sensor_quaternions, max_offset_s=0.5, grid_hz=200.0):
-    """Cross-correlate the angular speeds of both streams; return a TimeOffset."""
+    """
+    Cross-correlate the angular speeds of both streams; return a TimeOffset.
+
+    ValueError when a stream gives no speed curve (fewer than 3 poses, or all at one stamp)
+    or the streams overlap too briefly, saying which.
+    """
+    streams = (('link', link_stamps_ns, link_quaternions),
+               ('sensor', sensor_stamps_ns, sensor_quaternions))
+    for name, stamps, _ in streams:
+        distinct = len(np.unique(np.asarray(stamps, dtype=np.int64)))
+        if distinct < 3:
+            raise ValueError(f'the {name} stream has {len(stamps)} poses at {distinct} '
+                             'distinct stamps: its angular speed needs poses at 3 or more')
+    (t_l, w_l), (t_s, w_s) = (angular_speed(stamps, q) for _, stamps, q in streams)
+    if not len(t_l) or not len(t_s):   # stamps out of order across the whole stream
+        raise ValueError("a stream's stamps go back in time: no angular speed")
     origin = int(min(link_stamps_ns[0], sensor_stamps_ns[0]))
-    t_l, w_l = angular_speed(link_stamps_ns, link_quaternions)
-    t_s, w_s = angular_speed(sensor_stamps_ns, sensor_quaternions)
     t_l = t_l + (int(link_stamps_ns[0]) - origin) / NS_PER_S
     t_s = t_s + (int(sensor_stamps_ns[0]) - origin) / NS_PER_S
     start, end = max(t_l[0], t_s[0]), min(t_l[-1], t_s[-1])
