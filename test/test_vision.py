@@ -63,6 +63,9 @@ def pose_error(estimate, truth):
     ({'type': 'circles'}, 'field type'),
     ({'squares_x': 1}, 'field squares_x'),
     ({'square_length_m': -0.03}, 'field square_length_m'),
+    # below the smallest printed board; 1e-300 once raised SystemError inside OpenCV
+    ({'square_length_m': 1e-300, 'marker_length_m': 1e-301}, r'field square_length_m: 1e-300 '
+     r'is not a length in metres \(0.0001 to 5\)'),
     ({'marker_length_m': 0.05}, 'field marker_length_m: 0.05 m must be smaller'),
     ({'dictionary': 'DICT_7X7_BIG'}, 'field dictionary'),
     ({'dictionary': 'DICT_4X4_50', 'squares_x': 20, 'squares_y': 20}, 'has 50 markers'),
@@ -87,6 +90,9 @@ def test_bad_camera_info_is_named():
         parse_camera({**good, 'distortion_model': 'rational_polynomial'})
     with pytest.raises(BadInputError, match='distortion_model'):
         parse_camera({**good, 'distortion_model': 'equidistant'})
+    nan = {**good, 'distortion_coefficients': {'rows': 1, 'cols': 5, 'data': [float('nan')] * 5}}
+    with pytest.raises(BadInputError, match='field distortion_coefficients: NaN or inf'):
+        parse_camera(nan, 'camera_info.yaml')
 
 
 @pytest.mark.parametrize('model, coefficients', [

@@ -21,6 +21,7 @@ from quatcal_ros.files.text_input import BadInputError
 
 TYPES = ('charuco', 'aruco_grid', 'chessboard', 'apriltag_grid')
 MAX_LENGTH_M = 5.0
+MIN_LENGTH_M = 1e-4   # 0.1 mm: below any printed board (OpenCV fails on 1e-300 with SystemError)
 
 
 @dataclass(frozen=True)
@@ -118,7 +119,7 @@ def _count(document, field, name):
 def _length(document, field, name):
     value = document.get(field)
     if isinstance(value, bool) or not isinstance(value, (int, float)) \
-            or not 0.0 < value <= MAX_LENGTH_M:
+            or not MIN_LENGTH_M <= value <= MAX_LENGTH_M:
         raise BadInputError(f'{name}, field {field}: {value!r} is not a length in metres '
-                            f'(0 to {MAX_LENGTH_M:g})')
+                            f'({MIN_LENGTH_M:g} to {MAX_LENGTH_M:g})')
     return float(value)

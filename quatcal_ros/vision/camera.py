@@ -75,8 +75,9 @@ def camera_from(width, height, K, model, D, name='camera_info'):
         if not (model == 'plumb_bob' and len(D) in (4, 5)):
             raise BadInputError(f'{name}, field distortion_coefficients: {model} takes '
                                 f'{MODELS[model]} coefficients, not {len(D)}')
-    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(D))):
-        raise BadInputError(f'{name}, field camera_matrix: NaN or inf')
+    for field, values in (('camera_matrix', K), ('distortion_coefficients', D)):
+        if not np.all(np.isfinite(values)):
+            raise BadInputError(f'{name}, field {field}: NaN or inf')
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     if not (fx > 0 and fy > 0 and 0 <= cx <= width and 0 <= cy <= height
             and K[2, 2] == 1 and not K[1, 0] and not K[2, 0] and not K[2, 1]):
