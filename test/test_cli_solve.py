@@ -326,7 +326,18 @@ def test_an_output_below_a_file_says_the_parent_is_a_file(tmp_path, capsys):
     (tmp_path / 'notes.txt').write_text('a file\n')
     assert solve_main([str(path), '--easy-handeye2-out', str(tmp_path / 'notes.txt' / 'x')]) == 2
     err = capsys.readouterr().err
-    assert 'a parent is a file, not a directory' in err and 'notes.txt' in err
+    assert f'{tmp_path / "notes.txt"} is a file, not a folder: choose another path' in err
+
+
+def test_no_output_is_written_when_another_cannot_be(tmp_path, capsys):
+    """--easy-handeye2-out was written, then --report /dev/null failed with exit 2."""
+    from quatcal_ros.tools.cli import solve_main
+    _, path, _ = write_cell_csv(tmp_path / 'cell.csv', 8, 6)
+    assert solve_main([str(path), '--easy-handeye2-out', str(tmp_path / 'r.calib'),
+                       '--report', '/dev/null']) == 2
+    assert ('--report /dev/null: exists and is not a regular file: choose another path, '
+            'nothing was written') in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['cell.csv']
 
 
 def test_a_huge_number_is_shown_cut_in_the_error(tmp_path, capsys):

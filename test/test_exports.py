@@ -217,7 +217,7 @@ def test_solve_reports_an_unwritable_easy_handeye2_file(repo_root, solved, tmp_p
     blocker.write_text('')
     done = run_solve(repo_root, path, '--easy-handeye2-out', blocker / 'x.calib')
     assert done.returncode == 2
-    assert 'x.calib: cannot write' in done.stderr
+    assert f'x.calib: {blocker} is a file, not a folder' in done.stderr
 
 
 def test_replay_prints_the_line_with_the_frames_of_the_messages(tmp_path, capsys):

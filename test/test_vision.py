@@ -21,6 +21,7 @@ import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate
 from quatcal_ros.core.pose import Pose, residual_order, Sample
+from quatcal_ros.files import plain_yaml
 from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.tools.cli import solve_main
 from quatcal_ros.vision.board import parse_board
@@ -284,10 +285,14 @@ def test_solve_dir_refines_on_the_pixels_and_lists_refused_views(repo_root, tmp_
     row, = [line for line in rows if line.startswith(names[2] + ',')]
     rows.append('copy.png' + row[len(names[2]):])
     (tmp_path / 'robot_poses.csv').write_text('\n'.join(rows) + '\n')
-    done = run_solve(repo_root, tmp_path)
+    done = run_solve(repo_root, tmp_path, '--easy-handeye2-out', tmp_path / 'cell.calib')
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout)
     assert result['method'] == 'reprojection' and result['pose_based_method'] == 'refined'
+    # the answer on the pixels, as printed (the option was once ignored for a folder)
+    calib = plain_yaml.load_file(tmp_path / 'cell.calib')['transform']
+    assert calib['rotation'] == result['rotation']
+    assert calib['translation'] == result['translation']
     assert result['views']['used'] == 14
     assert {(r['image'], r['reason']) for r in result['views']['refused']} == {
         (names[4], 'no_board'), (names[9], 'unreadable_image'), ('copy.png', 'repeated_view')}

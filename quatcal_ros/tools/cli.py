@@ -29,7 +29,7 @@ from quatcal_ros.stream.settings import check_config, ConfigError, plan_limits, 
     session_config
 from quatcal_ros.stream.time_offset import find_time_offset
 from quatcal_ros.tools.options import add_setting_options, settings_of
-from quatcal_ros.tools.output_paths import output_clash
+from quatcal_ros.tools.output_paths import output_problem
 from quatcal_ros.tools.progress import Progress
 
 EXIT_BAD_INPUT = 2
@@ -78,10 +78,10 @@ def solve_main(argv=None):
         return fail(parser.prog, 'the samples path is empty: give a samples file or an image '
                                  'dataset folder', EXIT_BAD_INPUT)
     folder = Path(args.samples).is_dir()
-    clash = output_clash([('dataset' if folder else 'file', args.samples)],
-                         {'--report': args.report, '--easy-handeye2-out': args.easy_handeye2_out})
-    if clash:
-        return fail(parser.prog, clash, EXIT_BAD_INPUT)
+    outputs = {'--report': args.report, '--easy-handeye2-out': args.easy_handeye2_out}
+    problem = output_problem([('dataset' if folder else 'file', args.samples)], outputs)
+    if problem:
+        return fail(parser.prog, problem, EXIT_BAD_INPUT)
     if folder:
         return _solve_images(parser.prog, args)
     try:
@@ -93,15 +93,9 @@ def solve_main(argv=None):
     session = Session(session_config(settings_of(args)))
     copies = _copies(session.add_samples(imported.samples))
     session.estimate()   # one full solve over all of them
-    if session.result is not None and args.easy_handeye2_out:
-        named = imported.frames or {}
-        keep = ('robot_base_frame' if args.setup == 'eye_in_hand' else 'robot_effector_frame',
-                'tracking_marker_frame')
-        saved = save_result(session.result, frames, args.setup,
-                            easy_handeye2_file=args.easy_handeye2_out,
-                            easy_handeye2_frames={key: named.get(key, '') for key in keep})
-        for _, target, error in saved.failed:
-            return fail(parser.prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)
+    failed = _write_easy_handeye2(parser.prog, args, session.result, frames, imported.frames)
+    if failed:
+        return failed
     return print_result(parser.prog, session, f'{args.samples}: ',
                         [*imported.warnings, *_copies_warning(copies)], frames=frames,
                         limits=plan_limits(settings_of(args)),
@@ -140,11 +134,33 @@ def _solve_images(prog, args):
         return print_result(prog, session, where)
     fit = refine_from_poses(data.samples, data.corners(), data.camera, result, args.setup,
                             args.robust)
-    return print_result(prog, session, where, frames=solve_frames(args),
-                        result=result_on_pixels(result, fit),
+    frames, on_pixels = solve_frames(args), result_on_pixels(result, fit)
+    failed = _write_easy_handeye2(prog, args, on_pixels, frames)
+    if failed:
+        return failed
+    return print_result(prog, session, where, frames=frames, result=on_pixels,
                         limits=plan_limits(settings_of(args)), report=args.report,
                         extra={'views': views, 'reprojection': fit.to_json_dict(),
                                'pose_based_method': result.method})
+
+
+def _write_easy_handeye2(prog, args, result, frames, named=None):
+    """
+    Write --easy-handeye2-out when it is given and there is a result; return fail's status.
+
+    named: the frames the samples file named, by easy_handeye2 parameter name (the base or
+    effector frame and the marker frame that the result's frames do not give).
+    """
+    if result is None or not args.easy_handeye2_out:
+        return None
+    named = named or {}
+    keep = ('robot_base_frame' if args.setup == 'eye_in_hand' else 'robot_effector_frame',
+            'tracking_marker_frame')
+    saved = save_result(result, frames, args.setup, easy_handeye2_file=args.easy_handeye2_out,
+                        easy_handeye2_frames={key: named.get(key, '') for key in keep})
+    for _, target, error in saved.failed:
+        return fail(prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)
+    return None
 
 
 def _copies(events):
@@ -365,11 +381,11 @@ def replay_main(argv=None):
     except ConfigError as error:
         return fail(prog, f'bad option: {error}', EXIT_BAD_INPUT)
     config = session_config(chosen)
-    clash = output_clash([('bag', args.bag), ('file', args.board_file)], {
+    problem = output_problem([('bag', args.bag), ('file', args.board_file)], {
         '--samples-out': args.samples_out, '--journal-out': args.journal_out,
         '--result-out': args.result_out, '--report': args.report})
-    if clash:
-        return fail(prog, clash, EXIT_BAD_INPUT)
+    if problem:
+        return fail(prog, problem, EXIT_BAD_INPUT)
     try:
         from quatcal_ros.ros import bag   # rosbags is needed by the replay only
     except ImportError as error:
@@ -627,6 +643,9 @@ def _write_journal(prog, args, session, report):
     messages = record.append(session.samples) + record.sync()
     record.close()
     for level, text in record.report.messages + messages:
+        # A foreign file at the path is an error for the node; here it was moved aside and
+        # the journal written: nothing lost, a warning.
+        level = 'warning' if level == 'error' and not messages else level
         if level != 'info' or not args.quiet:
             print(f'{prog}: {level}: {text}', file=sys.stderr)
     return EXIT_BAD_INPUT if messages else 0

@@ -1,12 +1,14 @@
 """
-Output paths that would destroy an input: refused before a tool reads or writes anything.
+Output paths that would destroy an input or cannot be written: refused before a tool reads.
 
 `solve victim.csv --report victim.csv` once replaced the samples with a report page, and
-`replay BAG --samples-out BAG/bag_0.db3` the recording with a CSV. `output_clash` names such
+`replay BAG --samples-out BAG/bag_0.db3` the recording with a CSV. `output_problem` names such
 an output: one that is an input file, one of the files an image dataset folder is made of (its
 layout and images/), anything in a bag's folder (or, for a bag given as its storage file, that
 folder's index and storage files), or another output's path. A new file beside the inputs, or
-in a dataset folder, is fine (a report beside the images).
+in a dataset folder, is fine (a report beside the images). It also names an output that
+could not be written at all (a device, a directory, a parent that is a file, a
+folder without write permission), so that no output is written before another one fails.
 """
 
 import os
@@ -48,9 +50,9 @@ def _bag_files(folder):
         return set()
 
 
-def output_clash(inputs, outputs):
+def output_problem(inputs, outputs):
     """
-    Say why the outputs would destroy an input or each other, or return None.
+    Say why the outputs would destroy an input or each other or cannot be written, or None.
 
     inputs: [(kind, path)] of the paths read (protected's kinds; a path None is skipped);
     outputs: {option: path or None}.
@@ -73,4 +75,19 @@ def output_clash(inputs, outputs):
             return (f'{seen[target]} and {option} name the same file {path}: one would '
                     'replace the other')
         seen[target] = option
+        unwritable = _unwritable(target)
+        if unwritable:
+            return f'{option} {path}: {unwritable}: choose another path, nothing was written'
+    return None
+
+
+def _unwritable(target):
+    """Return why no file can be written at the resolved path `target`, or None."""
+    if target.exists() and not target.is_file():
+        return 'exists and is not a regular file'
+    folder = next(p for p in target.parents if p.exists())   # the root exists
+    if not folder.is_dir():
+        return f'{folder} is a file, not a folder'
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return f'no permission to write in {folder}'
     return None
