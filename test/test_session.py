@@ -223,6 +223,11 @@ def test_exact_copies_of_samples_are_counted_once():
     (notice,) = session._store_captured(samples[2])
     assert 'repeats sample 2' in notice.text
     assert session.counters['repeated_samples'] == 22 and len(session.samples) == 11
+    # The same rotations with the other sign (q and -q), as another tool may write a copy.
+    flipped = Sample(samples[5].stamp_ns,
+                     Pose(samples[5].link.position, -samples[5].link.quaternion),
+                     Pose(samples[5].sensor.position, -samples[5].sensor.quaternion))
+    assert session.add_sample(flipped)[0].code == 'repeated'
     session.reset()
     assert of_type(session.add_samples(samples[:3]), SampleCaptured)
 

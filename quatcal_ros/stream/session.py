@@ -38,6 +38,7 @@ import math
 
 import numpy as np
 
+from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import CalibrationOptions, Calibrator
 from quatcal_ros.core.motions import motion_count
 from quatcal_ros.core.pose import Pose
@@ -115,9 +116,15 @@ def _finite(*poses):
 
 
 def _fingerprint(sample):
-    """Return the exact numbers of a sample's poses, as bytes (the key of exact copies)."""
-    return np.concatenate([sample.link.position, sample.link.quaternion,
-                           sample.sensor.position, sample.sensor.quaternion]).tobytes()
+    """
+    Return the exact numbers of a sample's poses, as bytes (the key of exact copies).
+
+    Each quaternion with its sign chosen (q and -q are one rotation: a copy written by another
+    tool may carry either) and -0.0 as 0.0.
+    """
+    return (np.concatenate([sample.link.position, quat.canonical(sample.link.quaternion),
+                            sample.sensor.position, quat.canonical(sample.sensor.quaternion)])
+            + 0.0).tobytes()
 
 
 def _finite_rows(positions, quaternions):
