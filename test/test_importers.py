@@ -309,6 +309,11 @@ BAD_INPUTS = [
     ('bad.yaml', 'moveit',
      lambda d: set_path(d, [1, 'object_wrt_sensor', 3], -2000.0),
      'bad.yaml, entry [1], field object_wrt_sensor, last column: [-2000.0, '),
+    # Once written into the static_transform_publisher command as "{'nested': ...}".
+    ('bad.samples', 'easy_handeye2',
+     lambda d: set_path(d, ['parameters', 'robot_effector_frame'], {'nested': ['junk', 1]}),
+     'bad.samples, field parameters.robot_effector_frame: expected a frame name, got dict '
+     "{'nested': ['junk', 1]}"),
 ]
 
 

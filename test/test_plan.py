@@ -105,9 +105,11 @@ def test_eye_to_hand_needs_the_camera_guess_and_plans_with_it(tmp_path, capsys):
     (['--box-min', '0.6', '0', '0', '--box-max', '1', '1', '1'], 'outside the box'),
     (['--target-distance', '0'], '--target-distance must be a positive number'),
     (['--target-distance', 'inf'], '--target-distance must be a positive number up to 1000'),
-    (['--noise-deg', '-1'], '--noise-deg must be a positive number'),
-    (['--noise-mm', 'nan'], '--noise-mm must be a positive number'),
-    (['--noise-deg', '0', '--noise-mm', '0'], '--noise-deg must be a positive number'),
+    (['--noise-deg', '-1'], '--noise-deg must be a number from 0.0001 to 90, not -1'),
+    (['--noise-mm', 'nan'], '--noise-mm must be a number from 0.001 to 1e+06, not nan'),
+    (['--noise-deg', '0', '--noise-mm', '0'], '--noise-deg must be a number from 0.0001'),
+    # once "Singular matrix"
+    (['--noise-mm', '1e-6'], '--noise-mm must be a number from 0.001 to 1e+06, not 1e-06'),
     (['--box-max', 'inf', '1', '1'], '--box-max: [inf, 1.0, 1.0] m is not a position'),
 ])
 def test_unusable_options_are_named(capsys, options, words):

@@ -220,10 +220,18 @@ def parse_easy_handeye2_samples(document, name='<easy_handeye2 samples>', setup=
         tracking = _transform(entry['tracking'], where, 'tracking')
         link = robot if use_setup == 'eye_in_hand' else robot.inverse()
         samples.append(Sample(_stamp(i), link, tracking))
-    frames = {key: str(parameters[key]) for key in (
+    frames = {key: _frame_name(parameters[key], f'{name}, field parameters.{key}') for key in (
         'robot_base_frame', 'robot_effector_frame', 'tracking_base_frame',
         'tracking_marker_frame') if parameters.get(key)}
     return ImportedSamples(samples, 'easy_handeye2', file_setup, frames, warnings)
+
+
+def _frame_name(value, where):
+    """Return a frame name of the file: text (a bare number in YAML reads as one too)."""
+    if isinstance(value, bool) or not isinstance(value, (str, int)):
+        raise BadInputError(f'{where}: expected a frame name, got {type(value).__name__} '
+                            f'{shown(repr(value))}')
+    return str(value)
 
 
 def read_easy_handeye2_samples(path, setup=None):

@@ -99,11 +99,14 @@ def _check_options(args):
     """Raise ValueError naming the first option whose number no plan can use."""
     if args.count < 2:
         raise ValueError(f'--count must be at least 2, not {args.count}')
-    for name, value, top in (('--noise-deg', args.noise_deg, 90.0),
-                             ('--noise-mm', args.noise_mm, 1e3 * MAX_POSITION_M),
-                             ('--target-distance', args.target_distance, MAX_POSITION_M)):
-        if not 0.0 < value <= top:   # (NaN fails too)
-            raise ValueError(f'{name} must be a positive number up to {top:g}, not {value:g}')
+    # Noise below 1e-4 deg or 1 um (no sensor's) made the planner's information singular.
+    for name, value, low, top in (('--noise-deg', args.noise_deg, 1e-4, 90.0),
+                                  ('--noise-mm', args.noise_mm, 1e-3, 1e3 * MAX_POSITION_M)):
+        if not low <= value <= top:   # (NaN fails too)
+            raise ValueError(f'{name} must be a number from {low:g} to {top:g}, not {value:g}')
+    if not 0.0 < args.target_distance <= MAX_POSITION_M:
+        raise ValueError(f'--target-distance must be a positive number up to '
+                         f'{MAX_POSITION_M:g}, not {args.target_distance:g}')
     for name, values in (('--box-min', args.box_min), ('--box-max', args.box_max)):
         if values is not None:
             _check_position(values, name)
