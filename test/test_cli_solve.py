@@ -137,6 +137,13 @@ def test_sensor_covariance_columns_round_trip_and_weight_the_solve(repo_root, tm
     expected = calibrate(samples)
     assert quat.angle_between([result['rotation'][k] for k in 'wxyz'], expected.quaternion) \
         < 1e-12
+    # Some rows without: none is used, and the warning says so (they were dropped silently).
+    path.write_text(text)
+    result = json.loads(run_solve(repo_root, path).stdout)
+    assert result['noise_model']['sample_covariances'] == 'none'
+    assert any(warning.startswith(f'{len(samples) - 1} of {len(samples)} samples give their '
+                                  'own sensor covariance: one is used only when every sample')
+               for warning in result['warnings'])
 
 
 @pytest.mark.parametrize('change, expected', [

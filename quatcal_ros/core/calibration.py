@@ -731,6 +731,8 @@ def _estimate(samples, rotations, positions, fit, options, previous):
                       translation.uncertainty_mm)
     warnings = [] if previous is not None else conventions.warnings(
         samples, options, conventions.misfit(rotation_residuals, translation.residuals))
+    if previous is None:
+        warnings += _unused_covariances(samples)
     arrays = (rotations.link[ok], positions.link[ok], rotations.sensor[ok], positions.sensor[ok])
     refinement = None
     if _count(ok) >= MIN_REFINE_SAMPLES:
@@ -780,6 +782,15 @@ def sensor_covariances(samples, invert_sensor=False):
             np.array([s.sensor.position for s in samples]))
         covariances = A @ covariances @ np.transpose(A, (0, 2, 1))
     return covariances
+
+
+def _unused_covariances(samples):
+    """Return a warning when some samples but not all give a covariance (none is used)."""
+    given = sum(s.sensor.covariance is not None for s in samples)
+    if not 0 < given < len(samples):
+        return []
+    return [f'{given} of {len(samples)} samples give their own sensor covariance: one is used '
+            'only when every sample gives one, so all are weighed by the fitted noise model']
 
 
 def _report(fit, options, closed, refined, noise, warnings, refinement):
