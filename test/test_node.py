@@ -683,14 +683,38 @@ def test_without_a_clock_the_status_still_comes_and_says_so(domain_id):
 def test_a_clock_that_stopped_is_named():
     # /clock stopped (a paused bag): the status stayed OK with nothing stale for 30 s
     from quatcal_ros.ros.diagnostics import InputWatch
+    from quatcal_ros.stream.message_checks import StreamStats
     watch = InputWatch({}, 1)
-    args = (None, {}, lambda topic: [], 0)
+    args = (StreamStats(), {}, lambda topic: [], 0)
     assert watch.problems(*args, 5 * NS_PER_S, True, steady_ns=100 * NS_PER_S) == []
     assert watch.problems(*args, 5 * NS_PER_S, True, steady_ns=102 * NS_PER_S) == []
     (said,) = watch.problems(*args, 5 * NS_PER_S, True, steady_ns=104 * NS_PER_S)
     assert '/clock has stood at 5.000 s for 4 s' in said
     assert watch.problems(*args, 6 * NS_PER_S, True, steady_ns=105 * NS_PER_S) == []
     assert watch.problems(*args, 6 * NS_PER_S, False, steady_ns=200 * NS_PER_S) == []
+
+
+def test_a_publisher_replaced_after_the_stream_had_data_is_named():
+    """A link driver restarted best effort: the stream had data, so it was never checked."""
+    from types import SimpleNamespace
+    from quatcal_ros.ros.diagnostics import InputWatch
+    from quatcal_ros.stream.message_checks import StreamStats
+    expected = 'geometry_msgs/msg/PoseStamped'
+    watch = InputWatch({'link_pose': expected, 'sensor_pose': expected}, 1,
+                       reliable={'link_pose'})
+    stats = StreamStats()
+    for stream in ('link_pose', 'sensor_pose'):
+        stats.note(stream, 1 * NS_PER_S)
+    stats.note('sensor_pose', 9 * NS_PER_S)
+    best_effort = [SimpleNamespace(topic_type=expected, qos_profile=SimpleNamespace(
+        reliability=ReliabilityPolicy.BEST_EFFORT))]
+    topics = {'link_pose': '/link_pose', 'sensor_pose': '/sensor_pose'}
+    (said,) = watch.problems(stats, topics, lambda topic: best_effort, 0, 10 * NS_PER_S, False)
+    assert said.startswith('/link_pose has only best-effort publishers (1)')
+    stats.note('link_pose', 10 * NS_PER_S)   # heard again: nothing to say
+    stats.note_good('link_pose', 10 * NS_PER_S)
+    assert watch.problems(stats, topics, lambda topic: best_effort, 0, 10 * NS_PER_S,
+                          False) == []
 
 
 def test_the_status_is_named_after_the_node(domain_id, tmp_path):

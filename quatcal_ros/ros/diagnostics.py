@@ -50,7 +50,7 @@ class InputWatch:
     """
     Problems of the node's input that no single message shows, found at each status.
 
-    On a silent stream, publishers of the wrong type, or only best-effort ones when it is
+    On a silent or stale stream, publishers of the wrong type, or only best-effort ones when it is
     subscribed reliable (which hears no best-effort publisher); clock jumps that point to two
     clocks on one stream; use_sim_time without /clock or with a /clock that stopped; and when
     listening began (for silent streams).
@@ -73,8 +73,9 @@ class InputWatch:
         steady_ns: the steady (wall) clock, to see a node clock that stopped.
         """
         found = []
+        stale = set(stats.stale(now_ns))   # a publisher replaced after the stream had data
         for stream, topic in topics.items():
-            if stats.received[stream]:
+            if stats.received[stream] and stream not in stale:
                 continue
             expected = self.expected_types[stream]
             heard = publishers(topic)
