@@ -99,7 +99,7 @@ def test_solve_writes_the_report_beside_its_json(tmp_path, capsys):
     (tmp_path / 'a_file').write_text('')
     assert solve_main([str(MOVEIT_SAMPLES), '--setup', 'eye_to_hand', '--report',
                        str(tmp_path / 'a_file' / 'report.html')]) == 2
-    assert 'cannot write the report' in capsys.readouterr().err
+    assert 'a_file is a file, not a folder: choose another path' in capsys.readouterr().err
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason='no Chromium on this machine (apt install '
