@@ -210,6 +210,34 @@ def test_solve_on_a_journal_takes_its_setup_and_frames(repo_root, tmp_path):
     assert '--frame-id tool0 ' not in result['static_transform_publisher']
 
 
+def test_solve_on_a_journal_takes_its_invert_sensor(tmp_path, capsys):
+    """A node run with invert_sensor:=true: solve of its journal once needed --invert-sensor."""
+    from quatcal_ros.files.journal import Journal, JournalHeader
+    from quatcal_ros.tools.cli import solve_main
+    rng = np.random.default_rng(8)
+    cell = simulation.random_cell(rng)
+    samples, _ = simulation.samples(rng, cell, 8, rotation_noise_deg=0.05)
+    inverted = [Sample(s.stamp_ns, s.link, s.sensor.inverse()) for s in samples]
+    path = tmp_path / 'samples.csv'
+    written = Journal.create(path, JournalHeader('eye_in_hand', 'tool0', 'camera', True))
+    for sample in inverted:
+        written.append(sample)
+    written.close()
+
+    def solved(*options):
+        assert solve_main([str(path), *options]) == 0
+        return json.loads(capsys.readouterr().out)
+    result = solved()
+    q = [result['rotation'][k] for k in 'wxyz']
+    assert np.degrees(quat.angle_between(q, cell.mounting.quaternion)) < 0.2
+    assert result['warnings'] == []
+    assert solved('--invert-sensor')['rotation'] == result['rotation']
+    # Told otherwise: solved so, and said (the convention check names the fix too).
+    result = solved('--no-invert-sensor')
+    assert any('the journal was recorded with invert_sensor true; it is solved with false, '
+               'as the options say' in warning for warning in result['warnings'])
+
+
 def test_the_tools_run_numpys_blas_on_one_thread(repo_root):
     """The entry points set the thread count before numpy loads its BLAS."""
     env = {k: v for k, v in os.environ.items() if not k.endswith('_NUM_THREADS')}

@@ -65,7 +65,11 @@ def test_header_line_round_trip_and_odd_frame_names():
     assert ',' not in line and line.count('=') == 3
     assert JournalHeader.parse(line) == header
     assert HEADER.line() == ('# quatcal_ros samples journal v1 setup=eye_in_hand '
-                             'link_frame=tool0 sensor_frame=camera')
+                             'link_frame=tool0 sensor_frame=camera')   # an earlier version's
+    inverted = JournalHeader('eye_in_hand', 'tool0', 'camera', True)
+    assert inverted.line() == HEADER.line() + ' invert_sensor=true'
+    assert JournalHeader.parse(inverted.line()) == inverted
+    assert JournalHeader.parse(HEADER.line()).invert_sensor is None
 
 
 @pytest.mark.parametrize('line, words', [
@@ -76,6 +80,9 @@ def test_header_line_round_trip_and_odd_frame_names():
      'colour'),
     ('# quatcal_ros samples journal v1 setup=eye_on_base link_frame=b sensor_frame=c',
      "row 1: setup='eye_on_base' in the journal header is not one of eye_in_hand, eye_to_hand"),
+    ('# quatcal_ros samples journal v1 setup=eye_in_hand link_frame=b sensor_frame=c '
+     'invert_sensor=yes', "row 1: invert_sensor='yes' in the journal header is not true or "
+                          'false'),
 ])
 def test_bad_header_lines_are_refused(line, words):
     with pytest.raises(JournalError, match=words):
@@ -282,6 +289,19 @@ def test_resume_refuses_another_setup_or_other_frames(tmp_path):
     opened, report = started(path, resume=True)
     assert len(report.samples) == 3
     opened.close()
+
+
+def test_resume_with_another_invert_sensor_goes_on_and_records_it(tmp_path):
+    """The samples are the poses as received: the header says how they are solved now."""
+    path = tmp_path / 'samples.csv'
+    written_journal(path, make_samples(3), JournalHeader('eye_in_hand', 'tool0', 'camera',
+                                                         False))
+    now = JournalHeader('eye_in_hand', 'tool0', 'camera', True)
+    opened, report = started(path, now, resume=True)
+    opened.close()
+    assert len(report.samples) == 3
+    contents = journal.read_journal(path)
+    assert contents.header == now and len(contents.samples) == 3
 
 
 def test_resume_without_a_journal_starts_one(tmp_path):

@@ -163,7 +163,8 @@ def test_the_replay_writes_a_journal_the_node_resumes(bags, tmp_path, capsys):
     assert 'replay: warning: ' in printed.err and 'error' not in printed.err
     contents = journal.read_journal(journal_path)
     assert len(contents.samples) == out['samples'] == 10
-    assert contents.header == journal.JournalHeader('eye_in_hand', 'tool0', 'camera_optical')
+    assert contents.header == journal.JournalHeader('eye_in_hand', 'tool0', 'camera_optical',
+                                                    False)
     (aside,) = [p for p in tmp_path.iterdir() if p.name.startswith('samples.csv.corrupt-')]
     assert aside.read_text() == 'an earlier file\n'    # moved aside, never overwritten
 

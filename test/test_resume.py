@@ -293,11 +293,11 @@ def test_an_earlier_versions_eye_to_hand_journal_resumes_under_the_named_base(tm
     try:
         assert len(node.session.samples) == 4
         assert journal.read_journal(path).header == JournalHeader('eye_to_hand', 'base_link',
-                                                                  'camera')
+                                                                  'camera', False)
         (changed,) = node.set_parameters([Parameter('link_frame_id', value='world')])
         assert changed.successful
         contents = journal.read_journal(path)
-        assert contents.header == JournalHeader('eye_to_hand', 'world', 'camera')
+        assert contents.header == JournalHeader('eye_to_hand', 'world', 'camera', False)
         assert len(contents.samples) == 4
     finally:
         close_node(node, context)

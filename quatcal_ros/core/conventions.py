@@ -117,7 +117,8 @@ def _fix(options, setup, invert):
     if invert != options.invert_sensor:
         words.append('the sensor poses are inverted (the sensor in the object frame instead of '
                      'the object in the sensor frame): use --invert-sensor' if invert else
-                     'the sensor poses are not inverted: drop --invert-sensor')
+                     'the sensor poses are not inverted: drop --invert-sensor (--no-invert-'
+                     'sensor for a journal recorded with invert_sensor true)')
     return '; '.join(words)
 
 

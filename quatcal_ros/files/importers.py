@@ -59,7 +59,8 @@ class ImportedSamples:
     file_format: one of FORMATS.  setup: the setup the file names (easy_handeye2's
     calibration_type), or None.  frames: frame names the file names, by easy_handeye2
     parameter name ('robot_base_frame', ...), empty ones left out.  warnings: sentences for
-    the result's warnings (what the file left open).
+    the result's warnings (what the file left open).  invert_sensor: whether to solve the
+    sensor poses inverted, as a journal's header or the caller says, or None (neither).
     """
 
     samples: list
@@ -67,6 +68,7 @@ class ImportedSamples:
     setup: str = None
     frames: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
+    invert_sensor: bool = None
 
 
 # --- reading files ---------------------------------------------------------------------------
@@ -309,34 +311,44 @@ def detect_format(document):
     return None
 
 
-def _csv_samples(text, name, setup=None):
+def _csv_samples(text, name, setup=None, invert_sensor=None):
     """
     Return the ImportedSamples of a samples CSV's text, read from `name`.
 
-    A samples journal's header names its setup and frames (the link frame is the parent: the
-    effector eye-in-hand, the base eye-to-hand). A journal holds the poses as received, so
-    another `setup` may solve it (what a convention warning asks for); then a warning says so
-    and the header's frames, named for its own setup, are not used.
+    A samples journal's header names its setup, frames (the link frame is the parent: the
+    effector eye-in-hand, the base eye-to-hand) and invert_sensor. A journal holds the poses
+    as received, so another `setup` or `invert_sensor` may solve it (what a convention warning
+    asks for); then a warning says so, and with another setup the header's frames, named for
+    its own, are not used.
     """
     samples = parse_samples(text, name)
     first = text.split('\n', 1)[0].rstrip('\r')
     if not first.startswith(journal.MAGIC):
-        return ImportedSamples(samples, 'csv')
+        return ImportedSamples(samples, 'csv', invert_sensor=invert_sensor)
     try:
         header = journal.JournalHeader.parse(first, name)
     except journal.JournalError as error:
         raise BadInputError(str(error)) from None
+    warnings = []
+    recorded = header.invert_sensor
+    if invert_sensor is not None and recorded is not None and invert_sensor != recorded:
+        warnings.append(f'{name}: the journal was recorded with invert_sensor '
+                        f'{str(recorded).lower()}; it is solved with '
+                        f'{str(invert_sensor).lower()}, as the options say')
+    invert = recorded if invert_sensor is None else invert_sensor
     if setup is not None and setup != header.setup:
-        return ImportedSamples(samples, 'csv', setup, warnings=[
+        return ImportedSamples(samples, 'csv', setup, invert_sensor=invert, warnings=[
+            *warnings,
             f'{name}: the journal was recorded with setup {header.setup}; it is solved as '
             f'{setup}, as --setup says (its frame names, {header.link_frame} -> '
             f'{header.sensor_frame}, belong to {header.setup} and are not used)'])
     parent = 'robot_effector_frame' if header.setup == 'eye_in_hand' else 'robot_base_frame'
     return ImportedSamples(samples, 'csv', header.setup,
-                           {parent: header.link_frame, 'tracking_base_frame': header.sensor_frame})
+                           {parent: header.link_frame, 'tracking_base_frame': header.sensor_frame},
+                           warnings, invert)
 
 
-def load_samples(path, file_format='auto', setup=None):
+def load_samples(path, file_format='auto', setup=None, invert_sensor=None):
     """
     Read still samples from a samples CSV or another tool's samples file.
 
@@ -345,6 +357,8 @@ def load_samples(path, file_format='auto', setup=None):
     :param setup: the setup, when known (easy_handeye2 files depend on it; see
         parse_easy_handeye2_samples; a journal recorded with another says so, _csv_samples);
         other formats ignore it.
+    :param invert_sensor: whether to invert the sensor poses, when the caller was told; else
+        a journal's header says (_csv_samples), or None.
     :return: ImportedSamples.
     :raises BadInputError: naming the file, entry and field.
     """
@@ -358,7 +372,7 @@ def load_samples(path, file_format='auto', setup=None):
         file_format = SUFFIX_FORMATS.get(suffix, 'auto')
     text = read_text(path)   # once: a pipe cannot be read twice
     if file_format == 'csv' or file_format == 'auto' and _is_csv(text):
-        return _csv_samples(text, name, setup)
+        return _csv_samples(text, name, setup, invert_sensor)
     if not text.strip():
         raise BadInputError(f'{name}: empty file')
     document = (_load_json(text, name) if file_format == 'moveit-json' or suffix == '.json'

@@ -4,12 +4,14 @@ The samples journal: every captured sample on disk the moment it is taken, for r
 The journal is the samples CSV of DESIGN.md contract 2 (samples_csv) preceded by one comment
 line that says what the file is and how its samples were taken:
 
-    # quatcal_ros samples journal v1 setup=eye_in_hand link_frame=tool0 sensor_frame=camera
+    # quatcal_ros samples journal v1 setup=eye_in_hand link_frame=tool0 sensor_frame=camera ...
     stamp,link_x,link_y,link_z,link_qx,link_qy,link_qz,link_qw,sensor_x,...,sensor_qw
     1700000001.500000000,0.41,...
 
-so `python -m quatcal_ros solve JOURNAL` reads it as it is.  Header values are
-percent-encoded (urllib.parse.quote) when they hold anything but letters, digits and _/.:-.
+so `python -m quatcal_ros solve JOURNAL` reads it as it is, with the node's setup and
+invert_sensor (the first line goes on: `invert_sensor=false`, or true; journals of earlier
+versions leave it out).  Header values are percent-encoded (urllib.parse.quote) when they hold
+anything but letters, digits and _/.:-.
 
 Crash safety: the two header lines are written with persistence.atomic_write_text (temporary
 file, fsync, rename), so a journal either exists whole or not at all.  Each sample is then
@@ -49,6 +51,9 @@ except ImportError:   # pragma: no cover
 MAGIC = '# quatcal_ros samples journal'
 VERSION = 1
 HEADER_KEYS = ('setup', 'link_frame', 'sensor_frame')
+# Keys a header may leave out (journals of earlier versions): invert_sensor, true or false.
+OPTIONAL_KEYS = ('invert_sensor',)
+BOOLEANS = {'true': True, 'false': False}
 # The robot base of eye-to-hand journals of earlier versions when link_frame was not set.
 LEGACY_BASE_FRAME = DEFAULT_FRAMES['eye_in_hand'][0]
 SAFE_CHARACTERS = '/_.:-'
@@ -68,17 +73,25 @@ class JournalRefused(ValueError):
 
 @dataclass(frozen=True)
 class JournalHeader:
-    """How the samples of a journal were taken: the setup and the frames."""
+    """
+    How the samples of a journal were taken: the setup, the frames, the sensor's convention.
+
+    The samples are the poses as received, so invert_sensor (None: not recorded) says how to
+    solve them, not what they are: a session resumed with another value goes on.
+    """
 
     setup: str
     link_frame: str
     sensor_frame: str
+    invert_sensor: bool = None
 
     def line(self):
         """Return the first line of the journal (without its end of line)."""
-        values = ' '.join(f'{key}={quote(getattr(self, key), safe=SAFE_CHARACTERS)}'
-                          for key in HEADER_KEYS)
-        return f'{MAGIC} v{VERSION} {values}'
+        values = [f'{key}={quote(getattr(self, key), safe=SAFE_CHARACTERS)}'
+                  for key in HEADER_KEYS]
+        if self.invert_sensor is not None:
+            values.append(f'invert_sensor={str(bool(self.invert_sensor)).lower()}')
+        return f'{MAGIC} v{VERSION} {" ".join(values)}'
 
     @staticmethod
     def parse(line, name='<journal>'):
@@ -101,9 +114,16 @@ class JournalHeader:
         values = {}
         for item in items:
             key, sep, value = item.partition('=')
-            if not sep or key not in HEADER_KEYS or key in values:
+            if not sep or key not in HEADER_KEYS + OPTIONAL_KEYS or key in values:
                 raise JournalError(f'{name}, row 1: unexpected {item!r} in the journal header')
             values[key] = unquote(value)
+        if 'invert_sensor' in values:
+            invert = BOOLEANS.get(values['invert_sensor'])
+            if invert is None:
+                raise JournalError(f'{name}, row 1: invert_sensor='
+                                   f'{shown(values["invert_sensor"])!r} in the journal header '
+                                   'is not true or false')
+            values['invert_sensor'] = invert
         missing = [key for key in HEADER_KEYS if not values.get(key)]
         if missing:
             raise JournalError(
@@ -114,7 +134,11 @@ class JournalHeader:
         return JournalHeader(**values)
 
     def differences(self, other):
-        """Return 'key: mine vs other' for each field that differs from `other`."""
+        """
+        Return 'key: mine vs other' for each of HEADER_KEYS that differs from `other`.
+
+        Not invert_sensor: the samples are the same poses either way (the class docstring).
+        """
         return [f'{key} {getattr(self, key)!r} (parameters: {getattr(other, key)!r})'
                 for key in HEADER_KEYS if getattr(self, key) != getattr(other, key)]
 
@@ -525,6 +549,8 @@ def _start_locked(path, header, resume, lock_fd, now):
             ('info', f'resumed {len(report.samples)} samples from {path}; new samples are '
                      'appended to it'))
         resumed = Journal(path, recorded, len(report.samples), lock_fd)
+        if bool(recorded.invert_sensor) != bool(header.invert_sensor):   # how they are solved
+            resumed.set_header(replace(resumed.header, invert_sensor=header.invert_sensor))
         if unnamed:
             resumed.set_header(header)
             report.messages.append(

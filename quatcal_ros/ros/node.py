@@ -284,7 +284,8 @@ class CalibratorNode(Node):
     # --- samples journal -------------------------------------------------------------------
 
     def _journal_header(self):
-        return journal.JournalHeader(self.config.setup, *self.config.result_frames)
+        return journal.JournalHeader(self.config.setup, *self.config.result_frames,
+                                     self.config.invert_sensor)
 
     def _resume(self):
         """Log what opening the journal did; estimate from its samples when resuming."""
@@ -415,7 +416,8 @@ class CalibratorNode(Node):
         changed = [n for n, v in self.config.as_dict().items() if old.as_dict()[n] != v]
         if changed:
             self.get_logger().info(f'parameters changed: {", ".join(changed)}')
-            # The header follows setup and the result frames (set_header writes only a new one).
+            # The header follows setup, the result frames and invert_sensor (set_header writes
+            # only a new one).
             self.log.messages(self.journal.set_header(self._journal_header()))
         if 'publish_tf' in changed:
             self._start_tf_broadcast()

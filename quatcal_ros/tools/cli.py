@@ -55,8 +55,12 @@ def solve_main(argv=None):
                                         'camera_info.yaml, board.yaml): the board is detected '
                                         'in each image and the estimate refined on its pixels')
     add_setting_options(parser, 'solve', ESTIMATOR)
-    # Unset unless given: an easy_handeye2 file may name the setup (else eye_in_hand).
-    parser.set_defaults(setup=None)
+    # Unset unless given: an easy_handeye2 file may name the setup (else eye_in_hand), a
+    # journal its setup and invert_sensor (else false).
+    parser.set_defaults(setup=None, invert_sensor=None)
+    parser.add_argument('--no-invert-sensor', dest='invert_sensor', action='store_const',
+                        const=False, help='the sensor poses are not inverted, whatever the '
+                                          "journal's header says")
     parser.add_argument(
         '--format', choices=('auto',) + importers.FORMATS, default='auto',
         help='format of the samples file. auto (default): .csv = samples CSV, .samples = '
@@ -70,6 +74,7 @@ def solve_main(argv=None):
                         help='also write the result in the easy_handeye2 calibration layout '
                              '(e.g. ~/.ros2/easy_handeye2/calibrations/NAME.calib)')
     args = parser.parse_args(argv)
+    asked_invert, args.invert_sensor = args.invert_sensor, bool(args.invert_sensor)
     try:
         settings_of(args, setup=args.setup or 'eye_in_hand')   # the file may name the setup
     except ConfigError as error:
@@ -85,10 +90,11 @@ def solve_main(argv=None):
     if folder:
         return _solve_images(parser.prog, args)
     try:
-        imported = importers.load_samples(args.samples, args.format, args.setup)
+        imported = importers.load_samples(args.samples, args.format, args.setup, asked_invert)
     except BadInputError as error:
         return fail(parser.prog, error, EXIT_BAD_INPUT)
     args.setup = args.setup or imported.setup or 'eye_in_hand'
+    args.invert_sensor = bool(imported.invert_sensor)
     frames = solve_frames(args, imported.frames)
     session = Session(session_config(settings_of(args)))
     copies = _copies(session.add_samples(imported.samples))
@@ -636,8 +642,8 @@ def _write_journal(prog, args, session, report):
     """Write the samples as a samples journal (the node's samples_file, resume:=true reads it)."""
     parent, child = _replay_frames(args, report)
     try:
-        record = SamplesJournal(args.journal_out, JournalHeader(args.setup, parent, child),
-                                resume=False)
+        header = JournalHeader(args.setup, parent, child, args.invert_sensor)
+        record = SamplesJournal(args.journal_out, header, resume=False)
     except (JournalRefused, OSError) as error:
         return fail(prog, f'{args.journal_out}: cannot write: {error}', EXIT_BAD_INPUT)
     messages = record.append(session.samples) + record.sync()
