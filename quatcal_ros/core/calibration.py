@@ -40,7 +40,7 @@ from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, least_squar
     MotionSystem, null_vectors
 from quatcal_ros.core.motions import motion_count, Motions, pair_angles, pair_indices, \
     PAIRINGS, SampleRotations
-from quatcal_ros.core.numerics import median, random_integers
+from quatcal_ros.core.numerics import finite_or_none, median, random_integers
 from quatcal_ros.core.pose import inverse_perturbation, residual_order
 from quatcal_ros.core.refine import MAX_ITERATIONS, refine, uncertainties, with_jackknife_of
 from quatcal_ros.core.solver import DegenerateMotionError
@@ -115,8 +115,8 @@ class Estimate:
         """Return rotation {x, y, z, w}, translation {x, y, z} and the uncertainties."""
         return {'rotation': quat.xyzw_json(self.quaternion),
                 'translation': quat.xyz_json(self.translation),
-                'uncertainty_deg': _finite_or_none(self.uncertainty_deg),
-                'translation_uncertainty_mm': _finite_or_none(self.translation_uncertainty_mm)}
+                'uncertainty_deg': finite_or_none(self.uncertainty_deg),
+                'translation_uncertainty_mm': finite_or_none(self.translation_uncertainty_mm)}
 
 
 @dataclass(frozen=True)
@@ -170,20 +170,20 @@ class CalibrationResult:
             'samples': self.samples,
             'motions': self.motions,
             'inliers': self.inliers,
-            'residual_rms_deg': _finite_or_none(self.residual_rms_deg),
-            'uncertainty_deg': _finite_or_none(self.uncertainty_deg),
+            'residual_rms_deg': finite_or_none(self.residual_rms_deg),
+            'uncertainty_deg': finite_or_none(self.uncertainty_deg),
             'rejected': self.rejected,
             'warnings': self.warnings,
             'setup': self.setup,
             'pairs': self.pairs,
             'inlier_samples': self.inlier_samples,
-            'noise_deg': _finite_or_none(self.noise_deg),
+            'noise_deg': finite_or_none(self.noise_deg),
             'excitation': self.excitation,
             'weakest_axis': [float(v) for v in self.weakest_axis],
             'hint': self.hint,
             'translation': quat.xyz_json(self.translation),
-            'translation_uncertainty_mm': _finite_or_none(self.translation_uncertainty_mm),
-            'translation_noise_mm': _finite_or_none(self.translation_noise_mm),
+            'translation_uncertainty_mm': finite_or_none(self.translation_uncertainty_mm),
+            'translation_noise_mm': finite_or_none(self.translation_noise_mm),
             'method': self.method,
             'closed_form': self.closed_form.to_json_dict(),
             'refined': self.refined.to_json_dict() if self.refined else None,
@@ -192,10 +192,6 @@ class CalibrationResult:
             'validation': self.validation,
             'unobservable': self.unobservable,
         }
-
-
-def _finite_or_none(value):
-    return float(value) if np.isfinite(value) else None
 
 
 def calibrate(samples, options=CalibrationOptions()):
@@ -846,10 +842,10 @@ def _noise_json(rotation_deg, translation_mm, correlation, nu, shape, robust, so
             'shape': shape,
             'robust': bool(robust),
             'uncertainty_from': source,
-            'sandwich_uncertainty_deg': _finite_or_none(sandwich[0]),
-            'sandwich_translation_uncertainty_mm': _finite_or_none(sandwich[1]),
-            'model_uncertainty_deg': _finite_or_none(model[0]),
-            'model_translation_uncertainty_mm': _finite_or_none(model[1])}
+            'sandwich_uncertainty_deg': finite_or_none(sandwich[0]),
+            'sandwich_translation_uncertainty_mm': finite_or_none(sandwich[1]),
+            'model_uncertainty_deg': finite_or_none(model[0]),
+            'model_translation_uncertainty_mm': finite_or_none(model[1])}
 
 
 def _uncertainty_source(refinement):

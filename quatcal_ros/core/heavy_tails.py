@@ -274,8 +274,9 @@ class NoiseFit:
 
         keep (B, N) bool: for each row b the scales (and weights) are refitted, as `refitted`
         does, to the samples it keeps, warm-started from this fit's weights; the samples it
-        leaves out get zero. The models and their probabilities stay. All rows at once: the
-        jackknife's replicates (refine.with_jackknife).
+        leaves out get zero. The models and their probabilities stay. All rows at once, as
+        the jackknife's replicates need (refine._jackknife takes the compact form,
+        refitted_information_blocks).
         """
         information = self.refitted_information_blocks(residuals, keep, lost_samples, floor)
         return _as_matrices(information) if self.diagonal else information

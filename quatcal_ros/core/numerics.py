@@ -49,6 +49,21 @@ def random_integers(seed, *draws):
     return arrays
 
 
+def rms(covariance):
+    """
+    Return sqrt(trace) of a covariance (block): the RMS length of the error it describes.
+
+    A trace below zero (rounding of a nearly singular matrix) counts as zero.
+    """
+    return float(np.sqrt(max(np.trace(covariance), 0.0)))
+
+
+def finite_or_none(value):
+    """Return `value` as a float, or None (JSON's and YAML's null) when NaN or infinite."""
+    value = float(value)
+    return value if np.isfinite(value) else None
+
+
 def inverse(matrix):
     """Return the inverse of a square matrix (or a stack); the pseudo-inverse when singular."""
     try:

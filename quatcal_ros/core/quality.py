@@ -23,7 +23,7 @@ from functools import cached_property
 import numpy as np
 
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.numerics import inverse
+from quatcal_ros.core.numerics import inverse, rms
 
 AXIS_NAMES = ('x', 'y', 'z')
 
@@ -136,7 +136,7 @@ def _motion_sums(link_matrices, i, j):
 
 def uncertainty_deg(covariance):
     """Return the expected RMS error angle (degrees): sqrt(trace(cov))."""
-    return float(np.degrees(np.sqrt(max(np.trace(covariance), 0.0))))
+    return float(np.degrees(rms(covariance)))
 
 
 def nearest_axis_name(axis, frame='link'):

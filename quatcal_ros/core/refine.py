@@ -48,7 +48,7 @@ import math
 import numpy as np
 from quatcal_ros.core import heavy_tails
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.numerics import inverse
+from quatcal_ros.core.numerics import inverse, rms
 
 MAX_ITERATIONS = 20
 # Converged when the last step moved the unknowns by less than this many of their sigmas. The
@@ -156,11 +156,7 @@ def uncertainties(covariance):
     translation (metres): Refinement.covariance (the sandwich), .model_covariance or
     .reported_covariance.
     """
-    return (_rms(covariance[:3, :3], np.degrees(1.0)), _rms(covariance[3:6, 3:6], 1e3))
-
-
-def _rms(block, unit):
-    return float(unit * np.sqrt(max(np.trace(block), 0.0)))
+    return float(np.degrees(rms(covariance[:3, :3]))), 1e3 * rms(covariance[3:6, 3:6])
 
 
 def residuals(link_q, link_t, sensor_q, sensor_t, x_q, x_t, o_q, o_t, link_R=None):

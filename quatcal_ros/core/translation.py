@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.numerics import rms
 
 
 @dataclass(frozen=True)
@@ -57,7 +58,7 @@ class TranslationEstimate:
     @property
     def uncertainty_mm(self):
         """Return the expected RMS error of the translation (mm), sqrt(trace(cov))."""
-        return float(1e3 * np.sqrt(max(np.trace(self.covariance), 0.0)))
+        return 1e3 * rms(self.covariance)
 
 
 def _offsets(rotations, positions, q_z):

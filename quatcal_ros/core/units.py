@@ -2,8 +2,9 @@
 The project's vocabulary: units, the two setups, and what every reader shares.
 
 Times are header stamps in integer nanoseconds in the core (DESIGN.md, conventions); users
-speak seconds, degrees and metres.  A quaternion read from a message or a file is checked by
-`quaternion_norm_problem` against the tolerance of its kind of source.
+speak seconds, degrees and metres.  A quaternion read from a file or a command line is
+checked by `quaternion_norm_problem` (FILE_NORM_TOLERANCE); one from a message by
+ros.conversions, against MESSAGE_NORM_TOLERANCE, with the reason codes of /diagnostics.
 """
 
 import math

@@ -35,13 +35,13 @@ No rclpy here: the module is plain Python for every tool.
 """
 
 import errno
-import math
 import os
 from pathlib import Path
 import tempfile
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.numerics import finite_or_none
 from quatcal_ros.files import exports
 from quatcal_ros.files import plain_yaml
 
@@ -133,8 +133,7 @@ def _plain_number(value):
         return None
     if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
         return int(value)
-    value = float(value)
-    return value if math.isfinite(value) else None
+    return finite_or_none(value)
 
 
 def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extra=None):

@@ -168,7 +168,8 @@ def covariance_from_msg(values):
 def _pose_numbers(msg, layout, norm_tolerance):
     get_position, get_orientation, position_name, orientation_name, _ = layout
     position, orientation = get_position(msg), get_orientation(msg)
-    # Fast path, as in validate_pose_numbers, building (w, x, y, z) directly.
+    # Fast path: plain floats through pose_from_values (the raw decoders' arithmetic), which
+    # builds (w, x, y, z) directly; what it refuses, validate_pose_numbers names.
     try:
         x, y, z = float(position.x), float(position.y), float(position.z)
         qx, qy = float(orientation.x), float(orientation.y)

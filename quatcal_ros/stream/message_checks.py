@@ -3,17 +3,20 @@ Checks of incoming pose messages: numbers in, verdicts out (no rclpy, no message
 
 The live node skips every pose message it cannot use, counts it under (stream, reason),
 and logs it (throttled per stream and reason) with the topic and the reason.  The reasons
-(REASONS, codes used as /diagnostics keys such as bad_link_pose_zero_stamp) come from three
+(REASONS, codes used as /diagnostics keys such as bad_link_pose_zero_stamp) come from these
 places, each checked once:
 
 - this module: a zero header stamp, a stamp farther than max_stamp_offset_ns from the node
   clock (with use_sim_time that clock is /clock), a header frame_id other than the expected
-  one of its stream;
+  one of its stream, a position beyond max_position_m;
 - conversions (BadPoseError, whose `reason` is one of these codes): NaN or inf, a zero
-  quaternion, a quaternion whose norm is far from 1 (one slightly off is renormalised), a
-  stamp whose nanosec is out of range;
+  quaternion, a quaternion whose norm is far from 1 (one slightly off is renormalised), an
+  unusable covariance, a stamp whose nanosec is out of range, anything else not a pose
+  ('malformed');
 - the session (session.Rejected, whose `code` is one of these codes): a stamp older than the
-  previous one of its stream, or the same stamp again.
+  previous one of its stream, or the same stamp again;
+- the readers of raw bytes (the node's fast path, the bag replay): bytes that do not decode
+  ('undecodable'); the TF input (ros.tf_feed): a transform that would break the tree.
 
 `StreamStats` keeps the counts, when each stream was last heard (node clock) and when it last
 gave a usable pose, so the node can say which stream is stale.  Bad messages cost one

@@ -17,11 +17,11 @@ view); the calibration itself needs no guess. Prints or writes:
 """
 
 import argparse
-import math
 import sys
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.numerics import finite_or_none
 from quatcal_ros.core.planner import plan_session, PlanLimits
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, \
@@ -128,10 +128,6 @@ def _guesses(args, start):
     return mounting, start @ mounting @ ahead
 
 
-def _number(value):
-    return None if not math.isfinite(value) else float(value)
-
-
 def plan_document(args):
     """Return the YAML document of the options' plan; ValueError for unusable options."""
     _check_options(args)
@@ -159,8 +155,9 @@ def plan_document(args):
         poses.append({
             'position': quat.xyz_json(step.link.position),
             'orientation': quat.xyzw_json(step.link.quaternion),
-            'expected_uncertainty_deg': _number(step.uncertainty_deg),
-            'expected_translation_uncertainty_mm': _number(step.translation_uncertainty_mm)})
+            'expected_uncertainty_deg': finite_or_none(step.uncertainty_deg),
+            'expected_translation_uncertainty_mm': finite_or_none(
+                step.translation_uncertainty_mm)})
     return {'frame': args.frame, 'setup': args.setup, 'poses': poses,
             'limits': {'max_rotation_deg': limits.max_rotation_deg,
                        'view_cone_deg': limits.cone_deg,
