@@ -17,6 +17,7 @@ from quatcal_ros.core.calibration import calibrate
 from quatcal_ros.core.motions import SampleRotations
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.report import figures
+from quatcal_ros.stream.time_offset import offset_sentence
 
 # Prefixes solved again for the convergence figure, at most.
 CONVERGENCE_POINTS = 15
@@ -117,11 +118,8 @@ def _validation(result):
 
 
 def _time_offset(offset):
-    return ('<h2>Time offset</h2>'
-            f'<p>Sensor stamps shifted by {1e3 * offset["sensor_offset_s"]:+.1f} ms (speed '
-            f'correlation {offset["correlation"]:.2f}); RMS residual '
-            f'{offset["residual_without_deg"]:.3f} deg without it, '
-            f'{offset["residual_with_deg"]:.3f} deg with it.</p>')
+    sentence = offset_sentence(offset)
+    return f'<h2>Time offset</h2><p>{escape(sentence[0].upper() + sentence[1:])}.</p>'
 
 
 def _sample_figure(result, count):

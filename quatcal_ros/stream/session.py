@@ -231,9 +231,7 @@ class Session:
             return False, reason
         repeated = self._repeat_of(sample)
         if repeated is not None:
-            self._counts['repeated_samples'] += 1
-            return False, (f'this still repeats sample {repeated} (the same data played '
-                           'again): not added twice')
+            return False, self._replayed('this still', repeated)
         self._pending += self._store(sample)
         return True, f'sample {self._sample_count() - 1} captured: {reason}'
 
@@ -399,9 +397,13 @@ class Session:
         repeated = self._repeat_of(sample)
         if repeated is None:
             return self._store(sample)
+        return [Notice(self._replayed(f'sample at stamp {sample.stamp_ns * 1e-9:.3f} s',
+                                      repeated))]
+
+    def _replayed(self, what, repeated):
+        """Count a still from the streams that repeats sample `repeated`; say so of `what`."""
         self._counts['repeated_samples'] += 1
-        return [Notice(f'sample at stamp {sample.stamp_ns * 1e-9:.3f} s repeats sample '
-                       f'{repeated} (the same data played again): not added twice')]
+        return f'{what} repeats sample {repeated} (the same data played again): not added twice'
 
     def _repeat_of(self, sample):
         """

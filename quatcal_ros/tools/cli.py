@@ -27,7 +27,7 @@ from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.stream.session import Rejected, Session
 from quatcal_ros.stream.settings import check_config, ConfigError, plan_limits, \
     session_config
-from quatcal_ros.stream.time_offset import find_time_offset
+from quatcal_ros.stream.time_offset import find_time_offset, offset_sentence
 from quatcal_ros.tools.options import add_setting_options, settings_of
 from quatcal_ros.tools.output_paths import output_problem
 from quatcal_ros.tools.progress import Progress
@@ -525,14 +525,8 @@ def _replay_with_time_offset(replay, config, args):
     except ValueError as error:
         raise bag.BagError(f'cannot estimate the time offset: {error}') from None
     report.counters = session.counters
-    notes = [f'time offset: sensor stamps shifted by {found.offset_ns / NS_PER_S * 1e3:+.1f} ms '
-             f'(speed correlation {found.correlation:.2f}); RMS residual '
-             f'{found.residual_without_deg:.3f} deg without it, '
-             f'{found.residual_with_deg:.3f} deg with it']
-    return session, report, notes, {
-        'sensor_offset_s': found.offset_ns / NS_PER_S, 'correlation': found.correlation,
-        'residual_without_deg': found.residual_without_deg,
-        'residual_with_deg': found.residual_with_deg}
+    offset = found.to_json_dict()
+    return session, report, [f'time offset: {offset_sentence(offset)}'], offset
 
 
 def _replay(replay, config, args):
