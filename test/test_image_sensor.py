@@ -188,6 +188,10 @@ def test_replay_of_images_names_what_is_missing(tmp_path, board_file, capsys):
     assert replay_main([*base, '--image-topic', '/camera/color/camera_info', '--board-file',
                         str(board_file)]) == 2
     assert 'has type sensor_msgs/msg/CameraInfo' in capsys.readouterr().err
+    # A board without images: refused (it was ignored, the poses of --sensor-topic used).
+    assert replay_main([*base, '--sensor-topic', '/robot/pose', '--board-file',
+                        str(board_file)]) == 2
+    assert '--board-file goes with --image-topic' in capsys.readouterr().err
 
 
 def test_a_second_run_of_the_images_starts_afresh():

@@ -472,8 +472,10 @@ def replay_main(argv=None):
 def _sensor_input(bag, args, config):
     """Return (bag.PoseInput of the sensor, vision ImageSensor or None) of the options."""
     if args.image_topic is None:
-        if args.camera_info_topic is not None:
-            raise BadInputError('--camera-info-topic goes with --image-topic')
+        for option, given in (('--camera-info-topic', args.camera_info_topic),
+                              ('--board-file', args.board_file)):
+            if given:   # (it was once ignored: the answer came from --sensor-topic)
+                raise BadInputError(f'{option} goes with --image-topic')
         return bag.PoseInput(topic=args.sensor_topic, frames=args.sensor_frames), None
     if not args.board_file:
         raise BadInputError('--image-topic needs --board-file: the board.yaml of the target')
