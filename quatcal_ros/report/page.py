@@ -17,7 +17,6 @@ from quatcal_ros.core.calibration import calibrate
 from quatcal_ros.core.motions import SampleRotations
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.report import figures
-from quatcal_ros.stream.time_offset import offset_sentence
 
 # Prefixes solved again for the convergence figure, at most.
 CONVERGENCE_POINTS = 15
@@ -115,6 +114,14 @@ def _validation(result):
     return (f'<h2>Validation: <span class="{css}">{escape(verdict)}</span></h2>'
             f'<p>{escape(validation.get("reason", ""))}.{numbers}'
             + (f' Worst samples: {worst}.' if worst else '') + '</p>')
+
+
+def offset_sentence(offset):
+    """Say what the time-offset search found, of the replay JSON's `time_offset`."""
+    return (f'sensor stamps shifted by {1e3 * offset["sensor_offset_s"]:+.1f} ms (speed '
+            f'correlation {offset["correlation"]:.2f}); RMS residual '
+            f'{offset["residual_without_deg"]:.3f} deg without it, '
+            f'{offset["residual_with_deg"]:.3f} deg with it')
 
 
 def _time_offset(offset):

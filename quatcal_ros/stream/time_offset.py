@@ -187,14 +187,6 @@ class OffsetReport:
                 'residual_with_deg': self.residual_with_deg}
 
 
-def offset_sentence(offset):
-    """Say what the search found, of OffsetReport.to_json_dict's `offset` (the report's too)."""
-    return (f'sensor stamps shifted by {1e3 * offset["sensor_offset_s"]:+.1f} ms (speed '
-            f'correlation {offset["correlation"]:.2f}); RMS residual '
-            f'{offset["residual_without_deg"]:.3f} deg without it, '
-            f'{offset["residual_with_deg"]:.3f} deg with it')
-
-
 def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
                      residual_options=None):
     """

@@ -27,7 +27,7 @@ from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.stream.session import Rejected, Session
 from quatcal_ros.stream.settings import check_config, ConfigError, plan_limits, \
     session_config
-from quatcal_ros.stream.time_offset import find_time_offset, offset_sentence
+from quatcal_ros.stream.time_offset import find_time_offset
 from quatcal_ros.tools.options import add_setting_options, settings_of
 from quatcal_ros.tools.output_paths import output_problem
 from quatcal_ros.tools.progress import Progress
@@ -516,6 +516,7 @@ class _StreamRecorder:
 def _replay_with_time_offset(replay, config, args):
     """Read both streams, find the sensor time offset, replay with it applied."""
     from quatcal_ros.ros import bag   # rosbags is needed by the replay only
+    from quatcal_ros.report.page import offset_sentence   # (matplotlib only when drawn)
     recorder = _StreamRecorder()
     report = replay.run(recorder, partial=args.partial)
     # Candidate offsets are scored by the closed-form estimate's residual: many solves, each
