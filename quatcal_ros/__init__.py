@@ -18,3 +18,11 @@ The subpackages are the rooms of the house; each may import only those below it
     report  the --report page and its figures (matplotlib)
     tools   the command-line tools: solve, replay, plan, demo
 """
+
+import os
+
+# OpenCV's decoders refuse images of more pixels, unless the user set the bound: read once,
+# when cv2 loads, so it is set here, before any module of the package imports cv2 (50 MP:
+# above any calibration camera; vision/image_decode.py).
+MAX_IMAGE_PIXELS = 50_000_000
+os.environ.setdefault('OPENCV_IO_MAX_IMAGE_PIXELS', str(MAX_IMAGE_PIXELS))

@@ -12,6 +12,7 @@ they test the estimator alone.
 import json
 import os
 import shutil
+import struct
 import subprocess
 import sys
 
@@ -372,3 +373,55 @@ def test_solve_dir_with_no_usable_view_names_the_refusals(tmp_path, renderers, c
     assert (f'0 of 4 images gave a usable board pose; at least 3 are needed. Refused: '
             f'no_board 3 (first: {names[0]}: no corner found); unreadable_image 1 (first: '
             f'{names[3]}: not an image OpenCV can read)') in err
+
+
+# --- decoding -------------------------------------------------------------------------------
+
+def with_exif_orientation(jpeg, value):
+    """Return JPEG bytes with an EXIF APP1 segment whose Orientation tag is `value`."""
+    tiff = (b'MM\x00*' + (8).to_bytes(4, 'big') + (1).to_bytes(2, 'big')
+            + struct.pack('>HHIHH', 0x0112, 3, 1, value, 0) + (0).to_bytes(4, 'big'))
+    payload = b'Exif\x00\x00' + tiff
+    return jpeg[:2] + b'\xff\xe1' + (len(payload) + 2).to_bytes(2, 'big') + payload + jpeg[2:]
+
+
+def test_images_decode_as_the_camera_stored_their_pixels():
+    """
+    EXIF orientation is ignored and 16-bit data keeps its range.
+
+    A JPEG tagged "rotate 180" was turned before detection (the mounting came out 180 degrees
+    off with a passing validation); a 12-bit camera's 16-bit PNG was cut to 4 bits (no board).
+    """
+    from types import SimpleNamespace
+    from quatcal_ros.ros.conversions import gray_from_image_msg
+    from quatcal_ros.vision.image_decode import decode_gray
+    image = np.zeros((48, 64), np.uint8)
+    image[:8, :8] = 255                                       # a bright corner, top left
+    _, jpeg = cv2.imencode('.jpg', image)
+    tagged = with_exif_orientation(jpeg.tobytes(), 3)
+    assert cv2.imdecode(np.frombuffer(tagged, np.uint8), cv2.IMREAD_GRAYSCALE)[-1, -1] > 200
+    gray, why = decode_gray(tagged)
+    assert why is None and gray[0, 0] > 200 and gray[-1, -1] < 50
+    message = SimpleNamespace(format='jpeg', data=tagged)    # a CompressedImage
+    np.testing.assert_array_equal(gray_from_image_msg(message), gray)
+    twelve_bit = (image.astype(np.uint16) * 16)               # 0 .. 4080
+    _, png = cv2.imencode('.png', twelve_bit)
+    gray, _ = decode_gray(png.tobytes())
+    np.testing.assert_array_equal(gray, image)
+    mono16 = SimpleNamespace(encoding='mono16', width=64, height=48, step=128,
+                             is_bigendian=False, data=twelve_bit.tobytes())
+    np.testing.assert_array_equal(gray_from_image_msg(mono16), image)
+
+
+def test_an_image_of_too_many_pixels_is_refused_before_it_is_decoded(repo_root, tmp_path):
+    """A 1 MB PNG of 30000 x 30000 pixels once took 1.8 GB to decode and refuse."""
+    _, png = cv2.imencode('.png', np.zeros((8000, 8000), np.uint8))
+    (tmp_path / 'big.png').write_bytes(png.tobytes())
+    code = ('import sys, quatcal_ros\n'   # the package sets OpenCV's bound before cv2 loads
+            'from quatcal_ros.vision.image_decode import decode_gray\n'
+            'print(decode_gray(open(sys.argv[1], "rb").read())[1])\n')
+    env = {k: v for k, v in os.environ.items() if k != 'OPENCV_IO_MAX_IMAGE_PIXELS'}
+    env['PYTHONPATH'] = str(repo_root)
+    done = subprocess.run([sys.executable, '-c', code, str(tmp_path / 'big.png')], env=env,
+                          cwd=repo_root, capture_output=True, text=True, timeout=120)
+    assert done.stdout.strip() == 'more than 50 million pixels', done.stderr

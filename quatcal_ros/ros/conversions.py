@@ -306,12 +306,12 @@ class BadImageError(ValueError):
 def gray_from_image_msg(msg):
     """Return the grayscale uint8 array of a sensor_msgs Image or CompressedImage."""
     import cv2
+    from quatcal_ros.vision.image_decode import decode_gray, gray_8bit   # cv2: images only
     if hasattr(msg, 'format'):   # CompressedImage
-        data = np.frombuffer(bytes(msg.data), np.uint8)
-        gray = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+        gray, why = decode_gray(bytes(msg.data))
         if gray is None:
             raise BadImageError(f'compressed image ({msg.format or "no format"}) does not '
-                                'decode')
+                                f'decode: {why}')
         return gray
     encoding = msg.encoding
     if encoding not in IMAGE_ENCODINGS:
@@ -328,8 +328,8 @@ def gray_from_image_msg(msg):
     rows = np.frombuffer(data, np.uint8)[:step * height].reshape(height, step)
     pixels = rows[:, :width * channels * depth]
     if depth == 2:
-        big = pixels.view('>u2' if msg.is_bigendian else '<u2').reshape(height, width)
-        return (big >> 8).astype(np.uint8)
+        return gray_8bit(pixels.view('>u2' if msg.is_bigendian else '<u2').reshape(height,
+                                                                                   width))
     if conversion is None:
         return np.ascontiguousarray(pixels)
     return cv2.cvtColor(pixels.reshape(height, width, channels), getattr(cv2, conversion))

@@ -18,8 +18,6 @@ import os
 from pathlib import Path
 import stat
 
-import cv2
-import numpy as np
 from quatcal_ros.core.pose import Sample
 from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.files.samples_csv import check_columns_once, parse_numbers, pose_from_values
@@ -27,6 +25,7 @@ from quatcal_ros.files.text_input import BadInputError, read_text
 from quatcal_ros.vision.board import read_board
 from quatcal_ros.vision.camera import read_camera_yaml
 from quatcal_ros.vision.detect import detect
+from quatcal_ros.vision.image_decode import decode_gray
 from quatcal_ros.vision.view import Checks
 
 # The folder's layout (DESIGN.md contract 5): these files, and the images in IMAGES_FOLDER.
@@ -138,8 +137,7 @@ def _read_gray(path):
         return None, 'missing'
     except OSError as error:
         return None, f'cannot read: {error.strerror}'
-    gray = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) if data else None
-    return (gray, None) if gray is not None else (None, 'not an image OpenCV can read')
+    return decode_gray(data)
 
 
 def read_robot_poses(path):
