@@ -192,6 +192,9 @@ def test_replay_of_images_names_what_is_missing(tmp_path, board_file, capsys):
     assert replay_main([*base, '--sensor-topic', '/robot/pose', '--board-file',
                         str(board_file)]) == 2
     assert '--board-file goes with --image-topic' in capsys.readouterr().err
+    assert replay_main([*base, '--image-topic', '/camera/color/image_raw', '--board-file',
+                        str(board_file), '--invert-sensor']) == 2
+    assert 'invert_sensor does not apply to camera images' in capsys.readouterr().err
 
 
 def test_a_second_run_of_the_images_starts_afresh():

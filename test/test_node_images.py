@@ -198,7 +198,7 @@ def test_resumed_session_refines_on_the_corners_it_kept(make_harness, board_file
     assert again.node.images.sensor.corners == {}
 
 
-def test_image_mode_needs_a_readable_board_file(domain_id, tmp_path):
+def test_image_mode_needs_a_readable_board_file(domain_id, tmp_path, board_file):
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)
     try:
@@ -211,6 +211,13 @@ def test_image_mode_needs_a_readable_board_file(domain_id, tmp_path):
             CalibratorNode(context=context, parameter_overrides=[
                 Parameter('sensor_input', value='image'),
                 Parameter('board_file', value=str(tmp_path / 'bad.yaml')),
+                Parameter('samples_file', value=str(tmp_path / 's.csv'))])
+        # A board's pose in an image is T_camera_board: inverted, a replay's answer was 1.6 km.
+        with pytest.raises(ConfigError, match='invert_sensor does not apply to camera images'):
+            CalibratorNode(context=context, parameter_overrides=[
+                Parameter('sensor_input', value='image'),
+                Parameter('board_file', value=str(board_file)),
+                Parameter('invert_sensor', value=True),
                 Parameter('samples_file', value=str(tmp_path / 's.csv'))])
     finally:
         rclpy.shutdown(context=context)

@@ -320,6 +320,12 @@ def test_solve_dir_with_a_bad_file_exits_2_naming_it(repo_root, tmp_path, render
     assert done.returncode == 2 and 'board.yaml missing' in done.stderr
 
 
+def test_solve_dir_refuses_to_invert_the_board_poses(tmp_path, capsys):
+    """PnP gives T_camera_board: inverted, the answer was 175 deg off (exit 0, a warning)."""
+    assert solve_main([str(tmp_path), '--invert-sensor']) == 2
+    assert 'invert_sensor does not apply to camera images' in capsys.readouterr().err
+
+
 def test_solve_dir_without_the_layout_exits_2_naming_the_file(tmp_path, capsys):
     # An empty folder and an unreadable robot_poses.csv once ended in a traceback (exit 1)
     empty = tmp_path / 'empty'

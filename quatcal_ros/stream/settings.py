@@ -38,6 +38,10 @@ DEFAULT_SAMPLES_FILE = '~/.ros/quatcal/samples.csv'
 POSE_TYPES = ('pose', 'transform', 'pose_with_covariance')
 PAIRS = ('all', 'consecutive')
 SENSOR_INPUTS = ('pose', 'image')
+# The pose of a board found in an image is always T_camera_board: nothing to invert (inverted,
+# a replay's answer came out 1.6 km long, with exit 0).
+IMAGES_NOT_INVERTED = ('invert_sensor does not apply to camera images: the board pose found in '
+                       'an image is always the board in the camera frame')
 IMAGE_TRANSPORTS = ('raw', 'compressed')
 NODE_NAME = 'calibrator'
 
@@ -229,7 +233,8 @@ SETTINGS = (
             'squares in every estimate.', tools=BOTH),
     Setting('invert_sensor', False,
             'true: the sensor poses are the sensor in the object frame (the inverse of the '
-            'usual detector output).', tools=BOTH),
+            'usual detector output). Not with camera images (always the board in the camera '
+            'frame).', tools=BOTH),
     Setting('method', 'refined',
             'refined: joint maximum-likelihood refinement over rotations and translations '
             '(from 6 samples on); closed-form: the Chou-Kamel rotation and the closed-form '
@@ -317,6 +322,8 @@ def _from_values(values):
     settings = Settings(**{s.name: s.plain(values[s.name]) for s in SETTINGS})
     if settings.sensor_input == 'image' and not settings.board_file:
         raise ConfigError('sensor_input image needs board_file: the board.yaml of the target')
+    if settings.sensor_input == 'image' and settings.invert_sensor:
+        raise ConfigError(IMAGES_NOT_INVERTED)
     known_translation(settings.known_translation)
     _check_result_frames(settings)
     session_config(settings)   # the core's own consistency checks

@@ -25,8 +25,8 @@ from quatcal_ros.files.samples_csv import format_samples
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
 from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.stream.session import Rejected, Session
-from quatcal_ros.stream.settings import check_config, ConfigError, plan_limits, \
-    session_config
+from quatcal_ros.stream.settings import check_config, ConfigError, IMAGES_NOT_INVERTED, \
+    plan_limits, session_config
 from quatcal_ros.stream.time_offset import find_time_offset
 from quatcal_ros.tools.options import add_setting_options, settings_of
 from quatcal_ros.tools.output_paths import output_problem
@@ -88,6 +88,8 @@ def solve_main(argv=None):
     if problem:
         return fail(parser.prog, problem, EXIT_BAD_INPUT)
     if folder:
+        if args.invert_sensor:
+            return fail(parser.prog, f'bad option: {IMAGES_NOT_INVERTED}', EXIT_BAD_INPUT)
         return _solve_images(parser.prog, args)
     try:
         imported = importers.load_samples(args.samples, args.format, args.setup, asked_invert)
@@ -479,6 +481,8 @@ def _sensor_input(bag, args, config):
         return bag.PoseInput(topic=args.sensor_topic, frames=args.sensor_frames), None
     if not args.board_file:
         raise BadInputError('--image-topic needs --board-file: the board.yaml of the target')
+    if args.invert_sensor:
+        raise BadInputError(IMAGES_NOT_INVERTED)
     from quatcal_ros.vision.board import read_board   # cv2 only on the image path
     from quatcal_ros.vision.image_sensor import ImageSensor
     image = next((args.image_topic[:-len(suffix)] for suffix in TRANSPORT_SUFFIXES
