@@ -321,7 +321,7 @@ def test_solve_dir_with_a_bad_file_exits_2_naming_it(repo_root, tmp_path, render
 
 
 def test_solve_dir_refuses_to_invert_the_board_poses(tmp_path, capsys):
-    """PnP gives T_camera_board: inverted, the answer was 175 deg off (exit 0, a warning)."""
+    """The board pose from PnP is T_camera_board: inverted, the answer was 175 deg off."""
     assert solve_main([str(tmp_path), '--invert-sensor']) == 2
     assert 'invert_sensor does not apply to camera images' in capsys.readouterr().err
 
