@@ -1,5 +1,7 @@
 """The target_detector node over real DDS: rendered camera images in, board poses out."""
 
+import re
+
 import cv2
 from geometry_msgs.msg import PoseWithCovarianceStamped
 import numpy as np
@@ -123,3 +125,15 @@ def test_bad_images_and_camera_info_are_counted_and_skipped(make_harness, board_
     logged = capfd.readouterr().err
     for line in ('bad_camera_info (1 so far)', 'no_board (1 so far)', 'bad_image (1 so far)'):
         assert line in logged, (line, logged)
+
+
+@pytest.mark.parametrize('name, value, words', [
+    ('min_corners', 3, 'min_corners must be at least 4 (a board pose needs 4 corners), not 3'),
+    ('max_reprojection_px', 0.0, 'max_reprojection_px must be positive, not 0.0'),
+    ('min_sharpness', -1.0, 'min_sharpness must be 0 or more, not -1.0'),
+])
+def test_checks_no_view_can_pass_are_refused_at_start(name, value, words):
+    """min_corners 1 once reached OpenCV's solvePnP, which raised out of the image callback."""
+    from quatcal_ros.vision.view import Checks
+    with pytest.raises(ValueError, match=re.escape(words)):
+        Checks(**{name: value})

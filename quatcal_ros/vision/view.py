@@ -32,6 +32,17 @@ class Checks:
     ambiguity_ratio: float = 1.2         # second PnP pose's RMS within this factor: ambiguous
     ambiguity_angle_deg: float = 3.0     # ... and this far from the first
 
+    def __post_init__(self):
+        """Raise ValueError naming a check no view can pass or that OpenCV cannot run."""
+        if not self.min_corners >= 4:   # a planar PnP needs 4 points (OpenCV asserts it)
+            raise ValueError(f'min_corners must be at least 4 (a board pose needs 4 '
+                             f'corners), not {self.min_corners}')
+        for name in ('max_reprojection_px', 'ambiguity_ratio', 'ambiguity_angle_deg'):
+            if not getattr(self, name) > 0.0:   # (NaN fails too)
+                raise ValueError(f'{name} must be positive, not {getattr(self, name)}')
+        if not self.min_sharpness >= 0.0:
+            raise ValueError(f'min_sharpness must be 0 or more, not {self.min_sharpness}')
+
 
 @dataclass(frozen=True)
 class View:
