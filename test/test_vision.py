@@ -92,6 +92,11 @@ def test_bad_camera_info_is_named():
         parse_camera({**good, 'distortion_model': 'rational_polynomial'})
     with pytest.raises(BadInputError, match='distortion_model'):
         parse_camera({**good, 'distortion_model': 'equidistant'})
+    skewed = CAMERA.K.copy()
+    skewed[0, 1] = 3.0
+    with pytest.raises(BadInputError, match=r'field camera_matrix: skew 3 px \(K\[0\]\[1\]\)'):
+        parse_camera({**good, 'camera_matrix': {'rows': 3, 'cols': 3,
+                                                'data': skewed.ravel().tolist()}})
     nan = {**good, 'distortion_coefficients': {'rows': 1, 'cols': 5, 'data': [float('nan')] * 5}}
     with pytest.raises(BadInputError, match='field distortion_coefficients: NaN or inf'):
         parse_camera(nan, 'camera_info.yaml')

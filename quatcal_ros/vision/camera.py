@@ -84,6 +84,10 @@ def camera_from(width, height, K, model, D, name='camera_info'):
         raise BadInputError(f'{name}, field camera_matrix: not a camera matrix (fx, fy > 0, '
                             'the principal point inside the image, last row 0 0 1); an '
                             'all-zero CameraInfo means the camera is not calibrated')
+    if abs(K[0, 1]) > 1e-9 * fx:   # 3 px of skew moved every view's pose by 0.8 degrees
+        raise BadInputError(f'{name}, field camera_matrix: skew {K[0, 1]:g} px (K[0][1]): '
+                            "OpenCV's board pose ignores skew; calibrate the camera without it "
+                            '(ROS camera_calibration never fits one)')
     return Camera(int(width), int(height), K, model, D)
 
 
