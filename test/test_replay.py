@@ -228,10 +228,12 @@ def test_tf_bag_with_static_frames_in_both_chains(repo_root, streams, tmp_path):
                 'marker'))))
     messages.sort(key=lambda m: m[1])
     write_bag(tmp_path / 'tf', {'/tf': TF_TYPE, '/tf_static': TF_TYPE}, messages, 'mcap')
-    done = run_replay(repo_root, tmp_path / 'tf', '--link-frames', 'base_link', 'tool0',
+    # Leading slashes (tf1's style) name the same frames and stay out of the outputs.
+    done = run_replay(repo_root, tmp_path / 'tf', '--link-frames', '/base_link', '/tool0',
                       '--sensor-frames', 'camera', 'marker', '--result-out',
                       tmp_path / 'r.yaml')
     out = assert_recovers(done, streams.truth)
+    assert out['static_transform_publisher'].endswith('--frame-id tool0 --child-frame-id camera')
     assert out['samples'] == 10 and out['warnings'] == []
     assert f'{len(streams.link)} link and {len(streams.sensor)} sensor poses' in done.stderr
     document = read_result_yaml(tmp_path / 'r.yaml')

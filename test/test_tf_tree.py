@@ -184,6 +184,7 @@ def test_frame_poses_at_each_dynamic_stamp_of_the_chain():
     for stamp, pose in out:
         assert_same_pose(pose, tree.lookup('world', 'tool', stamp))
     assert not unrelated.ready() and unrelated.pending == 0
+    assert 'out of order' not in frames.dropped   # two rates in turn: nothing came late
     frames.finish()
     assert frames.dropped['end of recording'] == 1   # 190 ms waits for the next tool stamp
 
@@ -211,6 +212,19 @@ def test_frame_poses_drop_what_can_never_be_evaluated():
     assert frames.ready() == []   # 150 ms: a -> b has a 100 ms gap; 200 ms: b -> c waits
     assert frames.dropped['not evaluable'] == 1 and 'a -> b: gap' in frames.last_dropped
     assert frames.pending == 1
+
+
+def test_frame_poses_count_a_transform_that_came_too_late():
+    """A transform older than the last pose composed was dropped without a count."""
+    tree = TransformTree()
+    frames = FramePoses(tree, 'a', 'b')
+    for k in (0, 10, 30, 20, 40):   # 20 ms after 30 ms: out of order
+        tree.set_transform('a', 'b', START_NS + k * MS, Pose.identity())
+        frames.note('b', START_NS + k * MS)
+        frames.ready()
+    assert frames.dropped == {'out of order': 1}
+    assert frames.last_dropped == ('a transform to b came 10 ms older than the last a -> b pose '
+                                   'composed')
 
 
 def test_frame_poses_restart_after_a_time_jump():

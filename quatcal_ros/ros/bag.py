@@ -182,6 +182,8 @@ class PoseInput:
             raise ValueError('a pose input is a topic or a pair of frames, not both or none')
         if self.camera_info is not None and self.topic is None:
             raise ValueError('images come from a topic, not from TF frames')
+        if self.frames is not None:   # as the transforms name them: '/tool0' is tool0
+            object.__setattr__(self, 'frames', tuple(map(normalize_frame, self.frames)))
 
     def __str__(self):
         if self.camera_info is not None:

@@ -282,7 +282,11 @@ class FramePoses:
         if child not in chain.children:
             return
         if self._last_ns is not None and stamp_ns <= self._last_ns:
-            return   # at or before a stamp already evaluated: nothing new
+            if stamp_ns < self._last_ns:   # every edge had moved past it: it came too late
+                self._drop('out of order', f'a transform to {child} came '
+                           f'{(self._last_ns - stamp_ns) * 1e-6:.3g} ms older than the last '
+                           f'{self.target} -> {self.source} pose composed')
+            return   # (at the stamp just evaluated: another edge's share of it)
         pending = self._pending
         if not pending or stamp_ns > pending[-1]:
             pending.append(stamp_ns)
