@@ -135,6 +135,21 @@ def test_loops_are_refused_and_parents_can_change():
     assert tree.parent('c') == 'x' and tree.chain('a', 'c') is None
 
 
+def test_a_static_edge_sent_on_tf_too_stays_static():
+    """As in tf2: the first transform sets an edge's kind; a later one of the other sets it."""
+    rng = np.random.default_rng(3)
+    tree = TransformTree()
+    first, second, moving = random_pose(rng), random_pose(rng), random_pose(rng)
+    tree.set_transform('camera', 'optical', 0, first, static=True)
+    assert tree.set_transform('camera', 'optical', START_NS, second)   # once, on /tf
+    assert tree.is_static('optical')
+    for stamp in (START_NS - 10 ** 12, START_NS, START_NS + 10 ** 12):   # at any time
+        assert_same_pose(tree.lookup('camera', 'optical', stamp), second)
+    tree.set_transform('base', 'camera', START_NS, moving)
+    tree.set_transform('base', 'camera', START_NS, moving, static=True)   # then on /tf_static
+    assert tree.is_static('camera')
+
+
 def test_time_jump_back_clears_dynamic_transforms_only(robot):
     tree, p = robot
     generation = tree.generation

@@ -119,13 +119,16 @@ class TransformTree:
         """
         Add T_parent_child (pose.Pose) at stamp_ns (int); return whether it was stored.
 
-        Raises TreeError for a loop.  A new parent for a known child replaces the edge.
+        Raises TreeError for a loop.  A new parent for a known child replaces the edge.  A
+        dynamic transform of a static edge sets its value and it stays static, as in tf2 (an
+        edge on /tf_static that a driver also sends once on /tf once lost its static value:
+        no pose composed before that stamp, or across the gaps of a slow republisher).
         """
         parent, child = normalize_frame(parent), normalize_frame(child)
         edge = self._edges.get(child)
-        if edge is None or edge.parent != parent or edge.static != static:
+        if edge is None or edge.parent != parent or (static and not edge.static):
             edge = self._new_edge(parent, child, static)
-        if static:
+        if edge.static:
             edge.static_pose = pose
             return True
         stamp_ns = int(stamp_ns)
