@@ -139,3 +139,36 @@ def test_each_offset_is_scored_once(streams, monkeypatch):
     report, _ = find_time_offset(streams.link, streams.sensor, SessionConfig())
     assert len(scored) >= 10   # the golden-section search, then the residuals reported
     assert len(set(scored)) == len(scored)
+
+
+def test_a_recording_of_two_runs_is_searched_on_one_and_replayed_whole():
+    """
+    Stamps that start over (a clock restart, a looped bag): each run is one timeline.
+
+    The search once interpolated across the restart: -75.7 ms for a -30 ms offset, and half
+    the samples lost.
+    """
+    rng = np.random.default_rng(11)
+    cell = simulation.random_cell(rng)
+    runs = [simulation.stop_and_go_streams(rng, cell, 8, rotation_noise_deg=0.3,
+                                           translation_noise_m=0.001, latency_s=0.03,
+                                           clock_offset_s=0.03) for _ in range(2)]
+    start = runs[1].link[0][0]
+    back = start - runs[0].link[0][0] + 7 * MS   # the second run restarts the clock
+
+    def shifted(stream):
+        return [(stamp - back, pose) for stamp, pose in stream]
+    link = runs[0].link + shifted(runs[1].link)
+    sensor = runs[0].sensor + shifted(runs[1].sensor)
+    config = SessionConfig()
+    report, session = find_time_offset(link, sensor, config)
+    busiest = max(range(2), key=lambda k: len(runs[k].sensor))
+    alone, _ = find_time_offset(runs[busiest].link, runs[busiest].sensor, config)
+    assert report.offset_ns == alone.offset_ns   # that run's search, not across the restart
+    assert abs(report.offset_ns + 30 * MS) < 10 * MS   # still stops: the correlation's bound
+    each = [len(replay_streams(run.link, run.sensor, config, report.offset_ns).samples)
+            for run in runs]
+    assert len(session.samples) == sum(each) and session.counters['time_jumps'] == 1
+    with pytest.raises(ValueError, match='the link stamps start over 1 time.s. and the sensor '
+                                         'stamps 0 time.s.: the runs cannot be matched'):
+        find_time_offset(link, runs[0].sensor, config)

@@ -152,22 +152,25 @@ def refine_time_offset(residual_of_offset, initial_ns, span_ns=50_000_000,
     return int(round((low + high) / 2.0))
 
 
-def replay_streams(link, sensor, config, sensor_offset_ns=0):
+def replay_streams(link, sensor, config, sensor_offset_ns=0, runs=None):
     """
     Feed two recorded streams to a new Session in stamp order; return the session.
 
     link, sensor: lists of (stamp_ns, pose.Pose) sorted by stamp; the session shifts the
     sensor stamps by sensor_offset_ns (SessionConfig.sensor_offset_ns), and the messages
-    arrive in the order of the shifted stamps.
+    arrive in the order of the shifted stamps. runs: [(link, sensor)] of several timelines
+    (a looped recording) fed one after the other instead.
     """
     session = Session(replace(config, sensor_offset_ns=sensor_offset_ns))
-    shifted = ((stamp + sensor_offset_ns, 1, stamp, pose) for stamp, pose in sensor)
-    merged = heapq.merge(((s, 0, s, p) for s, p in link), shifted, key=lambda m: m[:2])
-    for _, stream, stamp, pose in merged:
-        if stream == 0:
-            session.add_link_pose(stamp, pose)
-        else:
-            session.add_sensor_pose(stamp, pose)
+    for link_run, sensor_run in runs or [(link, sensor)]:
+        shifted = ((stamp + sensor_offset_ns, 1, stamp, pose) for stamp, pose in sensor_run)
+        merged = heapq.merge(((s, 0, s, p) for s, p in link_run), shifted,
+                             key=lambda m: m[:2])
+        for _, stream, stamp, pose in merged:
+            if stream == 0:
+                session.add_link_pose(stamp, pose)
+            else:
+                session.add_sensor_pose(stamp, pose)
     return session
 
 
@@ -197,9 +200,15 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
     the residual is a smooth function of the offset alone. residual_options: the
     CalibrationOptions whose RMS residual scores an offset (default config.calibration).
     Returns (OffsetReport, the Session replayed with the refined offset applied; it estimates
-    when asked, Session.estimate()).
+    when asked, Session.estimate()). Streams whose stamps jump back by more than
+    config.time_jump_ns (a looped bag, a clock restart) hold several runs: the offset is
+    searched on the run with the most sensor poses and applied to all (ValueError when the
+    two streams restart a different number of times); a late message within a run is put in
+    its place by stamp.
     """
     residual_options = residual_options or config.calibration
+    runs = list(zip(*_matched_runs(link, sensor, config.time_jump_ns)))
+    link, sensor = max(runs, key=lambda run: len(run[1]))
     coarse = estimate_time_offset(
         [s for s, _ in link], [p.quaternion for _, p in link],
         [s for s, _ in sensor], [p.quaternion for _, p in sensor], max_offset_s)
@@ -221,8 +230,30 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
     # in its bracket, so it only replaces the cross-correlation when it lowers the residual.
     if not residual(offset) < residual(coarse.offset_ns) * (1.0 - FLAT_RESIDUAL):
         offset = coarse.offset_ns
-    session = replay_streams(link, sensor, config, offset)
+    session = replay_streams(link, sensor, config, offset, runs=runs)
     return OffsetReport(offset, coarse.correlation, residual(0), residual(offset)), session
+
+
+def _matched_runs(link, sensor, time_jump_ns):
+    """Return (link runs, sensor runs) of _runs, as many of each; else ValueError."""
+    link_runs, sensor_runs = _runs(link, time_jump_ns), _runs(sensor, time_jump_ns)
+    if len(link_runs) != len(sensor_runs):
+        raise ValueError(f'the link stamps start over {len(link_runs) - 1} time(s) and the '
+                         f'sensor stamps {len(sensor_runs) - 1} time(s): the runs cannot be '
+                         'matched; give the offset instead (--sensor-time-offset)')
+    return link_runs, sensor_runs
+
+
+def _runs(stream, time_jump_ns):
+    """Return the runs of a stream [(stamp_ns, pose)] cut where it jumps back, each in order."""
+    runs, latest = [[]], None
+    for message in stream:
+        if latest is not None and latest - message[0] > time_jump_ns:
+            runs.append([])
+            latest = None
+        runs[-1].append(message)
+        latest = message[0] if latest is None else max(latest, message[0])
+    return [sorted(run, key=lambda message: message[0]) for run in runs]
 
 
 def _interpolator(stream):
