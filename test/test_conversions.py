@@ -177,6 +177,9 @@ def test_zero_and_far_from_unit_quaternions_are_rejected_with_their_norm():
     with pytest.raises(conv.BadPoseError, match='rotation has norm 2.00') as error:
         conv.pose_from_msg(transform)
     assert error.value.field == 'rotation'
+    transform.rotation.w = 1e200   # once printed with its 200 digits
+    with pytest.raises(conv.BadPoseError, match=r'rotation has norm 1e\+200; a rotation'):
+        conv.pose_from_msg(transform)
 
 
 def test_slightly_off_unit_quaternions_are_renormalised_within_the_tolerance():

@@ -91,7 +91,8 @@ def _validate_slowly(position, quaternion_xyzw, norm_tolerance, position_name,
     q = np.array(values[3:])
     norm = math.hypot(*values[3:])   # no overflow for huge components
     if abs(norm - 1.0) > norm_tolerance:
-        shown = f'{norm:.2f}' if abs(norm - 1.0) >= 0.01 else f'{norm:.6f}'
+        shown = (f'{norm:.6f}' if abs(norm - 1.0) < 0.01 else f'{norm:.2f}' if norm < 1e3
+                 else f'{norm:.3g}')   # (a component of 1e200 printed 200 digits)
         raise BadPoseError(
             f'{orientation_name} has norm {shown}; a rotation quaternion has norm 1 '
             f'(accepted within {norm_tolerance:g})', orientation_name,
