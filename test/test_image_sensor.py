@@ -217,7 +217,8 @@ def test_the_camera_info_beside_an_image_topic_or_its_transport(board_file, imag
     # For image_transport's /compressed topic it looked beside the transport:
     # /camera/color/image_raw/camera_info
     args = SimpleNamespace(image_topic=image, camera_info_topic=None,
-                           board_file=str(board_file), sensor_topic=None, sensor_frames=None)
+                           board_file=str(board_file), sensor_topic=None, sensor_frames=None,
+                           invert_sensor=False)
     source, _ = _sensor_input(bag, args, None)
     assert source.camera_info == info
 

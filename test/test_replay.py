@@ -501,7 +501,23 @@ def test_a_stream_with_only_bad_messages_is_named_with_why(repo_root, streams, t
                       '--sensor-topic', '/sensor_pose', '--quiet')
     assert done.returncode == 2, done.stderr
     assert 'no link poses from /link_pose' in done.stderr
-    assert 'skipped (zero_quaternion), pose.orientation has norm 0' in done.stderr
+    assert ('not used: /link_pose: 6601 message(s) skipped (zero_quaternion): '
+            'pose.orientation has norm 0') in done.stderr
+
+
+def test_too_few_samples_names_what_was_not_used(repo_root, streams, tmp_path):
+    """A sensor driver that froze its stamp: the error asked about clocks, not the stamps."""
+    messages = topic_messages(streams, POSE_STAMPED)
+    for topic, _, msg in messages:
+        if topic == '/sensor_pose':
+            msg.header.stamp = messages[0][2].header.stamp
+    write_bag(tmp_path / 'frozen', {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED},
+              messages)
+    done = run_replay(repo_root, tmp_path / 'frozen', '--link-topic', '/link_pose',
+                      '--sensor-topic', '/sensor_pose', '--quiet')
+    assert done.returncode == 2, done.stderr
+    assert '; not used: /sensor_pose: ' in done.stderr
+    assert 'message(s) skipped (duplicate_stamp)' in done.stderr
 
 
 def test_a_marker_that_moves_during_the_bag_is_warned_about(tmp_path, capsys):

@@ -223,8 +223,12 @@ class ReplayReport:
         return '; '.join(f'{topic}: {read} of the {indexed} messages its index lists'
                          for topic, (read, indexed) in self.unread.items())
 
-    def warnings(self):
-        """Return what was not used, as sentences for the JSON "warnings"."""
+    def warnings(self, said=()):
+        """
+        Return what was not used, as sentences for the JSON "warnings".
+
+        said: streams whose TF stamps not evaluated the caller has named already.
+        """
         out = []
         if self.unread:
             out.append(f'partial replay: the recording is damaged, read only '
@@ -235,7 +239,7 @@ class ReplayReport:
             out.append(f'{self.sources.get(where, where)}: {count} {item}(s) skipped '
                        f'({reason}): {self.examples[key]}')
         for stream, frames in sorted(self.tf_dropped.items()):
-            if sum(frames.dropped.values()):
+            if sum(frames.dropped.values()) and stream not in said:
                 reasons = ', '.join(f'{n} {why}' for why, n in sorted(frames.dropped.items()))
                 out.append(f'{stream} pose {frames.target} -> {frames.source}: stamps not '
                            f'evaluated ({reasons}); last: {frames.last_dropped}')

@@ -598,7 +598,13 @@ def _missing_static_hint(report, frames):
 
 
 def _too_few_samples(session, report, link, sensor):
-    """Say why fewer than 3 samples came out of the bag, and what to try."""
+    """
+    Say why fewer than 3 samples came out of the bag, and what to try.
+
+    With what the replay could not use (report.warnings: skipped messages and transforms,
+    time jumps): the cause is often there (every transform refused as a loop, every sensor
+    stamp the same), not in the clocks or the stops.
+    """
     counters = report.counters
     for stream, source in (('link', link), ('sensor', sensor)):
         if counters[f'{stream}_messages']:
@@ -610,9 +616,19 @@ def _too_few_samples(session, report, link, sensor):
         if frames is not None:
             why += f'; frames in the TF topics: {", ".join(report.tf_frames) or "none"}'
             why += _missing_static_hint(report, frames)
-        skipped = [f'{n} skipped ({reason}), {report.examples[where, reason]}'
-                   for (where, reason), n in report.bad.items() if where == f'{stream}_pose']
-        return why + ('; ' + '; '.join(skipped) if skipped else '')
+        return why + _not_used(report, said=(stream,))
+    return _few_samples(session, report) + _not_used(report)
+
+
+def _not_used(report, said=()):
+    """Return '; not used: ...' of the replay's warnings, or ''."""
+    notes = report.warnings(said)
+    return '; not used: ' + '; '.join(notes) if notes else ''
+
+
+def _few_samples(session, report):
+    """Say why the poses that came gave fewer than 3 samples."""
+    counters = report.counters
     if not counters['pairs']:
         (l0, l1), (s0, s1) = report.stamps['link'], report.stamps['sensor']
         return (f'no link pose could be paired with a sensor pose: link stamps '
