@@ -489,16 +489,23 @@ def test_a_damaged_recording_exits_2_unless_a_partial_replay_is_asked(
         assert partial.returncode in (2, 3) and 'Traceback' not in partial.stderr
 
 
-def test_a_stream_with_only_bad_messages_is_named_with_why(repo_root, streams, tmp_path):
+def replay_changed(repo_root, streams, folder, topic, change):
+    """Return the replay of a pose bag whose messages on `topic` went through change(msg)."""
     messages = topic_messages(streams, POSE_STAMPED)
-    for topic, _, msg in messages:
-        if topic == '/link_pose':
-            msg.pose.orientation.x = msg.pose.orientation.y = 0.0
-            msg.pose.orientation.z = msg.pose.orientation.w = 0.0
-    write_bag(tmp_path / 'bad', {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED},
-              messages)
-    done = run_replay(repo_root, tmp_path / 'bad', '--link-topic', '/link_pose',
-                      '--sensor-topic', '/sensor_pose', '--quiet')
+    first = messages[0][2]
+    for where, _, msg in messages:
+        if where == topic:
+            change(msg, first)
+    write_bag(folder, {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED}, messages)
+    return run_replay(repo_root, folder, '--link-topic', '/link_pose', '--sensor-topic',
+                      '/sensor_pose', '--quiet')
+
+
+def test_a_stream_with_only_bad_messages_is_named_with_why(repo_root, streams, tmp_path):
+    def zero_quaternion(msg, first):
+        msg.pose.orientation.x = msg.pose.orientation.y = 0.0
+        msg.pose.orientation.z = msg.pose.orientation.w = 0.0
+    done = replay_changed(repo_root, streams, tmp_path / 'bad', '/link_pose', zero_quaternion)
     assert done.returncode == 2, done.stderr
     assert 'no link poses from /link_pose' in done.stderr
     assert ('not used: /link_pose: 6601 message(s) skipped (zero_quaternion): '
@@ -507,14 +514,9 @@ def test_a_stream_with_only_bad_messages_is_named_with_why(repo_root, streams, t
 
 def test_too_few_samples_names_what_was_not_used(repo_root, streams, tmp_path):
     """A sensor driver that froze its stamp: the error asked about clocks, not the stamps."""
-    messages = topic_messages(streams, POSE_STAMPED)
-    for topic, _, msg in messages:
-        if topic == '/sensor_pose':
-            msg.header.stamp = messages[0][2].header.stamp
-    write_bag(tmp_path / 'frozen', {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED},
-              messages)
-    done = run_replay(repo_root, tmp_path / 'frozen', '--link-topic', '/link_pose',
-                      '--sensor-topic', '/sensor_pose', '--quiet')
+    def frozen(msg, first):
+        msg.header.stamp = first.header.stamp
+    done = replay_changed(repo_root, streams, tmp_path / 'frozen', '/sensor_pose', frozen)
     assert done.returncode == 2, done.stderr
     assert '; not used: /sensor_pose: ' in done.stderr
     assert 'message(s) skipped (duplicate_stamp)' in done.stderr
