@@ -177,6 +177,21 @@ def test_replay_of_camera_images_refines_on_the_corners(tmp_path, board_file, ca
         error_mm, result['translation_uncertainty_mm'])
 
 
+def test_images_are_fed_in_windows_of_bounded_bytes(tmp_path, board_file, capsys,
+                                                    monkeypatch):
+    """The read-ahead window of 512 messages held 3 GB of 1080p images: it is cut by bytes."""
+    write_image_bag(tmp_path / 'cell', 6)
+    argv = [str(tmp_path / 'cell'), '--link-topic', '/robot/pose', '--image-topic',
+            '/camera/color/image_raw', '--board-file', str(board_file), '--still-window-s',
+            '0.5', '--quiet']
+    answers = []
+    for window_bytes in (bag.WINDOW_BYTES, 1):   # 1: every message fed on its own
+        monkeypatch.setattr(bag, 'WINDOW_BYTES', window_bytes)
+        assert replay_main(argv) == 0
+        answers.append(json.loads(capsys.readouterr().out))
+    assert answers[0] == answers[1] and answers[0]['samples'] == 6
+
+
 def test_replay_of_images_names_what_is_missing(tmp_path, board_file, capsys):
     write_image_bag(tmp_path / 'cell', 3)
     base = [str(tmp_path / 'cell'), '--link-topic', '/robot/pose', '--quiet']

@@ -314,6 +314,14 @@ def test_eth_time_offset_is_estimated_applied_and_reported(repo_root, eth_bag):
     assert -0.040 < found['sensor_offset_s'] < -0.005
     assert found['residual_with_deg'] < found['residual_without_deg']
     assert any(w.startswith('time offset: sensor stamps shifted by') for w in out['warnings'])
+    # Auto capture finds no stop here: it falls back with the search too (it once exited 2).
+    auto = run_replay(repo_root, eth_bag, '--link-topic', '/link', '--sensor-topic', '/camera',
+                      '--invert-sensor', '--estimate-time-offset')
+    assert auto.returncode == 0, auto.stderr
+    fallback = json.loads(auto.stdout)
+    assert any('no still samples in auto mode' in w for w in fallback['warnings'])
+    assert fallback['time_offset'] == found
+    assert_allclose(rotation(fallback), rotation(out), atol=1e-12)
     fixed = run_replay(repo_root, eth_bag, '--link-topic', '/link', '--sensor-topic', '/camera',
                        '--invert-sensor', '--capture', 'continuous',
                        '--sensor-time-offset', str(found['sensor_offset_s']))
@@ -510,6 +518,20 @@ def test_a_stream_with_only_bad_messages_is_named_with_why(repo_root, streams, t
     assert 'no link poses from /link_pose' in done.stderr
     assert ('not used: /link_pose: 6601 message(s) skipped (zero_quaternion): '
             'pose.orientation has norm 0') in done.stderr
+
+
+def test_a_topic_none_of_whose_messages_read_asks_about_its_type(repo_root, streams, tmp_path):
+    """metadata.yaml naming another type: 'damaged, pass --partial' did not help."""
+    write_bag(tmp_path / 'lie', {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED},
+              topic_messages(streams, POSE_STAMPED))
+    metadata = tmp_path / 'lie' / 'metadata.yaml'
+    metadata.write_text(metadata.read_text().replace(
+        'type: geometry_msgs/msg/PoseStamped', 'type: geometry_msgs/msg/TransformStamped', 1))
+    done = run_replay(repo_root, tmp_path / 'lie', '--link-topic', '/link_pose',
+                      '--sensor-topic', '/sensor_pose', '--quiet')
+    assert done.returncode == 2 and 'Traceback' not in done.stderr, done.stderr
+    assert ('(none: does metadata.yaml give the topic the type its messages have?)'
+            in done.stderr)
 
 
 def test_too_few_samples_names_what_was_not_used(repo_root, streams, tmp_path):

@@ -46,6 +46,8 @@ POSE_TYPES = ('geometry_msgs/msg/PoseStamped', 'geometry_msgs/msg/TransformStamp
 TF_TYPE = 'tf2_msgs/msg/TFMessage'
 # Messages are read ahead (and the progress callback runs) this many at a time.
 PROGRESS_EVERY = 512
+# ... or fewer when they hold this many bytes: 512 raw 1080p images held 3 GB.
+WINDOW_BYTES = 32 * 1024 * 1024
 STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 
 
@@ -221,6 +223,8 @@ class ReplayReport:
     def unread_text(self):
         """Say which topics' indexed messages could not all be read, or ''."""
         return '; '.join(f'{topic}: {read} of the {indexed} messages its index lists'
+                         + (' (none: does metadata.yaml give the topic the type its messages '
+                            'have?)' if not read else '')
                          for topic, (read, indexed) in self.unread.items())
 
     def warnings(self, said=()):
@@ -358,7 +362,7 @@ class Replay:
         connections = self.bag.connections(self.topics - static)
         feeds = {connection.id: run.feed_of(connection.topic) for connection in connections}
         topics = {connection.id: connection.topic for connection in connections}
-        window = []   # the feed of each message read ahead
+        window, held = [], 0   # the feed of each message read ahead, and their bytes
         try:
             for count, (connection, _, raw) in enumerate(self.bag.messages(connections),
                                                          count + 1):
@@ -366,10 +370,12 @@ class Replay:
                 feed = feeds[connection.id]
                 feed.add(raw)
                 window.append(feed)
-                if not count % PROGRESS_EVERY:
+                held += len(raw)
+                if held > WINDOW_BYTES or not count % PROGRESS_EVERY:
                     _feed_window(window)
-                    if on_progress is not None:
-                        on_progress(count)
+                    held = 0
+                if on_progress is not None and not count % PROGRESS_EVERY:
+                    on_progress(count)
         finally:
             _feed_window(window)   # what was read before damaged storage, too
         return count

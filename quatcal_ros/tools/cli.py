@@ -526,31 +526,47 @@ def _replay_with_time_offset(replay, config, args):
     # Candidate offsets are scored by the closed-form estimate's residual: many solves, each
     # far cheaper than the refinement's.
     scoring = replace(config.calibration, method='closed-form')
+    notes = []
     try:
         found, session = find_time_offset(recorder.link, recorder.sensor,
                                           config, residual_options=scoring)
+        continuous = _fallback(config, session, args)
+        if continuous is not None:   # as _replay does, on the streams already read
+            notes.append(_fallback_note(config.capture))
+            found, session = find_time_offset(recorder.link, recorder.sensor,
+                                              continuous, residual_options=scoring)
     except ValueError as error:
         raise bag.BagError(f'cannot estimate the time offset: {error}') from None
     report.counters = session.counters
     offset = found.to_json_dict()
-    return session, report, [f'time offset: {offset_sentence(offset)}'], offset
+    return session, report, [f'time offset: {offset_sentence(offset)}', *notes], offset
 
 
 def _replay(replay, config, args):
     """Run the replay; in auto mode without any still sample, again in continuous mode."""
     session, report = _run(replay, config, args, 'replay')
     notes = []
+    continuous = _fallback(config, session, args)
+    if continuous is not None:
+        notes.append(_fallback_note(config.capture))
+        session, report = _run(replay, continuous, args, 'replay (continuous)')
+    return session, report, notes
+
+
+def _fallback(config, session, args):
+    """Return the continuous-capture config when auto capture found no still, else None."""
     capture = config.capture
     if (capture.mode == 'auto' and not session.samples and session.counters['pairs']
             and not args.no_fallback):
-        notes.append(
-            f'no still samples in auto mode (the poses never stayed within the still bands '
+        return replace(config, capture=replace(capture, mode='continuous'))
+    return None
+
+
+def _fallback_note(capture):
+    return (f'no still samples in auto mode (the poses never stayed within the still bands '
             f'for {_seconds(capture.window_ns):g} s): samples taken in continuous mode '
             f'instead, one per {capture.continuous_step_deg:g} deg of link rotation; pass '
             '--capture continuous to skip the auto pass')
-        config = replace(config, capture=replace(capture, mode='continuous'))
-        session, report = _run(replay, config, args, 'replay (continuous)')
-    return session, report, notes
 
 
 def _run(replay, config, args, label):
