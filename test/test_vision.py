@@ -436,3 +436,20 @@ def test_an_image_of_too_many_pixels_is_refused_before_it_is_decoded(repo_root, 
     done = subprocess.run([sys.executable, '-c', code, str(tmp_path / 'big.png')], env=env,
                           cwd=repo_root, capture_output=True, text=True, timeout=120)
     assert done.stdout.strip() == 'more than 50 million pixels', done.stderr
+
+
+def test_a_charuco_board_of_the_legacy_layout_is_found_when_the_file_says_so():
+    """Even squares_y boards drawn by OpenCV before 4.6 differ; 'no corner found' said nothing."""
+    document = {'type': 'charuco', 'squares_x': 8, 'squares_y': 6, 'square_length_m': 0.03,
+                'marker_length_m': 0.022, 'dictionary': 'DICT_5X5_100'}
+    legacy = parse_board({**document, 'legacy_pattern': True}, 'board.yaml')
+    image = legacy.cv_board.generateImage((1000, 760), marginSize=60)
+    camera = camera_from(1000, 760, [[900, 0, 500], [0, 900, 380], [0, 0, 1]], 'plumb_bob',
+                         [0.0] * 5)
+    assert detect(image, legacy, camera).ok
+    current = detect(image, parse_board(document, 'board.yaml'), camera)
+    assert current.refused == 'no_board'
+    assert current.detail.startswith('24 markers of DICT_5X5_100 seen but no board corner: '
+                                     'check squares_x and squares_y, and legacy_pattern')
+    with pytest.raises(BadInputError, match='field legacy_pattern: .yes. is not true or false'):
+        parse_board({**document, 'legacy_pattern': 'yes'}, 'board.yaml')

@@ -34,6 +34,7 @@ class Board:
     marker_length_m: float      # charuco, grids
     marker_separation_m: float  # grids
     dictionary: str
+    legacy_pattern: bool = False   # charuco: the layout of OpenCV before 4.6 (even squares_y)
 
     @property
     def cv_board(self):
@@ -42,8 +43,10 @@ class Board:
             return None
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
         if self.kind == 'charuco':
-            return cv2.aruco.CharucoBoard(self.size, self.square_length_m,
-                                          self.marker_length_m, dictionary)
+            board = cv2.aruco.CharucoBoard(self.size, self.square_length_m,
+                                           self.marker_length_m, dictionary)
+            board.setLegacyPattern(self.legacy_pattern)
+            return board
         return cv2.aruco.GridBoard(self.size, self.marker_length_m, self.marker_separation_m,
                                    dictionary)
 
@@ -98,7 +101,11 @@ def parse_board(document, name='<board>'):
                 and hasattr(cv2.aruco, dictionary)):
             raise BadInputError(f'{name}, field dictionary: {dictionary!r} is not an OpenCV '
                                 'dictionary name (e.g. DICT_5X5_100, DICT_APRILTAG_36h11)')
-    board = Board(kind, size, square, marker, separation, dictionary)
+    legacy = document.get('legacy_pattern', False)
+    if not isinstance(legacy, bool) or (legacy and kind != 'charuco'):
+        raise BadInputError(f'{name}, field legacy_pattern: {legacy!r} is not true or false '
+                            '(of a charuco board)')
+    board = Board(kind, size, square, marker, separation, dictionary, legacy)
     if kind != 'chessboard':
         needed = (size[0] * size[1] // 2 if kind == 'charuco' else size[0] * size[1])
         available = cv2.aruco.getPredefinedDictionary(

@@ -45,6 +45,17 @@ def find_corners(gray, board):
     return object_points.reshape(-1, 3).astype(float), image_points.reshape(-1, 2).astype(float)
 
 
+def _no_corner(gray, board):
+    """Say why a view gave no corner: a ChArUco board's markers seen alone point to its layout."""
+    if board.kind == 'charuco':
+        _, _, _, ids = cv2.aruco.CharucoDetector(board.cv_board).detectBoard(gray)
+        if ids is not None and len(ids):
+            return (f'{len(ids)} markers of {board.dictionary} seen but no board corner: check '
+                    'squares_x and squares_y, and legacy_pattern (a board printed by OpenCV '
+                    'before 4.6 with an even squares_y)')
+    return 'no corner found'
+
+
 def detect(gray, board, camera, checks=Checks()):
     """Return the View of the board in a grayscale image (module docstring)."""
     if gray is None or gray.ndim != 2 or gray.size == 0:
@@ -55,7 +66,7 @@ def detect(gray, board, camera, checks=Checks()):
                            f'{camera.width}x{camera.height}')
     object_points, image_points = find_corners(gray, board)
     if len(image_points) == 0:
-        return View(refused='no_board', detail='no corner found')
+        return View(refused='no_board', detail=_no_corner(gray, board))
     if len(image_points) < checks.min_corners:
         return View(object_points, image_points, refused='too_few_corners',
                     detail=f'{len(image_points)} corners, at least {checks.min_corners}')
