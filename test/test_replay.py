@@ -272,6 +272,26 @@ def test_a_tf_bag_missing_a_static_frame_names_it_and_tf_static(repo_root, strea
         assert 'ros2 bag record /tf /tf_static' in done.stderr
 
 
+def test_tf_frames_that_cannot_move_are_named(repo_root, streams, tmp_path):
+    """A link chain of static transforms only, or one frame twice: 'no link poses' and why."""
+    messages = [('/tf_static', streams.link[0][0], tf_message(msg(
+        TRANSFORM_STAMPED, streams.link[0][1], 0, 'base_link', 'tool0')))]
+    messages += [('/tf', delivered, tf_message(msg(TRANSFORM_STAMPED, pose, stamp, 'camera',
+                                                   'marker')))
+                 for (stamp, pose), delivered in zip(streams.sensor, streams.sensor_delivery_ns)]
+    write_bag(tmp_path / 'tf', {'/tf': TF_TYPE, '/tf_static': TF_TYPE},
+              sorted(messages, key=lambda m: m[1]), 'mcap')
+    done = run_replay(repo_root, tmp_path / 'tf', '--link-frames', 'base_link', 'tool0',
+                      '--sensor-frames', 'camera', 'marker')
+    assert done.returncode == 2
+    assert ('no link poses from TF base_link -> tool0 (every transform between base_link and '
+            'tool0 is static: no pose moves') in done.stderr
+    same = run_replay(repo_root, tmp_path / 'tf', '--link-frames', 'tool0', '/tool0',
+                      '--sensor-frames', 'camera', 'marker')
+    assert same.returncode == 2
+    assert 'the frames tool0 -> tool0 are one frame: its pose never moves' in same.stderr
+
+
 @pytest.fixture(scope='module')
 def eth_bag(eth_streams, tmp_path_factory):
     """Convert the ETH robot-arm recording to a bag: link 50 Hz, camera in target 30 Hz."""

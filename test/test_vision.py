@@ -97,6 +97,8 @@ def test_bad_camera_info_is_named():
     with pytest.raises(BadInputError, match=r'field camera_matrix: skew 3 px \(K\[0\]\[1\]\)'):
         parse_camera({**good, 'camera_matrix': {'rows': 3, 'cols': 3,
                                                 'data': skewed.ravel().tolist()}})
+    with pytest.raises(BadInputError, match='image size 0x0 px: not the size of a calibrated'):
+        camera_from(0, 0, CAMERA.K, 'plumb_bob', [0.0] * 5)   # a CameraInfo without a size
     nan = {**good, 'distortion_coefficients': {'rows': 1, 'cols': 5, 'data': [float('nan')] * 5}}
     with pytest.raises(BadInputError, match='field distortion_coefficients: NaN or inf'):
         parse_camera(nan, 'camera_info.yaml')
@@ -323,6 +325,14 @@ def test_solve_dir_with_a_bad_file_exits_2_naming_it(repo_root, tmp_path, render
     (tmp_path / 'board.yaml').unlink()
     done = run_solve(repo_root, tmp_path)
     assert done.returncode == 2 and 'board.yaml missing' in done.stderr
+
+
+def test_an_opencv_camera_file_is_named_as_one(tmp_path):
+    from quatcal_ros.vision.camera import read_camera_yaml
+    path = tmp_path / 'camera.yaml'
+    path.write_text('%YAML:1.0\n---\ncamera_matrix: !!opencv-matrix\n  rows: 3\n')
+    with pytest.raises(BadInputError, match='camera.yaml: an OpenCV FileStorage file'):
+        read_camera_yaml(path)
 
 
 def test_solve_dir_refuses_to_invert_the_board_poses(tmp_path, capsys):

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from itertools import groupby
 from pathlib import Path
 
+from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.ros import cdr
 from quatcal_ros.ros.image_input import ImageInput
 from quatcal_ros.ros.pose_screen import PoseScreen
@@ -186,6 +187,9 @@ class PoseInput:
             raise ValueError('images come from a topic, not from TF frames')
         if self.frames is not None:   # as the transforms name them: '/tool0' is tool0
             object.__setattr__(self, 'frames', tuple(map(normalize_frame, self.frames)))
+            if self.frames[0] == self.frames[1]:
+                raise BadInputError(f'the frames {self.frames[0]} -> {self.frames[1]} are one '
+                                    'frame: its pose never moves')
 
     def __str__(self):
         if self.camera_info is not None:

@@ -270,6 +270,12 @@ class FramePoses:
         """Return the number of stamps waiting for transforms."""
         return len(self._pending)
 
+    @property
+    def static_chain(self):
+        """Return whether the frames are joined by static transforms alone (no pose moves)."""
+        chain = self.tree.chain(self.target, self.source)
+        return chain is not None and all(self.tree.is_static(child) for child, _ in chain.steps)
+
     def note(self, child, stamp_ns):
         """Record that edge `child` got a dynamic transform at stamp_ns."""
         self._check_generation()

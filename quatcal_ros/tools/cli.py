@@ -399,8 +399,8 @@ def replay_main(argv=None):
     except ImportError as error:
         return fail(prog, f'the replay needs the rosbags package ({error}): pip install '
                           "'rosbags>=0.10,<0.12'", EXIT_BAD_INPUT)
-    link = bag.PoseInput(topic=args.link_topic, frames=args.link_frames)
     try:
+        link = bag.PoseInput(topic=args.link_topic, frames=args.link_frames)
         sensor, images = _sensor_input(bag, args, config)
     except BadInputError as error:
         return fail(prog, error, EXIT_BAD_INPUT)
@@ -629,6 +629,9 @@ def _too_few_samples(session, report, link, sensor):
         frames = report.tf_dropped.get(stream)
         if frames is not None and frames.last_dropped:
             why += f' ({frames.last_dropped})'
+        elif frames is not None and frames.static_chain:
+            why += (f' (every transform between {frames.target} and {frames.source} is static: '
+                    'no pose moves; are these the frames of the moving link and the sensor?)')
         if frames is not None:
             why += f'; frames in the TF topics: {", ".join(report.tf_frames) or "none"}'
             why += _missing_static_hint(report, frames)

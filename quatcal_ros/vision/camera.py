@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from quatcal_ros.files import plain_yaml
-from quatcal_ros.files.text_input import BadInputError
+from quatcal_ros.files.text_input import BadInputError, read_text
 
 MODELS = {'plumb_bob': 5, 'rational_polynomial': 8}
 
@@ -45,7 +45,13 @@ class Camera:
 
 def read_camera_yaml(path):
     """Read camera_calibration's YAML; raise BadInputError naming the file and field."""
-    return parse_camera(plain_yaml.load_file(path, holds='a camera_info file'), str(path))
+    text = read_text(path, plain_yaml.MAX_CHARACTERS)
+    if text.startswith('%YAML:1.0'):   # PyYAML's message did not name the format
+        raise BadInputError(f'{path}: an OpenCV FileStorage file (%YAML:1.0), not ROS '
+                            "camera_calibration's YAML (image_width, image_height, "
+                            'camera_matrix: {rows, cols, data}, distortion_model, '
+                            'distortion_coefficients)')
+    return parse_camera(plain_yaml.load(text, str(path), holds='a camera_info file'), str(path))
 
 
 def parse_camera(document, name='<camera_info>'):
@@ -68,6 +74,9 @@ def camera_from(width, height, K, model, D, name='camera_info'):
     """Return a checked Camera (also for a CameraInfo message's fields)."""
     K = np.asarray(K, dtype=float).reshape(3, 3)
     D = np.asarray(D, dtype=float).ravel()
+    if not (width > 0 and height > 0):   # (it was blamed on the camera matrix)
+        raise BadInputError(f'{name}: image size {width}x{height} px: not the size of a '
+                            'calibrated camera (width and height unset?)')
     if model not in MODELS:
         raise BadInputError(f'{name}: distortion_model {model!r} is not one of '
                             f'{", ".join(MODELS)}')
