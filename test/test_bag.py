@@ -219,6 +219,20 @@ def test_opening_errors_name_the_file(tmp_path):
         Bag(tmp_path / 'broken')
 
 
+def test_a_storage_file_cut_short_says_how_to_repair_it(tmp_path, streams):
+    """rosbags' 'File end magic is invalid.' alone did not say what to do."""
+    write_bag(tmp_path / 'cut', TOPICS, pose_messages(streams), 'mcap')
+    (storage,) = (tmp_path / 'cut').glob('*.mcap')
+    storage.write_bytes(storage.read_bytes()[:len(storage.read_bytes()) // 2])
+    with pytest.raises(BagError, match='can be repaired with `mcap recover`'):
+        Bag(tmp_path / 'cut')
+    write_bag(tmp_path / 'db', TOPICS, pose_messages(streams))
+    (storage,) = (tmp_path / 'db').glob('*.db3')
+    storage.write_bytes(storage.read_bytes()[:4096] + b'\x00' * 4096)
+    with pytest.raises(BagError, match="repaired with sqlite3's `.recover`"):
+        Bag(tmp_path / 'db')
+
+
 def test_input_errors_name_the_topic(tmp_path, pose_bag):
     write_bag(tmp_path / 'empty', TOPICS, [])
     with Bag(tmp_path / 'empty') as recording:

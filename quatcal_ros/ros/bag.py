@@ -145,8 +145,22 @@ def _open_reader(path):
         reader = Reader(path)
         reader.open()
     except Exception as error:   # noqa: B902 - rosbags, yaml, sqlite and mcap errors alike
-        raise BagError(f'{path}: cannot open the bag: {error}') from None
+        raise BagError(f'{path}: cannot open the bag: {str(error).rstrip(".")}'
+                       f'{_repair_hint(error)}') from None
     return reader
+
+
+def _repair_hint(error):
+    """Return how to repair a storage file cut short (a crash, a full disk), or ''."""
+    text = str(error)
+    if 'magic' in text.lower():   # mcap without its end (rosbags: 'File end magic is invalid')
+        return ('; an mcap file cut short (the recorder killed, a full disk) can be repaired '
+                'with `mcap recover` (the mcap CLI), then replayed')
+    if 'malformed' in text or 'not a database' in text:   # sqlite3
+        return ("; a .db3 file cut short can often be repaired with sqlite3's `.recover`, "
+                'then `ros2 bag reindex`')
+    return ''
+
 
 
 def write_bag(path, topics, messages, storage='sqlite3'):
