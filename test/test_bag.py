@@ -220,7 +220,7 @@ def test_opening_errors_name_the_file(tmp_path):
 
 
 def test_a_storage_file_cut_short_says_how_to_repair_it(tmp_path, streams):
-    """rosbags' 'File end magic is invalid.' alone did not say what to do."""
+    """The error of rosbags, 'File end magic is invalid.', alone did not say what to do."""
     write_bag(tmp_path / 'cut', TOPICS, pose_messages(streams), 'mcap')
     (storage,) = (tmp_path / 'cut').glob('*.mcap')
     storage.write_bytes(storage.read_bytes()[:len(storage.read_bytes()) // 2])

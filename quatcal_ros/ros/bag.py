@@ -162,7 +162,6 @@ def _repair_hint(error):
     return ''
 
 
-
 def write_bag(path, topics, messages, storage='sqlite3'):
     """
     Write a rosbag2 directory (tests, benchmarks, dataset conversion).
