@@ -17,6 +17,7 @@ import sys
 import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Sample
 from quatcal_ros.files import importers
 from quatcal_ros.files.samples_csv import format_samples
 from quatcal_ros.files.text_input import BadInputError
@@ -111,6 +112,21 @@ def test_solve_easy_handeye2_samples_naming_the_setup(repo_root, tmp_path, setup
     parent = 'panda_link8' if setup == 'eye_in_hand' else 'panda_link0'
     assert out['static_transform_publisher'].endswith(
         f'--frame-id {parent} --child-frame-id camera_color_optical_frame')
+
+
+@pytest.mark.parametrize('name', ['inverted.samples', 'inverted.yaml'])
+def test_invert_sensor_holds_for_every_format(tmp_path, capsys, name):
+    """--invert-sensor on an easy_handeye2 or moveit file was dropped: 23 deg of residual."""
+    from quatcal_ros.tools.cli import solve_main
+    cell, samples = cell_samples(72, 'eye_in_hand')
+    inverted = [Sample(s.stamp_ns, s.link, s.sensor.inverse()) for s in samples]
+    path = tmp_path / name
+    path.write_text(easy_handeye2_text(inverted, 'eye_in_hand', 'eye_in_hand')
+                    if name.endswith('.samples')
+                    else moveit_text(inverted))
+    assert solve_main([str(path), '--invert-sensor']) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert_recovers(out, cell)
 
 
 def test_solve_easy_handeye2_samples_without_parameters(repo_root, tmp_path):

@@ -30,7 +30,7 @@ the file, the entry and the field, e.g. `cell.samples, entry samples[3], field
 robot.rotation.w: 'abc' is not a number`.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import math
 from pathlib import Path
 
@@ -60,7 +60,8 @@ class ImportedSamples:
     calibration_type), or None.  frames: frame names the file names, by easy_handeye2
     parameter name ('robot_base_frame', ...), empty ones left out.  warnings: sentences for
     the result's warnings (what the file left open).  invert_sensor: whether to solve the
-    sensor poses inverted, as a journal's header or the caller says, or None (neither).
+    sensor poses inverted: the caller's value (load_samples), else a journal header's, or None
+    (neither says).
     """
 
     samples: list
@@ -387,10 +388,12 @@ def load_samples(path, file_format='auto', setup=None, invert_sensor=None):
                 'or a moveit pose_samples.json ([[eef_wrt_world, obj_wrt_sensor]]); pass '
                 '--format to say which')
     if file_format == 'easy_handeye2':
-        return parse_easy_handeye2_samples(document, name, setup)
-    if file_format == 'moveit':
-        return parse_moveit_samples(document, name)
-    return parse_moveit_json_samples(document, name)
+        imported = parse_easy_handeye2_samples(document, name, setup)
+    elif file_format == 'moveit':
+        imported = parse_moveit_samples(document, name)
+    else:
+        imported = parse_moveit_json_samples(document, name)
+    return replace(imported, invert_sensor=invert_sensor)   # (it was lost for these formats)
 
 
 # --- writers (tests, and moving samples to those tools) -------------------------------------
