@@ -226,6 +226,10 @@ def test_a_storage_file_cut_short_says_how_to_repair_it(tmp_path, streams):
     storage.write_bytes(storage.read_bytes()[:len(storage.read_bytes()) // 2])
     with pytest.raises(BagError, match='can be repaired with `mcap recover`'):
         Bag(tmp_path / 'cut')
+    storage.write_bytes(b'\x00' * 8 + storage.read_bytes()[8:])   # no mcap at all: no advice
+    with pytest.raises(BagError, match='cannot open the bag') as caught:
+        Bag(tmp_path / 'cut')
+    assert 'mcap recover' not in str(caught.value)
     write_bag(tmp_path / 'db', TOPICS, pose_messages(streams))
     (storage,) = (tmp_path / 'db').glob('*.db3')
     storage.write_bytes(storage.read_bytes()[:4096] + b'\x00' * 4096)

@@ -101,6 +101,10 @@ def test_appended_samples_read_back_exactly(tmp_path):
     assert contents.header == HEADER and contents.notices == []
     assert_same_samples(contents.samples, samples)
     assert contents.intact_bytes == contents.size_bytes == len(data)
+    path.write_bytes(b'\xef\xbb\xbf' + data)   # an editor's byte-order mark: still the journal
+    contents = journal.read_journal(path)
+    assert contents.header == HEADER and contents.notices == []
+    assert_same_samples(contents.samples, samples)
 
 
 def test_solve_reads_a_journal_as_a_samples_csv(tmp_path, capsys):

@@ -429,6 +429,9 @@ def test_images_decode_as_the_camera_stored_their_pixels():
     _, png = cv2.imencode('.png', twelve_bit)
     gray, _ = decode_gray(png.tobytes())
     np.testing.assert_array_equal(gray, image)
+    _, tiff = cv2.imencode('.tiff', image.astype(np.float32))   # once a TypeError
+    assert decode_gray(tiff.tobytes()) == (None, 'float32 pixels: an 8- or 16-bit image is '
+                                                 'expected')
     mono16 = SimpleNamespace(encoding='mono16', width=64, height=48, step=128,
                              is_bigendian=False, data=twelve_bit.tobytes())
     np.testing.assert_array_equal(gray_from_image_msg(mono16), image)
@@ -445,7 +448,8 @@ def test_an_image_of_too_many_pixels_is_refused_before_it_is_decoded(repo_root, 
     env['PYTHONPATH'] = str(repo_root)
     done = subprocess.run([sys.executable, '-c', code, str(tmp_path / 'big.png')], env=env,
                           cwd=repo_root, capture_output=True, text=True, timeout=120)
-    assert done.stdout.strip() == 'more than 50 million pixels', done.stderr
+    assert done.stdout.strip() == ('more pixels than OPENCV_IO_MAX_IMAGE_PIXELS (50000000)'), \
+        done.stderr
 
 
 def test_a_charuco_board_of_the_legacy_layout_is_found_when_the_file_says_so():
@@ -463,3 +467,6 @@ def test_a_charuco_board_of_the_legacy_layout_is_found_when_the_file_says_so():
                                      'check squares_x and squares_y, and legacy_pattern')
     with pytest.raises(BadInputError, match='field legacy_pattern: .yes. is not true or false'):
         parse_board({**document, 'legacy_pattern': 'yes'}, 'board.yaml')
+    with pytest.raises(BadInputError, match='legacy_pattern: only a charuco board has one'):
+        parse_board({**document, 'type': 'chessboard', 'squares_x': 9, 'legacy_pattern': True},
+                    'board.yaml')

@@ -837,7 +837,7 @@ def _noise_json(rotation_deg, translation_mm, correlation, nu, shape, robust, so
             'frame': 'sensor',
             'sample_covariances': sample_covariances,
             'correlation': np.asarray(correlation, dtype=float).tolist(),
-            'tail_degrees_of_freedom': float(nu) if np.isfinite(nu) else None,
+            'tail_degrees_of_freedom': finite_or_none(nu),
             'distribution': ('gaussian' if not np.isfinite(nu) else 'student_t'),
             'shape': shape,
             'robust': bool(robust),

@@ -230,7 +230,7 @@ def parse_easy_handeye2_samples(document, name='<easy_handeye2 samples>', setup=
 
 
 def _frame_name(value, where):
-    """Return a frame name of the file: text (a bare number in YAML reads as one too)."""
+    """Return a frame name of the file: text, or a whole number (YAML reads a bare 1 so)."""
     if isinstance(value, bool) or not isinstance(value, (str, int)):
         raise BadInputError(f'{where}: expected a frame name, got {type(value).__name__} '
                             f'{shown(repr(value))}')

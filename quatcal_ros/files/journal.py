@@ -178,7 +178,7 @@ def read_journal(path):
     end = data.rfind(b'\n') + 1
     intact, tail = data[:end], data[end:]
     try:
-        text = intact.decode('utf-8')
+        text = intact.decode('utf-8-sig')   # (a byte-order mark an editor added)
     except UnicodeDecodeError as error:
         raise JournalError(f'{name}: not a text file (byte {error.start} is not UTF-8)') \
             from None
@@ -197,7 +197,7 @@ def read_journal(path):
                        f'{lines[-1].count(",") + 1} of {len(COLUMNS)} fields, an interrupted '
                        'write: dropped')
         end -= len(lines[-1].encode('utf-8')) + 1
-        text = intact[:end].decode('utf-8')
+        text = intact[:end].decode('utf-8-sig')
     try:
         samples = parse_samples(text, name)
     except BadInputError as error:
@@ -551,6 +551,11 @@ def _start_locked(path, header, resume, lock_fd, now):
         resumed = Journal(path, recorded, len(report.samples), lock_fd)
         if bool(recorded.invert_sensor) != bool(header.invert_sensor):   # how they are solved
             resumed.set_header(replace(resumed.header, invert_sensor=header.invert_sensor))
+            report.messages.append(
+                ('info', f'{path} was recorded with invert_sensor '
+                         f'{str(bool(recorded.invert_sensor)).lower()}: its samples (the poses '
+                         f'as received) are solved with {str(header.invert_sensor).lower()} '
+                         'from now on, and its first line says so'))
         if unnamed:
             resumed.set_header(header)
             report.messages.append(

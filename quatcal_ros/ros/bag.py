@@ -153,7 +153,7 @@ def _open_reader(path):
 def _repair_hint(error):
     """Return how to repair a storage file cut short (a crash, a full disk), or ''."""
     text = str(error)
-    if 'magic' in text.lower():   # mcap without its end (rosbags: 'File end magic is invalid')
+    if 'end magic' in text.lower():   # mcap without its end (rosbags: 'File end magic ...')
         return ('; an mcap file cut short (the recorder killed, a full disk) can be repaired '
                 'with `mcap recover` (the mcap CLI), then replayed')
     if 'malformed' in text or 'not a database' in text:   # sqlite3

@@ -26,9 +26,10 @@ steps back are late messages and are rejected.  After such a jump, a still sampl
 (within the still window) and the link pose (within the still bands) of an earlier sample is
 the same data played again (`ros2 bag play --loop`): it is not added, so that it does not
 count as new evidence, and a Notice says so.  So is, on every path, a sample whose link and
-sensor poses equal an earlier sample's to the last digit (a row copied in a file, a file
-appended to itself): no two measurements agree that well, and counted twice it would shrink the
-reported uncertainty by sqrt(2) as if it were new evidence.
+sensor poses equal an earlier sample's to the last digit, a quaternion's sign aside (a row
+copied in a file, a file appended to itself, a copy written by another tool): no two
+measurements agree that well, and counted twice it would shrink the reported uncertainty by
+sqrt(2) as if it were new evidence.
 """
 
 import bisect
@@ -388,8 +389,9 @@ class Session:
         """Count a ready sample (the `position`-th given) that repeats sample `copied`."""
         self._counts['repeated_samples'] += 1
         return Rejected('sample', f'sample {position} of those given repeats sample {copied} '
-                        'exactly (the same link and sensor poses to the last digit: a copied '
-                        'row, not a new measurement): not added twice', 'repeated',
+                        'exactly (the same link and sensor poses to the last digit, a '
+                        "quaternion's sign aside: a copied row, not a new measurement): not "
+                        'added twice', 'repeated',
                         position, copied)
 
     def _store_captured(self, sample):

@@ -83,9 +83,12 @@ def output_problem(inputs, outputs):
 
 def _unwritable(target):
     """Return why no file can be written at the resolved path `target`, or None."""
-    if target.exists() and not target.is_file():
-        return 'exists and is not a regular file'
-    folder = next(p for p in target.parents if p.exists())   # the root exists
+    try:
+        if target.exists() and not target.is_file():
+            return 'exists and is not a regular file'
+        folder = next(p for p in target.parents if p.exists())   # the root exists
+    except OSError as error:   # a folder on the way that may not be searched
+        return f'cannot look there: {error.strerror}'
     if not folder.is_dir():
         return f'{folder} is a file, not a folder'
     if not os.access(folder, os.W_OK | os.X_OK):

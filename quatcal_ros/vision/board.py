@@ -102,9 +102,10 @@ def parse_board(document, name='<board>'):
             raise BadInputError(f'{name}, field dictionary: {dictionary!r} is not an OpenCV '
                                 'dictionary name (e.g. DICT_5X5_100, DICT_APRILTAG_36h11)')
     legacy = document.get('legacy_pattern', False)
-    if not isinstance(legacy, bool) or (legacy and kind != 'charuco'):
-        raise BadInputError(f'{name}, field legacy_pattern: {legacy!r} is not true or false '
-                            '(of a charuco board)')
+    if not isinstance(legacy, bool):
+        raise BadInputError(f'{name}, field legacy_pattern: {legacy!r} is not true or false')
+    if legacy and kind != 'charuco':
+        raise BadInputError(f'{name}, field legacy_pattern: only a charuco board has one')
     board = Board(kind, size, square, marker, separation, dictionary, legacy)
     if kind != 'chessboard':
         needed = (size[0] * size[1] // 2 if kind == 'charuco' else size[0] * size[1])

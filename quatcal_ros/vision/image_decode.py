@@ -26,11 +26,15 @@ def decode_gray(data):
     buffer = np.frombuffer(data, np.uint8)
     try:
         image = cv2.imdecode(buffer, FLAGS) if buffer.size else None
-    except cv2.error:   # more pixels than OPENCV_IO_MAX_IMAGE_PIXELS
-        limit = int(os.environ.get('OPENCV_IO_MAX_IMAGE_PIXELS', 0))
-        return None, f'more than {limit / 1e6:g} million pixels'
+    except cv2.error as error:
+        if 'CV_IO_MAX_IMAGE_PIXELS' in str(error):
+            limit = os.environ.get('OPENCV_IO_MAX_IMAGE_PIXELS', '')
+            return None, f'more pixels than OPENCV_IO_MAX_IMAGE_PIXELS ({limit})'
+        return None, f'not an image OpenCV can read ({str(error).strip().splitlines()[-1]})'
     if image is None:
         return None, 'not an image OpenCV can read'
+    if image.dtype not in (np.uint8, np.uint16):   # a float TIFF or HDR file
+        return None, f'{image.dtype} pixels: an 8- or 16-bit image is expected'
     return gray_8bit(image), None
 
 
