@@ -162,6 +162,7 @@ def test_a_recording_of_two_runs_is_searched_on_one_and_replayed_whole():
     sensor = runs[0].sensor + shifted(runs[1].sensor)
     config = SessionConfig()
     report, session = find_time_offset(link, sensor, config)
+    assert report.runs == 2 and report.to_json_dict()['runs'] == 2
     busiest = max(range(2), key=lambda k: len(runs[k].sensor))
     alone, _ = find_time_offset(runs[busiest].link, runs[busiest].sensor, config)
     assert report.offset_ns == alone.offset_ns   # that run's search, not across the restart

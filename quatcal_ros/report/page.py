@@ -118,10 +118,13 @@ def _validation(result):
 
 def offset_sentence(offset):
     """Say what the time-offset search found, of the replay JSON's `time_offset`."""
+    runs = offset.get('runs', 1)
+    where = (f' (searched on the longest of the {runs} runs: the stamps start over)'
+             if runs > 1 else '')
     return (f'sensor stamps shifted by {1e3 * offset["sensor_offset_s"]:+.1f} ms (speed '
             f'correlation {offset["correlation"]:.2f}); RMS residual '
             f'{offset["residual_without_deg"]:.3f} deg without it, '
-            f'{offset["residual_with_deg"]:.3f} deg with it')
+            f'{offset["residual_with_deg"]:.3f} deg with it{where}')
 
 
 def _time_offset(offset):

@@ -176,18 +176,24 @@ def replay_streams(link, sensor, config, sensor_offset_ns=0, runs=None):
 
 @dataclass(frozen=True)
 class OffsetReport:
-    """What the time-offset search found, with the residual before and after."""
+    """
+    What the time-offset search found, with the residual before and after.
+
+    runs: the timelines of the recording (its stamps started over runs - 1 times); the search
+    and its residuals are of the one with the most sensor poses.
+    """
 
     offset_ns: int
     correlation: float
     residual_without_deg: float
     residual_with_deg: float
+    runs: int = 1
 
     def to_json_dict(self):
         """Return the replay JSON's `time_offset` (seconds, degrees)."""
         return {'sensor_offset_s': self.offset_ns / NS_PER_S, 'correlation': self.correlation,
                 'residual_without_deg': self.residual_without_deg,
-                'residual_with_deg': self.residual_with_deg}
+                'residual_with_deg': self.residual_with_deg, 'runs': self.runs}
 
 
 def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
@@ -231,7 +237,8 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
     if not residual(offset) < residual(coarse.offset_ns) * (1.0 - FLAT_RESIDUAL):
         offset = coarse.offset_ns
     session = replay_streams(link, sensor, config, offset, runs=runs)
-    return OffsetReport(offset, coarse.correlation, residual(0), residual(offset)), session
+    return (OffsetReport(offset, coarse.correlation, residual(0), residual(offset), len(runs)),
+            session)
 
 
 def _matched_runs(link, sensor, time_jump_ns):
