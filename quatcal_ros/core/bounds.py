@@ -15,9 +15,8 @@ in refine.whitened_jacobian: X's rotation (left perturbation, radians), X's tran
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.numerics import rms
 from quatcal_ros.core.pose import inverse_perturbation
-from quatcal_ros.core.refine import jacobian, lever, whitened_jacobian
+from quatcal_ros.core.refine import jacobian, lever, uncertainties, whitened_jacobian
 
 
 def cramer_rao_covariance(link_q, link_t, x_q, x_t, o_q, o_t, sigma_r, sigma_t):
@@ -89,9 +88,9 @@ def link_noise_covariances(link_q, link_t, x_q, o_t, link_covariance, setup='eye
 
 def rotation_rms_deg(covariance):
     """Return the bound's RMS error angle of X's rotation, degrees: sqrt(trace) of its block."""
-    return float(np.degrees(rms(covariance[0:3, 0:3])))
+    return uncertainties(covariance)[0]
 
 
 def translation_rms_mm(covariance):
     """Return the bound's RMS error of X's translation, millimetres (Euclidean norm)."""
-    return 1e3 * rms(covariance[3:6, 3:6])
+    return uncertainties(covariance)[1]

@@ -727,13 +727,13 @@ def _estimate(samples, rotations, positions, fit, options, previous):
                       translation.uncertainty_mm)
     warnings = [] if previous is not None else conventions.warnings(
         samples, options, conventions.misfit(rotation_residuals, translation.residuals))
-    if previous is None:
+    own = sensor_covariances(samples, options.invert_sensor)
+    if previous is None and own is None:
         warnings += _unused_covariances(samples)
     arrays = (rotations.link[ok], positions.link[ok], rotations.sensor[ok], positions.sensor[ok])
     refinement = None
     if _count(ok) >= MIN_REFINE_SAMPLES:
         warm = previous.refinement if previous is not None else None
-        own = sensor_covariances(samples, options.invert_sensor)
         published = options.method == 'refined'   # its uncertainty is published: resample it
         refinement = refine(*arrays, fit.q_z, translation.translation, robust=options.robust,
                             link_R=rotations.link_matrices[ok],
@@ -781,9 +781,9 @@ def sensor_covariances(samples, invert_sensor=False):
 
 
 def _unused_covariances(samples):
-    """Return a warning when some samples but not all give a covariance (none is used)."""
+    """Return a warning when some samples give a covariance that sensor_covariances left out."""
     given = sum(s.sensor.covariance is not None for s in samples)
-    if not 0 < given < len(samples):
+    if not given:
         return []
     return [f'{given} of {len(samples)} samples give their own sensor covariance: one is used '
             'only when every sample gives one, so all are weighed by the fitted noise model']

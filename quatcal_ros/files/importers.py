@@ -334,8 +334,8 @@ def _csv_samples(text, name, setup=None, invert_sensor=None):
     recorded = header.invert_sensor
     if invert_sensor is not None and recorded is not None and invert_sensor != recorded:
         warnings.append(f'{name}: the journal was recorded with invert_sensor '
-                        f'{str(recorded).lower()}; it is solved with '
-                        f'{str(invert_sensor).lower()}, as the options say')
+                        f'{journal.boolean_text(recorded)}; it is solved with '
+                        f'{journal.boolean_text(invert_sensor)}, as the options say')
     invert = recorded if invert_sensor is None else invert_sensor
     if setup is not None and setup != header.setup:
         return ImportedSamples(samples, 'csv', setup, invert_sensor=invert, warnings=[

@@ -71,6 +71,11 @@ class JournalRefused(ValueError):
     """The journal cannot be used as asked (in use, other setup, not a file); says why."""
 
 
+def boolean_text(value):
+    """Return a header's word for a truth value (a missing one counts as false): true, false."""
+    return 'true' if value else 'false'
+
+
 @dataclass(frozen=True)
 class JournalHeader:
     """
@@ -90,7 +95,7 @@ class JournalHeader:
         values = [f'{key}={quote(getattr(self, key), safe=SAFE_CHARACTERS)}'
                   for key in HEADER_KEYS]
         if self.invert_sensor is not None:
-            values.append(f'invert_sensor={str(bool(self.invert_sensor)).lower()}')
+            values.append(f'invert_sensor={boolean_text(self.invert_sensor)}')
         return f'{MAGIC} v{VERSION} {" ".join(values)}'
 
     @staticmethod
@@ -553,8 +558,8 @@ def _start_locked(path, header, resume, lock_fd, now):
             resumed.set_header(replace(resumed.header, invert_sensor=header.invert_sensor))
             report.messages.append(
                 ('info', f'{path} was recorded with invert_sensor '
-                         f'{str(bool(recorded.invert_sensor)).lower()}: its samples (the poses '
-                         f'as received) are solved with {str(header.invert_sensor).lower()} '
+                         f'{boolean_text(recorded.invert_sensor)}: its samples (the poses as '
+                         f'received) are solved with {boolean_text(header.invert_sensor)} '
                          'from now on, and its first line says so'))
         if unnamed:
             resumed.set_header(header)
