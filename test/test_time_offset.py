@@ -173,3 +173,14 @@ def test_a_recording_of_two_runs_is_searched_on_one_and_replayed_whole():
     with pytest.raises(ValueError, match='the link stamps start over 1 time.s. and the sensor '
                                          'stamps 0 time.s.: the runs cannot be matched'):
         find_time_offset(link, runs[0].sensor, config)
+
+
+def test_a_compact_recording_is_searched_as_its_list(streams):
+    """The replay's recorder keeps the streams compactly (RecordedStream): the same search."""
+    from quatcal_ros.stream.recorded_stream import RecordedStream
+    config = SessionConfig()
+    listed, from_list = find_time_offset(streams.link, streams.sensor, config)
+    compact, from_compact = find_time_offset(RecordedStream.of(streams.link),
+                                             RecordedStream.of(streams.sensor), config)
+    assert compact == listed
+    assert [s.stamp_ns for s in from_compact.samples] == [s.stamp_ns for s in from_list.samples]

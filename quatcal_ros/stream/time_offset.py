@@ -15,7 +15,6 @@ late needs an offset of -30 ms.
 
 from dataclasses import dataclass, replace
 from functools import lru_cache
-import heapq
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
@@ -23,7 +22,8 @@ from quatcal_ros.core.calibration import calibrate
 from quatcal_ros.core.pose import Sample
 from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.units import NS_PER_S
-from quatcal_ros.stream.pose_buffer import PoseBuffer
+from quatcal_ros.stream.pairing import LINK
+from quatcal_ros.stream.recorded_stream import RecordedStream
 from quatcal_ros.stream.session import Session
 
 
@@ -156,21 +156,30 @@ def replay_streams(link, sensor, config, sensor_offset_ns=0, runs=None):
     """
     Feed two recorded streams to a new Session in stamp order; return the session.
 
-    link, sensor: lists of (stamp_ns, pose.Pose) sorted by stamp; the session shifts the
-    sensor stamps by sensor_offset_ns (SessionConfig.sensor_offset_ns), and the messages
-    arrive in the order of the shifted stamps. runs: [(link, sensor)] of several timelines
-    (a looped recording) fed one after the other instead.
+    link, sensor: (stamp_ns, pose.Pose) sorted by stamp (RecordedStreams, or lists); the
+    session shifts the sensor stamps by sensor_offset_ns (SessionConfig.sensor_offset_ns),
+    and the messages arrive in the order of the shifted stamps (a link pose first on a tie).
+    The link poses between two sensor poses go to the session at once (Session.add_poses:
+    the same events as one by one). runs: [(link, sensor)] of several timelines (a looped
+    recording) fed one after the other instead.
     """
     session = Session(replace(config, sensor_offset_ns=sensor_offset_ns))
     for link_run, sensor_run in runs or [(link, sensor)]:
-        shifted = ((stamp + sensor_offset_ns, 1, stamp, pose) for stamp, pose in sensor_run)
-        merged = heapq.merge(((s, 0, s, p) for s, p in link_run), shifted,
-                             key=lambda m: m[:2])
-        for _, stream, stamp, pose in merged:
-            if stream == 0:
-                session.add_link_pose(stamp, pose)
-            else:
-                session.add_sensor_pose(stamp, pose)
+        link_run, sensor_run = RecordedStream.of(link_run), RecordedStream.of(sensor_run)
+        stamps, positions, quaternions = (link_run.stamps().tolist(), link_run.positions(),
+                                          link_run.quaternions())
+        sensor_stamps = sensor_run.stamps()
+        # the link poses that arrive before each sensor pose: those at or before its stamp
+        before = np.searchsorted(np.asarray(stamps, dtype=np.int64),
+                                 sensor_stamps + sensor_offset_ns, side='right').tolist()
+        fed = 0
+        for index, until in enumerate(before + [len(stamps)]):
+            if until > fed:
+                session.add_poses(LINK, stamps[fed:until], positions[fed:until],
+                                  quaternions[fed:until])
+                fed = until
+            if index < len(sensor_stamps):
+                session.add_sensor_pose(int(sensor_stamps[index]), sensor_run.pose(index))
     return session
 
 
@@ -213,11 +222,11 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
     its place by stamp.
     """
     residual_options = residual_options or config.calibration
-    runs = list(zip(*_matched_runs(link, sensor, config.time_jump_ns)))
+    runs = _matched_runs(RecordedStream.of(link), RecordedStream.of(sensor),
+                         config.time_jump_ns)
     link, sensor = max(runs, key=lambda run: len(run[1]))
-    coarse = estimate_time_offset(
-        [s for s, _ in link], [p.quaternion for _, p in link],
-        [s for s, _ in sensor], [p.quaternion for _, p in sensor], max_offset_s)
+    coarse = estimate_time_offset(link.stamps(), link.quaternions(),
+                                  sensor.stamps(), sensor.quaternions(), max_offset_s)
     frames = [(sample.stamp_ns - coarse.offset_ns, sample.sensor)
               for sample in replay_streams(link, sensor, config, coarse.offset_ns).samples]
     link_at = _interpolator(link)
@@ -242,41 +251,21 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
 
 
 def _matched_runs(link, sensor, time_jump_ns):
-    """Return (link runs, sensor runs) of _runs, as many of each; else ValueError."""
-    link_runs, sensor_runs = _runs(link, time_jump_ns), _runs(sensor, time_jump_ns)
+    """Return [(link run, sensor run)] of RecordedStream.runs, as many of each; else ValueError."""
+    link_runs, sensor_runs = link.runs(time_jump_ns), sensor.runs(time_jump_ns)
     if len(link_runs) != len(sensor_runs):
         raise ValueError(f'the link stamps start over {len(link_runs) - 1} time(s) and the '
                          f'sensor stamps {len(sensor_runs) - 1} time(s): the runs cannot be '
                          'matched; give the offset instead (--sensor-time-offset)')
-    return link_runs, sensor_runs
+    return list(zip(link_runs, sensor_runs))
 
 
-def _runs(stream, time_jump_ns):
-    """Return the runs of a stream [(stamp_ns, pose)] cut where it jumps back, each in order."""
-    runs, latest = [[]], None
-    for message in stream:
-        if latest is not None and latest - message[0] > time_jump_ns:
-            runs.append([])
-            latest = None
-        runs[-1].append(message)
-        latest = message[0] if latest is None else max(latest, message[0])
-    return [sorted(run, key=lambda message: message[0]) for run in runs]
-
-
-def _interpolator(stream):
-    """
-    Return pose_at(stamp_ns): a recorded stream's pose after its first stamp up to its last.
-
-    Interpolated across any gap (a PoseBuffer without limits; a later pose at the stamp of
-    an earlier one replaces it), None outside, and None at the first stamp itself.
-    """
-    buffer = PoseBuffer()
-    for stamp, pose in stream:
-        buffer.insert(stamp, pose)
-    first_ns = buffer.oldest_ns
+def _interpolator(run):
+    """Return pose_at(stamp_ns): a RecordedStream.at of the run, but None at its first stamp."""
+    first_ns = int(run.stamps()[0]) if len(run) else None
 
     def pose_at(stamp_ns):
         if first_ns is None or stamp_ns <= first_ns:
             return None
-        return buffer.at(stamp_ns)[0]
+        return run.at(stamp_ns)
     return pose_at

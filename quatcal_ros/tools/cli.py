@@ -15,7 +15,6 @@ import sys
 import time
 
 from quatcal_ros.core.planner import plan_next_pose, PlanLimits
-from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.files import exports
 from quatcal_ros.files import importers
@@ -24,6 +23,7 @@ from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import format_samples
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
 from quatcal_ros.files.text_input import BadInputError
+from quatcal_ros.stream.recorded_stream import RecordedStream
 from quatcal_ros.stream.session import Rejected, Session
 from quatcal_ros.stream.settings import check_config, ConfigError, IMAGES_NOT_INVERTED, \
     plan_limits, session_config
@@ -501,19 +501,19 @@ class _StreamRecorder:
     """Stand-in for a Session that keeps both pose streams (for the time-offset search)."""
 
     def __init__(self):
-        self.link, self.sensor = [], []
+        self.link, self.sensor = RecordedStream(), RecordedStream()
         self.counters = {}
 
     def add_link_pose(self, stamp_ns, pose):
-        self.link.append((stamp_ns, pose))
+        self.link.append(stamp_ns, pose)
         return []
 
     def add_sensor_pose(self, stamp_ns, pose):
-        self.sensor.append((stamp_ns, pose))
+        self.sensor.append(stamp_ns, pose)
         return []
 
     def add_poses(self, stream, stamps_ns, positions, quaternions_wxyz):
-        getattr(self, stream).extend(zip(stamps_ns, map(Pose, positions, quaternions_wxyz)))
+        getattr(self, stream).extend(stamps_ns, positions, quaternions_wxyz)
         return []
 
 
