@@ -281,3 +281,15 @@ def test_tf_transforms_get_the_pose_topics_checks():
     feed.take('/tf', TFMessage(transforms=[transform_stamped_msg(near, now + 10**15, 'base',
                                                                  'tool')]), False)
     assert poses[-1] == now + 10**15
+
+
+def test_a_kept_static_edge_keeps_its_first_value():
+    """The replay's first pass over /tf_static: each edge's first value holds from the start."""
+    tree = TransformTree()
+    first, second = Pose(np.ones(3), quat.IDENTITY), Pose(np.zeros(3), quat.IDENTITY)
+    assert tree.set_transform('a', 'b', 0, first, static=True, keep=True)
+    assert tree.set_transform('x', 'b', 5, second, static=True, keep=True)   # kept: a -> b
+    assert tree.parent('b') == 'a'
+    np.testing.assert_array_equal(tree.lookup('a', 'b', 0).position, first.position)
+    tree.set_transform('a', 'b', 5, second, static=True)   # where the bag sends it again
+    np.testing.assert_array_equal(tree.lookup('a', 'b', 0).position, second.position)

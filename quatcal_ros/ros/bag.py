@@ -6,7 +6,8 @@ time); poses always carry their header stamps.  A pose stream (`PoseInput`) come
 topic of geometry_msgs/PoseStamped, TransformStamped, PoseWithCovarianceStamped or
 nav_msgs/Odometry, or from two frames of the transform tree of tf2_msgs/TFMessage topics
 (/tf, /tf_static): T_target_source at each stamp at which a dynamic transform on the chain
-arrived (tf_tree.FramePoses).  Static transforms are read first, wherever they are in the bag.
+arrived (tf_tree.FramePoses).  Static transforms are read first, wherever they are in the bag;
+a static transform sent again with a new value holds from where it is in the bag on.
 The sensor poses can also come from camera images (sensor_msgs Image or CompressedImage) with
 their CameraInfo topic: the board's pose in each, found as the live node finds it
 (image_input.ImageInput), and each still sample's corners kept by the ImageSensor.
@@ -369,20 +370,31 @@ class Replay:
         return report
 
     def _read(self, run, read, on_progress):
-        """Feed the bag's messages to `run` (static transforms first); return their count."""
+        """
+        Feed the bag's messages to `run`; return their count.
+
+        Static transforms first, wherever they are in the bag (a recorder that subscribed
+        late still gets them): each edge's first value holds from the start, and a later
+        value from where it is in the bag on, as a live tf2 listener would apply it.
+        """
         static = {topic for topic in self.tf_topics if is_static_tf_topic(topic)}
-        count = 0
-        for connection, _, raw in self.bag.messages(self.bag.connections(static)):
+        count, later = 0, []   # later: (log time, _StaticFeed) of each static message
+        for connection, log_ns, raw in self.bag.messages(self.bag.connections(static)):
             count += 1
             read[connection.topic] += 1
-            run.on_tf(connection.topic, raw, static=True)
+            transforms = run.on_tf(connection.topic, raw, static=True, keep=True)
+            if transforms:
+                later.append((log_ns, _StaticFeed(run.tf, connection.topic, transforms)))
+        later.reverse()   # popped from the end, oldest first
         connections = self.bag.connections(self.topics - static)
         feeds = {connection.id: run.feed_of(connection.topic) for connection in connections}
         topics = {connection.id: connection.topic for connection in connections}
         window, held = [], 0   # the feed of each message read ahead, and their bytes
         try:
-            for count, (connection, _, raw) in enumerate(self.bag.messages(connections),
-                                                         count + 1):
+            for count, (connection, log_ns, raw) in enumerate(self.bag.messages(connections),
+                                                              count + 1):
+                while later and later[-1][0] <= log_ns:
+                    window.append(later.pop()[1])
                 read[topics[connection.id]] += 1
                 feed = feeds[connection.id]
                 feed.add(raw)
@@ -432,6 +444,23 @@ class _Feed:
         """Forget the messages fed."""
         self.raws.clear()
         self.taken = 0
+
+
+class _StaticFeed:
+    """One static TFMessage's transforms, set again where the message is in the bag."""
+
+    def __init__(self, tf, topic, transforms):
+        self.tf, self.topic, self.transforms = tf, topic, transforms
+
+    def prepare(self):
+        """Nothing to decode."""
+
+    def take(self, count):
+        """Set the transforms again (count: 1, a feed per message)."""
+        self.tf.restate(self.topic, self.transforms)
+
+    def clear(self):
+        """Nothing is held."""
 
 
 class _PoseFeed(_Feed):
@@ -563,14 +592,18 @@ class _Run:
             return
         self.images.take_camera_info(msg)
 
-    def on_tf(self, topic, raw, static):
-        """Take a raw TFMessage: update the tree, then feed the poses it completes."""
+    def on_tf(self, topic, raw, static, keep=False):
+        """
+        Take a raw TFMessage: update the tree, then feed the poses it completes.
+
+        Returns the static transforms stored (TfFeed.take, with `keep`).
+        """
         try:
             msg = TYPESTORE.deserialize_cdr(raw, TF_TYPE)
         except Exception as error:   # noqa: B902 - whatever rosbags raises on bad bytes
             self.poses.bad(topic, 'undecodable', f'{type(error).__name__}: {error}')
-            return
-        self.tf.take(topic, msg, static)
+            return []
+        return self.tf.take(topic, msg, static, keep=keep)
 
     def finish(self, count):
         """Close the TF watchers and return the completed ReplayReport."""

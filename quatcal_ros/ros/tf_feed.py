@@ -59,13 +59,15 @@ class TfFeed:
         self.on_pose = on_pose
         self.watchers = {stream: FramePoses(tree, *pair) for stream, pair in frames.items()}
 
-    def take(self, topic, msg, static, now_ns=0):
+    def take(self, topic, msg, static, now_ns=0, keep=False):
         """
         Take one TFMessage from `topic` (static: from /tf_static); feed what it completes.
 
         now_ns: the node clock, for the stamp check of the pose topics (0: none, offline).
+        keep: static edges that have a value keep it (TransformTree.set_transform).
+        Returns the static transforms stored, [(parent, child, stamp_ns, Pose)].
         """
-        changed = []
+        changed, stored_static = [], []
         for transform in msg.transforms:
             try:
                 stamp_ns = stamp_ns_from_header(transform.header)
@@ -83,7 +85,7 @@ class TfFeed:
                 if known is not None and known != parent:
                     raise TreeError(f'{parent!r} -> {child!r} would give {child!r} a second '
                                     f'parent (it has {known!r}): two publishers disagree')
-                stored = self.tree.set_transform(parent, child, stamp_ns, pose, static)
+                stored = self.tree.set_transform(parent, child, stamp_ns, pose, static, keep)
             except TreeError as error:
                 self.screen.bad(topic, 'breaks_tree', error)
                 continue
@@ -97,13 +99,24 @@ class TfFeed:
                 self.screen.bad(topic, 'out_of_order', lambda child=child, stamp=stamp_ns: (
                     f'transform to {child} stamped {stamp * 1e-9:.3f} s is older than the '
                     f'{TF_CACHE_NS * 1e-9:g} s of transforms kept for it'))
-            elif not static:
+            elif static:
+                stored_static.append((parent, child, stamp_ns, pose))
+            else:
                 changed.append((child, stamp_ns))
         for stream, frames in self.watchers.items():
             for child, stamp_ns in changed:
                 frames.note(child, stamp_ns)
             for stamp_ns, pose in frames.ready():
                 self.on_pose(stream, stamp_ns, pose)
+        return stored_static
+
+    def restate(self, topic, transforms):
+        """Set static transforms that `take` returned again, as they came (a later value)."""
+        for parent, child, stamp_ns, pose in transforms:
+            try:
+                self.tree.set_transform(parent, child, stamp_ns, pose, static=True)
+            except TreeError as error:
+                self.screen.bad(topic, 'breaks_tree', error)
 
     def problems(self):
         """Return sentences naming each frame pair that cannot be composed from the tree."""

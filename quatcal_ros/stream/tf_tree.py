@@ -115,7 +115,7 @@ class TransformTree:
         edge = self._edges.get(normalize_frame(frame))
         return bool(edge and edge.static)
 
-    def set_transform(self, parent, child, stamp_ns, pose, static=False):
+    def set_transform(self, parent, child, stamp_ns, pose, static=False, keep=False):
         """
         Add T_parent_child (pose.Pose) at stamp_ns (int); return whether it was stored.
 
@@ -123,9 +123,12 @@ class TransformTree:
         dynamic transform of a static edge sets its value and it stays static, as in tf2 (an
         edge on /tf_static that a driver also sends once on /tf once lost its static value:
         no pose composed before that stamp, or across the gaps of a slow republisher).
+        keep: a child that hangs from a static edge keeps it (a recording's first value).
         """
         parent, child = normalize_frame(parent), normalize_frame(child)
         edge = self._edges.get(child)
+        if keep and static and edge is not None and edge.static:
+            return True
         if edge is None or edge.parent != parent or (static and not edge.static):
             edge = self._new_edge(parent, child, static)
         if edge.static:
