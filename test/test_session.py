@@ -464,3 +464,37 @@ def test_a_full_solve_on_schedule_is_the_estimate_after_its_sample():
         else:
             assert not np.array_equal(events[-1].result.quaternion, full.quaternion)
             assert error_deg(events[-1].result, full) < 0.2 * full.uncertainty_deg
+
+
+def test_a_single_stale_message_is_dropped_not_taken_for_a_time_jump():
+    """
+    One link message per stop stamped a second early (a driver that re-sent an old pose).
+
+    Each once restarted the pairing as a new timeline: 'time jumped back' at every stop, the
+    still being captured lost with the buffers, and a sample with it.
+    """
+    rng = np.random.default_rng(24)
+    streams, messages = stop_and_go_messages(rng, n_stops=6, drop_probability=0.0)
+    plain = Session()
+    feed(plain, messages)
+    links = [k for k, m in enumerate(messages) if m[1] == LINK]
+    stale = []
+    for stop in range(6):   # 0.9 s into each still (stills of 1.5 s, moves of 2 s)
+        at = streams.link[0][0] + int((3.5 * stop + 0.9) * 1e9)
+        k = min(links, key=lambda k: abs(messages[k][2] - at))
+        delivered, _, stamp, pose = messages[k]
+        stale.append((delivered, LINK, stamp - 10**9, pose))
+        messages[k] = stale[-1]
+    session = Session()
+    events = feed(session, messages)
+    assert session.counters['time_jumps'] == 0
+    refused = of_type(events, Rejected)
+    assert [e.code for e in refused] == ['stale_stamp'] * 6
+    assert refused[0].reason == ('stamp 0.998 s older than the previous message, and the next '
+                                 'one went on from where the stream was: a stale message, not a '
+                                 'time jump: dropped')   # 1 s, less the 2 ms to the one before
+    assert len(session.samples) == len(plain.samples) == 6
+    # a jump that the next message confirms is still a jump
+    again = feed(session, messages[:len(messages) // 2])
+    assert session.counters['time_jumps'] == 1
+    assert of_type(again, Notice)[0].code == 'time_jump'

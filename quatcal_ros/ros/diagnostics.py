@@ -61,6 +61,7 @@ class InputWatch:
         self.reliable = frozenset(reliable)    # the streams subscribed reliable
         self.started_ns = started_ns
         self.jumps_seen = 0                  # the session's time jumps at the last status
+        self.stale_seen = 0                  # and its stale-stamped messages
         self.clock_seen = (None, None)       # (node clock, steady clock) when it last moved
 
     def problems(self, stats, topics, publishers, time_jumps, now_ns, sim_time,
@@ -91,11 +92,15 @@ class InputWatch:
                              'node subscribes it reliable, and a reliable subscription hears '
                              "no best-effort publisher: publish it reliable (the driver's QoS "
                              'setting, or a relay)')
-        if time_jumps - self.jumps_seen >= REPEATED_JUMPS:
-            found.append(f'the stamps jumped back {time_jumps - self.jumps_seen} times since '
-                         'the last status: two publishers with different clocks on one '
-                         'stream? (ros2 topic info -v link_pose / sensor_pose)')
-        self.jumps_seen = time_jumps
+        # a second clock's messages are time jumps, or stale messages when they are sparse
+        stale = sum(stats.bad[(stream, 'stale_stamp')] for stream in topics)
+        jumps, behind = time_jumps - self.jumps_seen, stale - self.stale_seen
+        if jumps + behind >= REPEATED_JUMPS:
+            found.append(f'the stamps jumped back {jumps + behind} times since the last status'
+                         f'{f" ({behind} single messages far behind, dropped)" if behind else ""}'
+                         ': two publishers with different clocks on one stream? (ros2 topic '
+                         'info -v link_pose / sensor_pose)')
+        self.jumps_seen, self.stale_seen = time_jumps, stale
         if now_ns <= 0 and sim_time:
             found.append('use_sim_time is true but no /clock message has come: no clock runs '
                          '(play the bag with --clock, or start the simulator)')

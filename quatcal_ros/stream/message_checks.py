@@ -51,6 +51,8 @@ REASONS = {
     'stamp_in_past': 'header stamp far in the past of the node clock',
     'duplicate_stamp': 'same header stamp as the previous message',
     'out_of_order': 'header stamp older than the previous message',
+    'stale_stamp': 'a header stamp far behind the stream, which the next message did not '
+                   'follow: a stale message, not a time jump',
     'wrong_frame_id': 'header.frame_id is not the configured frame',
     'implausible_position': 'a position farther from the origin than max_position_m',
     'undecodable': 'recorded bytes that do not decode as the topic type',

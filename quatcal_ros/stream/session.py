@@ -21,8 +21,11 @@ so (calibration.Calibrator).  An offline replay asks once at the end: its answer
 solve over all its samples, that of `solve` on them.
 
 Time that goes backwards on a stream by more than `time_jump_ns` (a bag played again, a clock
-reset) starts a new timeline: the pairing buffers are cleared, the samples are kept.  Smaller
-steps back are late messages and are rejected.  After such a jump, a still sample at the stamp
+reset) starts a new timeline: the pairing buffers are cleared, the samples are kept.  The jump
+is taken when a second message (of either stream) confirms it; a single message that far
+behind whose stream then goes on is a stale one and is rejected ('stale_stamp'), so one
+stale message does not throw away the buffers and the still being captured.  Smaller steps
+back are late messages and are rejected.  After such a jump, a still sample at the stamp
 (within the still window) and the link pose (within the still bands) of an earlier sample is
 the same data played again (`ros2 bag play --loop`): it is not added, so that it does not
 count as new evidence, and a Notice says so.  So is, on every path, a sample whose link and
@@ -89,11 +92,11 @@ class Rejected:
     """
     Input that was not used: `what` is 'link_pose', 'sensor_pose' or 'sample'.
 
-    `code` names the reason for counters ('non_finite', 'duplicate_stamp', 'out_of_order':
-    codes of message_checks.REASONS; 'repeated': a ready sample that repeats an earlier one
-    exactly); it does not take part in comparisons.  A sample refused by add_samples also
-    says which it was of those given (`given`, from 0); a 'repeated' one the number of the
-    stored sample it repeats (`repeats`).
+    `code` names the reason for counters ('non_finite', 'duplicate_stamp', 'out_of_order',
+    'stale_stamp': codes of message_checks.REASONS; 'repeated': a ready sample that repeats
+    an earlier one exactly); it does not take part in comparisons.  A sample refused by
+    add_samples also says which it was of those given (`given`, from 0); a 'repeated' one the
+    number of the stored sample it repeats (`repeats`).
     """
 
     what: str
@@ -165,6 +168,7 @@ class Session:
         self._unpaired_seen = 0
         self._unpaired_streak = 0
         self._pending = []
+        self._behind = {}   # stream: (stamp_ns, pose, OutOfOrderStamp) of a jump not confirmed
 
     def continue_counts(self, earlier):
         """
@@ -206,13 +210,13 @@ class Session:
         start = 0
         while start < len(stamps_ns):
             stop = stops[bisect.bisect_left(stops, start)]
-            taken, pairs = self._pairer.add_many(stream, stamps_ns[start:stop],
-                                                 positions[start:stop],
-                                                 quaternions_wxyz[start:stop])
+            taken, pairs = (0, []) if stream in self._behind else self._pairer.add_many(
+                stream, stamps_ns[start:stop], positions[start:stop],
+                quaternions_wxyz[start:stop])
             if taken:
                 self._counts[stream] += taken
                 events += self._paired(pairs)
-            else:
+            else:   # out of order, or the next of a stream held behind: one by one
                 pose = Pose(positions[start], quaternions_wxyz[start])
                 events += self._add_pose(stream, stamps_ns[start], pose)
                 taken = 1
@@ -363,8 +367,16 @@ class Session:
         except OutOfOrderStamp as error:
             if error.jump_ns <= self.config.time_jump_ns:
                 return events + [self._reject(TOPICS[stream], *_late_reason(error))]
-            events.append(self._new_timeline(error))
-            pairs = self._pairer.add(stream, stamp_ns, pose)
+            if not self._behind:   # held until the next message says which it was
+                self._behind[stream] = (stamp_ns, pose, error)
+                return events
+            return events + self._new_timeline(stream, stamp_ns, pose)
+        if stream in self._behind:   # its stream went on: it was a stale message
+            error = self._behind.pop(stream)[2]
+            events.append(self._reject(
+                TOPICS[stream], f'stamp {error.jump_ns * 1e-9:.3g} s older than the previous '
+                'message, and the next one went on from where the stream was: a stale '
+                'message, not a time jump: dropped', 'stale_stamp'))
         return events + self._paired(pairs)
 
     def _paired(self, pairs):
@@ -448,12 +460,22 @@ class Session:
         return Notice(f'pairing by header stamps: {faster} poses ({rates[faster]}) '
                       f'interpolated at the {slower} stamps ({rates[slower]})')
 
-    def _new_timeline(self, error):
+    def _new_timeline(self, stream, stamp_ns, pose):
+        """Start the timeline the held message and this one agree on; return the events."""
+        held = list(self._behind.items())
+        self._behind.clear()
         self._pairer.reset()
         self._capture.clear_window()
         self._counts['time_jumps'] += 1
-        return Notice(f'time jumped back by {error.jump_ns * 1e-9:.1f} s (bag replayed?): '
-                      'pairing buffers cleared, samples kept', code='time_jump')
+        jump_ns = held[0][1][2].jump_ns
+        events = [Notice(f'time jumped back by {jump_ns * 1e-9:.1f} s (bag replayed?): '
+                         'pairing buffers cleared, samples kept', code='time_jump')]
+        for name, (held_ns, held_pose, _) in held + [(stream, (stamp_ns, pose, None))]:
+            try:
+                events += self._paired(self._pairer.add(name, held_ns, held_pose))
+            except OutOfOrderStamp as error:   # behind the held message of its stream
+                events.append(self._reject(TOPICS[name], *_late_reason(error)))
+        return events
 
     def _unpaired_notice(self, paired):
         """Return a Notice when UNPAIRED_NOTICE_AFTER poses in a row could not be paired."""
