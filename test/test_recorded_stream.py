@@ -80,6 +80,8 @@ def test_a_run_is_looked_up_as_a_pose_buffer_would():
     assert run.at(9) is None and run.at(61) is None
     np.testing.assert_array_equal(run.at(10).position, poses[0].position)
     np.testing.assert_array_equal(run.at(20).position, poses[2].position)   # the last at 20
+    quarter = run.at(15)   # up to the last pose at 20
+    np.testing.assert_allclose(quarter.position, (poses[0].position + poses[2].position) / 2)
     halfway = run.at(40)   # across the 40 ns gap, from the last pose at 20
     np.testing.assert_allclose(halfway.position, (poses[2].position + poses[3].position) / 2)
     np.testing.assert_allclose(

@@ -184,3 +184,10 @@ def test_a_compact_recording_is_searched_as_its_list(streams):
                                              RecordedStream.of(streams.sensor), config)
     assert compact == listed
     assert [s.stamp_ns for s in from_compact.samples] == [s.stamp_ns for s in from_list.samples]
+
+
+def test_streams_out_of_order_are_refused_by_the_replay(streams):
+    """The link poses between two sensor poses are found by their stamps: sorted ones only."""
+    looped = streams.link + streams.link
+    with pytest.raises(ValueError, match='the link stamps are not in order'):
+        replay_streams(looped, streams.sensor, SessionConfig())

@@ -112,8 +112,9 @@ class RecordedStream:
         """
         Return the pose at stamp_ns of a stream in stamp order (a run), or None outside it.
 
-        The last pose at an equal stamp, else interpolated between the two around it
-        (pose_buffer.interpolate_pose), across any gap.
+        Of the poses at one stamp the last stands (as in a PoseBuffer): the pose at an equal
+        stamp, else interpolated between the two around it (pose_buffer.interpolate_pose),
+        across any gap.
         """
         if self._lookup is None or len(self._lookup) != len(self):
             self._lookup = self.stamps()
@@ -125,8 +126,10 @@ class RecordedStream:
             return self.pose(index)
         if index + 1 == len(stamps):
             return None
-        fraction = (stamp_ns - int(stamps[index])) / int(stamps[index + 1] - stamps[index])
-        return interpolate_pose(self.pose(index), self.pose(index + 1), fraction)
+        after_ns = int(stamps[index + 1])
+        after = int(np.searchsorted(stamps, after_ns, side='right')) - 1   # its last pose
+        fraction = (stamp_ns - int(stamps[index])) / (after_ns - int(stamps[index]))
+        return interpolate_pose(self.pose(index), self.pose(after), fraction)
 
     def _rows(self, columns=slice(None)):
         return np.frombuffer(self._values, dtype=float).reshape(-1, 7)[:, columns].copy()

@@ -169,6 +169,10 @@ def replay_streams(link, sensor, config, sensor_offset_ns=0, runs=None):
         stamps, positions, quaternions = (link_run.stamps().tolist(), link_run.positions(),
                                           link_run.quaternions())
         sensor_stamps = sensor_run.stamps()
+        for name, run_stamps in (('link', np.asarray(stamps)), ('sensor', sensor_stamps)):
+            if np.any(run_stamps[1:] < run_stamps[:-1]):
+                raise ValueError(f'the {name} stamps are not in order: give each timeline '
+                                 'as one of `runs` (RecordedStream.runs)')
         # the link poses that arrive before each sensor pose: those at or before its stamp
         before = np.searchsorted(np.asarray(stamps, dtype=np.int64),
                                  sensor_stamps + sensor_offset_ns, side='right').tolist()
