@@ -191,3 +191,19 @@ def test_streams_out_of_order_are_refused_by_the_replay(streams):
     looped = streams.link + streams.link
     with pytest.raises(ValueError, match='the link stamps are not in order'):
         replay_streams(looped, streams.sensor, SessionConfig())
+
+
+def test_the_search_skips_a_run_without_a_link_speed():
+    """The run with the most sensor poses had two link poses: the search failed on it."""
+    rng = np.random.default_rng(12)
+    cell = simulation.random_cell(rng)
+    run = simulation.stop_and_go_streams(rng, cell, 8, rotation_noise_deg=0.3,
+                                         translation_noise_m=0.001, latency_s=0.03)
+    start = run.link[0][0]
+    back = 10**12   # a second run a thousand seconds earlier: a few link poses, many frames
+    link = run.link + [(start - back, run.link[0][1]), (start - back + MS, run.link[1][1])]
+    sensor = run.sensor + [(stamp - back, pose) for stamp, pose in run.sensor + run.sensor[:5]]
+    sensor = sensor[:len(run.sensor)] + sorted(sensor[len(run.sensor):], key=lambda m: m[0])
+    report, _ = find_time_offset(link, sensor, SessionConfig())
+    alone, _ = find_time_offset(run.link, run.sensor, SessionConfig())
+    assert report.runs == 2 and report.offset_ns == alone.offset_ns

@@ -193,7 +193,7 @@ class OffsetReport:
     What the time-offset search found, with the residual before and after.
 
     runs: the timelines of the recording (its stamps started over runs - 1 times); the search
-    and its residuals are of the one with the most sensor poses.
+    and its residuals are of the one with the most sensor poses (_searchable).
     """
 
     offset_ns: int
@@ -221,14 +221,15 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
     Returns (OffsetReport, the Session replayed with the refined offset applied; it estimates
     when asked, Session.estimate()). Streams whose stamps jump back by more than
     config.time_jump_ns (a looped bag, a clock restart) hold several runs: the offset is
-    searched on the run with the most sensor poses and applied to all (ValueError when the
+    searched on the run with the most sensor poses of those whose two streams have an angular
+    speed (poses at 3 stamps or more), and applied to all (ValueError when the
     two streams restart a different number of times); a late message within a run is put in
     its place by stamp.
     """
     residual_options = residual_options or config.calibration
     runs = _matched_runs(RecordedStream.of(link), RecordedStream.of(sensor),
                          config.time_jump_ns)
-    link, sensor = max(runs, key=lambda run: len(run[1]))
+    link, sensor = max(runs, key=_searchable)
     coarse = estimate_time_offset(link.stamps(), link.quaternions(),
                                   sensor.stamps(), sensor.quaternions(), max_offset_s)
     frames = [(sample.stamp_ns - coarse.offset_ns, sample.sensor)
@@ -252,6 +253,12 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
     session = replay_streams(link, sensor, config, offset, runs=runs)
     return (OffsetReport(offset, coarse.correlation, residual(0), residual(offset), len(runs)),
             session)
+
+
+def _searchable(run):
+    """Rank a (link, sensor) run for the search: speeds on both streams first, then length."""
+    speeds = all(len(np.unique(stream.stamps())) >= 3 for stream in run)
+    return speeds, len(run[1])
 
 
 def _matched_runs(link, sensor, time_jump_ns):
