@@ -8,7 +8,7 @@ import pytest
 
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
-from quatcal_ros.stream.pairing import OutOfOrderStamp, Pairer, PairingConfig
+from quatcal_ros.stream.pairing import LINK, OutOfOrderStamp, Pairer, PairingConfig, SENSOR
 
 START_NS = 1_700_000_000 * 10**9   # a realistic epoch: float64 cannot hold it to the ns
 NS = 10**9
@@ -42,7 +42,7 @@ def feed(pairer, link, sensor):
                       key=lambda m: m[:2])
     pairs = []
     for stamp, kind, pose in messages:
-        pairs += pairer.add_link(stamp, pose) if kind == 0 else pairer.add_sensor(stamp, pose)
+        pairs += pairer.add(LINK, stamp, pose) if kind == 0 else pairer.add(SENSOR, stamp, pose)
     return pairs
 
 
@@ -104,7 +104,7 @@ def test_any_rates_and_latency_give_exact_pairs_in_order(seed, link_hz, sensor_h
     pairer = Pairer(PairingConfig(tolerance_ns=0))   # interpolated or exact stamps only
     pairs = []
     for _, kind, stamp, pose in delivery:
-        pairs += pairer.add_link(stamp, pose) if kind == 0 else pairer.add_sensor(stamp, pose)
+        pairs += pairer.add(LINK, stamp, pose) if kind == 0 else pairer.add(SENSOR, stamp, pose)
     slower = dict(sensor if pairer.faster == 'link' else link)
     assert all(a.stamp_ns < b.stamp_ns for a, b in zip(pairs, pairs[1:]))
     assert len(pairs) + sum(pairer.unpaired.values()) <= len(slower)
@@ -159,10 +159,10 @@ def test_a_late_sensor_frame_waits_for_the_link_to_reach_its_stamp():
     sensor = [(s, marker(s)) for s in stamps(30.0, 0.1, offset_ns=1_000)]
     assert len(feed(pairer, link[:60], sensor)) == 3     # roles are known from here on
     early = START_NS + 150_000_777    # a sensor stamp ahead of the newest link pose (118 ms)
-    assert pairer.add_sensor(early, marker(early)) == []
+    assert pairer.add(SENSOR, early, marker(early)) == []
     pairs = []
     for stamp, pose in link[60:]:
-        pairs += pairer.add_link(stamp, pose)
+        pairs += pairer.add(LINK, stamp, pose)
     assert [pair.stamp_ns for pair in pairs] == [early]
     assert_same_pose(pairs[0].link, truth.at(early), atol=1e-9)
 
@@ -205,10 +205,10 @@ def test_out_of_order_stamps_are_reported_and_change_nothing():
     before = len(feed(pairer, link, sensor))
     newest = link[-1][0]
     with pytest.raises(OutOfOrderStamp) as older:
-        pairer.add_link(newest - 5_000_000, truth.at(newest))
+        pairer.add(LINK, newest - 5_000_000, truth.at(newest))
     assert older.value.jump_ns == 5_000_000 and older.value.stream == 'link'
     with pytest.raises(OutOfOrderStamp) as repeated:
-        pairer.add_sensor(sensor[-1][0], marker(sensor[-1][0]))
+        pairer.add(SENSOR, sensor[-1][0], marker(sensor[-1][0]))
     assert repeated.value.jump_ns == 0
     # Unchanged: the next in-order messages pair as before.
     after = feed(pairer, [(s, truth.at(s)) for s in stamps(500.0, 0.1, offset_ns=NS)],
@@ -224,7 +224,7 @@ def test_reset_starts_a_new_timeline_without_mixing_the_old_one():
     feed(pairer, [(s, first.at(s)) for s in stamps(500.0, 2.0, offset_ns=10 * NS)],
          [(s, marker(s)) for s in stamps(30.0, 2.0, offset_ns=10 * NS + 7)])
     with pytest.raises(OutOfOrderStamp):
-        pairer.add_link(START_NS, second.at(START_NS))
+        pairer.add(LINK, START_NS, second.at(START_NS))
     pairer.reset()
     assert pairer.faster is None and pairer.buffered() == {'link': 0, 'sensor': 0}
     pairs = feed(pairer, [(s, second.at(s)) for s in stamps(500.0, 1.0)],
@@ -331,7 +331,7 @@ def test_add_many_stops_at_the_pose_that_completes_pairs():
     link = [(s, Pose.identity()) for s in stamps(1000.0, 0.1)]
     assert len(feed(pairer, link, [(s, marker(s)) for s in stamps(30.0, 0.1)])) == 3
     late = START_NS + 120_500_000   # a camera frame ahead of the link stream
-    assert pairer.add_sensor(late, marker(late)) == []
+    assert pairer.add(SENSOR, late, marker(late)) == []
     more = stamps(1000.0, 0.05, offset_ns=100_000_000)
     rows = np.zeros((len(more), 3)), np.tile(quat.IDENTITY, (len(more), 1))
     taken, pairs = pairer.add_many('link', more, *rows)

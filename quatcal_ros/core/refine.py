@@ -81,7 +81,7 @@ PER_AXIS_SAMPLES = 8
 FULL_SHAPE_SAMPLES = 30
 # Weighted steps on the linearised model that start the refinement (_gaussian_start).
 GAUSSIAN_START_ITERATIONS = 3
-# Blocks of the jackknife (with_jackknife), and the floats a batch of its replicates may hold
+# Blocks of the jackknife (_jackknife), and the floats a batch of its replicates may hold
 # (2 MB: all 20 at once up to about 170 samples; a long replay's final solve stays small).
 JACKKNIFE_BLOCKS = 20
 JACKKNIFE_BATCH_FLOATS = 250_000
@@ -117,7 +117,7 @@ class Refinement(ReportedUncertainty):
     residuals: np.ndarray           # (N, 6) at the answer
     leave_one_out: np.ndarray       # (N, 6) each sample's residual predicted without it
     converged: bool
-    resampled: np.ndarray = None    # 6 x 6 block-jackknife covariance of X (with_jackknife)
+    resampled: np.ndarray = None    # 6 x 6 block-jackknife covariance of X (_jackknife)
     resampled_from_earlier: bool = False   # scaled from an earlier jackknife (with_jackknife_of)
     whitening: np.ndarray = None    # (N, 6, 6) W_i from the samples' own covariances, or None
 
@@ -267,7 +267,7 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None
     and object pose, and its noise models and their probabilities, whose scales alone are
     refitted; a solve without it chooses the models); sensor_covariance: (N, 6, 6) each
     sample's own covariance of its residual (rotation, translation; pose.residual_order), or
-    None; resample: add the block jackknife (with_jackknife); object_start: the object pose
+    None; resample: add the block jackknife (_jackknife); object_start: the object pose
     (quaternion, position) the samples give with (x_q, x_t), when the caller has it (else
     object_pose); link_R: the link rotation matrices, when the caller has them. Returns a
     Refinement.
@@ -382,28 +382,6 @@ def _extrapolated(step, last, A, size):
     return step / (1.0 - ratio) if cosine > 0.95 and ratio < 0.9 else step
 
 
-def with_jackknife(refinement, link_q, link_t, sensor_q, sensor_t, robust=True,
-                   blocks=JACKKNIFE_BLOCKS):
-    """
-    Return `refinement` with its block-jackknife covariance of X (`resampled`).
-
-    The samples (in their order, so that neighbours in time fall together) are cut into
-    `blocks` contiguous blocks; without each, the noise models' scales and weights are
-    re-fitted to the other samples' residuals and one Newton step from the answer (its
-    Hessian the module docstring's H) gives that replicate's mounting (the step from an
-    optimum this close lands within a small fraction of the uncertainty). The spread of
-    those answers is what the sandwich cannot see: the noise model's own estimation from the
-    same residuals, which makes the fitted weights look better than they are with a few
-    dozen samples. Cost: `blocks` steps, O(N)
-    each.
-    """
-    samples = _Samples(link_q, link_t, sensor_q, sensor_t, whitening=refinement.whitening)
-    e, J = samples.linearised((refinement.quaternion, refinement.translation,
-                               refinement.object_quaternion, refinement.object_translation))
-    resampled = _jackknife(refinement.noise, _Sums(e, J, refinement.noise), blocks)
-    return refinement if resampled is None else replace(refinement, resampled=resampled)
-
-
 class _Sums:
     """
     The residuals e (N, 6) and Jacobian J (N, 6, 12) at an answer, and their per-sample parts.
@@ -442,7 +420,18 @@ class _Sums:
 
 
 def _jackknife(noise, sums, blocks=JACKKNIFE_BLOCKS):
-    """Return with_jackknife's covariance given the noise and the _Sums at the answer, or None."""
+    """
+    Return the block-jackknife covariance of X given the noise and the _Sums at the answer.
+
+    The samples (in their order, so that neighbours in time fall together) are cut into
+    `blocks` contiguous blocks; without each, the noise models' scales and weights are
+    re-fitted to the other samples' residuals and one Newton step from the answer (its
+    Hessian the module docstring's H) gives that replicate's mounting (the step from an
+    optimum this close lands within a small fraction of the uncertainty). The spread of
+    those answers is what the sandwich cannot see: the noise model's own estimation from the
+    same residuals, which makes the fitted weights look better than they are with a few
+    dozen samples. Cost: `blocks` steps, O(N) each. None with fewer than 3 samples.
+    """
     e = sums.e
     n = len(e)
     count = min(blocks, n)
@@ -531,7 +520,7 @@ def _refinement(model, sums, noise, converged, whitening=None, resample=False):
     Return the Refinement of model (X, O) with the _Sums at it and the noise.
 
     e and J whitened by `whitening` when it is given; the residuals reported are not.
-    resample: with the block jackknife (with_jackknife).
+    resample: with the block jackknife (_jackknife).
     """
     x_q, x_t, o_q, o_t = model
     e, J = sums.e, sums.J

@@ -166,12 +166,6 @@ class Capture:
         self._last_sample = None
         self._moved = True
 
-    def reset(self):
-        """Forget the recent pairs and the last sample."""
-        self.clear_window()
-        self._last_sample = None
-        self._moved = True
-
     def clear_window(self):
         """Forget the recent pairs only (time jumped); the next capture still needs a motion."""
         self._window.clear()

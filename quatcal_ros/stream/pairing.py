@@ -116,14 +116,6 @@ class Pairer:
         self._faster = None
         self._resolved_until_ns = None
 
-    def add_link(self, stamp_ns, pose):
-        """Add a link pose T_base_link; return the Pairs it completes, oldest first."""
-        return self.add(LINK, stamp_ns, pose)
-
-    def add_sensor(self, stamp_ns, pose):
-        """Add a sensor pose T_sensor_obj; return the Pairs it completes, oldest first."""
-        return self.add(SENSOR, stamp_ns, pose)
-
     def add(self, stream_name, stamp_ns, pose):
         """Add a pose of stream 'link' or 'sensor'; raises OutOfOrderStamp, see module doc."""
         stamp_ns = int(stamp_ns)
