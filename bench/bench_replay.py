@@ -12,8 +12,9 @@ replay's cProfile (top functions by own time).  --processes instead runs both as
 processes (`python -m quatcal_ros replay` against a script that only reads and deserialises,
 imports included) and prints their CPU seconds and peak resident memory: the targets are CPU
 within 1.1x of the bare read's and peak memory flat in bag length (<= 1.5x the bare read's).
+--estimate-time-offset runs the replay with it (it holds both streams whole: no flat target).
 Run: python bench/bench_replay.py [--minutes M] [--storage sqlite3 mcap] [--profile]
-                                  [--processes]
+                                  [--processes [--estimate-time-offset]]
 """
 
 import argparse
@@ -99,13 +100,13 @@ def process_cost(command):
     return user + system, peak_kb / 1024
 
 
-def processes(path):
+def processes(path, options=()):
     """Return {'bare read': (CPU, RSS), 'replay': (CPU, RSS)} of whole processes on `path`."""
     import sys
     bare = process_cost([sys.executable, '-c', BARE_READ, str(path)])   # smaller: first
     ours = process_cost([sys.executable, '-m', 'quatcal_ros', 'replay', str(path),
                          '--link-topic', '/link_pose', '--sensor-topic', '/sensor_pose',
-                         '--quiet'])
+                         '--quiet', *options])
     return {'bare read': bare, 'replay': ours}
 
 
@@ -126,7 +127,9 @@ def main():
     parser.add_argument('--repeats', type=int, default=2)
     parser.add_argument('--profile', action='store_true')
     parser.add_argument('--processes', action='store_true')
+    parser.add_argument('--estimate-time-offset', action='store_true')
     args = parser.parse_args()
+    options = ('--estimate-time-offset',) if args.estimate_time_offset else ()
     start = time.perf_counter()
     messages, _ = recording(args.minutes)
     print(f'{len(messages)} messages ({args.minutes:g} min, link {LINK_RATE_HZ:g} Hz, sensor '
@@ -141,7 +144,7 @@ def main():
             path = f'{tmp}/{storage}'
             write_bag(path, TOPICS, messages, storage)
             if args.processes:
-                cost = processes(path)
+                cost = processes(path, options)
                 (read_cpu, read_rss), (ours_cpu, ours_rss) = cost['bare read'], cost['replay']
                 print(f'| {storage} | {args.minutes:g} min | {len(messages)} | {read_cpu:.1f} | '
                       f'{ours_cpu:.1f} | {ours_cpu / read_cpu:.2f} | {read_rss:.0f} | '

@@ -207,3 +207,15 @@ def test_the_search_skips_a_run_without_a_link_speed():
     report, _ = find_time_offset(link, sensor, SessionConfig())
     alone, _ = find_time_offset(run.link, run.sensor, SessionConfig())
     assert report.runs == 2 and report.offset_ns == alone.offset_ns
+
+
+def test_angular_speed_in_chunks_equals_at_once(streams, monkeypatch):
+    from quatcal_ros.stream import time_offset
+    stamps, quaternions = arrays(streams.link)
+    whole = time_offset.angular_speed(stamps, quaternions)
+    monkeypatch.setattr(time_offset, 'SPEED_CHUNK', 7)
+    chunked = time_offset.angular_speed(stamps, quaternions)
+    assert len(whole[1]) > 7 * 10
+    np.testing.assert_array_equal(chunked[0], whole[0])
+    # the same arithmetic; numpy's vector loops may round a chunk's tail differently
+    np.testing.assert_allclose(chunked[1], whole[1], rtol=1e-12, atol=1e-15)

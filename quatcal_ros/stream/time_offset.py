@@ -29,6 +29,8 @@ from quatcal_ros.stream.session import Session
 
 # A relative change of the RMS residual below this is no evidence about the offset.
 FLAT_RESIDUAL = 1e-6
+# Poses whose angular speeds are computed at once.
+SPEED_CHUNK = 1 << 16
 
 
 @dataclass(frozen=True)
@@ -56,7 +58,12 @@ def angular_speed(stamps_ns, quaternions, baseline_s=0.1):
     step = max(1, int(round(baseline_s / max(period, 1e-6))))
     step = min(step, len(t) - 1)
     dt = t[step:] - t[:-step]
-    angle = quat.angle_between(q[:-step], q[step:])
+    # in chunks: the quaternion products' temporaries of a long stream took some 100 MB
+    pairs = len(t) - step   # (k, k + step)
+    angle = np.concatenate([
+        quat.angle_between(q[first:last], q[first + step:last + step])
+        for first, last in ((k, min(k + SPEED_CHUNK, pairs))
+                            for k in range(0, pairs, SPEED_CHUNK))])
     keep = dt > 0
     return ((t[step:] + t[:-step])[keep] / 2.0), angle[keep] / dt[keep]
 
