@@ -334,6 +334,9 @@ def test_a_directory_or_a_journal_in_use_is_refused(tmp_path):
     opened, _ = started(tmp_path / 'samples.csv')
     with pytest.raises(JournalRefused, match='in use by another running calibrator'):
         started(tmp_path / 'samples.csv', resume=True)
+    (tmp_path / 'link.csv').symlink_to(tmp_path / 'samples.csv')   # one journal, two names
+    with pytest.raises(JournalRefused, match='in use by another running calibrator'):
+        started(tmp_path / 'link.csv', resume=True)
     opened.close()
     started(tmp_path / 'samples.csv', resume=True)[0].close()
     with pytest.raises(FileExistsError):

@@ -104,6 +104,19 @@ def test_invalid_values_are_refused_with_the_reason(name, value, words):
     assert name in str(error.value) and words in str(error.value)
 
 
+def test_two_files_at_one_path_are_refused(tmp_path):
+    """result_file at the journal's path: ~/save had replaced the samples with the result."""
+    journal = tmp_path / 'samples.csv'
+    (tmp_path / 'link.csv').symlink_to(journal)
+    for name, path in (('result_file', journal), ('easy_handeye2_file', tmp_path / 'link.csv')):
+        with pytest.raises(ConfigError, match=f'samples_file and {name} are one file'):
+            Settings.from_values(dict(DEFAULTS, samples_file=str(journal), **{name: str(path)}))
+    with pytest.raises(ConfigError, match='result_file and easy_handeye2_file are one file'):
+        Settings.from_values(dict(DEFAULTS, result_file='~/r.yaml', easy_handeye2_file='~/r.yaml'))
+    apart = Settings.from_values(dict(DEFAULTS, easy_handeye2_file=str(tmp_path / 'a.calib')))
+    assert apart.easy_handeye2_file.endswith('a.calib')
+
+
 def test_integers_for_floats_become_floats():
     config = Settings.from_values(dict(DEFAULTS, still_window_s=1))
     assert config.still_window_s == 1.0 and isinstance(config.still_window_s, float)

@@ -132,15 +132,22 @@ def test_a_journal_deleted_while_the_node_runs_is_re_created_in_order(tmp_path):
     record.close()
 
 
-def test_a_file_put_in_the_journals_place_is_moved_aside_not_overwritten(tmp_path):
+@pytest.mark.parametrize('new_header', [False, True])
+def test_a_file_put_in_the_journals_place_is_moved_aside_not_overwritten(tmp_path, new_header):
+    """And a setup change meanwhile (it once wrote our first line into that file, used it)."""
     _, samples = cell_samples(3)
     path = tmp_path / 'samples.csv'
     record = SamplesJournal(path, HEADER, resume=False)
     record.append(samples[:1], samples[:1])
     path.unlink()
     path.write_text("somebody else's notes\n")
-    record.append(samples[1:], samples)
-    assert_same(journal.read_journal(path).samples, samples)
+    header = replace(HEADER, setup='eye_to_hand') if new_header else HEADER
+    assert record.set_header(header) == []
+    assert path.read_text() == "somebody else's notes\n"
+    record.append(samples[1:], samples)   # re-created (with the new header), the file aside
+    contents = journal.read_journal(path)
+    assert contents.header == header
+    assert_same(contents.samples, samples)
     (aside,) = [p for p in tmp_path.iterdir() if '.previous-' in p.name]
     assert aside.read_text() == "somebody else's notes\n"
     record.close()
@@ -164,3 +171,31 @@ def test_a_path_that_is_not_a_regular_file_is_never_replaced(tmp_path, result, d
     after = os.stat(device)
     assert (after.st_ino, after.st_mode, after.st_rdev) == \
         (before.st_ino, before.st_mode, before.st_rdev)
+
+
+def test_a_new_header_that_could_not_be_written_is_written_with_the_next_sample(
+        tmp_path, monkeypatch):
+    """A full disk at a setup change once left the old setup in the journal for good."""
+    _, samples = cell_samples(3)
+    path = tmp_path / 'samples.csv'
+    record = SamplesJournal(path, HEADER, resume=False)
+    record.append(samples[:1], samples[:1])
+    real_write = journal.atomic_write_text
+
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, 'No space left on device')
+    monkeypatch.setattr(journal, 'atomic_write_text', full_disk)
+    changed = replace(HEADER, setup='eye_to_hand')
+    ((level, text),) = record.set_header(changed)
+    assert level == 'error' and text.startswith('the new setup or frames are not yet recorded')
+    assert record.problem == text and journal.read_journal(path).header == HEADER
+    monkeypatch.setattr(journal, 'atomic_write_text', real_write)
+    assert record.append(samples[1:2], samples[:2]) == [] and record.sync() == []
+    assert record.problem is None
+    contents = journal.read_journal(path)
+    assert contents.header == changed
+    assert_same(contents.samples, samples[:2])
+    # and ~/reset starts the new journal with it too
+    record.restart()
+    assert journal.read_journal(path).header == changed
+    record.close()

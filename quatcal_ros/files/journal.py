@@ -270,6 +270,7 @@ class Journal:
     def __init__(self, path, header, count=0, lock_fd=None):
         self.path = absolute(path)
         self.header = header
+        self.header_written = True   # False: set_header's first line is not in the file yet
         self.count = count
         self._lock_fd = lock_fd
         self._fd = None
@@ -316,11 +317,18 @@ class Journal:
         self.flush(sync)
 
     def flush(self, sync=True):
-        """Write the samples not yet in the file (see append), fsync'd unless sync=False."""
+        """
+        Write the samples not yet in the file (see append), fsync'd unless sync=False.
+
+        And a first line that set_header could not write.
+        """
         if self._fd is None and self._unwritten:   # a restart that failed: try it again
             if not self.path.exists():
                 _write_empty(self.path, self.header)
+                self.header_written = True
             self._open()
+        if not self.header_written and not self.lost():
+            self._write_header()
         while self._unwritten:
             data = self._unwritten[0]
             if os.fstat(self._fd).st_size != self._size:
@@ -358,6 +366,7 @@ class Journal:
             move_aside(self.path, PREVIOUS)
         atomic_write_text(self.path, self.header.line() + '\n'
                           + format_samples(samples, covariance_columns=True))
+        self.header_written = True
         os.close(self._fd)
         self._fd = None
         self.count = len(samples)
@@ -373,17 +382,26 @@ class Journal:
 
     def set_header(self, header):
         """
-        Rewrite the first line (setup or frames changed at runtime), atomically.
+        Take a new first line (setup or frames changed at runtime) and write it, atomically.
 
-        The sample lines stay byte for byte; raise OSError when the file cannot be replaced.
+        The header is taken at once: a write that fails is tried again by the next flush, and
+        rewrite and restart write it too. The sample lines stay byte for byte. A journal
+        deleted or replaced meanwhile (`lost`) is not read (a file put in its place is not
+        ours): the next append re-creates it, with this header (SamplesJournal.append).
+        :raises OSError: when the file cannot be replaced (header_written stays False).
         """
-        if header == self.header:
+        if header == self.header and self.header_written:
             return
-        self.flush()
-        data = self.path.read_bytes()
+        self.header, self.header_written = header, False
+        if self.lost():
+            return
+        self.flush()   # the samples not yet written, and the header
+
+    def _write_header(self):
+        data = self.path.read_bytes()[:self._size]   # not a partial line of a failed write
         rest = data[data.index(b'\n'):]
-        atomic_write_text(self.path, header.line() + rest.decode('utf-8'))
-        self.header = header
+        atomic_write_text(self.path, self.header.line() + rest.decode('utf-8'))
+        self.header_written = True
         os.close(self._fd)
         self._open()
 
@@ -407,6 +425,7 @@ class Journal:
         self._unwritten = []
         self._unsynced = False
         _write_empty(self.path, self.header)
+        self.header_written = True
         self._open()
         return moved
 
@@ -438,8 +457,12 @@ def absolute(path):
 
 
 def lock_path(path):
-    """Return the lock file of the journal `path`: .NAME.lock beside it."""
-    path = absolute(path)
+    """
+    Return the lock file of the journal `path`: .NAME.lock beside the file it names.
+
+    Symbolic links are followed, so two names of one journal share one lock.
+    """
+    path = Path(os.path.realpath(absolute(path)))
     return path.with_name(f'.{path.name}.lock')
 
 

@@ -89,12 +89,7 @@ class SamplesJournal:
 
     def set_header(self, header):
         """Record a runtime change of setup or frames in the first line; errors to log."""
-        try:
-            self.journal.set_header(header)
-        except OSError as error:
-            return [('error', f'could not record the new setup or frames in {self.path}: '
-                              f'{error}')]
-        return []
+        return self._call(self.journal.set_header, header)
 
     def close(self):
         """Close the journal and release its lock."""
@@ -105,16 +100,21 @@ class SamplesJournal:
             method(*args, **kwargs)
         except OSError as error:
             reason = error.strerror or error
-            if self.journal.unwritten:
+            unsaved = self.journal.unwritten
+            if not self.journal.header_written:
+                also = f', nor {unsaved} captured samples saved' if unsaved else ''
+                self.problem = (f'the new setup or frames are not yet recorded in {self.path}'
+                                f'{also} ({reason}): tried again with the next sample')
+            elif unsaved:
                 self.problem = (
-                    f'{self.journal.unwritten} captured samples not yet saved to '
+                    f'{unsaved} captured samples not yet saved to '
                     f'{self.path} ({reason}): they are kept and written with the next sample')
             else:
                 self.problem = (
                     f'could not fsync {self.path} ({reason}): the samples are in the file '
                     'but may not survive a power cut; tried again with the next sample')
             return [('error', self.problem)]
-        if not self.journal.unwritten:
+        if not self.journal.unwritten and self.journal.header_written:
             self.problem = None
         return []
 

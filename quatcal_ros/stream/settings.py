@@ -22,6 +22,7 @@ last sample before the next still capture is derived from the still bands
 
 from dataclasses import asdict, dataclass, field, make_dataclass
 import math
+import os
 
 from quatcal_ros.core.calibration import CalibrationOptions, METHODS
 from quatcal_ros.core.planner import PlanLimits
@@ -264,7 +265,8 @@ SETTINGS = (
             'is within validation_max_rotation_deg.', unit='mm', low=0.0, high=1e6,
             tools=BOTH),
     Setting('result_file', DEFAULT_RESULT_FILE,
-            'Where ~/save writes the result YAML (~ is expanded; written atomically).'),
+            'Where ~/save writes the result YAML (~ is expanded; written atomically). A '
+            'path of its own: not samples_file nor easy_handeye2_file.'),
     Setting('easy_handeye2_file', '',
             "~/save also writes the result here in easy_handeye2's calibration layout "
             '(parameters + transform; ~ is expanded; written atomically), e.g. '
@@ -326,8 +328,30 @@ def _from_values(values):
         raise ConfigError(IMAGES_NOT_INVERTED)
     known_translation(settings.known_translation)
     _check_result_frames(settings)
+    _check_files(settings)
     session_config(settings)   # the core's own consistency checks
     return settings
+
+
+FILES = ('samples_file', 'result_file', 'easy_handeye2_file')
+
+
+def _check_files(settings):
+    """
+    Raise ConfigError when two of the node's files are one (~ expanded, links followed).
+
+    ~/save with result_file at the journal's path had replaced the samples with the result.
+    """
+    seen = {}
+    for name in FILES:
+        path = getattr(settings, name)
+        if not path:
+            continue
+        target = os.path.realpath(os.path.expanduser(path))
+        if target in seen:
+            raise ConfigError(f'{seen[target]} and {name} are one file, {path!r}: ~/save '
+                              'would replace the one with the other; give each its own path')
+        seen[target] = name
 
 
 def _as_dict(self):
