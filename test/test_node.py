@@ -333,6 +333,13 @@ def test_parameters_at_runtime(harness_factory, monkeypatch):
     assert result.successful and sent == [estimate]
     (result,) = node.set_parameters([Parameter('plan_view_cone_deg', value=25.0)])
     assert result.successful and len(sent) == 1
+    # eye_to_hand with link_frame at its default: the parent is link_frame_id's frame
+    result = node.set_parameters_atomically([Parameter('setup', value='eye_to_hand'),
+                                            Parameter('link_frame', value='tool0')])
+    assert result.successful and len(sent) == 1   # a new session: nothing to republish yet
+    (result,) = node.set_parameters([Parameter('link_frame_id', value='world')])
+    assert result.successful and node.config.result_frames == ('world', 'camera_optical')
+    assert sent == [estimate, estimate]
 
 
 def test_transform_messages_with_pose_type_transform(harness_factory):

@@ -430,8 +430,10 @@ class CalibratorNode(Node):
                 self.get_logger().info(
                     f're-estimating from the {len(samples)} samples with the new settings')
                 self._add_known_samples(samples)
-        elif {'link_frame', 'sensor_frame'} & set(changed) and self.result is not None:
-            self.publish_estimate(self.result)   # the same estimate, between the new frames
+        elif old.result_frames != self.config.result_frames and self.result is not None:
+            # the same estimate, between the new frames (eye_to_hand's parent follows
+            # link_frame_id while link_frame is left at its default)
+            self.publish_estimate(self.result)
 
 
 def main(args=None):
