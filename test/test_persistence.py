@@ -133,6 +133,20 @@ def test_result_yaml_round_trip(tmp_path, real_result):
     assert 'xacro: |\n  <?xml' in text
 
 
+def test_a_new_file_follows_the_umask_and_a_link_loop_is_an_os_error(tmp_path):
+    """Files were always 0644 under umask 077; a link loop raised RuntimeError."""
+    before = os.umask(0o077)
+    try:
+        persistence.atomic_write_text(tmp_path / 'private.yaml', 'x')
+    finally:
+        os.umask(before)
+    assert (tmp_path / 'private.yaml').stat().st_mode & 0o777 == 0o600
+    os.symlink(tmp_path / 'b', tmp_path / 'a')
+    os.symlink(tmp_path / 'a', tmp_path / 'b')
+    with pytest.raises(OSError, match='a loop of symbolic links; nothing was written'):
+        persistence.atomic_write_text(tmp_path / 'a', 'x')
+
+
 def test_a_write_below_a_file_or_a_dangling_link_is_an_os_error(tmp_path):
     (tmp_path / 'file').write_text('')
     os.symlink(tmp_path / 'gone', tmp_path / 'dangling')

@@ -69,6 +69,13 @@ def test_the_page_holds_every_part_and_loads_nothing(cell):
                 or 'xlink:href' in attrs and not attrs['xlink:href'].startswith('#')]
 
 
+def test_frame_names_are_drawn_as_they_are(cell):
+    """A $ in a frame name was read as TeX by matplotlib: 'cam$x^$' raised a ParseException."""
+    samples, options, result = cell
+    page = report_html(result, samples, options, ('tool$0', 'cam$x^$'), 'cell 11')
+    assert 'cam$x^$' in page and 'tool$0' in page
+
+
 def test_rejected_and_down_weighted_samples_are_marked(cell):
     samples, _, result = cell
     states = result.sample_states(len(samples))

@@ -58,23 +58,30 @@ def atomic_write_bytes(path, data, mode=0o644):
     Replace the file `path` by `data` atomically; create missing parent directories.
 
     A symbolic link is followed: the file it points to is replaced, the link stays. An
-    existing file keeps its permission bits; created directories are made durable too.
+    existing file keeps its permission bits; a new one gets `mode` less the umask, as open()
+    gives; created directories are made durable too.
 
     :param path: target file (str or path-like); `~` is expanded.
     :param data: bytes to write.
-    :param mode: permission bits of a new file.
+    :param mode: permission bits of a new file, before the umask.
     :return: the target as an absolute pathlib.Path.
-    :raises OSError: when the directory cannot be created or written; the target is unchanged.
+    :raises OSError: when the directory cannot be created or written (a symbolic link loop
+        too); the target is unchanged.
     """
     target = Path(path).expanduser().absolute()
     if target.is_symlink():
-        target = target.resolve()
+        target = Path(os.path.realpath(target, strict=False))
+        if target.is_symlink():   # realpath stops at a loop
+            raise OSError(errno.ELOOP, 'a loop of symbolic links; nothing was written',
+                          str(path))
     if target.exists() and not target.is_file():
         # A device (/dev/null), a pipe or a directory is never renamed over.
         raise OSError(errno.EEXIST, 'exists and is not a regular file; nothing was written',
                       str(target))
     if target.exists():
         mode = target.stat().st_mode & 0o7777
+    else:
+        mode &= ~_umask()
     created = [d for d in target.parents if not d.exists()]
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
@@ -99,6 +106,25 @@ def atomic_write_bytes(path, data, mode=0o644):
     for folder in created:   # their entries in their parents, innermost first
         _fsync_directory(folder.parent)
     return target
+
+
+def _umask():
+    """
+    Return the process's umask.
+
+    From /proc (Linux): setting it to read it, as os.umask must, would change it for a
+    moment for the node's other threads too.
+    """
+    try:
+        with open('/proc/self/status', encoding='ascii') as status:
+            for line in status:
+                if line.startswith('Umask:'):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)   # pragma: no cover - no /proc
+    os.umask(mask)
+    return mask
 
 
 def atomic_write_text(path, text, mode=0o644, encoding='utf-8'):

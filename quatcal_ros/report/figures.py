@@ -17,7 +17,8 @@ AXIS_COLOURS = ('#d64541', '#3aa655', '#3b7dd8')   # x red, y green, z blue (RVi
 def _pyplot():
     import matplotlib
     matplotlib.use('Agg')
-    matplotlib.rcParams.update({'svg.fonttype': 'none', 'font.size': 9,
+    # text.parse_math off: a frame name with $ in it is a name, not TeX (it had raised)
+    matplotlib.rcParams.update({'svg.fonttype': 'none', 'font.size': 9, 'text.parse_math': False,
                                 'axes.spines.top': False, 'axes.spines.right': False})
     from matplotlib import pyplot
     return pyplot
