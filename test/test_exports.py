@@ -275,3 +275,25 @@ def test_the_urdf_joint_and_xacro_macro_hold_the_mounting():
     macro = robot.find('{http://www.ros.org/wiki/xacro}macro')
     assert macro.get('params') == 'parent:=tool0'
     assert macro.find('joint/parent').get('link') == '${parent}'
+
+
+@pytest.mark.parametrize('child, name', [
+    ('camera', 'camera_mount'), ('robot1/camera_link', 'robot1_camera_link_mount'),
+    ('cam:optical', 'cam_optical_mount'), ('3d_camera', '_3d_camera_mount'),
+    ('cam link', 'cam_link_mount'), ('cam${x}', 'cam__x__mount')])
+def test_the_xacro_macro_can_be_called_for_any_frame_name(child, name):
+    """
+    Its name was CHILD_mount as it is: no <xacro:robot1/camera_link_mount/> can be written.
+
+    And xacro evaluates ${...} and $(...) in attributes: a frame name holding one is escaped
+    ($${, which xacro reads back as ${). Checked with xacro 2.1.1 itself by hand.
+    """
+    import xml.etree.ElementTree as ElementTree
+
+    from quatcal_ros.core.calibration import Estimate
+    result = Estimate(quat.IDENTITY, np.array([0.01, -0.2, 0.35]), 0.1, 1.0)
+    text = exports.xacro_macro(result, 'tool${0}', child)
+    macro = ElementTree.fromstring(text).find('{http://www.ros.org/wiki/xacro}macro')
+    assert macro.get('name') == name and macro.get('params') == 'parent:=tool$${0}'
+    ElementTree.fromstring(f'<r xmlns:xacro="x"><xacro:{name} parent="p"/></r>')   # callable
+    assert macro.find('joint/child').get('link') == child.replace('${', '$${')

@@ -36,6 +36,7 @@ Core module: standard library, numpy and PyYAML; no rclpy.  Quaternions in the c
 from html import escape   # &, <, >, both quotes: XML attribute values (and a light import)
 import math
 from pathlib import Path
+import re
 import shlex
 
 import numpy as np
@@ -257,12 +258,22 @@ def xacro_macro(result, parent_frame, child_frame):
     Return the result as a xacro macro (text): the fixed joint, with the parent a parameter.
 
     <xacro:CHILD_mount parent="PARENT"/> in a robot's xacro adds the joint (the child link
-    itself is the sensor driver's or the description's).
+    itself is the sensor driver's or the description's). CHILD is the child frame with each
+    character that an XML name cannot hold as _ (and a leading digit after one): a frame
+    such as robot1/camera_link gave an element nobody could write. A ${ or $( in a frame
+    name is written $${ or $$(, which xacro reads back as the name, not an expression.
     """
-    name = escape(f'{child_frame}_mount')
+    name = re.sub(r'[^A-Za-z0-9_]', '_', str(child_frame))
+    name = f'_{name}' if name[:1].isdigit() else name
+    default = _xacro_literal(escape(str(parent_frame)))
     return ('<?xml version="1.0"?>\n'
             '<robot xmlns:xacro="http://www.ros.org/wiki/xacro">\n'
-            f'  <xacro:macro name="{name}" params="parent:={escape(str(parent_frame))}">\n'
-            + _joint(result, '${parent}', child_frame, indent='    ')
+            f'  <xacro:macro name="{name}_mount" params="parent:={default}">\n'
+            + _joint(result, '${parent}', _xacro_literal(str(child_frame)), indent='    ')
             + '  </xacro:macro>\n'
             '</robot>\n')
+
+
+def _xacro_literal(text):
+    """Return `text` with each ${ and $( escaped (one more $), as xacro reads it back."""
+    return re.sub(r'(\$+)(?=[{(])', r'\1$', text)
