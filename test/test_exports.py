@@ -85,6 +85,15 @@ def test_easy_handeye2_layout_round_trip(solved):
     assert np.degrees(quat.angle_between(q, cell.mounting.quaternion)) < 0.3
 
 
+def test_a_line_break_in_a_frame_name_stays_in_its_comment():
+    """The name went into the header comment as it was: the file gained a top-level key."""
+    result = FakeResult(quat.IDENTITY, np.array([0.6, -0.25, 0.83]))
+    child = 'camera\nmove_group: evil'
+    document = yaml.safe_load(exports.easy_handeye2_yaml(result, 'tool0', child))
+    assert list(document) == ['parameters', 'transform']
+    assert document['parameters']['tracking_base_frame'] == child
+
+
 def test_easy_handeye2_eye_to_hand_is_eye_on_base():
     q = quat.normalize(np.array([-0.2, 0.5, 0.1, 0.8]))   # w < 0: written with w >= 0
     result = FakeResult(q, np.array([0.6, -0.25, 0.83]))

@@ -165,8 +165,8 @@ def easy_handeye2_yaml(result, parent_frame, child_frame, setup='eye_in_hand', n
                                       **parameters)
     header = (
         '# Hand-eye calibration by quatcal_ros, in the easy_handeye2 calibration layout\n'
-        f'# (easy_handeye2_msgs/HandeyeCalibration). transform: {parent_frame} -> '
-        f'{child_frame},\n'
+        f'# (easy_handeye2_msgs/HandeyeCalibration). transform: {_comment(parent_frame)} -> '
+        f'{_comment(child_frame)},\n'
         '# translation in metres, rotation quaternion x, y, z, w.\n'
         f'# method {getattr(result, "method", "") or "unknown"}, '
         f'{getattr(result, "samples", "?")} samples; '
@@ -176,6 +176,11 @@ def easy_handeye2_yaml(result, parent_frame, child_frame, setup='eye_in_hand', n
         '# easy_handeye2 loads it from ~/.ros2/easy_handeye2/calibrations/NAME.calib, NAME = '
         'parameters.name.\n')
     return header + plain_yaml.dump(document, sort_keys=False, default_flow_style=False)
+
+
+def _comment(text):
+    """Return `text` for a YAML comment: control characters (a line break) as \\xNN."""
+    return re.sub(r'[\x00-\x1f\x7f]', lambda m: f'\\x{ord(m.group()):02x}', str(text))
 
 
 def easy_handeye2_name(path):
