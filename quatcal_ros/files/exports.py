@@ -179,7 +179,7 @@ def easy_handeye2_yaml(result, parent_frame, child_frame, setup='eye_in_hand', n
 
 
 def _comment(text):
-    """Return `text` for a YAML comment: control characters (a line break) as \\xNN."""
+    """Return `text` for a YAML comment: each control character (a line break) as its code."""
     return re.sub(r'[\x00-\x1f\x7f]', lambda m: f'\\x{ord(m.group()):02x}', str(text))
 
 
