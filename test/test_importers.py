@@ -507,3 +507,25 @@ def test_json_and_yaml_with_a_byte_order_mark_are_read(tmp_path):
         path = tmp_path / name
         path.write_text('\ufeff' + text, encoding='utf-8')
         assert len(importers.load_samples(path).samples) == 4
+
+
+def test_an_earlier_eye_to_hand_journal_names_no_flange_as_the_base(tmp_path):
+    """
+    Earlier eye-to-hand journals wrote the flange's default name (tool0) for the base.
+
+    `solve` passed it on as robot_base_frame: base -> camera hung off the moving flange.
+    """
+    from quatcal_ros.files.journal import JournalHeader
+    _, samples = cell_samples(1, 'eye_to_hand', n=6)
+    path = tmp_path / 'legacy.csv'
+    path.write_text(JournalHeader('eye_to_hand', 'tool0', 'camera').line() + '\n'
+                    + format_samples(samples))
+    loaded = importers.load_samples(path)
+    assert loaded.setup == 'eye_to_hand'
+    assert loaded.frames == {'tracking_base_frame': 'camera'}
+    assert 'link_frame tool0 is the default flange name, not the robot base' in \
+        loaded.warnings[0]
+    named = tmp_path / 'named.csv'
+    named.write_text(JournalHeader('eye_to_hand', 'world', 'camera').line() + '\n'
+                     + format_samples(samples))
+    assert importers.load_samples(named).frames['robot_base_frame'] == 'world'

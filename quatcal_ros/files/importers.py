@@ -344,9 +344,14 @@ def _csv_samples(text, name, setup=None, invert_sensor=None):
             f'{setup}, as --setup says (its frame names, {header.link_frame} -> '
             f'{header.sensor_frame}, belong to {header.setup} and are not used)'])
     parent = 'robot_effector_frame' if header.setup == 'eye_in_hand' else 'robot_base_frame'
-    return ImportedSamples(samples, 'csv', header.setup,
-                           {parent: header.link_frame, 'tracking_base_frame': header.sensor_frame},
-                           warnings, invert)
+    frames = {parent: header.link_frame, 'tracking_base_frame': header.sensor_frame}
+    if journal.unnamed_base(header):   # the default base names it, as a resumed node does
+        del frames[parent]
+        warnings.append(f'{name}: an eye_to_hand journal of an earlier version, whose '
+                        f'link_frame {header.link_frame} is the default flange name, not the '
+                        'robot base: the result is named from the default base frame (give '
+                        '--parent-frame to name it)')
+    return ImportedSamples(samples, 'csv', header.setup, frames, warnings, invert)
 
 
 def load_samples(path, file_format='auto', setup=None, invert_sensor=None):

@@ -526,15 +526,20 @@ def start(path, header, resume, now=None):
         raise
 
 
-def _unnamed_base(recorded, wanted):
+def unnamed_base(recorded):
     """
     Return whether `recorded` is an eye-to-hand header of an earlier version's default base.
 
     Before they took link_frame_id or base_link, eye-to-hand sessions left link_frame at its
     default named the robot base LEGACY_BASE_FRAME (a flange's name): no frame was named.
     """
-    return (recorded.setup == wanted.setup == 'eye_to_hand'
-            and recorded.link_frame == LEGACY_BASE_FRAME != wanted.link_frame)
+    return recorded.setup == 'eye_to_hand' and recorded.link_frame == LEGACY_BASE_FRAME
+
+
+def _unnamed_base(recorded, wanted):
+    """Return unnamed_base(recorded) for a resume with the header `wanted` of another base."""
+    return (unnamed_base(recorded) and wanted.setup == 'eye_to_hand'
+            and wanted.link_frame != LEGACY_BASE_FRAME)
 
 
 def _start_locked(path, header, resume, lock_fd, now):
