@@ -293,6 +293,17 @@ def test_manual_capture_service(harness_factory):
     assert len(h.node.session.samples) == 2
 
 
+def test_manual_capture_with_stamps_behind_the_node_clock(harness_factory):
+    """Stamps 5 s behind (another machine's clock): 'no paired poses in the last 1.0 s'."""
+    cell = simulation.random_cell(np.random.default_rng(3))
+    h = harness_factory([Parameter('capture_mode', value='manual'),
+                         Parameter('still_window_s', value=0.2)])
+    start = h.node.now_ns() - 5 * NS - int(0.5 * NS)
+    h.publish_events(still_events(cell, cell.home, start, duration_s=0.5, rate_hz=40.0))
+    captured = h.call('capture')
+    assert captured.success, captured.message
+
+
 # --- parameters -----------------------------------------------------------------------------
 
 def test_invalid_parameters_are_refused_at_start(domain_id):

@@ -99,6 +99,7 @@ class CalibratorNode(Node):
             else (self.images.sensor, self.config.image_transport, self._on_new_camera),
             self._add_poses)
         self.next_pose = None   # the planner's proposal for the latest estimate
+        self._newest_stamp = {}   # stream: (its latest stamp, the node clock when it came)
         self.next_pose_publisher = self.create_publisher(
             PoseStamped, '~/next_pose', LATCHED_QOS, event_callbacks=quiet_publisher_events())
         self.markers_publisher = self.create_publisher(
@@ -147,8 +148,27 @@ class CalibratorNode(Node):
         """Return the node clock (ROS time; simulated with use_sim_time) in nanoseconds."""
         return self.get_clock().now().nanoseconds
 
+    def stamps_now_ns(self):
+        """
+        Return the time now on the clock of the poses' stamps (the session's clock).
+
+        The latest stamp of a stream plus the node time since it came (the later of the two
+        streams'; the sensor's with sensor_time_offset_s): stamps a second or more behind
+        the node clock (a slow detector, another machine's clock) are recent all the same.
+        The node clock itself before any pose.
+        """
+        now_ns = self.now_ns()
+        offsets = {LINK: 0, SENSOR: self.session.config.sensor_offset_ns}
+        return max((stamp_ns + offsets[stream] + now_ns - came_ns
+                    for stream, (stamp_ns, came_ns) in self._newest_stamp.items()),
+                   default=now_ns)
+
+    def _note_stamp(self, stream, stamp_ns, now_ns):
+        self._newest_stamp[stream] = (stamp_ns, now_ns)   # the latest (after a time jump too)
+
     def _add_pose(self, stream, taken, now_ns):
         """Give a checked (stamp_ns, Pose) to the session; handle what it says."""
+        self._note_stamp(stream, taken[0], now_ns)
         add = self.session.add_link_pose if stream == LINK else self.session.add_sensor_pose
         events = self.inputs.screen.verdict(stream, add(*taken), now_ns)
         if events:
@@ -156,6 +176,7 @@ class CalibratorNode(Node):
 
     def _add_poses(self, stream, stamps_ns, positions, quaternions_wxyz, now_ns):
         """Give a run of checked poses of one stream to the session at once (add_poses)."""
+        self._note_stamp(stream, stamps_ns[-1], now_ns)
         events = self.inputs.screen.verdict(
             stream, self.session.add_poses(SESSION_STREAMS[stream], stamps_ns, positions,
                                            quaternions_wxyz), now_ns, count=len(stamps_ns))
@@ -352,7 +373,7 @@ class CalibratorNode(Node):
 
     def _on_capture(self, request, response):
         self.inputs.flush()
-        ok, reason = self.session.capture(self.now_ns())
+        ok, reason = self.session.capture(self.stamps_now_ns())
         self.handle_events(self.session.pop_events())
         if not ok:
             self.get_logger().info(f'capture refused: {reason}')
