@@ -239,3 +239,23 @@ def test_config_is_checked():
         CaptureConfig(min_departure_deg=0.1, rotation_band_deg=0.2)
     with pytest.raises(ValueError, match='positive'):
         CaptureConfig(window_ns=0)
+
+
+@pytest.mark.parametrize('bare, kept', [
+    (lambda k: False, True), (lambda k: k % 10 == 5, True), (lambda k: k % 3 == 0, True),
+    (lambda k: k % 3 != 0, False)])
+def test_a_still_sample_keeps_its_covariance_when_most_frames_have_one(bare, kept):
+    """One frame without a covariance left the sample without one (the session's all with it)."""
+    rng = np.random.default_rng(12)
+    link, sensor = Pose.identity(), Pose(np.array([0.1, 0.2, 0.5]), quat.IDENTITY)
+    covariance = np.diag([1e-6, 1e-6, 4e-6, 1e-5, 1e-5, 1e-5])
+    moved = [Pair(k * 10**6, turned(link, 30.0), sensor) for k in range(3)]
+    pairs = still_pairs(rng, link, sensor, 10**9, 1.0, 30.0)
+    pairs = [Pair(pair.stamp_ns, pair.link, Pose(pair.sensor.position, pair.sensor.quaternion,
+                                                 None if bare(k) else covariance))
+             for k, pair in enumerate(pairs)]
+    (sample,) = run(Capture(CaptureConfig()), moved + pairs)
+    if kept:
+        assert_allclose(sample.sensor.covariance, covariance)
+    else:
+        assert sample.sensor.covariance is None

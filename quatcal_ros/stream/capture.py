@@ -142,16 +142,19 @@ class _PairWindow:
         """
         One Sample: the mean of the kept pairs, stamped at the middle of their span.
 
-        When every sensor pose of the window has a covariance, the sample's is their mean:
-        not divided by the number of frames, whose errors in a still window are mostly
-        shared (the same view of the target); refine fits the overall scale anyway.
+        When most sensor poses of the window have a covariance, the sample's is the mean of
+        theirs (one frame without, an all-zero covariance or a frame the detector sent bare,
+        had left the sample without one, and the session's every sample with it:
+        calibration.sensor_covariances): not divided by the number of frames, whose errors in
+        a still window are mostly shared (the same view of the target); refine fits the
+        overall scale anyway.
         """
         q, p = self._arrays()
         p = p.mean(axis=1)
         stamp = self.link.oldest_ns + self.span_ns // 2
-        covariances = [pose.covariance for pose in self.sensor.poses()]
-        covariance = (None if any(c is None for c in covariances)
-                      else np.mean(covariances, axis=0))
+        poses = self.sensor.poses()
+        given = [pose.covariance for pose in poses if pose.covariance is not None]
+        covariance = np.mean(given, axis=0) if 2 * len(given) > len(poses) else None
         return Sample(stamp, Pose(p[0], quat.average(q[0])),
                       Pose(p[1], quat.average(q[1]), covariance))
 
