@@ -12,8 +12,7 @@ params_file gives every other parameter (default: the package's config/calibrato
 
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
-from launch.conditions import IfCondition, UnlessCondition
-from launch.substitutions import LaunchConfiguration, PathJoinSubstitution, PythonExpression
+from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
 
@@ -37,15 +36,10 @@ def generate_launch_description():
             description='parameters of the calibrator (YAML)'),
     ]
     frames = {name: LaunchConfiguration(name) for name, _, _ in FRAMES}
-    eye_in_hand = PythonExpression(["'", LaunchConfiguration('setup'), "' == 'eye_in_hand'"])
-    nodes = []
-    for condition, parent in ((IfCondition(eye_in_hand), 'robot_effector_frame'),
-                              (UnlessCondition(eye_in_hand), 'robot_base_frame')):
-        nodes.append(Node(
-            package='quatcal_ros', executable='calibrator', name='calibrator', output='screen',
-            condition=condition,
-            parameters=[LaunchConfiguration('params_file'), frames, {
-                'setup': LaunchConfiguration('setup'),
-                'link_frame': LaunchConfiguration(parent),
-                'sensor_frame': LaunchConfiguration('tracking_base_frame')}]))
-    return LaunchDescription(arguments + nodes)
+    # link_frame and sensor_frame are left unset: with TF input the result is named by the
+    # TF frames of the setup, also after `ros2 param set /calibrator setup eye_to_hand`
+    # (link_frame set to the effector had refused that change).
+    node = Node(package='quatcal_ros', executable='calibrator', name='calibrator',
+                output='screen', parameters=[LaunchConfiguration('params_file'), frames,
+                                             {'setup': LaunchConfiguration('setup')}])
+    return LaunchDescription(arguments + [node])

@@ -24,4 +24,14 @@ def test_the_launch_file_compiles_and_declares_the_frames_setup_and_params_file(
     keys = {key.value for node in ast.walk(tree) if isinstance(node, ast.Dict)
             for key in node.keys if isinstance(key, ast.Constant)}
     assert keys <= {setting.name for setting in SETTINGS}
-    assert {'setup', 'link_frame', 'sensor_frame'} <= keys
+    # The result's frames follow the TF frames of the setup (a runtime setup change too).
+    assert 'setup' in keys and not {'link_frame', 'sensor_frame'} & keys
+
+
+def test_with_tf_frames_the_setup_can_change_at_runtime():
+    """The launch file set link_frame to the effector: eye_to_hand was then refused."""
+    from quatcal_ros.stream.settings import DEFAULTS, Settings
+    frames = dict(zip(TF_FRAMES, ('base_link', 'flange', 'camera', 'marker')))
+    config = Settings.from_values(dict(DEFAULTS, **frames))
+    assert config.result_frames == ('flange', 'camera')
+    assert config.updated(setup='eye_to_hand').result_frames == ('base_link', 'camera')
