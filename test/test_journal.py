@@ -400,3 +400,22 @@ def test_sensor_covariances_survive_the_journal(tmp_path):
     assert read[2].sensor.covariance is None
     for got, sample in zip(read[:2] + read[3:], samples):
         np.testing.assert_array_equal(got.sensor.covariance, sample.sensor.covariance)
+
+
+def test_a_journal_of_an_earlier_version_gains_the_covariance_columns_on_resume(tmp_path):
+    """Its 15-column row made the reader drop the covariances of every sample appended."""
+    from quatcal_ros.core.pose import Pose
+    samples = make_samples(3)
+    path = tmp_path / 'samples.csv'
+    path.write_text(HEADER.line() + '\n' + format_samples(samples[:2], covariance_columns=False))
+    opened, report = started(path, resume=True)
+    assert any('gained the covariance columns' in text for _, text in report.messages)
+    covariance = np.diag([1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-4])
+    last = samples[2]
+    opened.append(replace(last, sensor=Pose(last.sensor.position, last.sensor.quaternion,
+                                            covariance)))
+    opened.close()
+    read = journal.read_journal(path).samples
+    assert [s.sensor.covariance is None for s in read] == [True, True, False]
+    np.testing.assert_allclose(read[2].sensor.covariance, covariance)
+    assert_same_samples(read[:2], samples[:2])

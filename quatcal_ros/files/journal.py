@@ -157,6 +157,7 @@ class JournalContents:
     notices: list = field(default_factory=list)
     intact_bytes: int = 0       # length of the part that reads (the rest is a torn last line)
     size_bytes: int = 0
+    covariance_columns: bool = True   # False: an earlier version's column row, without them
 
 
 def read_journal(path):
@@ -207,7 +208,8 @@ def read_journal(path):
         samples = parse_samples(text, name)
     except BadInputError as error:
         raise JournalError(str(error)) from None
-    return JournalContents(header, samples, notices, end, size)
+    covariance = lines[1].rstrip('\r').split(',') == list(header_columns(True))
+    return JournalContents(header, samples, notices, end, size, covariance)
 
 
 def aside_path(path, tag, now=None):
@@ -398,9 +400,11 @@ class Journal:
         self.flush()   # the samples not yet written, and the header
 
     def _write_header(self):
+        """Write the first line and the column row (with the covariance columns) anew."""
         data = self.path.read_bytes()[:self._size]   # not a partial line of a failed write
-        rest = data[data.index(b'\n'):]
-        atomic_write_text(self.path, self.header.line() + rest.decode('utf-8'))
+        rows = data.split(b'\n', 2)[2]
+        atomic_write_text(self.path, f'{self.header.line()}\n{",".join(header_columns(True))}\n'
+                          + rows.decode('utf-8-sig'))
         self.header_written = True
         os.close(self._fd)
         self._open()
@@ -582,6 +586,12 @@ def _start_locked(path, header, resume, lock_fd, now):
             ('info', f'resumed {len(report.samples)} samples from {path}; new samples are '
                      'appended to it'))
         resumed = Journal(path, recorded, len(report.samples), lock_fd)
+        if not contents.covariance_columns:   # an earlier version's: new rows would lose theirs
+            resumed.header_written = False
+            resumed.flush()
+            report.messages.append(
+                ('info', f'{path}: the column row of an earlier version gained the covariance '
+                         'columns, so that samples appended keep their covariances'))
         if bool(recorded.invert_sensor) != bool(header.invert_sensor):   # how they are solved
             resumed.set_header(replace(resumed.header, invert_sensor=header.invert_sensor))
             report.messages.append(
