@@ -115,6 +115,18 @@ def test_an_unusable_covariance_is_refused_naming_why(change, problem):
     assert covariance_problem(np.eye(6) * 1e-18) is None   # 1 nm, 1 nrad: still a sensor
 
 
+@pytest.mark.parametrize('known', ['position', 'rotation'])
+def test_a_covariance_of_one_part_alone_is_unknown_not_bad(known):
+    """Only the position's variances (the rotation's zero): every message had been dropped."""
+    covariance = np.zeros((6, 6))
+    block = slice(0, 3) if known == 'position' else slice(3, 6)
+    covariance[block, block] = np.eye(3) * 1e-6
+    assert conv.covariance_from_msg(covariance.ravel()) is None
+    covariance[0, 5] = covariance[5, 0] = 1e-9   # correlated with the other part: not zero
+    with pytest.raises(conv.BadPoseError, match='not positive definite'):
+        conv.covariance_from_msg(covariance.ravel())
+
+
 def test_rosbags_messages_read_and_build(typestore):
     poses = _random_poses(20, seed=1)
     cls = typestore.types['geometry_msgs/msg/PoseStamped']

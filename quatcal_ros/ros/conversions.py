@@ -152,13 +152,18 @@ def _covariance_field(msg):
 
 def covariance_from_msg(values):
     """
-    Return a PoseWithCovariance's 36 values as a 6x6 (ROS order), or None when all are zero.
+    Return a PoseWithCovariance's 36 values as a 6x6 (ROS order), or None when unknown.
 
-    Zero is what drivers publish when they do not know the covariance. Raises BadPoseError
-    (reason 'bad_covariance') when the matrix is not usable (pose.covariance_problem).
+    Zero is what drivers publish when they do not know the covariance: all of it, or the
+    rotation's or the position's rows and columns alone (a driver that knows only the
+    other part; every such message had been dropped as bad): None, the pose is used
+    unweighted. Raises BadPoseError (reason 'bad_covariance') when the matrix is not usable
+    (pose.covariance_problem).
     """
     covariance = np.asarray(values, dtype=float).reshape(6, 6)
-    if not covariance.any():
+    position, rotation = covariance[:3, :3], covariance[3:, 3:]   # ROS order: position first
+    if not (position.any() and rotation.any()) and not (
+            covariance[:3, 3:].any() or covariance[3:, :3].any()):
         return None
     problem = covariance_problem(covariance)
     if problem:
