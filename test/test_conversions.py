@@ -125,6 +125,11 @@ def test_a_covariance_of_one_part_alone_is_unknown_not_bad(known):
     covariance[0, 5] = covariance[5, 0] = 1e-9   # correlated with the other part: not zero
     with pytest.raises(conv.BadPoseError, match='not positive definite'):
         conv.covariance_from_msg(covariance.ravel())
+    covariance[0, 5] = covariance[5, 0] = 0.0
+    for bad, problem in ((np.nan, 'NaN or inf'), (-1.0, 'variances must be > 0')):
+        covariance[block, block][1, 1] = bad   # the part given must be usable
+        with pytest.raises(conv.BadPoseError, match=problem):
+            conv.covariance_from_msg(covariance.ravel())
 
 
 def test_rosbags_messages_read_and_build(typestore):

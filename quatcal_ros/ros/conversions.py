@@ -156,16 +156,20 @@ def covariance_from_msg(values):
 
     Zero is what drivers publish when they do not know the covariance: all of it, or the
     rotation's or the position's rows and columns alone (a driver that knows only the
-    other part; every such message had been dropped as bad): None, the pose is used
-    unweighted. Raises BadPoseError (reason 'bad_covariance') when the matrix is not usable
+    other part, usable itself; every such message had been dropped as bad): None, the pose
+    is used unweighted. Raises BadPoseError (reason 'bad_covariance') when the matrix is not usable
     (pose.covariance_problem).
     """
     covariance = np.asarray(values, dtype=float).reshape(6, 6)
     position, rotation = covariance[:3, :3], covariance[3:, 3:]   # ROS order: position first
     if not (position.any() and rotation.any()) and not (
             covariance[:3, 3:].any() or covariance[3:, :3].any()):
-        return None
-    problem = covariance_problem(covariance)
+        given = position if position.any() else rotation   # zero too: all zero, unknown
+        problem = covariance_problem(given) if given.any() else None
+        if problem is None:
+            return None
+    else:
+        problem = covariance_problem(covariance)
     if problem:
         raise BadPoseError(f'pose.covariance: {problem}', 'pose.covariance', 'bad_covariance')
     return covariance
