@@ -337,7 +337,18 @@ def test_a_directory_or_a_journal_in_use_is_refused(tmp_path):
     (tmp_path / 'link.csv').symlink_to(tmp_path / 'samples.csv')   # one journal, two names
     with pytest.raises(JournalRefused, match='in use by another running calibrator'):
         started(tmp_path / 'link.csv', resume=True)
+    opened.append(make_samples(1)[0])
     opened.close()
+    # Started through the link, the journal is the file it names: moved aside, re-created
+    # and locked as such, the link kept (it had been replaced by a file of its own).
+    through, report = started(tmp_path / 'link.csv')
+    assert report.moved_to is not None and report.moved_to.parent == tmp_path
+    assert through.path == tmp_path / 'samples.csv' and (tmp_path / 'link.csv').is_symlink()
+    with pytest.raises(JournalRefused, match='in use by another running calibrator'):
+        started(tmp_path / 'samples.csv', resume=True)
+    through.restart(now=NOW)
+    assert (tmp_path / 'link.csv').is_symlink()
+    through.close()
     started(tmp_path / 'samples.csv', resume=True)[0].close()
     with pytest.raises(FileExistsError):
         journal.Journal.create(tmp_path / 'samples.csv', HEADER)

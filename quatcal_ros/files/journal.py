@@ -461,12 +461,8 @@ def absolute(path):
 
 
 def lock_path(path):
-    """
-    Return the lock file of the journal `path`: .NAME.lock beside the file it names.
-
-    Symbolic links are followed, so two names of one journal share one lock.
-    """
-    path = Path(os.path.realpath(absolute(path)))
+    """Return the lock file of the journal `path`: .NAME.lock beside it."""
+    path = absolute(path)
     return path.with_name(f'.{path.name}.lock')
 
 
@@ -507,7 +503,9 @@ def start(path, header, resume, now=None):
     - A journal with samples, resume=False: moved aside as NAME.previous-... (a 'warning' that
       says where, and that resume:=true would have continued it), a new journal.
 
-    :param path: the samples_file parameter (~ is expanded).
+    :param path: the samples_file parameter (~ is expanded; a symbolic link is followed: the
+        journal is the file it names, moved aside, re-created and locked as such, so that the
+        link stays and two names of one journal share its lock).
     :param header: JournalHeader of the node's parameters.
     :param resume: the resume parameter.
     :return: (Journal, StartReport).
@@ -515,7 +513,7 @@ def start(path, header, resume, now=None):
         the path is a directory.
     :raises OSError: when the directory or the file cannot be written.
     """
-    path = absolute(path)
+    path = Path(os.path.realpath(absolute(path)))
     if path.is_dir():
         raise JournalRefused(f'{path} is a directory; samples_file must name a file')
     if path.exists() and not path.is_file():   # a device such as /dev/null, a pipe, a socket
