@@ -430,3 +430,19 @@ def test_a_journal_of_an_earlier_version_gains_the_covariance_columns_on_resume(
     assert [s.sensor.covariance is None for s in read] == [True, True, False]
     np.testing.assert_allclose(read[2].sensor.covariance, covariance)
     assert_same_samples(read[:2], samples[:2])
+    # A column row in another order (read by name) is left as it is, the rows with it.
+    moved = tmp_path / 'moved.csv'
+    text = format_samples(samples[:2], covariance_columns=False)
+    columns, rows = text.split('\n', 1)
+    names = columns.split(',')
+    names[1], names[2] = names[2], names[1]
+    rows = '\n'.join(','.join(f[:1] + [f[2], f[1]] + f[3:]) for f in
+                     (row.split(',') for row in rows.strip().split('\n'))) + '\n'
+    moved.write_text(HEADER.line() + '\n' + ','.join(names) + '\n' + rows)
+    before = moved.read_text()
+    opened, _ = started(moved, resume=True)
+    assert moved.read_text() == before
+    opened.set_header(JournalHeader('eye_in_hand', 'flange', 'camera'))   # its second line too
+    opened.close()
+    assert moved.read_text().split('\n', 1)[1] == before.split('\n', 1)[1]
+    assert_same_samples(journal.read_journal(moved).samples, samples[:2])

@@ -208,8 +208,9 @@ def read_journal(path):
         samples = parse_samples(text, name)
     except BadInputError as error:
         raise JournalError(str(error)) from None
-    covariance = lines[1].rstrip('\r').split(',') == list(header_columns(True))
-    return JournalContents(header, samples, notices, end, size, covariance)
+    # the column row of an earlier version, as it wrote it (a file edited by hand is left be)
+    legacy = lines[1].rstrip('\r') == ','.join(header_columns(False))
+    return JournalContents(header, samples, notices, end, size, not legacy)
 
 
 def aside_path(path, tag, now=None):
@@ -400,11 +401,16 @@ class Journal:
         self.flush()   # the samples not yet written, and the header
 
     def _write_header(self):
-        """Write the first line and the column row (with the covariance columns) anew."""
+        """
+        Write the first line anew; and an earlier version's column row, with the covariances.
+
+        Any other second line (a column row in another order, a comment) stays as it is.
+        """
         data = self.path.read_bytes()[:self._size]   # not a partial line of a failed write
-        rows = data.split(b'\n', 2)[2]
-        atomic_write_text(self.path, f'{self.header.line()}\n{",".join(header_columns(True))}\n'
-                          + rows.decode('utf-8-sig'))
+        second, rest = data.decode('utf-8').split('\n', 1)[1].split('\n', 1)
+        if second.rstrip('\r') == ','.join(header_columns(False)):
+            second = ','.join(header_columns(True))
+        atomic_write_text(self.path, f'{self.header.line()}\n{second}\n{rest}')
         self.header_written = True
         os.close(self._fd)
         self._open()
