@@ -498,3 +498,20 @@ def test_a_single_stale_message_is_dropped_not_taken_for_a_time_jump():
     again = feed(session, messages[:len(messages) // 2])
     assert session.counters['time_jumps'] == 1
     assert of_type(again, Notice)[0].code == 'time_jump'
+
+
+def test_a_stale_last_message_before_a_pause_is_not_carried_into_a_new_timeline():
+    """It was held, then fed into the next timeline: a second time jump, and pairs lost."""
+    rng = np.random.default_rng(25)
+    streams, messages = stop_and_go_messages(rng, n_stops=3, drop_probability=0.0)
+    plain = Session()
+    feed(plain, messages + messages)   # the bag played twice
+    sensors = [k for k, m in enumerate(messages) if m[1] == SENSOR]
+    last = sensors[-1]
+    delivered, _, stamp, pose = messages[last]
+    stale = messages[:last] + [(delivered, SENSOR, stamp - 10**9, pose)] + messages[last + 1:]
+    session = Session()
+    events = feed(session, stale + messages)
+    assert session.counters['time_jumps'] == plain.counters['time_jumps'] == 1
+    assert [e.code for e in of_type(events, Rejected)] == ['stale_stamp']
+    assert session.counters['pairs'] == plain.counters['pairs'] - 1

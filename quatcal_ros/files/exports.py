@@ -179,8 +179,14 @@ def easy_handeye2_yaml(result, parent_frame, child_frame, setup='eye_in_hand', n
 
 
 def _comment(text):
-    """Return `text` for a YAML comment: each control character (a line break) as its code."""
-    return re.sub(r'[\x00-\x1f\x7f]', lambda m: f'\\x{ord(m.group()):02x}', str(text))
+    """
+    Return `text` for a YAML comment: each character that is not printable as its escape.
+
+    A line break of any kind (YAML ends a comment at NEL and the Unicode line and paragraph
+    separators too) would let the rest of the name become YAML.
+    """
+    return ''.join(c if c.isprintable() else c.encode('unicode_escape').decode('ascii')
+                   for c in str(text))
 
 
 def easy_handeye2_name(path):
@@ -264,7 +270,8 @@ def xacro_macro(result, parent_frame, child_frame):
 
     <xacro:CHILD_mount parent="PARENT"/> in a robot's xacro adds the joint (the child link
     itself is the sensor driver's or the description's). CHILD is the child frame with each
-    character that an XML name cannot hold as _ (and a leading digit after one): a frame
+    character other than an ASCII letter, digit or _ written _ (and a leading digit after
+    one), so that it is an XML name and a xacro one: a frame
     such as robot1/camera_link gave an element nobody could write. A ${ or $( in a frame
     name is written $${ or $$(, which xacro reads back as the name, not an expression.
     """

@@ -227,9 +227,10 @@ class Session:
         """
         Capture a sample now from the latest still window (manual mode, or any mode).
 
-        now_ns: the current time on the stamps' clock (the node's clock).  Returns (True,
-        description) or (False, the reason for refusing); the events of a capture come with
-        pop_events() or the next add_*() call.
+        now_ns: the current time on the stamps' clock (the node gives its estimate of it,
+        CalibratorNode.stamps_now_ns).  Returns (True, description) or (False, the reason
+        for refusing); the events of a capture come with pop_events() or the next add_*()
+        call.
         """
         sample, reason = self._capture.capture_now(int(now_ns))
         if sample is None:
@@ -372,11 +373,7 @@ class Session:
                 return events
             return events + self._new_timeline(stream, stamp_ns, pose)
         if stream in self._behind:   # its stream went on: it was a stale message
-            error = self._behind.pop(stream)[2]
-            events.append(self._reject(
-                TOPICS[stream], f'stamp {error.jump_ns * 1e-9:.3g} s older than the previous '
-                'message, and the next one went on from where the stream was: a stale '
-                'message, not a time jump: dropped', 'stale_stamp'))
+            events.append(self._stale(stream, self._behind.pop(stream)[2]))
         return events + self._paired(pairs)
 
     def _paired(self, pairs):
@@ -461,7 +458,12 @@ class Session:
                       f'interpolated at the {slower} stamps ({rates[slower]})')
 
     def _new_timeline(self, stream, stamp_ns, pose):
-        """Start the timeline the held message and this one agree on; return the events."""
+        """
+        Start the timeline the held message and this one agree on; return the events.
+
+        A held message of the other stream that is not near this one (more than time_jump_ns
+        away) is no part of it: a stale message whose stream paused after it, rejected.
+        """
         held = list(self._behind.items())
         self._behind.clear()
         self._pairer.reset()
@@ -470,12 +472,22 @@ class Session:
         jump_ns = held[0][1][2].jump_ns
         events = [Notice(f'time jumped back by {jump_ns * 1e-9:.1f} s (bag replayed?): '
                          'pairing buffers cleared, samples kept', code='time_jump')]
-        for name, (held_ns, held_pose, _) in held + [(stream, (stamp_ns, pose, None))]:
+        for name, (held_ns, held_pose, error) in held + [(stream, (stamp_ns, pose, None))]:
+            if name != stream and abs(held_ns - stamp_ns) > self.config.time_jump_ns:
+                events.append(self._stale(name, error))
+                continue
             try:
                 events += self._paired(self._pairer.add(name, held_ns, held_pose))
-            except OutOfOrderStamp as error:   # behind the held message of its stream
-                events.append(self._reject(TOPICS[name], *_late_reason(error)))
+            except OutOfOrderStamp as late:   # behind the held message of its stream
+                events.append(self._reject(TOPICS[name], *_late_reason(late)))
         return events
+
+    def _stale(self, stream, error):
+        """Reject a held message far behind its stream that no jump followed."""
+        return self._reject(
+            TOPICS[stream], f'stamp {error.jump_ns * 1e-9:.3g} s older than the previous '
+            'message, and the next one went on from where the stream was: a stale message, '
+            'not a time jump: dropped', 'stale_stamp')
 
     def _unpaired_notice(self, paired):
         """Return a Notice when UNPAIRED_NOTICE_AFTER poses in a row could not be paired."""

@@ -200,7 +200,7 @@ class OffsetReport:
     What the time-offset search found, with the residual before and after.
 
     runs: the timelines of the recording (its stamps started over runs - 1 times); the search
-    and its residuals are of the one with the most sensor poses (_searchable).
+    and its residuals are of one of them (_searchable: the longest with speeds on both).
     """
 
     offset_ns: int
