@@ -192,7 +192,7 @@ def test_csv_samples_and_bad_ones():
     assert session.counters['rejected'] == 2 and len(session.samples) == 12
 
 
-def test_exact_copies_of_samples_are_counted_once():
+def test_copies_of_samples_are_counted_once():
     # A file appended to itself, or each row written three times: the copies are not new
     # measurements. Counted, 30 copies of 10 samples report an uncertainty ~5x too small.
     rng = np.random.default_rng(31)
@@ -216,13 +216,18 @@ def test_exact_copies_of_samples_are_counted_once():
 
     # One at a time (a resumed sample, a still captured from the streams): the same rule.
     assert session.add_sample(samples[4])[0].code == 'repeated'
+    # A copy rounded by another tool (7 digits: 24 such copies of 6 samples had reported a
+    # fifth of the uncertainty) is one too; a reading 10 um away is a new measurement.
+    rounded = Sample(samples[4].stamp_ns, samples[4].link,
+                     Pose(np.round(samples[4].sensor.position, 7), samples[4].sensor.quaternion))
+    assert session.add_sample(rounded)[0].code == 'repeated'
     new = Sample(samples[4].stamp_ns, samples[4].link,
-                 Pose(samples[4].sensor.position + 1e-9, samples[4].sensor.quaternion))
+                 Pose(samples[4].sensor.position + 1e-5, samples[4].sensor.quaternion))
     assert of_type(session.add_sample(new), SampleCaptured)[0].index == 10
     # A still the capture made (a noise-free sensor back at an earlier stop), no time jump.
     (notice,) = session._store_captured(samples[2])
     assert 'repeats sample 2' in notice.text
-    assert session.counters['repeated_samples'] == 22 and len(session.samples) == 11
+    assert session.counters['repeated_samples'] == 23 and len(session.samples) == 11
     # The same rotations with the other sign (q and -q), as another tool may write a copy.
     flipped = Sample(samples[5].stamp_ns,
                      Pose(samples[5].link.position, -samples[5].link.quaternion),

@@ -29,10 +29,10 @@ back are late messages and are rejected.  After such a jump, a still sample at t
 (within the still window) and the link pose (within the still bands) of an earlier sample is
 the same data played again (`ros2 bag play --loop`): it is not added, so that it does not
 count as new evidence, and a Notice says so.  So is, on every path, a sample whose link and
-sensor poses equal an earlier sample's to the last digit, a quaternion's sign aside (a row
-copied in a file, a file appended to itself, a copy written by another tool): no two
-measurements agree that well, and counted twice it would shrink the reported uncertainty by
-sqrt(2) as if it were new evidence.
+sensor poses equal an earlier sample's to within REPEAT_TOLERANCE (1e-6 m, and in each
+quaternion component), a quaternion's sign aside (a row copied in a file, a file appended to
+itself, a copy rounded by another tool): no two measurements agree that well, and counted
+twice it would shrink the reported uncertainty by sqrt(2) as if it were new evidence.
 """
 
 import bisect
@@ -119,16 +119,44 @@ def _finite(*poses):
     return all(math.isfinite(p.position.sum() + p.quaternion.sum()) for p in poses)
 
 
-def _fingerprint(sample):
+# Two samples whose poses agree this closely (metres, and each quaternion component) are one
+# measurement copied: no sensor repeats a reading to a micrometre, while a copy rounded to 7
+# significant digits by another tool, or appended to its own file, does.
+REPEAT_TOLERANCE = 1e-6
+
+
+def _numbers(sample):
     """
-    Return the exact numbers of a sample's poses, as bytes (the key of exact copies).
+    Return a sample's poses as 14 numbers (the positions and quaternions of both poses).
 
     Each quaternion with its sign chosen (q and -q are one rotation: a copy written by another
-    tool may carry either) and -0.0 as 0.0.
+    tool may carry either).
     """
-    return (np.concatenate([sample.link.position, quat.canonical(sample.link.quaternion),
-                            sample.sensor.position, quat.canonical(sample.sensor.quaternion)])
-            + 0.0).tobytes()
+    return np.concatenate([sample.link.position, quat.canonical(sample.link.quaternion),
+                           sample.sensor.position, quat.canonical(sample.sensor.quaternion)])
+
+
+class _Copies:
+    """The stored samples' numbers, to find the one a new sample repeats (REPEAT_TOLERANCE)."""
+
+    def __init__(self):
+        self._rows = np.empty((16, 14))
+        self._count = 0
+
+    def add(self, sample):
+        """Keep a stored sample's numbers (its index: the number kept before it)."""
+        if self._count == len(self._rows):
+            self._rows = np.concatenate([self._rows, np.empty_like(self._rows)])
+        self._rows[self._count] = _numbers(sample)
+        self._count += 1
+
+    def index_of(self, sample):
+        """Return the index of the first kept sample that `sample` repeats, or None."""
+        if not self._count:
+            return None
+        distance = np.abs(self._rows[:self._count] - _numbers(sample)).max(axis=1)
+        hit = np.flatnonzero(distance <= REPEAT_TOLERANCE)
+        return int(hit[0]) if len(hit) else None
 
 
 def _finite_rows(positions, quaternions):
@@ -159,7 +187,7 @@ class Session:
         self._on_sample = on_sample
         self._calibrator = Calibrator(config.calibration)
         self._start_streams()
-        self._fingerprints = {}   # the exact numbers of each stored sample -> its index
+        self._copies = _Copies()   # the numbers of each stored sample
 
     def _start_streams(self):
         self._pairer = Pairer(self.config.pairing)
@@ -264,7 +292,7 @@ class Session:
                 continue
             copied = self._copy_of(sample)
             if copied is None:
-                self._fingerprints[_fingerprint(sample)] = first + len(good)
+                self._copies.add(sample)
                 good.append(sample)
             else:
                 events.append(self._repeated(position, copied))
@@ -296,7 +324,7 @@ class Session:
         """Start over: forget the streams, the samples, the estimate and the counters."""
         self._calibrator.reset()
         self._start_streams()
-        self._fingerprints = {}
+        self._copies = _Copies()
 
     # --- what the shells show ------------------------------------------------------------
 
@@ -391,17 +419,17 @@ class Session:
         return events
 
     def _copy_of(self, sample):
-        """Return the index of the stored sample whose poses `sample` repeats exactly, or None."""
-        return self._fingerprints.get(_fingerprint(sample))
+        """Return the index of the stored sample whose poses `sample` repeats, or None."""
+        return self._copies.index_of(sample)
 
     def _repeated(self, position, copied):
         """Count a ready sample (the `position`-th given) that repeats sample `copied`."""
         self._counts['repeated_samples'] += 1
         return Rejected('sample', f'sample {position} of those given repeats sample {copied} '
-                        'exactly (the same link and sensor poses to the last digit, a '
-                        "quaternion's sign aside: a copied row, not a new measurement): not "
-                        'added twice', 'repeated',
-                        position, copied)
+                        f'(the same link and sensor poses to within {REPEAT_TOLERANCE:g} m and '
+                        f"{REPEAT_TOLERANCE:g} in each quaternion component, a quaternion's "
+                        'sign aside: a copied row, not a new measurement): not added twice',
+                        'repeated', position, copied)
 
     def _store_captured(self, sample):
         """Store a sample taken from the streams, unless it repeats an earlier one."""
@@ -420,7 +448,7 @@ class Session:
         """
         Return the index of the earlier sample that `sample` repeats, or None.
 
-        Exactly the same poses (module docstring); or, only after a time jump, stamps within
+        The same poses (module docstring); or, only after a time jump, stamps within
         the still window and link poses within the still bands (a new sample needs a motion of
         twice the bands, so within one timeline no two samples are this close).
         """
@@ -437,7 +465,7 @@ class Session:
         return None
 
     def _store(self, sample):
-        self._fingerprints[_fingerprint(sample)] = self._sample_count()
+        self._copies.add(sample)
         self._calibrator.add_sample(sample)
         self._capture.note_sample(sample)
         if self._on_sample is not None:
