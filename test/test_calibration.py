@@ -452,3 +452,18 @@ def test_noise_free_translation_is_exact(setup):
             # Rounding only: positions of ~1 m through a few products and solves.
             np.testing.assert_allclose(result.translation, cell.mounting.position, atol=1e-9)
             assert error_deg(result, cell) < 1e-7
+
+
+@pytest.mark.parametrize('options, words', [
+    ({'min_motion_deg': float('nan')}, 'min_motion_deg must lie in'),
+    ({'min_motion_deg': 0.0}, 'min_motion_deg must lie in'),
+    ({'max_angle_mismatch_deg': -1.0}, 'max_angle_mismatch_deg must lie in'),
+    ({'hypotheses': 0}, 'hypotheses must be a whole number'),
+    ({'known_translation': (0.0, 0.0)}, 'three numbers'),
+    ({'known_translation': (float('nan'), 0.0, 0.0)}, 'three numbers'),
+    ({'known_translation': (1e9, 0.0, 0.0)}, 'not a position in a robot cell'),
+])
+def test_options_out_of_range_are_refused_by_name(options, words):
+    """The Python entry point: NaN had raised an IndexError, (0, 0) a matmul shape error."""
+    with pytest.raises(ValueError, match=words):
+        CalibrationOptions(**options)

@@ -97,6 +97,7 @@ def test_session_config_gets_plain_numbers_in_nanoseconds():
     ('robust', 1, 'true or false'),
     ('link_frame', '', 'empty'),
     ('result_file', '  ', 'empty'),
+    ('known_translation', '1e9 1e9 1e9', 'not a position in a robot cell'),
 ])
 def test_invalid_values_are_refused_with_the_reason(name, value, words):
     with pytest.raises(ConfigError) as error:

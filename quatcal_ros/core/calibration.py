@@ -45,7 +45,7 @@ from quatcal_ros.core.pose import inverse_perturbation, residual_order
 from quatcal_ros.core.refine import MAX_ITERATIONS, refine, uncertainties, with_jackknife_of
 from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.translation import SamplePositions, solve_translation
-from quatcal_ros.core.units import SETUPS
+from quatcal_ros.core.units import position_problem, SETUPS
 from quatcal_ros.core.validation import not_enough_samples, Thresholds, validate
 
 # Candidate motions of the consensus search: every pair up to this many, else the consecutive
@@ -90,11 +90,31 @@ class CalibrationOptions:
     known_translation: tuple = None
 
     def __post_init__(self):
-        """Refuse a value outside its choices (ValueError naming field, value and choices)."""
+        """
+        Refuse a value outside its choices or range (ValueError naming field and value).
+
+        The command lines and the node check their settings first; this guards the Python
+        entry point (min_motion_deg NaN had raised an IndexError deep in the estimate).
+        """
         for name, choices in (('setup', SETUPS), ('pairs', PAIRINGS), ('method', METHODS)):
             value = getattr(self, name)
             if value not in choices:
                 raise ValueError(f'{name} must be one of {", ".join(choices)}, not {value!r}')
+        for name, low, high in (('min_motion_deg', 0.0, 180.0),
+                                ('max_angle_mismatch_deg', 0.0, 180.0),
+                                ('min_axis_spread_deg', 0.0, 90.0)):
+            value = getattr(self, name)
+            if not low < value <= high:   # NaN too
+                raise ValueError(f'{name} must lie in ({low:g}, {high:g}] degrees, not {value!r}')
+        if not (isinstance(self.hypotheses, int) and self.hypotheses >= 1):
+            raise ValueError(f'hypotheses must be a whole number >= 1, not {self.hypotheses!r}')
+        if self.known_translation is not None:
+            values = np.asarray(self.known_translation, dtype=float)
+            problem = ('three numbers (x, y, z) in metres' if values.shape != (3,)
+                       or not np.all(np.isfinite(values))
+                       else position_problem(tuple(values.tolist())))
+            if problem:
+                raise ValueError(f'known_translation {self.known_translation!r}: {problem}')
 
 
 # The joint refinement needs enough samples to estimate both noise levels (6 unknowns each

@@ -26,7 +26,7 @@ import os
 
 from quatcal_ros.core.calibration import CalibrationOptions, METHODS
 from quatcal_ros.core.planner import PlanLimits
-from quatcal_ros.core.units import DEFAULT_FRAMES, ns_from_s, SETUPS
+from quatcal_ros.core.units import DEFAULT_FRAMES, ns_from_s, position_problem, SETUPS
 from quatcal_ros.core.validation import Thresholds
 from quatcal_ros.stream.capture import CaptureConfig, MODES as CAPTURE_MODES
 from quatcal_ros.stream.message_checks import CheckConfig, LINK, SENSOR
@@ -475,6 +475,9 @@ def known_translation(text):
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
         raise ConfigError(f"known_translation must be three numbers 'x y z' in metres, not "
                           f'{text!r}')
+    problem = position_problem(values)
+    if problem:
+        raise ConfigError(f'known_translation {text!r}: {problem}')
     return values
 
 
