@@ -26,12 +26,13 @@ Quaternions are (w, x, y, z). The answer is the rotation of T_link_sensor (eye-i
 T_base_sensor (eye-to-hand).
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import math
 
 import numpy as np
 
 from quatcal_ros.core import conventions
+from quatcal_ros.core import half_turns
 from quatcal_ros.core import heavy_tails
 from quatcal_ros.core import quality
 from quatcal_ros.core import quaternion as quat
@@ -116,6 +117,10 @@ class CalibrationOptions:
             if problem:
                 raise ValueError(f'known_translation {self.known_translation!r}: {problem}')
 
+
+# A half-turn alternative is settled by the translations when the next one's object
+# positions scatter this many times more than the chosen one's.
+SETTLED_GAIN = 3.0
 
 # The joint refinement needs enough samples to estimate both noise levels (6 unknowns each
 # for the mounting and the object, 6 residuals per sample).
@@ -738,6 +743,7 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     full solves); it is published when it lands near the closed form (_plausible), else the
     closed form is, with a warning.
     """
+    fit, half_turn_warnings = _settle_half_turns(rotations, positions, fit, options)
     ok = fit.sample_ok
     rotation_residuals = fit.residuals
     sigma = quality.noise_sigma(rotation_residuals[ok])
@@ -745,8 +751,8 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     translation = solve_translation(rotations, positions, fit.q_z, fit.info, ok, covariance)
     closed = Estimate(fit.q_z, translation.translation, quality.uncertainty_deg(covariance),
                       translation.uncertainty_mm)
-    warnings = [] if previous is not None else conventions.warnings(
-        samples, options, conventions.misfit(rotation_residuals, translation.residuals))
+    warnings = half_turn_warnings + ([] if previous is not None else conventions.warnings(
+        samples, options, conventions.misfit(rotation_residuals, translation.residuals)))
     own = sensor_covariances(samples, options.invert_sensor)
     if previous is None and own is None:
         warnings += _unused_covariances(samples)
@@ -778,6 +784,46 @@ def _estimate(samples, rotations, positions, fit, options, previous):
         noise = (refinement.rotation_noise_deg, refinement.translation_noise_mm)
     result = _report(fit, options, closed, refined, noise, warnings, refinement)
     return _Solution(result, refinement)
+
+
+def _settle_half_turns(rotations, positions, fit, options):
+    """
+    Return the rotation stage at the half-turn alternative whose translation fits best.
+
+    And warnings that say so (half_turns: the rotations alone cannot tell the alternatives
+    apart; the object positions they give can). `fit` itself, and no warning, for data
+    without the ambiguity.
+    """
+    alike = half_turns.alternatives(rotations, fit.q_z, fit.sample_ok)
+    if len(alike) == 1 and alike[0] is fit.q_z:
+        return fit, []
+    ok = fit.sample_ok
+    scored = []
+    for q in alike:
+        translation = solve_translation(rotations, positions, q, fit.info, ok)
+        scored.append((float(np.sqrt(np.mean(np.sum(translation.residuals[ok] ** 2, axis=1)))),
+                       q))
+    scored.sort(key=lambda item: item[0])
+    best_m, q = scored[0]
+    residuals, mean = quality.object_residuals(rotations, q, ok)
+    rms = _all_pairs_rms(residuals[ok]) if options.pairs == 'all' else fit.residual_rms
+    if np.degrees(rms) > conventions.NOT_RIGID_DEG:   # no rotation fits: not this ambiguity
+        return fit, []
+    settled = replace(fit, q_z=q, residual_rms=rms, residuals=residuals, object_orientation=mean)
+    if len(scored) == 1:   # the least squares had landed off the one that fits
+        return settled, []
+    next_m = scored[1][0]
+    close = not next_m > SETTLED_GAIN * best_m
+    if q is fit.q_z and not close:   # the translations confirm the least squares' choice
+        return fit, []
+    said = (f'the motions are near half-turns: {len(scored)} rotations fit them alike (the '
+            'rotations alone cannot tell them apart), and the translations chose this one '
+            f'(object positions {1e3 * best_m:.1f} mm RMS from their mean, '
+            f'{1e3 * next_m:.1f} mm at the next)')
+    if close:
+        said += ('; too close to tell apart: do not use this estimate, add motions about '
+                 'other axes that are not half-turns')
+    return settled, [said]
 
 
 def sensor_covariances(samples, invert_sensor=False):

@@ -1,0 +1,77 @@
+"""Half-turn motions: rotations the rotation equations cannot tell apart (core.half_turns)."""
+
+import numpy as np
+import pytest
+from quatcal_ros.core import half_turns
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.calibration import calibrate
+from quatcal_ros.core.motions import SampleRotations
+from quatcal_ros.core.pose import Pose, Sample
+from quatcal_ros.sim import simulation as sim
+
+
+def turned_samples(rng, cell, turns_deg, rotation_noise_deg=0.1, translation_noise_m=0.001):
+    """Return samples at the home pose turned about the camera by each (axis, deg), shifted."""
+    home = cell.home
+    pivot = home.position + home.rotation @ cell.mounting.position
+    positions, quaternions = [], []
+    for axis, degrees in turns_deg:
+        turn = quat.from_rotation_vector(np.radians(degrees) * np.asarray(axis, dtype=float))
+        positions.append(pivot + quat.rotate(turn, home.position - pivot)
+                         + rng.uniform(-0.1, 0.1, 3))
+        quaternions.append(quat.multiply(turn, home.quaternion))
+    positions, quaternions = np.array(positions), np.array(quaternions)
+    sensor_p, sensor_q = cell.sensor_poses(positions, quaternions)
+    sensor_p, sensor_q = sim.add_pose_noise(rng, sensor_p, sensor_q, rotation_noise_deg,
+                                            translation_noise_m)
+    return [Sample(10**18 + k * 2 * 10**9, Pose(positions[k], quaternions[k]),
+                   Pose(sensor_p[k], sensor_q[k])) for k in range(len(positions))]
+
+
+HALF_TURNS = [([1, 0, 0], 0.0), ([1, 0, 0], 180.0), ([0, 1, 0], 180.0)]
+
+
+def test_three_samples_a_half_turn_apart_are_settled_by_the_translations():
+    """Four rotations fit them exactly: the least squares had picked one by the noise."""
+    rng = np.random.default_rng(3)
+    cell = sim.random_cell(rng)
+    errors, ratios, said = [], [], 0
+    for _ in range(20):
+        samples = turned_samples(rng, cell, HALF_TURNS)
+        rotations = SampleRotations.from_samples(samples)
+        ok = np.ones(3, dtype=bool)
+        assert half_turns.undecided(rotations, ok)
+        assert len(half_turns.alternatives(rotations, quat.IDENTITY, ok)) >= 2
+        result = calibrate(samples)
+        error = np.degrees(quat.angle_between(result.quaternion, cell.mounting.quaternion))
+        errors.append(error)
+        ratios.append(error / result.uncertainty_deg)
+        said += any(w.startswith('the motions are near half-turns') for w in result.warnings)
+    # (16 of 20 had come out 180 deg off with no warning)
+    assert max(errors) < 1.0 and np.sqrt(np.mean(np.square(ratios))) < 3.0
+    assert said > 0   # when the least squares' pick was not the translations', it says so
+
+
+def test_ordinary_motions_are_decided_and_left_alone():
+    rng = np.random.default_rng(4)
+    cell = sim.random_cell(rng)
+    samples, _ = sim.samples(rng, cell, 10, rotation_noise_deg=0.1, translation_noise_m=0.001)
+    rotations = SampleRotations.from_samples(samples)
+    ok = np.ones(10, dtype=bool)
+    assert not half_turns.undecided(rotations, ok)
+    q_z = calibrate(samples).quaternion
+    (only,) = half_turns.alternatives(rotations, q_z, ok)
+    assert only is q_z
+
+
+@pytest.mark.parametrize('n', [6, 12])
+def test_half_turns_among_turns_about_one_axis(n):
+    """Half-turns about x and y with turns about z commute with the half-turn about z."""
+    rng = np.random.default_rng(5 + n)
+    cell = sim.random_cell(rng)
+    turns = [([1, 0, 0], 0.0), ([1, 0, 0], 180.0), ([0, 1, 0], 180.0), ([0, 0, 1], 180.0),
+             ([0, 0, 1], 90.0), ([0, 0, 1], -90.0)] * (n // 6)
+    samples = turned_samples(rng, cell, turns)
+    result = calibrate(samples)
+    error = np.degrees(quat.angle_between(result.quaternion, cell.mounting.quaternion))
+    assert error < 3 * result.uncertainty_deg + 0.05
