@@ -37,6 +37,8 @@ ENUMERATED = 10
 # residual (plus an absolute allowance for noise-free data) is as good an answer to them.
 AS_GOOD = 1.25
 AS_GOOD_RAD = 1e-9
+# Rotations closer than this (degrees) are one answer: the alternatives lie a half-turn apart.
+SAME_DEG = 20.0
 # The first motions whose axes (and their cross products) are tried as half-turn axes.
 AXES_TRIED = 6
 
@@ -60,9 +62,10 @@ def alternatives(rotations, q_z, sample_ok):
     """
     Return the rotations that fit the good samples' orientations best, and alike.
 
-    [q_z] alone (the same object) when the samples decide their signs; else the rotations of
-    the module docstring that fit within AS_GOOD of the best of them, q_z among them only when
-    it is one of those.
+    [q_z] alone (the same object) when the samples decide their signs; else one rotation of
+    each group (within SAME_DEG of each other: sign patterns that differ only on samples a
+    half-turn apart land a noise's width apart) that fits within AS_GOOD of the best: q_z for
+    its own group, the best fit for the others.
     """
     if not undecided(rotations, sample_ok):
         return [q_z]
@@ -71,15 +74,17 @@ def alternatives(rotations, q_z, sample_ok):
     else:   # the half-turns of q_z, each a reference for the signs; twice, from the best
         tried = [q_z]
         for _ in range(2):
-            start = min(tried, key=lambda q: _residual_rms(rotations, q, sample_ok))
+            start = tried[int(np.argmin(_residual_rms(rotations, tried, sample_ok)))]
             tried += [all_pairs_rotation(rotations, sample_ok, reference=q) for q in
                       [start] + _half_turns_of(rotations, start, sample_ok)]
-    fits = [_residual_rms(rotations, q, sample_ok) for q in tried]
-    limit = AS_GOOD * min(fits) + AS_GOOD_RAD
+    fits = _residual_rms(rotations, tried, sample_ok)
+    good = np.flatnonzero(fits <= AS_GOOD * fits.min() + AS_GOOD_RAD)
+    order = sorted(good.tolist(), key=lambda k: (k != 0, fits[k]))   # q_z first, if good
+    same = np.cos(np.radians(SAME_DEG) / 2.0)
     kept = []
-    for q, fit in zip(tried, fits):
-        if fit <= limit and all(abs(float(q @ other)) < 1.0 - 1e-9 for other in kept):
-            kept.append(q)
+    for k in order:
+        if all(abs(float(tried[k] @ other)) < same for other in kept):
+            kept.append(tried[k])
     return kept
 
 
@@ -105,9 +110,10 @@ def _half_turns_of(rotations, q_z, sample_ok):
     return [quat.canonical(quat.multiply(q_z, np.concatenate([[0.0], n]))) for n in candidates]
 
 
-def _residual_rms(rotations, q, sample_ok):
-    """RMS angle (radians) of the good samples' object orientations about their mean."""
-    Z = rotations.object_orientations(q)[sample_ok]
-    mean = quat.average(Z)
-    return float(np.sqrt(np.mean(np.sum(
-        quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean))) ** 2, axis=1))))
+def _residual_rms(rotations, rotations_tried, sample_ok):
+    """Return each rotation's RMS angle (radians) of the good samples' Z_i about their mean."""
+    Z = np.einsum('nij,pj->pni', rotations.matrices[sample_ok],
+                  np.asarray(rotations_tried, dtype=float))            # (P, N, 4)
+    mean = quat.average(Z)                                              # (P, 4)
+    angles = quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean)[:, None, :]))
+    return np.sqrt(np.mean(np.sum(angles ** 2, axis=-1), axis=-1))
