@@ -208,9 +208,16 @@ def read_journal(path):
         samples = parse_samples(text, name)
     except BadInputError as error:
         raise JournalError(str(error)) from None
-    # the column row of an earlier version, as it wrote it (a file edited by hand is left be)
-    legacy = lines[1].rstrip('\r') == ','.join(header_columns(False))
-    return JournalContents(header, samples, notices, end, size, not legacy)
+    return JournalContents(header, samples, notices, end, size, not _earlier_columns(lines[1]))
+
+
+def _earlier_columns(line):
+    """
+    Return whether `line` is the column row of an earlier version, without the covariances.
+
+    As it wrote it: a file edited by hand (columns in another order, a comment) is left be.
+    """
+    return line.rstrip('\r') == ','.join(header_columns(False))
 
 
 def aside_path(path, tag, now=None):
@@ -395,10 +402,20 @@ class Journal:
         """
         if header == self.header and self.header_written:
             return
-        self.header, self.header_written = header, False
+        self.header = header
+        self.rewrite_head()
+
+    def rewrite_head(self):
+        """
+        Write the journal's first two lines anew (set_header's, an earlier version's columns).
+
+        Not a journal deleted or replaced meanwhile (`lost`): the next append re-creates it.
+        :raises OSError: when the file cannot be replaced (the next flush tries again).
+        """
+        self.header_written = False
         if self.lost():
             return
-        self.flush()   # the samples not yet written, and the header
+        self.flush()   # the samples not yet written, and the head
 
     def _write_header(self):
         """
@@ -408,7 +425,7 @@ class Journal:
         """
         data = self.path.read_bytes()[:self._size]   # not a partial line of a failed write
         second, rest = data.decode('utf-8').split('\n', 1)[1].split('\n', 1)
-        if second.rstrip('\r') == ','.join(header_columns(False)):
+        if _earlier_columns(second):
             second = ','.join(header_columns(True))
         atomic_write_text(self.path, f'{self.header.line()}\n{second}\n{rest}')
         self.header_written = True
@@ -591,8 +608,7 @@ def _start_locked(path, header, resume, lock_fd, now):
                      'appended to it'))
         resumed = Journal(path, recorded, len(report.samples), lock_fd)
         if not contents.covariance_columns:   # an earlier version's: new rows would lose theirs
-            resumed.header_written = False
-            resumed.flush()
+            resumed.rewrite_head()
             report.messages.append(
                 ('info', f'{path}: the column row of an earlier version gained the covariance '
                          'columns, so that samples appended keep their covariances'))

@@ -2,8 +2,8 @@
 A time-indexed buffer of poses: (stamp_ns, Pose) kept in increasing stamp order.
 
 The one store behind the package's pose streams: the pairer's two streams, the dynamic edges
-of the transform tree and the still window
-of capture.  Stamps are integer nanoseconds; quaternions are (w, x, y, z).
+of the transform tree and the still window of capture.  Stamps are integer nanoseconds;
+quaternions are (w, x, y, z).
 
 - Adding: `append` a pose newer than the newest (else StampNotNewer, nothing changes);
   `extend` with the leading increasing part of a run of rows of arrays (an offline replay:

@@ -93,10 +93,10 @@ class Rejected:
     Input that was not used: `what` is 'link_pose', 'sensor_pose' or 'sample'.
 
     `code` names the reason for counters ('non_finite', 'duplicate_stamp', 'out_of_order',
-    'stale_stamp': codes of message_checks.REASONS; 'repeated': a ready sample that repeats
-    an earlier one exactly); it does not take part in comparisons.  A sample refused by
-    add_samples also says which it was of those given (`given`, from 0); a 'repeated' one the
-    number of the stored sample it repeats (`repeats`).
+    'stale_stamp': codes of message_checks.REASONS; 'repeated': a ready sample that copies
+    an earlier one, to within REPEAT_TOLERANCE); it does not take part in comparisons.  A
+    sample refused by add_samples also says which it was of those given (`given`, from 0); a
+    'repeated' one the number of the stored sample it repeats (`repeats`).
     """
 
     what: str

@@ -173,16 +173,16 @@ def replay_streams(link, sensor, config, sensor_offset_ns=0, runs=None):
     session = Session(replace(config, sensor_offset_ns=sensor_offset_ns))
     for link_run, sensor_run in runs or [(link, sensor)]:
         link_run, sensor_run = RecordedStream.of(link_run), RecordedStream.of(sensor_run)
-        stamps, positions, quaternions = (link_run.stamps().tolist(), link_run.positions(),
-                                          link_run.quaternions())
-        sensor_stamps = sensor_run.stamps()
-        for name, run_stamps in (('link', np.asarray(stamps)), ('sensor', sensor_stamps)):
+        link_stamps, sensor_stamps = link_run.stamps(), sensor_run.stamps()
+        for name, run_stamps in (('link', link_stamps), ('sensor', sensor_stamps)):
             if np.any(run_stamps[1:] < run_stamps[:-1]):
                 raise ValueError(f'the {name} stamps are not in order: give each timeline '
                                  'as one of `runs` (RecordedStream.runs)')
+        stamps, positions, quaternions = (link_stamps.tolist(), link_run.positions(),
+                                          link_run.quaternions())
         # the link poses that arrive before each sensor pose: those at or before its stamp
-        before = np.searchsorted(np.asarray(stamps, dtype=np.int64),
-                                 sensor_stamps + sensor_offset_ns, side='right').tolist()
+        before = np.searchsorted(link_stamps, sensor_stamps + sensor_offset_ns,
+                                 side='right').tolist()
         fed = 0
         for index, until in enumerate(before + [len(stamps)]):
             if until > fed:
