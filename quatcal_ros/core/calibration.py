@@ -749,7 +749,8 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     sigma = quality.noise_sigma(rotation_residuals[ok])
     covariance = fit.info.covariance(sigma)
     translation = solve_translation(rotations, positions, fit.q_z, fit.info, ok, covariance)
-    closed = Estimate(fit.q_z, translation.translation, quality.uncertainty_deg(covariance),
+    closed = Estimate(fit.q_z, translation.translation, quality.uncertainty_deg(
+        covariance * quality.unknown_noise_factor(_count(ok))),
                       translation.uncertainty_mm)
     warnings = half_turn_warnings + ([] if previous is not None else conventions.warnings(
         samples, options, conventions.misfit(rotation_residuals, translation.residuals)))
