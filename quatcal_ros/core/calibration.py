@@ -118,9 +118,11 @@ class CalibrationOptions:
                 raise ValueError(f'known_translation {self.known_translation!r}: {problem}')
 
 
-# A half-turn alternative is settled by the translations when the next one's object
-# positions scatter this many times more than the chosen one's.
-SETTLED_GAIN = 3.0
+# The half-turn alternatives the translations did not choose (_alternative_odds): said in a
+# warning from this total probability on (at 1e-6 a half-turn adds 0.18 deg to the expected
+# error), and "do not use this estimate" from this one on.
+HALF_TURN_DOUBT_SAID = 1e-6
+HALF_TURN_DOUBT_UNUSABLE = 0.01
 
 # The joint refinement needs enough samples to estimate both noise levels (6 unknowns each
 # for the mounting and the object, 6 residuals per sample).
@@ -743,15 +745,16 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     full solves); it is published when it lands near the closed form (_plausible), else the
     closed form is, with a warning.
     """
-    fit, half_turn_warnings = _settle_half_turns(rotations, positions, fit, options)
+    fit, half_turn_warnings, others = _settle_half_turns(rotations, positions, fit, options)
     ok = fit.sample_ok
     rotation_residuals = fit.residuals
     sigma = quality.noise_sigma(rotation_residuals[ok])
     covariance = fit.info.covariance(sigma)
     translation = solve_translation(rotations, positions, fit.q_z, fit.info, ok, covariance)
-    closed = Estimate(fit.q_z, translation.translation, quality.uncertainty_deg(
-        covariance * quality.unknown_noise_factor(_count(ok))),
-                      translation.uncertainty_mm)
+    reported = covariance * quality.unknown_noise_factor(_count(ok))
+    closed = _with_alternatives(Estimate(fit.q_z, translation.translation,
+                                         quality.uncertainty_deg(reported),
+                                         translation.uncertainty_mm), others)
     warnings = half_turn_warnings + ([] if previous is not None else conventions.warnings(
         samples, options, conventions.misfit(rotation_residuals, translation.residuals)))
     own = sensor_covariances(samples, options.invert_sensor)
@@ -776,9 +779,9 @@ def _estimate(samples, rotations, positions, fit, options, previous):
         published_refinement = None
         warnings.append('the joint refinement did not converge to a plausible answer: '
                         'the closed-form estimate is published instead')
-    refined = None if published_refinement is None else Estimate(
+    refined = None if published_refinement is None else _with_alternatives(Estimate(
         refinement.quaternion, refinement.translation, refinement.uncertainty_deg,
-        refinement.translation_uncertainty_mm)
+        refinement.translation_uncertainty_mm), others)
     if refined is None:
         noise = (np.degrees(sigma), 1e3 * translation.noise_m)
     else:
@@ -792,39 +795,82 @@ def _settle_half_turns(rotations, positions, fit, options):
     Return the rotation stage at the half-turn alternative whose translation fits best.
 
     And warnings that say so (half_turns: the rotations alone cannot tell the alternatives
-    apart; the object positions they give can). `fit` itself, and no warning, for data
+    apart; the object positions they give can), and the other alternatives with their
+    probabilities (_alternative_odds). `fit` itself, no warning and no alternative, for data
     without the ambiguity.
     """
     alike = half_turns.alternatives(rotations, fit.q_z, fit.sample_ok)
     if len(alike) == 1 and alike[0] is fit.q_z:
-        return fit, []
+        return fit, [], []
     ok = fit.sample_ok
     scored = []
     for q in alike:
         translation = solve_translation(rotations, positions, q, fit.info, ok)
         scored.append((float(np.sqrt(np.mean(np.sum(translation.residuals[ok] ** 2, axis=1)))),
-                       q))
+                       q, translation.translation))
     scored.sort(key=lambda item: item[0])
-    best_m, q = scored[0]
+    best_m, q, _ = scored[0]
     residuals, mean = quality.object_residuals(rotations, q, ok)
     rms = _all_pairs_rms(residuals[ok]) if options.pairs == 'all' else fit.residual_rms
     if np.degrees(rms) > conventions.NOT_RIGID_DEG:   # no rotation fits: not this ambiguity
-        return fit, []
+        return fit, [], []
     settled = replace(fit, q_z=q, residual_rms=rms, residuals=residuals, object_orientation=mean)
     if len(scored) == 1:   # the least squares had landed off the one that fits
-        return settled, []
-    next_m = scored[1][0]
-    close = not next_m > SETTLED_GAIN * best_m
-    if q is fit.q_z and not close:   # the translations confirm the least squares' choice
-        return fit, []
+        return settled, [], []
+    others = _alternative_odds(scored, _count(ok))
+    doubt = sum(p for p, _, _ in others)
+    if q is fit.q_z and doubt < HALF_TURN_DOUBT_SAID:   # the translations confirm it
+        return fit, [], others
     said = (f'the motions are near half-turns: {len(scored)} rotations fit them alike (the '
             'rotations alone cannot tell them apart), and the translations chose this one '
             f'(object positions {1e3 * best_m:.1f} mm RMS from their mean, '
-            f'{1e3 * next_m:.1f} mm at the next)')
-    if close:
+            f'{1e3 * scored[1][0]:.1f} mm at the next')
+    if doubt >= HALF_TURN_DOUBT_SAID:
+        said += (f'; the others together keep a probability of {doubt:.1g}, which the '
+                 'reported uncertainty includes')
+    said += ')'
+    if doubt >= HALF_TURN_DOUBT_UNUSABLE:
         said += ('; too close to tell apart: do not use this estimate, add motions about '
                  'other axes that are not half-turns')
-    return settled, [said]
+    return (fit if q is fit.q_z else settled), [said], others
+
+
+def _alternative_odds(scored, count):
+    """
+    Return (probability, rotation, translation) of each half-turn alternative but the best.
+
+    scored: (object positions' RMS scatter, rotation, translation) of every alternative, best
+    first. With the position noise unknown, alternative k's likelihood goes as its residual
+    sum of squares to the power -dof / 2 (dof = 3 count - 6: the residuals less the
+    translation's and the object position's unknowns), so its probability against the others
+    is proportional to (best RMS / its RMS)^dof.
+    """
+    dof = 3 * count - 6
+    best = scored[0][0]
+    odds = np.array([(best / m) ** dof if m > 0.0 else 1.0 for m, _, _ in scored])
+    odds /= odds.sum()
+    return [(float(p), q, t) for p, (_, q, t) in zip(odds[1:], scored[1:])]
+
+
+def _with_alternatives(estimate, others):
+    """
+    Return `estimate` with its uncertainties widened by the half-turn alternatives it may be.
+
+    When the translations could not rule an alternative out, the estimate is that far off with
+    its probability: the expected squared error gains p_k times the squared distance to it
+    (others: _alternative_odds).
+    """
+    if not others:
+        return estimate
+    angles = np.array([np.degrees(quat.angle_between(q, estimate.quaternion))
+                       for _, q, _ in others])
+    offsets = np.array([1e3 * np.linalg.norm(t - estimate.translation) for _, _, t in others])
+    p = np.array([probability for probability, _, _ in others])
+    return replace(
+        estimate,
+        uncertainty_deg=float(np.sqrt(estimate.uncertainty_deg ** 2 + p @ angles ** 2)),
+        translation_uncertainty_mm=float(np.sqrt(estimate.translation_uncertainty_mm ** 2
+                                                 + p @ offsets ** 2)))
 
 
 def sensor_covariances(samples, invert_sensor=False):
