@@ -57,3 +57,8 @@ def test_an_output_that_cannot_be_written_is_named(tmp_path):
         assert output_problem([('file', None)], {'--report': path}) == (
             f'--report {path}: {why}: choose another path, nothing was written')
     assert output_problem([('file', None)], {'--report': str(tmp_path / 'new' / 'r.html')}) is None
+    os.symlink(tmp_path / 'loop', tmp_path / 'loop')
+    for path in (tmp_path / 'loop', tmp_path / 'loop' / 'sub' / 'r.html'):
+        assert output_problem([('file', None)], {'--report': str(path)}) == (
+            f'--report {path}: {tmp_path / "loop"} is a symbolic link that leads back to '
+            'itself: choose another path, nothing was written')

@@ -7,8 +7,9 @@ an output: one that is an input file, one of the files an image dataset folder i
 layout and images/), anything in a bag's folder (or, for a bag given as its storage file, that
 folder's index and storage files), or another output's path. A new file beside the inputs, or
 in a dataset folder, is fine (a report beside the images). It also names an output that
-could not be written at all (a device, a directory, a parent that is a file, a
-folder without write permission), so that no output is written before another one fails.
+could not be written at all (a device, a directory, a parent that is a file, a symbolic link
+loop on the way, a folder without write permission), so that no output is written before
+another one fails.
 """
 
 import os
@@ -84,6 +85,10 @@ def output_problem(inputs, outputs):
 def _unwritable(target):
     """Return why no file can be written at the resolved path `target`, or None."""
     try:
+        # real() resolved every link that leads anywhere: one left on the way is a loop
+        loop = next((p for p in (target, *target.parents) if p.is_symlink()), None)
+        if loop is not None:
+            return f'{loop} is a symbolic link that leads back to itself'
         if target.exists() and not target.is_file():
             return 'exists and is not a regular file'
         folder = next(p for p in target.parents if p.exists())   # the root exists
