@@ -118,10 +118,11 @@ class CalibrationOptions:
                 raise ValueError(f'known_translation {self.known_translation!r}: {problem}')
 
 
-# The half-turn alternatives the translations did not choose (_alternative_odds): said in a
-# warning from this total probability on (at 1e-6 a half-turn adds 0.18 deg to the expected
-# error), and "do not use this estimate" from this one on.
-HALF_TURN_DOUBT_SAID = 1e-6
+# The half-turn alternatives the translations did not choose (_alternative_odds): counted in
+# the uncertainty and said in a warning from this total probability on (below it a half-turn
+# adds less than 0.006 deg to the expected error), and "do not use this estimate" from this
+# one on.
+HALF_TURN_DOUBT_SAID = 1e-9
 HALF_TURN_DOUBT_UNUSABLE = 0.01
 
 # The joint refinement needs enough samples to estimate both noise levels (6 unknowns each
@@ -750,10 +751,11 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     rotation_residuals = fit.residuals
     sigma = quality.noise_sigma(rotation_residuals[ok])
     covariance = fit.info.covariance(sigma)
-    translation = solve_translation(rotations, positions, fit.q_z, fit.info, ok, covariance)
-    reported = covariance * quality.unknown_noise_factor(_count(ok))
+    factor = quality.unknown_noise_factor(_count(ok))
+    translation = solve_translation(rotations, positions, fit.q_z, fit.info, ok, covariance,
+                                    factor)
     closed = _with_alternatives(Estimate(fit.q_z, translation.translation,
-                                         quality.uncertainty_deg(reported),
+                                         quality.uncertainty_deg(covariance * factor),
                                          translation.uncertainty_mm), others)
     warnings = half_turn_warnings + ([] if previous is not None else conventions.warnings(
         samples, options, conventions.misfit(rotation_residuals, translation.residuals)))
@@ -819,14 +821,16 @@ def _settle_half_turns(rotations, positions, fit, options):
         return settled, [], []
     others = _alternative_odds(scored, _count(ok))
     doubt = sum(p for p, _, _ in others)
-    if q is fit.q_z and doubt < HALF_TURN_DOUBT_SAID:   # the translations confirm it
-        return fit, [], others
+    if doubt < HALF_TURN_DOUBT_SAID:   # the translations rule the others out
+        if q is fit.q_z:
+            return fit, [], []
+        others = []
     said = (f'the motions are near half-turns: {len(scored)} rotations fit them alike (the '
             'rotations alone cannot tell them apart), and the translations chose this one '
             f'(object positions {1e3 * best_m:.1f} mm RMS from their mean, '
             f'{1e3 * scored[1][0]:.1f} mm at the next')
-    if doubt >= HALF_TURN_DOUBT_SAID:
-        said += (f'; the others together keep a probability of {doubt:.1g}, which the '
+    if others:
+        said += (f'; the others together keep a probability of {doubt:.2g}, which the '
                  'reported uncertainty includes')
     said += ')'
     if doubt >= HALF_TURN_DOUBT_UNUSABLE:

@@ -68,7 +68,8 @@ def _offsets(rotations, positions, q_z):
             sensor_in_link)
 
 
-def solve_translation(rotations, positions, q_z, info, sample_ok, rotation_covariance=None):
+def solve_translation(rotations, positions, q_z, info, sample_ok, rotation_covariance=None,
+                      noise_factor=1.0):
     """
     Least-squares t_z over the motions summarised in `info` given the rotation q_z.
 
@@ -77,6 +78,8 @@ def solve_translation(rotations, positions, q_z, info, sample_ok, rotation_covar
     The covariance adds the effect of the rotation's own error (rotation_covariance, rad^2,
     in the parent frame), which the sample scatter cannot show: a rotation error delta moves
     sample n's prediction by F_n delta, F_n = -R(link_n) skew(R_z t(sensor_n)).
+    noise_factor scales the scatter's own term (quality.unknown_noise_factor: the noise is
+    estimated from the same 3N - 6 degrees of freedom as the rotation's).
     """
     link_R = rotations.link_matrices
     c, lever = _offsets(rotations, positions, q_z)
@@ -88,7 +91,7 @@ def solve_translation(rotations, positions, q_z, info, sample_ok, rotation_covar
     residuals = predictions - object_position
     dof = 3 * int(np.sum(sample_ok)) - 6
     noise = float(np.sqrt(np.sum(residuals[sample_ok] ** 2) / dof)) if dof > 0 else np.nan
-    covariance = noise * noise * H_inv @ info.G @ H_inv
+    covariance = noise_factor * noise * noise * H_inv @ info.G @ H_inv
     if rotation_covariance is not None:
         F = -(link_R @ quat.skew(lever))
         J = -H_inv @ (C_rows @ F.reshape(-1, 3))
