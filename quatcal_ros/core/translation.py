@@ -79,7 +79,9 @@ def solve_translation(rotations, positions, q_z, info, sample_ok, rotation_covar
     in the parent frame), which the sample scatter cannot show: a rotation error delta moves
     sample n's prediction by F_n delta, F_n = -R(link_n) skew(R_z t(sensor_n)).
     noise_factor scales the scatter's own term (quality.unknown_noise_factor: the noise is
-    estimated from the same 3N - 6 degrees of freedom as the rotation's).
+    estimated from the same 3N - 6 degrees of freedom as the rotation's). Given the rotation's
+    covariance, the part of the scatter its error explains is taken out of the noise first
+    (_rotation_share), so that it is not counted twice.
     """
     link_R = rotations.link_matrices
     c, lever = _offsets(rotations, positions, q_z)
@@ -91,9 +93,38 @@ def solve_translation(rotations, positions, q_z, info, sample_ok, rotation_covar
     residuals = predictions - object_position
     dof = 3 * int(np.sum(sample_ok)) - 6
     noise = float(np.sqrt(np.sum(residuals[sample_ok] ** 2) / dof)) if dof > 0 else np.nan
-    covariance = noise_factor * noise * noise * H_inv @ info.G @ H_inv
-    if rotation_covariance is not None:
+    if rotation_covariance is None:
+        own = noise * noise
+    else:
         F = -(link_R @ quat.skew(lever))
         J = -H_inv @ (C_rows @ F.reshape(-1, 3))
+        own = noise * noise * (1.0 - _rotation_share(F, link_R, J, sample_ok,
+                                                     rotation_covariance, noise * noise * dof))
+    covariance = noise_factor * own * H_inv @ info.G @ H_inv
+    if rotation_covariance is not None:
         covariance = covariance + J @ rotation_covariance @ J.T
     return TranslationEstimate(t_z, covariance, noise, residuals, object_position)
+
+
+# At most this share of the scatter is put down to the rotation's error: that covariance is an
+# estimate too, and taking all would leave no noise where it came out large.
+MAX_ROTATION_SHARE = 0.9
+
+
+def _rotation_share(F, link_R, J, sample_ok, rotation_covariance, squares):
+    """
+    Return the share of the residuals' sum of squares `squares` that the rotation's error makes.
+
+    A rotation error delta moves prediction n by F_n delta and the translation by J delta, so
+    residual n by Q_n delta, Q_n = F_n + R(link_n) J less its mean over the samples used; its
+    expected sum of squares is sum_n tr(Q_n cov Q_n^T). Without it in the noise, the
+    rotation's error was counted in the scatter and again through J: with 0.3 deg and 2 mm of
+    noise the closed-form translation's mean (error / reported)^2 was 0.32 at 3 samples and
+    0.75 at 8 (0.68 and 0.98 with it).
+    """
+    if not squares > 0.0:
+        return 0.0
+    Q = (F + link_R @ J)[sample_ok]
+    Q = Q - Q.mean(axis=0)
+    explained = float(np.einsum('nij,jk,nik->', Q, rotation_covariance, Q))
+    return min(explained / squares, MAX_ROTATION_SHARE)
