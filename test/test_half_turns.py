@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from quatcal_ros.core import calibration
 from quatcal_ros.core import half_turns
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate
@@ -70,6 +71,25 @@ def test_when_the_translations_cannot_decide_the_uncertainty_includes_the_others
     # 770 RMS), now each alternative counts with its probability from the translations' fit.
     assert wrong >= 5
     assert 0.7 <= np.sqrt(np.mean(np.square(ratios))) <= 1.3
+
+
+def test_the_uncertainty_is_widened_only_when_the_warning_says_so(monkeypatch):
+    """Alternatives below the probability said had widened it 1.5-2.5x without a word."""
+    rng = np.random.default_rng(12)
+    cases = []
+    for _ in range(30):
+        cell = sim.random_cell(rng)
+        cases.append(turned_samples(rng, cell, HALF_TURNS + [([0, 0, 1], 180.0)],
+                                    translation_noise_m=0.001))
+    published = [calibrate(samples) for samples in cases]
+    monkeypatch.setattr(calibration, '_with_alternatives', lambda estimate, others: estimate)
+    said = 0
+    for samples, result in zip(cases, published):
+        if any('keep a probability of' in w for w in result.warnings):
+            said += 1
+            continue
+        assert result.uncertainty_deg == calibrate(samples).uncertainty_deg
+    assert said < len(cases)
 
 
 def test_ordinary_motions_are_decided_and_left_alone():
