@@ -93,16 +93,13 @@ def solve_translation(rotations, positions, q_z, info, sample_ok, rotation_covar
     residuals = predictions - object_position
     dof = 3 * int(np.sum(sample_ok)) - 6
     noise = float(np.sqrt(np.sum(residuals[sample_ok] ** 2) / dof)) if dof > 0 else np.nan
-    if rotation_covariance is None:
-        own = noise * noise
-    else:
+    own, from_rotation = noise * noise, 0.0
+    if rotation_covariance is not None:
         F = -(link_R @ quat.skew(lever))
         J = -H_inv @ (C_rows @ F.reshape(-1, 3))
-        own = noise * noise * (1.0 - _rotation_share(F, link_R, J, sample_ok,
-                                                     rotation_covariance, noise * noise * dof))
-    covariance = noise_factor * own * H_inv @ info.G @ H_inv
-    if rotation_covariance is not None:
-        covariance = covariance + J @ rotation_covariance @ J.T
+        own *= 1.0 - _rotation_share(F, link_R, J, sample_ok, rotation_covariance, own * dof)
+        from_rotation = J @ rotation_covariance @ J.T
+    covariance = noise_factor * own * H_inv @ info.G @ H_inv + from_rotation
     return TranslationEstimate(t_z, covariance, noise, residuals, object_position)
 
 
