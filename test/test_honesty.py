@@ -302,17 +302,23 @@ def test_the_fitted_noise_model_finds_the_pnp_shape():
     assert model['distribution'] == 'gaussian'
 
 
-@pytest.mark.parametrize('dimensions', [3, 6])
-def test_the_noise_models_short_arithmetic_equals_the_matrix_one(dimensions):
-    # The isotropic shape's EM runs on block sums of squares; the general path forms matrices.
+@pytest.mark.parametrize('dimensions, shapes', [(3, 'isotropic'), (6, 'isotropic'),
+                                                (6, 'diagonal'), (6, 'both')])
+def test_the_noise_models_short_arithmetic_equals_the_matrix_one(dimensions, shapes):
+    # Shapes of isotropic blocks run their EM on sums of squares per block, several such shapes
+    # as one batch ('both'); the general path forms matrices, one shape at a time.
     rng = np.random.default_rng(dimensions)
     sigma = np.array([0.01, 0.001, 0.002, 0.001, 0.003, 0.002])[:dimensions]
     residuals = rng.standard_t(4, (40, dimensions)) * sigma
     floor = np.full(dimensions, 1e-12)
-    short = heavy_tails.isotropic_blocks(dimensions)
-    general = replace(short, block=None)
-    fits = [heavy_tails.fit_t(residuals, (shape,), heavy_tails.NU_GRID, 2.0, floor,
-                              prior=np.linspace(0.6, 1.0, 40)) for shape in (short, general)]
+    short = {'isotropic': (heavy_tails.isotropic_blocks(dimensions),),
+             'diagonal': (heavy_tails.diagonal(dimensions),),
+             'both': (heavy_tails.isotropic_blocks(dimensions),
+                      heavy_tails.diagonal(dimensions))}[shapes]
+    general = tuple(replace(shape, block=None) for shape in short)
+    fits = [heavy_tails.fit_t(residuals, these, heavy_tails.NU_GRID, 2.0, floor,
+                              prior=np.linspace(0.6, 1.0, 40)) for these in (short, general)]
+    assert fits[0].variances is not None and fits[1].variances is None   # the two paths
     np.testing.assert_allclose(fits[0].probabilities, fits[1].probabilities, rtol=1e-9)
     np.testing.assert_allclose(fits[0].information(), fits[1].information(), rtol=1e-9)
     keep = rng.uniform(size=(5, 40)) > 0.2

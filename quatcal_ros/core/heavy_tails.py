@@ -262,10 +262,11 @@ class NoiseFit:
         r = np.asarray(residuals, dtype=float)
         count = max(len(r) - lost_samples, 1.0)
         parts = []
-        for shape, rows in _groups(self.shapes):
+        for rows in _groups(self.shapes):
             constants = _t_constants(tuple(self.nus[k] for k in rows), r.shape[1])
             w, steps = _warm_start(self, rows, len(r), constants)
-            parts.append(_fit_models(r, None, count, shape, constants, floor, w, steps))
+            parts.append(_fit_models(r, None, count, tuple(self.shapes[k] for k in rows),
+                                     constants, floor, w, steps))
         return _noise_fit(parts, self.probabilities)
 
     def refitted_information(self, residuals, keep, lost_samples=0.0, floor=None):
@@ -295,13 +296,14 @@ class NoiseFit:
         count = np.maximum(keep.sum(axis=1) - lost_samples, 1.0)
         information = 0.0
         live = set(self.live)
-        for shape, models in _groups(self.shapes):
+        for models in _groups(self.shapes):
             models = [k for k in models if k in live]
             if not models:
                 continue
             # Every model's replicates at once: (K B, N) weights, the K models in turn.
             constants = _t_constants(tuple(self.nus[k] for k in models), r.shape[1])
-            arithmetic = _arithmetic(r, shape, floor)
+            arithmetic = _arithmetic(r, tuple(self.shapes[k] for k in models for _ in range(rows)),
+                                     floor)
             counts = np.tile(count, len(models))
             w = (keep * self.model_weights[models][:, None, :]).reshape(-1, n)
             repeat = (len(models), rows, 1)
@@ -326,7 +328,7 @@ class NoiseFit:
                 information = information + (np.swapaxes(w, 0, 1).transpose(0, 2, 1)
                                              @ np.swapaxes(precision, 0, 1))
             else:
-                if shape.block is not None:   # diagonals of one shape among matrices
+                if precision.ndim == 3:   # diagonals of block shapes among matrices
                     precision = _as_matrices(precision)
                 information = information + np.einsum('kbn,kbij->bnij', w, precision)
         return information
@@ -351,11 +353,21 @@ def _eye(d):
 
 
 def _groups(shapes):
-    """Return [(shape, [rows of it])] in order of first appearance."""
-    groups = {}
+    """
+    Return the rows fitted as one batch: [[rows]], in order.
+
+    Consecutive shapes of isotropic blocks form one batch (_Blocks fits them at once); the
+    rows of any other shape form one batch each.
+    """
+    groups = []
     for k, shape in enumerate(shapes):
-        groups.setdefault(shape.name, (shape, []))[1].append(k)
-    return list(groups.values())
+        last = shapes[groups[-1][-1]] if groups else None
+        if last is not None and (last.name == shape.name or
+                                 last.block is not None and shape.block is not None):
+            groups[-1].append(k)
+        else:
+            groups.append([k])
+    return groups
 
 
 def fit_t(residuals, shapes, grid=NU_GRID, lost_samples=0.0, floor=None, prior=None,
@@ -378,21 +390,28 @@ def fit_t(residuals, shapes, grid=NU_GRID, lost_samples=0.0, floor=None, prior=N
     total = n if prior is None else float(prior.sum())
     count = max(total - lost_samples, 1.0)
     constants = _t_constants(tuple(grid), d)
-    parts = []
+    k = len(grid)
     same = start is not None and start.shapes == tuple(s for s in shapes for _ in grid) and \
         start.nus == constants.nus * len(shapes)    # start's rows are these models in order
+    starts = []
     for index, shape in enumerate(shapes):
-        k = len(grid)
         rows = (list(range(index * k, index * k + k)) if same
                 else _rows_of(start, shape, constants.nus))
-        w, steps = (_warm_start(start, rows, n, constants) if rows is not None
-                    else _nearest_start(start, shape, n, constants))
-        parts.append(_fit_models(r, prior, count, shape, constants, floor, w, steps))
-    penalty = 0.5 * math.log(max(total, 2.0))
-    criteria = [(p.log_density.sum(axis=1) if prior is None else p.log_density @ prior)
-                - penalty * (shape.parameters + constants.finite)
-                for p, shape in zip(parts, shapes)]
-    criteria = criteria[0] if len(criteria) == 1 else np.concatenate(criteria)
+        starts.append(_warm_start(start, rows, n, constants) if rows is not None
+                      else _nearest_start(start, shape, n, constants))
+    parts = []
+    for group in _groups(shapes):   # the shapes fitted as one batch
+        w = (starts[group[0]][0] if len(group) == 1
+             else np.concatenate([starts[index][0] for index in group]))
+        steps = sum((tuple(starts[index][1]) for index in group), ())
+        parts.append(_fit_models(r, prior, count, tuple(shapes[i] for i in group for _ in grid),
+                                 _t_constants(constants.nus * len(group), d), floor, w, steps))
+    log_density = (parts[0].log_density if len(parts) == 1
+                   else np.concatenate([p.log_density for p in parts]))
+    parameters = (np.repeat([shape.parameters for shape in shapes], k)
+                  + np.tile(constants.finite, len(shapes)))
+    criteria = ((log_density.sum(axis=1) if prior is None else log_density @ prior)
+                - 0.5 * math.log(max(total, 2.0)) * parameters)
     probabilities = np.exp(criteria - criteria.max())
     probabilities[probabilities <= MIN_PROBABILITY * probabilities.sum()] = 0.0   # no say
     return _noise_fit(parts, probabilities / probabilities.sum())
@@ -488,32 +507,41 @@ def _nearest_start(start, shape, n, constants):
     return w, cold
 
 
-def _fit_models(r, good, count, shape, constants, floor, w, steps):
+def _fit_models(r, good, count, shapes, constants, floor, w, steps):
     """
-    Fit one Shape with each nu of `constants` by EM, all at once; return their _Models.
+    Fit models (row k: Shape shapes[k], nu constants.nus[k]) by EM, all at once: _Models.
 
-    good: per-sample prior weights (None: all 1); w (K, N): the starting weights; steps: each
+    The rows are of one Shape, or of Shapes of isotropic blocks (_arithmetic). good:
+    per-sample prior weights (None: all 1); w (K, N): the starting weights; steps: each
     model's EM steps (none for nu = inf, fewer from a warm start), as if fitted alone: the
     batch only shares the arithmetic.
     """
-    arithmetic = _arithmetic(r, shape, floor)
-    done = 0
-    for until in sorted(set(steps) - {0}):     # the rows still moving, a batch at a time
-        rows = [i for i, s in enumerate(steps) if s >= until]
-        if rows[-1] - rows[0] == len(rows) - 1:   # a slice: no copies
-            rows = slice(rows[0], rows[-1] + 1)
-        moved = arithmetic.em_steps(w[rows], good, count, constants.safe[rows],
-                                    constants.numerator[rows], until - done)
-        if done == 0:
-            w = w.copy()   # the start may be an earlier fit's
-        w[rows] = moved
-        done = until
+    arithmetic = _arithmetic(r, shapes, floor)
+    for repeat, moving in _em_levels(tuple(steps)):
+        moved = arithmetic.em_steps(w, good, count, constants.safe, constants.numerator, repeat)
+        w = moved if moving is None else np.where(moving, moved, w)   # the rest are done
     scale, delta, log_det = arithmetic.fitted(w if good is None else good * w, count)
     diagonal = scale.ndim == 2
-    k = len(constants.nus)
-    return _Models((shape,) * k, constants.nus, scale if diagonal else None,
+    return _Models(shapes, constants.nus, scale if diagonal else None,
                    None if diagonal else (scale, arithmetic.precision),
                    constants.weights(delta), delta, constants.log_density(delta, log_det))
+
+
+@lru_cache(maxsize=32)
+def _em_levels(steps):
+    """
+    Return the EM's stages for the rows' `steps`: [(repeat, moving)].
+
+    In turn, `repeat` more steps of every row, kept for the rows `moving` ((K, 1) bool, None
+    for all): those that take at least that many steps in all.
+    """
+    levels, done = [], 0
+    for until in sorted(set(steps) - {0}):
+        moving = np.array([s >= until for s in steps])[:, None]
+        moving.flags.writeable = False
+        levels.append((until - done, None if moving.all() else moving))
+        done = until
+    return tuple(levels)
 
 
 class _TConstants:
@@ -612,81 +640,100 @@ class _Matrices:
 
 class _Blocks:
     """
-    The same for sigma_b^2 I on blocks of axes (Shape.block), without forming a matrix.
+    The same for scales sigma^2 I on blocks of axes (Shape.block), without forming a matrix.
 
-    The variances come from each sample's sum of squares per block (N, B), and so do the
-    distances when the floor is the same on every axis of a block (else from the squares per
-    axis, each axis's variance its block's plus its own floor): the EM's inner loop, the same
-    numbers as _Matrices to rounding. Scales and precisions are their diagonals (K, d).
+    A row's variances need only each sample's sum of squares per block of its Shape. `sums`
+    (N, C) holds them for the blocks of every block size among the rows (a column per block),
+    and row k uses the columns of its own size (`own`, (K, C) 0/1): one variance per block,
+    so the Shapes' models are fitted as one batch and each block's axes have the same
+    variance to the last bit. A block's floor is its axes' mean (every caller's floors are even
+    within a block). The EM's inner loop: the same numbers as _Matrices to rounding.
+    Scales and precisions are given as their diagonals (K, d).
     """
 
-    def __init__(self, r, block, floor):
-        n, d = r.shape
-        squares = r * r
-        self.block, self.d = block, d
-        self.block_squares = (squares.sum(axis=-1, keepdims=True) if block == d
-                              else squares.reshape(n, d // block, block).sum(axis=-1))
-        self.floor, self.axis_floor = _block_floors(floor, d, block)
-        self.squares_t = (self.block_squares if self.axis_floor is None else squares).T.copy()
+    def __init__(self, r, shapes, floor):
+        d = r.shape[1]
+        layout = _block_layout(tuple(shape.block for shape in shapes), d)
+        self.sums = (r * r) @ layout.gather                         # (N, C)
+        self.sums_t = self.sums.T.copy()
+        self.layout = layout
+        self.own = 1.0 if layout.own is None else layout.own   # every column every row's
+        self.floor = 0.0 if floor is None else _block_floor(floor, layout)
         self.precision = None
 
     def _variances(self, w, count):
-        """Return each model's variance per block (K, B), or per axis with uneven floors."""
-        if np.ndim(count):
-            count = np.reshape(count, (-1, 1))
-        variances = (w @ self.block_squares) / (self.block * count) + self.floor
-        if self.axis_floor is None:
-            return variances
-        return np.repeat(variances, self.block, axis=1) + self.axis_floor
+        """Return each row's variance per block (K, C): its own columns' are its variances."""
+        return (w @ self.sums) * self._scale(count) + self.floor
+
+    def _scale(self, count):
+        """Return 1 / (axes times count) per block: (C,), or (K, C) for a count per row."""
+        count = np.reshape(count, (-1, 1)) if np.ndim(count) else count
+        return 1.0 / (self.layout.size * count)
 
     def distances(self, w, count):
         """Return r_n^T S_k^-1 r_n (K, N) under the scales S_k of the weights w (K, N)."""
-        return (1.0 / self._variances(w, count)) @ self.squares_t
+        return (self.own / self._variances(w, count)) @ self.sums_t
 
     def em_steps(self, w, good, count, nu, numerator, steps):
-        """Return _Matrices.em_steps: per block, from the sums of squares per block."""
-        if self.axis_floor is not None or np.ndim(count):
-            return _Matrices.em_steps(self, w, good, count, nu, numerator, steps)
-        squares = self.block_squares if good is None else good[:, None] * self.block_squares
-        scale = 1.0 / (self.block * count)
+        """Return _Matrices.em_steps: from the sums of squares per block."""
+        sums = self.sums if good is None else good[:, None] * self.sums
+        scale, floor, own, sums_t = self._scale(count), self.floor, self.own, self.sums_t
         for _ in range(steps):
-            w = numerator / (nu + (1.0 / ((w @ squares) * scale + self.floor)) @ self.squares_t)
+            w = numerator / (nu + (own / ((w @ sums) * scale + floor)) @ sums_t)
         return w
 
     def fitted(self, w, count):
         """Return the scales as diagonals (K, d), distances (K, N), log dets; keep S^-1."""
+        layout = self.layout
         variances = self._variances(w, count)
-        inverse = 1.0 / variances
-        delta = inverse @ self.squares_t
-        log_det = np.log(variances).sum(axis=-1)
-        if self.axis_floor is None:   # per block: to every axis
-            log_det = log_det * self.block
-            variances = np.repeat(variances, self.block, axis=-1)
-            inverse = 1.0 / variances
-        self.precision = inverse
-        return variances, delta, log_det
+        inverse = self.own / variances
+        logs = layout.size * np.log(variances)
+        if layout.own is not None:   # each row's own blocks
+            variances, logs = layout.own * variances, layout.own * logs
+        self.precision = inverse @ layout.expand                      # one term per axis
+        return variances @ layout.expand, inverse @ self.sums_t, logs.sum(axis=-1)
 
 
-_FLOORS = {}
+def _block_floor(floor, layout):
+    """Return each block's floor (C,): its axes' mean of `floor` (d,) or a scalar."""
+    return floor if np.ndim(floor) == 0 else np.asarray(floor, dtype=float) @ layout.mean
 
 
-def _block_floors(floor, d, block):
-    """Return (floor per block (B,), None) when even within blocks, else (0, floor per axis)."""
-    key = (None if floor is None else np.asarray(floor, dtype=float).tobytes(), d, block)
-    if key not in _FLOORS:
-        values = (0.0,) * d if floor is None else tuple(np.ravel(floor).tolist())
-        values = values * d if len(values) == 1 else values
-        per_block = [values[b:b + block] for b in range(0, d, block)]
-        if all(len(set(part)) == 1 for part in per_block):
-            _FLOORS[key] = np.array([part[0] for part in per_block]), None
-        else:
-            _FLOORS[key] = 0.0, np.array(values)
-    return _FLOORS[key]
+@dataclass(frozen=True)
+class _BlockLayout:
+    """The columns of _Blocks.sums: a block each, for the block sizes of a batch's rows."""
+
+    gather: np.ndarray    # (d, C) 0/1: squares per axis -> sums per block
+    mean: np.ndarray      # (d, C): values per axis -> their mean per block
+    expand: np.ndarray    # (C, d) 0/1: a value per block -> to its axes
+    size: np.ndarray      # (C,) each block's axes
+    own: np.ndarray       # (K, C) 0/1: each row's columns, or None when all are every row's
 
 
-def _arithmetic(r, shape, floor):
-    """Return the _Blocks of a Shape of isotropic blocks, else its _Matrices."""
-    return _Matrices(r, shape, floor) if shape.block is None else _Blocks(r, shape.block, floor)
+@lru_cache(maxsize=32)
+def _block_layout(blocks, d):
+    """Return the _BlockLayout of rows whose Shapes have these block sizes (K,)."""
+    sizes = sorted(set(blocks))
+    columns = [(size, start) for size in sizes for start in range(0, d, size)]
+    expand = np.zeros((len(columns), d))
+    for c, (size, start) in enumerate(columns):
+        expand[c, start:start + size] = 1.0
+    size = np.array([float(size) for size, _ in columns])
+    own = None
+    if len(sizes) > 1:
+        own = np.array([[float(column[0] == block) for column in columns] for block in blocks])
+    layout = _BlockLayout(expand.T.copy(), expand.T / size, expand, size, own)
+    for array in (layout.gather, layout.mean, layout.expand, layout.size, own):
+        if array is not None:
+            array.flags.writeable = False
+    return layout
+
+
+def _arithmetic(r, shapes, floor):
+    """Return the _Blocks of rows of isotropic-block Shapes, else the _Matrices of one Shape."""
+    if shapes[0].block is None:
+        return _Matrices(r, shapes[0], floor)
+    return _Blocks(r, shapes, floor)
 
 
 # --- bad detections -------------------------------------------------------------------------
