@@ -672,7 +672,7 @@ def _robustly_centred(rotations, q_z):
     if len(residuals) < 4:
         return residuals, mean
     about_mean = np.linalg.norm(residuals, axis=1)
-    about_median = np.linalg.norm(residuals - np.median(residuals, axis=0), axis=1)
+    about_median = np.linalg.norm(residuals - median(residuals, axis=0), axis=1)
     spread = median(about_median)
     if not median(about_mean) > RECENTRE_RATIO * spread:
         return residuals, mean
