@@ -326,6 +326,15 @@ def test_the_noise_models_short_arithmetic_equals_the_matrix_one(dimensions, sha
                                  for f in fits), rtol=1e-9)
 
 
+def test_a_floor_given_as_one_number_is_every_axis_floor():
+    residuals = np.random.default_rng(5).standard_t(4, (30, 6)) * 0.01
+    shapes = (heavy_tails.isotropic_blocks(6), heavy_tails.diagonal(6))
+    fits = [heavy_tails.fit_t(residuals, shapes, heavy_tails.NU_GRID, 2.0, floor)
+            for floor in (np.full(6, 1e-4), np.array([1e-4]), 1e-4)]
+    for fit in fits[1:]:
+        np.testing.assert_array_equal(fit.variances, fits[0].variances)
+
+
 @pytest.mark.parametrize('mode', sorted(MODES))
 @pytest.mark.parametrize('n', [20, 40])    # 40: the full scale matrix is a candidate too
 def test_the_refinement_lands_on_the_converged_joint_fit(mode, n, monkeypatch):

@@ -292,7 +292,7 @@ class NoiseFit:
         """
         r = np.asarray(residuals, dtype=float)
         keep = np.asarray(keep, dtype=float)
-        rows, n = keep.shape
+        replicates, n = keep.shape
         count = np.maximum(keep.sum(axis=1) - lost_samples, 1.0)
         information = 0.0
         live = set(self.live)
@@ -302,11 +302,11 @@ class NoiseFit:
                 continue
             # Every model's replicates at once: (K B, N) weights, the K models in turn.
             constants = _t_constants(tuple(self.nus[k] for k in models), r.shape[1])
-            arithmetic = _arithmetic(r, tuple(self.shapes[k] for k in models for _ in range(rows)),
-                                     floor)
+            arithmetic = _arithmetic(r, tuple(self.shapes[k] for k in models), floor,
+                                     replicates)
             counts = np.tile(count, len(models))
             w = (keep * self.model_weights[models][:, None, :]).reshape(-1, n)
-            repeat = (len(models), rows, 1)
+            repeat = (len(models), replicates, 1)
             nu = np.broadcast_to(constants.safe[:, None], repeat).reshape(-1, 1)
             numerator = np.broadcast_to(constants.numerator[:, None], repeat).reshape(-1, 1)
             kept = np.broadcast_to(keep, (len(models),) + keep.shape).reshape(-1, n)
@@ -316,11 +316,11 @@ class NoiseFit:
                          else arithmetic.distances(w, counts))
                 w = kept * (numerator / (nu + delta))
                 if gaussian is not None:      # the Gaussian's weights stay those it kept
-                    w.reshape(len(models), rows, n)[gaussian] = keep
+                    w.reshape(len(models), replicates, n)[gaussian] = keep
             p = self.probabilities[models][:, None, None]
-            w = p * w.reshape(len(models), rows, n)
+            w = p * w.reshape(len(models), replicates, n)
             precision = arithmetic.precision.reshape(
-                (len(models), rows) + arithmetic.precision.shape[1:])
+                (len(models), replicates) + arithmetic.precision.shape[1:])
             if self.diagonal:   # precisions as diagonals (K, B, d), per block
                 if per_block:
                     precision = precision[..., ::self.block]
@@ -380,7 +380,8 @@ def fit_t(residuals, shapes, grid=NU_GRID, lost_samples=0.0, floor=None, prior=N
     log N), so a full covariance counts only when the data show its shape clearly, and heavy
     tails only when the data need them. lost_samples: samples' worth of degrees of freedom
     spent on fitted parameters (the scale is divided by N minus them); floor: d variances
-    added to the diagonal (so exact data do not divide by zero); prior: per-sample
+    added to the diagonal (so exact data do not divide by zero; a Shape of isotropic blocks
+    takes each block's mean of them: give them even within its blocks); prior: per-sample
     probabilities of being good (bad_detections), which weight each sample's part in the fit;
     start: a NoiseFit of similar residuals whose weights start the EM (fewer steps; a model it
     lacks starts from the distances of its nearest model).
@@ -429,7 +430,7 @@ def _rows_of(start, shape, nus):
 
 @dataclass(frozen=True)
 class _Models:
-    """Models of one Shape fitted together (_fit_models): a NoiseFit's rows in the making."""
+    """Models fitted together (_fit_models): a NoiseFit's rows in the making."""
 
     shapes: tuple
     nus: tuple
@@ -648,12 +649,13 @@ class _Blocks:
     so the Shapes' models are fitted as one batch and each block's axes have the same
     variance to the last bit. A block's floor is its axes' mean (every caller's floors are even
     within a block). The EM's inner loop: the same numbers as _Matrices to rounding.
-    Scales and precisions are given as their diagonals (K, d).
+    Scales and precisions are given as their diagonals (K, d). shapes: the Shape of each
+    `repeat` consecutive rows.
     """
 
-    def __init__(self, r, shapes, floor):
+    def __init__(self, r, shapes, floor, repeat=1):
         d = r.shape[1]
-        layout = _block_layout(tuple(shape.block for shape in shapes), d)
+        layout = _block_layout(tuple(shape.block for shape in shapes), d, repeat)
         self.sums = (r * r) @ layout.gather                         # (N, C)
         self.sums_t = self.sums.T.copy()
         self.layout = layout
@@ -695,8 +697,9 @@ class _Blocks:
 
 
 def _block_floor(floor, layout):
-    """Return each block's floor (C,): its axes' mean of `floor` (d,) or a scalar."""
-    return floor if np.ndim(floor) == 0 else np.asarray(floor, dtype=float) @ layout.mean
+    """Return each block's floor: its axes' mean of `floor` (d,), or `floor` if one number."""
+    floor = np.asarray(floor, dtype=float)
+    return float(floor.reshape(-1)[0]) if floor.size == 1 else floor @ layout.mean
 
 
 @dataclass(frozen=True)
@@ -707,12 +710,12 @@ class _BlockLayout:
     mean: np.ndarray      # (d, C): values per axis -> their mean per block
     expand: np.ndarray    # (C, d) 0/1: a value per block -> to its axes
     size: np.ndarray      # (C,) each block's axes
-    own: np.ndarray       # (K, C) 0/1: each row's columns, or None when all are every row's
+    own: object           # (K, C) 0/1: each row's columns; None when all are every row's
 
 
 @lru_cache(maxsize=32)
-def _block_layout(blocks, d):
-    """Return the _BlockLayout of rows whose Shapes have these block sizes (K,)."""
+def _block_layout(blocks, d, repeat):
+    """Return the _BlockLayout of rows whose Shapes have these block sizes, each `repeat` times."""
     sizes = sorted(set(blocks))
     columns = [(size, start) for size in sizes for start in range(0, d, size)]
     expand = np.zeros((len(columns), d))
@@ -721,7 +724,8 @@ def _block_layout(blocks, d):
     size = np.array([float(size) for size, _ in columns])
     own = None
     if len(sizes) > 1:
-        own = np.array([[float(column[0] == block) for column in columns] for block in blocks])
+        own = np.repeat([[float(column[0] == block) for column in columns] for block in blocks],
+                        repeat, axis=0)
     layout = _BlockLayout(expand.T.copy(), expand.T / size, expand, size, own)
     for array in (layout.gather, layout.mean, layout.expand, layout.size, own):
         if array is not None:
@@ -729,11 +733,15 @@ def _block_layout(blocks, d):
     return layout
 
 
-def _arithmetic(r, shapes, floor):
-    """Return the _Blocks of rows of isotropic-block Shapes, else the _Matrices of one Shape."""
+def _arithmetic(r, shapes, floor, repeat=1):
+    """
+    Return the _Blocks of rows of isotropic-block Shapes, else the _Matrices of one Shape.
+
+    Each of `shapes` is the Shape of `repeat` consecutive rows.
+    """
     if shapes[0].block is None:
         return _Matrices(r, shapes[0], floor)
-    return _Blocks(r, shapes, floor)
+    return _Blocks(r, shapes, floor, repeat)
 
 
 # --- bad detections -------------------------------------------------------------------------
