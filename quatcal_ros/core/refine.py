@@ -227,7 +227,11 @@ class _Samples:
         self.link_q = np.asarray(link_q, dtype=float)
         self.link_R = quat.matrix_from_quaternion(self.link_q) if link_R is None else link_R
         self.link_origin = np.einsum('nji,nj->ni', self.link_R, link_t)   # R_L^T t_L
-        self.sensor_plus = quat.plus_matrix(sensor_q)     # S_i (x) q = P+(S_i) q
+        # S_i (x) inv(O) (x) L_i (x) X is bilinear in inv(O) and X: T_i (inv(O) X^T).ravel(),
+        # with T_i = P+(S_i) [e_j (x) L_i (x) e_k]_jk (eq. (11)-(12)); stacked (4N, 16).
+        n = len(self.link_q)
+        between = (self.link_q @ _UNIT_PRODUCTS).reshape(n, 4, 16)
+        self.rotation_terms = (quat.plus_matrix(sensor_q) @ between).reshape(-1, 16)
         self.sensor_t = np.asarray(sensor_t, dtype=float)
         self.whitening = whitening
 
@@ -238,8 +242,8 @@ class _Samples:
         """Return the residuals (N, 6) at model (X, O), R_X and u = R_X^T w (residuals())."""
         x_q, x_t, o_q, o_t = model
         R_X = quat.matrix_from_quaternion(x_q)
-        fixed = quat.plus_matrix(quat.conjugate(o_q)) @ quat.minus_matrix(x_q)
-        measured = (self.sensor_plus @ (self.link_q @ fixed.T)[..., None])[..., 0]
+        fixed = np.outer(quat.conjugate(o_q), x_q).ravel()            # inv(O) X^T
+        measured = (self.rotation_terms @ fixed).reshape(-1, 4)
         u = (o_t @ self.link_R - self.link_origin - x_t) @ R_X     # R_X^T w
         e = np.empty((len(u), 6))
         e[:, :3] = quat.rotation_vector(measured)
@@ -253,6 +257,12 @@ class _Samples:
         if self.whitening is None:
             return e, J
         return (self.whitening @ e[..., None])[..., 0], self.whitening @ J
+
+
+# e_j (x) q (x) e_k = P+(e_j) P-(e_k) q for the unit quaternions e_j, e_k: q @ _UNIT_PRODUCTS
+# holds component a of each at [a, (j, k)] (4 x 64).
+_UNIT_PRODUCTS = np.einsum('jab,kbc->cajk', quat.plus_matrix(np.eye(4)),
+                           quat.minus_matrix(np.eye(4))).reshape(4, 64)
 
 
 def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None,
@@ -419,9 +429,11 @@ class _Sums:
         return self.J.reshape(-1, 12).T @ MJ, np.swapaxes(MJ, -1, -2) @ self.e.reshape(-1)
 
 
-def _jackknife(noise, sums, blocks=JACKKNIFE_BLOCKS):
+def _jackknife(noise, sums, curvature, blocks=JACKKNIFE_BLOCKS):
     """
     Return the block-jackknife covariance of X given the noise and the _Sums at the answer.
+
+    curvature: the noise's (NoiseFit.curvature), each step's Hessian over its normal matrix.
 
     The samples (in their order, so that neighbours in time fall together) are cut into
     `blocks` contiguous blocks; without each, the noise models' scales and weights are
@@ -439,7 +451,6 @@ def _jackknife(noise, sums, blocks=JACKKNIFE_BLOCKS):
         return None
     keep = _kept_samples(n, count)
     diagonal = noise.diagonal
-    curvature = noise.curvature(DIMENSIONS)   # each step's Hessian: curvature A
     moves = []
     # Replicates in batches of a bounded size (each holds its (N, 6, 12) weighted Jacobian).
     batch = count if sums.blocks else max(1, JACKKNIFE_BATCH_FLOATS // (n * 6 * 12))
@@ -548,7 +559,8 @@ def _refinement(model, sums, noise, converged, whitening=None, resample=False):
         object_translation=o_t, noise=noise, covariance=sandwich,
         model_covariance=A_inv / noise.efficiency(DIMENSIONS), residuals=e,
         leave_one_out=leave_one_out, converged=bool(converged),
-        resampled=_jackknife(noise, sums) if resample else None, whitening=whitening)
+        resampled=_jackknife(noise, sums, curvature) if resample else None,
+        whitening=whitening)
 
 
 def _score_scatter(J, e, information, diagonal, A_inv):
