@@ -20,8 +20,10 @@ import importlib  # noqa: E402,I100 - after the signal guard
 from quatcal_ros.core.threads import single_threaded_blas  # noqa: E402
 
 TOOLS = {
-    'solve': ('quatcal_ros.tools.cli', 'solve_main', 'rotation from a samples CSV (prints JSON)'),
-    'replay': ('quatcal_ros.tools.cli', 'replay_main', 'rotation from a rosbag2 recording'),
+    'solve': ('quatcal_ros.tools.cli', 'solve_main',
+              'the mounting from a samples file or an image folder (prints JSON)'),
+    'replay': ('quatcal_ros.tools.cli', 'replay_main',
+               'the mounting from a rosbag2 recording (prints JSON)'),
     'calibrator': ('quatcal_ros.ros.node', 'main', 'the live calibration node'),
     'sim_cell': ('quatcal_ros.ros.sim_cell', 'main', 'a simulated robot cell (ROS node)'),
     'target_detector': ('quatcal_ros.ros.target_detector', 'main',
@@ -36,7 +38,8 @@ TOOLS = {
 def usage():
     """Return the list of tools."""
     lines = ['usage: python -m quatcal_ros TOOL [ARGS...]', '', 'tools:']
-    lines += [f'  {name:<11} {text}' for name, (_, _, text) in TOOLS.items()]
+    width = max(len(name) for name in TOOLS)
+    lines += [f'  {name:<{width}}  {text}' for name, (_, _, text) in TOOLS.items()]
     return '\n'.join(lines)
 
 

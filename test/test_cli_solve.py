@@ -251,6 +251,15 @@ def test_the_tools_run_numpys_blas_on_one_thread(repo_root):
     assert done.stdout.strip() == '1'
 
 
+def test_the_tool_list_names_every_tool_in_one_column(capsys):
+    from quatcal_ros import __main__ as tools
+    assert tools.main(['--help']) == 0
+    listed = capsys.readouterr().out.split('tools:\n')[1].splitlines()
+    assert [line.split()[0] for line in listed] == list(tools.TOOLS)
+    columns = {len(line) - len(line[2:].split(' ', 1)[1].lstrip()) for line in listed}
+    assert len(columns) == 1   # every description starts in the same column
+
+
 def test_every_tool_entry_sets_the_thread_count(monkeypatch, capsys):
     from quatcal_ros import __main__ as tools
     for name in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):

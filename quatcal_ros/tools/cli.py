@@ -380,7 +380,7 @@ def replay_parser():
 
 
 def replay_main(argv=None):
-    """`replay BAG_DIR ...`: estimate the rotation from a rosbag2 recording, print JSON."""
+    """`replay BAG_DIR ...`: estimate the mounting from a rosbag2 recording, print JSON."""
     parser = replay_parser()
     args = parser.parse_args(argv)
     prog = parser.prog
