@@ -229,6 +229,27 @@ def test_motions_about_one_axis_are_solved_from_the_translations_and_the_rest_na
         calibrate(turned)
 
 
+def test_eye_to_hand_names_the_base_axis_and_asks_to_turn_the_link():
+    # The motions' axes are in the base frame there, whether the link turns about a base axis
+    # or about one of its own (link x lies along base z here); the base itself never turns.
+    camera = Pose.create([1.0, 0.2, 0.8], quat.from_axis_angle([1.0, 0, 0], np.radians(150)))
+    marker = Pose.create([0.0, 0.05, 0.1], quat.from_axis_angle([0, 1.0, 0], np.radians(30)))
+    start = Pose.create([0.5, 0.1, 0.4], quat.from_axis_angle([0, 1.0, 0], np.radians(90)))
+
+    def turn(axis, angle):
+        return Pose.create([0, 0, 0], quat.from_axis_angle(axis, np.radians(angle)))
+
+    for turned in (lambda a: turn([0, 0, 1.0], a) @ start,    # about base z
+                   lambda a: start @ turn([1.0, 0, 0], a)):   # about link x
+        links = [turned(angle) for angle in (0, 20, 45, 70)]
+        samples = [Sample(k, link, camera.inverse() @ link @ marker)
+                   for k, link in enumerate(links)]
+        with pytest.raises(DegenerateMotionError,
+                           match=r'Case 1.*base z.*rotate the link about axes perpendicular to '
+                                 r'it, e.g. tilt about base x or base y'):
+            calibrate(samples, CalibrationOptions(setup='eye_to_hand'))
+
+
 def test_too_few_samples_and_no_motion_are_refused():
     cell, samples, _ = synthetic(2, 5)
     with pytest.raises(DegenerateMotionError, match='at least 3'):

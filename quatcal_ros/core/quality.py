@@ -161,13 +161,18 @@ def nearest_axis_name(axis, frame='link'):
 
 
 def next_motion_hint(ratio, weakest_axis, frame='link', good_ratio=0.2):
-    """Words for the operator: which motion would improve the estimate most."""
+    """
+    Words for the operator: which motion would improve the estimate most.
+
+    weakest_axis: in `frame`, the frame of the motions' axes ('link' for eye-in-hand, 'base'
+    for eye-to-hand); either way it is the link that the robot turns.
+    """
     name = nearest_axis_name(weakest_axis, frame)
     others = [f'{frame} {a}' for a in AXIS_NAMES if f'{frame} {a}' != name]
     vector = ', '.join(f'{c:.2f}' for c in weakest_axis)
     if ratio < good_ratio:
         return (f'the rotation about the {name} axis ([{vector}]) is least determined: '
-                f'rotate the {frame} about axes perpendicular to it, e.g. tilt about '
+                f'rotate the link about axes perpendicular to it, e.g. tilt about '
                 f'{others[0]} or {others[1]}, by 20-40 degrees')
     return ('motions excite all axes; more samples about varied axes reduce the '
             f'uncertainty (weakest: {name})')
