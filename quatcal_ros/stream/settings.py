@@ -163,7 +163,7 @@ SETTINGS = (
     Setting('setup', 'eye_in_hand',
             'eye_in_hand: the sensor rides on the link, the answer is link -> sensor; '
             'eye_to_hand: the sensor is fixed in the cell, the answer is base -> sensor.',
-            choices=SETUPS, tools=BOTH),
+            choices=SETUPS, tools=BOTH + PLAN),
     Setting('capture_mode', 'auto',
             'auto: take a sample whenever both poses stay still for still_window_s after a '
             'motion; manual: only on ~/capture; continuous: for runs without stops, a sample '

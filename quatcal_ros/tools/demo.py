@@ -41,7 +41,10 @@ def parse_args(argv):
                     'estimate with the ground truth.')
     parser.add_argument('--seed', type=int, default=7, help='seed of the simulated cell')
     parser.add_argument('--setup', choices=('eye_in_hand', 'eye_to_hand'),
-                        default='eye_in_hand')
+                        default='eye_in_hand',
+                        help='eye_in_hand: the camera rides on the robot link; eye_to_hand: '
+                             'it stands in the cell and the marker rides on the link '
+                             '(default eye_in_hand)')
     parser.add_argument('--uncertainty-deg', type=float, default=0.1,
                         help='stop when the reported uncertainty is below this (deg)')
     parser.add_argument('--max-samples', type=int, default=60,

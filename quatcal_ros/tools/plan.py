@@ -25,7 +25,7 @@ from quatcal_ros.core.numerics import finite_or_none
 from quatcal_ros.core.planner import plan_session, PlanLimits
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, \
-    quaternion_norm_problem, SETUPS
+    quaternion_norm_problem
 from quatcal_ros.files import plain_yaml
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.tools.options import add_setting_options
@@ -46,7 +46,7 @@ def parser():
                        help='the start pose of the link, T_base_link (m; quaternion x y z w)')
     parse.add_argument('--count', type=int, default=15,
                        help='number of poses, the start included (default 15)')
-    parse.add_argument('--setup', choices=SETUPS, default='eye_in_hand')
+    add_setting_options(parse, 'plan', ('setup',))
     parse.add_argument('--mounting', nargs=7, type=float,
                        metavar=('X', 'Y', 'Z', 'QX', 'QY', 'QZ', 'QW'),
                        help='guess of the mounting: T_link_sensor (eye_in_hand; default: the '
