@@ -7,7 +7,7 @@ import math
 import pytest
 from quatcal_ros.ros import parameters
 from quatcal_ros.stream import settings
-from quatcal_ros.stream.settings import ConfigError, SETTINGS, Settings
+from quatcal_ros.stream.settings import ConfigError, PRESENTATION, SETTINGS, Settings
 from quatcal_ros.tools import options
 import rclpy
 from rclpy.context import Context
@@ -170,6 +170,12 @@ def test_params_file_lists_every_parameter_with_its_default(repo_root):
         (index,) = [i for i, line in enumerate(lines)
                     if line.strip().startswith(setting.name + ':')]
         assert lines[index - 1].strip().startswith('#'), f'{setting.name} has no comment'
+        # A runtime change of these keeps the estimate (the node keeps its session).
+        start = index
+        while lines[start - 1].strip().startswith('#'):
+            start -= 1
+        comment = ' '.join(line.strip().lstrip('# ') for line in lines[start:index])
+        assert ('keeps the estimate' in comment) == (setting.name in PRESENTATION), setting.name
 
 
 def test_params_file_loads_through_rcl(repo_root, domain_id):

@@ -10,7 +10,8 @@ not declared here.  `params_file_text` renders config/calibrator.yaml from the t
 
 import textwrap
 
-from quatcal_ros.stream.settings import ConfigError, NODE_NAME, SETTING_BY_NAME, SETTINGS
+from quatcal_ros.stream.settings import ConfigError, NODE_NAME, PRESENTATION, SETTING_BY_NAME
+from quatcal_ros.stream.settings import SETTINGS
 from quatcal_ros.stream.settings import Settings
 from rcl_interfaces.msg import FloatingPointRange
 from rcl_interfaces.msg import IntegerRange
@@ -70,7 +71,8 @@ def params_file_text():
         '#   python -m quatcal_ros.ros.parameters > config/calibrator.yaml',
         '# Numbers that are floats must be written with a decimal point (1.0, not 1).',
         '# read-only: set at startup only; every other parameter can be changed at runtime',
-        '# (ros2 param set), and the estimate is recomputed from the samples so far.',
+        '# (ros2 param set), and the estimate is recomputed from the samples so far, except',
+        '# for those marked "keeps the estimate" (they change only the outputs or the checks).',
         f'{NODE_NAME}:',
         '  ros__parameters:',
     ]
@@ -78,6 +80,8 @@ def params_file_text():
         notes = [setting.constraints] if setting.constraints else []
         if setting.read_only:
             notes.append('read-only')
+        elif setting.name in PRESENTATION:
+            notes.append('keeps the estimate')
         text = setting.description + (f' ({"; ".join(notes)})' if notes else '')
         lines += textwrap.wrap(text, 95, initial_indent='    # ', subsequent_indent='    # ')
         lines.append(f'    {setting.name}: {_yaml_value(setting.default)}')
