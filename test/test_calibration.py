@@ -5,6 +5,8 @@ Most tests here check the paper's method and its least-squares extension, so the
 method='closed-form' (CLOSED); the joint refinement is tested at the end with translation noise.
 """
 
+import re
+
 import numpy as np
 import pytest
 
@@ -92,6 +94,35 @@ def test_flipped_marker_samples_are_rejected_as_samples():
         clean = calibrate([s for i, s in enumerate(samples) if i not in outliers], CLOSED)
         assert error_deg(result, cell) < 3.0 * max(clean.uncertainty_deg, 0.05)
         assert all('marker flip' in r['reason'] for r in result.rejected if 'sample' in r)
+
+
+@pytest.mark.parametrize('pairs', ['all', 'consecutive'])
+def test_a_rejected_sample_counts_the_motions_it_takes_part_in(pairs):
+    cell, samples, _ = synthetic(7003, 12, rotation_noise_deg=0.3)
+    half_turn = quat.from_axis_angle([1.0, 0, 0], np.pi)   # a marker flip
+    for k in (0, 6):   # the first sample has one neighbour, the others two
+        bad = list(samples)
+        sensor = samples[k].sensor
+        flipped = Pose.create(sensor.position, quat.multiply(sensor.quaternion, half_turn))
+        bad[k] = Sample(samples[k].stamp_ns, samples[k].link, flipped)
+        result = calibrate(bad, CalibrationOptions(pairs=pairs))
+        (entry,) = [r for r in result.rejected if 'sample' in r]
+        assert entry['sample'] == k
+        spoiled = {'all': 'its 11 motions are not used',
+                   'consecutive': 'its motion is not used' if k == 0 else
+                   'its 2 motions are not used'}[pairs]
+        assert entry['reason'].endswith(spoiled), entry['reason']
+
+
+def test_a_motion_too_small_names_both_angles():
+    cell, samples, _ = synthetic(7004, 10, rotation_noise_deg=0.1)
+    # the sensor pose did not update between samples 4 and 5: only the link turned
+    stale = [Sample(s.stamp_ns, s.link, samples[4].sensor) if k == 5 else s
+             for k, s in enumerate(samples)]
+    result = calibrate(stale, CalibrationOptions(pairs='consecutive', robust=False))
+    (entry,) = [r for r in result.rejected if r.get('motion') == [4, 5]]
+    assert re.fullmatch(r'too small to inform: the link rotates [0-9.]+ deg, the sensor '
+                        r'0\.00 deg \(minimum 5 deg\)', entry['reason']), entry['reason']
 
 
 def test_flips_among_few_samples_are_rejected_though_they_pull_the_mean():
@@ -244,8 +275,9 @@ def test_eye_to_hand_names_the_base_axis_and_asks_to_turn_the_link():
         links = [turned(angle) for angle in (0, 20, 45, 70)]
         samples = [Sample(k, link, camera.inverse() @ link @ marker)
                    for k, link in enumerate(links)]
-        with pytest.raises(DegenerateMotionError,
-                           match=r'Case 1.*base z.*rotate the link about axes perpendicular to '
+        with pytest.raises(DegenerateMotionError,   # 4 samples: 6 motions, all pairs
+                           match=r'Case 1: all 6 usable motions .*base z.*rotate the link '
+                                 r'about axes perpendicular to '
                                  r'it, e.g. tilt about base x or base y'):
             calibrate(samples, CalibrationOptions(setup='eye_to_hand'))
 

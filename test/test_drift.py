@@ -56,6 +56,9 @@ def test_a_moved_marker_is_found_where_it_moved(count):
     assert move.text().startswith(f'the residual rose from {move.before_deg:.2f} to '
                                   f'{move.after_deg:.2f} deg over the last {count} samples')
     assert 'has the marker or the sensor moved? call ~/reset and recollect' in move.text()
+    # replay and solve print the same words, where there is no ~/reset
+    assert f'(offline: solve the samples from sample {move.first} on, or record again)' in \
+        move.text()
 
 
 def test_two_moved_samples_are_not_yet_a_move():

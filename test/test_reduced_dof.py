@@ -44,6 +44,8 @@ def test_the_rotation_is_recovered_within_an_honest_uncertainty(kind, setup):
         ratios.append((rotation / result.uncertainty_deg,
                        translation / max(result.translation_uncertainty_mm, 1e-12)))
         assert result.method == 'refined' and result.validation['verdict'] == 'pass'
+        # A gantry cannot turn: its hint asks for positions only.
+        assert ('turns by different angles' in result.hint) == (kind == 'scara'), result.hint
     rms = np.sqrt(np.mean(np.square(ratios), axis=0))
     # Over 40 cells an honest uncertainty gives an RMS ratio of 1 +- about 0.11 (1 sigma of a
     # chi with 40 draws); [0.7, 1.3] leaves room for the small-sample sandwich.
@@ -190,8 +192,11 @@ def test_a_wrong_convention_is_named_not_published_quietly(options):
     assert not any('far better' in w for w in calibrate(samples).warnings)
     result = calibrate(samples, options)
     assert result.validation['verdict'] == 'fail'
-    assert any('far better with setup eye_in_hand and invert_sensor false' in w
-               for w in result.warnings), result.warnings
+    (warning,) = [w for w in result.warnings if 'far better' in w]
+    assert 'far better with setup eye_in_hand and invert_sensor false' in warning
+    # The fix names what to change, and only that.
+    fix = ('drop --invert-sensor' if options.invert_sensor else 'use --setup eye_in_hand')
+    assert fix in warning and ('--setup' in warning) == (options.setup != 'eye_in_hand')
 
 
 def test_the_mirror_convention_fits_as_well_and_answers_with_the_object():

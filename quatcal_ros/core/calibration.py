@@ -337,7 +337,8 @@ def _reduced_result(samples, rotations, positions, motion, options, check=True):
         excitation=float(spread[0] / spread[-1]) if spread[-1] > 0 else 0.0,
         weakest_axis=axes[:, -1],
         hint=('reduced-DOF motions (the link cannot turn freely): more positions spread across '
-              'the workspace, and turns by different angles, reduce the uncertainty'),
+              'the workspace' + (', and turns by different angles,' if motion.kind == 'single_axis'
+                                 else '') + ' reduce the uncertainty'),
         setup=options.setup, pairs=options.pairs, rejected=[], warnings=warnings,
         translation=found.x_t, translation_uncertainty_mm=mm,
         translation_noise_mm=float(noise_mm), method='refined', closed_form=closed,
@@ -377,10 +378,9 @@ def _reduced_convention_warnings(samples, options, noise_m):
         return []
     scatter, setup, invert = best
     return [f'the samples fit a rigid mounting far better with setup {setup} and '
-            f'invert_sensor {str(invert).lower()} (--setup {setup}'
-            f'{" --invert-sensor" if invert else ""}): position scatter {1e3 * scatter:.2g} mm '
-            f'against {1e3 * noise_m:.2g} mm as given; check the convention before using this '
-            'estimate']
+            f'invert_sensor {str(invert).lower()} ({conventions.fix(options, setup, invert)}): '
+            f'position scatter {1e3 * scatter:.2g} mm against {1e3 * noise_m:.2g} mm as given; '
+            'check the convention before using this estimate']
 
 
 def _axis_text(axis):
@@ -430,14 +430,14 @@ def _all_pairs(rotations, options, start):
         sample_ok = ~detections.bad
         _require_samples(sample_ok)
         q_z = all_pairs_rotation(rotations, sample_ok, start)
+    k = _count(sample_ok)
     info = _check_excitation(quality.Information.all_pairs(rotations.link_matrices, sample_ok),
-                             _count(sample_ok), options)
+                             motion_count(k), options)
     if residuals is None:
         residuals, mean = quality.object_residuals(rotations, q_z, sample_ok)
     good = residuals[sample_ok]
-    k = _count(sample_ok)
     return _Fit(q_z, sample_ok, info, motion_count(k), _all_pairs_rms(good),
-                _rejected_samples(rotations, q_z, sample_ok, detections, k - 1), residuals, mean)
+                _rejected_samples(rotations, q_z, sample_ok, detections, 'all'), residuals, mean)
 
 
 def _consecutive(rotations, options, start):
@@ -470,7 +470,7 @@ def _consecutive(rotations, options, start):
     info = _check_excitation(quality.Information.of(rotations.link_matrices, fit.i, fit.j),
                              len(fit), options)
     rejected = (_rejected_motions(motions, usable, sample_ok, limit, options)
-                + _rejected_samples(rotations, q_z, sample_ok, detections, 2))
+                + _rejected_samples(rotations, q_z, sample_ok, detections, 'consecutive'))
     rms = float(np.sqrt(np.mean(fit.residual_angles(q_z) ** 2)))
     return _Fit(q_z, sample_ok, info, len(fit), rms, rejected,
                 *quality.object_residuals(rotations, q_z, sample_ok))
@@ -580,8 +580,8 @@ def _rejected_motions(motions, usable, sample_ok, limit, options):
     angles_a, angles_b = np.degrees(unexplained.angle_a), np.degrees(unexplained.angle_b)
     for i, j, a, b in zip(unexplained.i, unexplained.j, angles_a, angles_b):
         if min(a, b) < options.min_motion_deg:
-            reason = (f'too small to inform: the link rotates {a:.2f} deg '
-                      f'(minimum {options.min_motion_deg:g} deg)')
+            reason = (f'too small to inform: the link rotates {a:.2f} deg, the sensor '
+                      f'{b:.2f} deg (minimum {options.min_motion_deg:g} deg)')
         else:
             reason = (f'rotation angles disagree: link {a:.2f} deg, sensor {b:.2f} deg '
                       f'(limit {np.degrees(limit):.2f} deg)')
@@ -680,16 +680,18 @@ def _robustly_centred(rotations, q_z):
     return quality.object_residuals(rotations, q_z, near)
 
 
-def _rejected_samples(rotations, q_z, sample_ok, detections, spoiled):
-    """Return reasons for each bad detection; `spoiled`: the motions each would have formed."""
+def _rejected_samples(rotations, q_z, sample_ok, detections, pairs):
+    """Return reasons for each bad detection; pairs: 'all' or 'consecutive' (its motions)."""
     if detections is None or np.all(sample_ok):
         return []
+    n = len(sample_ok)
     angles = np.degrees(np.linalg.norm(
         quality.sample_residuals(rotations, q_z, sample_ok), axis=1))
     noise = detections.noise
     sigma_deg = np.degrees(np.sqrt(noise.covariance[0, 0]))
     return [_sample_rejection(i, angles[i], sigma_deg, noise.nu,
-                              detections.good_probability[i], spoiled)
+                              detections.good_probability[i],
+                              n - 1 if pairs == 'all' else int(i > 0) + int(i < n - 1))
             for i in np.flatnonzero(~sample_ok)]
 
 
@@ -700,7 +702,8 @@ def _sample_rejection(index, angle_deg, sigma_deg, nu, good_probability, spoiled
         f'its object orientation disagrees with the other samples by {angle_deg:.2f} deg, '
         f'which the fitted noise ({sigma_deg:.3f} deg per axis, {tails}) cannot explain '
         f'(probability of a good detection {good_probability:.1e}): a bad detection such as a '
-        f'marker flip; its {spoiled} motions are not used')}
+        f'marker flip; '
+        + (f'its {spoiled} motions are not used' if spoiled != 1 else 'its motion is not used'))}
 
 
 def _require_samples(sample_ok):

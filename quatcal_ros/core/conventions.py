@@ -88,10 +88,10 @@ def warnings(samples, options, screen=None):
                     f'{_name(*mirror)} ({_fit_text(others[mirror])}), mirror images of each '
                     'other (the same equations with the mounting and the observed object '
                     'swapped) that these data cannot tell apart: either '
-                    f'{_fix(options, *best)}, or {_fix(options, *mirror)}; the right one '
+                    f'{fix(options, *best)}, or {fix(options, *mirror)}; the right one '
                     "answers with where the sensor is mounted, the other with the object's "
                     'pose']
-    return [f'{said} {_name(*best)} ({_fit_text(others[best])}): {_fix(options, *best)}']
+    return [f'{said} {_name(*best)} ({_fit_text(others[best])}): {fix(options, *best)}']
 
 
 def _fit_text(fit):
@@ -110,7 +110,8 @@ def _name(setup, invert):
     return setup + (' with the sensor poses inverted' if invert else '')
 
 
-def _fix(options, setup, invert):
+def fix(options, setup, invert):
+    """Return what to change in `options` for setup and invert_sensor `invert`: its words."""
     words = []
     if setup != options.setup:
         words.append(f'use --setup {setup}')

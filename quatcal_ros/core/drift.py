@@ -47,7 +47,8 @@ class Move:
         """Return the operator message: what rose, and what to do."""
         return (f'the residual rose from {self.before_deg:.2f} to {self.after_deg:.2f} deg '
                 f'over the last {self.samples} samples (from sample {self.first} on): has the '
-                'marker or the sensor moved? call ~/reset and recollect')
+                'marker or the sensor moved? call ~/reset and recollect (offline: solve the '
+                f'samples from sample {self.first} on, or record again)')
 
 
 def residual_angles(Z, center):
