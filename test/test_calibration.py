@@ -108,6 +108,8 @@ def test_a_rejected_sample_counts_the_motions_it_takes_part_in(pairs):
         result = calibrate(bad, CalibrationOptions(pairs=pairs))
         (entry,) = [r for r in result.rejected if 'sample' in r]
         assert entry['sample'] == k
+        # every entry has contract 3's motion [i, j]: here one the sample takes part in
+        assert entry['motion'] == ([0, 1] if k == 0 else [k - 1, k])
         spoiled = {'all': 'its 11 motions are not used',
                    'consecutive': 'its motion is not used' if k == 0 else
                    'its 2 motions are not used'}[pairs]

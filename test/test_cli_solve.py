@@ -49,6 +49,8 @@ def test_solve_prints_the_contract_json(repo_root, cell_csv):
     assert error < 3 * out['uncertainty_deg']
     assert out['samples'] == 20 and out['motions'] == 190
     assert sorted(e['sample'] for e in out['rejected'] if 'sample' in e) == outliers
+    # contract 3: every entry {"motion": [i, j], "reason"} (extended with the sample)
+    assert outliers and all(len(e['motion']) == 2 and e['reason'] for e in out['rejected'])
     np.testing.assert_allclose(out['matrix'], quat.matrix_from_quaternion(q), atol=1e-12)
 
 

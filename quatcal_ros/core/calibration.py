@@ -696,9 +696,15 @@ def _rejected_samples(rotations, q_z, sample_ok, detections, pairs):
 
 
 def _sample_rejection(index, angle_deg, sigma_deg, nu, good_probability, spoiled):
-    """Return the `rejected` entry of a bad sample."""
+    """
+    Return the `rejected` entry of a bad sample.
+
+    Its `motion` is one of the motions it takes part in (with the sample before it; the first
+    sample's with the one after it), for readers of contract 3's entries of rejected motions.
+    """
     tails = 'Gaussian' if not np.isfinite(nu) else f't with {nu:g} degrees of freedom'
-    return {'sample': int(index), 'reason': (
+    index = int(index)
+    return {'sample': index, 'motion': [index - 1, index] if index else [0, 1], 'reason': (
         f'its object orientation disagrees with the other samples by {angle_deg:.2f} deg, '
         f'which the fitted noise ({sigma_deg:.3f} deg per axis, {tails}) cannot explain '
         f'(probability of a good detection {good_probability:.1e}): a bad detection such as a '
