@@ -18,7 +18,10 @@ refinement of each may decide: it weighs the residuals in the sensor frame, and 
 is the sensor's, the mirror's inverted poses carry its rotation noise into the positions by
 the lever arm (on synthetic cells with sensor noise the mirror's noise was 1.45-4x the right
 convention's). Real data need not show it (the MoveIt recording in data/: 1.004x), so below
-MIRROR_DECISIVE the warning names both and says how to choose.
+MIRROR_DECISIVE the warning names both and says how to choose. Whenever the mirror fits too,
+the warning names it beside the fix: the choice assumes the noise is the sensor's, and with
+the robot's poses noisy instead the mirror fits better (on synthetic cells with only link-pose
+noise, the quick fits preferred it by 1.5-3.5x).
 
 A fit that no convention explains (a residual of tens of degrees) is not a rigid mounting, or
 the data are dominated by bad detections: `rigid_fit_warnings` says so loudly.
@@ -91,7 +94,16 @@ def warnings(samples, options, screen=None):
                     f'{fix(options, *best)}, or {fix(options, *mirror)}; the right one '
                     "answers with where the sensor is mounted, the other with the object's "
                     'pose']
-    return [f'{said} {_name(*best)} ({_fit_text(others[best])}): {fix(options, *best)}']
+        worse = f'{noise[mirror] / noise[best]:.1f}x the sensor noise'
+    elif mirror in others and _good(others[mirror]):
+        worse = _fit_text(others[mirror])
+    else:
+        return [f'{said} {_name(*best)} ({_fit_text(others[best])}): {fix(options, *best)}']
+    # Which of the two is right follows from where the noise is: the sensor's, assumed here.
+    return [f'{said} {_name(*best)} ({_fit_text(others[best])}): {fix(options, *best)}. '
+            f'Its mirror image, {_name(*mirror)}, also fits ({worse}); if the noise is mostly '
+            "in the robot's poses rather than the sensor's, the mirror may be the right one "
+            f'instead ({fix(options, *mirror)})']
 
 
 def _fit_text(fit):
