@@ -411,7 +411,9 @@ def test_every_warning_of_a_reduced_dof_estimate_reaches_the_log(rig_factory, ca
     rig.add_samples(simulation.reduced_dof_samples(rng, cell, 12, 'scara', 0.05, 0.0005))
     warnings = rig.node.session.result.warnings
     assert [w[:len(SCARA_WARNING)] for w in warnings[:1]] == [SCARA_WARNING]
-    assert any(CONVENTION_WARNING in w and '--invert-sensor' not in w for w in warnings)
+    # the fix named: the sensor poses are not inverted (and nothing about the setup)
+    assert any(CONVENTION_WARNING in w and 'drop --invert-sensor' in w and '--setup' not in w
+               for w in warnings)
     status = rig.node.diagnostic_status()
     assert SCARA_WARNING in status.message and CONVENTION_WARNING in status.message
     text = capfd.readouterr().err
