@@ -16,6 +16,7 @@ if __name__ == '__main__' and sys.argv[1:2] and sys.argv[1] in NODE_TOOLS:
         _signal.signal(_signum, lambda signum, frame: EARLY_SIGNALS.append(signum))
 
 import importlib  # noqa: E402,I100 - after the signal guard
+import os  # noqa: E402
 
 from quatcal_ros.core.threads import single_threaded_blas  # noqa: E402
 
@@ -62,7 +63,11 @@ def main(argv=None):
         stop_signals.received[:0] = EARLY_SIGNALS   # ... after those noted before
         return stop_signals.run(module, [argv[0]] + argv[1:]) or 0
     tool_main = getattr(importlib.import_module(module), function)
-    return tool_main(argv[1:]) or 0
+    try:
+        return tool_main(argv[1:]) or 0
+    except BrokenPipeError:   # the reader of the output left (`... | head`): no traceback
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
 
 
 def solve():

@@ -240,6 +240,43 @@ def test_solve_on_a_journal_takes_its_invert_sensor(tmp_path, capsys):
                'as the options say' in warning for warning in result['warnings'])
 
 
+@pytest.mark.parametrize('torn', ['cut', 'all_fields'])
+def test_solve_on_a_journal_drops_the_line_a_crash_interrupted(tmp_path, capsys, torn):
+    # What the node's resume drops, solve drops too, and says so: a last line without its end
+    # of line (a torn number can still leave every field: 0.7071 cut to 0.).
+    from quatcal_ros.files.journal import Journal, JournalHeader
+    from quatcal_ros.tools.cli import solve_main
+    rng = np.random.default_rng(9)
+    cell = simulation.random_cell(rng)
+    samples, _ = simulation.samples(rng, cell, 8, rotation_noise_deg=0.05)
+    path = tmp_path / 'samples.csv'
+    written = Journal.create(path, JournalHeader('eye_in_hand', 'tool0', 'camera', False))
+    for sample in samples:
+        written.append(sample)
+    written.close()
+    last = path.read_text().splitlines()[-1]
+    cut = last[:len(last) // 2] if torn == 'cut' else last[:last.rindex('.') + 1]
+    with open(path, 'a') as journal:
+        journal.write(cut)   # a ninth sample, torn
+    assert solve_main([str(path)]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result['samples'] == 8
+    assert any('without an end of line) was being written when the node stopped: dropped'
+               in warning for warning in result['warnings']), result['warnings']
+
+
+def test_a_reader_that_leaves_early_gets_no_traceback(repo_root, cell_csv):
+    # `solve ... | head -2`: the pipe closes before the JSON is written
+    _, path, _ = cell_csv
+    env = dict(os.environ, PYTHONPATH=str(repo_root))
+    done = subprocess.Popen([sys.executable, '-m', 'quatcal_ros', 'solve', str(path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    done.stdout.close()
+    error = done.stderr.read().decode()
+    assert done.wait(timeout=60) == 1
+    assert 'Traceback' not in error and 'BrokenPipeError' not in error, error
+
+
 def test_the_tools_run_numpys_blas_on_one_thread(repo_root):
     """The entry points set the thread count before numpy loads its BLAS."""
     env = {k: v for k, v in os.environ.items() if not k.endswith('_NUM_THREADS')}

@@ -199,7 +199,8 @@ def test_replay_of_images_names_what_is_missing(tmp_path, board_file, capsys):
     assert '--board-file' in capsys.readouterr().err
     assert replay_main([*base, '--image-topic', '/camera/color/image_raw', '--board-file',
                         str(board_file), '--camera-info-topic', '/nope']) == 2
-    assert 'no topic /nope (camera calibration)' in capsys.readouterr().err
+    assert ('no topic /nope (camera calibration; another topic: --camera-info-topic)'
+            in capsys.readouterr().err)
     assert replay_main([*base, '--image-topic', '/camera/color/camera_info', '--board-file',
                         str(board_file)]) == 2
     assert 'has type sensor_msgs/msg/CameraInfo' in capsys.readouterr().err

@@ -504,6 +504,29 @@ class FakeTerminal(io.StringIO):
         return True
 
 
+def test_one_file_of_a_split_bag_is_refused_naming_the_folder(repo_root, bags, tmp_path):
+    # Given its first storage file, the replay once read that part alone, with exit 0.
+    folder = tmp_path / 'split'
+    shutil.copytree(bags / 'pose', folder)
+    (first,) = folder.glob('*.db3')
+    shutil.copy(first, folder / 'second_part.db3')
+    done = run_replay(repo_root, first, *TOPICS)
+    assert done.returncode == 2, done.stderr
+    assert f'one of the 2 storage files of the bag in {folder}' in done.stderr
+    assert f'give the folder, {folder}, to replay all of it' in done.stderr
+
+
+def test_a_folder_without_its_index_names_its_storage_file(repo_root, bags, tmp_path):
+    folder = tmp_path / 'unindexed'
+    shutil.copytree(bags / 'pose', folder)
+    (folder / 'metadata.yaml').unlink()
+    (storage,) = folder.glob('*.db3')
+    done = run_replay(repo_root, folder, *TOPICS)
+    assert done.returncode == 2
+    assert f'its storage file replays without it: {storage}' in done.stderr
+    assert run_replay(repo_root, storage, *TOPICS, '--quiet').returncode == 0
+
+
 def test_progress_bar_is_throttled_and_only_on_terminals():
     stream = FakeTerminal()
     progress = Progress(1000, 'replay', stream=stream, interval_s=3600.0)
@@ -549,7 +572,7 @@ def test_a_damaged_recording_exits_2_unless_a_partial_replay_is_asked(
         assert partial.returncode in (2, 3) and 'Traceback' not in partial.stderr
 
 
-def replay_changed(repo_root, streams, folder, topic, change):
+def replay_changed(repo_root, streams, folder, topic, change, *options):
     """Return the replay of a pose bag whose messages on `topic` went through change(msg)."""
     messages = topic_messages(streams, POSE_STAMPED)
     first = messages[0][2]
@@ -558,7 +581,7 @@ def replay_changed(repo_root, streams, folder, topic, change):
             change(msg, first)
     write_bag(folder, {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED}, messages)
     return run_replay(repo_root, folder, '--link-topic', '/link_pose', '--sensor-topic',
-                      '/sensor_pose', '--quiet')
+                      '/sensor_pose', '--quiet', *options)
 
 
 def test_a_stream_with_only_bad_messages_is_named_with_why(repo_root, streams, tmp_path):
@@ -590,10 +613,16 @@ def test_too_few_samples_names_what_was_not_used(repo_root, streams, tmp_path):
     """A sensor driver that froze its stamp: the error asked about clocks, not the stamps."""
     def frozen(msg, first):
         msg.header.stamp = first.header.stamp
-    done = replay_changed(repo_root, streams, tmp_path / 'frozen', '/sensor_pose', frozen)
+    earlier = tmp_path / 'samples.csv'   # from an earlier, good replay
+    earlier.write_text('kept\n')
+    done = replay_changed(repo_root, streams, tmp_path / 'frozen', '/sensor_pose', frozen,
+                          '--samples-out', earlier, '--journal-out', tmp_path / 'journal.csv')
     assert done.returncode == 2, done.stderr
     assert '; not used: /sensor_pose: ' in done.stderr
     assert 'message(s) skipped (duplicate_stamp)' in done.stderr
+    # A failed replay writes no output: the earlier file stays, and the error says so.
+    assert '(--samples-out and --journal-out not written)' in done.stderr
+    assert earlier.read_text() == 'kept\n' and not (tmp_path / 'journal.csv').exists()
 
 
 def test_a_marker_that_moves_during_the_bag_is_warned_about(tmp_path, capsys):

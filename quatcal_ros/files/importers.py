@@ -322,15 +322,17 @@ def _csv_samples(text, name, setup=None, invert_sensor=None):
     asks for); then a warning says so, and with another setup the header's frames, named for
     its own, are not used.
     """
-    samples = parse_samples(text, name)
     first = text.split('\n', 1)[0].rstrip('\r')
     if not first.startswith(journal.MAGIC):
-        return ImportedSamples(samples, 'csv', invert_sensor=invert_sensor)
+        return ImportedSamples(parse_samples(text, name), 'csv', invert_sensor=invert_sensor)
     try:
         header = journal.JournalHeader.parse(first, name)
     except journal.JournalError as error:
         raise BadInputError(str(error)) from None
-    warnings = []
+    # A journal's last line may be one a crash interrupted: dropped, as the node's resume does.
+    end = text.rfind('\n') + 1
+    text, warnings = journal.complete_lines(text[:end], name, len(text[end:].encode('utf-8')))
+    samples = parse_samples(text, name)
     recorded = header.invert_sensor
     if invert_sensor is not None and recorded is not None and invert_sensor != recorded:
         warnings.append(f'{name}: the journal was recorded with invert_sensor '

@@ -194,21 +194,35 @@ def read_journal(path):
         JournalHeader.parse(first.rstrip('\r'), name)   # a foreign file says so here
         raise JournalError(f'{name}: the journal ends before its column row')
     header = JournalHeader.parse(lines[0].rstrip('\r'), name)
-    notices = []
-    if tail:
-        notices.append(f'{name}: the last line ({len(tail)} bytes without an end of line) was '
-                       'being written when the node stopped: dropped')
-    if len(lines) > 2 and lines[-1].count(',') < len(COLUMNS) - 1:
-        notices.append(f'{name}, row {len(lines)}: the last line has '
-                       f'{lines[-1].count(",") + 1} of {len(COLUMNS)} fields, an interrupted '
-                       'write: dropped')
-        end -= len(lines[-1].encode('utf-8')) + 1
-        text = intact[:end].decode('utf-8-sig')
+    complete, notices = complete_lines(text, name, len(tail))
+    end -= len(text[len(complete):].encode('utf-8'))
+    text = complete
     try:
         samples = parse_samples(text, name)
     except BadInputError as error:
         raise JournalError(str(error)) from None
     return JournalContents(header, samples, notices, end, size, not _earlier_columns(lines[1]))
+
+
+def complete_lines(text, name, torn_bytes=0):
+    """
+    Return a journal's text without the line a crash interrupted, and the notices saying so.
+
+    text: the file's text up to its last end of line; torn_bytes: the length of what follows
+    it (a last line without its end of line: dropped). A last line with too few fields is an
+    interrupted write too (module docstring).
+    """
+    notices = []
+    if torn_bytes:
+        notices.append(f'{name}: the last line ({torn_bytes} bytes without an end of line) was '
+                       'being written when the node stopped: dropped')
+    lines = text.split('\n')[:-1]
+    if len(lines) > 2 and lines[-1].count(',') < len(COLUMNS) - 1:
+        notices.append(f'{name}, row {len(lines)}: the last line has '
+                       f'{lines[-1].count(",") + 1} of {len(COLUMNS)} fields, an interrupted '
+                       'write: dropped')
+        text = text[:len(text) - len(lines[-1]) - 1]
+    return text, notices
 
 
 def _earlier_columns(line):

@@ -138,10 +138,19 @@ def _open_reader(path):
     if not path.exists():
         raise BagError(f'{path}: no such file or directory')
     if path.is_dir() and not (path / 'metadata.yaml').is_file():
+        parts = sorted(p.name for p in path.iterdir() if p.suffix in ('.db3', '.mcap'))
+        alone = (f'; its storage file replays without it: {path / parts[0]}' if len(parts) == 1
+                 else '')
         raise BagError(f'{path}: not a rosbag2 directory (no metadata.yaml in it); if the '
-                       'recorder was killed, `ros2 bag reindex` can rebuild it')
+                       f'recorder was killed, `ros2 bag reindex` can rebuild it{alone}')
     if path.is_file() and path.suffix not in ('.db3', '.mcap'):
         raise BagError(f'{path}: not a rosbag2 directory (nor a .db3 or .mcap file)')
+    if path.is_file() and (path.parent / 'metadata.yaml').is_file():
+        parts = sorted(p.name for p in path.parent.glob('*' + path.suffix))
+        if len(parts) > 1:   # a split recording: this file alone is part of it
+            raise BagError(f'{path}: one of the {len(parts)} storage files of the bag in '
+                           f'{path.parent} ({", ".join(parts)}): give the folder, '
+                           f'{path.parent}, to replay all of it')
     try:
         reader = Reader(path)
         reader.open()
@@ -325,7 +334,8 @@ class Replay:
         self.msgtypes[source.topic] = self.bag.topic_type(source.topic, IMAGE_TYPES,
                                                           'camera images')
         self.msgtypes[source.camera_info] = self.bag.topic_type(
-            source.camera_info, (CAMERA_INFO_TYPE,), 'camera calibration')
+            source.camera_info, (CAMERA_INFO_TYPE,),
+            'camera calibration; another topic: --camera-info-topic')
 
     def _pose_topic_type(self, stream, topic):
         role = f'{stream} poses'

@@ -426,6 +426,12 @@ def replay_main(argv=None):
                           f'{report.unread_text()}; pass --partial to use what could be read',
                     EXIT_BAD_INPUT)
     where = f'{args.bag}: '
+    if len(session.samples) < 3:   # no output written: a file from an earlier run stays
+        outputs = (('--samples-out', args.samples_out), ('--journal-out', args.journal_out))
+        unwritten = [option for option, path in outputs if path]
+        return fail(prog, where + _too_few_samples(session, report, link, sensor)
+                    + (f' ({" and ".join(unwritten)} not written)' if unwritten else ''),
+                    EXIT_BAD_INPUT)
     if args.samples_out:
         try:
             atomic_write_text(args.samples_out, format_samples(session.samples))
@@ -435,9 +441,6 @@ def replay_main(argv=None):
         status = _write_journal(prog, args, session, report)
         if status:
             return status
-    if len(session.samples) < 3:
-        return fail(prog, where + _too_few_samples(session, report, link, sensor),
-                    EXIT_BAD_INPUT)
     # The session estimates when asked, so only now: one full solve over all the samples,
     # exactly what `solve` computes from the --samples-out file.
     session.estimate()
