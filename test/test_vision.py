@@ -276,6 +276,27 @@ def write_rendered_dataset(folder, renderer, views, seed):
     return mounting, names
 
 
+def test_solve_dir_of_a_gantry_stays_on_the_poses(tmp_path, renderers, capsys):
+    # The link never turns: the translation is undetermined, and the pixel fit would move
+    # along it (it printed a translation while the warning said it was set to zero).
+    rng = np.random.default_rng(7)
+    renderer = renderers['charuco']
+    mounting, board, seen, _ = cell_views(rng, renderer, 1, distance_m=(0.4, 0.5))
+    seen = [Pose.create(seen[0].position + rng.uniform(-0.05, 0.05, 3), seen[0].quaternion)
+            for _ in range(8)]
+    links = [board @ s.inverse() @ mounting.inverse() for s in seen]
+    images = [renderer.render(s, rng, noise=2.0, blur_sigma=0.6) for s in seen]
+    write_dataset(tmp_path, BOARDS['charuco'], CAMERA, [f'v{i}.png' for i in range(8)], links,
+                  images)
+    assert solve_main([str(tmp_path)]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result['method'] == 'refined' and 'reprojection' not in result
+    assert len(result['unobservable']) == 3 and result['translation'] == {
+        'x': 0.0, 'y': 0.0, 'z': 0.0}
+    assert ('the estimate is on the board poses, not on the pixels: a robot that cannot turn '
+            'the link freely is solved on the poses') in result['warnings']
+
+
 def run_solve(repo_root, *args):
     env = dict(os.environ, PYTHONPATH=str(repo_root))
     return subprocess.run([sys.executable, '-m', 'quatcal_ros', 'solve', *map(str, args)],

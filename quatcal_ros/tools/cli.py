@@ -140,9 +140,16 @@ def _solve_images(prog, args):
                           f'pose; at least 3 are needed{refused}', EXIT_BAD_INPUT)
     if result is None:   # why there is none
         return print_result(prog, session, where)
+    frames = solve_frames(args)
+    if result.unobservable:   # as the node and replay: the pixel fit has no gauge there
+        failed = _write_easy_handeye2(prog, args, result, frames)
+        return failed or print_result(
+            prog, session, where, [_on_poses(REDUCED_DOF_ON_POSES)], frames=frames,
+            limits=plan_limits(settings_of(args)), report=args.report,
+            extra={'views': views, 'pose_based_method': result.method})
     fit = refine_from_poses(data.samples, data.corners(), data.camera, result, args.setup,
                             args.robust)
-    frames, on_pixels = solve_frames(args), result_on_pixels(result, fit)
+    on_pixels = result_on_pixels(result, fit)
     failed = _write_easy_handeye2(prog, args, on_pixels, frames)
     if failed:
         return failed
@@ -150,6 +157,14 @@ def _solve_images(prog, args):
                         limits=plan_limits(settings_of(args)), report=args.report,
                         extra={'views': views, 'reprojection': fit.to_json_dict(),
                                'pose_based_method': result.method})
+
+
+REDUCED_DOF_ON_POSES = 'a robot that cannot turn the link freely is solved on the poses'
+
+
+def _on_poses(why):
+    """Return the warning of an image input whose estimate stays on the board poses."""
+    return f'the estimate is on the board poses, not on the pixels: {why}'
 
 
 def _write_easy_handeye2(prog, args, result, frames, named=None):
@@ -456,11 +471,10 @@ def replay_main(argv=None):
         extra['views'] = {'used': len(images.corners), 'counts': dict(images.counts)}
         on_pixels = images.on_pixels(session.samples, session.result, args.setup, args.robust)
         if on_pixels is None and session.result is not None:
-            why = ('a robot that cannot turn the link freely is solved on the poses'
-                   if session.result.unobservable else
-                   f'{len(images.corners)} samples kept corners (3 are needed; the '
-                   'time-offset search keeps none)')
-            warnings.append(f'the estimate is on the board poses, not on the pixels: {why}')
+            warnings.append(_on_poses(
+                REDUCED_DOF_ON_POSES if session.result.unobservable else
+                f'{len(images.corners)} samples kept corners (3 are needed; the time-offset '
+                'search keeps none)'))
     if on_pixels is not None:
         extra.update({'reprojection': on_pixels[1].to_json_dict(),
                       'pose_based_method': session.result.method})
