@@ -396,6 +396,22 @@ def test_an_image_that_is_not_a_regular_file_is_refused_without_reading(tmp_path
     assert _read_gray(tmp_path / 'none.png') == (None, 'missing')
 
 
+def test_image_names_that_do_not_match_say_what_to_change(tmp_path):
+    from quatcal_ros.vision.dataset import _read_gray, read_robot_poses
+    (tmp_path / 'view_000.jpg').write_bytes(b'')
+    assert _read_gray(tmp_path / 'view_000.png') == (None, 'missing (view_000.jpg exists)')
+    pose = ',0.4,0,0.4,0,0,0,1'
+    for rows, why in ((['images/view_000.png'], "'images/view_000.png': a file name in images/, "
+                                                "without the folder: 'view_000.png'"),
+                      (['a.png', 'a.png'], "row 3, field image: 'a.png': already on row 2")):
+        path = tmp_path / 'robot_poses.csv'
+        path.write_text('image,link_x,link_y,link_z,link_qx,link_qy,link_qz,link_qw\n'
+                        + ''.join(row + pose + '\n' for row in rows))
+        with pytest.raises(BadInputError) as error:
+            read_robot_poses(path)
+        assert why in str(error.value)
+
+
 def test_robot_poses_with_a_column_twice_are_refused(tmp_path):
     from quatcal_ros.vision.dataset import read_robot_poses
     path = tmp_path / 'robot_poses.csv'

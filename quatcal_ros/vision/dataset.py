@@ -134,7 +134,9 @@ def _read_gray(path):
         with open(path, 'rb') as stream:
             data = stream.read(MAX_IMAGE_BYTES + 1)
     except FileNotFoundError:
-        return None, 'missing'
+        wanted = Path(path)
+        others = sorted(p.name for p in wanted.parent.iterdir() if p.stem == wanted.stem)
+        return None, 'missing' + (f' ({", ".join(others)} exists)' if others else '')
     except OSError as error:
         return None, f'cannot read: {error.strerror}'
     return decode_gray(data)
@@ -158,16 +160,20 @@ def _robot_pose_rows(reader, name):
                             f'{", ".join(missing)}; expected {",".join(POSE_COLUMNS)}')
     check_columns_once(header, POSE_COLUMNS, f'{name}, row 1 (header)')
     index = {c: header.index(c) for c in POSE_COLUMNS}
-    rows, seen = [], set()
+    rows, seen = [], {}
     for row in reader:
         if not row or all(not cell.strip() for cell in row):
             continue
         line = reader.line_num
         image = row[index['image']].strip() if index['image'] < len(row) else ''
         if not image or '/' in image or image in seen:
-            raise BadInputError(f'{name}, row {line}, field image: {image!r} is not a new '
-                                'file name in images/')
-        seen.add(image)
+            why = ('empty' if not image else
+                   f'already on row {seen[image]}' if image in seen else
+                   f'a file name in {IMAGES_FOLDER}/, without the folder: '
+                   f'{image.rsplit("/", 1)[1]!r}' if image.startswith(IMAGES_FOLDER + '/') else
+                   f'a file name in {IMAGES_FOLDER}/ (no folders)')
+            raise BadInputError(f'{name}, row {line}, field image: {image!r}: {why}')
+        seen[image] = line
         values = parse_numbers(row, {c: index[c] for c in POSE_COLUMNS[1:]}, name, line)
         rows.append((image, pose_from_values(values, 'link', name, line)))
     if not rows:
