@@ -310,3 +310,13 @@ def test_the_easy_handeye2_file_names_every_frame_the_settings_know():
     assert settings.easy_handeye2_frames(topics) == {'robot_base_frame': 'world'}
     assert settings.easy_handeye2_frames(topics.updated(setup='eye_to_hand')) == {}
     assert settings.easy_handeye2_frames(Settings()) == {}
+
+
+def test_board_poses_from_images_are_never_taken_as_inverted():
+    # sensor_input image (the node), or images=True (solve DIR, replay --image-topic): the
+    # convention check then leaves out the inverted conventions.
+    config = settings.session_config
+    assert config(Settings()).calibration.sensor_invertible
+    assert not config(Settings(), images=True).calibration.sensor_invertible
+    assert not config(Settings(sensor_input='image', board_file='board.yaml')) \
+        .calibration.sensor_invertible

@@ -362,6 +362,17 @@ def test_solve_dir_refuses_to_invert_the_board_poses(tmp_path, capsys):
     assert 'invert_sensor does not apply to camera images' in capsys.readouterr().err
 
 
+def test_solve_dir_with_the_wrong_setup_names_only_a_fix_it_accepts(tmp_path, renderers,
+                                                                    capsys):
+    # Board poses from images are never inverted: the convention check once offered
+    # --invert-sensor, which solve DIR refuses, as the first of two fixes.
+    write_rendered_dataset(tmp_path, renderers['charuco'], 12, seed=5)
+    assert solve_main([str(tmp_path), '--setup', 'eye_to_hand']) == 0
+    (said,) = [w for w in json.loads(capsys.readouterr().out)['warnings']
+               if w.startswith('frame convention')]
+    assert said.endswith('use --setup eye_in_hand') and 'invert' not in said, said
+
+
 def test_solve_dir_without_the_layout_exits_2_naming_the_file(tmp_path, capsys):
     # An empty folder and an unreadable robot_poses.csv once ended in a traceback (exit 1)
     empty = tmp_path / 'empty'

@@ -79,6 +79,9 @@ class CalibrationOptions:
     pairs: str = 'all'                  # or 'consecutive'
     robust: bool = True
     invert_sensor: bool = False         # the sensor poses are the sensor in the object frame
+    # False for board poses from camera images (always the board in the camera frame): the
+    # convention check then never asks for inverted sensor poses.
+    sensor_invertible: bool = True
     min_motion_deg: float = 5.0         # smaller motions carry too little information
     max_angle_mismatch_deg: float = 5.0  # upper bound of |theta_a - theta_b| of a good motion
     min_axis_spread_deg: float = 2.0    # motion axes closer to parallel than this: Case 1
@@ -360,7 +363,7 @@ def _reduced_convention_warnings(samples, options, noise_m):
     """Name the setup and sensor direction under which reduced-DOF samples fit far better."""
     best = None
     for setup in SETUPS:
-        for invert in (False, True):
+        for invert in conventions.inversions(options):
             if (setup, invert) == (options.setup, options.invert_sensor):
                 continue
             rotations = SampleRotations.from_samples(samples, setup, invert)

@@ -200,8 +200,9 @@ def _quick_fits(arrays, options):
     """
     Return each convention's _QuickFit, or None.
 
-    {(setup, invert_sensor): _QuickFit}, for the four conventions (their `misfit` scores
-    them); arrays: `_arrays` of the samples. Each fit is the least squares of all
+    {(setup, invert_sensor): _QuickFit}, for the four conventions, or two when the sensor
+    poses cannot be inverted (`inversions`); their `misfit` scores them. arrays: `_arrays` of
+    the samples. Each fit is the least squares of all
     pairs (leastsq.py) and the closed-form translation (translation.py), without the
     screening of bad detections. None when fewer than three motions are large enough to
     inform (the same for every convention: so are their angles).
@@ -212,7 +213,12 @@ def _quick_fits(arrays, options):
     if np.count_nonzero(smallest >= np.radians(options.min_motion_deg)) < 3:
         return None
     return {(setup, invert): _quick_fit(arrays, setup, invert)
-            for setup in SETUPS for invert in (False, True)}
+            for setup in SETUPS for invert in inversions(options)}
+
+
+def inversions(options):
+    """Return the invert_sensor values the sensor poses may have: both, or as configured."""
+    return (False, True) if options.sensor_invertible else (options.invert_sensor,)
 
 
 def rigid_fit_warnings(residual_rms_deg, translation_noise_mm):

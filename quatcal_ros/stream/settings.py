@@ -420,9 +420,12 @@ Settings = make_dataclass(
     })
 
 
-def session_config(settings):
+def session_config(settings, images=False):
     """
     Return the core's SessionConfig for `settings` (durations in integer ns).
+
+    images: the sensor poses are board poses from camera images (as with sensor_input image),
+    which are never inverted.
 
     min_motion_deg is the calibration's smallest usable motion and, unless
     continuous_step_deg is set, the step of continuous capture.  An automatic still capture
@@ -455,6 +458,7 @@ def session_config(settings):
             calibration=CalibrationOptions(
                 setup=settings.setup, pairs=settings.pairs, robust=settings.robust,
                 invert_sensor=settings.invert_sensor, min_motion_deg=settings.min_motion_deg,
+                sensor_invertible=not (images or settings.sensor_input == 'image'),
                 method=settings.method, validation=Thresholds(
                     settings.validation_max_rotation_deg,
                     settings.validation_max_translation_mm),

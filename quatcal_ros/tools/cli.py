@@ -129,7 +129,7 @@ def _solve_images(prog, args):
     finally:
         progress.close()
     total = len(data.samples) + len(data.refused)   # one of them per row of robot_poses.csv
-    session = Session(session_config(settings_of(args)))
+    session = Session(session_config(settings_of(args), images=True))
     data.refuse_copies(_copies(session.add_samples(data.samples)))
     session.estimate()
     views = {'used': len(data.samples), 'refused': data.refused_json()}
@@ -403,7 +403,7 @@ def replay_main(argv=None):
         chosen = settings_of(args)
     except ConfigError as error:
         return fail(prog, f'bad option: {error}', EXIT_BAD_INPUT)
-    config = session_config(chosen)
+    config = session_config(chosen, images=args.image_topic is not None)
     problem = output_problem([('bag', args.bag), ('file', args.board_file)], {
         '--samples-out': args.samples_out, '--journal-out': args.journal_out,
         '--result-out': args.result_out, '--report': args.report})
