@@ -92,7 +92,7 @@ def test_session_config_gets_plain_numbers_in_nanoseconds():
     ('still_window_s', -1.0, 'between'),
     ('still_window_s', math.nan, 'between'),
     ('max_gap_s', 100.0, 'between'),
-    ('sensor_time_offset_s', 2.0, 'between'),
+    ('sensor_time_offset_s', 20.0, 'between'),
     ('min_motion_deg', 'five', 'number'),
     ('robust', 1, 'true or false'),
     ('link_frame', '', 'empty'),

@@ -625,6 +625,41 @@ def test_too_few_samples_names_what_was_not_used(repo_root, streams, tmp_path):
     assert earlier.read_text() == 'kept\n' and not (tmp_path / 'journal.csv').exists()
 
 
+def test_a_clock_offset_beyond_the_pairing_window_is_named_with_its_correction(
+        repo_root, streams, tmp_path):
+    # Sensor stamps 3 s ahead: the stamp ranges overlap, yet nothing pairs (the error once
+    # asked whether they overlap, and the option took at most 1 s).
+    def ahead(msg, first):
+        msg.header.stamp.sec += 3
+    done = replay_changed(repo_root, streams, tmp_path / 'ahead', '/sensor_pose', ahead)
+    assert done.returncode == 2
+    assert ('the sensor stamps run about 3.0 s ahead of the link stamps throughout, beyond the '
+            'pairing window: the clocks are offset; if that is the offset, '
+            '--sensor-time-offset -3.0 corrects it') in done.stderr, done.stderr
+    corrected = run_replay(repo_root, tmp_path / 'ahead', *TOPICS, '--sensor-time-offset',
+                           '-3.0', '--quiet')
+    assert corrected.returncode == 0 and json.loads(corrected.stdout)['samples'] == 10
+
+
+def test_a_sensor_too_noisy_for_its_bands_is_named(repo_root, streams, tmp_path):
+    # The robot stops as it should; the detections scatter by 1.5 deg, beyond the sensor's
+    # 1 deg band: the error blamed the robot's stops alone.
+    rng = np.random.default_rng(3)
+
+    def noisy(msg, first):
+        q = msg.pose.orientation
+        turned = quat.multiply(quat.from_rotation_vector(np.radians(rng.normal(0, 1.5, 3))),
+                               [q.w, q.x, q.y, q.z])
+        q.w, q.x, q.y, q.z = (float(v) for v in turned)
+    done = replay_changed(repo_root, streams, tmp_path / 'noisy', '/sensor_pose', noisy,
+                          '--no-fallback')
+    assert done.returncode == 2
+    assert re.search(r'at \d+ paired poses the link stood still but the sensor pose moved '
+                     r'beyond its bands \(1 deg, 0.005 m\): for a sensor that noisy widen them '
+                     r'\(--sensor-still-rotation-deg, --sensor-still-translation-m\)',
+                     done.stderr), done.stderr
+
+
 def test_a_marker_that_moves_during_the_bag_is_warned_about(tmp_path, capsys):
     # The live node's moved-marker watch, run by replay over the whole bag: the marker turns
     # by 3 deg while the robot moves to its 13th of 16 stops.

@@ -82,7 +82,9 @@ def test_stop_and_go_streams_give_one_sample_per_stop_and_the_mounting():
     # seeds 20 and 30-33 the error is 0.06-0.28 deg at 1.6 times the stated uncertainty or less.
     error = error_deg(session.result, streams.truth)
     assert error < 0.5 and error < 3.0 * session.result.uncertainty_deg
-    assert session.counters == {
+    counters = dict(session.counters)
+    del counters['unsteady_sensor']   # what it counts: test_replay.py's noisy sensor
+    assert counters == {
         'link_messages': len(streams.link), 'sensor_messages': len(streams.sensor),
         'pairs': len(streams.sensor), 'unpaired': 0, 'samples': 8, 'motions': 28,
         'rejected': 0, 'time_jumps': 0, 'repeated_samples': 0}

@@ -276,6 +276,23 @@ def write_rendered_dataset(folder, renderer, views, seed):
     return mounting, names
 
 
+def test_solve_dir_names_the_image_of_every_sample_it_reports(tmp_path, renderers, capsys):
+    # Two images swapped against their robot poses, one missing: the sample numbers no longer
+    # follow the rows, so each entry names its image.
+    _, names = write_rendered_dataset(tmp_path, renderers['charuco'], 16, seed=3)
+    images = tmp_path / 'images'
+    (images / names[3]).rename(images / 'swap.png')
+    (images / names[7]).rename(images / names[3])
+    (images / 'swap.png').rename(images / names[7])
+    (images / names[1]).unlink()
+    assert solve_main([str(tmp_path)]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert {entry['image'] for entry in result['rejected']} == {names[3], names[7]}
+    used = [name for name in names if name != names[1]]
+    assert [entry['image'] for entry in result['validation']['samples']] == [
+        used[entry['sample']] for entry in result['validation']['samples']]
+
+
 def test_solve_dir_of_a_gantry_stays_on_the_poses(tmp_path, renderers, capsys):
     # The link never turns: the translation is undetermined, and the pixel fit would move
     # along it (it printed a translation while the warning said it was set to zero).
@@ -346,6 +363,17 @@ def test_solve_dir_with_a_bad_file_exits_2_naming_it(repo_root, tmp_path, render
     (tmp_path / 'board.yaml').unlink()
     done = run_solve(repo_root, tmp_path)
     assert done.returncode == 2 and 'board.yaml missing' in done.stderr
+
+
+def test_a_fisheye_camera_is_refused_with_what_to_give_instead(tmp_path):
+    from quatcal_ros.vision.camera import read_camera_yaml
+    path = tmp_path / 'camera.yaml'
+    path.write_text('image_width: 640\nimage_height: 480\ncamera_matrix: {rows: 3, cols: 3, '
+                    'data: [500, 0, 320, 0, 500, 240, 0, 0, 1]}\ndistortion_model: equidistant\n'
+                    'distortion_coefficients: {rows: 1, cols: 4, data: [0, 0, 0, 0]}\n')
+    with pytest.raises(BadInputError, match="'equidistant' is not one of .*: fisheye lenses are "
+                                            'not supported; give rectified images'):
+        read_camera_yaml(path)
 
 
 def test_an_opencv_camera_file_is_named_as_one(tmp_path):

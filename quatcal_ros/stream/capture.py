@@ -168,6 +168,9 @@ class Capture:
         self._newest = None
         self._last_sample = None
         self._moved = True
+        # Pairs at which the link stayed within its still bands but the sensor pose did not:
+        # what keeps a noisy sensor from ever giving a still sample (its bands are too tight).
+        self.unsteady_sensor = 0
 
     def clear_window(self):
         """Forget the recent pairs only (time jumped); the next capture still needs a motion."""
@@ -223,9 +226,11 @@ class Capture:
         # largest change from the newest): most pairs of a motion.
         config = self.config
         link_deg, link_m, sensor_deg, sensor_m = self._window.oldest_change()
-        if (link_deg > config.rotation_band_deg or link_m > config.translation_band_m
-                or sensor_deg > config.sensor_rotation_band_deg
+        if link_deg > config.rotation_band_deg or link_m > config.translation_band_m:
+            return False
+        if (sensor_deg > config.sensor_rotation_band_deg
                 or sensor_m > config.sensor_translation_band_m):
+            self.unsteady_sensor += 1
             return False
         return self._still_reason() is None
 

@@ -360,7 +360,9 @@ class Session:
         link_messages, sensor_messages: poses received; pairs, unpaired: sensor (slower
         stream) stamps paired or not; samples; motions: sample pairs the estimator forms;
         rejected: messages and samples not used; time_jumps: new timelines started;
-        repeated_samples: samples not added because they repeat earlier ones (module doc).
+        repeated_samples: samples not added because they repeat earlier ones (module doc);
+        unsteady_sensor: paired poses at which the link stood still but the sensor pose
+        moved beyond its still bands (auto capture).
         """
         samples = self._sample_count()
         return {
@@ -373,6 +375,7 @@ class Session:
             'rejected': self._counts['rejected'],
             'time_jumps': self._counts['time_jumps'],
             'repeated_samples': self._counts['repeated_samples'],
+            'unsteady_sensor': self._capture.unsteady_sensor,
         }
 
     @property

@@ -209,8 +209,9 @@ SETTINGS = (
     Setting('sensor_time_offset_s', 0.0,
             'Seconds added to every sensor_pose header stamp: a known latency of the sensor '
             'clock, e.g. -0.03 for a camera that stamps its frames 30 ms late (`replay '
-            '--estimate-time-offset` measures it from a recording).', unit='s', low=-1.0,
-            high=1.0, tools=REPLAY),
+            '--estimate-time-offset` measures it from a recording), or the offset of a sensor '
+            'computer whose clock is not synchronised.', unit='s', low=-10.0, high=10.0,
+            tools=REPLAY),
     Setting('max_stamp_offset_s', 30.0,
             'Pose messages whose header stamp is farther than this (seconds) from the node '
             'clock (with use_sim_time: /clock) are skipped and counted; 0 turns the check '

@@ -133,7 +133,7 @@ def _solve_images(prog, args):
     data.refuse_copies(_copies(session.add_samples(data.samples)))
     session.estimate()
     views = {'used': len(data.samples), 'refused': data.refused_json()}
-    result = session.result
+    result = session.result and _named_by_image(session.result, data.names)
     if len(data.samples) < 3:
         refused = f'. Refused: {data.refusal_summary()}' if data.refused else ''
         return fail(prog, f'{where}{len(data.samples)} of {total} images gave a usable board '
@@ -145,6 +145,7 @@ def _solve_images(prog, args):
         failed = _write_easy_handeye2(prog, args, result, frames)
         return failed or print_result(
             prog, session, where, [_on_poses(REDUCED_DOF_ON_POSES)], frames=frames,
+            result=result,
             limits=plan_limits(settings_of(args)), report=args.report,
             extra={'views': views, 'pose_based_method': result.method})
     fit = refine_from_poses(data.samples, data.corners(), data.camera, result, args.setup,
@@ -160,6 +161,17 @@ def _solve_images(prog, args):
 
 
 REDUCED_DOF_ON_POSES = 'a robot that cannot turn the link freely is solved on the poses'
+
+
+def _named_by_image(result, names):
+    """Return `result` with every entry that names a sample naming its image too (solve DIR)."""
+    def named(entries):
+        return [{**entry, 'image': names[entry['sample']]} if 'sample' in entry else entry
+                for entry in entries]
+    validation = {key: named(value) if key in ('samples', 'worst') else value
+                  for key, value in result.validation.items()}
+    return replace(result, rejected=named(result.rejected), noisy=named(result.noisy),
+                   validation=validation)
 
 
 def _on_poses(why):
@@ -549,7 +561,7 @@ def _replay_with_time_offset(replay, config, args):
                                           config, residual_options=scoring)
         continuous = _fallback(config, session, args)
         if continuous is not None:   # as _replay does, on the streams already read
-            notes.append(_fallback_note(config.capture))
+            notes.append(_fallback_note(config.capture, session))
             found, session = find_time_offset(recorder.link, recorder.sensor,
                                               continuous, residual_options=scoring)
     except ValueError as error:
@@ -565,7 +577,7 @@ def _replay(replay, config, args):
     notes = []
     continuous = _fallback(config, session, args)
     if continuous is not None:
-        notes.append(_fallback_note(config.capture))
+        notes.append(_fallback_note(config.capture, session))
         session, report = _run(replay, continuous, args, 'replay (continuous)')
     return session, report, notes
 
@@ -579,11 +591,23 @@ def _fallback(config, session, args):
     return None
 
 
-def _fallback_note(capture):
+def _fallback_note(capture, session):
     return (f'no still samples in auto mode (the poses never stayed within the still bands '
-            f'for {_seconds(capture.window_ns):g} s): samples taken in continuous mode '
-            f'instead, one per {capture.continuous_step_deg:g} deg of link rotation; pass '
-            '--capture continuous to skip the auto pass')
+            f'for {_seconds(capture.window_ns):g} s{_unsteady_sensor(capture, session)}): '
+            f'samples taken in continuous mode instead, one per '
+            f'{capture.continuous_step_deg:g} deg of link rotation; pass --capture continuous '
+            'to skip the auto pass')
+
+
+def _unsteady_sensor(capture, session):
+    """Say so when the link stood still but the sensor pose did not, else ''."""
+    count = session.counters['unsteady_sensor']
+    if not count:
+        return ''
+    return (f'; at {count} paired poses the link stood still but the sensor pose moved beyond '
+            f'its bands ({capture.sensor_rotation_band_deg:g} deg, '
+            f'{capture.sensor_translation_band_m:g} m): for a sensor that noisy widen them '
+            '(--sensor-still-rotation-deg, --sensor-still-translation-m)')
 
 
 def _run(replay, config, args, label):
@@ -667,10 +691,18 @@ def _few_samples(session, report):
     counters = report.counters
     if not counters['pairs']:
         (l0, l1), (s0, s1) = report.stamps['link'], report.stamps['sensor']
-        return (f'no link pose could be paired with a sensor pose: link stamps '
+        said = (f'no link pose could be paired with a sensor pose: link stamps '
                 f'{l0 / NS_PER_S:.3f} to {l1 / NS_PER_S:.3f} s, sensor stamps '
-                f'{s0 / NS_PER_S:.3f} to {s1 / NS_PER_S:.3f} s (do they overlap? are both '
-                'stamped on the same clock?)')
+                f'{s0 / NS_PER_S:.3f} to {s1 / NS_PER_S:.3f} s')
+        if min(l1, s1) <= max(l0, s0):
+            return said + ' (they do not overlap: are both stamped on the same clock?)'
+        # They overlap, yet no two came close enough as the bag was read: a clock offset
+        # beyond what the pairing keeps (PairingConfig.window_ns).
+        offset = (l0 - s0) / NS_PER_S   # what the first stamps say the sensor clock is off
+        return (said + ' (they overlap, but the sensor stamps run about '
+                f'{abs(offset):.1f} s {"behind" if offset > 0 else "ahead of"} the link stamps '
+                'throughout, beyond the pairing window: the clocks are offset; if that is the '
+                f'offset, --sensor-time-offset {offset:.1f} corrects it)')
     count, pairs = len(session.samples), counters['pairs']
     capture = session.config.capture
     if capture.mode == 'continuous':
@@ -680,8 +712,9 @@ def _few_samples(session, report):
     return (f'{count} still sample(s) from {pairs} paired poses; at least 3 are needed: '
             f'the robot must stop for {_seconds(capture.window_ns):g} s (link within '
             f'{capture.rotation_band_deg:g} deg and {capture.translation_band_m:g} m) after '
-            f'each motion of {capture.min_departure_deg:g} deg or more; for a recording without '
-            'stops use --capture continuous')
+            f'each motion of {capture.min_departure_deg:g} deg or more'
+            f'{_unsteady_sensor(capture, session)}; for a recording without stops use '
+            '--capture continuous')
 
 
 def _replay_frames(args, report):

@@ -64,10 +64,17 @@ def parse_camera(document, name='<camera_info>'):
     K = _matrix(document, 'camera_matrix', name, (3, 3))
     model = document.get('distortion_model', 'plumb_bob')
     if model not in MODELS:
-        raise BadInputError(f'{name}, field distortion_model: {model!r} is not one of '
-                            f'{", ".join(MODELS)}')
+        raise BadInputError(f'{name}, field distortion_model: {_unknown_model(model)}')
     D = _matrix(document, 'distortion_coefficients', name, None).ravel()
     return camera_from(width, height, K, model, D, name)
+
+
+def _unknown_model(model):
+    """Say that distortion model `model` is not one this tool reads, and what to do."""
+    fisheye = (': fisheye lenses are not supported; give rectified images with zero '
+               'distortion and the rectified camera matrix (P)'
+               if model in ('equidistant', 'fisheye', 'kannala_brandt') else '')
+    return f'{model!r} is not one of {", ".join(MODELS)}{fisheye}'
 
 
 def camera_from(width, height, K, model, D, name='camera_info'):
@@ -78,8 +85,7 @@ def camera_from(width, height, K, model, D, name='camera_info'):
         raise BadInputError(f'{name}: image size {width}x{height} px: not the size of a '
                             'calibrated camera (width and height unset?)')
     if model not in MODELS:
-        raise BadInputError(f'{name}: distortion_model {model!r} is not one of '
-                            f'{", ".join(MODELS)}')
+        raise BadInputError(f'{name}: distortion_model {_unknown_model(model)}')
     if len(D) != MODELS[model]:
         if not (model == 'plumb_bob' and len(D) in (4, 5)):
             raise BadInputError(f'{name}, field distortion_coefficients: {model} takes '
