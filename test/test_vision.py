@@ -11,6 +11,7 @@ they test the estimator alone.
 
 import json
 import os
+import re
 import shutil
 import struct
 import subprocess
@@ -291,6 +292,22 @@ def test_solve_dir_names_the_image_of_every_sample_it_reports(tmp_path, renderer
     used = [name for name in names if name != names[1]]
     assert [entry['image'] for entry in result['validation']['samples']] == [
         used[entry['sample']] for entry in result['validation']['samples']]
+
+
+def test_solve_dir_with_a_board_5_percent_too_large_is_not_silent(tmp_path, renderers, capsys):
+    # Every view fits the wrong lengths, so the fit converges: the validation fails (the
+    # translations no longer agree), and the warnings now say it and name the likely cause.
+    write_rendered_dataset(tmp_path, renderers['charuco'], 12, seed=100)
+    board = tmp_path / 'board.yaml'
+    board.write_text(re.sub(r'(square|marker)_length_m: ([0-9.]+)',
+                            lambda m: f'{m[1]}_length_m: {float(m[2]) * 0.95}',
+                            board.read_text()))
+    assert solve_main([str(tmp_path)]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result['validation']['verdict'] == 'fail'
+    said = ' '.join(result['warnings'])
+    assert said.startswith('validation failed: leave-one-out prediction errors (RMS) above')
+    assert 'wrong numbers in board.yaml (square_length_m, marker_length_m' in said
 
 
 def test_solve_dir_of_a_gantry_stays_on_the_poses(tmp_path, renderers, capsys):

@@ -154,7 +154,12 @@ def _solve_images(prog, args):
     failed = _write_easy_handeye2(prog, args, on_pixels, frames)
     if failed:
         return failed
-    return print_result(prog, session, where, frames=frames, result=on_pixels,
+    # On images the usual cause: the board's or the camera's numbers, which no fit can see.
+    hint = (['on camera images a failed validation most often means wrong numbers in '
+             'board.yaml (square_length_m, marker_length_m: measure the printed board) or '
+             'camera_info.yaml (the camera matrix; zero distortion for rectified images)']
+            if result.validation.get('verdict') == 'fail' else [])
+    return print_result(prog, session, where, hint, frames=frames, result=on_pixels,
                         limits=plan_limits(settings_of(args)), report=args.report,
                         extra={'views': views, 'reprojection': fit.to_json_dict(),
                                'pose_based_method': result.method})
@@ -290,7 +295,11 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     if session.result is None:
         return fail(prog, f'{where}the rotation cannot be determined: {session.last_error}',
                     EXIT_UNDETERMINED)
-    result = with_warnings(result or session.result, warnings)
+    result = result or session.result
+    if result.validation.get('verdict') == 'fail':   # said in the warnings too, not only there
+        warnings = [f'validation failed: {result.validation["reason"]} (the "validation" key '
+                    'lists each sample, the worst first)', *warnings]
+    result = with_warnings(result, warnings)
     document = result.to_json_dict()
     parent, child = frames or exports.default_frames(result.setup)
     document['static_transform_publisher'] = exports.static_transform_publisher_command(
