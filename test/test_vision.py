@@ -545,6 +545,22 @@ def test_an_image_of_too_many_pixels_is_refused_before_it_is_decoded(repo_root, 
         done.stderr
 
 
+@pytest.mark.parametrize('given', ['DICT_4X4_50', 'DICT_6X6_250'])
+def test_a_board_of_another_dictionary_is_named(given):
+    # The board's markers are DICT_5X5_100's; board.yaml gives another: 'no corner found'
+    # said nothing of the cause.
+    document = {'type': 'charuco', 'squares_x': 7, 'squares_y': 5, 'square_length_m': 0.03,
+                'marker_length_m': 0.022, 'dictionary': 'DICT_5X5_100'}
+    board = parse_board(document, 'board.yaml')
+    image = board.cv_board.generateImage((1000, 760), marginSize=60)
+    camera = camera_from(1000, 760, [[900, 0, 500], [0, 900, 380], [0, 0, 1]], 'plumb_bob',
+                         [0.0] * 5)
+    view = detect(image, parse_board({**document, 'dictionary': given}, 'board.yaml'), camera)
+    assert view.refused == 'no_board'
+    assert view.detail == (f'no marker of {given} seen, but 17 markers of DICT_5X5_50: is that '
+                           'the dictionary of the board (board.yaml)?')
+
+
 def test_a_charuco_board_of_the_legacy_layout_is_found_when_the_file_says_so():
     """Even squares_y boards drawn by OpenCV before 4.6 differ; 'no corner found' said nothing."""
     document = {'type': 'charuco', 'squares_x': 8, 'squares_y': 6, 'square_length_m': 0.03,

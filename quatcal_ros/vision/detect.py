@@ -46,14 +46,58 @@ def find_corners(gray, board):
 
 
 def _no_corner(gray, board):
-    """Say why a view gave no corner: a ChArUco board's markers seen alone point to its layout."""
+    """
+    Say why a view gave no corner.
+
+    A ChArUco board's markers seen alone point to its layout; markers of another dictionary
+    alone, to board.yaml's dictionary.
+    """
+    if board.kind == 'chessboard':
+        return 'no corner found'
     if board.kind == 'charuco':
         _, _, _, ids = cv2.aruco.CharucoDetector(board.cv_board).detectBoard(gray)
         if ids is not None and len(ids):
             return (f'{len(ids)} markers of {board.dictionary} seen but no board corner: check '
                     'squares_x and squares_y, and legacy_pattern (a board printed by OpenCV '
                     'before 4.6 with an even squares_y)')
+    if _markers(gray, board.dictionary) is None:
+        other = _other_dictionary(gray, board.dictionary)
+        if other is not None:
+            return (f'no marker of {board.dictionary} seen, but {other[1]} markers of '
+                    f'{other[0]}: is that the dictionary of the board (board.yaml)?')
     return 'no corner found'
+
+
+# The largest dictionary of each family (the smaller ones are its first ids), probed for the
+# markers a view holds when the board's own dictionary sees none.
+PROBED_DICTIONARIES = ('DICT_4X4_1000', 'DICT_5X5_1000', 'DICT_6X6_1000', 'DICT_7X7_1000',
+                       'DICT_ARUCO_ORIGINAL', 'DICT_APRILTAG_16h5', 'DICT_APRILTAG_25h9',
+                       'DICT_APRILTAG_36h10', 'DICT_APRILTAG_36h11', 'DICT_ARUCO_MIP_36h12')
+# So many markers of one dictionary are no accident of texture.
+MIN_PROBED_MARKERS = 4
+
+
+def _markers(gray, dictionary):
+    """Return the ids of the markers of `dictionary` (an OpenCV name) in the image, or None."""
+    detector = cv2.aruco.ArucoDetector(
+        cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)))
+    ids = detector.detectMarkers(gray)[1]
+    return None if ids is None or len(ids) == 0 else ids.ravel()
+
+
+def _other_dictionary(gray, own):
+    """Return (dictionary, markers) of the probed one that sees the most markers, or None."""
+    best = None
+    for name in PROBED_DICTIONARIES:
+        ids = _markers(gray, name)
+        if ids is None or len(ids) < MIN_PROBED_MARKERS or (best and len(ids) <= best[1]):
+            continue
+        if name.endswith('_1000'):   # the smallest set of the family that holds the ids
+            size = next(n for n in (50, 100, 250, 1000) if ids.max() < n)
+            name = f'{name[:-len("1000")]}{size}'
+        if name != own:
+            best = (name, len(ids))
+    return best
 
 
 def detect(gray, board, camera, checks=Checks()):
