@@ -289,6 +289,9 @@ def test_solve_dir_names_the_image_of_every_sample_it_reports(tmp_path, renderer
     assert solve_main([str(tmp_path)]) == 0
     result = json.loads(capsys.readouterr().out)
     assert {entry['image'] for entry in result['rejected']} == {names[3], names[7]}
+    assert all(entry['reason'].endswith('or the image is paired with the wrong robot pose: '
+                                        'check its row in robot_poses.csv')
+               for entry in result['rejected'])
     used = [name for name in names if name != names[1]]
     assert [entry['image'] for entry in result['validation']['samples']] == [
         used[entry['sample']] for entry in result['validation']['samples']]

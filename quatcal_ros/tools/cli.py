@@ -169,14 +169,20 @@ REDUCED_DOF_ON_POSES = 'a robot that cannot turn the link freely is solved on th
 
 
 def _named_by_image(result, names):
-    """Return `result` with every entry that names a sample naming its image too (solve DIR)."""
+    """
+    Return `result` with every entry that names a sample naming its image too (solve DIR).
+
+    A rejected sample's reason adds the other usual cause in a folder: the wrong row.
+    """
     def named(entries):
         return [{**entry, 'image': names[entry['sample']]} if 'sample' in entry else entry
                 for entry in entries]
     validation = {key: named(value) if key in ('samples', 'worst') else value
                   for key, value in result.validation.items()}
-    return replace(result, rejected=named(result.rejected), noisy=named(result.noisy),
-                   validation=validation)
+    rejected = [{**entry, 'reason': f'{entry["reason"]}; or the image is paired with the '
+                                    'wrong robot pose: check its row in robot_poses.csv'}
+                if 'image' in entry else entry for entry in named(result.rejected)]
+    return replace(result, rejected=rejected, noisy=named(result.noisy), validation=validation)
 
 
 def _on_poses(why):
