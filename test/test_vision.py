@@ -564,6 +564,22 @@ def test_a_board_of_another_dictionary_is_named(given):
                            'the dictionary of the board (board.yaml)?')
 
 
+def test_a_board_too_small_in_the_image_is_named_so_not_its_layout():
+    # At about 16 px per marker one marker is found and no corner: the file was blamed.
+    document = {'type': 'charuco', 'squares_x': 7, 'squares_y': 5, 'square_length_m': 0.03,
+                'marker_length_m': 0.022, 'dictionary': 'DICT_5X5_100'}
+    board = parse_board(document, 'board.yaml')
+    image = np.full((760, 1000), 255, np.uint8)
+    image[:136, :180] = board.cv_board.generateImage((180, 136), marginSize=10)
+    camera = camera_from(1000, 760, [[900, 0, 500], [0, 900, 380], [0, 0, 1]], 'plumb_bob',
+                         [0.0] * 5)
+    view = detect(image, board, camera)
+    assert view.refused == 'no_board'
+    assert re.fullmatch(r'\d+ markers of DICT_5X5_100 seen, about \d+ px across, but no board '
+                        r'corner: the board is too small in the image \(move the camera closer, '
+                        r'or use a larger board\)', view.detail), view.detail
+
+
 def test_a_charuco_board_of_the_legacy_layout_is_found_when_the_file_says_so():
     """Even squares_y boards drawn by OpenCV before 4.6 differ; 'no corner found' said nothing."""
     document = {'type': 'charuco', 'squares_x': 8, 'squares_y': 6, 'square_length_m': 0.03,

@@ -55,8 +55,14 @@ def _no_corner(gray, board):
     if board.kind == 'chessboard':
         return 'no corner found'
     if board.kind == 'charuco':
-        _, _, _, ids = cv2.aruco.CharucoDetector(board.cv_board).detectBoard(gray)
+        _, _, corners, ids = cv2.aruco.CharucoDetector(board.cv_board).detectBoard(gray)
         if ids is not None and len(ids):
+            side = float(np.median([np.linalg.norm(c[0] - np.roll(c[0], 1, axis=0), axis=1).mean()
+                                    for c in corners]))
+            if side < SMALL_MARKER_PX:
+                return (f'{len(ids)} markers of {board.dictionary} seen, about {side:.0f} px '
+                        'across, but no board corner: the board is too small in the image '
+                        '(move the camera closer, or use a larger board)')
             return (f'{len(ids)} markers of {board.dictionary} seen but no board corner: check '
                     'squares_x and squares_y, and legacy_pattern (a board printed by OpenCV '
                     'before 4.6 with an even squares_y)')
@@ -68,6 +74,8 @@ def _no_corner(gray, board):
     return 'no corner found'
 
 
+# Markers smaller than this (side, pixels) rarely give ChArUco corners: the board is too far.
+SMALL_MARKER_PX = 20.0
 # The largest dictionary of each family (the smaller ones are its first ids), probed for the
 # markers a view holds when the board's own dictionary sees none.
 PROBED_DICTIONARIES = ('DICT_4X4_1000', 'DICT_5X5_1000', 'DICT_6X6_1000', 'DICT_7X7_1000',
