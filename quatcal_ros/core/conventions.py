@@ -123,15 +123,21 @@ def _name(setup, invert):
 
 
 def fix(options, setup, invert):
-    """Return what to change in `options` for setup and invert_sensor `invert`: its words."""
+    """
+    Return what to change in `options` for setup and invert_sensor `invert`: its words.
+
+    The offline tools' option first, then the node's parameter (the core serves both).
+    """
     words = []
     if setup != options.setup:
-        words.append(f'use --setup {setup}')
+        words.append(f'use --setup {setup} (the node: setup:={setup})')
     if invert != options.invert_sensor:
         words.append('the sensor poses are inverted (the sensor in the object frame instead of '
-                     'the object in the sensor frame): use --invert-sensor' if invert else
+                     'the object in the sensor frame): use --invert-sensor (the node: '
+                     'invert_sensor:=true)' if invert else
                      'the sensor poses are not inverted: drop --invert-sensor (--no-invert-'
-                     'sensor for a journal recorded with invert_sensor true)')
+                     'sensor for a journal recorded with invert_sensor true; the node: '
+                     'invert_sensor:=false)')
     return '; '.join(words)
 
 
@@ -228,5 +234,5 @@ def rigid_fit_warnings(residual_rms_deg, translation_noise_mm):
     return [f'the samples do not fit a rigid mounting: residual {residual_rms_deg:.1f} deg RMS '
             f'(position scatter {translation_noise_mm:.0f} mm per axis). Check that the '
             'sensor is fixed where the setup says, that the link and sensor poses belong to '
-            'the same moments, and that bad detections are screened (do not use --no-robust '
-            'on such data); do not use this estimate']
+            'the same moments, and that bad detections are screened (do not use --no-robust, '
+            'or robust:=false on the node, on such data); do not use this estimate']

@@ -414,7 +414,11 @@ class CalibratorNode(Node):
         response.success, response.message = saved.ok, '; '.join(saved.texts())
         if not saved.ok:
             self.get_logger().error(response.message)
-        if saved.ok:
+        if saved.ok and result.warnings:   # saved as asked, but not without a word
+            response.message += (f'; the estimate has {len(result.warnings)} warning(s), in '
+                                 f'the file too: {" | ".join(result.warnings)}')
+            self.get_logger().warning(f'result {response.message}')
+        elif saved.ok:
             self.get_logger().info(f'result {response.message}')
             self.get_logger().info(
                 'to broadcast the result on /tf_static: '
