@@ -490,6 +490,25 @@ def test_streams_that_stopped_before_a_reset_are_not_blamed_on_the_clock():
         'waiting for poses (none paired yet: are both stamped on the same clock?)')
 
 
+def test_a_robot_that_never_stops_is_told_to_stop_not_to_move_more():
+    # Paired poses of a link turning all the time: the status asked for motions about two
+    # axes, and nothing said that no window was ever still.
+    from quatcal_ros.ros.diagnostics import status_message
+    from quatcal_ros.stream.session import Session, SessionConfig
+    session = Session(SessionConfig())
+    for k in range(300):   # 3 s at 100 Hz, 20 deg/s
+        turned = Pose.create([0.4, 0.0, 0.3], quat.from_axis_angle([0, 0, 1.0], 0.0035 * k))
+        session.add_link_pose(1_000 * NS + k * 10 * MS, turned)
+        if k % 3 == 0:
+            session.add_sensor_pose(1_000 * NS + k * 10 * MS, Pose.identity())
+    pairs = session.counters['pairs']
+    assert pairs > 50 and not session.samples
+    assert status_message(session, mc.StreamStats(), {}) == (
+        f'collecting: no still sample yet from {pairs} paired poses: stop the robot at each '
+        'pose for 0.5 s (still_window_s) after each motion; a robot that never stops needs '
+        'capture_mode continuous')
+
+
 def test_tf_input_with_one_pair_of_frames_composing_names_the_other():
     """/tf is busy (the link poses compose); the sensor's frames do not: not 'nothing on /tf'."""
     from quatcal_ros.ros.diagnostics import status_message

@@ -149,7 +149,17 @@ def status_message(session, stats, topics=None, composed=()):
             return (f'waiting for poses (no pose from {" or ".join(dict.fromkeys(idle))} since '
                     'the session started)')
         return 'waiting for poses (none paired yet: are both stamped on the same clock?)'
-    return f'collecting: {len(session.samples)} samples, need motions about 2 different axes'
+    count, capture = len(session.samples), session.config.capture
+    if count == 0 and capture.mode == 'auto':   # paired poses, yet no still window
+        counters = session.counters
+        sensor = ('; at some the link stood still but the sensor pose moved beyond its bands '
+                  '(sensor_still_rotation_deg, sensor_still_translation_m)'
+                  if counters['unsteady_sensor'] else '')
+        return (f'collecting: no still sample yet from {counters["pairs"]} paired poses: stop '
+                f'the robot at each pose for {capture.window_ns * 1e-9:g} s (still_window_s) '
+                f'after each motion{sensor}; a robot that never stops needs '
+                'capture_mode continuous')
+    return f'collecting: {count} samples, need motions about 2 different axes'
 
 
 def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_static='',
