@@ -152,9 +152,10 @@ def status_message(session, stats, topics=None, composed=()):
     count, capture = len(session.samples), session.config.capture
     if count == 0 and capture.mode == 'auto':   # paired poses, yet no still window
         counters = session.counters
-        sensor = ('; at some the link stood still but the sensor pose moved beyond its bands '
-                  '(sensor_still_rotation_deg, sensor_still_translation_m)'
-                  if counters['unsteady_sensor'] else '')
+        unsteady = counters['unsteady_sensor']
+        sensor = (f'; at {unsteady} of them the link stood still but the sensor pose moved '
+                  'beyond its bands (sensor_still_rotation_deg, sensor_still_translation_m)'
+                  if unsteady else '')
         return (f'collecting: no still sample yet from {counters["pairs"]} paired poses: stop '
                 f'the robot at each pose for {capture.window_ns * 1e-9:g} s (still_window_s) '
                 f'after each motion{sensor}; a robot that never stops needs '
