@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from itertools import groupby
 from pathlib import Path
 
+from quatcal_ros.files import bag_folder
 from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.ros import cdr
 from quatcal_ros.ros.image_input import ImageInput
@@ -137,16 +138,15 @@ class Bag:
 def _open_reader(path):
     if not path.exists():
         raise BagError(f'{path}: no such file or directory')
-    if path.is_dir() and not (path / 'metadata.yaml').is_file():
-        parts = sorted(p.name for p in path.iterdir() if p.suffix in ('.db3', '.mcap'))
-        alone = (f'; its storage file replays without it: {path / parts[0]}' if len(parts) == 1
-                 else '')
-        raise BagError(f'{path}: not a rosbag2 directory (no metadata.yaml in it); if the '
+    if path.is_dir() and not (path / bag_folder.INDEX).is_file():
+        parts = bag_folder.storage_files(path, bag_folder.READABLE_SUFFIXES)
+        alone = f'; its storage file replays without it: {parts[0]}' if len(parts) == 1 else ''
+        raise BagError(f'{path}: not a rosbag2 directory (no {bag_folder.INDEX} in it); if the '
                        f'recorder was killed, `ros2 bag reindex` can rebuild it{alone}')
-    if path.is_file() and path.suffix not in ('.db3', '.mcap'):
+    if path.is_file() and path.suffix not in bag_folder.READABLE_SUFFIXES:
         raise BagError(f'{path}: not a rosbag2 directory (nor a .db3 or .mcap file)')
-    if path.is_file() and (path.parent / 'metadata.yaml').is_file():
-        parts = sorted(p.name for p in path.parent.glob('*' + path.suffix))
+    if path.is_file() and (path.parent / bag_folder.INDEX).is_file():
+        parts = [p.name for p in bag_folder.storage_files(path.parent, (path.suffix,))]
         if len(parts) > 1:   # a split recording: this file alone is part of it
             raise BagError(f'{path}: one of the {len(parts)} storage files of the bag in '
                            f'{path.parent} ({", ".join(parts)}): give the folder, '

@@ -15,9 +15,7 @@ another one fails.
 import os
 from pathlib import Path
 
-# A rosbag2 folder: its index and its storage files (compressed ones end in .zstd).
-BAG_SUFFIXES = ('.db3', '.mcap', '.zstd')
-BAG_INDEX = 'metadata.yaml'
+from quatcal_ros.files import bag_folder
 
 
 def real(path):
@@ -40,15 +38,9 @@ def protected(kind, path):
     if kind == 'bag' and path.is_dir():
         return set(), {path}
     if kind == 'bag':
-        return {path, path.parent / BAG_INDEX} | _bag_files(path.parent), set()
+        return ({path, path.parent / bag_folder.INDEX}
+                | set(bag_folder.storage_files(path.parent)), set())
     return {path}, set()
-
-
-def _bag_files(folder):
-    try:
-        return {entry for entry in folder.iterdir() if entry.suffix in BAG_SUFFIXES}
-    except OSError:
-        return set()
 
 
 def output_problem(inputs, outputs):
