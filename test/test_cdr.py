@@ -48,7 +48,7 @@ def assert_rows_equal_rosbags(msgtype, raws, decoded):
     Every decoded row is bit for bit what rosbags and conversions make of its message.
 
     The one-message decoder (the live node's) vouches for the same rows, with the same numbers
-    and the message's header frame id.
+    and the message's header frame id; cdr.frame_ids reads its frames as conversions does.
     """
     for k in np.flatnonzero(decoded.ok):
         stamp_ns, pose = by_rosbags(msgtype, raws[k])
@@ -68,6 +68,7 @@ def assert_rows_equal_rosbags(msgtype, raws, decoded):
         if pose is not None:
             msg = TYPESTORE.deserialize_cdr(data, msgtype)
             assert single[0] == decoded.stamps_ns[k] and single[1] == msg.header.frame_id
+            assert cdr.frame_ids(data, msgtype) == conversions.frame_ids(msg)
             assert np.array_equal(pose.position, decoded.positions[k])
             assert np.array_equal(pose.quaternion, decoded.quaternions[k])
 

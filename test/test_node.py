@@ -96,15 +96,20 @@ class Harness(SpinMixin):
         self.spin_until(future.done, what=f'the {name} service')
         return future.result()
 
+    # The frames of each stream's messages (header, a transform's child): those the node's
+    # defaults expect.
+    FRAMES = {'link_pose': ('base_link', 'tool0'), 'sensor_pose': ('camera', 'marker')}
+
     def publish(self, stream, stamp_ns, pose):
         publisher = self.link_pub if stream == 'link_pose' else self.sensor_pub
         message_type = self.message_types[stream]
+        frame, child = self.FRAMES[stream]
         if message_type is PoseStamped:
-            msg = conversions.pose_stamped_msg(pose, stamp_ns, 'frame')
+            msg = conversions.pose_stamped_msg(pose, stamp_ns, frame)
         elif message_type is PoseWithCovarianceStamped:
-            msg = conversions.pose_with_covariance_stamped_msg(pose, stamp_ns, 'frame')
+            msg = conversions.pose_with_covariance_stamped_msg(pose, stamp_ns, frame)
         else:
-            msg = conversions.transform_stamped_msg(pose, stamp_ns, 'frame', 'child')
+            msg = conversions.transform_stamped_msg(pose, stamp_ns, frame, child)
         publisher.publish(msg)
         self.sent[stream] += 1
 
@@ -397,7 +402,7 @@ def test_pose_with_covariance_messages_weight_the_samples(harness_factory, param
     values = {kv.key: kv.value for kv in h.node.diagnostic_status().values}
     assert values['next_pose'].startswith('position ') and 'expected uncertainty' in \
         values['next_pose']
-    bad = conversions.pose_with_covariance_stamped_msg(cell.home, start + 20 * NS, 'frame')
+    bad = conversions.pose_with_covariance_stamped_msg(cell.home, start + 20 * NS, 'camera')
     bad.pose.covariance[7] = -1.0   # not positive definite
     h.sensor_pub.publish(bad)
     h.spin_until(lambda: h.node.stats.bad[('sensor_pose', 'bad_covariance')] == 1,
@@ -481,6 +486,44 @@ def test_bad_messages_are_counted_not_fatal(harness_factory, monkeypatch):
     h.publish_events(still_events(cell, cell.home, simulation.DEFAULT_START_NS))
     h.spin_until(lambda: len(h.node.session.samples) == 1, what='a sample after bad input')
     assert len(deserialised) == 4   # every good pose read by the node's decoder
+
+
+def test_frames_that_contradict_the_inputs_or_the_result_are_warned_once(harness_factory,
+                                                                         capfd):
+    # A transform link pose ending in another link, and sensor poses measured in the
+    # camera's optical frame: the node's defaults (tool0 -> camera) would publish the
+    # estimate under frames it does not describe.
+    h = harness_factory([Parameter('pose_type', value='transform')],
+                        message_type=TransformStamped)
+    h.FRAMES = {'link_pose': ('/base_link', 'flange'),
+                'sensor_pose': ('camera_color_optical_frame', 'marker')}
+    cell = simulation.random_cell(np.random.default_rng(8))
+    h.publish_events(still_events(cell, cell.home, simulation.DEFAULT_START_NS))
+    for _ in range(2):
+        status = h.node.diagnostic_status()
+        assert status.level == DiagnosticStatus.WARN
+        assert "the estimate's parent frame is 'flange', but it is published as 'tool0' " \
+            '(link_frame)' in status.message and 'set link_frame:=flange' in status.message
+        assert 'set sensor_frame:=camera_color_optical_frame' in status.message
+    logged = [line for line in capfd.readouterr().err.splitlines()
+              if line.startswith('[WARN]') and 'a frame it does not describe' in line]
+    assert len(logged) == 2   # each said once, though every status repeats it
+    # Named as the messages name them, the warnings go.
+    assert h.node.set_parameters_atomically([
+        Parameter('link_frame', value='flange'),
+        Parameter('sensor_frame', value='camera_color_optical_frame')]).successful
+    assert 'does not describe' not in h.node.diagnostic_status().message
+
+
+def test_a_link_pose_in_the_sensor_frame_is_taken_for_swapped_topics(harness_factory):
+    h = harness_factory()
+    h.FRAMES = {'link_pose': ('camera', None), 'sensor_pose': ('base_link', None)}
+    cell = simulation.random_cell(np.random.default_rng(9))
+    h.publish_events(still_events(cell, cell.home, simulation.DEFAULT_START_NS))
+    status = h.node.diagnostic_status()
+    assert status.level == DiagnosticStatus.WARN
+    assert 'are the link_pose and sensor_pose topics swapped?' in status.message
+    assert len(h.node.session.samples) == 1   # a warning: the poses are still used
 
 
 # --- as processes ---------------------------------------------------------------------------

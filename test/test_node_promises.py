@@ -50,6 +50,8 @@ import yaml
 
 NS = NS_PER_S
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+# The frames of each stream's messages: those the node's defaults expect.
+FRAMES = {'link_pose': 'base_link', 'sensor_pose': 'camera'}
 SCARA_WARNING = 'the link turns about one axis only'
 CONVENTION_WARNING = 'the samples fit a rigid mounting far better with setup'
 
@@ -99,7 +101,8 @@ class Rig(SpinMixin):
         for i in range(int(duration_s * rate_hz)):
             stamp = start_ns + int(i * NS / rate_hz)
             for name, pose in (('link_pose', link), ('sensor_pose', sensor)):
-                self.publishers[name].publish(conversions.pose_stamped_msg(pose, stamp, 'frame'))
+                self.publishers[name].publish(conversions.pose_stamped_msg(pose, stamp,
+                                                                           FRAMES[name]))
                 self.sent[name] += 1
         received = self.node.stats.received
         self.spin_until(lambda: all(received[name] >= self.sent[name] for name in self.sent),
@@ -366,7 +369,7 @@ def test_diagnostics_count_the_paired_poses(rig_factory):
     assert values['paired_poses'] == '20' == str(rig.node.session.counters['pairs'])
     # A sensor pose in a gap of the link stream (none within max_gap_s of it) is not paired.
     rig.publishers['sensor_pose'].publish(conversions.pose_stamped_msg(
-        cell.sensor_pose(stops[0]), start + 4 * NS, 'frame'))
+        cell.sensor_pose(stops[0]), start + 4 * NS, FRAMES['sensor_pose']))
     rig.sent['sensor_pose'] += 1
     rig.publish_still(cell, stops[1], start + 8 * NS, duration_s=0.4)
     values = values_of(rig.next_status(lambda s: values_of(s)['sensor_messages'] == '31'))

@@ -595,6 +595,19 @@ def test_a_stream_with_only_bad_messages_is_named_with_why(repo_root, streams, t
             'pose.orientation has norm 0') in done.stderr
 
 
+def test_sensor_poses_in_the_link_poses_frame_are_warned_of(repo_root, streams, tmp_path):
+    def in_the_base_frame(msg, first):
+        msg.header.frame_id = 'base'
+    done = replay_changed(repo_root, streams, tmp_path / 'base', '/sensor_pose',
+                          in_the_base_frame)
+    assert done.returncode == 0, done.stderr
+    assert [w for w in json.loads(done.stdout)['warnings'] if 'frame' in w] == [
+        "the link poses and the sensor poses are both in frame 'base' (header.frame_id): a "
+        'link pose is the link in the robot base frame, a sensor pose the object in the '
+        "sensor's own frame (T_sensor_obj, as a detector publishes it); sensor poses "
+        'transformed into the base frame cannot show the mounting']
+
+
 def test_a_topic_none_of_whose_messages_read_asks_about_its_type(repo_root, streams, tmp_path):
     """metadata.yaml naming another type: 'damaged, pass --partial' did not help."""
     write_bag(tmp_path / 'lie', {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED},

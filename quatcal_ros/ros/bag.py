@@ -32,10 +32,12 @@ from pathlib import Path
 from quatcal_ros.files import bag_folder
 from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.ros import cdr
+from quatcal_ros.ros.conversions import frame_ids
 from quatcal_ros.ros.image_input import ImageInput
 from quatcal_ros.ros.pose_screen import PoseScreen
 from quatcal_ros.ros.tf_feed import DEFAULT_TF_TOPICS, is_static_tf_topic, TF_MAX_GAP_NS, \
     TfFeed
+from quatcal_ros.stream import frame_notices
 from quatcal_ros.stream.message_checks import CheckConfig, LINK, SENSOR
 from quatcal_ros.stream.tf_tree import normalize_frame
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
@@ -56,16 +58,6 @@ STORAGES = {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}
 
 class BagError(ValueError):
     """A recording or topic that cannot be replayed; the message names the file or topic."""
-
-
-def _frame_ids(msg):
-    """
-    Return (header.frame_id, child_frame_id or None) of a stamped pose or transform message.
-
-    The one read of geometry_msgs fields outside conversions (which has no frame accessor yet).
-    """
-    child = getattr(msg, 'child_frame_id', None)
-    return normalize_frame(msg.header.frame_id), None if child is None else normalize_frame(child)
 
 
 # --- the recording ---------------------------------------------------------------------------
@@ -561,7 +553,7 @@ class _Run:
             if taken is None:
                 return
             if self._track(stream, taken[0], taken[0]):
-                self.report.frames[stream] = _frame_ids(msg)
+                self.report.frames[stream] = frame_ids(msg)
             self.poses.verdict(checked, add(*taken))
         return on_pose
 
@@ -569,7 +561,7 @@ class _Run:
         """Take the decoded poses of raws[start:stop] (cdr.DecodedPoses rows) at once."""
         stamps = decoded.stamps_ns[start:stop].tolist()
         if self._track(stream, stamps[0], stamps[-1]):
-            self.report.frames[stream] = _frame_ids(
+            self.report.frames[stream] = frame_ids(
                 TYPESTORE.deserialize_cdr(raws[start], msgtype))
         checked = STREAMS[stream]
         self.poses.take_rows(checked, len(stamps))
@@ -629,6 +621,13 @@ class _Run:
                                         if is_static_tf_topic(topic))
         report.counters = self.session.counters
         return report
+
+
+def frame_warnings(report, setup='eye_in_hand', invert_sensor=False):
+    """Return stream.frame_notices' warnings on the frames of the streams the replay used."""
+    seen = {checked: report.frames[stream] for stream, checked in STREAMS.items()
+            if stream in report.frames}
+    return frame_notices.notices(seen, setup, invert_sensor)
 
 
 def result_frames(report, setup='eye_in_hand', invert_sensor=False):

@@ -25,6 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from quatcal_ros.core.units import MAX_POSITION_M, MESSAGE_NORM_TOLERANCE, NS_PER_S
+from quatcal_ros.stream.tf_tree import normalize_frame
 
 # Strings before the pose: header.frame_id (and child_frame_id), by message type.
 STRINGS_BEFORE_POSE = {'geometry_msgs/msg/PoseStamped': 1,
@@ -91,6 +92,31 @@ def decode_pose(raw, msgtype):
     decodes it or says why not). The stamp and frame id are not judged here: the message
     checks do that, as for every message.
     """
+    strings = _strings(raw, msgtype)
+    if strings is None:
+        return None
+    texts, pose_at = strings
+    sec, nanosec = _STAMP.unpack_from(raw, HEADER)
+    if nanosec >= NS_PER_S:
+        return None
+    return sec * NS_PER_S + nanosec, texts[0], _POSE.unpack_from(raw, pose_at)
+
+
+def frame_ids(raw, msgtype):
+    """
+    Return (header.frame_id, child_frame_id or None) of one raw message, without '/'.
+
+    As conversions.frame_ids of the message; None when decode_pose would not vouch for it.
+    """
+    strings = _strings(raw, msgtype)
+    if strings is None:
+        return None
+    texts = [normalize_frame(text) for text in strings[0]]
+    return texts[0], texts[1] if len(texts) > 1 else None
+
+
+def _strings(raw, msgtype):
+    """Return the strings before the pose of a raw message and where its pose starts, or None."""
     strings = STRINGS_BEFORE_POSE[msgtype]
     if raw[:2] != _CDR_LE_BYTES:
         return None
@@ -98,17 +124,14 @@ def decode_pose(raw, msgtype):
     offsets = _offsets(strings, len(raw), lengths)
     if offsets is None:
         return None
-    texts, pose_at = offsets
-    frame_id = None
-    for at, size in zip(texts, lengths):
+    at_texts, pose_at = offsets
+    texts = []
+    for at, size in zip(at_texts, lengths):
         text = raw[at:at + size]
         if text[-1] != 0 or not text.isascii():
             return None
-        frame_id = text[:-1].decode('ascii') if frame_id is None else frame_id
-    sec, nanosec = _STAMP.unpack_from(raw, HEADER)
-    if nanosec >= NS_PER_S:
-        return None
-    return sec * NS_PER_S + nanosec, frame_id, _POSE.unpack_from(raw, pose_at)
+        texts.append(text[:-1].decode('ascii'))
+    return texts, pose_at
 
 
 _CDR_LE_BYTES = bytes(CDR_LE)

@@ -19,6 +19,7 @@ import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import covariance_problem, Pose
 from quatcal_ros.core.units import MESSAGE_NORM_TOLERANCE, NS_PER_S
+from quatcal_ros.stream.tf_tree import normalize_frame
 
 # A quaternion with a smaller norm is a zero quaternion (reason 'zero_quaternion').
 ZERO_NORM = 1e-6
@@ -209,6 +210,12 @@ def pose_from_values(x, y, z, qx, qy, qz, qw, norm_tolerance=MESSAGE_NORM_TOLERA
     if math.isfinite(x + y + z) and abs(norm - 1.0) <= norm_tolerance:   # NaN fails
         return Pose(np.array((x, y, z)), np.array((qw / norm, qx / norm, qy / norm, qz / norm)))
     return None
+
+
+def frame_ids(msg):
+    """Return (header.frame_id, child_frame_id or None) of a stamped message, without '/'."""
+    child = getattr(msg, 'child_frame_id', None)
+    return normalize_frame(msg.header.frame_id), None if child is None else normalize_frame(child)
 
 
 def stamp_ns_from_header(header):

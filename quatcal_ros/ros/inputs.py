@@ -29,7 +29,7 @@ from geometry_msgs.msg import PoseStamped
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from geometry_msgs.msg import TransformStamped
 from quatcal_ros.ros import cdr
-from quatcal_ros.ros.conversions import pose_from_values
+from quatcal_ros.ros.conversions import frame_ids, pose_from_values
 from quatcal_ros.ros.image_input import ImageInput
 from quatcal_ros.ros.pose_screen import PoseScreen
 from quatcal_ros.ros.qos import LINK_QOS, SENSOR_QOS, TF_QOS, TF_STATIC_LISTEN_QOS
@@ -82,6 +82,9 @@ class NodeInputs:
         self._held = []          # raw link messages not decoded yet (module docstring)
         self._held_since_ns = 0  # steady clock at the first of them
         self._held_kind = None
+        # {stream: (header.frame_id, child frame or None)} of its first message (pose topics
+        # and images), for stream.frame_notices
+        self.frames_seen = {}
         self.screen = PoseScreen(check_config, self._log_bad_message)
         tf_frames = tf_frames or {}
         self.message_types, self.topics = {}, {}
@@ -168,6 +171,8 @@ class NodeInputs:
     def _on_pose(self, stream, msg):
         if stream != LINK:
             self.flush()
+        if stream not in self.frames_seen:
+            self.frames_seen[stream] = frame_ids(msg)
         now_ns = self._node.now_ns()
         taken = self.screen.take(stream, msg, now_ns)
         if taken is not None:
@@ -197,6 +202,8 @@ class NodeInputs:
                                now_ns)
 
     def _hold_link(self, raw):
+        if LINK not in self.frames_seen:
+            self._note_raw_frames(LINK, raw, self._held_kind)
         now = time.monotonic_ns()
         if not self._held:
             self._held_since_ns = now
@@ -208,6 +215,8 @@ class NodeInputs:
         """Take a raw pose message: decoded here when cdr vouches for it, else by rclpy."""
         if stream != LINK:
             self.flush()
+        if stream not in self.frames_seen:
+            self._note_raw_frames(stream, raw, kind)
         decoded = cdr.decode_pose(raw, RAW_TYPES[kind])
         pose = None if decoded is None else pose_from_values(*decoded[2])
         if pose is None:
@@ -224,12 +233,20 @@ class NodeInputs:
         if taken is not None:
             self._deliver(stream, taken, now_ns)
 
+    def _note_raw_frames(self, stream, raw, kind):
+        """Keep the frames of a raw message in `frames_seen` (not yet when cdr cannot read it)."""
+        frames = cdr.frame_ids(raw, RAW_TYPES[kind])
+        if frames is not None:
+            self.frames_seen[stream] = frames
+
     def _on_camera_info(self, msg):
         self.flush()
         self.images.take_camera_info(msg)
 
     def _on_image(self, msg):
         self.flush()
+        if SENSOR not in self.frames_seen:
+            self.frames_seen[SENSOR] = frame_ids(msg)
         now_ns = self._node.now_ns()
         taken = self.images.take_image(msg, now_ns)
         if taken is not None:

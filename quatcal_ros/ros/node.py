@@ -47,10 +47,12 @@ from quatcal_ros.ros.image_samples import ImageSamples
 from quatcal_ros.ros.inputs import NodeInputs
 from quatcal_ros.ros.qos import DIAGNOSTICS_QOS, LATCHED_QOS, quiet_publisher_events
 from quatcal_ros.ros.static_tf import StaticTf
+from quatcal_ros.stream import frame_notices
 from quatcal_ros.stream import settings
 from quatcal_ros.stream.message_checks import LINK, SENSOR
 from quatcal_ros.stream.session import EstimateUpdated, SampleCaptured, Session
 from quatcal_ros.stream.settings import ConfigError, easy_handeye2_frames
+from quatcal_ros.stream.tf_tree import normalize_frame
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -100,6 +102,7 @@ class CalibratorNode(Node):
             self._add_poses)
         self.next_pose = None   # the planner's proposal for the latest estimate
         self._newest_stamp = {}   # stream: (its latest stamp, the node clock when it came)
+        self._frames_said = set()   # the frame notices logged
         self.next_pose_publisher = self.create_publisher(
             PoseStamped, '~/next_pose', LATCHED_QOS, event_callbacks=quiet_publisher_events())
         self.markers_publisher = self.create_publisher(
@@ -347,12 +350,27 @@ class CalibratorNode(Node):
                         self.stats, self.inputs.topics, self.get_publishers_info_by_topic,
                         self.session.counters['time_jumps'], now_ns,
                         self.get_parameter('use_sim_time').value, self._steady.now().nanoseconds),
-                    *self.inputs.problems()]
+                    *self.inputs.problems(), *self._frame_problems()]
         return calibrator_status(self.session, self.stats, now_ns,
                                  self.config.result_frames[0], problems, tf_static,
                                  self.input_watch.started_ns, self.inputs.topics,
                                  self.next_pose, self.result, self.inputs.composed,
                                  status_name(self.get_name()))
+
+    def _frame_problems(self):
+        """Return frame_notices' warnings on the input messages' frames; log each once."""
+        config = self.config
+        seen = dict(self.inputs.frames_seen)
+        for stream, expected in ((LINK, config.link_frame_id), (SENSOR, config.sensor_frame_id)):
+            if expected and stream in seen:   # the messages used carry exactly this frame
+                seen[stream] = (normalize_frame(expected), seen[stream][1])
+        said = frame_notices.notices(seen, config.setup, config.invert_sensor,
+                                     config.result_frames)
+        for text in said:
+            if text not in self._frames_said:
+                self._frames_said.add(text)
+                self.get_logger().warning(text)
+        return said
 
     def _watch_status(self):
         """Publish the status when the node clock has not for two periods (no /clock)."""

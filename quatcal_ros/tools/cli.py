@@ -486,7 +486,8 @@ def replay_main(argv=None):
     # The session estimates when asked, so only now: one full solve over all the samples,
     # exactly what `solve` computes from the --samples-out file.
     session.estimate()
-    warnings = notes + report.warnings()
+    warnings = (notes + report.warnings()
+                + bag.frame_warnings(report, args.setup, args.invert_sensor))
     if session.result is not None:   # the live node's moved-marker watch, over the whole bag
         options = config.calibration
         moved = MoveWatch().check(session.samples, session.result.quaternion, options.setup,
