@@ -652,6 +652,22 @@ def test_a_clock_offset_beyond_the_pairing_window_is_named_with_its_correction(
     corrected = run_replay(repo_root, tmp_path / 'ahead', *TOPICS, '--sensor-time-offset',
                            '-3.0', '--quiet')
     assert corrected.returncode == 0 and json.loads(corrected.stdout)['samples'] == 10
+    # The search for an offset looks within 0.5 s of the one given (once: exclusive options)
+    # and says so; without one, it says to give one.
+    measured = run_replay(repo_root, tmp_path / 'ahead', *TOPICS, '--sensor-time-offset',
+                          '-2.8', '--estimate-time-offset', '--quiet')
+    assert measured.returncode == 0, measured.stderr
+    found = json.loads(measured.stdout)['time_offset']
+    assert found['searched_around_s'] == -2.8
+    # Measured -2.9974 s: the cross-correlation is 2.6 ms off on these stop-and-go streams
+    # whatever the centre (-2.8, -3.0, -3.2 s, or none on the stamps unshifted).
+    assert abs(found['sensor_offset_s'] + 3.0) < 0.005
+    assert found['residual_with_deg'] < found['residual_without_deg']
+    alone = run_replay(repo_root, tmp_path / 'ahead', *TOPICS, '--estimate-time-offset',
+                       '--quiet')
+    assert alone.returncode == 2
+    assert ('offsets beyond 500 ms are not searched; give the offset you expect as the sensor '
+            'time offset, and the search looks around it') in alone.stderr, alone.stderr
 
 
 def test_a_sensor_too_noisy_for_its_bands_is_named(repo_root, streams, tmp_path):

@@ -61,6 +61,33 @@ def test_an_offset_beyond_the_search_is_refused_not_clamped(streams):
     assert abs(found.offset_ns + 450 * MS) < 5 * MS
 
 
+def test_a_known_offset_centres_the_search(streams):
+    """Two computers' clocks 2.3 s apart: searched around the offset given, not around 0."""
+    link_stamps, link_q = arrays(streams.link)
+    sensor_stamps, sensor_q = arrays(streams.sensor)
+    late = sensor_stamps + 2300 * MS
+    with pytest.raises(ValueError, match='beyond 500 ms are not searched'):
+        estimate_time_offset(link_stamps, link_q, late, sensor_q)
+    plain = estimate_time_offset(link_stamps, link_q, sensor_stamps, sensor_q)
+    for centre_ms in (-2000, -2300, -2700):
+        found = estimate_time_offset(link_stamps, link_q, late, sensor_q, centre_ns=centre_ms * MS)
+        # the same alignment as on the stamps unshifted, to the grid's interpolation
+        assert abs(found.offset_ns - (plain.offset_ns - 2300 * MS)) < 0.5 * MS, centre_ms
+        assert found.correlation == pytest.approx(plain.correlation, abs=0.01)
+    with pytest.raises(ValueError, match='offsets beyond 500 ms of -1.5 s are not searched'):
+        estimate_time_offset(link_stamps, link_q, late, sensor_q, centre_ns=-1500 * MS)
+    # find_time_offset centres on the session's own sensor offset, and says so.
+    report, session = find_time_offset(
+        [(int(s), p) for s, p in streams.link],
+        [(int(s) + 2300 * MS, p) for s, p in streams.sensor],
+        SessionConfig(sensor_offset_ns=-2200 * MS))
+    assert abs(report.offset_ns + 2300 * MS) < 8 * MS
+    assert report.to_json_dict()['searched_around_s'] == -2.2
+    assert session.config.sensor_offset_ns == report.offset_ns
+    assert 'searched_around_s' not in find_time_offset(
+        streams.link, streams.sensor, SessionConfig())[0].to_json_dict()
+
+
 def test_refinement_minimises_the_given_residual():
     assert abs(refine_time_offset(lambda t: (t - 12 * MS) ** 2, 0) - 12 * MS) < MS
 

@@ -121,8 +121,10 @@ def offset_sentence(offset):
     runs = offset.get('runs', 1)
     where = (f' (searched on the longest of the {runs} runs: the stamps start over)'
              if runs > 1 else '')
+    around = offset.get('searched_around_s')
+    around = f', searched around the given {around:+.3f} s' if around else ''
     return (f'sensor stamps shifted by {1e3 * offset["sensor_offset_s"]:+.1f} ms (speed '
-            f'correlation {offset["correlation"]:.2f}); RMS residual '
+            f'correlation {offset["correlation"]:.2f}{around}); RMS residual '
             f'{offset["residual_without_deg"]:.3f} deg without it, '
             f'{offset["residual_with_deg"]:.3f} deg with it{where}')
 

@@ -69,13 +69,17 @@ def angular_speed(stamps_ns, quaternions, baseline_s=0.1):
 
 
 def estimate_time_offset(link_stamps_ns, link_quaternions, sensor_stamps_ns,
-                         sensor_quaternions, max_offset_s=0.5, grid_hz=200.0):
+                         sensor_quaternions, max_offset_s=0.5, grid_hz=200.0, centre_ns=0):
     """
     Cross-correlate the angular speeds of both streams; return a TimeOffset.
 
+    The offsets searched lie within max_offset_s of centre_ns (a known offset, such as the
+    clock difference of two unsynchronised computers). Not wider by default: a robot that
+    stops at a steady rhythm has speed curves that align about as well one period away.
     ValueError when a stream gives no speed curve (fewer than 3 poses, or all at one stamp)
     or the streams overlap too briefly, saying which.
     """
+    sensor_stamps_ns = np.asarray(sensor_stamps_ns, dtype=np.int64) + int(centre_ns)
     streams = (('link', link_stamps_ns, link_quaternions),
                ('sensor', sensor_stamps_ns, sensor_quaternions))
     for name, stamps, _ in streams:
@@ -103,15 +107,18 @@ def estimate_time_offset(link_stamps_ns, link_quaternions, sensor_stamps_ns,
     best = int(np.argmax(correlation))
     shift = float(lags[best])
     if best in (0, len(lags) - 1):   # the peak may lie beyond: not an estimate
+        edge_ms = (centre_ns / NS_PER_S - shift / grid_hz) * 1e3
+        around = f' of {centre_ns / NS_PER_S:+g} s' if centre_ns else ''
         raise ValueError(f'the angular speeds align best at the edge of the search, a sensor '
-                         f'offset of {-shift / grid_hz * 1e3:+.0f} ms: offsets beyond '
-                         f'{max_offset_s * 1e3:g} ms are not searched; measure the offset '
-                         'and give it as the sensor time offset instead')
+                         f'offset of {edge_ms:+.0f} ms: offsets beyond {max_offset_s * 1e3:g} '
+                         f'ms{around} are not searched; give the offset you expect as the '
+                         'sensor time offset, and the search looks around it')
     a, b, c = correlation[best - 1:best + 2]   # parabola through the peak and its neighbours
     denominator = a - 2.0 * b + c
     if denominator < 0.0:
         shift += 0.5 * (a - c) / denominator
-    return TimeOffset(int(round(-shift / grid_hz * NS_PER_S)), float(correlation[best]))
+    return TimeOffset(int(centre_ns) + int(round(-shift / grid_hz * NS_PER_S)),
+                      float(correlation[best]))
 
 
 def _overlap_correlation(link, sensor, lag):
@@ -201,6 +208,7 @@ class OffsetReport:
 
     runs: the timelines of the recording (its stamps started over runs - 1 times); the search
     and its residuals are of one of them (_searchable: the longest with speeds on both).
+    around_ns: the known offset the search was centred on (the JSON has it when not 0).
     """
 
     offset_ns: int
@@ -208,12 +216,16 @@ class OffsetReport:
     residual_without_deg: float
     residual_with_deg: float
     runs: int = 1
+    around_ns: int = 0
 
     def to_json_dict(self):
         """Return the replay JSON's `time_offset` (seconds, degrees)."""
-        return {'sensor_offset_s': self.offset_ns / NS_PER_S, 'correlation': self.correlation,
-                'residual_without_deg': self.residual_without_deg,
-                'residual_with_deg': self.residual_with_deg, 'runs': self.runs}
+        found = {'sensor_offset_s': self.offset_ns / NS_PER_S, 'correlation': self.correlation,
+                 'residual_without_deg': self.residual_without_deg,
+                 'residual_with_deg': self.residual_with_deg, 'runs': self.runs}
+        if self.around_ns:
+            found['searched_around_s'] = self.around_ns / NS_PER_S
+        return found
 
 
 def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
@@ -225,6 +237,7 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
     then keeps those sensor frames and re-interpolates the link at each shifted stamp, so
     the residual is a smooth function of the offset alone. residual_options: the
     CalibrationOptions whose RMS residual scores an offset (default config.calibration).
+    The search is centred on config.sensor_offset_ns (a known offset; estimate_time_offset).
     Returns (OffsetReport, the Session replayed with the refined offset applied; it estimates
     when asked, Session.estimate()). Streams whose stamps jump back by more than
     config.time_jump_ns (a looped bag, a clock restart) hold several runs: the offset is
@@ -237,8 +250,9 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
     runs = _matched_runs(RecordedStream.of(link), RecordedStream.of(sensor),
                          config.time_jump_ns)
     link, sensor = max(runs, key=_searchable)
-    coarse = estimate_time_offset(link.stamps(), link.quaternions(),
-                                  sensor.stamps(), sensor.quaternions(), max_offset_s)
+    coarse = estimate_time_offset(link.stamps(), link.quaternions(), sensor.stamps(),
+                                  sensor.quaternions(), max_offset_s,
+                                  centre_ns=config.sensor_offset_ns)
     frames = [(sample.stamp_ns - coarse.offset_ns, sample.sensor)
               for sample in replay_streams(link, sensor, config, coarse.offset_ns).samples]
     link_at = _interpolator(link)
@@ -258,7 +272,8 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
     if not residual(offset) < residual(coarse.offset_ns) * (1.0 - FLAT_RESIDUAL):
         offset = coarse.offset_ns
     session = replay_streams(link, sensor, config, offset, runs=runs)
-    return (OffsetReport(offset, coarse.correlation, residual(0), residual(offset), len(runs)),
+    return (OffsetReport(offset, coarse.correlation, residual(0), residual(offset), len(runs),
+                         config.sensor_offset_ns),
             session)
 
 

@@ -351,12 +351,13 @@ def add_capture_arguments(parser):
     add_setting_options(group, 'replay', CAPTURE)
     group.add_argument('--no-fallback', action='store_true',
                        help='auto capture only, even when the bag has no still sample')
-    offset = group.add_mutually_exclusive_group()
-    add_setting_options(offset, 'replay', ('sensor_time_offset_s',))
-    offset.add_argument('--estimate-time-offset', action='store_true',
-                        help='estimate the sensor time offset from the recording (angular '
-                             'speed cross-correlation refined by the residual), apply it and '
-                             'report it with the residual with and without it')
+    add_setting_options(group, 'replay', ('sensor_time_offset_s',))
+    group.add_argument('--estimate-time-offset', action='store_true',
+                       help='estimate the sensor time offset from the recording (angular '
+                            'speed cross-correlation refined by the residual), apply it and '
+                            'report it with the residual with and without it; the offsets '
+                            'searched lie within 0.5 s of the sensor time offset given '
+                            '(default 0)')
 
 
 CAPTURE = ('capture_mode', 'still_window_s', 'still_rotation_deg', 'still_translation_m',
@@ -718,7 +719,8 @@ def _few_samples(session, report):
         return (said + ' (they overlap, but the sensor stamps run about '
                 f'{abs(offset):.1f} s {"behind" if offset > 0 else "ahead of"} the link stamps '
                 'throughout, beyond the pairing window: the clocks are offset; if that is the '
-                f'offset, --sensor-time-offset {offset:.1f} corrects it)')
+                f'offset, --sensor-time-offset {offset:.1f} corrects it, and with '
+                '--estimate-time-offset too the search measures it within 0.5 s of that)')
     count, pairs = len(session.samples), counters['pairs']
     capture = session.config.capture
     if capture.mode == 'continuous':
