@@ -44,6 +44,9 @@ def test_the_rotation_is_recovered_within_an_honest_uncertainty(kind, setup):
         ratios.append((rotation / result.uncertainty_deg,
                        translation / max(result.translation_uncertainty_mm, 1e-12)))
         assert result.method == 'refined' and result.validation['verdict'] == 'pass'
+        # The directions are in the result's parent frame, and say which.
+        assert {u['frame'] for u in result.unobservable} == {
+            'link' if setup == 'eye_in_hand' else 'base'}
         # A gantry cannot turn: its hint asks for positions only.
         assert ('turns by different angles' in result.hint) == (kind == 'scara'), result.hint
     rms = np.sqrt(np.mean(np.square(ratios), axis=0))

@@ -352,7 +352,7 @@ def _reduced_result(samples, rotations, positions, motion, options, check=True):
         noisy=[], validation=validate(found.leave_one_out, np.arange(n), options.validation),
         sample_ok=np.ones(n, bool),
         unobservable=[{'what': 'translation', 'direction': [float(v) for v in d],
-                       'reason': reason} for d in found.undetermined])
+                       'frame': frame, 'reason': reason} for d in found.undetermined])
 
 
 # Another convention fits reduced-DOF samples this much better (position scatter): say so.
