@@ -507,6 +507,25 @@ def test_a_robot_that_never_stops_is_told_to_stop_not_to_move_more():
         f'collecting: no still sample yet from {pairs} paired poses: stop the robot at each '
         'pose for 0.5 s (still_window_s) after each motion; a robot that never stops needs '
         'capture_mode continuous')
+    # For 30 s of stamps that is only the state; from then on a problem (WARN).
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from quatcal_ros.ros.diagnostics import calibrator_status, NEVER_STILL_S
+    for k in range(300, 3_100):   # to 31 s
+        turned = Pose.create([0.4, 0.0, 0.3], quat.from_axis_angle([0, 0, 1.0], 0.0035 * k))
+        session.add_link_pose(1_000 * NS + k * 10 * MS, turned)
+        if k % 3 == 0:
+            session.add_sensor_pose(1_000 * NS + k * 10 * MS, Pose.identity())
+        if k == 2_990:
+            assert session.paired_seconds < NEVER_STILL_S
+            status = calibrator_status(session, mc.StreamStats(), 0, 'tool0')
+            assert status.level == DiagnosticStatus.OK, status.message
+    status = calibrator_status(session, mc.StreamStats(), 0, 'tool0')
+    assert status.level == DiagnosticStatus.WARN
+    assert status.message.endswith('capture_mode continuous; no still sample in 31 s of '
+                                   'paired poses')
+    # A reset starts the count again.
+    session.reset()
+    assert session.paired_seconds == 0.0
 
 
 def test_tf_input_with_one_pair_of_frames_composing_names_the_other():

@@ -26,6 +26,9 @@ def status_name(node_name):
 DIAGNOSTIC_NAME = status_name('calibrator')   # the default node's
 # An RMS motion residual above this (degrees) means inconsistent data: WARN.
 HIGH_RESIDUAL_DEG = 1.0
+# Seconds of paired poses without a still sample (auto capture) after which that is a
+# problem (WARN): a stop-and-go session stops every few seconds.
+NEVER_STILL_S = 30.0
 # Clock jumps back within one status period that point to two clocks on one stream.
 REPEATED_JUMPS = 3
 # The session's count of each stream's poses (Session.counters: its stream name + _messages).
@@ -190,6 +193,9 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
     if validation.get('verdict') == 'fail':
         found.append(f'validation failed: {validation["reason"]}')
     found += [text for text in problems if text]
+    if (result is None and not counters['samples'] and session.config.capture.mode == 'auto'
+            and session.paired_seconds >= NEVER_STILL_S):
+        found.append(f'no still sample in {session.paired_seconds:.0f} s of paired poses')
     values = {
         'state': session.state,
         'samples': counters['samples'],

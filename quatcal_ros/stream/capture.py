@@ -171,11 +171,18 @@ class Capture:
         # Pairs at which the link stayed within its still bands but the sensor pose did not:
         # what keeps a noisy sensor from ever giving a still sample (its bands are too tight).
         self.unsteady_sensor = 0
+        self._first_ns = None   # the stamp of the first pair of this timeline
+
+    @property
+    def paired_span_ns(self):
+        """Return the stamps the pairs of this timeline span (0 before two pairs)."""
+        return 0 if self._newest is None else self._newest.stamp_ns - self._first_ns
 
     def clear_window(self):
         """Forget the recent pairs only (time jumped); the next capture still needs a motion."""
         self._window.clear()
         self._newest = None
+        self._first_ns = None
 
     def note_sample(self, sample):
         """Record a sample taken elsewhere (CSV, resume): the next one needs a motion from it."""
@@ -186,6 +193,8 @@ class Capture:
         """Add the next Pair (stamps increasing); return the Sample it completes, or None."""
         self._window.append(pair)
         self._newest = pair
+        if self._first_ns is None:
+            self._first_ns = pair.stamp_ns
         if not self._moved:   # (also in continuous mode: a manual capture asks)
             angle, distance = pose_change(pair.link, self._last_sample.link)
             self._moved = (angle > self.config.min_departure_deg

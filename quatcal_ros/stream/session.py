@@ -46,6 +46,7 @@ from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import CalibrationOptions, Calibrator
 from quatcal_ros.core.motions import motion_count
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.units import NS_PER_S
 from quatcal_ros.stream.capture import Capture, CaptureConfig, pose_change
 from quatcal_ros.stream.pairing import LINK, OutOfOrderStamp, Pairer, PairingConfig, SENSOR
 
@@ -377,6 +378,11 @@ class Session:
             'repeated_samples': self._counts['repeated_samples'],
             'unsteady_sensor': self._capture.unsteady_sensor,
         }
+
+    @property
+    def paired_seconds(self):
+        """Return the seconds of stamps the paired poses span (since a reset or a time jump)."""
+        return self._capture.paired_span_ns / NS_PER_S
 
     @property
     def rates_hz(self):
