@@ -569,3 +569,16 @@ def test_images_with_tf_for_the_link_name_each_input_as_it_is():
                         '/camera/image_raw yet)')
     assert parts[1].startswith('no pose composed from /tf yet: are the frame names right')
     assert parts[2].startswith('no message on /camera/image_raw yet: is it remapped')
+
+
+def test_publication_sequence_gaps_count_lost_messages():
+    stats = mc.StreamStats()
+    for sequence in (7, 8, 11, 12, 20):   # the first number seen starts the count
+        stats.note_sequence(mc.LINK, sequence)
+    assert stats.lost[mc.LINK] == 2 + 7 and stats.lost[mc.SENSOR] == 0
+    stats.note_sequence(mc.LINK, 1)   # the publisher restarted: nothing lost
+    stats.note_sequence(mc.LINK, 2)
+    assert stats.lost[mc.LINK] == 9
+    stats.forget_sequence(mc.LINK)   # another publisher: start afresh
+    stats.note_sequence(mc.LINK, 500)
+    assert stats.lost[mc.LINK] == 9

@@ -526,6 +526,41 @@ def test_a_link_pose_in_the_sensor_frame_is_taken_for_swapped_topics(harness_fac
     assert len(h.node.session.samples) == 1   # a warning: the poses are still used
 
 
+def test_messages_lost_before_the_node_read_them_are_counted(harness_factory):
+    # A burst of link poses while the node does not spin: its queue (1000) overflows. The
+    # publisher numbers its messages; the gaps are counted, received + lost = sent. (No
+    # status on the node's timer: each status says the loss since the one before.)
+    h = harness_factory([Parameter('diagnostics_period_s', value=60.0)])
+    subscription = h.node.inputs._numbered['link_pose']
+    h.spin_until(lambda: subscription.get_publisher_count() == 1, what='the publisher')
+    h.node.diagnostic_status()   # the stream has one publisher: its numbers count
+    start, sent = simulation.DEFAULT_START_NS, 2_500
+    stats = h.node.stats
+    h.publish('link_pose', start, Pose.identity())   # the first number seen
+    taken = h.node.inputs.flush   # (link poses are held a moment, then decoded together)
+    h.spin_until(lambda: taken() or stats.received['link_pose'] == 1, what='the first pose')
+    for k in range(1, sent):
+        h.publish('link_pose', start + k * NS // 1000, Pose.identity())
+    h.spin_until(lambda: taken() or stats.received['link_pose'] + stats.lost['link_pose'] == sent,
+                 what='every message received or counted lost')
+    lost = stats.lost['link_pose']
+    assert lost >= sent - 1 - 1_000 and stats.lost['sensor_pose'] == 0
+    status = h.node.diagnostic_status()
+    values = {kv.key: kv.value for kv in status.values}
+    assert values['link_messages_lost'] == str(lost) and values['sensor_messages_lost'] == '0'
+    assert status.level == DiagnosticStatus.WARN
+    assert f'/link_pose: {lost} of the {sent} messages sent since the last status ' \
+        f'({100 * lost / sent:.1f} %) were lost before the node read them' in status.message
+    # Said for the period it happened in only.
+    assert 'lost before' not in h.node.diagnostic_status().message
+    # A second publisher: their numbers interleave, and the count stops.
+    second = h.driver.create_publisher(PoseStamped, 'link_pose', RELIABLE)
+    h.spin_until(lambda: subscription.get_publisher_count() == 2, what='a second publisher')
+    h.node.diagnostic_status()
+    assert 'link_pose' not in h.node.inputs._counted
+    second.destroy()
+
+
 # --- as processes ---------------------------------------------------------------------------
 
 def _tool_command(tool):

@@ -29,6 +29,11 @@ HIGH_RESIDUAL_DEG = 1.0
 # Seconds of paired poses without a still sample (auto capture) after which that is a
 # problem (WARN): a stop-and-go session stops every few seconds.
 NEVER_STILL_S = 30.0
+# Messages lost between two statuses (StreamStats.lost) that are a problem: at least this
+# many, and this fraction of those sent. The pairing interpolates across a few missing link
+# poses; a steady loss means the node or the network cannot keep up.
+LOST_MESSAGES = 10
+LOST_FRACTION = 0.01
 # Clock jumps back within one status period that point to two clocks on one stream.
 REPEATED_JUMPS = 3
 # The session's count of each stream's poses (Session.counters: its stream name + _messages).
@@ -66,6 +71,7 @@ class InputWatch:
         self.jumps_seen = 0                  # the session's time jumps at the last status
         self.stale_seen = 0                  # and its stale-stamped messages
         self.clock_seen = (None, None)       # (node clock, steady clock) when it last moved
+        self.counts_seen = {}                # stream: (received, lost) at the last status
 
     def problems(self, stats, topics, publishers, time_jumps, now_ns, sim_time,
                  steady_ns=None):
@@ -95,6 +101,16 @@ class InputWatch:
                              'node subscribes it reliable, and a reliable subscription hears '
                              "no best-effort publisher: publish it reliable (the driver's QoS "
                              'setting, or a relay)')
+        for stream, topic in topics.items():
+            received, lost = stats.received[stream], stats.lost[stream]
+            before = self.counts_seen.get(stream, (0, 0))
+            self.counts_seen[stream] = (received, lost)
+            new_lost, sent = lost - before[1], received - before[0] + lost - before[1]
+            if new_lost >= LOST_MESSAGES and new_lost > LOST_FRACTION * sent:
+                found.append(f'{topic}: {new_lost} of the {sent} messages sent since the last '
+                             f'status ({100.0 * new_lost / sent:.1f} %) were lost before the '
+                             'node read them: its queue overflowed (the node falls behind: '
+                             'CPU load) or the network dropped them')
         # a second clock's messages are time jumps, or stale messages when they are sparse
         stale = sum(stats.bad[(stream, 'stale_stamp')] for stream in topics)
         jumps, behind = time_jumps - self.jumps_seen, stale - self.stale_seen
@@ -217,6 +233,9 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
         'next_pose': _next_pose_text(next_pose),
         'link_messages': stats.received[LINK],
         'sensor_messages': stats.received[SENSOR],
+        # sent by the stream's one publisher but never received (publication sequence gaps)
+        'link_messages_lost': stats.lost[LINK],
+        'sensor_messages_lost': stats.lost[SENSOR],
         'bad_messages': stats.bad_total,
         'stale': ' '.join(stream for stream, _ in stale),
         'paired_poses': counters['pairs'],

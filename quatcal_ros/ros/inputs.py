@@ -86,6 +86,10 @@ class NodeInputs:
         # and images), for stream.frame_notices
         self.frames_seen = {}
         self.screen = PoseScreen(check_config, self._log_bad_message)
+        # The pose and image subscriptions, and those of them whose topic has one publisher,
+        # whose publication sequence numbers count the messages lost (check_publishers).
+        self._numbered = {}
+        self._counted = set()
         tf_frames = tf_frames or {}
         self.message_types, self.topics = {}, {}
         self.reliable = set()   # the streams subscribed reliable: best-effort publishers miss
@@ -112,13 +116,14 @@ class NodeInputs:
                 kind = self.message_types[stream] = MESSAGE_TYPES[pose_types[stream]]
                 if kind in RAW_TYPES and stream == LINK and deliver_rows is not None:
                     self._held_kind = kind
-                    callback = self._hold_link
+                    take = self._hold_link
                 elif kind in RAW_TYPES:
-                    callback = (lambda raw, s=stream, k=kind: self._on_raw_pose(s, raw, k))
+                    take = (lambda raw, s=stream, k=kind: self._on_raw_pose(s, raw, k))
                 else:
-                    callback = (lambda msg, s=stream: self._on_pose(s, msg))
-                self.topics[stream] = node.create_subscription(   # resolved name, for logs
-                    kind, stream, callback, qos, raw=kind in RAW_TYPES).topic_name
+                    take = (lambda msg, s=stream: self._on_pose(s, msg))
+                subscription = self._numbered[stream] = node.create_subscription(
+                    kind, stream, self._sequenced(stream, take), qos, raw=kind in RAW_TYPES)
+                self.topics[stream] = subscription.topic_name   # resolved name, for logs
                 if qos.reliability == ReliabilityPolicy.RELIABLE:
                     self.reliable.add(stream)
 
@@ -129,9 +134,10 @@ class NodeInputs:
                                  on_new_camera)
         kind = CompressedImage if transport == 'compressed' else Image
         self.message_types[SENSOR] = kind
-        self.topics[SENSOR] = self._node.create_subscription(
+        subscription = self._numbered[SENSOR] = self._node.create_subscription(
             kind, 'image/compressed' if transport == 'compressed' else 'image',
-            self._on_image, qos_profile_sensor_data).topic_name
+            self._sequenced(SENSOR, self._on_image), qos_profile_sensor_data)
+        self.topics[SENSOR] = subscription.topic_name
         self.camera_info_topic = self._node.create_subscription(
             CameraInfo, 'camera_info', self._on_camera_info,
             qos_profile_sensor_data).topic_name
@@ -163,6 +169,40 @@ class NodeInputs:
         return (f'link pose {link}, sensor pose: a {board.kind} board '
                 f'({board.size[0]} x {board.size[1]}) in {self.topics[SENSOR]} '
                 f'({kinds[1].__name__}) with {self.camera_info_topic}')
+
+    def _sequenced(self, stream, take):
+        """
+        Return the callback (message, message info) of `stream`: take(message).
+
+        On a topic with one publisher, first counts the messages missing before it from the
+        publication sequence number (StreamStats.note_sequence; None where the middleware
+        does not give one).
+        """
+        counted, note = self._counted, self.screen.stats.note_sequence
+
+        def callback(msg, info):
+            if stream in counted:
+                sequence = info.get('publication_sequence_number')
+                if sequence is not None:
+                    note(stream, sequence)
+            take(msg)
+        return callback
+
+    def check_publishers(self):
+        """
+        Count lost messages on the topics with one publisher only; call it now and then.
+
+        Two publishers' sequence numbers interleave, and rclpy does not say whose a message
+        is; a stream whose count of publishers changed starts its sequence afresh.
+        """
+        for stream, subscription in self._numbered.items():
+            sole = subscription.get_publisher_count() == 1
+            if sole != (stream in self._counted):
+                self.screen.stats.forget_sequence(stream)
+                if sole:
+                    self._counted.add(stream)
+                else:
+                    self._counted.discard(stream)
 
     def problems(self):
         """Return the TF frame pairs that cannot be composed, in words (none for pose topics)."""

@@ -344,6 +344,7 @@ class CalibratorNode(Node):
     def diagnostic_status(self):
         """Build the DiagnosticStatus published on /diagnostics."""
         tf_static, tf_problem = self.static_tf.state(self.config.publish_tf)
+        self.inputs.check_publishers()
         now_ns = self.now_ns()
         problems = [self.moves.warning(len(self.session.samples)), self.journal.problem,
                     tf_problem, *self.input_watch.problems(

@@ -206,7 +206,8 @@ class StreamStats:
 
     Times: node clock (now_ns) for staleness, steady clock (steady_ns) for log throttling.
     Every received message is either good (`note_good`) or bad (`note_bad`) exactly once,
-    so received == good + bad for each stream.
+    so received == good + bad for each stream. `lost` counts the messages a stream's
+    publisher numbered but that never came (note_sequence), for a stream with one publisher.
     """
 
     def __init__(self, throttle_s=LOG_THROTTLE_S):
@@ -218,6 +219,8 @@ class StreamStats:
         self.last_good_ns = {}
         self.last_bad = {}                  # stream: reason of its latest bad message
         self.first_detail = {}              # (stream, reason): detail of the first one
+        self.lost = Counter()
+        self._sequence = {}                 # stream: publication sequence number last seen
         self._log = LogThrottle(int(throttle_s * NS_PER_S))   # per (stream, reason)
 
     def note(self, stream, now_ns, count=1):
@@ -226,6 +229,24 @@ class StreamStats:
         self.last_ns[stream] = now_ns
         if self.first_ns is None:
             self.first_ns = now_ns
+
+    def note_sequence(self, stream, sequence):
+        """
+        Count as lost the messages missing before publication sequence number `sequence`.
+
+        The numbers of one publisher go up by one per message sent; a gap is messages that
+        never reached the node (its queue overflowed, or the network dropped them). A number
+        not above the last one (a publisher restarted) starts the count afresh, as does
+        `forget_sequence` (call it when the stream's publishers change).
+        """
+        last = self._sequence.get(stream)
+        self._sequence[stream] = sequence
+        if last is not None and sequence > last + 1:
+            self.lost[stream] += sequence - last - 1
+
+    def forget_sequence(self, stream):
+        """Start the sequence of `stream` afresh: the next number counts no gap."""
+        self._sequence.pop(stream, None)
 
     def note_good(self, stream, now_ns, count=1):
         """Count `count` messages of `stream` that reached the session."""
