@@ -299,7 +299,8 @@ def test_solve_dir_names_the_image_of_every_sample_it_reports(tmp_path, renderer
 
 def test_solve_dir_with_a_board_5_percent_too_large_is_not_silent(tmp_path, renderers, capsys):
     # Every view fits the wrong lengths, so the fit converges: the validation fails (the
-    # translations no longer agree), and the warnings now say it and name the likely cause.
+    # translations no longer agree), and the warnings now say it and name the likely cause;
+    # so does the scale of the board poses' positions.
     write_rendered_dataset(tmp_path, renderers['charuco'], 12, seed=100)
     board = tmp_path / 'board.yaml'
     board.write_text(re.sub(r'(square|marker)_length_m: ([0-9.]+)',
@@ -309,8 +310,9 @@ def test_solve_dir_with_a_board_5_percent_too_large_is_not_silent(tmp_path, rend
     result = json.loads(capsys.readouterr().out)
     assert result['validation']['verdict'] == 'fail'
     said = ' '.join(result['warnings'])
-    assert said.startswith('validation failed: leave-one-out prediction errors (RMS) above')
+    assert 'validation failed: leave-one-out prediction errors (RMS) above' in said
     assert 'wrong numbers in board.yaml (square_length_m, marker_length_m' in said
+    assert "they look 5.3 % too small: is the marker's or the board's size given right" in said
 
 
 def test_solve_dir_of_a_gantry_stays_on_the_poses(tmp_path, renderers, capsys):

@@ -37,6 +37,7 @@ from quatcal_ros.core import heavy_tails
 from quatcal_ros.core import quality
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core import reduced_dof
+from quatcal_ros.core import sensor_scale
 from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, least_squares_rotation, \
     MotionSystem, null_vectors
 from quatcal_ros.core.motions import motion_count, Motions, pair_angles, pair_indices, \
@@ -182,6 +183,8 @@ class CalibrationResult:
     sample_ok: np.ndarray = None    # bool per sample: used (not a bad detection)
     # What the motions do not determine (reduced-DOF robots): [{what, direction, reason}].
     unobservable: list = field(default_factory=list)
+    # The scale of the sensor's positions that fits best (sensor_scale.py), or None.
+    sensor_scale: object = None
 
     def sample_states(self, count):
         """Return 'used', 'noisy' (down-weighted) or 'rejected' for each of `count` samples."""
@@ -222,6 +225,8 @@ class CalibrationResult:
             'noisy': self.noisy,
             'validation': self.validation,
             'unobservable': self.unobservable,
+            'sensor_scale': (self.sensor_scale.to_json_dict()
+                             if self.sensor_scale is not None else None),
         }
 
 
@@ -769,8 +774,9 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     closed = _with_alternatives(Estimate(fit.q_z, translation.translation,
                                          quality.uncertainty_deg(covariance * factor),
                                          translation.uncertainty_mm), others)
-    warnings = half_turn_warnings + ([] if previous is not None else conventions.warnings(
-        samples, options, conventions.misfit(rotation_residuals, translation.residuals)))
+    convention = [] if previous is not None else conventions.warnings(
+        samples, options, conventions.misfit(rotation_residuals, translation.residuals))
+    warnings = half_turn_warnings + convention
     own = sensor_covariances(samples, options.invert_sensor)
     if previous is None and own is None:
         warnings += _unused_covariances(samples)
@@ -800,7 +806,14 @@ def _estimate(samples, rotations, positions, fit, options, previous):
         noise = (np.degrees(sigma), 1e3 * translation.noise_m)
     else:
         noise = (refinement.rotation_noise_deg, refinement.translation_noise_mm)
-    result = _report(fit, options, closed, refined, noise, warnings, refinement)
+    scale = sensor_scale.fit(
+        rotations.link_matrices[ok], positions.link[ok], positions.sensor[ok],
+        quat.matrix_from_quaternion((refined or closed).quaternion),
+        None if refinement is None else refinement.noise_covariance[3:, 3:])
+    # A scale is judged only where a rigid mounting fits: else the misfit is what it sees.
+    fits = not convention and not np.degrees(fit.residual_rms) > conventions.NOT_RIGID_DEG
+    warnings += [text for text in (sensor_scale.warning(scale),) if text and fits]
+    result = _report(fit, options, closed, refined, noise, warnings, refinement, scale)
     return _Solution(result, refinement)
 
 
@@ -918,7 +931,7 @@ def _unused_covariances(samples):
             'only when every sample gives one, so all are weighed by the fitted noise model']
 
 
-def _report(fit, options, closed, refined, noise, warnings, refinement):
+def _report(fit, options, closed, refined, noise, warnings, refinement, scale=None):
     """Return the CalibrationResult: the published estimate with its quality figures."""
     published = refined or closed
     ratio, axis = fit.info.excitation()
@@ -942,7 +955,7 @@ def _report(fit, options, closed, refined, noise, warnings, refinement):
         validation=(validate(refinement.leave_one_out, used, options.validation)
                     if refinement is not None else
                     not_enough_samples(len(used), MIN_REFINE_SAMPLES, options.validation)),
-        sample_ok=fit.sample_ok)
+        sample_ok=fit.sample_ok, sensor_scale=scale)
 
 
 def _noise_model(refinement, robust):
