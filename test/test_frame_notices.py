@@ -67,6 +67,7 @@ def test_a_parent_frame_other_than_the_published_one(setup, link, result, parame
 def test_a_sensor_frame_other_than_the_published_one(invert, sensor):
     (said,) = notices(seen(('base_link', None), sensor), 'eye_in_hand', invert, NODE)
     assert "the sensor poses are measured in 'camera_color_optical_frame'" in said
-    assert said.endswith('set sensor_frame:=camera_color_optical_frame')
+    assert said.endswith('set sensor_frame:=camera_color_optical_frame (unless that is the '
+                         'robot base: then the link_pose and sensor_pose topics are swapped)')
     # The replay names the result after the messages: nothing to say there.
     assert notices(seen(('base_link', None), sensor), 'eye_in_hand', invert) == []

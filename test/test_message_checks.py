@@ -523,9 +523,19 @@ def test_a_robot_that_never_stops_is_told_to_stop_not_to_move_more():
     assert status.level == DiagnosticStatus.WARN
     assert status.message.endswith('capture_mode continuous; no still sample in 31 s of '
                                    'paired poses')
-    # A reset starts the count again.
-    session.reset()
-    assert session.paired_seconds == 0.0
+
+
+def test_a_pause_of_the_streams_is_not_paired_time():
+    # 20 s of a turning link, 60 s without poses (the marker out of view), 5 s more: 25 s of
+    # paired poses, not 85 (the WARN came at once after the pause).
+    from quatcal_ros.stream.session import Session, SessionConfig
+    session = Session(SessionConfig())
+    for k in [*range(2_000), *range(8_000, 8_500)]:   # 100 Hz
+        turned = Pose.create([0.4, 0.0, 0.3], quat.from_axis_angle([0, 0, 1.0], 0.0035 * k))
+        session.add_link_pose(1_000 * NS + k * 10 * MS, turned)
+        if k % 3 == 0:
+            session.add_sensor_pose(1_000 * NS + k * 10 * MS, Pose.identity())
+    assert 24.9 < session.paired_seconds < 25.0
 
 
 def test_tf_input_with_one_pair_of_frames_composing_names_the_other():
@@ -573,12 +583,21 @@ def test_images_with_tf_for_the_link_name_each_input_as_it_is():
 
 def test_publication_sequence_gaps_count_lost_messages():
     stats = mc.StreamStats()
+    assert mc.LINK not in stats.lost   # not counted ('' on /diagnostics)
+    stats.restart_sequence(mc.LINK)   # the stream has one publisher: counted from now on
+    assert stats.lost == {mc.LINK: 0}
     for sequence in (7, 8, 11, 12, 20):   # the first number seen starts the count
         stats.note_sequence(mc.LINK, sequence)
     assert stats.lost[mc.LINK] == 2 + 7 and stats.lost[mc.SENSOR] == 0
-    stats.note_sequence(mc.LINK, 1)   # the publisher restarted: nothing lost
-    stats.note_sequence(mc.LINK, 2)
+    # Numbers that go back (a publisher restarted, or a second one's interleave: 3, 1, 4, 2)
+    # stop the count until the publishers are checked again: no gap is made up.
+    for sequence in (21, 3, 50_000, 4, 50_001, 5):
+        stats.note_sequence(mc.LINK, sequence)
     assert stats.lost[mc.LINK] == 9
-    stats.forget_sequence(mc.LINK)   # another publisher: start afresh
-    stats.note_sequence(mc.LINK, 500)
-    assert stats.lost[mc.LINK] == 9
+    stats.restart_sequence(mc.LINK, always=False)   # stopped: restarted
+    for sequence in (6, 9):
+        stats.note_sequence(mc.LINK, sequence)
+    assert stats.lost[mc.LINK] == 11
+    stats.restart_sequence(mc.LINK, always=False)   # counting: kept
+    stats.note_sequence(mc.LINK, 12)
+    assert stats.lost[mc.LINK] == 13

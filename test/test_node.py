@@ -498,20 +498,31 @@ def test_frames_that_contradict_the_inputs_or_the_result_are_warned_once(harness
     h.FRAMES = {'link_pose': ('/base_link', 'flange'),
                 'sensor_pose': ('camera_color_optical_frame', 'marker')}
     cell = simulation.random_cell(np.random.default_rng(8))
-    h.publish_events(still_events(cell, cell.home, simulation.DEFAULT_START_NS))
-    for _ in range(2):
+    start = simulation.DEFAULT_START_NS
+    for stop in range(2):   # each status judges the messages since the one before
+        h.publish_events(still_events(cell, cell.home, start + stop * 2 * NS))
         status = h.node.diagnostic_status()
         assert status.level == DiagnosticStatus.WARN
         assert "the estimate's parent frame is 'flange', but it is published as 'tool0' " \
             '(link_frame)' in status.message and 'set link_frame:=flange' in status.message
-        assert 'set sensor_frame:=camera_color_optical_frame' in status.message
+        assert 'set sensor_frame:=camera_color_optical_frame (unless that is the robot base: ' \
+            'then the link_pose and sensor_pose topics are swapped)' in status.message
     logged = [line for line in capfd.readouterr().err.splitlines()
               if line.startswith('[WARN]') and 'a frame it does not describe' in line]
     assert len(logged) == 2   # each said once, though every status repeats it
-    # Named as the messages name them, the warnings go.
+    # Named as the messages name them (a leading slash or not), the warnings go.
     assert h.node.set_parameters_atomically([
         Parameter('link_frame', value='flange'),
-        Parameter('sensor_frame', value='camera_color_optical_frame')]).successful
+        Parameter('sensor_frame', value='/camera_color_optical_frame')]).successful
+    h.publish_events(still_events(cell, cell.home, start + 4 * NS))
+    assert 'does not describe' not in h.node.diagnostic_status().message
+    # So does a publisher put right, with the next status.
+    (done,) = h.node.set_parameters([Parameter('link_frame', value='tool0')])
+    assert done.successful
+    h.publish_events(still_events(cell, cell.home, start + 6 * NS))
+    assert 'set link_frame:=flange' in h.node.diagnostic_status().message
+    h.FRAMES = dict(h.FRAMES, link_pose=('base_link', 'tool0'))
+    h.publish_events(still_events(cell, cell.home, start + 8 * NS))
     assert 'does not describe' not in h.node.diagnostic_status().message
 
 
@@ -553,11 +564,17 @@ def test_messages_lost_before_the_node_read_them_are_counted(harness_factory):
         f'({100 * lost / sent:.1f} %) were lost before the node read them' in status.message
     # Said for the period it happened in only.
     assert 'lost before' not in h.node.diagnostic_status().message
-    # A second publisher: their numbers interleave, and the count stops.
+    # A second publisher: their numbers interleave (3, 1, 4, 2, ...), and the count stops;
+    # what was counted stays.
     second = h.driver.create_publisher(PoseStamped, 'link_pose', RELIABLE)
     h.spin_until(lambda: subscription.get_publisher_count() == 2, what='a second publisher')
-    h.node.diagnostic_status()
-    assert 'link_pose' not in h.node.inputs._counted
+    for k in range(20):
+        (h.link_pub if k % 2 else second).publish(conversions.pose_stamped_msg(
+            Pose.identity(), start + (sent + k) * NS // 1000, 'base_link'))
+    h.spin_until(lambda: taken() or stats.received['link_pose'] == sent - lost + 20,
+                 what='the two publishers')
+    values = {kv.key: kv.value for kv in h.node.diagnostic_status().values}
+    assert values['link_messages_lost'] == str(lost) and values['sensor_messages_lost'] == '0'
     second.destroy()
 
 

@@ -121,12 +121,18 @@ def offset_sentence(offset):
     runs = offset.get('runs', 1)
     where = (f' (searched on the longest of the {runs} runs: the stamps start over)'
              if runs > 1 else '')
-    around = offset.get('searched_around_s')
-    around = f', searched around the given {around:+.3f} s' if around else ''
+    given = offset.get('searched_around_s')
+    around = (f', searched around the given {given:+.3f} s, where the RMS residual is '
+              f'{_degrees(offset.get("residual_at_given_deg"))}' if given else '')
     return (f'sensor stamps shifted by {1e3 * offset["sensor_offset_s"]:+.1f} ms (speed '
             f'correlation {offset["correlation"]:.2f}{around}); RMS residual '
-            f'{offset["residual_without_deg"]:.3f} deg without it, '
-            f'{offset["residual_with_deg"]:.3f} deg with it{where}')
+            f'{_degrees(offset["residual_without_deg"])} without any offset, '
+            f'{_degrees(offset["residual_with_deg"])} with it{where}')
+
+
+def _degrees(value):
+    """Return a residual of the time_offset JSON in words ('none': nothing to solve there)."""
+    return 'none (too few samples there)' if value is None else f'{value:.3f} deg'
 
 
 def _time_offset(offset):

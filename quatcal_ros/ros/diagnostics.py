@@ -233,9 +233,10 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
         'next_pose': _next_pose_text(next_pose),
         'link_messages': stats.received[LINK],
         'sensor_messages': stats.received[SENSOR],
-        # sent by the stream's one publisher but never received (publication sequence gaps)
-        'link_messages_lost': stats.lost[LINK],
-        'sensor_messages_lost': stats.lost[SENSOR],
+        # sent by the stream's one publisher but never received (publication sequence gaps);
+        # '' where not counted (TF input, images, two publishers from the start)
+        'link_messages_lost': stats.lost.get(LINK, ''),
+        'sensor_messages_lost': stats.lost.get(SENSOR, ''),
         'bad_messages': stats.bad_total,
         'stale': ' '.join(stream for stream, _ in stale),
         'paired_poses': counters['pairs'],

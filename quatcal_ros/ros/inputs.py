@@ -82,14 +82,15 @@ class NodeInputs:
         self._held = []          # raw link messages not decoded yet (module docstring)
         self._held_since_ns = 0  # steady clock at the first of them
         self._held_kind = None
-        # {stream: (header.frame_id, child frame or None)} of its first message (pose topics
-        # and images), for stream.frame_notices
+        # {stream: (header.frame_id, child frame or None)} of its first message since the node
+        # last cleared it (pose topics and images), for stream.frame_notices
         self.frames_seen = {}
         self.screen = PoseScreen(check_config, self._log_bad_message)
-        # The pose and image subscriptions, and those of them whose topic has one publisher,
-        # whose publication sequence numbers count the messages lost (check_publishers).
+        # The pose subscriptions, and the publishers (their gids) of those whose topic has
+        # one: its publication sequence numbers count the messages lost (check_publishers).
+        # Not the images, whose sensor-data queue of 5 drops frames by design.
         self._numbered = {}
-        self._counted = set()
+        self._counted = {}
         tf_frames = tf_frames or {}
         self.message_types, self.topics = {}, {}
         self.reliable = set()   # the streams subscribed reliable: best-effort publishers miss
@@ -134,10 +135,9 @@ class NodeInputs:
                                  on_new_camera)
         kind = CompressedImage if transport == 'compressed' else Image
         self.message_types[SENSOR] = kind
-        subscription = self._numbered[SENSOR] = self._node.create_subscription(
+        self.topics[SENSOR] = self._node.create_subscription(
             kind, 'image/compressed' if transport == 'compressed' else 'image',
-            self._sequenced(SENSOR, self._on_image), qos_profile_sensor_data)
-        self.topics[SENSOR] = subscription.topic_name
+            self._on_image, qos_profile_sensor_data).topic_name
         self.camera_info_topic = self._node.create_subscription(
             CameraInfo, 'camera_info', self._on_camera_info,
             qos_profile_sensor_data).topic_name
@@ -193,16 +193,20 @@ class NodeInputs:
         Count lost messages on the topics with one publisher only; call it now and then.
 
         Two publishers' sequence numbers interleave, and rclpy does not say whose a message
-        is; a stream whose count of publishers changed starts its sequence afresh.
+        is: a stream whose publishers changed (another gid) starts its sequence afresh, and
+        one whose numbers went back since the last check (StreamStats.note_sequence) too.
+        A publisher replaced between two checks can still count the messages it sent before
+        the node heard it.
         """
+        stats = self.screen.stats
         for stream, subscription in self._numbered.items():
-            sole = subscription.get_publisher_count() == 1
-            if sole != (stream in self._counted):
-                self.screen.stats.forget_sequence(stream)
-                if sole:
-                    self._counted.add(stream)
-                else:
-                    self._counted.discard(stream)
+            heard = self._node.get_publishers_info_by_topic(subscription.topic_name)
+            gids = tuple(bytes(info.endpoint_gid) for info in heard)
+            if len(gids) != 1:
+                self._counted.pop(stream, None)
+                continue
+            stats.restart_sequence(stream, always=self._counted.get(stream) != gids)
+            self._counted[stream] = gids
 
     def problems(self):
         """Return the TF frame pairs that cannot be composed, in words (none for pose topics)."""

@@ -359,18 +359,24 @@ class CalibratorNode(Node):
                                  status_name(self.get_name()))
 
     def _frame_problems(self):
-        """Return frame_notices' warnings on the input messages' frames; log each once."""
+        """
+        Return frame_notices' warnings on the input messages' frames; log each text once.
+
+        The frames of the first message of each stream since the last status: a publisher
+        put right clears its warning.
+        """
         config = self.config
         seen = dict(self.inputs.frames_seen)
         for stream, expected in ((LINK, config.link_frame_id), (SENSOR, config.sensor_frame_id)):
             if expected and stream in seen:   # the messages used carry exactly this frame
                 seen[stream] = (normalize_frame(expected), seen[stream][1])
         said = frame_notices.notices(seen, config.setup, config.invert_sensor,
-                                     config.result_frames)
+                                     tuple(map(normalize_frame, config.result_frames)))
         for text in said:
             if text not in self._frames_said:
                 self._frames_said.add(text)
                 self.get_logger().warning(text)
+        self.inputs.frames_seen.clear()   # the next status judges the messages after this one
         return said
 
     def _watch_status(self):

@@ -27,6 +27,9 @@ from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.stream.pose_buffer import PoseBuffer
 
 MODES = ('auto', 'manual', 'continuous')
+# Consecutive pairs further apart than this (header stamps) do not count as paired time:
+# Capture.paired_ns, the /diagnostics rule for a robot that never stops.
+PAIRED_STEP_NS = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -171,18 +174,15 @@ class Capture:
         # Pairs at which the link stayed within its still bands but the sensor pose did not:
         # what keeps a noisy sensor from ever giving a still sample (its bands are too tight).
         self.unsteady_sensor = 0
-        self._first_ns = None   # the stamp of the first pair of this timeline
-
-    @property
-    def paired_span_ns(self):
-        """Return the stamps the pairs of this timeline span (0 before two pairs)."""
-        return 0 if self._newest is None else self._newest.stamp_ns - self._first_ns
+        # The stamps this timeline's pairs cover: the steps between consecutive pairs up to
+        # PAIRED_STEP_NS (a pause of the streams, or stamps that leap, is not paired time).
+        self.paired_ns = 0
 
     def clear_window(self):
         """Forget the recent pairs only (time jumped); the next capture still needs a motion."""
         self._window.clear()
         self._newest = None
-        self._first_ns = None
+        self.paired_ns = 0
 
     def note_sample(self, sample):
         """Record a sample taken elsewhere (CSV, resume): the next one needs a motion from it."""
@@ -191,10 +191,10 @@ class Capture:
 
     def add_pair(self, pair):
         """Add the next Pair (stamps increasing); return the Sample it completes, or None."""
+        if self._newest is not None and pair.stamp_ns - self._newest.stamp_ns <= PAIRED_STEP_NS:
+            self.paired_ns += pair.stamp_ns - self._newest.stamp_ns
         self._window.append(pair)
         self._newest = pair
-        if self._first_ns is None:
-            self._first_ns = pair.stamp_ns
         if not self._moved:   # (also in continuous mode: a manual capture asks)
             angle, distance = pose_change(pair.link, self._last_sample.link)
             self._moved = (angle > self.config.min_departure_deg

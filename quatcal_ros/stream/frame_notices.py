@@ -49,7 +49,8 @@ def notices(seen, setup, invert_sensor, result_frames=None):
             said.append(
                 f'link_pose messages are in {base!r} (header.frame_id), the link itself '
                 '(link_frame): a link pose is the link in the robot base frame (T_base_link), '
-                "stamped with the base's frame")
+                "stamped with the base's frame; or, if that is the base, link_frame should "
+                'name the link that carries the sensor')
         elif link and link != parent:
             said.append(_renamed(f'link_pose transforms end in {link!r}', 'parent', link,
                                  parent, 'link_frame'))
@@ -58,7 +59,9 @@ def notices(seen, setup, invert_sensor, result_frames=None):
                              'link_frame'))
     if sensor and sensor != child and sensor != base:
         said.append(_renamed(f'the sensor poses are measured in {sensor!r}', 'child', sensor,
-                             child, 'sensor_frame'))
+                             child, 'sensor_frame')
+                    + ' (unless that is the robot base: then the link_pose and sensor_pose '
+                    'topics are swapped)')
     return said
 
 

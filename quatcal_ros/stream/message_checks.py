@@ -200,6 +200,10 @@ def silent_input(stream, names, composed=()):
             'publisher run?')
 
 
+# StreamStats._sequence of a stream whose numbers went back: not counted until restarted.
+_STOPPED = object()
+
+
 class StreamStats:
     """
     Messages per stream: received, usable, bad per reason; when last heard; log throttling.
@@ -207,7 +211,8 @@ class StreamStats:
     Times: node clock (now_ns) for staleness, steady clock (steady_ns) for log throttling.
     Every received message is either good (`note_good`) or bad (`note_bad`) exactly once,
     so received == good + bad for each stream. `lost` counts the messages a stream's
-    publisher numbered but that never came (note_sequence), for a stream with one publisher.
+    publisher numbered but that never came (note_sequence), for the streams with one
+    publisher (those with a count: restart_sequence).
     """
 
     def __init__(self, throttle_s=LOG_THROTTLE_S):
@@ -236,17 +241,28 @@ class StreamStats:
 
         The numbers of one publisher go up by one per message sent; a gap is messages that
         never reached the node (its queue overflowed, or the network dropped them). A number
-        not above the last one (a publisher restarted) starts the count afresh, as does
-        `forget_sequence` (call it when the stream's publishers change).
+        not above the last one (a publisher restarted, or a second one joined) stops the
+        count until `restart_sequence`.
         """
         last = self._sequence.get(stream)
+        if last is _STOPPED:
+            return
+        if last is not None and sequence <= last:
+            self._sequence[stream] = _STOPPED
+            return
         self._sequence[stream] = sequence
         if last is not None and sequence > last + 1:
             self.lost[stream] += sequence - last - 1
 
-    def forget_sequence(self, stream):
-        """Start the sequence of `stream` afresh: the next number counts no gap."""
-        self._sequence.pop(stream, None)
+    def restart_sequence(self, stream, always=True):
+        """
+        Count `stream`'s losses from its next number on (not always: only if stopped).
+
+        Call it when the stream's publishers change; `lost` then holds a count for it.
+        """
+        if always or self._sequence.get(stream) is _STOPPED:
+            self._sequence.pop(stream, None)
+        self.lost[stream] += 0
 
     def note_good(self, stream, now_ns, count=1):
         """Count `count` messages of `stream` that reached the session."""

@@ -381,8 +381,8 @@ class Session:
 
     @property
     def paired_seconds(self):
-        """Return the seconds of stamps the paired poses span (since a reset or a time jump)."""
-        return self._capture.paired_span_ns / NS_PER_S
+        """Return the seconds of stamps the paired poses cover (capture.Capture.paired_ns)."""
+        return self._capture.paired_ns / NS_PER_S
 
     @property
     def rates_hz(self):

@@ -19,6 +19,7 @@ from functools import lru_cache
 import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate
+from quatcal_ros.core.numerics import finite_or_none
 from quatcal_ros.core.pose import Sample
 from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.units import NS_PER_S
@@ -111,8 +112,8 @@ def estimate_time_offset(link_stamps_ns, link_quaternions, sensor_stamps_ns,
         around = f' of {centre_ns / NS_PER_S:+g} s' if centre_ns else ''
         raise ValueError(f'the angular speeds align best at the edge of the search, a sensor '
                          f'offset of {edge_ms:+.0f} ms: offsets beyond {max_offset_s * 1e3:g} '
-                         f'ms{around} are not searched; give the offset you expect as the '
-                         'sensor time offset, and the search looks around it')
+                         f'ms{around} are not searched; give the offset you expect with '
+                         '--sensor-time-offset, and the search looks around it')
     a, b, c = correlation[best - 1:best + 2]   # parabola through the peak and its neighbours
     denominator = a - 2.0 * b + c
     if denominator < 0.0:
@@ -208,7 +209,9 @@ class OffsetReport:
 
     runs: the timelines of the recording (its stamps started over runs - 1 times); the search
     and its residuals are of one of them (_searchable: the longest with speeds on both).
-    around_ns: the known offset the search was centred on (the JSON has it when not 0).
+    around_ns: the known offset the search was centred on, and residual_around_deg the
+    residual there (the JSON has them when the offset is not 0). A residual is None where
+    the samples at that offset left nothing to solve.
     """
 
     offset_ns: int
@@ -217,14 +220,17 @@ class OffsetReport:
     residual_with_deg: float
     runs: int = 1
     around_ns: int = 0
+    residual_around_deg: float = None
 
     def to_json_dict(self):
         """Return the replay JSON's `time_offset` (seconds, degrees)."""
         found = {'sensor_offset_s': self.offset_ns / NS_PER_S, 'correlation': self.correlation,
-                 'residual_without_deg': self.residual_without_deg,
-                 'residual_with_deg': self.residual_with_deg, 'runs': self.runs}
+                 'residual_without_deg': finite_or_none(self.residual_without_deg),
+                 'residual_with_deg': finite_or_none(self.residual_with_deg),
+                 'runs': self.runs}
         if self.around_ns:
             found['searched_around_s'] = self.around_ns / NS_PER_S
+            found['residual_at_given_deg'] = finite_or_none(self.residual_around_deg)
         return found
 
 
@@ -272,8 +278,9 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
     if not residual(offset) < residual(coarse.offset_ns) * (1.0 - FLAT_RESIDUAL):
         offset = coarse.offset_ns
     session = replay_streams(link, sensor, config, offset, runs=runs)
+    given = config.sensor_offset_ns
     return (OffsetReport(offset, coarse.correlation, residual(0), residual(offset), len(runs),
-                         config.sensor_offset_ns),
+                         given, residual(given) if given else None),
             session)
 
 
@@ -289,7 +296,8 @@ def _matched_runs(link, sensor, time_jump_ns):
     if len(link_runs) != len(sensor_runs):
         raise ValueError(f'the link stamps start over {len(link_runs) - 1} time(s) and the '
                          f'sensor stamps {len(sensor_runs) - 1} time(s): the runs cannot be '
-                         'matched; give the offset instead (--sensor-time-offset)')
+                         'matched; drop --estimate-time-offset and give the offset '
+                         '(--sensor-time-offset)')
     return list(zip(link_runs, sensor_runs))
 
 
