@@ -385,6 +385,31 @@ def test_the_fix_named_is_not_the_mirror_convention(mistake):
     assert right_fixes >= 38
 
 
+def test_exchanged_link_and_sensor_poses_are_named_though_they_fit():
+    # L X S = O exchanged is S X' L = O': the same residuals, and the answer the object's
+    # pose (O^-1). On these cells the mountings are 0.05-0.15 m long, and exchanged 0.25-1.63 m:
+    # all named but one, whose object is 0.25 m from the base (below LONG_MOUNTING_M).
+    named = 0
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        cell = simulation.random_cell(rng)
+        samples = simulation.samples(rng, cell, 12, rotation_noise_deg=0.2,
+                                     translation_noise_m=0.001)[0]
+        right = calibrate(samples)
+        assert not any('look exchanged' in w for w in right.warnings), seed
+        exchanged = calibrate([Sample(s.stamp_ns, s.sensor, s.link) for s in samples])
+        assert exchanged.residual_rms_deg == pytest.approx(right.residual_rms_deg, rel=1e-3)
+        said = [w for w in exchanged.warnings if 'look exchanged' in w]
+        length = np.linalg.norm(exchanged.translation)
+        assert bool(said) == (length > 0.25), (seed, length)
+        if said:
+            named += 1
+            assert said[0].startswith(f'the mounting comes out {length:.2f} m long while the '
+                                      'observed object is only'), said
+            assert 'Are the link and sensor poses swapped' in said[0]
+    assert named == 19
+
+
 def test_with_the_noise_in_the_robot_poses_the_right_fix_is_still_named():
     # The refinement tells a convention from its mirror by the sensor noise each leaves, which
     # assumes the noise is the sensor's. With the robot's poses noisy instead, it prefers the

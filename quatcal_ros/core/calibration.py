@@ -806,9 +806,13 @@ def _estimate(samples, rotations, positions, fit, options, previous):
         noise = (np.degrees(sigma), 1e3 * translation.noise_m)
     else:
         noise = (refinement.rotation_noise_deg, refinement.translation_noise_mm)
+    answer = refined or closed
+    warnings += conventions.exchanged_warnings(
+        options.setup, answer.translation,
+        translation.object_position if refined is None else refinement.object_translation)
     scale = sensor_scale.fit(
         rotations.link_matrices[ok], positions.link[ok], positions.sensor[ok],
-        quat.matrix_from_quaternion((refined or closed).quaternion),
+        quat.matrix_from_quaternion(answer.quaternion),
         None if refinement is None else refinement.noise_covariance[3:, 3:])
     # A scale is judged only where a rigid mounting fits: else the misfit is what it sees.
     fits = not convention and not np.degrees(fit.residual_rms) > conventions.NOT_RIGID_DEG

@@ -25,6 +25,15 @@ noise, the quick fits preferred it by 1.5-3.5x).
 
 A fit that no convention explains (a residual of tens of degrees) is not a rigid mounting, or
 the data are dominated by bad detections: `rigid_fit_warnings` says so loudly.
+
+Exchanged link and sensor poses fit exactly too (L X S = O gives S X' L = O' with X' = O^-1
+and O' = X^-1), so no residual shows them: eye-in-hand, the answer is then the object's
+pose, as long as the object is far from the robot base, and the object comes out as close
+to the base as the sensor is to the link. `exchanged_warnings` says so when the mounting is
+that long and the object that near (synthetic cells: mountings 0.06-0.13 m, objects 0.36-1.4
+m; exchanged, the two lengths swapped places; the ETH arm recording: 0.014 m and 0.69 m).
+With the sensor poses inverted, the exchange gives the inverse mounting, of the same length:
+nothing to see.
 """
 
 from dataclasses import dataclass
@@ -55,6 +64,10 @@ MIRROR_FACTOR = 2.0
 MIRROR_DECISIVE = 1.3
 # A rotation residual (RMS, degrees) no rigid mounting with a working sensor leaves.
 NOT_RIGID_DEG = 10.0
+# An eye-in-hand mounting this long (metres), and this many times the object's distance from
+# the robot base, looks like exchanged link and sensor poses (exchanged_warnings).
+LONG_MOUNTING_M = 0.25
+EXCHANGED_RATIO = 2.0
 
 
 def warnings(samples, options, screen=None):
@@ -225,6 +238,20 @@ def _quick_fits(arrays, options):
 def inversions(options):
     """Return the invert_sensor values the sensor poses may have: both, or as configured."""
     return (False, True) if options.sensor_invertible else (options.invert_sensor,)
+
+
+def exchanged_warnings(setup, translation, object_position):
+    """Return a warning when an eye-in-hand answer looks like exchanged link and sensor poses."""
+    if setup != 'eye_in_hand' or object_position is None:
+        return []
+    mounting, distance = float(np.linalg.norm(translation)), float(np.linalg.norm(object_position))
+    if not (mounting > LONG_MOUNTING_M and mounting > EXCHANGED_RATIO * distance):
+        return []
+    return [f'the mounting comes out {mounting:.2f} m long while the observed object is only '
+            f'{distance:.2f} m from the robot base: for a sensor on the link, the two look '
+            'exchanged. Are the link and sensor poses swapped (the link_pose and sensor_pose '
+            'topics, or the columns of a file)? Exchanged, they fit exactly as well, and the '
+            "answer is the object's pose instead of the mounting"]
 
 
 def rigid_fit_warnings(residual_rms_deg, translation_noise_mm):
