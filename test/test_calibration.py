@@ -410,6 +410,21 @@ def test_exchanged_link_and_sensor_poses_are_named_though_they_fit():
     assert named == 19
 
 
+def test_a_convention_warning_stands_through_the_warm_solves():
+    # The live calibrator's estimates between full solves re-fit no convention: the warning
+    # of the last full solve stood only in it, and came and went on /diagnostics.
+    cell, samples, _ = synthetic(5, 16, rotation_noise_deg=0.2)
+    inverted = [Sample(s.stamp_ns, s.link, s.sensor.inverse()) for s in samples]
+    calibrator = Calibrator(CalibrationOptions(robust=False))
+    calibrator.add_samples(inverted[:13])
+    calibrator.estimate()   # a full solve
+    (said,) = [w for w in calibrator.result.warnings if w.startswith('frame convention')]
+    for sample in inverted[13:]:   # warm solves (14 and 15 of every 10th)
+        calibrator.add_sample(sample)
+        calibrator.estimate()
+        assert said in calibrator.result.warnings
+
+
 def test_with_the_noise_in_the_robot_poses_the_right_fix_is_still_named():
     # The refinement tells a convention from its mirror by the sensor noise each leaves, which
     # assumes the noise is the sensor's. With the robot's poses noisy instead, it prefers the

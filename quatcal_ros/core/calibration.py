@@ -263,6 +263,9 @@ class _Solution:
 
     result: CalibrationResult
     refinement: object           # refine.Refinement or None: the start of warm-started steps
+    # The full solve's frame-convention warnings, which stand through the warm solves after
+    # it (they re-fit every convention: a full solve's work).
+    convention: tuple = ()
 
 
 def _solve(samples, options, previous=None):
@@ -774,8 +777,8 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     closed = _with_alternatives(Estimate(fit.q_z, translation.translation,
                                          quality.uncertainty_deg(covariance * factor),
                                          translation.uncertainty_mm), others)
-    convention = [] if previous is not None else conventions.warnings(
-        samples, options, conventions.misfit(rotation_residuals, translation.residuals))
+    convention = (list(previous.convention) if previous is not None else conventions.warnings(
+        samples, options, conventions.misfit(rotation_residuals, translation.residuals)))
     warnings = half_turn_warnings + convention
     own = sensor_covariances(samples, options.invert_sensor)
     if previous is None and own is None:
@@ -818,7 +821,7 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     fits = not convention and not np.degrees(fit.residual_rms) > conventions.NOT_RIGID_DEG
     warnings += [text for text in (sensor_scale.warning(scale),) if text and fits]
     result = _report(fit, options, closed, refined, noise, warnings, refinement, scale)
-    return _Solution(result, refinement)
+    return _Solution(result, refinement, tuple(convention))
 
 
 def _settle_half_turns(rotations, positions, fit, options):
