@@ -11,6 +11,7 @@ sqrt(1/2) (1 = honest).
 """
 
 from dataclasses import replace
+import re
 
 import numpy as np
 import pytest
@@ -614,7 +615,9 @@ def test_the_real_recordings_have_the_scale_of_their_sensor(name, request):
     # likely cause; the leave-one-out validation passes all the same.
     board = calibrate(scaled_sensor(samples, 1.02), options)
     (said,) = [w for w in board.warnings if SCALE_WORDS in w]
-    assert 'they look 2.1 % too large' in said, said
+    look = float(re.search(r'they look ([0-9.]+) % too large: ', said).group(1))
+    assert 1.8 <= look <= 2.3, said   # measured 2.2 (ETH: x, y, z apart) and 2.0 (MoveIt)
+    assert 'marker' in said and 'size' in said
     depth = calibrate(scaled_sensor(samples, (1.0, 1.0, 1.03)), options)
     (said,) = [w for w in depth.warnings if SCALE_WORDS in w]
     assert "too large along its z axis (a camera's depth) alone: is the camera's focal " \

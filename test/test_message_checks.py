@@ -527,7 +527,7 @@ def test_a_robot_that_never_stops_is_told_to_stop_not_to_move_more():
 
 def test_a_pause_of_the_streams_is_not_paired_time():
     # 20 s of a turning link, 60 s without poses (the marker out of view), 5 s more: 25 s of
-    # paired poses, not 85 (the WARN came at once after the pause).
+    # paired poses, not 85 (the WARN came at once after the pause). Steps of up to 5 s count.
     from quatcal_ros.stream.session import Session, SessionConfig
     session = Session(SessionConfig())
     for k in [*range(2_000), *range(8_000, 8_500)]:   # 100 Hz
@@ -601,3 +601,11 @@ def test_publication_sequence_gaps_count_lost_messages():
     stats.restart_sequence(mc.LINK, always=False)   # counting: kept
     stats.note_sequence(mc.LINK, 12)
     assert stats.lost[mc.LINK] == 13
+    # With the publisher's stamps: 1,500 lost in 1.5 s is a loss (1 kHz); a second publisher
+    # discovered late, numbered 360,000 a millisecond later, is not: the count stops.
+    stats.note_sequence(mc.LINK, 13, 10 * NS)
+    stats.note_sequence(mc.LINK, 1_514, 10 * NS + 1_500 * MS)
+    assert stats.lost[mc.LINK] == 13 + 1_500
+    stats.note_sequence(mc.LINK, 360_000, 10 * NS + 1_501 * MS)
+    stats.note_sequence(mc.LINK, 360_500, 10 * NS + 2_000 * MS)
+    assert stats.lost[mc.LINK] == 1_513

@@ -312,7 +312,7 @@ def test_solve_dir_with_a_board_5_percent_too_large_is_not_silent(tmp_path, rend
     said = ' '.join(result['warnings'])
     assert 'validation failed: leave-one-out prediction errors (RMS) above' in said
     assert 'wrong numbers in board.yaml (square_length_m, marker_length_m' in said
-    assert "they look 5.3 % too small: is the marker's or the board's size given right" in said
+    assert "they look 5.0 % too small: is the marker's or the board's size given right" in said
 
 
 def test_solve_dir_of_a_gantry_stays_on_the_poses(tmp_path, renderers, capsys):

@@ -248,10 +248,12 @@ def exchanged_warnings(setup, translation, object_position):
     if not (mounting > LONG_MOUNTING_M and mounting > EXCHANGED_RATIO * distance):
         return []
     return [f'the mounting comes out {mounting:.2f} m long while the observed object is only '
-            f'{distance:.2f} m from the robot base: for a sensor on the link, the two look '
-            'exchanged. Are the link and sensor poses swapped (the link_pose and sensor_pose '
-            'topics, or the columns of a file)? Exchanged, they fit exactly as well, and the '
-            "answer is the object's pose instead of the mounting"]
+            f"{distance:.2f} m from the origin of the link poses' frame (the robot base): for "
+            'a sensor on the link, the two look exchanged. Are the link and sensor poses '
+            'swapped (the link_pose and sensor_pose topics, or the columns of a file)? '
+            "Exchanged, they fit exactly as well, and the answer is the object's pose instead "
+            'of the mounting (if the link poses are in a world frame whose origin is near the '
+            'object, this may be right)']
 
 
 def rigid_fit_warnings(residual_rms_deg, translation_noise_mm):

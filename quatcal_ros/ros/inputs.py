@@ -175,8 +175,8 @@ class NodeInputs:
         Return the callback (message, message info) of `stream`: take(message).
 
         On a topic with one publisher, first counts the messages missing before it from the
-        publication sequence number (StreamStats.note_sequence; None where the middleware
-        does not give one).
+        publication sequence number and the publisher's stamp (StreamStats.note_sequence;
+        None where the middleware does not give one).
         """
         counted, note = self._counted, self.screen.stats.note_sequence
 
@@ -184,7 +184,7 @@ class NodeInputs:
             if stream in counted:
                 sequence = info.get('publication_sequence_number')
                 if sequence is not None:
-                    note(stream, sequence)
+                    note(stream, sequence, info.get('source_timestamp'))
             take(msg)
         return callback
 

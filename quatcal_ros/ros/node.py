@@ -103,6 +103,7 @@ class CalibratorNode(Node):
         self.next_pose = None   # the planner's proposal for the latest estimate
         self._newest_stamp = {}   # stream: (its latest stamp, the node clock when it came)
         self._frames_said = set()   # the frame notices logged
+        self._frames = {}   # stream: its latest (header, child) frames judged (_frame_problems)
         self.next_pose_publisher = self.create_publisher(
             PoseStamped, '~/next_pose', LATCHED_QOS, event_callbacks=quiet_publisher_events())
         self.markers_publisher = self.create_publisher(
@@ -362,11 +363,13 @@ class CalibratorNode(Node):
         """
         Return frame_notices' warnings on the input messages' frames; log each text once.
 
-        The frames of the first message of each stream since the last status: a publisher
-        put right clears its warning.
+        The frames of each stream's first message since the last status (else those seen
+        before it, for a stream silent since): a publisher put right clears its warning.
         """
         config = self.config
-        seen = dict(self.inputs.frames_seen)
+        self._frames.update(self.inputs.frames_seen)
+        self.inputs.frames_seen.clear()   # the next status takes each stream's next message
+        seen = dict(self._frames)
         for stream, expected in ((LINK, config.link_frame_id), (SENSOR, config.sensor_frame_id)):
             if expected and stream in seen:   # the messages used carry exactly this frame
                 seen[stream] = (normalize_frame(expected), seen[stream][1])
@@ -376,7 +379,6 @@ class CalibratorNode(Node):
             if text not in self._frames_said:
                 self._frames_said.add(text)
                 self.get_logger().warning(text)
-        self.inputs.frames_seen.clear()   # the next status judges the messages after this one
         return said
 
     def _watch_status(self):

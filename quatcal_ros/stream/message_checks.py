@@ -26,6 +26,7 @@ integer nanoseconds.
 
 from collections import Counter
 from dataclasses import dataclass
+import math
 
 import numpy as np
 from quatcal_ros.core.units import MAX_POSITION_M, NS_PER_S, shown
@@ -202,6 +203,17 @@ def silent_input(stream, names, composed=()):
 
 # StreamStats._sequence of a stream whose numbers went back: not counted until restarted.
 _STOPPED = object()
+# More messages a second than a publisher sends over DDS (a Python loop publishing as fast as
+# it can reached about 20 kHz here): a gap larger than this rate allows is another
+# publisher's numbers (one discovered late, numbered far ahead), not a loss.
+MAX_PUBLISH_HZ = 1_000_000
+
+
+def _possible(source_ns, last_source_ns):
+    """Return how many messages a publisher can have sent between two of its stamps."""
+    if source_ns is None or last_source_ns is None:
+        return math.inf
+    return MAX_PUBLISH_HZ * max(source_ns - last_source_ns, 0) / NS_PER_S
 
 
 class StreamStats:
@@ -226,6 +238,7 @@ class StreamStats:
         self.first_detail = {}              # (stream, reason): detail of the first one
         self.lost = Counter()
         self._sequence = {}                 # stream: publication sequence number last seen
+        self._source_ns = {}                # stream: its publisher's stamp of that message
         self._log = LogThrottle(int(throttle_s * NS_PER_S))   # per (stream, reason)
 
     def note(self, stream, now_ns, count=1):
@@ -235,22 +248,26 @@ class StreamStats:
         if self.first_ns is None:
             self.first_ns = now_ns
 
-    def note_sequence(self, stream, sequence):
+    def note_sequence(self, stream, sequence, source_ns=None):
         """
         Count as lost the messages missing before publication sequence number `sequence`.
 
         The numbers of one publisher go up by one per message sent; a gap is messages that
         never reached the node (its queue overflowed, or the network dropped them). A number
-        not above the last one (a publisher restarted, or a second one joined) stops the
+        not above the last one (a publisher restarted, or a second one joined), or a gap
+        more messages than MAX_PUBLISH_HZ could have sent in the publisher's time between
+        the two (source_ns, its clock; a second publisher numbered far ahead), stops the
         count until `restart_sequence`.
         """
         last = self._sequence.get(stream)
         if last is _STOPPED:
             return
-        if last is not None and sequence <= last:
+        if last is not None and (sequence <= last or sequence - last - 1 > _possible(
+                source_ns, self._source_ns.get(stream))):
             self._sequence[stream] = _STOPPED
             return
         self._sequence[stream] = sequence
+        self._source_ns[stream] = source_ns
         if last is not None and sequence > last + 1:
             self.lost[stream] += sequence - last - 1
 
