@@ -577,9 +577,10 @@ SCALE_WORDS = "the sensor's positions fit the mounting best scaled by"
 
 @pytest.mark.parametrize('mode', ['isotropic', 'pnp', 'heavy tails', 'robot noise', 'flips'])
 def test_a_right_scale_is_not_called_wrong_and_a_wrong_one_is(mode):
-    # Measured (2,850 cells of 8-12 samples in these modes): none warned, the largest
-    # deviation 4.1 uncertainties against the 5 a warning needs; a 5 % scale was named on 16
-    # to 20 cells of 20 at 8-15 samples (7-14 with nu = 3 tails).
+    # Measured in these modes (sensor_scale.py): of 2,850 cells of 8-12 samples none warned,
+    # the largest deviation 4.1 uncertainties; of 9,000 of 20-30 samples one, at 5.8, against
+    # the 5.5 a warning needs. A 5 % scale was named on 16 to 20 cells of 20 at 8-15 samples
+    # (7-14 with nu = 3 tails).
     rng = np.random.default_rng(12)
     kwargs = {'isotropic': {}, 'pnp': {'sensor_covariance': simulation.pnp_like_covariance()},
               'heavy tails': {'tail_nu': 3.0},
@@ -595,7 +596,7 @@ def test_a_right_scale_is_not_called_wrong_and_a_wrong_one_is(mode):
         right = calibrate(samples, options)
         assert not any(SCALE_WORDS in w for w in right.warnings), (mode, k)
         found = right.sensor_scale
-        assert np.all(np.abs(found.scale - 1.0) < 5.0 * found.uncertainty), (mode, k)
+        assert np.all(np.abs(found.scale - 1.0) < 5.5 * found.uncertainty), (mode, k)
         wrong = calibrate(scaled_sensor(samples, 1.05), options)
         named += any(SCALE_WORDS in w for w in wrong.warnings)
     assert named >= (8 if mode == 'heavy tails' else 11), named
@@ -605,8 +606,8 @@ def test_a_right_scale_is_not_called_wrong_and_a_wrong_one_is(mode):
 def test_the_real_recordings_have_the_scale_of_their_sensor(name, request):
     samples, options = recording(name, request)
     result = calibrate(samples, options)
-    # Measured: ETH (1.0028, 1.0045, 0.9929) +- (0.0025, 0.0032, 0.0026); MoveIt (0.9973,
-    # 1.0083, 0.9997) +- (0.0021, 0.0039, 0.0030).
+    # Measured: ETH (1.0029, 1.0046, 0.9930) +- (0.0025, 0.0032, 0.0026); MoveIt (0.9972,
+    # 1.0086, 0.9982) +- (0.0019, 0.0036, 0.0030).
     found = result.to_json_dict()['sensor_scale']
     assert np.all(np.abs(np.subtract(found['scale'], 1.0)) < 3.0 * np.array(
         found['uncertainty'])) and max(found['uncertainty']) < 0.005
@@ -623,6 +624,22 @@ def test_the_real_recordings_have_the_scale_of_their_sensor(name, request):
     assert "too large along its z axis (a camera's depth) alone: is the camera's focal " \
         'length' in said, said
     assert depth.validation['verdict'] == 'pass'
+
+
+def test_a_focal_length_error_is_seen_from_20_samples():
+    # The refinement, which has no scale, takes a depth scaled by 1.1 as depth noise: weighted
+    # by that noise alone the fit named it on 40 of 200 cells of 20 samples; weighted again
+    # by its own residuals, on all 200.
+    rng = np.random.default_rng(14)
+    for k in range(10):
+        setup = ('eye_in_hand', 'eye_to_hand')[k % 2]
+        cell = simulation.random_cell(rng, setup)
+        samples, _ = simulation.samples(rng, cell, 20,
+                                        sensor_covariance=simulation.pnp_like_covariance())
+        result = calibrate(scaled_sensor(samples, (1.0, 1.0, 1.1)), CalibrationOptions(
+            setup=setup))
+        (said,) = [w for w in result.warnings if SCALE_WORDS in w]
+        assert "% too large along its z axis (a camera's depth) alone" in said, (k, said)
 
 
 def test_too_few_samples_to_judge_the_scale():
