@@ -19,8 +19,8 @@ axis.
 Measured (scale per axis +- its uncertainty): the ETH arm recording gives (1.0029, 1.0046,
 0.9930) +- (0.0025, 0.0032, 0.0026) and the MoveIt recording (0.9972, 1.0086, 0.9982) +-
 (0.0019, 0.0036, 0.0030), within 2.7 uncertainties of 1; with their sensor positions scaled by
-1.02 both are named (2.0-2.2 % too large), and with the depth alone scaled by 1.03 too (z
-0.976 and 0.969, 6.9 and 10.6 uncertainties). Of 2,850 synthetic cells of 8-12 samples of
+1.02 both are named (2.2 % too large), and with the depth alone scaled by 1.03 too (z 0.967
+and 0.969, 13 and 11 uncertainties). Of 2,850 synthetic cells of 8-12 samples of
 the right scale in five noise modes (isotropic, PnP-like, t tails, robot noise, flips) none
 was named, the largest deviation 4.1 uncertainties; of 9,000 of 20-30 samples (refitted) one,
 at 5.8 (robot noise), the next largest 5.3 (test_honesty.py). A depth 3 % too long was named
