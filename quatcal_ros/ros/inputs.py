@@ -178,13 +178,13 @@ class NodeInputs:
         publication sequence number and the publisher's stamp (StreamStats.note_sequence;
         None where the middleware does not give one).
         """
-        counted, note = self._counted, self.screen.stats.note_sequence
+        counted, screen = self._counted, self.screen
 
         def callback(msg, info):
             if stream in counted:
                 sequence = info.get('publication_sequence_number')
                 if sequence is not None:
-                    note(stream, sequence, info.get('source_timestamp'))
+                    screen.stats.note_sequence(stream, sequence, info.get('source_timestamp'))
             take(msg)
         return callback
 
