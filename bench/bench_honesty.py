@@ -10,7 +10,11 @@ motion as the replay does; the MoveIt samples):
   half of the half's variance for independent samples);
 - leave-one-out stability: removing any one sample changes the rejected set by at most that
   sample (counted: how many removals changed it otherwise);
-- the validation verdict and the leave-one-out prediction errors.
+- the validation verdict and the leave-one-out prediction errors;
+- the scale of the sensor's positions (core/sensor_scale.py): as recorded (1 expected), and
+  whether it is named with the positions scaled by 1.02 (a board 2 % too large) and with the
+  camera's depth alone scaled by 1.03 (a focal length 3 % off), beside the validation verdict
+  of those, which does not see them.
 Run: python bench/bench_honesty.py [--halves 40]
 """
 
@@ -21,7 +25,7 @@ import numpy as np
 
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions
-from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.core.quaternion import wxyz_from_xyzw
 from quatcal_ros.files.importers import read_moveit_json_samples
 from quatcal_ros.stream.capture import CaptureConfig
@@ -92,6 +96,26 @@ def stability(samples, options, full):
     return changed, len(base)
 
 
+def scaled(samples, scale, inverted):
+    """Return the samples with the object's position in the sensor frame scaled per axis."""
+    def apply(pose):
+        return Pose(pose.position * np.asarray(scale), pose.quaternion, pose.covariance)
+    return [Sample(s.stamp_ns, s.link, apply(s.sensor.inverse()).inverse() if inverted
+                   else apply(s.sensor)) for s in samples]
+
+
+def scale_row(name, samples, options):
+    """Print the sensor-scale row of one recording."""
+    def judged(scale):
+        result = calibrate(scaled(samples, scale, options.invert_sensor), options)
+        named = any("the sensor's positions fit the mounting best scaled" in w
+                    for w in result.warnings)
+        return f"{'named' if named else 'not named'}, validation {result.validation['verdict']}"
+    found = calibrate(samples, options).sensor_scale
+    axes = ', '.join(f'{d:.4f} +- {sd:.4f}' for d, sd in zip(found.scale, found.uncertainty))
+    print(f'| {name} | {axes} | {judged(1.02)} | {judged((1.0, 1.0, 1.03))} |')
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     parser.add_argument('--halves', type=int, default=40)
@@ -112,6 +136,10 @@ def main():
                        else v['verdict'])
             print(f'| {name} | {method} | {len(samples)} | {rejected} | {changed} | {rot:.2f} | '
                   f'{trans:.2f} | {verdict} |')
+    print('\n| recording | sensor scale x, y, z (+- 1 sd) | positions x 1.02 | depth x 1.03 |')
+    print('|---|---|---|---|')
+    for name, (load, extra) in RECORDINGS.items():
+        scale_row(name, load(), CalibrationOptions(**extra))
 
 
 if __name__ == '__main__':
