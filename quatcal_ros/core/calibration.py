@@ -181,7 +181,7 @@ class CalibrationResult:
     noisy: list = field(default_factory=list)     # down-weighted samples
     validation: dict = None         # validation.validate's JSON object
     sample_ok: np.ndarray = None    # bool per sample: used (not a bad detection)
-    # What the motions do not determine (reduced-DOF robots): [{what, direction, reason}].
+    # What the motions do not determine (reduced-DOF robots): [{what, direction, frame, reason}].
     unobservable: list = field(default_factory=list)
     # The scale of the sensor's positions that fits best (sensor_scale.py), or None.
     sensor_scale: object = None
