@@ -227,6 +227,7 @@ class ReplayReport:
 
     messages: int = 0
     stamps: dict = field(default_factory=dict)             # stream: [first, last] pose stamp
+    logged: dict = field(default_factory=dict)             # topic: [first, last] log time
     frames: dict = field(default_factory=dict)             # stream: (frame_id, child frame)
     bad: Counter = field(default_factory=Counter)          # (where, reason): count
     examples: dict = field(default_factory=dict)           # (where, reason): first text
@@ -389,6 +390,7 @@ class Replay:
                 later.append((log_ns, _StaticFeed(run.tf, connection.topic, transforms)))
         later.reverse()   # popped from the end, oldest first
         connections = self.bag.connections(self.topics - static)
+        logged = run.report.logged   # topic: [first, last] log time of its messages
         feeds = {connection.id: run.feed_of(connection.topic) for connection in connections}
         topics = {connection.id: connection.topic for connection in connections}
         window, held = [], 0   # the feed of each message read ahead, and their bytes
@@ -397,7 +399,12 @@ class Replay:
                                                               count + 1):
                 while later and later[-1][0] <= log_ns:
                     window.append(later.pop()[1])
-                read[topics[connection.id]] += 1
+                topic = topics[connection.id]
+                read[topic] += 1
+                if topic in logged:
+                    logged[topic][1] = log_ns
+                else:
+                    logged[topic] = [log_ns, log_ns]
                 feed = feeds[connection.id]
                 feed.add(raw)
                 window.append(feed)
@@ -628,6 +635,24 @@ def frame_warnings(report, setup='eye_in_hand', invert_sensor=False):
     seen = {checked: report.frames[stream] for stream, checked in STREAMS.items()
             if stream in report.frames}
     return frame_notices.notices(seen, setup, invert_sensor)
+
+
+def clock_offset_ns(replay, report):
+    """
+    Return the offset to add to the sensor stamps that the bag's log times suggest, or None.
+
+    Each stream's header stamps minus the log times of its messages (the recorder's clock),
+    at its first and last message, averaged: the two streams' difference is the offset of
+    their clocks, to within their latencies (tens of milliseconds). None for TF input, or a
+    stream without poses.
+    """
+    lag = {}
+    for stream, source in replay.inputs.items():
+        stamps, logged = report.stamps.get(stream), report.logged.get(source.topic)
+        if source.topic is None or not stamps or stamps[0] is None or logged is None:
+            return None
+        lag[stream] = (stamps[0] - logged[0] + stamps[1] - logged[1]) // 2
+    return lag['link'] - lag['sensor']
 
 
 def result_frames(report, setup='eye_in_hand', invert_sensor=False):

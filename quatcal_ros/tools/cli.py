@@ -563,6 +563,10 @@ class _StreamRecorder:
         return []
 
 
+# A clock offset the bag's log times show beyond this centres the time-offset search on it.
+LOGGED_OFFSET_NS = 250_000_000
+
+
 def _replay_with_time_offset(replay, config, args):
     """Read both streams, find the sensor time offset, replay with it applied."""
     from quatcal_ros.ros import bag   # rosbags is needed by the replay only
@@ -573,6 +577,15 @@ def _replay_with_time_offset(replay, config, args):
     # far cheaper than the refinement's.
     scoring = replace(config.calibration, method='closed-form')
     notes = []
+    logged = bag.clock_offset_ns(replay, report)
+    if not config.sensor_offset_ns and logged is not None and abs(logged) > LOGGED_OFFSET_NS:
+        # Clocks this far apart would put the true offset at the edge of the search or
+        # beyond: search around what the bag's log times say instead (to 10 ms).
+        config = replace(config, sensor_offset_ns=int(round(logged, -7)))
+        notes.append(f'the sensor stamps run {abs(logged) / NS_PER_S:.2f} s '
+                     f'{"ahead of" if logged < 0 else "behind"} the link stamps against the '
+                     "bag's log times: the time offset was searched around "
+                     f'{config.sensor_offset_ns / NS_PER_S:+.2f} s')
     try:
         found, session = find_time_offset(recorder.link, recorder.sensor,
                                           config, residual_options=scoring)
