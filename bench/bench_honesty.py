@@ -25,9 +25,10 @@ import numpy as np
 
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions
-from quatcal_ros.core.pose import Pose, Sample
+from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.quaternion import wxyz_from_xyzw
 from quatcal_ros.files.importers import read_moveit_json_samples
+from quatcal_ros.sim import simulation
 from quatcal_ros.stream.capture import CaptureConfig
 from quatcal_ros.stream.session import Session, SessionConfig
 
@@ -96,18 +97,11 @@ def stability(samples, options, full):
     return changed, len(base)
 
 
-def scaled(samples, scale, inverted):
-    """Return the samples with the object's position in the sensor frame scaled per axis."""
-    def apply(pose):
-        return Pose(pose.position * np.asarray(scale), pose.quaternion, pose.covariance)
-    return [Sample(s.stamp_ns, s.link, apply(s.sensor.inverse()).inverse() if inverted
-                   else apply(s.sensor)) for s in samples]
-
-
 def scale_row(name, samples, options):
     """Print the sensor-scale row of one recording."""
     def judged(scale):
-        result = calibrate(scaled(samples, scale, options.invert_sensor), options)
+        wrong = simulation.scaled_sensor_positions(samples, scale, options.invert_sensor)
+        result = calibrate(wrong, options)
         named = any("the sensor's positions fit the mounting best scaled" in w
                     for w in result.warnings)
         return f"{'named' if named else 'not named'}, validation {result.validation['verdict']}"

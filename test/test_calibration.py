@@ -391,10 +391,7 @@ def test_exchanged_link_and_sensor_poses_are_named_though_they_fit():
     # all named but one, whose object is 0.25 m from the base (below LONG_MOUNTING_M).
     named = 0
     for seed in range(20):
-        rng = np.random.default_rng(seed)
-        cell = simulation.random_cell(rng)
-        samples = simulation.samples(rng, cell, 12, rotation_noise_deg=0.2,
-                                     translation_noise_m=0.001)[0]
+        _, samples, _ = synthetic(seed, 12, rotation_noise_deg=0.2, translation_noise_m=0.001)
         right = calibrate(samples)
         assert not any('look exchanged' in w for w in right.warnings), seed
         exchanged = calibrate([Sample(s.stamp_ns, s.sensor, s.link) for s in samples])

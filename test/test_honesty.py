@@ -565,19 +565,6 @@ def test_a_sample_made_of_two_moments_is_rejected_not_averaged(moveit_samples):
 
 # --- the scale of the sensor's positions --------------------------------------------------------
 
-def scaled_sensor(samples, scale, inverted=False):
-    """
-    Return the samples with the sensor positions multiplied by `scale` (per sensor axis).
-
-    inverted: the sensor poses are the sensor in the object frame (invert_sensor): their
-    inverses, the object in the sensor frame, are scaled.
-    """
-    def scaled(pose):
-        return Pose(pose.position * np.asarray(scale), pose.quaternion, pose.covariance)
-    return [Sample(s.stamp_ns, s.link, scaled(s.sensor.inverse()).inverse() if inverted
-                   else scaled(s.sensor)) for s in samples]
-
-
 SCALE_WORDS = "the sensor's positions fit the mounting best scaled by"
 
 
@@ -603,7 +590,7 @@ def test_a_right_scale_is_not_called_wrong_and_a_wrong_one_is(mode):
         assert not any(SCALE_WORDS in w for w in right.warnings), (mode, k)
         found = right.sensor_scale
         assert np.all(np.abs(found.scale - 1.0) < 5.5 * found.uncertainty), (mode, k)
-        wrong = calibrate(scaled_sensor(samples, 1.05), options)
+        wrong = calibrate(simulation.scaled_sensor_positions(samples, 1.05), options)
         named += any(SCALE_WORDS in w for w in wrong.warnings)
     assert named >= (8 if mode == 'heavy tails' else 11), named
 
@@ -620,12 +607,14 @@ def test_the_real_recordings_have_the_scale_of_their_sensor(name, request):
     assert not any(SCALE_WORDS in w for w in result.warnings)
     # A board 2 % too large, and a camera whose depth is 3 % too long: both named, with their
     # likely cause; the leave-one-out validation passes all the same.
-    board = calibrate(scaled_sensor(samples, 1.02, options.invert_sensor), options)
+    inverted = options.invert_sensor
+    board = calibrate(simulation.scaled_sensor_positions(samples, 1.02, inverted), options)
     (said,) = [w for w in board.warnings if SCALE_WORDS in w]
     look = float(re.search(r'they look ([0-9.]+) % too large: ', said).group(1))
     assert 1.8 <= look <= 2.3, said   # measured 2.2 on both (x, y, z a little apart)
     assert 'marker' in said and 'size' in said
-    depth = calibrate(scaled_sensor(samples, (1.0, 1.0, 1.03), options.invert_sensor), options)
+    depth = calibrate(simulation.scaled_sensor_positions(samples, (1.0, 1.0, 1.03), inverted),
+                      options)
     (said,) = [w for w in depth.warnings if SCALE_WORDS in w]
     assert "too large along its z axis (a camera's depth) alone: is the camera's focal " \
         'length' in said, said
@@ -642,8 +631,8 @@ def test_a_focal_length_error_is_seen_from_20_samples():
         cell = simulation.random_cell(rng, setup)
         samples, _ = simulation.samples(rng, cell, 20,
                                         sensor_covariance=simulation.pnp_like_covariance())
-        result = calibrate(scaled_sensor(samples, (1.0, 1.0, 1.1)), CalibrationOptions(
-            setup=setup))
+        result = calibrate(simulation.scaled_sensor_positions(samples, (1.0, 1.0, 1.1)),
+                           CalibrationOptions(setup=setup))
         (said,) = [w for w in result.warnings if SCALE_WORDS in w]
         assert "% too large along its z axis (a camera's depth) alone" in said, (k, said)
 

@@ -334,6 +334,21 @@ def corrupt_orientations(quaternions, uniforms):
     return _positive_w(out), [OUTLIER_KINDS[k] for k in kind]
 
 
+def scaled_sensor_positions(samples, scale, inverted=False):
+    """
+    Return the samples as a sensor with a scale error reports them (core/sensor_scale.py).
+
+    The object's position in the sensor frame multiplied by `scale` (per sensor axis): a
+    marker or board size off by a factor scales all three, a focal length the depth (z).
+    inverted: the sensor poses are the sensor in the object frame (invert_sensor); their
+    inverses are scaled.
+    """
+    def scaled(pose):
+        return Pose(pose.position * np.asarray(scale), pose.quaternion, pose.covariance)
+    return [Sample(s.stamp_ns, s.link, scaled(s.sensor.inverse()).inverse() if inverted
+                   else scaled(s.sensor)) for s in samples]
+
+
 def samples(rng, cell, n, rotation_noise_deg=0.0, translation_noise_m=0.0, outlier_fraction=0.0,
             link_rotation_noise_deg=0.0, link_translation_noise_m=0.0, rotation_spread_deg=30.0,
             start_ns=DEFAULT_START_NS, period_ns=2 * NS_PER_S, sensor_covariance=None,
