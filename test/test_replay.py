@@ -20,10 +20,10 @@ from quatcal_ros.files import journal
 from quatcal_ros.files.persistence import read_result_yaml
 from quatcal_ros.files.samples_csv import read_samples
 from quatcal_ros.ros import conversions
-from quatcal_ros.ros.bag import TF_TYPE, TYPESTORE, write_bag
+from quatcal_ros.ros.bag import ReplayReport, TF_TYPE, TYPESTORE, write_bag
 from quatcal_ros.sim import simulation as sim
 from quatcal_ros.stream.session import Session
-from quatcal_ros.tools.cli import replay_main
+from quatcal_ros.tools.cli import _few_samples, replay_main
 from quatcal_ros.tools.progress import Progress
 
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
@@ -647,9 +647,10 @@ def test_a_clock_offset_beyond_the_pairing_window_is_named_with_its_correction(
         msg.header.stamp.sec += 3
     done = replay_changed(repo_root, streams, tmp_path / 'ahead', '/sensor_pose', ahead)
     assert done.returncode == 2
-    assert ('the sensor stamps run about 3.0 s ahead of the link stamps throughout, beyond the '
-            'pairing window: the clocks are offset; if that is the offset, '
-            '--sensor-time-offset -3.0 corrects it') in done.stderr, done.stderr
+    # The bag's log times show it (the sensor messages logged 30 ms after their exposure).
+    assert ("they overlap, and against the bag's log times the sensor stamps run 2.97 s ahead "
+            'of the link stamps: the clocks are offset; --sensor-time-offset -2.97 corrects '
+            'it') in done.stderr, done.stderr
     corrected = run_replay(repo_root, tmp_path / 'ahead', *TOPICS, '--sensor-time-offset',
                            '-3.0', '--quiet')
     assert corrected.returncode == 0 and json.loads(corrected.stdout)['samples'] == 10
@@ -682,6 +683,35 @@ def test_a_clock_offset_beyond_the_pairing_window_is_named_with_its_correction(
     assert ("the sensor stamps run 2.97 s ahead of the link stamps against the bag's log "
             'times: the time offset was searched around -2.97 s') in out['warnings']
     # Stamps on one clock: no centre, as before (the ETH recording, below, searches around 0).
+
+
+def test_a_clock_offset_is_read_from_the_log_times_whenever_each_stream_began(
+        repo_root, streams, tmp_path):
+    # Sensor stamps 3 s ahead, and the camera started 2 s after the robot: the first stamps
+    # put the offset at 5 s (what the error suggested before it read the log times).
+    messages = topic_messages(streams, POSE_STAMPED)
+    first = messages[0][1]
+    late = []
+    for where, logged, message in messages:
+        if where == '/sensor_pose':
+            if logged < first + 2_000_000_000:
+                continue
+            message.header.stamp.sec += 3
+        late.append((where, logged, message))
+    write_bag(tmp_path / 'late', {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED},
+              late)
+    done = run_replay(repo_root, tmp_path / 'late', *TOPICS, '--quiet')
+    assert done.returncode == 2
+    assert ("against the bag's log times the sensor stamps run 2.97 s ahead of the link "
+            'stamps: the clocks are offset; --sensor-time-offset -2.97 corrects it') \
+        in done.stderr, done.stderr
+    # Without log times (TF input) the first stamps are all there is, and the error says it
+    # takes them at their word.
+    report = dataclasses.replace(ReplayReport(), counters={'pairs': 0}, stamps={
+        'link': [0, 60 * 10**9], 'sensor': [5 * 10**9, 65 * 10**9]})
+    assert ('the sensor stamps run about 5.0 s ahead of the link stamps throughout, beyond the '
+            'pairing window: the clocks are offset; if that is the offset, '
+            '--sensor-time-offset -5.0 corrects it') in _few_samples(None, report, None)
 
 
 def test_a_sensor_too_noisy_for_its_bands_is_named(repo_root, streams, tmp_path):

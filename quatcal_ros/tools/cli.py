@@ -472,7 +472,8 @@ def replay_main(argv=None):
     if len(session.samples) < 3:   # no output written: a file from an earlier run stays
         outputs = (('--samples-out', args.samples_out), ('--journal-out', args.journal_out))
         unwritten = [option for option, path in outputs if path]
-        return fail(prog, where + _too_few_samples(session, report, link, sensor)
+        logged = bag.clock_offset_ns(replay, report)
+        return fail(prog, where + _too_few_samples(session, report, link, sensor, logged)
                     + (f' ({" and ".join(unwritten)} not written)' if unwritten else ''),
                     EXIT_BAD_INPUT)
     if args.samples_out:
@@ -684,9 +685,11 @@ def _missing_static_hint(report, frames):
             'whether what publishes it ran while the bag was recorded')
 
 
-def _too_few_samples(session, report, link, sensor):
+def _too_few_samples(session, report, link, sensor, logged_ns=None):
     """
     Say why fewer than 3 samples came out of the bag, and what to try.
+
+    logged_ns: as _few_samples takes it.
 
     With what the replay could not use (report.warnings: skipped messages and transforms,
     time jumps): the cause is often there (every transform refused as a loop, every sensor
@@ -707,7 +710,7 @@ def _too_few_samples(session, report, link, sensor):
             why += f'; frames in the TF topics: {", ".join(report.tf_frames) or "none"}'
             why += _missing_static_hint(report, frames)
         return why + _not_used(report, said=(stream,))
-    return _few_samples(session, report) + _not_used(report)
+    return _few_samples(session, report, logged_ns) + _not_used(report)
 
 
 def _not_used(report, said=()):
@@ -716,15 +719,30 @@ def _not_used(report, said=()):
     return '; not used: ' + '; '.join(notes) if notes else ''
 
 
-def _few_samples(session, report):
-    """Say why the poses that came gave fewer than 3 samples."""
+def _few_samples(session, report, logged_ns=None):
+    """
+    Say why the poses that came gave fewer than 3 samples.
+
+    logged_ns: the sensor clock's offset the bag's log times show (bag.clock_offset_ns), or
+    None: what the correction suggested for stamps that never pair is taken from.
+    """
     counters = report.counters
     if not counters['pairs']:
         (l0, l1), (s0, s1) = report.stamps['link'], report.stamps['sensor']
         said = (f'no link pose could be paired with a sensor pose: link stamps '
                 f'{l0 / NS_PER_S:.3f} to {l1 / NS_PER_S:.3f} s, sensor stamps '
                 f'{s0 / NS_PER_S:.3f} to {s1 / NS_PER_S:.3f} s')
-        if min(l1, s1) <= max(l0, s0):
+        apart = min(l1, s1) <= max(l0, s0)
+        if logged_ns is not None and abs(logged_ns) > LOGGED_OFFSET_NS:
+            # The recorder's clock saw both streams: their stamps' offset from it is the
+            # clocks' offset, whenever each stream started.
+            offset = logged_ns / NS_PER_S
+            return (said + f' ({"they do not overlap" if apart else "they overlap"}, and '
+                    f"against the bag's log times the sensor stamps run {abs(offset):.2f} s "
+                    f'{"behind" if offset > 0 else "ahead of"} the link stamps: the clocks '
+                    f'are offset; --sensor-time-offset {offset:.2f} corrects it, and '
+                    '--estimate-time-offset measures it, searching around that)')
+        if apart:
             return said + ' (they do not overlap: are both stamped on the same clock?)'
         # They overlap, yet no two came close enough as the bag was read: a clock offset
         # beyond what the pairing keeps (PairingConfig.window_ns).
