@@ -525,6 +525,29 @@ def test_a_robot_that_never_stops_is_told_to_stop_not_to_move_more():
                                    'paired poses')
 
 
+def test_a_sensor_that_scatters_while_the_link_stands_still_is_named_with_its_bands():
+    # The robot stops, but the detections scatter by 2 deg, beyond the sensor's 1 deg band:
+    # the status names the parameters that widen it (the replay's error, its options).
+    from quatcal_ros.ros.diagnostics import status_message
+    from quatcal_ros.stream.session import Session, SessionConfig
+    session = Session(SessionConfig())
+    rng = np.random.default_rng(5)
+    for k in range(200):   # 2 s at 100 Hz, the link still
+        session.add_link_pose(1_000 * NS + k * 10 * MS, Pose.create([0.4, 0.0, 0.3],
+                                                                    [1.0, 0.0, 0.0, 0.0]))
+        if k % 3 == 0:
+            scattered = quat.from_rotation_vector(np.radians(rng.normal(0.0, 2.0, 3)))
+            session.add_sensor_pose(1_000 * NS + k * 10 * MS, Pose.create([0, 0, 1.0],
+                                                                          scattered))
+    unsteady = session.counters['unsteady_sensor']
+    assert unsteady > 0 and not session.samples
+    assert status_message(session, mc.StreamStats(), {}).endswith(
+        f'after each motion; at {unsteady} paired poses the link stood still but the sensor '
+        'pose moved beyond its bands (1 deg, 0.005 m): for a sensor that noisy widen them '
+        '(sensor_still_rotation_deg, sensor_still_translation_m); a robot that never stops '
+        'needs capture_mode continuous')
+
+
 def test_a_pause_of_the_streams_is_not_paired_time():
     # 20 s of a turning link, 60 s without poses (the marker out of view), 5 s more: 25 s of
     # paired poses, not 85 (the WARN came at once after the pause). Steps of up to 5 s count.

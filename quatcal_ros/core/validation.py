@@ -73,3 +73,10 @@ def not_enough_samples(count, needed, thresholds=Thresholds()):
             'reason': f'{count} good samples: the leave-one-out validation needs {needed}',
             'rms_rotation_deg': None, 'rms_translation_mm': None,
             'thresholds': thresholds.to_json_dict(), 'worst': [], 'samples': []}
+
+
+def failure_warning(validation):
+    """Return 'validation failed: <reason>' for a failed validation object (or None), else ''."""
+    if not validation or validation.get('verdict') != 'fail':
+        return ''
+    return f'validation failed: {validation["reason"]}'

@@ -12,7 +12,9 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from diagnostic_msgs.msg import KeyValue
 import numpy as np
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.validation import failure_warning
 from quatcal_ros.stream import message_checks
+from quatcal_ros.stream.capture import unsteady_sensor_note
 from quatcal_ros.stream.message_checks import LINK, SENSOR, STALE_AFTER_S
 from quatcal_ros.stream.session import TOPICS as SESSION_TOPICS
 from rclpy.qos import ReliabilityPolicy
@@ -171,10 +173,8 @@ def status_message(session, stats, topics=None, composed=()):
     count, capture = len(session.samples), session.config.capture
     if count == 0 and capture.mode == 'auto':   # paired poses, yet no still window
         counters = session.counters
-        unsteady = counters['unsteady_sensor']
-        sensor = (f'; at {unsteady} of them the link stood still but the sensor pose moved '
-                  'beyond its bands (sensor_still_rotation_deg, sensor_still_translation_m)'
-                  if unsteady else '')
+        sensor = unsteady_sensor_note(counters['unsteady_sensor'], capture,
+                                      ('sensor_still_rotation_deg', 'sensor_still_translation_m'))
         return (f'collecting: no still sample yet from {counters["pairs"]} paired poses: stop '
                 f'the robot at each pose for {capture.window_ns * 1e-9:g} s (still_window_s) '
                 f'after each motion{sensor}; a robot that never stops needs '
@@ -206,9 +206,7 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
     if result is not None:
         found += list(result.warnings)
     validation = (result.validation if result is not None else None) or {}
-    if validation.get('verdict') == 'fail':
-        found.append(f'validation failed: {validation["reason"]}')
-    found += [text for text in problems if text]
+    found += [text for text in (failure_warning(validation), *problems) if text]
     if (result is None and not counters['samples'] and session.config.capture.mode == 'auto'
             and session.paired_seconds >= NEVER_STILL_S):
         found.append(f'no still sample in {session.paired_seconds:.0f} s of paired poses')

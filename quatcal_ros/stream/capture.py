@@ -163,6 +163,21 @@ class _PairWindow:
                       Pose(p[1], quat.average(q[1]), covariance))
 
 
+def unsteady_sensor_note(count, config, band_names):
+    """
+    Say that at `count` paired poses the link stood still but the sensor pose did not, or ''.
+
+    config: the CaptureConfig; band_names: what the reader sets the two sensor bands with
+    (the node's parameters, the tools' options).
+    """
+    if not count:
+        return ''
+    return (f'; at {count} paired poses the link stood still but the sensor pose moved beyond '
+            f'its bands ({config.sensor_rotation_band_deg:g} deg, '
+            f'{config.sensor_translation_band_m:g} m): for a sensor that noisy widen them '
+            f'({", ".join(band_names)})')
+
+
 class Capture:
     """Takes samples from the paired stream in one of the MODES (module docstring)."""
 

@@ -16,6 +16,7 @@ import time
 
 from quatcal_ros.core.planner import plan_next_pose, PlanLimits
 from quatcal_ros.core.units import NS_PER_S
+from quatcal_ros.core.validation import failure_warning
 from quatcal_ros.files import exports
 from quatcal_ros.files import importers
 from quatcal_ros.files.journal import JournalHeader, JournalRefused
@@ -23,6 +24,7 @@ from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import format_samples
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
 from quatcal_ros.files.text_input import BadInputError
+from quatcal_ros.stream.capture import unsteady_sensor_note
 from quatcal_ros.stream.recorded_stream import RecordedStream
 from quatcal_ros.stream.session import Rejected, Session
 from quatcal_ros.stream.settings import check_config, ConfigError, IMAGES_NOT_INVERTED, \
@@ -302,9 +304,10 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
         return fail(prog, f'{where}the rotation cannot be determined: {session.last_error}',
                     EXIT_UNDETERMINED)
     result = result or session.result
-    if result.validation.get('verdict') == 'fail':   # said in the warnings too, not only there
-        warnings = [f'validation failed: {result.validation["reason"]} (the "validation" key '
-                    'lists each sample, the worst first)', *warnings]
+    failed = failure_warning(result.validation)
+    if failed:   # said in the warnings too, not only there
+        warnings = [f'{failed} (the "validation" key lists each sample, the worst first)',
+                    *warnings]
     result = with_warnings(result, warnings)
     document = result.to_json_dict()
     parent, child = frames or exports.default_frames(result.setup)
@@ -632,13 +635,8 @@ def _fallback_note(capture, session):
 
 def _unsteady_sensor(capture, session):
     """Say so when the link stood still but the sensor pose did not, else ''."""
-    count = session.counters['unsteady_sensor']
-    if not count:
-        return ''
-    return (f'; at {count} paired poses the link stood still but the sensor pose moved beyond '
-            f'its bands ({capture.sensor_rotation_band_deg:g} deg, '
-            f'{capture.sensor_translation_band_m:g} m): for a sensor that noisy widen them '
-            '(--sensor-still-rotation-deg, --sensor-still-translation-m)')
+    return unsteady_sensor_note(session.counters['unsteady_sensor'], capture,
+                                ('--sensor-still-rotation-deg', '--sensor-still-translation-m'))
 
 
 def _run(replay, config, args, label):
