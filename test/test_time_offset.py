@@ -1,8 +1,11 @@
 """Time offset between the robot and sensor streams: synthetic known offsets and the ETH data."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from quatcal_ros.core.calibration import CalibrationOptions
+from quatcal_ros.report.page import offset_sentence
 from quatcal_ros.sim import simulation
 from quatcal_ros.stream.capture import CaptureConfig
 from quatcal_ros.stream.session import SessionConfig
@@ -10,6 +13,7 @@ from quatcal_ros.stream.time_offset import estimate_time_offset
 from quatcal_ros.stream.time_offset import find_time_offset
 from quatcal_ros.stream.time_offset import refine_time_offset
 from quatcal_ros.stream.time_offset import replay_streams
+from quatcal_ros.stream.time_offset import WEAK_CORRELATION
 
 MS = 1_000_000
 
@@ -124,6 +128,27 @@ def test_eth_recording_offset_and_residuals(eth_streams):
     assert report.residual_with_deg < report.residual_without_deg
     session.estimate()
     assert session.result is not None and session.result.residual_rms_deg < 1.0
+
+
+def test_speeds_that_align_nowhere_in_the_search_are_not_taken_for_an_offset(eth_streams):
+    # The ETH camera's clock 3 s ahead, searched within 0.5 s of 0: the correlation peaked at
+    # -0.08 (at -333 ms) and that lag was applied as if found.
+    link, camera = eth_streams
+    ahead = [(stamp + 3_000 * MS, pose) for stamp, pose in camera]
+    config = SessionConfig(capture=CaptureConfig(mode='continuous'),
+                           calibration=CalibrationOptions(invert_sensor=True))
+    report, _ = find_time_offset(link, ahead, config)
+    assert report.correlation < WEAK_CORRELATION and report.unaligned_ns is not None
+    assert abs(report.offset_ns) <= 50 * MS   # the residual's own search, around 0
+    found = report.to_json_dict()
+    assert found['speeds_aligned'] is False and found['searched_within_s'] == 0.5
+    assert 'align nowhere within 500 ms of +0.000 s (best correlation -0.08, at ' \
+        in offset_sentence(found)
+    # Given near the truth, the same speeds align, and the words stay as they were.
+    near = find_time_offset(link, ahead, replace(config, sensor_offset_ns=-2_900 * MS))[0]
+    assert near.correlation > 0.5 and abs(near.offset_ns + 3_020 * MS) < 15 * MS
+    assert near.to_json_dict()['speeds_aligned']
+    assert 'align nowhere' not in offset_sentence(near.to_json_dict())
 
 
 def test_the_simulated_clock_offset_mode_is_found_and_undone():

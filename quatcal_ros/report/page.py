@@ -124,10 +124,19 @@ def offset_sentence(offset):
     given = offset.get('searched_around_s')
     around = (f', searched around the given {given:+.3f} s, where the RMS residual is '
               f'{_degrees(offset.get("residual_at_given_deg"))}' if given else '')
-    return (f'sensor stamps shifted by {1e3 * offset["sensor_offset_s"]:+.1f} ms (speed '
+    said = (f'sensor stamps shifted by {1e3 * offset["sensor_offset_s"]:+.1f} ms (speed '
             f'correlation {offset["correlation"]:.2f}{around}); RMS residual '
             f'{_degrees(offset["residual_without_deg"])} without any offset, '
             f'{_degrees(offset["residual_with_deg"])} with it{where}')
+    if offset.get('speeds_aligned', True):
+        return said
+    centre = given or 0.0
+    return (f'{said}. The angular speeds of the two streams align nowhere within '
+            f'{1e3 * offset["searched_within_s"]:g} ms of {centre:+.3f} s (best correlation '
+            f'{offset["correlation"]:.2f}, at {offset["weak_peak_s"]:+.3f} s): the offset was '
+            f'searched by the residual alone, near {centre:+.3f} s. It may lie beyond (give '
+            'the one you expect with --sensor-time-offset, and the search looks around it), '
+            'or the two streams do not show the same motion')
 
 
 def _degrees(value):

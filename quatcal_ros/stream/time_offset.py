@@ -32,6 +32,10 @@ from quatcal_ros.stream.session import Session
 FLAT_RESIDUAL = 1e-6
 # Poses whose angular speeds are computed at once.
 SPEED_CHUNK = 1 << 16
+# A best correlation below this aligns nothing: speed curves that share no motion at any lag
+# searched score about 0 (the ETH arm recording's 3 s offset searched within 0.5 s: -0.08, at
+# -333 ms); aligned, 0.67 on that recording and above 0.8 on the simulated streams.
+WEAK_CORRELATION = 0.3
 
 
 @dataclass(frozen=True)
@@ -211,7 +215,9 @@ class OffsetReport:
     and its residuals are of one of them (_searchable: the longest with speeds on both).
     around_ns: the known offset the search was centred on, and residual_around_deg the
     residual there (the JSON has them when the offset is not 0). A residual is None where
-    the samples at that offset left nothing to solve.
+    the samples at that offset left nothing to solve. unaligned_ns: where the correlation
+    peaked when it was below WEAK_CORRELATION (the speeds aligned nowhere within
+    searched_s of around_ns, so the search started at around_ns instead), else None.
     """
 
     offset_ns: int
@@ -221,13 +227,18 @@ class OffsetReport:
     runs: int = 1
     around_ns: int = 0
     residual_around_deg: float = None
+    unaligned_ns: int = None
+    searched_s: float = 0.5
 
     def to_json_dict(self):
         """Return the replay JSON's `time_offset` (seconds, degrees)."""
         found = {'sensor_offset_s': self.offset_ns / NS_PER_S, 'correlation': self.correlation,
                  'residual_without_deg': finite_or_none(self.residual_without_deg),
                  'residual_with_deg': finite_or_none(self.residual_with_deg),
-                 'runs': self.runs}
+                 'runs': self.runs, 'speeds_aligned': self.unaligned_ns is None,
+                 'searched_within_s': self.searched_s}
+        if self.unaligned_ns is not None:
+            found['weak_peak_s'] = self.unaligned_ns / NS_PER_S
         if self.around_ns:
             found['searched_around_s'] = self.around_ns / NS_PER_S
             found['residual_at_given_deg'] = finite_or_none(self.residual_around_deg)
@@ -259,6 +270,10 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
     coarse = estimate_time_offset(link.stamps(), link.quaternions(), sensor.stamps(),
                                   sensor.quaternions(), max_offset_s,
                                   centre_ns=config.sensor_offset_ns)
+    peak = None
+    if coarse.correlation < WEAK_CORRELATION:   # no alignment: its lag is no evidence
+        peak = coarse.offset_ns
+        coarse = TimeOffset(config.sensor_offset_ns, coarse.correlation)
     frames = [(sample.stamp_ns - coarse.offset_ns, sample.sensor)
               for sample in replay_streams(link, sensor, config, coarse.offset_ns).samples]
     link_at = _interpolator(link)
@@ -280,7 +295,7 @@ def find_time_offset(link, sensor, config, max_offset_s=0.5, span_ns=50_000_000,
     session = replay_streams(link, sensor, config, offset, runs=runs)
     given = config.sensor_offset_ns
     return (OffsetReport(offset, coarse.correlation, residual(0), residual(offset), len(runs),
-                         given, residual(given) if given else None),
+                         given, residual(given) if given else None, peak, max_offset_s),
             session)
 
 
