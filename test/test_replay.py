@@ -117,6 +117,15 @@ def test_pose_stamped_bag_gives_the_mounting_and_the_samples_solve_agrees(
     assert document['quality']['samples'] == 10
     assert document['source']['link'] == '/link_pose'
     assert_allclose(document['quaternion_xyzw'], quat.xyzw_from_wxyz(rotation(out)))
+    # --parent-frame given and the child frame named by the messages: no note. Without the
+    # option, the note says which frame the messages lack (it named the option as if given).
+    assert 'note:' not in done.stderr
+    done = run_replay(repo_root, bags / 'pose', *TOPICS, '--result-out', yaml_path)
+    assert done.returncode == 0, done.stderr
+    assert ('replay: note: the messages name no parent frame for the result (a PoseStamped '
+            "names only the frame it is in, not a child frame): 'tool0' written to "
+            f'{yaml_path}; --parent-frame sets it') in done.stderr, done.stderr
+    assert 'no child frame' not in done.stderr
 
 
 def test_a_pose_bag_replay_loads_no_opencv(repo_root, bags):

@@ -794,12 +794,14 @@ def _write_result(prog, args, result, session, warnings, report, link, sensor):
     from quatcal_ros.ros.bag import result_frames
     seen = result_frames(report, args.setup, args.invert_sensor)
     frames = _replay_frames(args, report)
-    for option, given, chosen in zip(('--parent-frame', '--child-frame'),
-                                     (args.parent_frame or seen[0], args.child_frame or seen[1]),
-                                     frames):
+    for role, given, chosen in zip(('parent', 'child'),
+                                   (args.parent_frame or seen[0], args.child_frame or seen[1]),
+                                   frames):
         if not given and not args.quiet:
-            print(f'{prog}: note: the messages do not name the frame that {option} sets: '
-                  f'{chosen!r} written to {args.result_out}', file=sys.stderr)
+            print(f'{prog}: note: the messages name no {role} frame for the result (a '
+                  'PoseStamped names only the frame it is in, not a child frame): '
+                  f'{chosen!r} written to {args.result_out}; --{role}-frame sets it',
+                  file=sys.stderr)
     source = {'bag': str(args.bag), 'link': str(link), 'sensor': str(sensor),
               'capture': session.config.capture.mode}
     saved = save_result(with_warnings(result, warnings), frames, args.setup,
