@@ -208,7 +208,14 @@ def test_opening_errors_name_the_file(tmp_path):
     with pytest.raises(BagError, match='no such file or directory'):
         Bag(tmp_path / 'missing')
     (tmp_path / 'dir').mkdir()
-    with pytest.raises(BagError, match='not a rosbag2 directory .no metadata.yaml'):
+    with pytest.raises(BagError, match='dir: not a rosbag2 directory: no metadata.yaml and no '
+                                       r'.db3 or .mcap file in it; it is empty$'):
+        Bag(tmp_path / 'dir')
+    # A storage file without its index: the recorder was killed, and the advice is to reindex
+    # (it was given for folders that held no recording at all).
+    (tmp_path / 'dir' / 'run_0.mcap').write_bytes(b'')
+    with pytest.raises(BagError, match=r'dir: not a rosbag2 directory \(no metadata.yaml in '
+                                       r'it\); if the recorder was killed, `ros2 bag reindex`'):
         Bag(tmp_path / 'dir')
     (tmp_path / 'file.txt').write_text('hello')
     with pytest.raises(BagError, match='file.txt: not a rosbag2 directory'):

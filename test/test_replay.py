@@ -487,7 +487,8 @@ TOPICS = ('--link-topic', '/link_pose', '--sensor-topic', '/sensor_pose')
     ('pose', ('--link-frames', 'base', 'tool0', '--sensor-topic', '/sensor_pose'),
      [r'no TF topic \(/tf, /tf_static\) in the bag']),
     ('empty', TOPICS, ['empty: the bag holds no messages']),
-    ('not_a_bag', TOPICS, ['not_a_bag: not a rosbag2 directory \\(no metadata.yaml']),
+    ('not_a_bag', TOPICS, ['not_a_bag: not a rosbag2 directory: no metadata.yaml and no .db3 '
+                           'or .mcap file in it; it holds notes.txt']),
     ('missing', TOPICS, ['missing: no such file or directory']),
     ('bad_metadata', TOPICS, ['bad_metadata: cannot open the bag']),
     ('bad_db3', TOPICS, ['bad_db3: cannot open the bag']),

@@ -132,6 +132,12 @@ def _open_reader(path):
         raise BagError(f'{path}: no such file or directory')
     if path.is_dir() and not (path / bag_folder.INDEX).is_file():
         parts = bag_folder.storage_files(path, bag_folder.READABLE_SUFFIXES)
+        if not parts:   # nothing recorded here: no index to rebuild
+            held = sorted(p.name for p in path.iterdir())
+            listed = (f'; it holds {", ".join(held[:5])}{", ..." if len(held) > 5 else ""}'
+                      if held else '; it is empty')
+            raise BagError(f'{path}: not a rosbag2 directory: no {bag_folder.INDEX} and no '
+                           f'{" or ".join(bag_folder.READABLE_SUFFIXES)} file in it{listed}')
         alone = f'; its storage file replays without it: {parts[0]}' if len(parts) == 1 else ''
         raise BagError(f'{path}: not a rosbag2 directory (no {bag_folder.INDEX} in it); if the '
                        f'recorder was killed, `ros2 bag reindex` can rebuild it{alone}')
