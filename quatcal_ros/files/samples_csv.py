@@ -60,11 +60,7 @@ def _parse_rows(reader, name):
         raise BadInputError(f'{name}: empty file: expected the header row {",".join(COLUMNS)}')
     header = [column.strip() for column in header]
     where = f'{name}, row {reader.line_num} (header)'
-    missing = [column for column in COLUMNS if column not in header]
-    if missing:
-        raise BadInputError(f'{where}: missing column(s) {", ".join(missing)}; '
-                            f'expected {",".join(COLUMNS)}')
-    check_columns_once(header, COLUMNS + COVARIANCE_COLUMNS, where)
+    check_header(header, COLUMNS, where, COLUMNS + COVARIANCE_COLUMNS)
     index = {column: header.index(column) for column in COLUMNS}
     given = [column for column in COVARIANCE_COLUMNS if column in header]
     if given and len(given) < len(COVARIANCE_COLUMNS):
@@ -184,9 +180,23 @@ def pose_from_values(values, prefix, name, line):
     return Pose.create(position, xyzw[3:] + xyzw[:3])
 
 
-def check_columns_once(header, columns, where):
-    """Raise BadInputError at `where` when a column of `columns` is in `header` twice."""
-    twice = [column for column in columns if header.count(column) > 1]
+def check_header(header, required, where, known=None):
+    """
+    Raise BadInputError at `where` for a header without the columns needed, or ambiguous.
+
+    Each column of `required` must be in `header`, and none of `known` (default `required`)
+    in it twice. A header of one column that holds another separator says so: a spreadsheet's export
+    with semicolons or tabs is the usual cause of every column missing.
+    """
+    missing = [column for column in required if column not in header]
+    if missing:
+        other = [s for s in (';', '\t', '|') if len(header) == 1 and s in header[0]]
+        hint = (f' (the header is one column separated by {other[0]!r}: columns must be '
+                'separated by commas)' if other else '')
+        raise BadInputError(f'{where}: missing column(s) {", ".join(missing)}{hint}; '
+                            f'expected {",".join(required)}')
+    known = required if known is None else known
+    twice = [column for column in known if header.count(column) > 1]
     if twice:
         raise BadInputError(f'{where}: column(s) {", ".join(twice)} more than once: which '
                             'one holds the value?')

@@ -20,7 +20,7 @@ import stat
 
 from quatcal_ros.core.pose import Sample
 from quatcal_ros.core.units import NS_PER_S
-from quatcal_ros.files.samples_csv import check_columns_once, parse_numbers, pose_from_values
+from quatcal_ros.files.samples_csv import check_header, parse_numbers, pose_from_values
 from quatcal_ros.files.text_input import BadInputError, read_text
 from quatcal_ros.vision.board import read_board
 from quatcal_ros.vision.camera import read_camera_yaml
@@ -154,11 +154,7 @@ def read_robot_poses(path):
 def _robot_pose_rows(reader, name):
     """Return read_robot_poses' rows of an open csv.reader."""
     header = [column.strip() for column in next(reader, [])]
-    missing = [c for c in POSE_COLUMNS if c not in header]
-    if missing:
-        raise BadInputError(f'{name}, row 1 (header): missing column(s) '
-                            f'{", ".join(missing)}; expected {",".join(POSE_COLUMNS)}')
-    check_columns_once(header, POSE_COLUMNS, f'{name}, row 1 (header)')
+    check_header(header, POSE_COLUMNS, f'{name}, row 1 (header)')
     index = {c: header.index(c) for c in POSE_COLUMNS}
     rows, seen = [], {}
     for row in reader:
