@@ -84,7 +84,7 @@ GOOD_ROW = '1.0,0,0,0,0,0,0,1,0,0,1,0,0,0,1'
     ('stamp,link_x\n1,2\n', 'row 1 (header): missing column(s) link_y'),
     (';'.join(COLUMNS) + '\n' + GOOD_ROW.replace(',', ';') + '\n',
      'row 1 (header): missing column(s) stamp, link_x, link_y, link_z, link_qx, link_qy, '
-     'link_qz, link_qw, sensor_x, sensor_y, sensor_z, sensor_qx, sensor_qy, sensor_qz, "
+     'link_qz, link_qw, sensor_x, sensor_y, sensor_z, sensor_qx, sensor_qy, sensor_qz, '
      "sensor_qw (the header is one column separated by ';': columns must be separated by "
      'commas); expected stamp,'),
     (','.join(COLUMNS) + '\n' + GOOD_ROW.replace('1.0,', 'abc,', 1) + '\n',

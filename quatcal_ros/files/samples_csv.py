@@ -185,8 +185,8 @@ def check_header(header, required, where, known=None):
     Raise BadInputError at `where` for a header without the columns needed, or ambiguous.
 
     Each column of `required` must be in `header`, and none of `known` (default `required`)
-    in it twice. A header of one column that holds another separator says so: a spreadsheet's export
-    with semicolons or tabs is the usual cause of every column missing.
+    in it twice. A header of one column that holds another separator says so: a
+    spreadsheet's export with semicolons or tabs is the usual cause of every column missing.
     """
     missing = [column for column in required if column not in header]
     if missing:
