@@ -67,8 +67,10 @@ def parse_args(argv):
         low, high = SIM_PARAMETERS[parameter][2]
         value = getattr(args, option)
         if not low <= value <= high:   # (NaN fails too)
-            parser.error(f'--{option.replace("_", "-")} must be within {low:g} to {high:g} '
-                         f"(the simulated cell's {parameter}), not {value:g}")
+            low, high, value = (f'{v:g}' if isinstance(v, float) else v
+                                for v in (low, high, value))   # (an int seed in full)
+            parser.error(f'--{option.replace("_", "-")} must be within {low} to {high} '
+                         f"(the simulated cell's {parameter}), not {value}")
     if args.still_s < 0.3:
         parser.error('need --still-s >= 0.3 (the still window is 0.25 s)')
     return args
