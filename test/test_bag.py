@@ -8,6 +8,7 @@ from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.ros import bag, cdr, conversions
 from quatcal_ros.ros.bag import Bag, BagError, PoseInput, Replay, TYPESTORE, write_bag
+from quatcal_ros.ros.pose_screen import PoseScreen
 from quatcal_ros.sim import simulation as sim
 from quatcal_ros.stream.message_checks import CheckConfig
 from quatcal_ros.stream.session import Session
@@ -179,6 +180,53 @@ def test_tf_frames_with_static_transforms_anywhere_in_the_bag(tmp_path, streams)
     session.estimate()
     error = np.degrees(quat.angle_between(session.result.quaternion, streams.truth.quaternion))
     assert error < 3 * session.result.uncertainty_deg
+
+
+def test_a_stale_last_message_is_counted_bad_and_every_other_one_good(tmp_path, streams):
+    # The last link message stamped 10 s behind its stream: the session held it for the next
+    # message to say stale or time jump, none came, and it was counted neither good nor bad.
+    messages = pose_messages(streams)
+    stamp, pose = streams.link[-1]
+    stale = conversions.pose_stamped_msg(pose, stamp - 10 * 10**9, 'base', typestore=TYPESTORE)
+    messages.append(('/link', messages[-1][1] + MS, stale))
+    write_bag(tmp_path / 'b', TOPICS, messages)
+    session, report = replay(tmp_path / 'b')
+    assert report.bad == {('link_pose', 'stale_stamp'): 1}
+    assert 'the recording ended after it: a stale message' in \
+        report.examples[('link_pose', 'stale_stamp')]
+    assert report.good == {'link_pose': len(streams.link), 'sensor_pose': len(streams.sensor)}
+    assert session.counters['rejected'] == 1
+
+
+def test_a_held_pose_is_counted_once_when_the_session_decides(streams):
+    # A link pose 10 s behind its stream waits for the next message: counted good at once, it
+    # was counted bad again when the next one showed it stale (and that next one not at all).
+    session, screen = Session(), PoseScreen()
+    link = [(stamp, pose) for stamp, pose in streams.link[:50]]
+
+    def give(stamp, pose):
+        return screen.verdict('link_pose', session.add_link_pose(stamp, pose),
+                              held=session.held)
+
+    def see(stamp):
+        return screen.verdict('sensor_pose', session.add_sensor_pose(stamp, Pose.identity()),
+                              held=session.held)
+    for stamp, pose in link[:30]:
+        give(stamp, pose)
+        see(stamp)
+    give(link[29][0] - 10 * 10**9, link[29][1])
+    assert screen.stats.good['link_pose'] == 30 and session.held == {'link_pose'}
+    assert not screen.stats.bad
+    give(*link[30])   # the stream goes on: the held pose was stale
+    assert screen.stats.bad == {('link_pose', 'stale_stamp'): 1}
+    assert screen.stats.good['link_pose'] == 31 and not session.held
+    # Held again, then a sensor pose far behind too: a time jump both streams agree on, and
+    # the held pose is good after all.
+    give(link[30][0] - 20 * 10**9, link[30][1])
+    assert screen.stats.good['link_pose'] == 31
+    see(link[30][0] - 20 * 10**9)
+    assert screen.stats.good == {'link_pose': 32, 'sensor_pose': 31} and not session.held
+    assert session.counters['time_jumps'] == 1
 
 
 def test_a_zero_stamped_transform_on_tf_is_counted_and_skipped(tmp_path, streams):

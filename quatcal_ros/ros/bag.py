@@ -236,6 +236,7 @@ class ReplayReport:
     logged: dict = field(default_factory=dict)             # topic: [first, last] log time
     frames: dict = field(default_factory=dict)             # stream: (frame_id, child frame)
     bad: Counter = field(default_factory=Counter)          # (where, reason): count
+    good: Counter = field(default_factory=Counter)         # checked stream: poses used
     examples: dict = field(default_factory=dict)           # (where, reason): first text
     sources: dict = field(default_factory=dict)            # stream: topic or TF frames
     tf_dropped: dict = field(default_factory=dict)         # stream: its tf_tree.FramePoses
@@ -567,7 +568,7 @@ class _Run:
                 return
             if self._track(stream, taken[0], taken[0]):
                 self.report.frames[stream] = frame_ids(msg)
-            self.poses.verdict(checked, add(*taken))
+            self.poses.verdict(checked, add(*taken), held=self.session.held)
         return on_pose
 
     def _on_rows(self, stream, msgtype, raws, decoded, start, stop):
@@ -580,7 +581,7 @@ class _Run:
         self.poses.take_rows(checked, len(stamps))
         self.poses.verdict(checked, self.session.add_poses(
             stream, stamps, decoded.positions[start:stop], decoded.quaternions[start:stop]),
-            count=len(stamps))
+            count=len(stamps), held=self.session.held)
 
     def _track(self, stream, first_ns, last_ns):
         """Note the stamps of poses fed on `stream`; return whether they are its first."""
@@ -596,7 +597,8 @@ class _Run:
         self._track(stream, stamp_ns, stamp_ns)
         checked = STREAMS[stream]
         self.poses.take_rows(checked, 1)
-        self.poses.verdict(checked, self.adders[stream](stamp_ns, pose))
+        self.poses.verdict(checked, self.adders[stream](stamp_ns, pose),
+                           held=self.session.held)
 
     def on_camera_info(self, raw):
         """Take a raw CameraInfo: the intrinsics of the images that follow."""
@@ -623,10 +625,12 @@ class _Run:
     def finish(self, count):
         """Close the TF watchers and return the completed ReplayReport."""
         self.tf.finish()
+        self.poses.verdict(None, self.session.end_streams(), count=0)
         report = self.report
         stats = self.poses.stats
         report.messages = count
         report.bad = Counter(stats.bad)
+        report.good = Counter(stats.good)
         report.examples = {key: stats.example(*key) for key in stats.bad}
         report.tf_stale = sum(self.tree.stale.values())
         report.tf_frames = tuple(sorted(self.tree.frames))

@@ -174,7 +174,8 @@ class CalibratorNode(Node):
         """Give a checked (stamp_ns, Pose) to the session; handle what it says."""
         self._note_stamp(stream, taken[0], now_ns)
         add = self.session.add_link_pose if stream == LINK else self.session.add_sensor_pose
-        events = self.inputs.screen.verdict(stream, add(*taken), now_ns)
+        events = self.inputs.screen.verdict(stream, add(*taken), now_ns,
+                                            held=self.session.held)
         if events:
             self.handle_events(events)
 
@@ -183,7 +184,8 @@ class CalibratorNode(Node):
         self._note_stamp(stream, stamps_ns[-1], now_ns)
         events = self.inputs.screen.verdict(
             stream, self.session.add_poses(SESSION_STREAMS[stream], stamps_ns, positions,
-                                           quaternions_wxyz), now_ns, count=len(stamps_ns))
+                                           quaternions_wxyz), now_ns, count=len(stamps_ns),
+            held=self.session.held)
         if events:
             self.handle_events(events)
 

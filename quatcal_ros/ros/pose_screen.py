@@ -4,8 +4,9 @@ Pose messages in: checked, converted and counted, one way for the live node and 
 `PoseScreen.take(stream, msg, now_ns)` runs the checks of message_checks (header stamp, frame
 id) and of conversions (numbers, quaternion) on one stamped pose or transform message, cheapest
 first, and returns (stamp_ns, Pose) or None.  `verdict` takes the session's events for that
-pose and counts the session's own refusals (a stamp out of order or repeated).  Every message
-is counted exactly once, good or bad (`stats`, message_checks.StreamStats); a bad one is
+pose and counts the session's own refusals (a stamp out of order or repeated, a stale one).
+Every message is counted exactly once, good or bad, a pose the session holds undecided when
+it is decided (`stats`, message_checks.StreamStats); a bad one is
 reported through `on_bad` when its throttled report is due, with the text built only then.
 The replay reports nothing while it runs (on_bad None) and lists the counts at the end.
 """
@@ -15,7 +16,7 @@ import time
 from quatcal_ros.ros.conversions import BadPoseError, pose_from_msg, stamp_ns_from_header
 from quatcal_ros.stream import message_checks
 from quatcal_ros.stream.log_throttle import LOG_THROTTLE_S
-from quatcal_ros.stream.message_checks import CheckConfig, StreamStats
+from quatcal_ros.stream.message_checks import CheckConfig, STREAMS, StreamStats
 from quatcal_ros.stream.session import Rejected
 
 
@@ -35,6 +36,7 @@ class PoseScreen:
         self.config = config
         self.on_bad = on_bad
         self.stats = StreamStats(throttle_s)
+        self._held = frozenset()   # the session's undecided poses at the last verdict
 
     def take(self, stream, msg, now_ns=0):
         """
@@ -111,21 +113,31 @@ class PoseScreen:
         """Count `count` messages of `stream` that a fast decoder checked and found good."""
         self.stats.note(stream, now_ns, count)
 
-    def verdict(self, stream, events, now_ns=0, count=1):
+    def verdict(self, stream, events, now_ns=0, count=1, held=frozenset()):
         """
         Count the session's verdict on `count` poses of `stream`; return the other events.
 
-        A Rejected of this stream (out of order, duplicate stamp) makes its pose bad; the
-        others are good.
+        Each Rejected of a pose stream (out of order, duplicate stamp, stale) is one bad pose
+        of that stream. held: the streams whose last pose the session holds undecided after
+        these poses (Session.held): such a pose is counted once decided, good unless rejected,
+        so every pose is counted once: good = given + decided - rejected.
         """
-        refused = [e for e in events if isinstance(e, Rejected) and e.what == stream]
+        if not events and not held and not self._held:   # the usual pose: taken
+            if count:
+                self.stats.note_good(stream, now_ns, count)
+            return events
+        refused = [e for e in events if isinstance(e, Rejected) and e.what in STREAMS]
         for event in refused:
-            self.bad(stream, message_checks.rejected_reason(event), event.reason)
-        if count > len(refused):
-            self.stats.note_good(stream, now_ns, count - len(refused))
+            self.bad(event.what, message_checks.rejected_reason(event), event.reason)
+        for name in STREAMS:
+            good = ((count if name == stream else 0) + (name in self._held) - (name in held)
+                    - sum(e.what == name for e in refused))
+            if good > 0:
+                self.stats.note_good(name, now_ns, good)
+        self._held = held
         if not refused:
             return events
-        return [e for e in events if not (isinstance(e, Rejected) and e.what == stream)]
+        return [e for e in events if not (isinstance(e, Rejected) and e.what in STREAMS)]
 
     def bad(self, stream, reason, detail):
         """Count a bad message of `stream`; report it through on_bad when that is due."""

@@ -222,7 +222,8 @@ class StreamStats:
 
     Times: node clock (now_ns) for staleness, steady clock (steady_ns) for log throttling.
     Every received message is either good (`note_good`) or bad (`note_bad`) exactly once,
-    so received == good + bad for each stream. `lost` counts the messages a stream's
+    so received == good + bad for each stream, but for a pose the session holds undecided
+    (session.Session.held: counted when decided). `lost` counts the messages a stream's
     publisher numbered but that never came (note_sequence), for the streams with one
     publisher (those with a count: restart_sequence).
     """

@@ -52,6 +52,7 @@ from quatcal_ros.stream.pairing import LINK, OutOfOrderStamp, Pairer, PairingCon
 
 STATES = ('waiting for poses', 'collecting', 'estimating')
 TOPICS = {LINK: 'link_pose', SENSOR: 'sensor_pose'}
+_NONE_HELD = frozenset()
 # After this many poses in a row could not be paired, a Notice says why.
 UNPAIRED_NOTICE_AFTER = 30
 
@@ -380,6 +381,29 @@ class Session:
         }
 
     @property
+    def held(self):
+        """
+        Return the streams (as Rejected.what names them) whose last pose is held undecided.
+
+        A pose far behind its stream waits for the next message to say whether it was a stale
+        one or a time jump (module docstring): it is neither good nor bad until then.
+        """
+        if not self._behind:   # (nearly always: asked after every pose)
+            return _NONE_HELD
+        return frozenset(TOPICS[stream] for stream in self._behind)
+
+    def end_streams(self):
+        """
+        Say that no message follows (a recording ended); return the events of that.
+
+        A pose still held undecided (`held`) is rejected as stale: no message confirmed a jump.
+        """
+        events = [self._stale(stream, error, 'the recording ended after it')
+                  for stream, (_, _, error) in self._behind.items()]
+        self._behind.clear()
+        return events
+
+    @property
     def paired_seconds(self):
         """Return the seconds of stamps the paired poses cover (capture.Capture.paired_ns)."""
         return self._capture.paired_ns / NS_PER_S
@@ -519,12 +543,12 @@ class Session:
                 events.append(self._reject(TOPICS[name], *_late_reason(late)))
         return events
 
-    def _stale(self, stream, error):
+    def _stale(self, stream, error,
+               why='the next one went on from where the stream was'):
         """Reject a held message far behind its stream that no jump followed."""
         return self._reject(
             TOPICS[stream], f'stamp {error.jump_ns * 1e-9:.3g} s older than the previous '
-            'message, and the next one went on from where the stream was: a stale message, '
-            'not a time jump: dropped', 'stale_stamp')
+            f'message, and {why}: a stale message, not a time jump: dropped', 'stale_stamp')
 
     def _unpaired_notice(self, paired):
         """Return a Notice when UNPAIRED_NOTICE_AFTER poses in a row could not be paired."""

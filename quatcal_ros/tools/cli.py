@@ -550,9 +550,14 @@ TRANSPORT_SUFFIXES = ('/compressed', '/compressedDepth', '/theora', '/zstd', '/f
 class _StreamRecorder:
     """Stand-in for a Session that keeps both pose streams (for the time-offset search)."""
 
+    held = frozenset()   # every pose is kept: none waits undecided
+
     def __init__(self):
         self.link, self.sensor = RecordedStream(), RecordedStream()
         self.counters = {}
+
+    def end_streams(self):
+        return []
 
     def add_link_pose(self, stamp_ns, pose):
         self.link.append(stamp_ns, pose)
