@@ -320,3 +320,34 @@ def test_board_poses_from_images_are_never_taken_as_inverted():
     assert not config(Settings(), images=True).calibration.sensor_invertible
     assert not config(Settings(sensor_input='image', board_file='board.yaml')) \
         .calibration.sensor_invertible
+
+
+def test_the_calibrator_command_line_refuses_what_ros_would_silently_ignore(capsys):
+    # `calibrator --help` started the node (and moved a journal aside); `setup:=eye_to_hand`
+    # outside --ros-args is a topic remap to ROS, and `--setup eye_to_hand` was dropped.
+    from quatcal_ros.ros import node
+    assert node.main(['calibrator', '--help']) == 0
+    said = capsys.readouterr().out
+    assert said.startswith('usage: ros2 run quatcal_ros calibrator [--ros-args -p NAME:=VALUE')
+    assert all(f'\n  {setting.name} (' in said for setting in SETTINGS)
+    assert not rclpy.ok()   # nothing started
+    assert node.main(['calibrator', 'setup:=eye_to_hand']) == 2
+    assert capsys.readouterr().err == (
+        'calibrator: error: setup:=eye_to_hand: outside --ros-args, ROS takes NAME:=VALUE for '
+        'a topic remap, not a parameter; give parameters as --ros-args -p setup:=eye_to_hand '
+        '(see --help)\n')
+    assert node.main(['calibrator', '--setup', 'eye_to_hand', '--ros-args', '-p',
+                      'invert_sensor:=true']) == 2
+    assert capsys.readouterr().err == (
+        'calibrator: error: unexpected argument(s) --setup eye_to_hand: the node takes its '
+        'parameters after --ros-args (--ros-args -p setup:=VALUE); see --help\n')
+    # What ROS takes stays the node's: a topic remap (even the old form), parameters, files.
+    for line in (['link_pose:=/robot/tool0_pose'],
+                 ['--ros-args', '-p', 'setup:=eye_to_hand', '-r', 'sensor_pose:=/aruco'],
+                 ['--ros-args', '-r', '__node:=cal', '-p', 'link_frame:=tool0']):
+        assert parameters.command_line_problem(['calibrator', *line]) is None, line
+    # A params file that is not there ended rclpy.init with a traceback.
+    status, said = parameters.command_line_problem(
+        ['calibrator', '--ros-args', '--params-file', 'no_such_calibrator.yaml'])
+    assert status == 2 and said.startswith('the ROS arguments cannot be read: ')
+    assert "'--params-file no_such_calibrator.yaml'" in said

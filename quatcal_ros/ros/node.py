@@ -483,6 +483,11 @@ class CalibratorNode(Node):
             if samples:
                 self.get_logger().info(
                     f're-estimating from the {len(samples)} samples with the new settings')
+                if 'sensor_time_offset_s' in changed:   # (samples keep the poses they paired)
+                    self.get_logger().warn(
+                        f'sensor_time_offset_s applies to the poses from now on: the '
+                        f'{len(samples)} samples taken keep the pairing they were taken with; '
+                        'call ~/reset to take them again with the new offset')
                 self._add_known_samples(samples)
         elif old.result_frames != self.config.result_frames and self.result is not None:
             # the same estimate, between the new frames (eye_to_hand's parent follows
@@ -492,7 +497,8 @@ class CalibratorNode(Node):
 
 def main(args=None):
     """Run the calibrator node; return 2 (after logging the reason) for invalid parameters."""
-    return spin.run(CalibratorNode, NODE_NAME, ConfigError, 'invalid parameters', args)
+    return spin.run(CalibratorNode, NODE_NAME, ConfigError, 'invalid parameters', args,
+                    parameters.command_line_problem)
 
 
 if __name__ == '__main__':

@@ -17,8 +17,10 @@ from rcl_interfaces.msg import FloatingPointRange
 from rcl_interfaces.msg import IntegerRange
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
+from rclpy.utilities import remove_ros_args
 
-__all__ = ['ConfigError', 'declare_parameters', 'descriptor', 'params_file_text', 'updated']
+__all__ = ['command_line_problem', 'ConfigError', 'declare_parameters', 'descriptor', 'help_text',
+           'params_file_text', 'updated']
 
 
 def descriptor(setting):
@@ -77,15 +79,65 @@ def params_file_text():
         '  ros__parameters:',
     ]
     for setting in SETTINGS:
-        notes = [setting.constraints] if setting.constraints else []
-        if setting.read_only:
-            notes.append('read-only')
-        elif setting.name in PRESENTATION:
-            notes.append('keeps the estimate')
-        text = setting.description + (f' ({"; ".join(notes)})' if notes else '')
-        lines += textwrap.wrap(text, 95, initial_indent='    # ', subsequent_indent='    # ')
+        lines += textwrap.wrap(_described(setting), 95, initial_indent='    # ',
+                               subsequent_indent='    # ')
         lines.append(f'    {setting.name}: {_yaml_value(setting.default)}')
     return '\n'.join(lines) + '\n'
+
+
+def _described(setting):
+    """Return the setting's description with its constraints and whether it can change."""
+    notes = [setting.constraints] if setting.constraints else []
+    if setting.read_only:
+        notes.append('read-only')
+    elif setting.name in PRESENTATION:
+        notes.append('keeps the estimate')
+    return setting.description + (f' ({"; ".join(notes)})' if notes else '')
+
+
+def help_text():
+    """Return the calibrator's --help: how to give parameters, and each with its default."""
+    lines = [f'usage: ros2 run quatcal_ros {NODE_NAME} [--ros-args -p NAME:=VALUE ... '
+             '| --params-file FILE.yaml] [-r TOPIC:=NEW_TOPIC ...]', '',
+             'The live hand-eye calibration node: topics, services and a session step by '
+             "step are in the package's README.", '', 'parameters (default):']
+    for setting in SETTINGS:
+        lines.append(f'  {setting.name} ({_yaml_value(setting.default)})')
+        lines += textwrap.wrap(_described(setting), 95, initial_indent='      ',
+                               subsequent_indent='      ')
+    return '\n'.join(lines)
+
+
+def command_line_problem(arguments):
+    """
+    Return (exit status, text) for a command line the node must not start with, or None.
+
+    arguments: the whole command line (program name first). --help or -h before --ros-args
+    asks for help_text (0). A parameter written NAME:=VALUE outside --ros-args is taken by
+    ROS as a topic remap, silently (2), and so is any other argument the node does not know
+    (`--setup eye_to_hand`, the offline tools' form); ROS arguments rcl cannot read (a params
+    file that is not there) are named (2) instead of ending rclpy.init with a traceback.
+    """
+    own = arguments[1:]
+    if '--ros-args' in own:
+        own = own[:own.index('--ros-args')]
+    if any(argument in ('-h', '--help') for argument in own):
+        return 0, help_text()
+    misplaced = [a for a in own if a.split(':=', 1)[0] in SETTING_BY_NAME and ':=' in a]
+    if misplaced:
+        return 2, (f'{" ".join(misplaced)}: outside --ros-args, ROS takes NAME:=VALUE for a '
+                   'topic remap, not a parameter; give parameters as --ros-args -p '
+                   f'{misplaced[0]} (see --help)')
+    try:
+        unknown = remove_ros_args(arguments)[1:]
+    except Exception as error:   # noqa: B902 - rcl's parse errors (rclpy.init's traceback)
+        return 2, f'the ROS arguments cannot be read: {error}'
+    if unknown:
+        name = unknown[0].lstrip('-').replace('-', '_')
+        example = (f' (--ros-args -p {name}:=VALUE)' if name in SETTING_BY_NAME else '')
+        return 2, (f'unexpected argument(s) {" ".join(unknown)}: the node takes its parameters '
+                   f'after --ros-args{example}; see --help')
+    return None
 
 
 def _yaml_value(value):

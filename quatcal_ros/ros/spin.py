@@ -101,14 +101,26 @@ def spin_until_stopped(node, executor):
         rclpy.try_shutdown()
 
 
-def run(make_node, default_name, refused, what, args=None):
+def run(make_node, default_name, refused, what, args=None, command_line=None):
     """
     Run the node `make_node` builds until a stop signal: the main() of the package's nodes.
 
     A start-up error of a type in `refused` is logged as FATAL under the node's name (the
     default_name, or as remapped with __node:=NAME) as '<what>: <error>', and gives 2.
+    command_line(arguments): (exit status, text) when the node must not start (its --help,
+    an argument it does not take), else None; the text goes to stdout for status 0.
     :return: 0 after a stop signal, 2 after a refused start.
     """
+    if command_line is not None:
+        said = command_line(sys.argv if args is None else args)
+        if said is not None:
+            status, text = said
+            try:
+                print(text if status == 0 else f'{default_name}: error: {text}',
+                      file=sys.stdout if status == 0 else sys.stderr)
+            except BrokenPipeError:   # `--help | head`: the reader left
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return status
     stopped = install_stop_handlers()
     _ensure_log_directory()
     rclpy.init(args=args)
