@@ -632,3 +632,27 @@ def test_publication_sequence_gaps_count_lost_messages():
     stats.note_sequence(mc.LINK, 360_000, 10 * NS + 1_501 * MS)
     stats.note_sequence(mc.LINK, 360_500, 10 * NS + 2_000 * MS)
     assert stats.lost[mc.LINK] == 1_513
+
+
+def test_the_clocks_offset_is_read_from_the_arrival_times():
+    from quatcal_ros.stream.arrival_lag import ArrivalLag, problem
+    lags = ArrivalLag()
+    lags.note(mc.LINK, 100 * NS, 100 * NS + 2 * MS)
+    assert lags.offset_ns() is None   # (until a period ends with both streams in it)
+    lags.note(mc.SENSOR, 97 * NS, 100 * NS + 40 * MS)   # a camera 3 s behind, 40 ms late
+    lags.note(mc.SENSOR, 97 * NS + 30 * MS, 100 * NS + 65 * MS)   # the shortest latency: 35
+    lags.end_period()
+    assert lags.offset_ns() == 3 * NS + 33 * MS
+    assert problem(lags.offset_ns()).startswith(
+        'the sensor stamps run 3.03 s behind the link stamps, against the times their poses '
+        'arrive: the two clocks are not synchronised (synchronise them, e.g. with chrony, or '
+        'set sensor_time_offset_s:=3.03, then call ~/reset')
+    # With the offset set, what is left; within half a second nothing is said.
+    assert lags.offset_ns(3 * NS) == 33 * MS and problem(lags.offset_ns(3 * NS), 3 * NS) is None
+    assert 'with sensor_time_offset_s 1)' in problem(lags.offset_ns(NS), NS)
+    assert 'sensor_time_offset_s:=3.03,' in problem(lags.offset_ns(NS), NS)
+    # A later period without the sensor keeps its last lag; one ahead says so.
+    lags.note(mc.LINK, 200 * NS, 200 * NS + 2 * MS)
+    lags.note(mc.SENSOR, 202 * NS, 200 * NS + 40 * MS)
+    lags.end_period()
+    assert 'run 1.96 s ahead of the link stamps' in problem(lags.offset_ns())

@@ -10,6 +10,7 @@ in-process tests, process_domain_id for the processes) keep them apart from ever
 
 import os
 from pathlib import Path
+import re
 import signal
 import subprocess
 import sys
@@ -327,6 +328,44 @@ def test_manual_capture_with_stamps_behind_the_node_clock(harness_factory):
     h.publish_events(still_events(cell, cell.home, start, duration_s=0.5, rate_hz=40.0))
     captured = h.call('capture')
     assert captured.success, captured.message
+
+
+@pytest.mark.parametrize('behind_s, paired', [(3.0, False), (1.5, True)])
+def test_stamps_on_clocks_seconds_apart_are_named_with_the_offset_to_set(harness_factory,
+                                                                         behind_s, paired):
+    # Sensor stamps 3 s behind the robot's (two computers, no chrony): nothing paired and the
+    # status stayed OK ('waiting for poses'); 1.5 s behind, poses paired with the wrong
+    # partners within the link buffer, and only the residual said anything.
+    cell = simulation.random_cell(np.random.default_rng(3))
+    sensor = cell.sensor_pose(cell.home)
+    h = harness_factory()
+    ms = NS // 1000
+    now = h.node.now_ns()
+    # Published at once, in the order they would come: the last of each stream now.
+    events = [('link_pose', now - 3 * NS + k * 10 * ms, cell.home) for k in range(301)]
+    events += [('sensor_pose', now - NS + k * 30 * ms - int(behind_s * NS), sensor)
+               for k in range(34)]
+    arrival = {'link_pose': 0, 'sensor_pose': int(behind_s * NS)}
+    h.publish_events(sorted(events, key=lambda e: e[1] + arrival[e[0]]))
+
+    def warned(status):
+        return status.level == DiagnosticStatus.WARN and 'clocks' in status.message
+    status = h.next_status(warned)
+    found = re.search(r'the sensor stamps run ([0-9.]+) s behind the link stamps, against the '
+                      r'times their poses arrive: the two clocks are not synchronised \(.*set '
+                      r'sensor_time_offset_s:=([0-9.]+),', status.message)
+    assert found and found[1] == found[2], status.message
+    assert abs(float(found[1]) - behind_s) < 0.1, status.message   # (publishing takes time)
+    assert ('could be paired: the stamps of the two streams do not overlap'
+            in status.message) is not paired, status.message
+    # Set, the offset is judged with it: the warning goes.
+    (changed,) = h.node.set_parameters([Parameter('sensor_time_offset_s', value=behind_s)])
+    assert changed.successful
+    now = h.node.now_ns()
+    h.publish_events([('link_pose', now - k * ms, cell.home) for k in range(10, 0, -1)]
+                     + [('sensor_pose', now - int(behind_s * NS), sensor)])
+    status = h.next_status()
+    assert 'clocks are not synchronised' not in status.message, status.message
 
 
 # --- parameters -----------------------------------------------------------------------------

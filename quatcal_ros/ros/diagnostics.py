@@ -17,6 +17,7 @@ from quatcal_ros.stream import message_checks
 from quatcal_ros.stream.capture import unsteady_sensor_note
 from quatcal_ros.stream.message_checks import LINK, SENSOR, STALE_AFTER_S
 from quatcal_ros.stream.session import TOPICS as SESSION_TOPICS
+from quatcal_ros.stream.session import UNPAIRED_NOTICE_AFTER
 from rclpy.qos import ReliabilityPolicy
 
 
@@ -210,6 +211,9 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
     if (result is None and not counters['samples'] and session.config.capture.mode == 'auto'
             and session.paired_seconds >= NEVER_STILL_S):
         found.append(f'no still sample in {session.paired_seconds:.0f} s of paired poses')
+    if not counters['pairs'] and counters['unpaired'] >= UNPAIRED_NOTICE_AFTER:
+        found.append(f'none of {counters["unpaired"]} poses could be paired: the stamps of '
+                     'the two streams do not overlap; are both stamped on the same clock?')
     values = {
         'state': session.state,
         'samples': counters['samples'],

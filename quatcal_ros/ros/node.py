@@ -47,6 +47,7 @@ from quatcal_ros.ros.image_samples import ImageSamples
 from quatcal_ros.ros.inputs import NodeInputs
 from quatcal_ros.ros.qos import DIAGNOSTICS_QOS, LATCHED_QOS, quiet_publisher_events
 from quatcal_ros.ros.static_tf import StaticTf
+from quatcal_ros.stream import arrival_lag
 from quatcal_ros.stream import frame_notices
 from quatcal_ros.stream import settings
 from quatcal_ros.stream.message_checks import LINK, SENSOR
@@ -102,7 +103,9 @@ class CalibratorNode(Node):
             self._add_poses)
         self.next_pose = None   # the planner's proposal for the latest estimate
         self._newest_stamp = {}   # stream: (its latest stamp, the node clock when it came)
+        self._lags = arrival_lag.ArrivalLag()   # the streams' clocks, from arrival times
         self._frames_said = set()   # the frame notices logged
+        self._clock_said = False    # the clock warning logged, and standing since
         self._frames = {}   # stream: its latest (header, child) frames judged (_frame_problems)
         self.next_pose_publisher = self.create_publisher(
             PoseStamped, '~/next_pose', LATCHED_QOS, event_callbacks=quiet_publisher_events())
@@ -169,6 +172,7 @@ class CalibratorNode(Node):
 
     def _note_stamp(self, stream, stamp_ns, now_ns):
         self._newest_stamp[stream] = (stamp_ns, now_ns)   # the latest (after a time jump too)
+        self._lags.note(stream, stamp_ns, now_ns)
 
     def _add_pose(self, stream, taken, now_ns):
         """Give a checked (stamp_ns, Pose) to the session; handle what it says."""
@@ -354,12 +358,22 @@ class CalibratorNode(Node):
                         self.stats, self.inputs.topics, self.get_publishers_info_by_topic,
                         self.session.counters['time_jumps'], now_ns,
                         self.get_parameter('use_sim_time').value, self._steady.now().nanoseconds),
-                    *self.inputs.problems(), *self._frame_problems()]
+                    *self.inputs.problems(), *self._frame_problems(), self._clock_problem()]
         return calibrator_status(self.session, self.stats, now_ns,
                                  self.config.result_frames[0], problems, tf_static,
                                  self.input_watch.started_ns, self.inputs.topics,
                                  self.next_pose, self.result, self.inputs.composed,
                                  status_name(self.get_name()))
+
+    def _clock_problem(self):
+        """Return arrival_lag's warning on the streams' clocks (logged once), or None."""
+        self._lags.end_period()
+        configured = self.session.config.sensor_offset_ns
+        text = arrival_lag.problem(self._lags.offset_ns(configured), configured)
+        if text is not None and not self._clock_said:
+            self.get_logger().warning(text)
+        self._clock_said = text is not None
+        return text
 
     def _frame_problems(self):
         """
