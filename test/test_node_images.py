@@ -154,8 +154,13 @@ def test_estimate_refined_on_the_corners_of_each_sample(make_harness, board_file
     assert skipped == 0 and len(rows) == 8
     assert {row[0] for row in rows} == {s.stamp_ns for s in h.node.session.samples}
     assert all(len(points) == len(pixels) >= 6 for _, points, pixels in rows)
-    status = {v.key: v.value for v in h.node.diagnostic_status().values}
+    diagnosed = h.node.diagnostic_status()
+    status = {v.key: v.value for v in diagnosed.values}
     assert status['method'] == 'reprojection'
+    # The message says the published uncertainty, the key's (it said the pose-based one's).
+    assert diagnosed.message.startswith(f'estimating: uncertainty {result.uncertainty_deg:.2g} '
+                                        'deg'), diagnosed.message
+    assert float(status['uncertainty_deg']) == pytest.approx(result.uncertainty_deg, rel=1e-5)
     # Images are not counted as lost (their sensor-data queue of 5 drops frames by design);
     # the link poses' one publisher is.
     assert status['sensor_messages_lost'] == '' and status['link_messages_lost'] == '0'

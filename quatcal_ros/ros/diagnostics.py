@@ -138,13 +138,14 @@ class InputWatch:
         return found
 
 
-def status_message(session, stats, topics=None, composed=()):
+def status_message(session, stats, topics=None, composed=(), result=None):
     """
     Describe the state in operator words; `topics` (stream: resolved topic) names them.
 
-    Streams in `composed` are TF input (poses composed from frames on their topic).
+    Streams in `composed` are TF input (poses composed from frames on their topic); `result`
+    the published estimate when it is not the session's (on pixels).
     """
-    result = session.result
+    result = result or session.result
     if result is not None:
         return f'estimating: uncertainty {result.uncertainty_deg:.2g} deg'
     if session.state == 'waiting for poses':
@@ -252,7 +253,7 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
         values[message_checks.diagnostic_key(stream, reason)] = count
     return DiagnosticStatus(
         level=DiagnosticStatus.WARN if found else DiagnosticStatus.OK, name=name,
-        message='; '.join([status_message(session, stats, topics, composed)] + found),
+        message='; '.join([status_message(session, stats, topics, composed, result)] + found),
         hardware_id=hardware_id,
         values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
 
