@@ -32,6 +32,8 @@ HIGH_RESIDUAL_DEG = 1.0
 # Seconds of paired poses without a still sample (auto capture) after which that is a
 # problem (WARN): a stop-and-go session stops every few seconds.
 NEVER_STILL_S = 30.0
+# ... and after which the status suggests continuous capture (not in a robot's first motion).
+NEVER_STOPS_HINT_S = 10.0
 # Messages lost between two statuses (StreamStats.lost) that are a problem: at least this
 # many, and this fraction of those sent. The pairing interpolates across a few missing link
 # poses; a steady loss means the node or the network cannot keep up.
@@ -177,10 +179,11 @@ def status_message(session, stats, topics=None, composed=(), result=None):
         counters = session.counters
         sensor = unsteady_sensor_note(counters['unsteady_sensor'], capture,
                                       ('sensor_still_rotation_deg', 'sensor_still_translation_m'))
+        never = ('; a robot that never stops needs capture_mode continuous'
+                 if session.paired_seconds >= NEVER_STOPS_HINT_S else '')
         return (f'collecting: no still sample yet from {counters["pairs"]} paired poses: stop '
                 f'the robot at each pose for {capture.window_ns * 1e-9:g} s (still_window_s) '
-                f'after each motion{sensor}; a robot that never stops needs '
-                'capture_mode continuous')
+                f'after each motion{sensor}{never}')
     return f'collecting: {count} samples, need motions about 2 different axes'
 
 
