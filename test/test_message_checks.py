@@ -659,3 +659,20 @@ def test_the_clocks_offset_is_read_from_the_arrival_times():
     lags.note(mc.SENSOR, 202 * NS, 200 * NS + 40 * MS)
     lags.end_period()
     assert 'run 1.96 s ahead of the link stamps' in problem(lags.offset_ns())
+
+
+def test_waiting_for_poses_says_why_the_first_bad_message_was_skipped():
+    # 'most for no_board on sensor_pose' sent the user to the log for the hint (the markers
+    # seen, and the board size to check).
+    from quatcal_ros.ros.diagnostics import status_message
+    from quatcal_ros.stream.session import Session
+    stats = mc.StreamStats()
+    for stream in mc.STREAMS:
+        stats.note(stream, 0)
+    stats.note_good(mc.LINK, 0)
+    seen = '17 markers of DICT_5X5_100 seen: check squares_x and squares_y'
+    for _ in range(3):
+        stats.note_bad(mc.SENSOR, 'no_board', 0, seen)
+    assert status_message(Session(), stats) == (
+        'waiting for poses (3 bad messages skipped, most for no_board on sensor_pose, the '
+        'first: 17 markers of DICT_5X5_100 seen: check squares_x and squares_y)')

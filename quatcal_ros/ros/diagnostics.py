@@ -165,8 +165,9 @@ def status_message(session, stats, topics=None, composed=(), result=None):
             return f'waiting for poses ({", and ".join(parts)})'
         if stats.bad_total:
             (stream, reason), _ = stats.bad.most_common(1)[0]
+            example = stats.example(stream, reason)   # the first one's why, with its hint
             return (f'waiting for poses ({stats.bad_total} bad messages skipped, most for '
-                    f'{reason} on {stream})')
+                    f'{reason} on {stream}{f", the first: {example}" if example else ""})')
         counters = session.counters   # since the session (re)started: ~/reset clears them
         idle = [topics.get(s, s) for s in (LINK, SENSOR)
                 if not counters[SESSION_COUNTERS[s]]]
