@@ -300,6 +300,16 @@ def test_manual_capture_service(harness_factory):
                          Parameter('still_window_s', value=0.2)])
     refused = h.call('capture')
     assert not refused.success and 'no paired poses' in refused.message
+    assert 'so far' not in refused.message
+    # Sensor poses that all fail a check (a detector with the wrong units): the refusal said
+    # to check the clocks; it says what was skipped too.
+    now = h.node.now_ns()
+    h.publish_events([('sensor_pose', now - k * 25 * NS // 1000, Pose.create(
+        [0.0, 0.0, 2e6], [1.0, 0.0, 0.0, 0.0])) for k in range(8, 0, -1)])
+    refused = h.call('capture')
+    assert not refused.success and ('(so far 8 bad messages skipped, most for '
+                                    'implausible_position on sensor_pose, the first: position '
+                                    '[0.0, 0.0, 2000000.0] m is farther than') in refused.message
 
     def publish_still(link):
         now = h.node.now_ns()

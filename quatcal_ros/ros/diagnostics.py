@@ -140,6 +140,21 @@ class InputWatch:
         return found
 
 
+def skipped_text(stats, stream=None):
+    """
+    Return 'N bad messages skipped, most for REASON on STREAM, the first: WHY', or ''.
+
+    Of `stream` alone when given; WHY is the first such message's explanation (its hint).
+    """
+    counts = [(key, n) for key, n in stats.bad.most_common() if stream in (None, key[0])]
+    if not counts:
+        return ''
+    (where, reason), _ = counts[0]
+    example = stats.example(where, reason)
+    return (f'{sum(n for _, n in counts)} bad messages skipped, most for {reason} on {where}'
+            f'{f", the first: {example}" if example else ""}')
+
+
 def status_message(session, stats, topics=None, composed=(), result=None):
     """
     Describe the state in operator words; `topics` (stream: resolved topic) names them.
@@ -164,10 +179,7 @@ def status_message(session, stats, topics=None, composed=(), result=None):
         if parts:
             return f'waiting for poses ({", and ".join(parts)})'
         if stats.bad_total:
-            (stream, reason), _ = stats.bad.most_common(1)[0]
-            example = stats.example(stream, reason)   # the first one's why, with its hint
-            return (f'waiting for poses ({stats.bad_total} bad messages skipped, most for '
-                    f'{reason} on {stream}{f", the first: {example}" if example else ""})')
+            return f'waiting for poses ({skipped_text(stats)})'
         counters = session.counters   # since the session (re)started: ~/reset clears them
         idle = [topics.get(s, s) for s in (LINK, SENSOR)
                 if not counters[SESSION_COUNTERS[s]]]

@@ -41,7 +41,7 @@ from quatcal_ros.ros import conversions
 from quatcal_ros.ros import markers
 from quatcal_ros.ros import parameters
 from quatcal_ros.ros import spin
-from quatcal_ros.ros.diagnostics import calibrator_status, InputWatch, status_name
+from quatcal_ros.ros.diagnostics import calibrator_status, InputWatch, skipped_text, status_name
 from quatcal_ros.ros.event_log import EventLog
 from quatcal_ros.ros.image_samples import ImageSamples
 from quatcal_ros.ros.inputs import NodeInputs
@@ -418,6 +418,9 @@ class CalibratorNode(Node):
         self.inputs.flush()
         ok, reason = self.session.capture(self.stamps_now_ns())
         self.handle_events(self.session.pop_events())
+        skipped = skipped_text(self.stats, SENSOR)
+        if not ok and reason.startswith('no paired poses') and skipped:
+            reason += f' (so far {skipped})'   # images without a board: not the clocks
         if not ok:
             self.get_logger().info(f'capture refused: {reason}')
         response.success, response.message = bool(ok), reason
