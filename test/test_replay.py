@@ -247,6 +247,15 @@ def test_tf_bag_with_static_frames_in_both_chains(repo_root, streams, tmp_path):
     assert f'{len(streams.link)} link and {len(streams.sensor)} sensor poses' in done.stderr
     document = read_result_yaml(tmp_path / 'r.yaml')
     assert (document['parent_frame'], document['child_frame']) == ('tool0', 'camera')
+    # The link frames given the wrong way round compose too (the inverse pose): the warnings
+    # advised eye_to_hand, not the frames.
+    swapped = run_replay(repo_root, tmp_path / 'tf', '--link-frames', 'tool0', 'base_link',
+                         '--sensor-frames', 'camera', 'marker', '--quiet')
+    assert swapped.returncode == 0, swapped.stderr
+    assert ('TF input: the link frames look swapped: the base frame given, tool0, hangs below '
+            'the effector frame given, base_link, in the TF tree; a link pose is the effector in '
+            'the robot base frame (base base_link, effector tool0?)'
+            in json.loads(swapped.stdout)['warnings']), swapped.stdout
 
 
 def replay_with_marker_on_tf(repo_root, tmp_path, streams, messages):

@@ -293,3 +293,23 @@ def test_a_kept_static_edge_keeps_its_first_value():
     np.testing.assert_array_equal(tree.lookup('a', 'b', 0).position, first.position)
     tree.set_transform('a', 'b', 5, second, static=True)   # where the bag sends it again
     np.testing.assert_array_equal(tree.lookup('a', 'b', 0).position, second.position)
+
+
+def test_link_frames_given_the_wrong_way_round_are_named():
+    """The pose composes (its inverse): the node advised eye_to_hand, not the frames."""
+    from quatcal_ros.ros.pose_screen import PoseScreen
+    from quatcal_ros.ros.tf_feed import TfFeed
+    tree = TfFeed.new_tree()
+    turn = Pose(np.array([0.1, 0.2, 0.3]), quat.IDENTITY)
+    tree.set_transform('base_link', 'shoulder', START_NS, turn)
+    tree.set_transform('shoulder', 'tool0', START_NS, turn)
+    tree.set_transform('camera', 'marker', START_NS, turn)
+    frames = {'link_pose': ('tool0', 'base_link'), 'sensor_pose': ('marker', 'camera')}
+    feed = TfFeed(tree, PoseScreen(), frames, lambda *pose: None, link='link_pose')
+    assert feed.problems() == [
+        'TF input: the link frames look swapped: the base frame given, tool0, hangs below the '
+        'effector frame given, base_link, in the TF tree; a link pose is the effector in the '
+        'robot base frame (base base_link, effector tool0?)']   # (not the sensor's frames)
+    right = TfFeed(tree, PoseScreen(), {'link_pose': ('base_link', 'tool0')}, lambda *pose: None,
+                   link='link_pose')
+    assert right.problems() == []

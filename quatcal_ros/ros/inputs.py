@@ -98,7 +98,8 @@ class NodeInputs:
         self.tf = None
         self.images = None
         if tf_frames:
-            self.tf = TfFeed(TfFeed.new_tree(), self.screen, tf_frames, self._on_tf_pose)
+            self.tf = TfFeed(TfFeed.new_tree(), self.screen, tf_frames, self._on_tf_pose,
+                             link=LINK)
             tf_topic = node.create_subscription(
                 TFMessage, '/tf', lambda msg: self._on_tf(tf_topic.topic_name, msg, False),
                 TF_QOS)

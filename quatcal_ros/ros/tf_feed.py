@@ -48,16 +48,34 @@ class TfFeed:
         return TransformTree(cache_ns=TF_CACHE_NS, max_gap_ns=max_gap_ns,
                              time_jump_ns=TF_TIME_JUMP_NS)
 
-    def __init__(self, tree, screen, frames, on_pose):
+    def __init__(self, tree, screen, frames, on_pose, link=None):
         """
         Watch `frames` ({stream: (target, source)}) in `tree`; feed poses to `on_pose`.
 
-        screen: the ros.pose_screen.PoseScreen that counts bad transforms.
+        screen: the ros.pose_screen.PoseScreen that counts bad transforms; link: the stream
+        of `frames` that is the link pose (robot base -> effector), whose frames `problems`
+        checks against the tree's order.
         """
         self.tree = tree
         self.screen = screen
         self.on_pose = on_pose
+        self.link = link
         self.watchers = {stream: FramePoses(tree, *pair) for stream, pair in frames.items()}
+
+    def swapped_link_frames(self):
+        """
+        Return a warning when the effector frame given is an ancestor of the base frame, or ''.
+
+        The pose composes either way (its inverse), so nothing else shows it: the answer then
+        looks like the other setup's, and the frame-convention check advised that setup.
+        """
+        watcher = self.watchers.get(self.link)
+        if watcher is None or watcher.source not in self.tree.path_to_root(watcher.target)[1:]:
+            return ''
+        return (f'TF input: the link frames look swapped: the base frame given, '
+                f'{watcher.target}, hangs below the effector frame given, {watcher.source}, in '
+                'the TF tree; a link pose is the effector in the robot base frame (base '
+                f'{watcher.source}, effector {watcher.target}?)')
 
     def take(self, topic, msg, static, now_ns=0, keep=False):
         """
@@ -134,7 +152,7 @@ class TfFeed:
             else:
                 why = self.tree.disconnection(target, source)
             found.append(f'TF input: {target} -> {source} cannot be composed: {why}')
-        return found
+        return found + [text for text in (self.swapped_link_frames(),) if text]
 
     def finish(self):
         """Close the frame watchers (what they still wait for is counted as dropped)."""
