@@ -143,4 +143,6 @@ def warning(found):
                                      in zip(np.array(list(AXES))[off], wrong))
     return (f"the sensor's positions fit the mounting best scaled by ({axes}; +- one "
             f"standard deviation) along the sensor's axes, not by 1: they look {look}{where}: "
-            f"{cause} The mounting's translation takes the error; its rotation does not")
+            f"{cause} The mounting's translation takes the error, and so does the rotation "
+            'of an estimate on camera pixels (a rigid mounting no longer fits them); the '
+            'rotation from the poses does not')
