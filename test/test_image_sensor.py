@@ -265,3 +265,19 @@ def test_a_last_record_without_its_newline_is_kept(tmp_path):
     resumed.append(7, points(0.0), np.zeros((1, 2)))
     resumed.close()
     assert [row[0] for row in read_corners(path)[0]] == [5, 6, 7]
+
+
+def test_images_before_any_camera_info_name_the_topic_it_is_awaited_on():
+    # 'no usable camera_info received yet' did not say where the node listens for it.
+    from quatcal_ros.ros.image_input import ImageInput
+    from quatcal_ros.ros.pose_screen import PoseScreen
+    from sensor_msgs.msg import Image
+    screen = PoseScreen()
+    images = ImageInput(ImageSensor(parse_board(BOARD)), screen)
+    images.camera_info_topic = '/camera/color/camera_info'
+    image = Image(height=4, width=4, encoding='mono8', step=4, data=bytes(16))
+    image.header.stamp.sec = 1_700_000_000
+    assert images.take_image(image) is None
+    assert screen.stats.example('sensor_pose', 'no_camera_info') == (
+        'no usable camera_info received yet on /camera/color/camera_info: is it published '
+        'there, or under another name (remap camera_info:=...)?')

@@ -70,6 +70,7 @@ class ImageInput:
         self.screen = screen
         self.on_notice = on_notice
         self.on_new_camera = on_new_camera
+        self.camera_info_topic = None   # the live node's, named when none has come
 
     def take_camera_info(self, msg):
         """Use the calibration of a CameraInfo (counted as bad when it cannot be used)."""
@@ -90,6 +91,10 @@ class ImageInput:
             return None
         _, view = view_of(self.sensor, msg, stamp_ns)
         if not view.ok:
-            self.screen.bad(SENSOR, view.refused, view.detail)
+            detail = view.detail
+            if view.refused == 'no_camera_info' and self.camera_info_topic:
+                detail += (f' on {self.camera_info_topic}: is it published there, or under '
+                           'another name (remap camera_info:=...)?')
+            self.screen.bad(SENSOR, view.refused, detail)
             return None
         return stamp_ns, view.pose

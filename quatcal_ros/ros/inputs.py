@@ -142,6 +142,7 @@ class NodeInputs:
         self.camera_info_topic = self._node.create_subscription(
             CameraInfo, 'camera_info', self._on_camera_info,
             qos_profile_sensor_data).topic_name
+        self.images.camera_info_topic = self.camera_info_topic
 
     @property
     def type_names(self):
