@@ -181,8 +181,6 @@ def nodes(context, tmp_path_factory):
 def restart(node):
     """Start a fresh session and fresh counts on `node`."""
     node._on_reset(Trigger.Request(), Trigger.Response())
-    # A pose the old session held undecided reached it: counted good, then the counts start.
-    node.inputs.screen.verdict(mc.LINK, [], count=0, held=node.session.held)
     node.inputs.screen.stats = mc.StreamStats()
 
 

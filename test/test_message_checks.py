@@ -640,6 +640,10 @@ def test_publication_sequence_gaps_count_lost_messages():
 def test_the_clocks_offset_is_read_from_the_arrival_times():
     from quatcal_ros.stream.arrival_lag import ArrivalLag, problem
     lags = ArrivalLag()
+    lags.note(mc.LINK, 100 * NS, 0)   # use_sim_time before /clock: no arrival time (it gave
+    lags.note(mc.SENSOR, 99 * NS, 0)  # a lag of minus the stamp)
+    lags.end_period()
+    assert lags.offset_ns() is None
     lags.note(mc.LINK, 100 * NS, 100 * NS + 2 * MS)
     assert lags.offset_ns() is None   # (until a period ends with both streams in it)
     lags.note(mc.SENSOR, 97 * NS, 100 * NS + 40 * MS)   # a camera 3 s behind, 40 ms late

@@ -328,7 +328,8 @@ def test_the_calibrator_command_line_refuses_what_ros_would_silently_ignore(caps
     from quatcal_ros.ros import node
     assert node.main(['calibrator', '--help']) == 0
     said = capsys.readouterr().out
-    assert said.startswith('usage: ros2 run quatcal_ros calibrator [--ros-args -p NAME:=VALUE')
+    assert said.startswith('usage: ros2 run quatcal_ros calibrator [--ros-args [-p '
+                           'NAME:=VALUE ...] [--params-file FILE.yaml]')
     assert all(f'\n  {setting.name} (' in said for setting in SETTINGS)
     assert not rclpy.ok()   # nothing started
     assert node.main(['calibrator', 'setup:=eye_to_hand']) == 2
@@ -339,8 +340,9 @@ def test_the_calibrator_command_line_refuses_what_ros_would_silently_ignore(caps
     assert node.main(['calibrator', '--setup', 'eye_to_hand', '--ros-args', '-p',
                       'invert_sensor:=true']) == 2
     assert capsys.readouterr().err == (
-        'calibrator: error: unexpected argument(s) --setup eye_to_hand: the node takes its '
-        'parameters after --ros-args (--ros-args -p setup:=VALUE); see --help\n')
+        'calibrator: error: unexpected argument(s) --setup eye_to_hand: ROS arguments '
+        '(parameters, a params file, remaps) go after --ros-args (--ros-args -p '
+        'setup:=VALUE); see --help\n')
     # What ROS takes stays the node's: a topic remap (even the old form), parameters, files.
     for line in (['link_pose:=/robot/tool0_pose'],
                  ['--ros-args', '-p', 'setup:=eye_to_hand', '-r', 'sensor_pose:=/aruco'],

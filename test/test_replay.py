@@ -22,7 +22,7 @@ from quatcal_ros.files.samples_csv import read_samples
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.bag import ReplayReport, TF_TYPE, TYPESTORE, write_bag
 from quatcal_ros.sim import simulation as sim
-from quatcal_ros.stream.session import Session
+from quatcal_ros.stream.session import Session, SessionConfig
 from quatcal_ros.tools.cli import _few_samples, replay_main
 from quatcal_ros.tools.progress import Progress
 
@@ -724,13 +724,31 @@ def test_a_clock_offset_is_read_from_the_log_times_whenever_each_stream_began(
     assert ("against the bag's log times the sensor stamps run 2.97 s ahead of the link "
             'stamps: the clocks are offset; --sensor-time-offset -2.97 corrects it') \
         in done.stderr, done.stderr
+    # The camera's first 2 s recorded but skipped (zero quaternions, as a detector that has
+    # not seen the board yet might send): the stamps used start 2 s after the log times, and
+    # the log times put the clocks 2 s off where they are not. They are not used then.
+    skipped = []
+    for where, logged, message in messages:
+        if where == '/sensor_pose' and logged < first + 2_000_000_000:
+            message.pose.orientation.w = message.pose.orientation.x = 0.0
+            message.pose.orientation.y = message.pose.orientation.z = 0.0
+        skipped.append((where, logged, message))
+    write_bag(tmp_path / 'skipped', {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED},
+              skipped)
+    done = run_replay(repo_root, tmp_path / 'skipped', *TOPICS, '--sensor-time-offset', '3',
+                      '--quiet')   # (a wrong offset given: nothing pairs)
+    assert done.returncode == 2
+    assert 'log times' not in done.stderr, done.stderr
     # Without log times (TF input) the first stamps are all there is, and the error says it
     # takes them at their word.
     report = dataclasses.replace(ReplayReport(), counters={'pairs': 0}, stamps={
         'link': [0, 60 * 10**9], 'sensor': [5 * 10**9, 65 * 10**9]})
-    assert ('the sensor stamps run about 5.0 s ahead of the link stamps throughout, beyond the '
+    assert ('the sensor stamps run 5.0 s ahead of the link stamps throughout, beyond the '
             'pairing window: the clocks are offset; if that is the offset, '
-            '--sensor-time-offset -5.0 corrects it') in _few_samples(None, report, None)
+            '--sensor-time-offset -5.0 corrects it') in _few_samples(Session(), report, None)
+    # The offset the log times show, given already: not suggested again.
+    given = Session(SessionConfig(sensor_offset_ns=-2_970_000_000))
+    assert '--sensor-time-offset -5.0 corrects it' in _few_samples(given, report, -2.97e9)
 
 
 def test_a_sensor_too_noisy_for_its_bands_is_named(repo_root, streams, tmp_path):

@@ -655,6 +655,10 @@ def frame_warnings(report, setup='eye_in_hand', invert_sensor=False):
     return swapped + frame_notices.notices(seen, setup, invert_sensor)
 
 
+# The stamp-to-log-time lags at a stream's two ends agree this well (clock_offset_ns).
+LOG_ENDS_NS = 250_000_000
+
+
 def clock_offset_ns(replay, report):
     """
     Return the offset to add to the sensor stamps that the bag's log times suggest, or None.
@@ -662,14 +666,19 @@ def clock_offset_ns(replay, report):
     Each stream's header stamps minus the log times of its messages (the recorder's clock),
     at its first and last message, averaged: the two streams' difference is the offset of
     their clocks, to within their latencies (tens of milliseconds). None for TF input, or a
-    stream without poses.
+    stream without poses, or one whose two ends disagree by more than LOG_ENDS_NS: the
+    stamps are those of the poses used, the log times those of every message, so messages
+    skipped at one end (images before the board was seen) part them.
     """
     lag = {}
     for stream, source in replay.inputs.items():
         stamps, logged = report.stamps.get(stream), report.logged.get(source.topic)
         if source.topic is None or not stamps or stamps[0] is None or logged is None:
             return None
-        lag[stream] = (stamps[0] - logged[0] + stamps[1] - logged[1]) // 2
+        first, last = stamps[0] - logged[0], stamps[1] - logged[1]
+        if abs(first - last) > LOG_ENDS_NS:
+            return None
+        lag[stream] = (first + last) // 2
     return lag['link'] - lag['sensor']
 
 

@@ -229,8 +229,8 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
             and session.paired_seconds >= NEVER_STILL_S):
         found.append(f'no still sample in {session.paired_seconds:.0f} s of paired poses')
     if not counters['pairs'] and counters['unpaired'] >= UNPAIRED_NOTICE_AFTER:
-        found.append(f'none of {counters["unpaired"]} poses could be paired: the stamps of '
-                     'the two streams do not overlap; are both stamped on the same clock?')
+        found.append(f'none of {counters["unpaired"]} poses could be paired; the latest: '
+                     f'{session.last_unpaired}')
     values = {
         'state': session.state,
         'samples': counters['samples'],

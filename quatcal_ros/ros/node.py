@@ -104,6 +104,7 @@ class CalibratorNode(Node):
         self.next_pose = None   # the planner's proposal for the latest estimate
         self._newest_stamp = {}   # stream: (its latest stamp, the node clock when it came)
         self._lags = arrival_lag.ArrivalLag()   # the streams' clocks, from arrival times
+        self._lags_jumps = 0   # the session's time jumps when the lags started
         self._frames_said = set()   # the frame notices logged
         self._clock_said = False    # the clock warning logged, and standing since
         self._frames = {}   # stream: its latest (header, child) frames judged (_frame_problems)
@@ -365,8 +366,15 @@ class CalibratorNode(Node):
                                  self.next_pose, self.result, self.inputs.composed,
                                  status_name(self.get_name()))
 
+    def _settle_held(self):
+        """Count a pose the old session held undecided, which the new one never saw (good)."""
+        self.inputs.screen.verdict(LINK, [], count=0, held=self.session.held)
+
     def _clock_problem(self):
         """Return arrival_lag's warning on the streams' clocks (logged once), or None."""
+        jumps = self.session.counters['time_jumps']
+        if jumps != self._lags_jumps:   # a bag looped: the lags of the old timeline mislead
+            self._lags, self._lags_jumps = arrival_lag.ArrivalLag(), jumps
         self._lags.end_period()
         configured = self.session.config.sensor_offset_ns
         text = arrival_lag.problem(self._lags.offset_ns(configured), configured)
@@ -430,6 +438,8 @@ class CalibratorNode(Node):
         self.inputs.flush()
         discarded = len(self.session.samples)
         self.session.reset()
+        self._settle_held()
+        self._lags, self._lags_jumps = arrival_lag.ArrivalLag(), 0
         self.log.reset()
         self.moves.reset()
         self.next_pose = None
@@ -496,6 +506,7 @@ class CalibratorNode(Node):
             samples = self.session.samples
             earlier, self.session = self.session, self._new_session()
             self.session.continue_counts(earlier)
+            self._settle_held()
             self.next_pose = None   # the re-estimate plans again, if there is one
             if samples:
                 self.get_logger().info(

@@ -97,8 +97,8 @@ def _described(setting):
 
 def help_text():
     """Return the calibrator's --help: how to give parameters, and each with its default."""
-    lines = [f'usage: ros2 run quatcal_ros {NODE_NAME} [--ros-args -p NAME:=VALUE ... '
-             '| --params-file FILE.yaml] [-r TOPIC:=NEW_TOPIC ...]', '',
+    lines = [f'usage: ros2 run quatcal_ros {NODE_NAME} [--ros-args [-p NAME:=VALUE ...] '
+             '[--params-file FILE.yaml] [-r TOPIC:=NEW_TOPIC ...]]', '',
              'The live hand-eye calibration node: topics, services and a session step by '
              "step are in the package's README.", '', 'parameters (default):']
     for setting in SETTINGS:
@@ -135,8 +135,8 @@ def command_line_problem(arguments):
     if unknown:
         name = unknown[0].lstrip('-').replace('-', '_')
         example = (f' (--ros-args -p {name}:=VALUE)' if name in SETTING_BY_NAME else '')
-        return 2, (f'unexpected argument(s) {" ".join(unknown)}: the node takes its parameters '
-                   f'after --ros-args{example}; see --help')
+        return 2, (f'unexpected argument(s) {" ".join(unknown)}: ROS arguments (parameters, '
+                   f'a params file, remaps) go after --ros-args{example}; see --help')
     return None
 
 

@@ -26,7 +26,13 @@ class ArrivalLag:
         self.lag_ns = {}    # stream: its smallest lag in the last period in which it came
 
     def note(self, stream, stamp_ns, arrived_ns):
-        """Note a pose of `stream` (message_checks.LINK or SENSOR) stamped stamp_ns."""
+        """
+        Note a pose of `stream` (message_checks.LINK or SENSOR) stamped stamp_ns.
+
+        A node clock at 0 (use_sim_time before any /clock) tells nothing: not noted.
+        """
+        if arrived_ns <= 0:
+            return
         lag = arrived_ns - stamp_ns
         if lag < self._period.get(stream, lag + 1):
             self._period[stream] = lag
@@ -47,15 +53,25 @@ class ArrivalLag:
         return self.lag_ns[SENSOR] - configured_ns - self.lag_ns[LINK]
 
 
+def stamps_apart(offset_ns, digits=2):
+    """
+    Return 'the sensor stamps run X s behind the link stamps' (or 'ahead of').
+
+    offset_ns: what to add to the sensor stamps (positive: they run behind).
+    """
+    return (f'the sensor stamps run {abs(offset_ns) / NS_PER_S:.{digits}f} s '
+            f'{"behind" if offset_ns > 0 else "ahead of"} the link stamps')
+
+
 def problem(offset_ns, configured_ns=0):
     """Return the warning on an offset of ArrivalLag.offset_ns, or None within APART_NS."""
     if offset_ns is None or abs(offset_ns) <= APART_NS:
         return None
     given = (f' (with sensor_time_offset_s {configured_ns / NS_PER_S:g})'
              if configured_ns else '')
-    return (f'the sensor stamps{given} run {abs(offset_ns) / NS_PER_S:.2f} s '
-            f'{"behind" if offset_ns > 0 else "ahead of"} the link stamps, against the times '
-            'their poses arrive: the two clocks are not synchronised (synchronise them, e.g. '
-            'with chrony, or set sensor_time_offset_s:='
-            f'{(configured_ns + offset_ns) / NS_PER_S:.2f}, then call ~/reset: samples taken '
-            'keep their pairing), or the sensor poses take that long to arrive')
+    late = 'sensor' if offset_ns > 0 else 'link'   # the stream whose poses come later
+    return (f'{stamps_apart(offset_ns)}{given}, against the times their poses arrive: the two '
+            'clocks are not synchronised (synchronise them, e.g. with chrony, or set '
+            f'sensor_time_offset_s:={(configured_ns + offset_ns) / NS_PER_S:.2f}, then call '
+            f'~/reset: samples taken keep their pairing), or the {late} poses take that long '
+            'to arrive')

@@ -381,6 +381,11 @@ class Session:
         }
 
     @property
+    def last_unpaired(self):
+        """Return why the latest pose that could not be paired was not, or ''."""
+        return self._pairer.last_unpaired
+
+    @property
     def held(self):
         """
         Return the streams (as Rejected.what names them) whose last pose is held undecided.

@@ -24,6 +24,7 @@ from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import format_samples
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
 from quatcal_ros.files.text_input import BadInputError
+from quatcal_ros.stream.arrival_lag import stamps_apart
 from quatcal_ros.stream.capture import unsteady_sensor_note
 from quatcal_ros.stream.recorded_stream import RecordedStream
 from quatcal_ros.stream.session import Rejected, Session
@@ -591,10 +592,8 @@ def _replay_with_time_offset(replay, config, args):
         # Clocks this far apart would put the true offset at the edge of the search or
         # beyond: search around what the bag's log times say instead (to 10 ms).
         config = replace(config, sensor_offset_ns=int(round(logged, -7)))
-        notes.append(f'the sensor stamps run {abs(logged) / NS_PER_S:.2f} s '
-                     f'{"ahead of" if logged < 0 else "behind"} the link stamps against the '
-                     "bag's log times: the time offset was searched around "
-                     f'{config.sensor_offset_ns / NS_PER_S:+.2f} s')
+        notes.append(f"{stamps_apart(logged)} against the bag's log times: the time offset "
+                     f'was searched around {config.sensor_offset_ns / NS_PER_S:+.2f} s')
     try:
         found, session = find_time_offset(recorder.link, recorder.sensor,
                                           config, residual_options=scoring)
@@ -736,24 +735,23 @@ def _few_samples(session, report, logged_ns=None):
                 f'{l0 / NS_PER_S:.3f} to {l1 / NS_PER_S:.3f} s, sensor stamps '
                 f'{s0 / NS_PER_S:.3f} to {s1 / NS_PER_S:.3f} s')
         apart = min(l1, s1) <= max(l0, s0)
-        if logged_ns is not None and abs(logged_ns) > LOGGED_OFFSET_NS:
+        given = session.config.sensor_offset_ns
+        if (logged_ns is not None and abs(logged_ns) > LOGGED_OFFSET_NS
+                and abs(logged_ns - given) > LOGGED_OFFSET_NS):   # (not the offset given)
             # The recorder's clock saw both streams: their stamps' offset from it is the
             # clocks' offset, whenever each stream started.
-            offset = logged_ns / NS_PER_S
             return (said + f' ({"they do not overlap" if apart else "they overlap"}, and '
-                    f"against the bag's log times the sensor stamps run {abs(offset):.2f} s "
-                    f'{"behind" if offset > 0 else "ahead of"} the link stamps: the clocks '
-                    f'are offset; --sensor-time-offset {offset:.2f} corrects it, and '
-                    '--estimate-time-offset measures it, searching around that)')
+                    f"against the bag's log times {stamps_apart(logged_ns)}: the clocks are "
+                    f'offset; --sensor-time-offset {logged_ns / NS_PER_S:.2f} corrects it, '
+                    'and --estimate-time-offset measures it, searching around that)')
         if apart:
             return said + ' (they do not overlap: are both stamped on the same clock?)'
         # They overlap, yet no two came close enough as the bag was read: a clock offset
         # beyond what the pairing keeps (PairingConfig.window_ns).
-        offset = (l0 - s0) / NS_PER_S   # what the first stamps say the sensor clock is off
-        return (said + ' (they overlap, but the sensor stamps run about '
-                f'{abs(offset):.1f} s {"behind" if offset > 0 else "ahead of"} the link stamps '
-                'throughout, beyond the pairing window: the clocks are offset; if that is the '
-                f'offset, --sensor-time-offset {offset:.1f} corrects it, and with '
+        offset = l0 - s0   # what the first stamps say the sensor clock is off
+        return (said + f' (they overlap, but {stamps_apart(offset, 1)} throughout, beyond the '
+                'pairing window: the clocks are offset; if that is the offset, '
+                f'--sensor-time-offset {offset / NS_PER_S:.1f} corrects it, and with '
                 '--estimate-time-offset too the search measures it within 0.5 s of that)')
     count, pairs = len(session.samples), counters['pairs']
     capture = session.config.capture
