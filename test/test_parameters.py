@@ -332,6 +332,7 @@ def test_the_calibrator_command_line_refuses_what_ros_would_silently_ignore(caps
                            'NAME:=VALUE ...] [--params-file FILE.yaml]')
     assert all(f'\n  {setting.name} (' in said for setting in SETTINGS)
     assert not rclpy.ok()   # nothing started
+    assert parameters.command_line_problem(['calibrator', '--ros-args', '--help'])[0] == 0
     assert node.main(['calibrator', 'setup:=eye_to_hand']) == 2
     assert capsys.readouterr().err == (
         'calibrator: error: setup:=eye_to_hand: outside --ros-args, ROS takes NAME:=VALUE for '

@@ -112,16 +112,17 @@ def command_line_problem(arguments):
     """
     Return (exit status, text) for a command line the node must not start with, or None.
 
-    arguments: the whole command line (program name first). --help or -h before --ros-args
-    asks for help_text (0). A parameter written NAME:=VALUE outside --ros-args is taken by
-    ROS as a topic remap, silently (2), and so is any other argument the node does not know
-    (`--setup eye_to_hand`, the offline tools' form); ROS arguments rcl cannot read (a params
-    file that is not there) are named (2) instead of ending rclpy.init with a traceback.
+    arguments: the whole command line (program name first). --help or -h asks for help_text
+    (0), after --ros-args too (rcl knows no such argument). A parameter written NAME:=VALUE
+    outside --ros-args is taken by ROS as a topic remap, silently (2), and so is any other
+    argument the node does not know (`--setup eye_to_hand`, the offline tools' form); ROS
+    arguments rcl cannot read (a params file that is not there) are named (2) instead of
+    ending rclpy.init with a traceback.
     """
     own = arguments[1:]
     if '--ros-args' in own:
         own = own[:own.index('--ros-args')]
-    if any(argument in ('-h', '--help') for argument in own):
+    if any(argument in ('-h', '--help') for argument in arguments[1:]):   # (after too)
         return 0, help_text()
     misplaced = [a for a in own if a.split(':=', 1)[0] in SETTING_BY_NAME and ':=' in a]
     if misplaced:
