@@ -15,6 +15,7 @@ import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.ros import conversions
+from quatcal_ros.ros import node as node_module
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.ros.qos import TF_QOS, TF_STATIC_BROADCAST_QOS
 from quatcal_ros.ros.sim_cell import CAMERA_LINK_TO_SENSOR as CAMERA_LINK_TO_OPTICAL
@@ -288,6 +289,25 @@ def test_a_frame_that_never_comes_is_named_on_diagnostics(tf_harness):
     h.spin_until(lambda: 'link_pose stale: no pose composed from /tf in'
                  in h.node.diagnostic_status().message, what='the stale link stream named')
     assert 'no message at all' not in h.node.diagnostic_status().message
+    # Only /diagnostics said so; the log is told once the problem has stood a while (not
+    # while the first transforms come in).
+    warned, logger = [], h.node.get_logger()
+
+    class Recording:
+        def __getattr__(self, name):
+            return getattr(logger, name)
+
+        def warning(self, text, **options):
+            warned.append(text)
+            return logger.warning(text, **options)
+    h.node.get_logger = Recording
+    h.node._input_problem_since = {key: since - int(node_module.TF_PROBLEM_LOG_S * 1e9)
+                                   for key, since in h.node._input_problem_since.items()}
+    h.node.diagnostic_status()
+    h.node.diagnostic_status()
+    said = [w for w in warned if w.startswith('TF input: base_link -> tool_0 cannot be')]
+    assert len(said) == 1, warned
+    del h.node.get_logger
 
 
 def test_a_late_transform_is_only_late_not_a_time_jump(tf_harness):

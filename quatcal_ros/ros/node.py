@@ -64,6 +64,8 @@ from visualization_msgs.msg import MarkerArray
 NODE_NAME = settings.NODE_NAME
 # The message checks' stream names and the session's.
 SESSION_STREAMS = {LINK: 'link', SENSOR: 'sensor'}
+# A TF input problem (a frame not in the tree) standing this long (steady clock) is logged.
+TF_PROBLEM_LOG_S = 5.0
 
 
 class CalibratorNode(Node):
@@ -107,6 +109,8 @@ class CalibratorNode(Node):
         self._lags_jumps = 0   # the session's time jumps when the lags started
         self._frames_said = set()   # the frame notices logged
         self._clock_said = False    # the clock warning logged, and standing since
+        self._input_problem_since = {}   # each TF input problem: when it was first seen
+        self._input_problems_said = set()   # those logged, while they stand
         self._frames = {}   # stream: its latest (header, child) frames judged (_frame_problems)
         self.next_pose_publisher = self.create_publisher(
             PoseStamped, '~/next_pose', LATCHED_QOS, event_callbacks=quiet_publisher_events())
@@ -359,12 +363,33 @@ class CalibratorNode(Node):
                         self.stats, self.inputs.topics, self.get_publishers_info_by_topic,
                         self.session.counters['time_jumps'], now_ns,
                         self.get_parameter('use_sim_time').value, self._steady.now().nanoseconds),
-                    *self.inputs.problems(), *self._frame_problems(), self._clock_problem()]
+                    *self._input_problems(), *self._frame_problems(), self._clock_problem()]
         return calibrator_status(self.session, self.stats, now_ns,
                                  self.config.result_frames[0], problems, tf_static,
                                  self.input_watch.started_ns, self.inputs.topics,
                                  self.next_pose, self.result, self.inputs.composed,
                                  status_name(self.get_name()))
+
+    def _input_problems(self):
+        """
+        Return the TF input's problems; log each once it has stood for TF_PROBLEM_LOG_S.
+
+        A misspelt frame showed on /diagnostics alone: the log stayed silent. Not at once:
+        the frames of /tf_static and /tf come in over the first second or two.
+        """
+        found = self.inputs.problems()
+        now = self._steady.now().nanoseconds
+        standing = {}
+        for text in found:
+            key = tuple(text.split(':', 2)[:2])   # ('TF input', ' a -> b cannot be ...')
+            since = self._input_problem_since.get(key, now)
+            standing[key] = since
+            if now - since >= TF_PROBLEM_LOG_S * 1e9 and key not in self._input_problems_said:
+                self._input_problems_said.add(key)
+                self.get_logger().warning(text)
+        self._input_problem_since = standing
+        self._input_problems_said &= set(standing)   # said again if it comes back later
+        return found
 
     def _settle_held(self):
         """Count a pose the old session held undecided, which the new one never saw (good)."""
