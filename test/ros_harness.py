@@ -1,5 +1,6 @@
 """The spin-and-wait helpers every in-process ROS test harness shares."""
 
+from contextlib import contextmanager
 import signal
 import subprocess
 import time
@@ -135,3 +136,23 @@ def stop_process(process, sig=signal.SIGINT, timeout=15.0):
         process.kill()
         process.wait()
         return None
+
+
+@contextmanager
+def logged_warnings(node):
+    """Collect the texts `node` logs as warnings (warn or warning) inside the block."""
+    warned, logger = [], node.get_logger()
+
+    class Recording:
+        def __getattr__(self, name):
+            return getattr(logger, name)
+
+        def warning(self, text, **options):
+            warned.append(text)
+            return logger.warning(text, **options)
+        warn = warning
+    node.get_logger = Recording
+    try:
+        yield warned
+    finally:
+        del node.get_logger

@@ -41,6 +41,7 @@ from rclpy.qos import ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from ros_harness import harnesses_of
 from ros_harness import LATCHED
+from ros_harness import logged_warnings
 from ros_harness import ProcessWatcher
 from ros_harness import SpinMixin
 from ros_harness import stop_process
@@ -258,24 +259,14 @@ def test_estimate_needs_two_non_parallel_motions_then_save_and_reset(harness_fac
     assert angle_deg(h.node.session.result.quaternion, cell.mounting.quaternion) < 1e-3
     # A new sensor time offset re-estimates too, but the samples keep their pairing: it said
     # nothing, and a residual that stayed high looked like the offset had not helped.
-    warned, logger = [], h.node.get_logger()
-
-    class Recording:
-        def __getattr__(self, name):
-            return getattr(logger, name)
-
-        def warn(self, text, **options):
-            warned.append(text)
-            return logger.warn(text, **options)
-    h.node.get_logger = Recording
-    (changed,) = h.node.set_parameters([Parameter('sensor_time_offset_s', value=0.0)])
-    assert changed.successful and not warned   # unchanged: nothing to say
-    (changed,) = h.node.set_parameters([Parameter('sensor_time_offset_s', value=0.03)])
-    assert changed.successful
+    with logged_warnings(h.node) as warned:
+        (changed,) = h.node.set_parameters([Parameter('sensor_time_offset_s', value=0.0)])
+        assert changed.successful and not warned   # unchanged: nothing to say
+        (changed,) = h.node.set_parameters([Parameter('sensor_time_offset_s', value=0.03)])
+        assert changed.successful
     assert warned == ['sensor_time_offset_s applies to the poses from now on: the 5 samples '
                       'taken keep the pairing they were taken with; call ~/reset to take them '
                       'again with the new offset']
-    del h.node.get_logger
 
     saved = h.call('save')
     assert saved.success and str(result_file) in saved.message

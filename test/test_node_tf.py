@@ -26,7 +26,7 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from ros_harness import harnesses_of, SpinMixin
+from ros_harness import harnesses_of, logged_warnings, SpinMixin
 from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
 import yaml
@@ -291,23 +291,13 @@ def test_a_frame_that_never_comes_is_named_on_diagnostics(tf_harness):
     assert 'no message at all' not in h.node.diagnostic_status().message
     # Only /diagnostics said so; the log is told once the problem has stood a while (not
     # while the first transforms come in).
-    warned, logger = [], h.node.get_logger()
-
-    class Recording:
-        def __getattr__(self, name):
-            return getattr(logger, name)
-
-        def warning(self, text, **options):
-            warned.append(text)
-            return logger.warning(text, **options)
-    h.node.get_logger = Recording
     h.node._input_problem_since = {key: since - int(node_module.TF_PROBLEM_LOG_S * 1e9)
                                    for key, since in h.node._input_problem_since.items()}
-    h.node.diagnostic_status()
-    h.node.diagnostic_status()
+    with logged_warnings(h.node) as warned:
+        h.node.diagnostic_status()
+        h.node.diagnostic_status()
     said = [w for w in warned if w.startswith('TF input: base_link -> tool_0 cannot be')]
     assert len(said) == 1, warned
-    del h.node.get_logger
 
 
 def test_a_late_transform_is_only_late_not_a_time_jump(tf_harness):
