@@ -176,6 +176,12 @@ def test_the_replay_writes_a_journal_the_node_resumes(bags, tmp_path, capsys):
                                                     False)
     (aside,) = [p for p in tmp_path.iterdir() if p.name.startswith('samples.csv.corrupt-')]
     assert aside.read_text() == 'an earlier file\n'    # moved aside, never overwritten
+    # Over the journal of the first run: moved aside, without the node's resume:=true advice
+    # (no offline tool resumes one).
+    assert replay_main(argv + ['--quiet']) == 0
+    said = capsys.readouterr().err
+    assert 'held 10 samples of an earlier session: moved to ' in said, said
+    assert 'resume:=true' not in said, said
 
 
 def test_samples_are_those_of_the_session_fed_by_hand(bags, streams, tmp_path, capsys):

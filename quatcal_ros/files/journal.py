@@ -527,7 +527,7 @@ def lock(path):
     return fd
 
 
-def start(path, header, resume, now=None):
+def start(path, header, resume, now=None, resumable=True):
     """
     Open the journal at `path` for a node starting up; the policy of the module docstring.
 
@@ -545,6 +545,8 @@ def start(path, header, resume, now=None):
         link stays and two names of one journal share its lock).
     :param header: JournalHeader of the node's parameters.
     :param resume: the resume parameter.
+    :param resumable: whether the caller can resume (the node); the offline tools' journal
+        is a new one whatever is at the path, and the warning does not offer resume:=true.
     :return: (Journal, StartReport).
     :raises JournalRefused: in use by another process, setup or frames differ (resume), or
         the path is a directory.
@@ -558,7 +560,7 @@ def start(path, header, resume, now=None):
                              'name a regular file (it is never moved aside or replaced)')
     lock_fd = lock(path)
     try:
-        return _start_locked(path, header, resume, lock_fd, now)
+        return _start_locked(path, header, resume, lock_fd, now, resumable)
     except BaseException:
         if lock_fd is not None:
             os.close(lock_fd)
@@ -581,7 +583,7 @@ def _unnamed_base(recorded, wanted):
             and wanted.link_frame != LEGACY_BASE_FRAME)
 
 
-def _start_locked(path, header, resume, lock_fd, now):
+def _start_locked(path, header, resume, lock_fd, now, resumable=True):
     report = StartReport()
     try:
         contents = read_journal(path)
@@ -645,7 +647,8 @@ def _start_locked(path, header, resume, lock_fd, now):
         report.moved_to = move_aside(path, PREVIOUS, now)
         report.messages.append(
             ('warning', f'{path} held {len(contents.samples)} samples of an earlier session: '
-                        f'moved to {report.moved_to} (resume:=true would have continued it); '
+                        f'moved to {report.moved_to}'
+                        f'{" (resume:=true would have continued it)" if resumable else ""}; '
                         'starting a new journal'))
     else:
         path.unlink()    # a journal without samples: nothing to keep

@@ -27,17 +27,19 @@ class SamplesJournal:
     `problem` says what is not saved while something is not (None when all is well).
     """
 
-    def __init__(self, path, header, resume):
+    def __init__(self, path, header, resume, resumable=True):
         """
         Open (or create) the journal at `path`; with resume, reload its samples.
 
-        `report` (journal.StartReport) holds the samples to resume and the messages to log.
+        `report` (journal.StartReport) holds the samples to resume and the messages to log;
+        resumable: as journal.start takes it (False for the offline tools).
         :raises journal.JournalRefused: in use by another node, or recorded with another
             setup or frames while resume is true.
         :raises OSError: when the journal cannot be written.
         """
         self.problem = None
-        self.journal, self.report = journal.start(path, header, resume)
+        self.journal, self.report = journal.start(path, header, resume,
+                                                  resumable=resumable)
 
     @property
     def path(self):

@@ -779,7 +779,7 @@ def _write_journal(prog, args, session, report):
     parent, child = _replay_frames(args, report)
     try:
         header = JournalHeader(args.setup, parent, child, args.invert_sensor)
-        record = SamplesJournal(args.journal_out, header, resume=False)
+        record = SamplesJournal(args.journal_out, header, resume=False, resumable=False)
     except (JournalRefused, OSError) as error:
         return fail(prog, f'{args.journal_out}: cannot write: {error}', EXIT_BAD_INPUT)
     messages = record.append(session.samples) + record.sync()
