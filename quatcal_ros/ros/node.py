@@ -451,7 +451,7 @@ class CalibratorNode(Node):
         self.inputs.flush()
         ok, reason = self.session.capture(self.stamps_now_ns())
         self.handle_events(self.session.pop_events())
-        skipped = skipped_text(self.stats, SENSOR)
+        skipped = skipped_text(self.stats)
         if not ok and reason.startswith('no paired poses') and skipped:
             reason += f' (so far {skipped})'   # images without a board: not the clocks
         if not ok:
