@@ -642,6 +642,21 @@ def test_a_focal_length_error_is_seen_from_20_samples():
         assert "% too large along its z axis (a camera's depth) alone" in said, (k, said)
 
 
+@pytest.mark.parametrize('link_mm', [True, False])
+def test_positions_in_millimetres_are_named_as_units_not_a_board_size(link_mm):
+    # Robot poses in millimetres gave 'is the marker's or the board's size given right?' and
+    # 'they look 99.9 % too small': the scale was 1000.
+    rng = np.random.default_rng(21)
+    samples, _ = simulation.samples(rng, simulation.random_cell(rng), 20, 0.2, 0.001)
+    scaled = [Sample(s.stamp_ns, Pose(s.link.position * 1000.0, s.link.quaternion), s.sensor)
+              for s in samples] if link_mm else \
+        simulation.scaled_sensor_positions(samples, 1000.0)
+    result = calibrate(scaled)
+    (said,) = [w for w in result.warnings if SCALE_WORDS in w]
+    assert f'the {"link" if link_mm else "sensor"} positions look to be in millimetres' in said
+    assert 'which is no size error but units' in said and 'board' not in said, said
+
+
 def test_too_few_samples_to_judge_the_scale():
     rng = np.random.default_rng(13)
     samples, _ = simulation.samples(rng, simulation.random_cell(rng), 7, 0.3, 0.002)

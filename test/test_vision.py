@@ -364,6 +364,10 @@ def test_solve_dir_refines_on_the_pixels_and_lists_refused_views(repo_root, tmp_
     assert result['views']['used'] == 14
     assert {(r['image'], r['reason']) for r in result['views']['refused']} == {
         (names[4], 'no_board'), (names[9], 'unreadable_image'), ('copy.png', 'repeated_view')}
+    # ... and said in the warnings (on the report page too): they were in the JSON alone.
+    (said,) = [w for w in result['warnings'] if 'gave no board pose' in w]
+    assert said.startswith('3 of 17 images gave no board pose and are not used: ') and \
+        names[4] in said and names[9] in said and 'copy.png' in said, said
     q = [result['rotation'][k] for k in 'wxyz']
     angle = np.degrees(quat.angle_between(q, mounting.quaternion))
     error_mm = 1e3 * np.linalg.norm([result['translation'][k] for k in 'xyz']
@@ -567,8 +571,9 @@ def test_a_board_of_another_dictionary_is_named(given):
                            'the dictionary of the board (board.yaml)?')
 
 
-def test_a_board_too_small_in_the_image_is_named_so_not_its_layout():
-    # At about 16 px per marker one marker is found and no corner: the file was blamed.
+def test_a_board_too_small_in_the_image_is_named_with_its_layout_as_the_other_cause():
+    # At about 16 px per marker one marker is found and no corner: the file was blamed; then
+    # the distance alone, also for a board.yaml with a wrong squares_x (markers of 15 px).
     document = {'type': 'charuco', 'squares_x': 7, 'squares_y': 5, 'square_length_m': 0.03,
                 'marker_length_m': 0.022, 'dictionary': 'DICT_5X5_100'}
     board = parse_board(document, 'board.yaml')
@@ -580,7 +585,8 @@ def test_a_board_too_small_in_the_image_is_named_so_not_its_layout():
     assert view.refused == 'no_board'
     assert re.fullmatch(r'\d+ markers of DICT_5X5_100 seen, about \d+ px across, but no board '
                         r'corner: the board is too small in the image \(move the camera closer, '
-                        r'or use a larger board\)', view.detail), view.detail
+                        r'or use a larger board\), or its layout is not board.yaml.s \(check '
+                        r'squares_x and squares_y\)', view.detail), view.detail
 
 
 def test_a_charuco_board_of_the_legacy_layout_is_found_when_the_file_says_so():

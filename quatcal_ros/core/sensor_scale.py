@@ -127,6 +127,14 @@ def warning(found):
         return None
     axes = ', '.join(f'{axis} {scale:.4f} +- {sd:.4f}' for axis, scale, sd
                      in zip(AXES, found.scale, found.uncertainty))
+    factor = float(np.median(found.scale))
+    if off.all() and not 0.1 < factor < 10.0:   # units, not a size: millimetres for metres
+        return (f"the sensor's positions fit the mounting best scaled by ({axes}) along the "
+                f"sensor's axes: a factor of {factor:.4g}, which is no size error but units: "
+                f'the {"link" if factor > 1 else "sensor"} positions look to be in '
+                'millimetres (or the other in kilometres); every position must be in metres '
+                '(the pose messages, robot_poses.csv, a samples file). Neither the rotation '
+                'nor the translation can be used')
     if off.all() and np.ptp(found.scale) <= 3.0 * found.uncertainty.max():
         where, cause = '', "is the marker's or the board's size given right, in metres?"
     elif off[2] and not off[:2].any():

@@ -59,10 +59,11 @@ def _no_corner(gray, board):
         if ids is not None and len(ids):
             side = float(np.median([np.linalg.norm(c[0] - np.roll(c[0], 1, axis=0), axis=1).mean()
                                     for c in corners]))
-            if side < SMALL_MARKER_PX:
+            if side < SMALL_MARKER_PX:   # (a layout other than board.yaml's looks the same)
                 return (f'{len(ids)} markers of {board.dictionary} seen, about {side:.0f} px '
                         'across, but no board corner: the board is too small in the image '
-                        '(move the camera closer, or use a larger board)')
+                        '(move the camera closer, or use a larger board), or its layout is not '
+                        "board.yaml's (check squares_x and squares_y)")
             return (f'{len(ids)} markers of {board.dictionary} seen but no board corner: check '
                     'squares_x and squares_y, and legacy_pattern (a board printed by OpenCV '
                     'before 4.6 with an even squares_y)')
