@@ -103,6 +103,15 @@ def test_bad_camera_info_is_named():
     nan = {**good, 'distortion_coefficients': {'rows': 1, 'cols': 5, 'data': [float('nan')] * 5}}
     with pytest.raises(BadInputError, match='field distortion_coefficients: NaN or inf'):
         parse_camera(nan, 'camera_info.yaml')
+    # rows and cols that do not describe the numbers (a file edited by hand) were accepted.
+    short = {**good, 'distortion_coefficients': {'rows': 1, 'cols': 5, 'data': [0.0] * 4}}
+    with pytest.raises(BadInputError, match=r'camera_info.yaml, field distortion_coefficients: '
+                                            r'rows 1 and cols 5 do not describe its 4 numbers'):
+        parse_camera(short, 'camera_info.yaml')
+    flat = {**good, 'camera_matrix': {'rows': 1, 'cols': 9, 'data': CAMERA.K.ravel().tolist()}}
+    with pytest.raises(BadInputError, match=r'field camera_matrix: rows 1 and cols 9 do not '
+                                            r'describe its 9 numbers \(a 3x3 matrix\)'):
+        parse_camera(flat, 'camera_info.yaml')
 
 
 @pytest.mark.parametrize('model, coefficients', [

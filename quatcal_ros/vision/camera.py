@@ -123,4 +123,12 @@ def _matrix(document, field, name, shape):
     if array is None or array.ndim != 1 or (shape and array.size != shape[0] * shape[1]):
         raise BadInputError(f'{name}, field {field}: expected {{rows, cols, data: [...]}} '
                             f'with {shape[0] * shape[1] if shape else "the"} numbers')
+    rows, cols = value.get('rows'), value.get('cols')
+    if rows is not None and cols is not None and (
+            not isinstance(rows, int) or not isinstance(cols, int) or rows * cols != array.size
+            or (shape and (rows, cols) != tuple(shape))):
+        # (a file edited by hand: the numbers may not be the ones meant)
+        raise BadInputError(f'{name}, field {field}: rows {rows!r} and cols {cols!r} do not '
+                            f'describe its {array.size} numbers'
+                            + (f' (a {shape[0]}x{shape[1]} matrix)' if shape else ''))
     return array.reshape(shape) if shape else array
