@@ -103,6 +103,9 @@ def test_eye_to_hand_needs_the_camera_guess_and_plans_with_it(tmp_path, capsys):
 @pytest.mark.parametrize('options, words', [
     (['--count', '1'], '--count must be at least 2'),
     (['--box-min', '0.6', '0', '0', '--box-max', '1', '1', '1'], 'outside the box'),
+    # corners given the wrong way round: it said the start lay outside the box
+    (['--box-min', '1', '1', '1', '--box-max', '0', '0', '0'], '--box-min [1.0, 1.0, 1.0] is '
+     'not below --box-max [0.0, 0.0, 0.0] along x, y, z: the first corner is the smallest'),
     (['--target-distance', '0'], '--target-distance must be a positive number'),
     (['--target-distance', 'inf'], '--target-distance must be a positive number up to 1000'),
     (['--noise-deg', '-1'], '--noise-deg must be a number from 0.0001 to 90, not -1'),
