@@ -508,6 +508,18 @@ def test_solve_dir_with_no_usable_view_names_the_refusals(tmp_path, renderers, c
             f'{names[3]}: not an image OpenCV can read)') in err
 
 
+def test_renamed_images_are_named_beside_the_missing_ones(tmp_path, renderers, capsys):
+    # Every row's image 'missing', and nothing said that the folder held other files.
+    _, names = write_rendered_dataset(tmp_path, renderers['charuco'], 4, seed=5)
+    for name in names:
+        (tmp_path / 'images' / name).rename(tmp_path / 'images' / f'img_{name}')
+    assert solve_main([str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert (f'unreadable_image 4 (first: {names[0]}: missing; images/ holds 4 file(s) that no '
+            f'row of robot_poses.csv names (img_{names[0]}, img_{names[1]}, img_{names[2]}, '
+            '...): are the rows named after them?)') in err, err
+
+
 # --- decoding -------------------------------------------------------------------------------
 
 def with_exif_orientation(jpeg, value):

@@ -120,7 +120,25 @@ def load_image_dataset(folder, checks=Checks(), progress=None):
                                         'detail': view.detail})
         if progress is not None:
             progress(index + 1, len(rows))
+    _name_unlisted(dataset, folder / IMAGES_FOLDER, {name for name, _ in rows})
     return dataset
+
+
+def _name_unlisted(dataset, images, listed):
+    """Add to each missing image's refusal the images no row names (renamed files?)."""
+    missing = [entry for entry in dataset.refused if entry['detail'].startswith('missing')]
+    if not missing:
+        return
+    try:
+        unlisted = sorted(p.name for p in images.iterdir() if p.name not in listed)
+    except OSError:
+        return
+    if unlisted:
+        shown = ', '.join(unlisted[:3]) + (', ...' if len(unlisted) > 3 else '')
+        for entry in missing:
+            entry['detail'] += (f'; {IMAGES_FOLDER}/ holds {len(unlisted)} file(s) that no row '
+                                f'of robot_poses.csv names ({shown}): are the rows named '
+                                'after them?')
 
 
 def _read_gray(path):
