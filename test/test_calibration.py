@@ -358,6 +358,26 @@ def test_inverted_sensor_convention_is_detected_and_named():
     assert error_deg(fixed, cell) < 3 * fixed.uncertainty_deg + 0.01
 
 
+@pytest.mark.parametrize('setup', ['eye_in_hand', 'eye_to_hand'])
+@pytest.mark.parametrize('which', ['link', 'sensor'])
+def test_quaternions_in_the_wrong_component_order_are_named(setup, which):
+    # (w, x, y, z) written where (x, y, z, w) is read: the warning advised another setup, and
+    # following it left a 114 deg error.
+    cell, samples, _ = synthetic(4, 15, setup, rotation_noise_deg=0.2)
+
+    def misread(pose):   # the columns qx, qy, qz, qw holding w, x, y, z
+        return Pose(pose.position, np.roll(pose.quaternion, 1))
+    given = [Sample(s.stamp_ns, misread(s.link) if which == 'link' else s.link,
+                    misread(s.sensor) if which == 'sensor' else s.sensor) for s in samples]
+    result = calibrate(given, CalibrationOptions(setup=setup))
+    assert result.warnings[0].startswith(
+        f'the {which} quaternions look to be written in (w, x, y, z) order where (x, y, z, w) '
+        'is read: reordered, the samples fit well ('), result.warnings
+    assert not any('--setup' in w or '--invert-sensor' in w for w in result.warnings)
+    assert not any('quaternions look' in w for w in calibrate(
+        samples, CalibrationOptions(setup=setup)).warnings)
+
+
 @pytest.mark.parametrize('mistake', ['inverted', 'other setup'])
 def test_the_fix_named_is_not_the_mirror_convention(mistake):
     # eye_in_hand with inverted sensor poses is eye_to_hand with mounting and object swapped:

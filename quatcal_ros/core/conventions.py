@@ -81,13 +81,17 @@ def warnings(samples, options, screen=None):
     """
     if screen is not None and _good(screen):
         return []
-    quick = _quick_fits(_arrays(samples), options)
+    arrays = _arrays(samples)
+    quick = _quick_fits(arrays, options)
     if quick is None:
         return []
     fits = {convention: misfit(*found.residuals) for convention, found in quick.items()}
     current = fits.pop((options.setup, options.invert_sensor))
     if _good(current):
         return []
+    reordered = _quaternion_order(arrays, options, current)
+    if reordered:   # (no convention fits such poses: its advice would mislead)
+        return [reordered]
     others = fits
     best = min(others, key=lambda k: _score(others[k]))
     rotation, position = current
@@ -117,6 +121,39 @@ def warnings(samples, options, screen=None):
             f'Its mirror image, {_name(*mirror)}, also fits ({worse}); if the noise is mostly '
             "in the robot's poses rather than the sensor's, the mirror may be the right one "
             f'instead ({fix(options, *mirror)})']
+
+
+# Quaternions read in the wrong component order: (internal w, x, y, z) rolled by this to
+# undo it, and what was written where. Written (w, x, y, z) into columns read as (x, y, z, w)
+# (a file's or message's order) they read as (z, w, x, y).
+ORDERS = ((-1, '(w, x, y, z)', '(x, y, z, w)'), (1, '(x, y, z, w)', '(w, x, y, z)'))
+
+
+def _quaternion_order(arrays, options, current):
+    """
+    Return a warning when the configured fit is good with some quaternions reordered, or ''.
+
+    The link's, the sensor's or both, each order of ORDERS, under the configured convention:
+    good (_good) and BETTER_FACTOR better than as given.
+    """
+    link_q, link_t, sensor_q, sensor_t = arrays
+    found = []
+    for shift, written, read in ORDERS:
+        rolled = (np.roll(link_q, shift, axis=1), np.roll(sensor_q, shift, axis=1))
+        for which, (lq, sq) in (('link', (rolled[0], sensor_q)),
+                                ('sensor', (link_q, rolled[1])), ('link and sensor', rolled)):
+            fit = misfit(*_quick_fit((lq, link_t, sq, sensor_t), options.setup,
+                                     options.invert_sensor).residuals)
+            if _good(fit) and _score(current) >= BETTER_FACTOR * _score(fit):
+                found.append((_score(fit), which, written, read, fit))
+    if not found:
+        return ''
+    _, which, written, read, fit = min(found)
+    return (f'the {which} quaternions look to be written in {written} order where {read} is '
+            f'read: reordered, the samples fit well ({_fit_text(fit)}), as given badly '
+            f'({_fit_text(current)}); write each quaternion as {read} (the columns qx, qy, '
+            'qz, qw of a file; x, y, z, w of a message), or check the conversion that made '
+            'them. No setup or frame convention fits them as given')
 
 
 def _fit_text(fit):
