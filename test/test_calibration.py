@@ -374,6 +374,7 @@ def test_quaternions_in_the_wrong_component_order_are_named(setup, which):
         f'the {which} quaternions look to be written in (w, x, y, z) order where (x, y, z, w) '
         'is read: reordered, the samples fit well ('), result.warnings
     assert not any('--setup' in w or '--invert-sensor' in w for w in result.warnings)
+    assert 'write each quaternion as x, y, z, w (the columns qx, qy, qz, qw' in result.warnings[0]
     assert not any('quaternions look' in w for w in calibrate(
         samples, CalibrationOptions(setup=setup)).warnings)
 

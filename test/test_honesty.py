@@ -655,6 +655,9 @@ def test_positions_in_millimetres_are_named_as_units_not_a_board_size(link_mm):
     (said,) = [w for w in result.warnings if SCALE_WORDS in w]
     assert f'the {"link" if link_mm else "sensor"} positions look to be in millimetres' in said
     assert 'which is no size error but units' in said and 'board' not in said, said
+    # Negated positions (half an inversion) are no units: not called millimetres.
+    negated = calibrate(simulation.scaled_sensor_positions(samples, -1.0))
+    assert not any('millimetres' in w for w in negated.warnings), negated.warnings
 
 
 def test_too_few_samples_to_judge_the_scale():

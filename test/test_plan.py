@@ -106,6 +106,7 @@ def test_eye_to_hand_needs_the_camera_guess_and_plans_with_it(tmp_path, capsys):
     # corners given the wrong way round: it said the start lay outside the box
     (['--box-min', '1', '1', '1', '--box-max', '0', '0', '0'], '--box-min [1.0, 1.0, 1.0] is '
      'not below --box-max [0.0, 0.0, 0.0] along x, y, z: the first corner is the smallest'),
+    (['--box-min', '0', '0', '0.6', '--box-max', '1', '1', '0.4'], 'along z: the first'),
     (['--target-distance', '0'], '--target-distance must be a positive number'),
     (['--target-distance', 'inf'], '--target-distance must be a positive number up to 1000'),
     (['--noise-deg', '-1'], '--noise-deg must be a number from 0.0001 to 90, not -1'),

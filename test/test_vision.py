@@ -108,6 +108,9 @@ def test_bad_camera_info_is_named():
     with pytest.raises(BadInputError, match=r'camera_info.yaml, field distortion_coefficients: '
                                             r'rows 1 and cols 5 do not describe its 4 numbers'):
         parse_camera(short, 'camera_info.yaml')
+    matrix = {'rows': 3.0, 'cols': 3.0, 'data': CAMERA.K.ravel().tolist()}
+    whole = {**good, 'camera_matrix': matrix}
+    assert parse_camera(whole).width == 640   # (whole numbers written as floats)
     flat = {**good, 'camera_matrix': {'rows': 1, 'cols': 9, 'data': CAMERA.K.ravel().tolist()}}
     with pytest.raises(BadInputError, match=r'field camera_matrix: rows 1 and cols 9 do not '
                                             r'describe its 9 numbers \(a 3x3 matrix\)'):
@@ -374,8 +377,8 @@ def test_solve_dir_refines_on_the_pixels_and_lists_refused_views(repo_root, tmp_
     assert {(r['image'], r['reason']) for r in result['views']['refused']} == {
         (names[4], 'no_board'), (names[9], 'unreadable_image'), ('copy.png', 'repeated_view')}
     # ... and said in the warnings (on the report page too): they were in the JSON alone.
-    (said,) = [w for w in result['warnings'] if 'gave no board pose' in w]
-    assert said.startswith('3 of 17 images gave no board pose and are not used: ') and \
+    (said,) = [w for w in result['warnings'] if 'images are not used' in w]
+    assert said.startswith('3 of 17 images are not used: ') and \
         names[4] in said and names[9] in said and 'copy.png' in said, said
     q = [result['rotation'][k] for k in 'wxyz']
     angle = np.degrees(quat.angle_between(q, mounting.quaternion))

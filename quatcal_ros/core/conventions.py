@@ -126,7 +126,14 @@ def warnings(samples, options, screen=None):
 # Quaternions read in the wrong component order: (internal w, x, y, z) rolled by this to
 # undo it, and what was written where. Written (w, x, y, z) into columns read as (x, y, z, w)
 # (a file's or message's order) they read as (z, w, x, y).
-ORDERS = ((-1, '(w, x, y, z)', '(x, y, z, w)'), (1, '(x, y, z, w)', '(w, x, y, z)'))
+# The advice: every file and message holds x, y, z, w; only a program that builds the
+# package's poses itself (w, x, y, z) can make the second mistake.
+ORDERS = ((-1, '(w, x, y, z)', '(x, y, z, w)',
+           'write each quaternion as x, y, z, w (the columns qx, qy, qz, qw of a file; x, y, '
+           'z, w of a message), or check the conversion that made them'),
+          (1, '(x, y, z, w)', '(w, x, y, z)',
+           "a program that builds the package's poses itself gives their quaternions as "
+           '(w, x, y, z)'))
 
 
 def _quaternion_order(arrays, options, current):
@@ -138,22 +145,21 @@ def _quaternion_order(arrays, options, current):
     """
     link_q, link_t, sensor_q, sensor_t = arrays
     found = []
-    for shift, written, read in ORDERS:
+    for shift, written, read, advice in ORDERS:
         rolled = (np.roll(link_q, shift, axis=1), np.roll(sensor_q, shift, axis=1))
         for which, (lq, sq) in (('link', (rolled[0], sensor_q)),
                                 ('sensor', (link_q, rolled[1])), ('link and sensor', rolled)):
             fit = misfit(*_quick_fit((lq, link_t, sq, sensor_t), options.setup,
                                      options.invert_sensor).residuals)
             if _good(fit) and _score(current) >= BETTER_FACTOR * _score(fit):
-                found.append((_score(fit), which, written, read, fit))
+                found.append((_score(fit), which, written, read, advice, fit))
     if not found:
         return ''
-    _, which, written, read, fit = min(found)
+    _, which, written, read, advice, fit = min(found)
     return (f'the {which} quaternions look to be written in {written} order where {read} is '
             f'read: reordered, the samples fit well ({_fit_text(fit)}), as given badly '
-            f'({_fit_text(current)}); write each quaternion as {read} (the columns qx, qy, '
-            'qz, qw of a file; x, y, z, w of a message), or check the conversion that made '
-            'them. No setup or frame convention fits them as given')
+            f'({_fit_text(current)}); {advice}. No setup or frame convention fits them as '
+            'given')
 
 
 def _fit_text(fit):

@@ -128,7 +128,7 @@ def warning(found):
     axes = ', '.join(f'{axis} {scale:.4f} +- {sd:.4f}' for axis, scale, sd
                      in zip(AXES, found.scale, found.uncertainty))
     factor = float(np.median(found.scale))
-    if off.all() and not 0.1 < factor < 10.0:   # units, not a size: millimetres for metres
+    if off.all() and factor > 0.0 and not 0.1 < factor < 10.0:   # units: mm for metres
         return (f"the sensor's positions fit the mounting best scaled by ({axes}) along the "
                 f"sensor's axes: a factor of {factor:.4g}, which is no size error but units: "
                 f'the {"link" if factor > 1 else "sensor"} positions look to be in '

@@ -163,8 +163,8 @@ def _solve_images(prog, args):
              'camera_info.yaml (the camera matrix; zero distortion for rectified images)']
             if result.validation.get('verdict') == 'fail' else [])
     if data.refused:   # said only in the JSON's views.refused, and on no page
-        hint.append(f'{len(data.refused)} of {total} images gave no board pose and are not '
-                    f'used: {data.refusal_summary()} (the "views" key lists each)')
+        hint.append(f'{len(data.refused)} of {total} images are not used: '
+                    f'{data.refusal_summary()} (the "views" key lists each)')
     return print_result(prog, session, where, hint, frames=frames, result=on_pixels,
                         limits=plan_limits(settings_of(args)), report=args.report,
                         extra={'views': views, 'reprojection': fit.to_json_dict(),

@@ -135,8 +135,8 @@ def plan_document(args):
     mounting, target = _guesses(args, start)
     low = np.asarray(args.box_min if args.box_min else start.position - DEFAULT_BOX_HALF_M)
     high = np.asarray(args.box_max if args.box_max else start.position + DEFAULT_BOX_HALF_M)
-    if not np.all(low < high):
-        axes = ', '.join(axis for axis, a, b in zip('xyz', low, high) if not a < b)
+    if not np.all(low <= high):   # (equal: a flat box, one height)
+        axes = ', '.join(axis for axis, a, b in zip('xyz', low, high) if not a <= b)
         raise ValueError(f'--box-min {low.tolist()} is not below --box-max {high.tolist()} '
                          f'along {axes}: the first corner is the smallest x, y and z')
     if not np.all(low <= start.position) or not np.all(start.position <= high):

@@ -123,12 +123,20 @@ def _matrix(document, field, name, shape):
     if array is None or array.ndim != 1 or (shape and array.size != shape[0] * shape[1]):
         raise BadInputError(f'{name}, field {field}: expected {{rows, cols, data: [...]}} '
                             f'with {shape[0] * shape[1] if shape else "the"} numbers')
-    rows, cols = value.get('rows'), value.get('cols')
-    if rows is not None and cols is not None and (
-            not isinstance(rows, int) or not isinstance(cols, int) or rows * cols != array.size
+    rows, cols = (_whole(value.get(key)) for key in ('rows', 'cols'))
+    if value.get('rows') is not None and value.get('cols') is not None and (
+            rows is None or cols is None or rows * cols != array.size
             or (shape and (rows, cols) != tuple(shape))):
         # (a file edited by hand: the numbers may not be the ones meant)
-        raise BadInputError(f'{name}, field {field}: rows {rows!r} and cols {cols!r} do not '
+        raise BadInputError(f'{name}, field {field}: rows {value["rows"]!r} and cols '
+                            f'{value["cols"]!r} do not '
                             f'describe its {array.size} numbers'
                             + (f' (a {shape[0]}x{shape[1]} matrix)' if shape else ''))
     return array.reshape(shape) if shape else array
+
+
+def _whole(number):
+    """Return `number` as an int when it is a whole number (3 or 3.0), else None."""
+    if isinstance(number, bool) or not isinstance(number, (int, float)):
+        return None
+    return int(number) if float(number).is_integer() else None
