@@ -453,7 +453,7 @@ class CalibratorNode(Node):
         self.handle_events(self.session.pop_events())
         skipped = skipped_text(self.stats)
         if not ok and reason.startswith('no paired poses') and skipped:
-            reason += f' (so far {skipped})'   # images without a board: not the clocks
+            reason += f' (so far {skipped})'   # (no board, other units): not the clocks
         if not ok:
             self.get_logger().info(f'capture refused: {reason}')
         response.success, response.message = bool(ok), reason
