@@ -516,6 +516,9 @@ def test_renamed_images_are_named_beside_the_missing_ones(tmp_path, renderers, c
     _, names = write_rendered_dataset(tmp_path, renderers['charuco'], 4, seed=5)
     for name in names:
         (tmp_path / 'images' / name).rename(tmp_path / 'images' / f'img_{name}')
+    for litter in ('.DS_Store', 'Thumbs.db'):   # not named among them
+        (tmp_path / 'images' / litter).write_bytes(b'')
+    (tmp_path / 'images' / 'old').mkdir()
     assert solve_main([str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert (f'unreadable_image 4 (first: {names[0]}: missing; images/ holds 4 file(s) that no '

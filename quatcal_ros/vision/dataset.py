@@ -124,13 +124,19 @@ def load_image_dataset(folder, checks=Checks(), progress=None):
     return dataset
 
 
+# Files a desktop leaves in a folder of pictures: no image a row could have meant.
+SYSTEM_FILES = ('thumbs.db', 'desktop.ini')
+
+
 def _name_unlisted(dataset, images, listed):
     """Add to each missing image's refusal the images no row names (renamed files?)."""
     missing = [entry for entry in dataset.refused if entry['detail'].startswith('missing')]
     if not missing:
         return
     try:
-        unlisted = sorted(p.name for p in images.iterdir() if p.name not in listed)
+        unlisted = sorted(p.name for p in images.iterdir() if p.name not in listed
+                          and p.is_file() and not p.name.startswith('.')
+                          and p.name.lower() not in SYSTEM_FILES)
     except OSError:
         return
     if unlisted:
