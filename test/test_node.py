@@ -340,31 +340,40 @@ def test_stamps_on_clocks_seconds_apart_are_named_with_the_offset_to_set(harness
     cell = simulation.random_cell(np.random.default_rng(3))
     sensor = cell.sensor_pose(cell.home)
     h = harness_factory()
-    ms = NS // 1000
-    now = h.node.now_ns()
-    # Published at once, in the order they would come: the last of each stream now.
-    events = [('link_pose', now - 3 * NS + k * 10 * ms, cell.home) for k in range(301)]
-    events += [('sensor_pose', now - NS + k * 30 * ms - int(behind_s * NS), sensor)
-               for k in range(34)]
-    arrival = {'link_pose': 0, 'sensor_pose': int(behind_s * NS)}
-    h.publish_events(sorted(events, key=lambda e: e[1] + arrival[e[0]]))
+    # Stamped as they are sent, for 2 s: each pose arrives a transport delay after its stamp
+    # (the sensor's behind_s more), whatever the load (stamps set beforehand and sent at once
+    # made the lags depend on how long sending took). The last link poses wait for the status
+    # timer's flush: timed at flush, they read 1 s late and the offset 1 s short.
+    for k in range(200):
+        now = h.node.now_ns()
+        h.publish('link_pose', now, cell.home)
+        if k % 3 == 0:
+            h.publish('sensor_pose', now - int(behind_s * NS), sensor)
+        h.spin_for(0.01)
+    h.wait_received()
 
-    def warned(status):
-        return status.level == DiagnosticStatus.WARN and 'clocks' in status.message
+    def warned(status):   # 1.5 s behind, pairs come once the link poses cover 1.5 s
+        return (status.level == DiagnosticStatus.WARN and 'clocks' in status.message
+                and (not paired or 'could be paired' not in status.message))
     status = h.next_status(warned)
     found = re.search(r'the sensor stamps run ([0-9.]+) s behind the link stamps, against the '
                       r'times their poses arrive: the two clocks are not synchronised \(.*set '
                       r'sensor_time_offset_s:=([0-9.]+),', status.message)
     assert found and found[1] == found[2], status.message
-    assert abs(float(found[1]) - behind_s) < 0.1, status.message   # (publishing takes time)
+    assert abs(float(found[1]) - behind_s) < 0.3, status.message   # (the transport delays)
     assert ('could be paired; the latest: sensor stamp' in status.message) is not paired, \
         status.message
     # Set, the offset is judged with it: the warning goes.
     (changed,) = h.node.set_parameters([Parameter('sensor_time_offset_s', value=behind_s)])
     assert changed.successful
-    now = h.node.now_ns()
-    h.publish_events([('link_pose', now - k * ms, cell.home) for k in range(10, 0, -1)]
-                     + [('sensor_pose', now - int(behind_s * NS), sensor)])
+    for k in range(20):
+        now = h.node.now_ns()
+        h.publish('link_pose', now, cell.home)
+        if k % 3 == 0:
+            h.publish('sensor_pose', now - int(behind_s * NS), sensor)
+        h.spin_for(0.01)
+    h.wait_received()
+    h.next_status()   # (the period of the poses sent before the change ends)
     status = h.next_status()
     assert 'clocks are not synchronised' not in status.message, status.message
 

@@ -81,6 +81,7 @@ class NodeInputs:
         self._deliver_rows = deliver_rows
         self._held = []          # raw link messages not decoded yet (module docstring)
         self._held_since_ns = 0  # steady clock at the first of them
+        self._held_last_ns = 0   # and at the last: when the batch came, however late flushed
         self._held_kind = None
         # {stream: (header.frame_id, child frame or None)} of its first message since the node
         # last cleared it (pose topics and images), for stream.frame_notices
@@ -234,7 +235,9 @@ class NodeInputs:
         checks = self.screen.config
         decoded = cdr.decode_poses(held, RAW_TYPES[kind], frame_id=checks.frame_id(LINK),
                                    max_position_m=checks.max_position_m)
-        now_ns = self._node.now_ns()
+        # The node clock when the batch's last message came: a batch the status timer flushes
+        # (the streams stopped) waited up to a period, which is no latency of the poses.
+        now_ns = self._node.now_ns() - max(0, time.monotonic_ns() - self._held_last_ns)
         ok = decoded.ok & message_checks.stamps_usable(decoded.stamps_ns, now_ns,
                                                        checks.max_stamp_offset_ns)
         for start, stop, good in cdr.stretches(ok):
@@ -253,6 +256,7 @@ class NodeInputs:
         now = time.monotonic_ns()
         if not self._held:
             self._held_since_ns = now
+        self._held_last_ns = now
         self._held.append(raw)
         if len(self._held) >= LINK_BATCH or now - self._held_since_ns >= LINK_BATCH_AGE_NS:
             self.flush()
