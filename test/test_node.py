@@ -344,13 +344,16 @@ def test_stamps_on_clocks_seconds_apart_are_named_with_the_offset_to_set(harness
     # (the sensor's behind_s more), whatever the load (stamps set beforehand and sent at once
     # made the lags depend on how long sending took). The last link poses wait for the status
     # timer's flush: timed at flush, they read 1 s late and the offset 1 s short.
-    for k in range(200):
-        now = h.node.now_ns()
-        h.publish('link_pose', now, cell.home)
-        if k % 3 == 0:
-            h.publish('sensor_pose', now - int(behind_s * NS), sensor)
-        h.spin_for(0.01)
-    h.wait_received()
+
+    def send(count):
+        for k in range(count):
+            now = h.node.now_ns()
+            h.publish('link_pose', now, cell.home)
+            if k % 3 == 0:
+                h.publish('sensor_pose', now - int(behind_s * NS), sensor)
+            h.spin_for(0.01)
+        h.wait_received()
+    send(200)
 
     def warned(status):   # 1.5 s behind, pairs come once the link poses cover 1.5 s
         return (status.level == DiagnosticStatus.WARN and 'clocks' in status.message
@@ -366,13 +369,7 @@ def test_stamps_on_clocks_seconds_apart_are_named_with_the_offset_to_set(harness
     # Set, the offset is judged with it: the warning goes.
     (changed,) = h.node.set_parameters([Parameter('sensor_time_offset_s', value=behind_s)])
     assert changed.successful
-    for k in range(20):
-        now = h.node.now_ns()
-        h.publish('link_pose', now, cell.home)
-        if k % 3 == 0:
-            h.publish('sensor_pose', now - int(behind_s * NS), sensor)
-        h.spin_for(0.01)
-    h.wait_received()
+    send(20)
     h.next_status()   # (the period of the poses sent before the change ends)
     status = h.next_status()
     assert 'clocks are not synchronised' not in status.message, status.message
