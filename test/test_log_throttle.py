@@ -81,3 +81,16 @@ def test_event_log_reset_logs_every_kind_again():
     log.reset()                                   # a cleared session: its first lines again
     log.log([event], lambda result: None)
     assert len(logger.lines) == 2
+
+
+def test_a_standing_problem_is_logged_once_after_its_delay_and_again_when_it_returns():
+    from quatcal_ros.stream.log_throttle import StandingLog
+    log = StandingLog(after=5, key=lambda text: text.split(' (')[0])
+    assert log.due(['no frame tool_0 (seen: a)'], 0) == []          # not yet 5 long
+    assert log.due(['no frame tool_0 (seen: a, b)'], 5) == ['no frame tool_0 (seen: a, b)']
+    assert log.due(['no frame tool_0 (seen: a, b, c)'], 9) == []    # said, still standing
+    assert log.due([], 10) == []                                     # gone...
+    assert log.due(['no frame tool_0 (seen: a)'], 11) == []          # ... back: 5 again
+    assert log.due(['no frame tool_0 (seen: a)'], 16) == ['no frame tool_0 (seen: a)']
+    once = StandingLog(forget=False)
+    assert once.due(['x'], 0) == ['x'] and once.due([], 1) == [] and once.due(['x'], 2) == []

@@ -15,7 +15,6 @@ import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.ros import conversions
-from quatcal_ros.ros import node as node_module
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.ros.qos import TF_QOS, TF_STATIC_BROADCAST_QOS
 from quatcal_ros.ros.sim_cell import CAMERA_LINK_TO_SENSOR as CAMERA_LINK_TO_OPTICAL
@@ -291,8 +290,7 @@ def test_a_frame_that_never_comes_is_named_on_diagnostics(tf_harness):
     assert 'no message at all' not in h.node.diagnostic_status().message
     # Only /diagnostics said so; the log is told once the problem has stood a while (not
     # while the first transforms come in).
-    h.node._input_problem_since = {key: since - int(node_module.TF_PROBLEM_LOG_S * 1e9)
-                                   for key, since in h.node._input_problem_since.items()}
+    h.node._tf_log.after = 0   # (as if it had stood TF_PROBLEM_LOG_S)
     with logged_warnings(h.node) as warned:
         h.node.diagnostic_status()
         h.node.diagnostic_status()

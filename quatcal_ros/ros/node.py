@@ -50,6 +50,7 @@ from quatcal_ros.ros.static_tf import StaticTf
 from quatcal_ros.stream import arrival_lag
 from quatcal_ros.stream import frame_notices
 from quatcal_ros.stream import settings
+from quatcal_ros.stream.log_throttle import StandingLog
 from quatcal_ros.stream.message_checks import LINK, SENSOR
 from quatcal_ros.stream.session import EstimateUpdated, SampleCaptured, Session
 from quatcal_ros.stream.settings import ConfigError, easy_handeye2_frames
@@ -107,10 +108,13 @@ class CalibratorNode(Node):
         self._newest_stamp = {}   # stream: (its latest stamp, the node clock when it came)
         self._lags = arrival_lag.ArrivalLag()   # the streams' clocks, from arrival times
         self._lags_jumps = 0   # the session's time jumps when the lags started
-        self._frames_said = set()   # the frame notices logged
-        self._clock_said = False    # the clock warning logged, and standing since
-        self._input_problem_since = {}   # each TF input problem: when it was first seen
-        self._input_problems_said = set()   # those logged, while they stand
+        # Problems logged once (besides /diagnostics): each frame notice once; the clock
+        # warning (its offset changes) once while it stands; a TF input problem (its list of
+        # frames changes) once it has stood TF_PROBLEM_LOG_S, while it stands.
+        self._frames_log = StandingLog(forget=False)
+        self._clock_log = StandingLog(key=lambda text: 'clocks')
+        self._tf_log = StandingLog(TF_PROBLEM_LOG_S * 1e9,
+                                   key=lambda text: text.split(':', 2)[1])
         self._frames = {}   # stream: its latest (header, child) frames judged (_frame_problems)
         self.next_pose_publisher = self.create_publisher(
             PoseStamped, '~/next_pose', LATCHED_QOS, event_callbacks=quiet_publisher_events())
@@ -378,18 +382,13 @@ class CalibratorNode(Node):
         the frames of /tf_static and /tf come in over the first second or two.
         """
         found = self.inputs.problems()
-        now = self._steady.now().nanoseconds
-        standing = {}
-        for text in found:
-            key = tuple(text.split(':', 2)[:2])   # ('TF input', ' a -> b cannot be ...')
-            since = self._input_problem_since.get(key, now)
-            standing[key] = since
-            if now - since >= TF_PROBLEM_LOG_S * 1e9 and key not in self._input_problems_said:
-                self._input_problems_said.add(key)
-                self.get_logger().warning(text)
-        self._input_problem_since = standing
-        self._input_problems_said &= set(standing)   # said again if it comes back later
+        self._log_standing(self._tf_log, found)
         return found
+
+    def _log_standing(self, log, texts):
+        """Log as warnings those of the problems `texts` that the StandingLog `log` says."""
+        for text in log.due([text for text in texts if text], self._steady.now().nanoseconds):
+            self.get_logger().warning(text)
 
     def _settle_held(self):
         """Count a pose the old session held undecided, which the new one never saw (good)."""
@@ -403,9 +402,7 @@ class CalibratorNode(Node):
         self._lags.end_period()
         configured = self.session.config.sensor_offset_ns
         text = arrival_lag.problem(self._lags.offset_ns(configured), configured)
-        if text is not None and not self._clock_said:
-            self.get_logger().warning(text)
-        self._clock_said = text is not None
+        self._log_standing(self._clock_log, [text])
         return text
 
     def _frame_problems(self):
@@ -424,10 +421,7 @@ class CalibratorNode(Node):
                 seen[stream] = (normalize_frame(expected), seen[stream][1])
         said = frame_notices.notices(seen, config.setup, config.invert_sensor,
                                      tuple(map(normalize_frame, config.result_frames)))
-        for text in said:
-            if text not in self._frames_said:
-                self._frames_said.add(text)
-                self.get_logger().warning(text)
+        self._log_standing(self._frames_log, said)
         return said
 
     def _watch_status(self):

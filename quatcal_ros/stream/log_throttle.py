@@ -1,5 +1,7 @@
 """
-One log line per kind of event at most every LOG_THROTTLE_S: LogThrottle.
+Log lines kept few: LogThrottle per kind of event, StandingLog per standing problem.
+
+LogThrottle logs one line per kind of event at most every LOG_THROTTLE_S.
 
 rclpy's own throttle (throttle_duration_sec) is per line of code: of several kinds of event
 logged from one line (a bad message's reasons, a refused view's, an estimate's warnings), only
@@ -56,3 +58,35 @@ class LogThrottle:
         for key in [key for key, due in self._due.items() if due <= now and not self._held[key]]:
             del self._due[key]
             self._held.pop(key, None)
+
+
+class StandingLog:
+    """
+    Which of the problems a status finds to log: each once while it stands.
+
+    A problem is known by key(text) (its text, by default: a text that carries a changing
+    number needs a key without it). It is logged once it has stood for `after` (the caller's
+    steady clock; 0: at once), then not again while it stands; with `forget`, one that went
+    away and comes back is logged again.
+    """
+
+    def __init__(self, after=0, key=None, forget=True):
+        self.after = after
+        self.key = key or (lambda text: text)
+        self.forget = forget
+        self._since = {}    # key: when it was first seen standing
+        self._said = set()  # keys logged
+
+    def due(self, texts, now):
+        """Return those of the problems standing now, `texts`, to log now."""
+        standing, due = {}, []
+        for text in texts:
+            key = self.key(text)
+            standing[key] = since = self._since.get(key, now)
+            if now - since >= self.after and key not in self._said:
+                self._said.add(key)
+                due.append(text)
+        self._since = standing
+        if self.forget:
+            self._said &= set(standing)
+        return due
