@@ -301,6 +301,11 @@ def test_manual_capture_service(harness_factory):
     assert not refused.success and ('(so far 8 bad messages skipped, most for '
                                     'implausible_position on sensor_pose, the first: position '
                                     '[0.0, 0.0, 2000000.0] m is farther than') in refused.message
+    # ~/reset starts the count over: what was skipped before it is not this session's.
+    assert h.call('reset').success
+    refused = h.call('capture')
+    assert not refused.success and 'so far' not in refused.message
+    assert h.node.stats.bad_total == 8   # (/diagnostics keeps counting since the start)
 
     def publish_still(link):
         now = h.node.now_ns()

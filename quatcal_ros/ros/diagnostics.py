@@ -144,9 +144,11 @@ def skipped_text(stats, stream=None):
     """
     Return 'N bad messages skipped, most for REASON on STREAM, the first: WHY', or ''.
 
-    Of `stream` alone when given; WHY is the first such message's explanation (its hint).
+    Of `stream` alone when given, since the session started (~/reset starts over); WHY is
+    the first such message's explanation (its hint).
     """
-    counts = [(key, n) for key, n in stats.bad.most_common() if stream in (None, key[0])]
+    counts = [(key, n) for key, n in stats.bad_in_session().most_common()
+              if stream in (None, key[0])]
     if not counts:
         return ''
     (where, reason), _ = counts[0]
@@ -178,8 +180,9 @@ def status_message(session, stats, topics=None, composed=(), result=None):
             parts.append(f'nothing on {" and ".join(quiet)} yet')
         if parts:
             return f'waiting for poses ({", and ".join(parts)})'
-        if stats.bad_total:
-            return f'waiting for poses ({skipped_text(stats)})'
+        skipped = skipped_text(stats)
+        if skipped:
+            return f'waiting for poses ({skipped})'
         counters = session.counters   # since the session (re)started: ~/reset clears them
         idle = [topics.get(s, s) for s in (LINK, SENSOR)
                 if not counters[SESSION_COUNTERS[s]]]

@@ -458,6 +458,7 @@ class CalibratorNode(Node):
         discarded = len(self.session.samples)
         self.session.reset()
         self._settle_held()
+        self.stats.start_session()
         self._lags, self._lags_jumps = arrival_lag.ArrivalLag(), 0
         self.log.reset()
         self.moves.reset()

@@ -232,6 +232,7 @@ class StreamStats:
         self.received = Counter()
         self.good = Counter()
         self.bad = Counter()                # (stream, reason): count
+        self._bad_before_session = Counter()  # `bad` when the session last started over
         self.first_ns = None
         self.last_ns = {}
         self.last_good_ns = {}
@@ -301,6 +302,14 @@ class StreamStats:
         self.first_detail.setdefault(key, detail)
         self.last_bad[stream] = reason
         return self._log.due(key, steady_ns)
+
+    def start_session(self):
+        """Start counting `bad_in_session` from zero (the session started over: ~/reset)."""
+        self._bad_before_session = Counter(self.bad)
+
+    def bad_in_session(self):
+        """Return the bad messages per (stream, reason) since `start_session`."""
+        return self.bad - self._bad_before_session
 
     def example(self, stream, reason):
         """Return the text of the first bad message of (stream, reason), or ''."""
