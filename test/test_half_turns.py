@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from quatcal_ros.core import calibration
 from quatcal_ros.core import half_turns
+from quatcal_ros.core import quality
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate
 from quatcal_ros.core.motions import SampleRotations
@@ -122,3 +123,18 @@ def test_half_turns_among_turns_about_one_axis(n):
     alike = half_turns.alternatives(rotations, result.closed_form.quaternion,
                                     np.ones(n, dtype=bool))
     assert len(alike) == 2   # the answer and its half-turn about z
+
+
+def test_object_residuals_of_several_rotations_are_each_rotations_own():
+    """The alternatives are judged with quality.object_residuals, batched over rotations."""
+    rng = np.random.default_rng(8)
+    cell = sim.random_cell(rng)
+    samples = turned_samples(rng, cell, HALF_TURNS + [([0, 0, 1], 40.0), ([1, 1, 0], 60.0)])
+    rotations = SampleRotations.from_samples(samples, 'eye_in_hand')
+    tried = np.array([quat.from_rotation_vector(rng.normal(size=3)) for _ in range(3)])
+    inliers = np.array([True, True, False, True, True])
+    residuals, means = quality.object_residuals(rotations, tried, inliers)
+    for k, q in enumerate(tried):
+        alone, mean = quality.object_residuals(rotations, q, inliers)
+        np.testing.assert_allclose(residuals[k], alone, atol=1e-12)
+        np.testing.assert_allclose(means[k], mean, atol=1e-12)

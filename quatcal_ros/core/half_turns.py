@@ -26,6 +26,7 @@ import itertools
 import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.leastsq import all_pairs_rotation, ANCHORS
+from quatcal_ros.core.quality import object_residuals
 
 # A motion whose scalar parts |a_0| and |b_0| (link and sensor) are both below this decides no
 # sign: it turns by more than about 155 degrees (cos(77.5 deg) = 0.22). (Samples of another
@@ -112,8 +113,6 @@ def _half_turns_of(rotations, q_z, sample_ok):
 
 def _residual_rms(rotations, rotations_tried, sample_ok):
     """Return each rotation's RMS angle (radians) of the good samples' Z_i about their mean."""
-    Z = np.einsum('nij,pj->pni', rotations.matrices[sample_ok],
-                  np.asarray(rotations_tried, dtype=float))            # (P, N, 4)
-    mean = quat.average(Z)                                              # (P, 4)
-    angles = quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean)[:, None, :]))
-    return np.sqrt(np.mean(np.sum(angles ** 2, axis=-1), axis=-1))
+    residuals = object_residuals(rotations, np.asarray(rotations_tried, dtype=float),
+                                 sample_ok)[0][:, sample_ok]                # (P, N, 3)
+    return np.sqrt(np.mean(np.sum(residuals ** 2, axis=-1), axis=-1))

@@ -82,9 +82,10 @@ class SampleRotations:
         """
         Z_i = link_i (x) q_z (x) sensor_i: the object's orientation in the base frame.
 
-        Constant for noise-free data; the spread of Z_i measures each sample's error.
+        Constant for noise-free data; the spread of Z_i measures each sample's error. q_z of
+        shape (..., 4) gives (..., N, 4): every sample's Z_i for each rotation.
         """
-        return self.matrices @ np.asarray(q_z, dtype=float)
+        return (self.matrices @ np.asarray(q_z, dtype=float)[..., None, :, None])[..., 0]
 
 
 def pair_indices(n, pairing='all'):

@@ -39,10 +39,14 @@ def sample_residuals(rotations, q_z, inliers=None):
 
 
 def object_residuals(rotations, q_z, inliers=None):
-    """Return sample_residuals and the mean object orientation Z (w, x, y, z) they are about."""
+    """
+    Return sample_residuals and the mean object orientation Z (w, x, y, z) they are about.
+
+    Of each rotation, when q_z holds several (shape (P, 4): residuals (P, N, 3), means (P, 4)).
+    """
     Z = rotations.object_orientations(q_z)
-    mean = quat.average(Z if inliers is None else Z[inliers])
-    return quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean))), mean
+    mean = quat.average(Z if inliers is None else Z[..., inliers, :])
+    return quat.rotation_vector(quat.multiply(Z, quat.conjugate(mean)[..., None, :])), mean
 
 
 def noise_sigma(residuals):
