@@ -20,7 +20,7 @@ from dataclasses import replace
 import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.vision.detect import detect
-from quatcal_ros.vision.reprojection import refine_from_poses
+from quatcal_ros.vision.reprojection import MIN_BLOCK_VIEWS, refine_from_poses
 from quatcal_ros.vision.view import Checks, View
 
 # Usable views kept for the next sample's corners; a still window at 30 Hz has ~15.
@@ -168,9 +168,18 @@ def mean_corners(views):
 
 
 def result_on_pixels(result, fit):
-    """Return the CalibrationResult `result` with the mounting and uncertainty of `fit`."""
+    """
+    Return the CalibrationResult `result` with the mounting and uncertainty of `fit`.
+
+    Its warnings say when the uncertainty is the pixel model's alone (too few views).
+    """
+    few = ([f'with {len(fit.view_rms_px)} views the uncertainty on the pixels is the pixel '
+            "noise's alone: it leaves out errors that all corners of a view share (the "
+            "robot's pose error, on real cells often several times larger); from "
+            f'{MIN_BLOCK_VIEWS} views on it is measured over the views']
+           if fit.resampled is None else [])
     return replace(result, quaternion=fit.quaternion,
                    matrix=quat.matrix_from_quaternion(fit.quaternion),
                    translation=fit.translation, uncertainty_deg=fit.uncertainty_deg,
                    translation_uncertainty_mm=fit.translation_uncertainty_mm,
-                   method='reprojection')
+                   method='reprojection', warnings=[*result.warnings, *few])
