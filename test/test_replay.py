@@ -710,6 +710,31 @@ def test_a_clock_offset_beyond_the_pairing_window_is_named_with_its_correction(
     # Stamps on one clock: no centre, as before (the ETH recording, below, searches around 0).
 
 
+def test_a_clock_offset_within_the_pairing_window_is_named_from_the_log_times(
+        repo_root, streams, tmp_path):
+    # Sensor stamps 1.5 s ahead: the poses pair, with the wrong partners, and the answer came
+    # out wrong with a warning to widen the sensor's still bands.
+    def ahead(msg, first):
+        msg.header.stamp.sec += 1
+        msg.header.stamp.nanosec += 500_000_000
+        if msg.header.stamp.nanosec >= 1_000_000_000:
+            msg.header.stamp.sec += 1
+            msg.header.stamp.nanosec -= 1_000_000_000
+    done = replay_changed(repo_root, streams, tmp_path / 'ahead', '/sensor_pose', ahead)
+    said = ("the sensor stamps run 1.47 s ahead of the link stamps against the bag's log "
+            'times: the clocks are offset, and poses may have been paired with the wrong '
+            'partners; --sensor-time-offset -1.47 corrects it')
+    assert any(w.startswith(said) for w in json.loads(done.stdout)['warnings']), done.stdout
+    corrected = run_replay(repo_root, tmp_path / 'ahead', *TOPICS, '--sensor-time-offset',
+                           '-1.47', '--quiet')
+    assert not any('log times' in w for w in json.loads(corrected.stdout)['warnings'])
+    given = run_replay(repo_root, tmp_path / 'ahead', *TOPICS, '--sensor-time-offset', '-0.5',
+                       '--quiet')
+    assert any(w.startswith('the sensor stamps run 0.97 s ahead of the link stamps (with '
+                            "--sensor-time-offset -0.5) against the bag's log times")
+               for w in json.loads(given.stdout)['warnings']), given.stdout
+
+
 def test_a_clock_offset_is_read_from_the_log_times_whenever_each_stream_began(
         repo_root, streams, tmp_path):
     # Sensor stamps 3 s ahead, and the camera started 2 s after the robot: the first stamps

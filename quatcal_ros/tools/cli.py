@@ -24,7 +24,7 @@ from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import format_samples
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
 from quatcal_ros.files.text_input import BadInputError
-from quatcal_ros.stream.arrival_lag import stamps_apart
+from quatcal_ros.stream.arrival_lag import APART_NS, stamps_apart
 from quatcal_ros.stream.capture import unsteady_sensor_note
 from quatcal_ros.stream.recorded_stream import RecordedStream
 from quatcal_ros.stream.session import Rejected, Session
@@ -497,6 +497,9 @@ def replay_main(argv=None):
     session.estimate()
     warnings = (notes + report.warnings()
                 + bag.frame_warnings(report, args.setup, args.invert_sensor))
+    if not args.estimate_time_offset:   # (the search starts from what the log times say)
+        warnings += _logged_clocks(bag.clock_offset_ns(replay, report),
+                                   config.sensor_offset_ns)
     if session.result is not None:   # the live node's moved-marker watch, over the whole bag
         options = config.calibration
         moved = MoveWatch().check(session.samples, session.result.quaternion, options.setup,
@@ -578,6 +581,22 @@ class _StreamRecorder:
 
 # A clock offset the bag's log times show beyond this centres the time-offset search on it.
 LOGGED_OFFSET_NS = 250_000_000
+
+
+def _logged_clocks(logged_ns, given_ns):
+    """
+    Return [the warning on clocks the bag's log times show offset beyond the one given], or [].
+
+    As the node's (stream/arrival_lag.py): beyond APART_NS, poses pair with the wrong partners
+    (the link buffer holds 2 s) and the answer is wrong with no other sign than its residual.
+    """
+    if logged_ns is None or abs(logged_ns - given_ns) <= APART_NS:
+        return []
+    given = f' (with --sensor-time-offset {given_ns / NS_PER_S:g})' if given_ns else ''
+    return [f"{stamps_apart(logged_ns - given_ns)}{given} against the bag's log times: the "
+            'clocks are offset, and poses may have been paired with the wrong partners; '
+            f'--sensor-time-offset {logged_ns / NS_PER_S:.2f} corrects it, and '
+            '--estimate-time-offset measures it, searching around that']
 
 
 def _replay_with_time_offset(replay, config, args):
