@@ -66,6 +66,13 @@ def solve(data, picked, setup):
                                      result, setup)
 
 
+def off(estimate, quaternion, translation):
+    """Return (deg, mm) of `estimate` from the mounting given, and its two uncertainties."""
+    return (np.degrees(quat.angle_between(estimate.quaternion, quaternion)),
+            1e3 * np.linalg.norm(estimate.translation - translation),
+            estimate.uncertainty_deg, estimate.translation_uncertainty_mm)
+
+
 def rendered(args, rng):
     """Return the ImageDataset of a rendered folder and its true mounting."""
     with tempfile.TemporaryDirectory() as scratch:
@@ -83,10 +90,7 @@ def halves_table(data, setup, halves, rng, source):
         half = solve(data, np.sort(rng.choice(n, n // 2, replace=False)), setup)
         sources.add('view_blocks' if half[1].resampled is not None else 'model')
         for name, estimate, full in zip(('pose-based', 'pixels'), half, whole):
-            deviations[name].append((
-                np.degrees(quat.angle_between(estimate.quaternion, full.quaternion)),
-                1e3 * np.linalg.norm(estimate.translation - full.translation),
-                estimate.uncertainty_deg, estimate.translation_uncertainty_mm))
+            deviations[name].append(off(estimate, full.quaternion, full.translation))
     print(f'{source}: {n} views used ({len(data.refused)} refused), {halves} '
           f'halves of {n // 2}; pixel uncertainty of the halves from {", ".join(sorted(sources))}')
     print('| estimate | whole: uncertainty (deg, mm) | halves: RMS deviation (deg, mm) | '
@@ -106,10 +110,7 @@ def truth_table(args, rng):
     for _ in range(args.cells):
         data, truth = rendered(args, rng)
         for name, estimate in zip(errors, solve(data, range(len(data.samples)), 'eye_in_hand')):
-            errors[name].append((
-                np.degrees(quat.angle_between(estimate.quaternion, truth.quaternion)),
-                1e3 * np.linalg.norm(estimate.translation - truth.position),
-                estimate.uncertainty_deg, estimate.translation_uncertainty_mm))
+            errors[name].append(off(estimate, truth.quaternion, truth.position))
     print(f'{args.cells} rendered folders of {args.views} views, the robot off by '
           f'{args.robot_deg:g} deg and {args.robot_mm:g} mm per pose')
     print('| estimate | RMS error (deg, mm) | RMS reported (deg, mm) | error / reported '
