@@ -660,6 +660,38 @@ def test_positions_in_millimetres_are_named_as_units_not_a_board_size(link_mm):
     assert not any('millimetres' in w for w in negated.warnings), negated.warnings
 
 
+@pytest.mark.parametrize('factor, unit', [(100.0, 'centimetres'), (1 / 0.0254, 'inches'),
+                                          (20.0, None)])
+def test_a_units_factor_is_named_by_its_size(factor, unit):
+    rng = np.random.default_rng(21)
+    samples, _ = simulation.samples(rng, simulation.random_cell(rng), 20, 0.2, 0.001)
+    (said,) = [w for w in calibrate(simulation.scaled_sensor_positions(samples, factor)).warnings
+               if SCALE_WORDS in w]
+    assert 'which is no size error but units' in said, said
+    look = ('the sensor positions look to be in ' + unit if unit else
+            'the sensor positions are in another unit than the link positions')
+    assert look in said, said
+
+
+def test_positions_all_in_millimetres_are_named_and_the_rotation_kept():
+    # Link and sensor positions alike in millimetres: the scale fit sees 1, and the answer
+    # came out 97 m long with a failed validation as its only warning.
+    rng = np.random.default_rng(22)
+    cell = simulation.random_cell(rng)
+    samples, _ = simulation.samples(rng, cell, 20, 0.2, 0.001)
+    right = calibrate(samples)
+    assert not any('millimetres' in w for w in right.warnings), right.warnings
+    scaled = simulation.scaled_sensor_positions(
+        [Sample(s.stamp_ns, Pose(s.link.position * 1000.0, s.link.quaternion), s.sensor)
+         for s in samples], 1000.0)
+    result = calibrate(scaled)
+    said = [w for w in result.warnings if 'look to be in millimetres, all of them' in w]
+    assert len(said) == 1 and said[0].startswith('the sensor sees its target a median '), said
+    assert not any(SCALE_WORDS in w for w in result.warnings)
+    assert np.degrees(quat.angle_between(result.quaternion, right.quaternion)) < 1e-6
+    np.testing.assert_allclose(result.translation, 1000.0 * right.translation, rtol=1e-6)
+
+
 def test_too_few_samples_to_judge_the_scale():
     rng = np.random.default_rng(13)
     samples, _ = simulation.samples(rng, simulation.random_cell(rng), 7, 0.3, 0.002)

@@ -820,6 +820,8 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     # A scale is judged only where a rigid mounting fits: else the misfit is what it sees.
     fits = not convention and not np.degrees(fit.residual_rms) > conventions.NOT_RIGID_DEG
     warnings += [text for text in (sensor_scale.warning(scale),) if text and fits]
+    millimetres = sensor_scale.all_in_millimetres(positions.link[ok], positions.sensor[ok])
+    warnings += [millimetres] if millimetres else []
     result = _report(fit, options, closed, refined, noise, warnings, refinement, scale)
     return _Solution(result, refinement, tuple(convention))
 

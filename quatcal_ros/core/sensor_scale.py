@@ -14,7 +14,8 @@ sensor frame and weighted by the fitted noise of the sensor's positions (the ref
 a camera's depth is the noisiest), with the uncertainty of d from the larger of the model's
 and the sandwich's variance (unweighted, 2 of the 2,850 right cells below came out named).
 `warning` says when d is off 1 by more than MIN_ERROR and by SIGMAS uncertainties on some
-axis.
+axis, and names a unit for a factor beyond 10; positions all in millimetres, link's and
+sensor's alike, keep d = 1: `all_in_millimetres` judges their sizes instead.
 
 Measured (scale per axis +- its uncertainty): the ETH arm recording gives (1.0029, 1.0046,
 0.9930) +- (0.0025, 0.0032, 0.0026) and the MoveIt recording (0.9972, 1.0086, 0.9982) +-
@@ -38,6 +39,13 @@ SIGMAS = 5.5
 # Fewer samples leave the 9 unknowns too few equations (3N - 9) to judge them: the sd is then
 # so uncertain that 5 of them came by chance (1 of 20 cells of 6 samples with robot noise).
 MIN_SAMPLES = 8
+# A factor between a pair of these is positions in that unit where metres were due (the
+# sensor's over the link's, or its inverse): the unit that a factor beyond 10 names.
+UNITS = ((500.0, 2000.0, 'millimetres'), (70.0, 150.0, 'centimetres'), (30.0, 50.0, 'inches'))
+# Link and sensor positions both farther than this from their origins (median, metres) are in
+# millimetres, not a robot cell: no camera sees its board, no robot reaches, 100 m away. The
+# scale fit, which compares the two, cannot see them scaled alike.
+ALL_IN_MILLIMETRES_M = 100.0
 # From this many samples the fit is weighted again by its own residuals (fit).
 REFIT_SAMPLES = 20
 AXES = 'xyz'
@@ -129,12 +137,15 @@ def warning(found):
                      in zip(AXES, found.scale, found.uncertainty))
     factor = float(np.median(found.scale))
     if off.all() and factor > 0.0 and not 0.1 < factor < 10.0:   # units: mm for metres
+        size = max(factor, 1.0 / factor)
+        unit = next((name for low, high, name in UNITS if low < size < high), None)
+        look = (f'look to be in {unit}' if unit else
+                f'are in another unit than the {"sensor" if factor > 1 else "link"} positions')
         return (f"the sensor's positions fit the mounting best scaled by ({axes}) along the "
                 f"sensor's axes: a factor of {factor:.4g}, which is no size error but units: "
-                f'the {"link" if factor > 1 else "sensor"} positions look to be in '
-                'millimetres (or the other in kilometres); every position must be in metres '
-                '(the pose messages, robot_poses.csv, a samples file). Neither the rotation '
-                'nor the translation can be used')
+                f'the {"link" if factor > 1 else "sensor"} positions {look}; every position '
+                'must be in metres (the pose messages, robot_poses.csv, a samples file). '
+                'Neither the rotation nor the translation can be used')
     if off.all() and np.ptp(found.scale) <= 3.0 * found.uncertainty.max():
         where, cause = '', "is the marker's or the board's size given right, in metres?"
     elif off[2] and not off[:2].any():
@@ -154,3 +165,16 @@ def warning(found):
             f"{cause} The mounting's translation takes the error, and so does the rotation "
             'of an estimate on camera pixels (a rigid mounting no longer fits them); the '
             'rotation from the poses does not')
+
+
+def all_in_millimetres(link_positions, sensor_positions):
+    """Return the warning for link and sensor positions alike in millimetres, or None."""
+    link, sensor = (float(np.median(np.linalg.norm(positions, axis=1)))
+                    for positions in (link_positions, sensor_positions))
+    if not min(link, sensor) > ALL_IN_MILLIMETRES_M:
+        return None
+    return (f'the sensor sees its target a median {sensor:.4g} m away and the link stands '
+            f'{link:.4g} m from its base: the positions look to be in millimetres, all of them. '
+            'The rotation holds, but the translation and its uncertainty are in that unit '
+            'too; give every position in metres (the pose messages, robot_poses.csv, a '
+            'samples file)')
