@@ -202,6 +202,31 @@ def test_publish_tf_gives_no_frame_a_second_parent(tf_harness):
         3 * result.uncertainty_deg
 
 
+def test_a_broadcast_before_the_camera_drivers_tf_static_gives_way_to_it(tf_harness):
+    # A resumed estimate is broadcast at start, before the driver's latched /tf_static has
+    # come: tool0 -> the optical frame, heard back, once made the node refuse the driver's
+    # camera_link -> optical frame as a second parent, for the life of the node.
+    cell, streams = tf_cell(12, 10)
+    h = tf_harness([Parameter('publish_tf', value=True)])
+    heard = []
+    h.driver.create_subscription(TFMessage, '/tf_static', heard.append, TF_STATIC_BROADCAST_QOS)
+    play(h, cell_messages(streams))
+    h.spin_until(lambda: h.rotations, what='an estimate')
+
+    def ours():
+        return [t for msg in heard for t in msg.transforms if t.header.frame_id == 'tool0']
+    h.spin_until(lambda: ours(), what="the node's /tf_static")
+    assert ours()[-1].child_frame_id == 'camera_color_optical_frame'   # no parent known yet
+    publish_camera_driver(h, streams)
+    h.spin_until(lambda: ours()[-1].child_frame_id == 'camera_link',
+                 what="the broadcast again, under the driver's camera_link")
+    assert h.node.inputs.tf.tree.parent('camera_color_optical_frame') == 'camera_link'
+    assert not [key for key in h.node.stats.bad if key[1] == 'breaks_tree']
+    result = h.node.result
+    composed = conversions.pose_from_msg(ours()[-1]) @ CAMERA_LINK_TO_OPTICAL
+    np.testing.assert_allclose(composed.position, result.translation, atol=1e-9)
+
+
 def test_a_bag_of_the_same_tf_traffic_replays_to_the_same_samples(tf_harness, tmp_path):
     """The live node and `replay` share the TF input (ros.tf_feed): the same samples."""
     from quatcal_ros.core.calibration import calibrate

@@ -127,6 +127,9 @@ class CalibratorNode(Node):
             TransformStamped, '~/transform', LATCHED_QOS,
             event_callbacks=quiet_publisher_events())
         self.static_tf = StaticTf(self)
+        if self.inputs.tf is not None:   # our broadcast heard back gives way to another's
+            self.inputs.tf.ours = self.static_tf.sent
+            self.inputs.tf.on_ours_replaced = self._start_tf_broadcast
         self.diagnostics_publisher = self.create_publisher(
             DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS,
             event_callbacks=quiet_publisher_events())

@@ -13,7 +13,10 @@ its root is already connected to the link frame some other way, a transform from
 would break the tree: nothing is published and the reason is in the log and /diagnostics.
 An edge from link_frame itself (this node's earlier publication, heard back) is replaced, and
 so is one this node broadcast from an earlier parent (the setup changed at runtime): the new
-broadcast replaces it for every listener, so it is taken out of the tree first.
+broadcast replaces it for every listener, so it is taken out of the tree first. One that
+another publisher's /tf_static contradicts gives way (ros.tf_feed.TfFeed.ours): an estimate
+resumed at start is broadcast before the camera driver's latched transform arrives, and gave
+the optical frame a second parent for the life of the node; it is broadcast again, re-rooted.
 """
 
 from quatcal_ros.ros import conversions

@@ -60,6 +60,11 @@ class TfFeed:
         self.screen = screen
         self.on_pose = on_pose
         self.link = link
+        # The static edges this node broadcast itself (ros.static_tf.StaticTf.sent), heard
+        # back: another publisher's parent for their child replaces them, and then
+        # on_ours_replaced() is called (the node broadcasts again, under that parent).
+        self.ours = set()
+        self.on_ours_replaced = None
         self.watchers = {stream: FramePoses(tree, *pair) for stream, pair in frames.items()}
 
     def swapped_link_frames(self):
@@ -85,7 +90,7 @@ class TfFeed:
         keep: static edges that have a value keep it (TransformTree.set_transform).
         Returns the static transforms stored, [(parent, child, stamp_ns, Pose)].
         """
-        changed, stored_static = [], []
+        changed, stored_static, replaced = [], [], False
         for transform in msg.transforms:
             try:
                 stamp_ns = stamp_ns_from_header(transform.header)
@@ -101,8 +106,15 @@ class TfFeed:
                                     'id (tf2 refuses it)')
                 known = self.tree.parent(child)
                 if known is not None and known != parent:
-                    raise TreeError(f'{parent!r} -> {child!r} would give {child!r} a second '
-                                    f'parent (it has {known!r}): two publishers disagree')
+                    if not (static and (known, child) in self.ours):
+                        raise TreeError(f'{parent!r} -> {child!r} would give {child!r} a '
+                                        f'second parent (it has {known!r}): two publishers '
+                                        'disagree')
+                    # Ours, broadcast before their transform came (a resumed estimate
+                    # before the camera driver's /tf_static): theirs stands.
+                    self.tree.remove_edge(child)
+                    self.ours.discard((known, child))
+                    replaced = True
                 stored = self.tree.set_transform(parent, child, stamp_ns, pose, static, keep)
             except TreeError as error:
                 self.screen.bad(topic, 'breaks_tree', error)
@@ -126,6 +138,8 @@ class TfFeed:
                 frames.note(child, stamp_ns)
             for stamp_ns, pose in frames.ready():
                 self.on_pose(stream, stamp_ns, pose)
+        if replaced and self.on_ours_replaced is not None:
+            self.on_ours_replaced()
         return stored_static
 
     def restate(self, topic, transforms):
