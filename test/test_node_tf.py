@@ -8,6 +8,7 @@ stamped at its exposure and delivered late, as in simulation.stop_and_go_streams
 reads them with the four frame parameters of easy_handeye2.
 """
 
+import re
 import time
 
 import numpy as np
@@ -200,6 +201,16 @@ def test_publish_tf_gives_no_frame_a_second_parent(tf_harness):
     assert np.degrees(quat.angle_between(composed.quaternion, result.quaternion)) < 1e-7
     assert np.degrees(quat.angle_between(composed.quaternion, cell.mounting.quaternion)) < \
         3 * result.uncertainty_deg
+    # The command ~/save logs to broadcast it is the same transform (it was tool0 -> the
+    # optical frame: pasted, a second parent).
+    said = h.node._broadcast_advice(result, h.node.config.result_frames)
+    assert said.startswith('to broadcast the result on /tf_static (camera_color_optical_frame '
+                           'already hangs from camera_link in TF'), said
+    values = [float(v) for v in re.findall(r'--(?:x|y|z|qx|qy|qz|qw) (\S+)', said)]
+    assert said.endswith('--frame-id tool0 --child-frame-id camera_link')
+    line = Pose.create(values[:3], quat.wxyz_from_xyzw(values[3:]))
+    np.testing.assert_allclose(line.position, conversions.pose_from_msg(ours()[-1]).position,
+                               atol=1e-9)
 
 
 def test_a_broadcast_before_the_camera_drivers_tf_static_gives_way_to_it(tf_harness):

@@ -27,6 +27,8 @@ A thin shell: the session (stream/session.py) does the work, and this node wires
 Times come from header stamps and the node clock (so use_sim_time and bag replays work).
 """
 
+from dataclasses import replace
+
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from geometry_msgs.msg import QuaternionStamped
@@ -46,7 +48,7 @@ from quatcal_ros.ros.event_log import EventLog
 from quatcal_ros.ros.image_samples import ImageSamples
 from quatcal_ros.ros.inputs import NodeInputs
 from quatcal_ros.ros.qos import DIAGNOSTICS_QOS, LATCHED_QOS, quiet_publisher_events
-from quatcal_ros.ros.static_tf import StaticTf
+from quatcal_ros.ros.static_tf import rerooted, StaticTf
 from quatcal_ros.stream import arrival_lag
 from quatcal_ros.stream import frame_notices
 from quatcal_ros.stream import settings
@@ -499,10 +501,29 @@ class CalibratorNode(Node):
             self.get_logger().warning(f'result {response.message}')
         elif saved.ok:
             self.get_logger().info(f'result {response.message}')
-            self.get_logger().info(
-                'to broadcast the result on /tf_static: '
-                + exports.static_transform_publisher_command(result, *frames))
+            self.get_logger().info(self._broadcast_advice(result, frames))
         return response
+
+    def _broadcast_advice(self, result, frames):
+        """
+        Return the log line with the command that broadcasts `result` on /tf_static.
+
+        With TF input, under the frames publish_tf uses (static_tf.rerooted): a sensor frame
+        that already has a parent (the camera driver's camera_link) would get a second one.
+        """
+        parent, child = frames
+        target = None
+        if self.inputs.tf is not None:
+            target, _ = rerooted(Pose.create(result.translation, result.quaternion), parent,
+                                 child, self.inputs.tf.tree)
+        if target is None or target[1] == normalize_frame(child):
+            return ('to broadcast the result on /tf_static: '
+                    + exports.static_transform_publisher_command(result, *frames))
+        parent, root, pose = target
+        moved = replace(result, quaternion=pose.quaternion, translation=pose.position)
+        return (f'to broadcast the result on /tf_static ({child} already hangs from {root} in '
+                f'TF: the mounting composed with the static {root} -> {child}): '
+                + exports.static_transform_publisher_command(moved, parent, root))
 
     # --- parameters at runtime -------------------------------------------------------------
 

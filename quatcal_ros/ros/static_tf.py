@@ -79,30 +79,14 @@ class StaticTf:
         for old_parent, old_child in self.sent:   # ours, from another parent: replaced
             if old_parent != parent and tree.parent(old_child) == old_parent:
                 tree.remove_edge(old_child)
-        root = child
-        while True:
-            above = tree.parent(root)
-            if above is None or above == parent or not tree.is_static(root):
-                break
-            root = above
-        above = tree.parent(root)
-        if above is not None and above != parent:
-            return self._refuse(
-                f'publish_tf: {child} hangs from {above} by a moving transform on /tf, so a '
-                f'transform {parent} -> {root} would give {root} a second parent: nothing is '
-                'broadcast (the result is on ~/transform)')
-        if above is None and tree.chain(root, parent) is not None:
-            return self._refuse(
-                f'publish_tf: {root} is already connected to {parent} in TF: another transform '
-                f'{parent} -> {root} would close a loop: nothing is broadcast (the result is on '
-                '~/transform)')
-        if root == child:
-            return parent, child, pose
-        chain = tree.lookup(root, child, 0)   # static edges only: any stamp
-        self._say(f'publish_tf: {child} already has a parent in TF ({tree.parent(child)}): '
-                  f'broadcasting {parent} -> {root}, the mounting composed with the static '
-                  f'{root} -> {child}')
-        return parent, root, pose @ chain.inverse()
+        target, refused = rerooted(pose, parent, child, tree)
+        if target is None:
+            return self._refuse(refused)
+        if target[1] != child:
+            self._say(f'publish_tf: {child} already has a parent in TF '
+                      f'({tree.parent(child)}): broadcasting {parent} -> {target[1]}, the '
+                      f'mounting composed with the static {target[1]} -> {child}')
+        return target
 
     def _refuse(self, text):
         self.problem = text
@@ -124,3 +108,32 @@ class StaticTf:
         if self.problem:
             return 'not broadcast: it would break the TF tree', self.problem
         return 'broadcast', None
+
+
+def rerooted(pose, parent, child, tree):
+    """
+    Return ((parent, root, T_parent_root), None) that gives no frame of `tree` a second parent.
+
+    root: the top of `child`'s static subtree (child itself when it has no parent), the
+    mounting T_parent_child composed with the static root -> child chain. (None, why) when a
+    moving transform holds that subtree, or it is connected to `parent` already.
+    """
+    parent, child = normalize_frame(parent), normalize_frame(child)
+    root = child
+    while True:
+        above = tree.parent(root)
+        if above is None or above == parent or not tree.is_static(root):
+            break
+        root = above
+    above = tree.parent(root)
+    if above is not None and above != parent:
+        return None, (f'publish_tf: {child} hangs from {above} by a moving transform on /tf, '
+                      f'so a transform {parent} -> {root} would give {root} a second parent: '
+                      'nothing is broadcast (the result is on ~/transform)')
+    if above is None and tree.chain(root, parent) is not None:
+        return None, (f'publish_tf: {root} is already connected to {parent} in TF: another '
+                      f'transform {parent} -> {root} would close a loop: nothing is broadcast '
+                      '(the result is on ~/transform)')
+    if root == child:
+        return (parent, child, pose), None
+    return (parent, root, pose @ tree.lookup(root, child, 0).inverse()), None   # any stamp
