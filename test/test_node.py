@@ -391,6 +391,11 @@ def test_invalid_parameters_are_refused_at_start(domain_id):
             with pytest.raises(ConfigError, match=name):
                 CalibratorNode(context=context,
                                parameter_overrides=[Parameter(name, value=value)])
+        # A misspelled name was ignored without a word, and the default used.
+        with pytest.raises(ConfigError, match=r'no such parameter: still_windw_s \(did you '
+                                              r'mean still_window_s\?\)'):
+            CalibratorNode(context=context,
+                           parameter_overrides=[Parameter('still_windw_s', value=0.7)])
     finally:
         rclpy.try_shutdown(context=context)
 

@@ -354,3 +354,25 @@ def test_the_calibrator_command_line_refuses_what_ros_would_silently_ignore(caps
         ['calibrator', '--ros-args', '--params-file', 'no_such_calibrator.yaml'])
     assert status == 2 and said.startswith('the ROS arguments cannot be read: ')
     assert "'--params-file no_such_calibrator.yaml'" in said
+
+
+def test_a_params_file_without_the_nodes_section_is_refused(tmp_path):
+    # A misspelled node key: the whole file was ignored and the defaults used.
+    misspelled = tmp_path / 'misspelled.yaml'
+    misspelled.write_text('calibrater:\n  ros__parameters:\n    setup: eye_to_hand\n')
+    status, said = parameters.command_line_problem(
+        ['calibrator', '--ros-args', '--params-file', str(misspelled)])
+    assert status == 2 and said == (
+        f"{misspelled}: no section for the node 'calibrator' (its top-level keys: calibrater): "
+        'every parameter in it would be ignored; the section is calibrator: ros__parameters: '
+        '...')
+    for key in ('calibrator', '/calibrator', '/robot1/calibrator', '/**', '/**/calibrator'):
+        right = tmp_path / 'right.yaml'
+        right.write_text(f'{key}:\n  ros__parameters:\n    setup: eye_to_hand\n')
+        assert parameters.command_line_problem(
+            ['calibrator', '--ros-args', '--params-file', str(right)]) is None, key
+    # A node renamed at start has its own section.
+    renamed = ['calibrator', '--ros-args', '-r', '__node:=cal', '--params-file']
+    assert parameters.command_line_problem(renamed + [str(right)]) is None
+    right.write_text('calibrator:\n  ros__parameters:\n    setup: eye_to_hand\n')
+    assert parameters.command_line_problem(renamed + [str(right)])[0] == 2

@@ -8,6 +8,7 @@ at startup (`declare_parameters`, which raises ConfigError with the reason) and 
 not declared here.  `params_file_text` renders config/calibrator.yaml from the table.
 """
 
+import difflib
 import textwrap
 
 from quatcal_ros.stream.settings import ConfigError, NODE_NAME, PRESENTATION, SETTING_BY_NAME
@@ -18,6 +19,7 @@ from rcl_interfaces.msg import IntegerRange
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.utilities import remove_ros_args
+import yaml
 
 __all__ = ['command_line_problem', 'ConfigError', 'declare_parameters', 'descriptor', 'help_text',
            'params_file_text', 'updated']
@@ -51,6 +53,16 @@ def declare_parameters(node):
             node.declare_parameter(setting.name, setting.default, descriptor(setting))
         except ParameterException as error:
             raise ConfigError(f'parameter {setting.name}: {error}') from None
+    # What -p and the params file set for this node (rclpy keeps them, declared or not): a
+    # name no parameter has was ignored without a word (still_windw_s).
+    unknown = sorted(name for name in getattr(node, '_parameter_overrides', {})
+                     if not node.has_parameter(name) and not name.startswith('qos_overrides.'))
+    if unknown:
+        close = {name: difflib.get_close_matches(name, SETTING_BY_NAME, 1) for name in unknown}
+        raise ConfigError(
+            'no such parameter: ' + ', '.join(
+                name + (f' (did you mean {close[name][0]}?)' if close[name] else '')
+                for name in unknown) + '; `calibrator --help` lists every parameter')
     return Settings.from_values(
         {setting.name: node.get_parameter(setting.name).value for setting in SETTINGS})
 
@@ -138,6 +150,35 @@ def command_line_problem(arguments):
         example = (f' (--ros-args -p {name}:=VALUE)' if name in SETTING_BY_NAME else '')
         return 2, (f'unexpected argument(s) {" ".join(unknown)}: ROS arguments (parameters, '
                    f'a params file, remaps) go after --ros-args{example}; see --help')
+    return _params_file_problem(arguments)
+
+
+def _params_file_problem(arguments):
+    """
+    Return (2, text) for a params file with no section for this node (all of it ignored).
+
+    A section is a top-level key whose last name is the node's (NODE_NAME, or the one
+    `-r __node:=NAME` gives it) or that holds a wildcard (rcl's * and **).
+    """
+    ros = arguments[arguments.index('--ros-args') + 1:] if '--ros-args' in arguments else []
+    node = NODE_NAME
+    for flag, value in zip(ros, ros[1:]):
+        if flag in ('-r', '--remap') and value.startswith('__node:='):
+            node = value.split(':=', 1)[1]
+    for flag, path in zip(ros, ros[1:]):
+        if flag != '--params-file':
+            continue
+        try:
+            with open(path, encoding='utf-8') as stream:
+                document = yaml.safe_load(stream)
+        except (OSError, UnicodeDecodeError, yaml.YAMLError):
+            continue   # (rcl names what it cannot read)
+        keys = [str(key) for key in document] if isinstance(document, dict) else []
+        if keys and not any('*' in key or key.rstrip('/').split('/')[-1] == node
+                            for key in keys):
+            return 2, (f'{path}: no section for the node {node!r} (its top-level keys: '
+                       f'{", ".join(keys)}): every parameter in it would be ignored; the '
+                       f'section is {node}: ros__parameters: ...')
     return None
 
 
