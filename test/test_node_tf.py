@@ -213,6 +213,26 @@ def test_publish_tf_gives_no_frame_a_second_parent(tf_harness):
                                atol=1e-9)
 
 
+def test_save_puts_swapped_link_frames_before_the_setup_advice(tf_harness, tmp_path):
+    # The saved warnings said only 'use setup eye_to_hand' (the data look like it); the swap,
+    # the right fix, was on /diagnostics alone.
+    cell, streams = tf_cell(12, 10)
+    h = tf_harness([Parameter('robot_base_frame', value='tool0'),
+                    Parameter('robot_effector_frame', value='base_link'),
+                    Parameter('result_file', value=str(tmp_path / 'r.yaml'))])
+    publish_camera_driver(h, streams)
+    play(h, cell_messages(streams))
+    h.spin_until(lambda: h.rotations, what='an estimate')
+    save = h.driver.create_client(Trigger, '/calibrator/save')
+    h.spin_until(save.service_is_ready, what='the ~/save service')
+    future = save.call_async(Trigger.Request())
+    h.spin_until(future.done, what='~/save')
+    warnings = yaml.safe_load((tmp_path / 'r.yaml').read_text())['warnings']
+    assert warnings[0].startswith('TF input: the link frames look swapped: the base frame '
+                                  'given, tool0, hangs below the effector frame given, '
+                                  'base_link'), warnings
+
+
 def test_a_broadcast_before_the_camera_drivers_tf_static_gives_way_to_it(tf_harness):
     # A resumed estimate is broadcast at start, before the driver's latched /tf_static has
     # come: tool0 -> the optical frame, heard back, once made the node refuse the driver's

@@ -313,3 +313,26 @@ def test_link_frames_given_the_wrong_way_round_are_named():
     right = TfFeed(tree, PoseScreen(), {'link_pose': ('base_link', 'tool0')}, lambda *pose: None,
                    link='link_pose')
     assert right.problems() == []
+
+
+def test_tracking_frames_given_the_wrong_way_round_are_named():
+    # The inverse composed: the node stood at 'no still sample' (the inverse's positions take
+    # the rotation noise times the distance) and then advised invert_sensor.
+    from quatcal_ros.ros.pose_screen import PoseScreen
+    from quatcal_ros.ros.tf_feed import TfFeed
+    tree = TfFeed.new_tree()
+    turn = Pose(np.array([0.1, 0.2, 0.3]), quat.IDENTITY)
+    tree.set_transform('camera_link', 'camera_optical', START_NS, turn, static=True)
+    tree.set_transform('camera_optical', 'aruco_marker', START_NS, turn)
+    frames = {'link_pose': ('base_link', 'tool0'),
+              'sensor_pose': ('aruco_marker', 'camera_optical')}
+    feed = TfFeed(tree, PoseScreen(), frames, lambda *pose: None, link='link_pose',
+                  sensor='sensor_pose')
+    assert feed.swapped_frames() == [
+        'TF input: the tracking frames look swapped: the camera frame given, aruco_marker, '
+        'hangs below the marker frame given, camera_optical, in the TF tree; a sensor pose is '
+        'the marker in the camera frame (tracking_base_frame camera_optical, '
+        'tracking_marker_frame aruco_marker?)']
+    right = TfFeed(tree, PoseScreen(), {'sensor_pose': ('camera_optical', 'aruco_marker')},
+                   lambda *pose: None, sensor='sensor_pose')
+    assert right.swapped_frames() == []

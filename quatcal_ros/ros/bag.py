@@ -244,7 +244,7 @@ class ReplayReport:
     damaged: str = ''                                      # why reading stopped (partial)
     tf_stale: int = 0   # transforms older than the TF buffer (also counted as out_of_order)
     tf_frames: tuple = ()                                  # every frame the TF tree knew
-    tf_swapped: str = ''           # TfFeed.swapped_link_frames: the link frames look swapped
+    tf_swapped: list = field(default_factory=list)   # TfFeed.swapped_frames' warnings
     static_tf_topics: tuple = ()                           # those read, e.g. /tf_static
     counters: dict = field(default_factory=dict)           # the session's, at the end
 
@@ -529,7 +529,7 @@ class _Run:
         self.adders = {'link': session.add_link_pose, 'sensor': session.add_sensor_pose}
         self.tf = TfFeed(self.tree, self.poses, {
             stream: tuple(source.frames) for stream, source in replay.inputs.items()
-            if source.frames is not None}, self._feed, link='link')
+            if source.frames is not None}, self._feed, link='link', sensor='sensor')
         for stream, frames in self.tf.watchers.items():
             self.report.tf_dropped[stream] = frames
             self.report.frames[stream] = tuple(replay.inputs[stream].frames)
@@ -634,7 +634,7 @@ class _Run:
         report.good = Counter(stats.good)
         report.examples = {key: stats.example(*key) for key in stats.bad}
         report.tf_stale = sum(self.tree.stale.values())
-        report.tf_swapped = self.tf.swapped_link_frames()
+        report.tf_swapped = self.tf.swapped_frames()
         report.tf_frames = tuple(sorted(self.tree.frames))
         report.static_tf_topics = tuple(topic for topic in self.replay.tf_topics
                                         if is_static_tf_topic(topic))
@@ -646,13 +646,12 @@ def frame_warnings(report, setup='eye_in_hand', invert_sensor=False):
     """
     Return warnings on the frames of the streams the replay used.
 
-    stream.frame_notices' on the messages' frames, and TfFeed.swapped_link_frames' on TF
-    input's link frames.
+    stream.frame_notices' on the messages' frames, and TfFeed.swapped_frames' on TF input's
+    link and tracking frames.
     """
     seen = {checked: report.frames[stream] for stream, checked in STREAMS.items()
             if stream in report.frames}
-    swapped = [report.tf_swapped] if report.tf_swapped else []
-    return swapped + frame_notices.notices(seen, setup, invert_sensor)
+    return report.tf_swapped + frame_notices.notices(seen, setup, invert_sensor)
 
 
 # The stamp-to-log-time lags at a stream's two ends agree this well (clock_offset_ns).

@@ -100,7 +100,7 @@ class NodeInputs:
         self.images = None
         if tf_frames:
             self.tf = TfFeed(TfFeed.new_tree(), self.screen, tf_frames, self._on_tf_pose,
-                             link=LINK)
+                             link=LINK, sensor=SENSOR)
             tf_topic = node.create_subscription(
                 TFMessage, '/tf', lambda msg: self._on_tf(tf_topic.topic_name, msg, False),
                 TF_QOS)

@@ -490,6 +490,9 @@ class CalibratorNode(Node):
             return response
         config = self.config
         frames = config.result_frames
+        if self.inputs.tf is not None:   # the right fix before the setup advice it looks like
+            result = replace(result, warnings=[*self.inputs.tf.swapped_frames(),
+                                               *result.warnings])
         saved = save_result(result, frames, config.setup, config.result_file,
                             config.easy_handeye2_file, easy_handeye2_frames(config))
         response.success, response.message = saved.ok, '; '.join(saved.texts())

@@ -48,18 +48,18 @@ class TfFeed:
         return TransformTree(cache_ns=TF_CACHE_NS, max_gap_ns=max_gap_ns,
                              time_jump_ns=TF_TIME_JUMP_NS)
 
-    def __init__(self, tree, screen, frames, on_pose, link=None):
+    def __init__(self, tree, screen, frames, on_pose, link=None, sensor=None):
         """
         Watch `frames` ({stream: (target, source)}) in `tree`; feed poses to `on_pose`.
 
-        screen: the ros.pose_screen.PoseScreen that counts bad transforms; link: the stream
-        of `frames` that is the link pose (robot base -> effector), whose frames `problems`
-        checks against the tree's order.
+        screen: the ros.pose_screen.PoseScreen that counts bad transforms; link, sensor: the
+        streams of `frames` that are the link pose (robot base -> effector) and the sensor pose
+        (camera -> marker), whose frames `problems` checks against the tree's order.
         """
         self.tree = tree
         self.screen = screen
         self.on_pose = on_pose
-        self.link = link
+        self.link, self.sensor = link, sensor
         # The static edges this node broadcast itself (ros.static_tf.StaticTf.sent), heard
         # back: another publisher's parent for their child replaces them, and then
         # on_ours_replaced() is called (the node broadcasts again, under that parent).
@@ -67,20 +67,32 @@ class TfFeed:
         self.on_ours_replaced = None
         self.watchers = {stream: FramePoses(tree, *pair) for stream, pair in frames.items()}
 
-    def swapped_link_frames(self):
+    def swapped_frames(self):
         """
-        Return a warning when the effector frame given is an ancestor of the base frame, or ''.
+        Return a warning for each frame pair given the wrong way round in the tree: [] if none.
 
-        The pose composes either way (its inverse), so nothing else shows it: the answer then
-        looks like the other setup's, and the frame-convention check advised that setup.
+        The link's effector frame given is an ancestor of its base frame given, or the marker
+        frame of the sensor's camera frame. A pose composes either way (its inverse), so
+        nothing else shows it: swapped link frames looked like the other setup (the
+        frame-convention check advised it), swapped tracking frames like inverted sensor
+        poses, whose positions take the rotation noise times the distance (no still sample).
         """
-        watcher = self.watchers.get(self.link)
-        if watcher is None or watcher.source not in self.tree.path_to_root(watcher.target)[1:]:
-            return ''
-        return (f'TF input: the link frames look swapped: the base frame given, '
-                f'{watcher.target}, hangs below the effector frame given, {watcher.source}, in '
-                'the TF tree; a link pose is the effector in the robot base frame (base '
-                f'{watcher.source}, effector {watcher.target}?)')
+        found = []
+        for stream, what, base, tip, names in (
+                (self.link, 'link', 'base', 'effector',
+                 'a link pose is the effector in the robot base frame (base {}, effector {}?)'),
+                (self.sensor, 'tracking', 'camera', 'marker',
+                 'a sensor pose is the marker in the camera frame (tracking_base_frame {}, '
+                 'tracking_marker_frame {}?)')):
+            watcher = self.watchers.get(stream)
+            if watcher is None or watcher.source not in self.tree.path_to_root(
+                    watcher.target)[1:]:
+                continue
+            found.append(f'TF input: the {what} frames look swapped: the {base} frame given, '
+                         f'{watcher.target}, hangs below the {tip} frame given, '
+                         f'{watcher.source}, in the TF tree; '
+                         + names.format(watcher.source, watcher.target))
+        return found
 
     def take(self, topic, msg, static, now_ns=0, keep=False):
         """
@@ -166,7 +178,7 @@ class TfFeed:
             else:
                 why = self.tree.disconnection(target, source)
             found.append(f'TF input: {target} -> {source} cannot be composed: {why}')
-        return found + [text for text in (self.swapped_link_frames(),) if text]
+        return found + self.swapped_frames()
 
     def finish(self):
         """Close the frame watchers (what they still wait for is counted as dropped)."""
