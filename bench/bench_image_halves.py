@@ -137,6 +137,10 @@ def main():
     parser.add_argument('--cells', type=int, default=0,
                         help='rendered folders for the error against the truth (no DIR)')
     args = parser.parse_args()
+    if args.folder is not None and args.cells:
+        parser.error('--cells renders its folders: give no DIR with it')
+    if args.folder is None and args.setup != 'eye_in_hand':
+        parser.error('a rendered folder is eye_in_hand: --setup applies to a DIR')
     rng = np.random.default_rng(args.seed)
     if args.cells and args.folder is None:
         return truth_table(args, rng)

@@ -681,6 +681,7 @@ def test_positions_all_in_millimetres_are_named_and_the_rotation_kept():
     samples, _ = simulation.samples(rng, cell, 20, 0.2, 0.001)
     right = calibrate(samples)
     assert not any('millimetres' in w for w in right.warnings), right.warnings
+    assert right.usable and right.to_json_dict()['usable'] is True
     scaled = simulation.scaled_sensor_positions(
         [Sample(s.stamp_ns, Pose(s.link.position * 1000.0, s.link.quaternion), s.sensor)
          for s in samples], 1000.0)
@@ -688,6 +689,7 @@ def test_positions_all_in_millimetres_are_named_and_the_rotation_kept():
     said = [w for w in result.warnings if 'look to be in millimetres, all of them' in w]
     assert len(said) == 1 and said[0].startswith('the sensor sees its target a median '), said
     assert not any(SCALE_WORDS in w for w in result.warnings)
+    assert not result.usable and result.to_json_dict()['usable'] is False
     assert np.degrees(quat.angle_between(result.quaternion, right.quaternion)) < 1e-6
     np.testing.assert_allclose(result.translation, 1000.0 * right.translation, rtol=1e-6)
 

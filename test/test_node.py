@@ -396,6 +396,10 @@ def test_invalid_parameters_are_refused_at_start(domain_id):
                                               r'mean still_window_s\?\)'):
             CalibratorNode(context=context,
                            parameter_overrides=[Parameter('still_windw_s', value=0.7)])
+        # One like no parameter of its (a launch file's global robot_description) is said.
+        node = CalibratorNode(context=context, parameter_overrides=[
+            Parameter('robot_description', value='<robot/>')])
+        node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
 

@@ -204,6 +204,28 @@ def test_publish_tf_broadcasts_every_estimate_on_tf_static(make_harness, cell_an
     assert values_of(h.node.diagnostic_status())['tf_static'] == 'broadcast'
 
 
+def test_publish_tf_holds_an_estimate_that_says_not_to_use_it(make_harness, cell_and_samples):
+    # setup changed to the wrong one at runtime: /tf_static got a transform 81 deg and 828 mm
+    # off, beside its warning 'do not use this estimate'.
+    _, samples = cell_and_samples
+    h = make_harness([Parameter('publish_tf', value=True)])
+    received = h.subscribe_tf_static()
+    h.add_samples(samples)
+    h.spin_until(lambda: received, what='/tf_static')
+    good = translation(received[-1].transforms[0].transform)
+    (done,) = h.node.set_parameters([Parameter('setup', value='eye_to_hand')])
+    assert done.successful
+    result = h.node.session.result
+    assert not result.usable and any('do not use this estimate' in w for w in result.warnings)
+    h.spin_for(0.5)
+    np.testing.assert_array_equal(translation(received[-1].transforms[0].transform), good)
+    assert values_of(h.node.diagnostic_status())['tf_static'] == (
+        'not broadcast: the estimate says not to use it')
+    (done,) = h.node.set_parameters([Parameter('setup', value='eye_in_hand')])
+    assert done.successful and h.node.session.result.usable
+    assert values_of(h.node.diagnostic_status())['tf_static'] == 'broadcast'
+
+
 def test_publish_tf_turned_on_at_runtime_sends_the_current_estimate(make_harness,
                                                                     cell_and_samples):
     _, samples = cell_and_samples

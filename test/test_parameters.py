@@ -372,7 +372,9 @@ def test_a_params_file_without_the_nodes_section_is_refused(tmp_path):
         assert parameters.command_line_problem(
             ['calibrator', '--ros-args', '--params-file', str(right)]) is None, key
     # A node renamed at start has its own section.
-    renamed = ['calibrator', '--ros-args', '-r', '__node:=cal', '--params-file']
-    assert parameters.command_line_problem(renamed + [str(right)]) is None
-    right.write_text('calibrator:\n  ros__parameters:\n    setup: eye_to_hand\n')
-    assert parameters.command_line_problem(renamed + [str(right)])[0] == 2
+    for rule in ('__node:=cal', 'calibrator:__node:=cal', '__name:=cal'):
+        renamed = ['calibrator', '--ros-args', '-r', rule, '--params-file']
+        right.write_text('cal:\n  ros__parameters:\n    setup: eye_to_hand\n')
+        assert parameters.command_line_problem(renamed + [str(right)]) is None, rule
+        right.write_text('calibrator:\n  ros__parameters:\n    setup: eye_to_hand\n')
+        assert parameters.command_line_problem(renamed + [str(right)])[0] == 2, rule

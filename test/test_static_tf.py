@@ -66,3 +66,27 @@ def test_turned_off_the_latched_transform_is_withdrawn():
     static.send(MOUNTING, 1, 'tool0', 'camera')
     static.withdraw()
     assert static.publisher.sent == [[('tool0', 'camera')], []]
+
+
+def test_the_nodes_own_edge_gives_way_whichever_comes_first():
+    # The driver's camera_link -> optical came before the node's own tool0 -> optical was
+    # heard back (sent before the driver's came): ours was counted as breaking the tree and
+    # stayed latched for every other listener.
+    from quatcal_ros.ros import conversions
+    from quatcal_ros.ros.pose_screen import PoseScreen
+    from quatcal_ros.ros.tf_feed import TfFeed
+    from tf2_msgs.msg import TFMessage
+
+    def message(parent, child, pose):
+        return TFMessage(transforms=[conversions.transform_stamped_msg(pose, 1, parent, child)])
+    for driver_first in (True, False):
+        screen, replaced = PoseScreen(), []
+        feed = TfFeed(TfFeed.new_tree(), screen, {}, lambda *pose: None)
+        feed.ours, feed.on_ours_replaced = {('tool0', 'camera_optical')}, \
+            lambda: replaced.append(True)
+        ours, theirs = (message('tool0', 'camera_optical', MOUNTING),
+                        message('camera_link', 'camera_optical', OPTICAL))
+        for msg in ((theirs, ours) if driver_first else (ours, theirs)):
+            feed.take('/tf_static', msg, static=True)
+        assert feed.tree.parent('camera_optical') == 'camera_link', driver_first
+        assert replaced == [True] and not screen.stats.bad and not feed.ours, driver_first

@@ -282,14 +282,15 @@ def test_the_uncertainty_over_blocks_of_views_is_honest(renderers, views, robot_
                                                         robot_mm):
     # Left out a block at a time (a jackknife), each block's share of the leverage made it
     # cautious: true error / reported 0.61-0.65 at 8 views. With the blocks' scores leverage
-    # corrected (HC2): 0.97-1.11 from 8 to 30 views, 0.97-1.24 at 6-7 views with the robot's
-    # errors, which the pixel model alone put at 6-10x (the view's corners share them). These
-    # cells: 0.80-1.08 (6 views with the robot's errors: 1.02, 0.80); the honesty yardstick's
-    # band, [0.7, 1.3], with 40-60 trials (the ratio's own spread is about 0.1).
+    # corrected (HC2): 0.97-1.11 from 8 to 30 views. From 6 views on, with the robot's errors
+    # too, which the pixel model alone put at 6-10x (the view's corners share them): these
+    # cells 0.80-1.08 (6 views with the robot's errors: 1.02, 0.80), so the honesty
+    # yardstick's band, [0.7, 1.3], for the cells below 8 views or with the robot's errors.
     errors, _, reported, _, _ = reprojection_trials(renderers, views, 40 if robot_deg else 60,
                                                     robot_deg=robot_deg, robot_mm=robot_mm)
     ratio = np.sqrt(errors.mean(axis=0) / reported.mean(axis=0))
-    assert np.all((0.7 <= ratio) & (ratio <= 1.3)), ratio
+    low, high = (0.8, 1.25) if views >= 8 and not robot_deg else (0.7, 1.3)
+    assert np.all((low <= ratio) & (ratio <= high)), ratio
 
 
 def test_too_few_views_for_blocks_say_the_uncertainty_leaves_out_the_robots_errors(renderers):
@@ -478,8 +479,8 @@ def test_solve_dir_with_the_wrong_setup_names_only_a_fix_it_accepts(tmp_path, re
     assert solve_main([str(tmp_path), '--setup', 'eye_to_hand']) == 0
     (said,) = [w for w in json.loads(capsys.readouterr().out)['warnings']
                if w.startswith('frame convention')]
-    assert said.endswith('use --setup eye_in_hand (the node: setup:=eye_in_hand)') \
-        and 'invert' not in said, said
+    assert said.endswith('use --setup eye_in_hand (the node: setup:=eye_in_hand); do not use '
+                         'this estimate as configured') and 'invert' not in said, said
 
 
 def test_solve_dir_without_the_layout_exits_2_naming_the_file(tmp_path, capsys):

@@ -47,7 +47,7 @@ from quatcal_ros.core.pose import inverse_perturbation, residual_order
 from quatcal_ros.core.refine import MAX_ITERATIONS, refine, uncertainties, with_jackknife_of
 from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.translation import SamplePositions, solve_translation
-from quatcal_ros.core.units import position_problem, SETUPS
+from quatcal_ros.core.units import DO_NOT_USE, position_problem, SETUPS
 from quatcal_ros.core.validation import not_enough_samples, Thresholds, validate
 
 # Candidate motions of the consensus search: every pair up to this many, else the consecutive
@@ -196,6 +196,11 @@ class CalibrationResult:
                 states[item['sample']] = 'noisy'
         return states
 
+    @property
+    def usable(self):
+        """Return False when a warning says not to use this estimate (units.DO_NOT_USE)."""
+        return not any(DO_NOT_USE in warning for warning in self.warnings)
+
     def to_json_dict(self):
         """Return the JSON object of DESIGN.md contract 3 (plus extra keys, never renamed)."""
         return {
@@ -227,6 +232,7 @@ class CalibrationResult:
             'unobservable': self.unobservable,
             'sensor_scale': (self.sensor_scale.to_json_dict()
                              if self.sensor_scale is not None else None),
+            'usable': self.usable,
         }
 
 
@@ -868,7 +874,7 @@ def _settle_half_turns(rotations, positions, fit, options):
                  'reported uncertainty includes')
     said += ')'
     if doubt >= HALF_TURN_DOUBT_UNUSABLE:
-        said += ('; too close to tell apart: do not use this estimate, add motions about '
+        said += (f'; too close to tell apart: {DO_NOT_USE}, add motions about '
                  'other axes that are not half-turns')
     return (fit if q is fit.q_z else settled), [said], others
 

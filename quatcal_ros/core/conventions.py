@@ -47,7 +47,7 @@ from quatcal_ros.core.motions import pair_angles, pair_indices, SampleRotations
 from quatcal_ros.core.numerics import median
 from quatcal_ros.core.refine import refine
 from quatcal_ros.core.translation import SamplePositions, solve_translation
-from quatcal_ros.core.units import SETUPS
+from quatcal_ros.core.units import DO_NOT_USE, SETUPS
 
 # Samples (evenly spaced) the check examines: plenty for medians.
 CHECK_SAMPLES = 400
@@ -73,6 +73,17 @@ EXCHANGED_RATIO = 2.0
 def warnings(samples, options, screen=None):
     """
     Return a warning naming the fix when another convention fits far better, else [].
+
+    It ends by saying not to use the estimate as configured (units.DO_NOT_USE). The rest as
+    `_better_convention`.
+    """
+    return [f'{text}; {DO_NOT_USE} as configured'
+            for text in _better_convention(samples, options, screen)]
+
+
+def _better_convention(samples, options, screen=None):
+    """
+    Return the warning of `warnings` without its last words, or [].
 
     screen: the configured convention's misfit from the main fit (`misfit`), when there is
     one: a good fit there ends the check at no cost. Otherwise the configured convention is
@@ -307,4 +318,4 @@ def rigid_fit_warnings(residual_rms_deg, translation_noise_mm):
             f'(position scatter {translation_noise_mm:.0f} mm per axis). Check that the '
             'sensor is fixed where the setup says, that the link and sensor poses belong to '
             'the same moments, and that bad detections are screened (do not use --no-robust, '
-            'or robust:=false on the node, on such data); do not use this estimate']
+            f'or robust:=false on the node, on such data); {DO_NOT_USE}']

@@ -31,6 +31,7 @@ on 86 of 200 cells of 20 samples, 128 of 30 and 189 of 60; 10 % on all from 20.
 from dataclasses import dataclass
 
 import numpy as np
+from quatcal_ros.core.units import DO_NOT_USE
 
 # A scale error is said when some axis is off 1 by more than this fraction...
 MIN_ERROR = 0.01
@@ -145,7 +146,7 @@ def warning(found):
                 f"sensor's axes: a factor of {factor:.4g}, which is no size error but units: "
                 f'the {"link" if factor > 1 else "sensor"} positions {look}; every position '
                 'must be in metres (the pose messages, robot_poses.csv, a samples file). '
-                'Neither the rotation nor the translation can be used')
+                f'Neither the rotation nor the translation holds: {DO_NOT_USE}')
     if off.all() and np.ptp(found.scale) <= 3.0 * found.uncertainty.max():
         where, cause = '', "is the marker's or the board's size given right, in metres?"
     elif off[2] and not off[:2].any():
@@ -177,4 +178,4 @@ def all_in_millimetres(link_positions, sensor_positions):
             f'{link:.4g} m from its base: the positions look to be in millimetres, all of them. '
             'The rotation holds, but the translation and its uncertainty are in that unit '
             'too; give every position in metres (the pose messages, robot_poses.csv, a '
-            'samples file)')
+            f'samples file): {DO_NOT_USE} as it is')

@@ -20,6 +20,9 @@ DEFAULT_FRAMES = {'eye_in_hand': ('tool0', 'camera'), 'eye_to_hand': ('base_link
 MESSAGE_NORM_TOLERANCE = 1e-3
 # A file's quaternion may have been rounded to a few digits (by hand or a spreadsheet).
 FILE_NORM_TOLERANCE = 1e-2
+# The words every warning ends with (or holds) whose estimate must not be used: the result is
+# then not `usable` (core.calibration.CalibrationResult), and the node does not broadcast it.
+DO_NOT_USE = 'do not use this estimate'
 # A position farther than this (metres) from its frame's origin is a unit or typing error
 # (millimetres for metres, a misplaced decimal point), not a robot cell.
 MAX_POSITION_M = 1000.0

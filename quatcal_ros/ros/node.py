@@ -131,7 +131,7 @@ class CalibratorNode(Node):
         self.static_tf = StaticTf(self)
         if self.inputs.tf is not None:   # our broadcast heard back gives way to another's
             self.inputs.tf.ours = self.static_tf.sent
-            self.inputs.tf.on_ours_replaced = self._start_tf_broadcast
+            self.inputs.tf.on_ours_replaced = self._rebroadcast
         self.diagnostics_publisher = self.create_publisher(
             DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS,
             event_callbacks=quiet_publisher_events())
@@ -320,8 +320,18 @@ class CalibratorNode(Node):
         elif self.static_tf.start() and result is not None:
             self._broadcast(result, self.now_ns())
 
+    def _rebroadcast(self):
+        """Broadcast the last transform sent again: its frames' parents in TF changed."""
+        if self.config.publish_tf:
+            self.static_tf.resend(self.inputs.tf.tree)
+
     def _broadcast(self, result, stamp_ns):
         """Put the result on /tf_static, frame-safe in the TF tree with TF input."""
+        if not result.usable:   # the last usable one stays latched
+            self.static_tf.hold('publish_tf: the estimate says not to use it (its warnings, '
+                                'on /diagnostics): the last one without such a warning stays '
+                                'on /tf_static')
+            return
         self.static_tf.send(Pose.create(result.translation, result.quaternion), stamp_ns,
                             *self.config.result_frames,
                             self.inputs.tf.tree if self.inputs.tf is not None else None)
@@ -517,8 +527,11 @@ class CalibratorNode(Node):
         parent, child = frames
         target = None
         if self.inputs.tf is not None:
-            target, _ = rerooted(Pose.create(result.translation, result.quaternion), parent,
-                                 child, self.inputs.tf.tree)
+            target, refused = rerooted(Pose.create(result.translation, result.quaternion),
+                                       parent, child, self.inputs.tf.tree)
+            if refused:
+                return ('to broadcast the result on /tf_static: no transform can be given '
+                        'without breaking the TF tree: ' + refused.removeprefix('publish_tf: '))
         if target is None or target[1] == normalize_frame(child):
             return ('to broadcast the result on /tf_static: '
                     + exports.static_transform_publisher_command(result, *frames))

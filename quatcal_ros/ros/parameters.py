@@ -9,6 +9,7 @@ not declared here.  `params_file_text` renders config/calibrator.yaml from the t
 """
 
 import difflib
+import re
 import textwrap
 
 from quatcal_ros.stream.settings import ConfigError, NODE_NAME, PRESENTATION, SETTING_BY_NAME
@@ -54,15 +55,19 @@ def declare_parameters(node):
         except ParameterException as error:
             raise ConfigError(f'parameter {setting.name}: {error}') from None
     # What -p and the params file set for this node (rclpy keeps them, declared or not): a
-    # name no parameter has was ignored without a word (still_windw_s).
+    # name no parameter has was ignored without a word (still_windw_s). One close to a
+    # parameter's is a typo: refused. Others may be meant for other nodes (a params file's
+    # /** section, a launch file's global parameters): said.
     unknown = sorted(name for name in getattr(node, '_parameter_overrides', {})
                      if not node.has_parameter(name) and not name.startswith('qos_overrides.'))
+    close = {name: difflib.get_close_matches(name, SETTING_BY_NAME, 1) for name in unknown}
+    typos = [f'{name} (did you mean {close[name][0]}?)' for name in unknown if close[name]]
+    if typos:
+        raise ConfigError(f'no such parameter: {", ".join(typos)}; `calibrator --help` lists '
+                          'every parameter')
     if unknown:
-        close = {name: difflib.get_close_matches(name, SETTING_BY_NAME, 1) for name in unknown}
-        raise ConfigError(
-            'no such parameter: ' + ', '.join(
-                name + (f' (did you mean {close[name][0]}?)' if close[name] else '')
-                for name in unknown) + '; `calibrator --help` lists every parameter')
+        node.get_logger().warning(f'parameters set for this node that it does not have, '
+                                  f'ignored: {", ".join(unknown)}')
     return Settings.from_values(
         {setting.name: node.get_parameter(setting.name).value for setting in SETTINGS})
 
@@ -162,9 +167,10 @@ def _params_file_problem(arguments):
     """
     ros = arguments[arguments.index('--ros-args') + 1:] if '--ros-args' in arguments else []
     node = NODE_NAME
-    for flag, value in zip(ros, ros[1:]):
-        if flag in ('-r', '--remap') and value.startswith('__node:='):
-            node = value.split(':=', 1)[1]
+    for flag, value in zip(ros, ros[1:]):   # (-r [NODE:]__node:=NAME, or __name:=)
+        renamed = re.fullmatch(r'(?:[^:]+:)?__(?:node|name):=(.+)', value)
+        if flag in ('-r', '--remap') and renamed:
+            node = renamed.group(1)
     for flag, path in zip(ros, ros[1:]):
         if flag != '--params-file':
             continue

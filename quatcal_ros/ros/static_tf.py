@@ -32,8 +32,10 @@ class StaticTf:
         self.node = node
         self.publisher = None
         self.problem = None       # why the last estimate was not broadcast
+        self.held = None          # ... when it was its own warnings (hold), in brief
         self.said = None          # the last redirection or refusal logged
         self.sent = set()         # (parent, child) edges this node has broadcast
+        self.last = None          # (pose, stamp_ns, parent, child) of the last send()
 
     def start(self):
         """Make the publisher (once); return True."""
@@ -52,6 +54,7 @@ class StaticTf:
         """
         if self.publisher is None:
             return
+        self.last = (pose, stamp_ns, parent, child)
         target = (parent, child, pose)
         if tree is not None:
             target = self._frame_safe(pose, parent, child, tree)
@@ -59,9 +62,14 @@ class StaticTf:
             return
         parent, child, pose = target
         self.sent.add((normalize_frame(parent), normalize_frame(child)))
-        self.problem = None
+        self.problem = self.held = None
         self.publisher.publish(TFMessage(transforms=[
             conversions.transform_stamped_msg(pose, stamp_ns, parent, child)]))
+
+    def resend(self, tree):
+        """Broadcast the last transform sent again, re-rooted in `tree` (its parents changed)."""
+        if self.last is not None:
+            self.send(*self.last, tree)
 
     def withdraw(self):
         """
@@ -88,8 +96,13 @@ class StaticTf:
                       f'mounting composed with the static {target[1]} -> {child}')
         return target
 
+    def hold(self, text):
+        """Broadcast nothing for this estimate, for the reason `text` (logged once)."""
+        self.problem, self.held = text, 'the estimate says not to use it'
+        self._say(text, warning=True)
+
     def _refuse(self, text):
-        self.problem = text
+        self.problem, self.held = text, None
         self._say(text, warning=True)
         return None
 
@@ -106,7 +119,7 @@ class StaticTf:
         if not enabled:
             return 'off (publish_tf is false)', None
         if self.problem:
-            return 'not broadcast: it would break the TF tree', self.problem
+            return f'not broadcast: {self.held or "it would break the TF tree"}', self.problem
         return 'broadcast', None
 
 

@@ -118,12 +118,17 @@ class TfFeed:
                                     'id (tf2 refuses it)')
                 known = self.tree.parent(child)
                 if known is not None and known != parent:
+                    # Ours against another publisher's, in either order (a resumed estimate
+                    # is broadcast before the camera driver's /tf_static comes, or after it
+                    # but heard back later): theirs stands, ours is broadcast again.
+                    if static and (parent, child) in self.ours:
+                        self.ours.discard((parent, child))
+                        replaced = True
+                        continue
                     if not (static and (known, child) in self.ours):
                         raise TreeError(f'{parent!r} -> {child!r} would give {child!r} a '
                                         f'second parent (it has {known!r}): two publishers '
                                         'disagree')
-                    # Ours, broadcast before their transform came (a resumed estimate
-                    # before the camera driver's /tf_static): theirs stands.
                     self.tree.remove_edge(child)
                     self.ours.discard((known, child))
                     replaced = True

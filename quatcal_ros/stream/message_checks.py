@@ -304,8 +304,13 @@ class StreamStats:
         return self._log.due(key, steady_ns)
 
     def start_session(self):
-        """Start counting `bad_in_session` from zero (the session started over: ~/reset)."""
+        """
+        Start counting `bad_in_session` from zero (the session started over: ~/reset).
+
+        The examples (`example`) start over too: each is then the session's first.
+        """
         self._bad_before_session = Counter(self.bad)
+        self.first_detail = {}
 
     def bad_in_session(self):
         """Return the bad messages per (stream, reason) since `start_session`."""

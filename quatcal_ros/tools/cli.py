@@ -593,10 +593,17 @@ def _logged_clocks(logged_ns, given_ns):
     if logged_ns is None or abs(logged_ns - given_ns) <= APART_NS:
         return []
     given = f' (with --sensor-time-offset {given_ns / NS_PER_S:g})' if given_ns else ''
+    late = 'sensor' if logged_ns > given_ns else 'link'   # the stream that reached it later
     return [f"{stamps_apart(logged_ns - given_ns)}{given} against the bag's log times: the "
             'clocks are offset, and poses may have been paired with the wrong partners; '
-            f'--sensor-time-offset {logged_ns / NS_PER_S:.2f} corrects it, and '
-            '--estimate-time-offset measures it, searching around that']
+            f'{_logged_fix(logged_ns)} (or the {late} poses took that long to reach the '
+            'recorder)']
+
+
+def _logged_fix(logged_ns):
+    """Say what corrects the clock offset logged_ns the bag's log times show."""
+    return (f'--sensor-time-offset {logged_ns / NS_PER_S:.2f} corrects it, and '
+            '--estimate-time-offset measures it, searching around that')
 
 
 def _replay_with_time_offset(replay, config, args):
@@ -764,8 +771,7 @@ def _few_samples(session, report, logged_ns=None):
             # clocks' offset, whenever each stream started.
             return (said + f' ({"they do not overlap" if apart else "they overlap"}, and '
                     f"against the bag's log times {stamps_apart(logged_ns)}: the clocks are "
-                    f'offset; --sensor-time-offset {logged_ns / NS_PER_S:.2f} corrects it, '
-                    'and --estimate-time-offset measures it, searching around that)')
+                    f'offset; {_logged_fix(logged_ns)})')
         if apart:
             return said + ' (they do not overlap: are both stamped on the same clock?)'
         # They overlap, yet no two came close enough as the bag was read: a clock offset
