@@ -233,6 +233,23 @@ def test_save_puts_swapped_link_frames_before_the_setup_advice(tf_harness, tmp_p
                                   'base_link'), warnings
 
 
+def test_a_capture_refused_on_tf_input_names_the_frame_it_misses(tf_harness):
+    # It said to check that both topics publish, and nothing of the frame /diagnostics named.
+    cell, streams = tf_cell(12, 10)
+    h = tf_harness([Parameter('capture_mode', value='manual'),
+                    Parameter('tracking_marker_frame', value='markr')])
+    publish_camera_driver(h, streams)
+    play(h, cell_messages(streams)[:20])
+    capture = h.driver.create_client(Trigger, '/calibrator/capture')
+    h.spin_until(capture.service_is_ready, what='the ~/capture service')
+    future = capture.call_async(Trigger.Request())
+    h.spin_until(future.done, what='~/capture')
+    refused = future.result()
+    assert not refused.success and refused.message.startswith('no paired poses')
+    assert ('(TF input: camera_color_optical_frame -> markr cannot be composed: no frame markr '
+            'on /tf or /tf_static yet') in refused.message, refused.message
+
+
 def test_a_broadcast_before_the_camera_drivers_tf_static_gives_way_to_it(tf_harness):
     # A resumed estimate is broadcast at start, before the driver's latched /tf_static has
     # come: tool0 -> the optical frame, heard back, once made the node refuse the driver's

@@ -460,9 +460,12 @@ class CalibratorNode(Node):
         self.inputs.flush()
         ok, reason = self.session.capture(self.stamps_now_ns())
         self.handle_events(self.session.pop_events())
+        unpaired = not ok and reason.startswith('no paired poses')
         skipped = skipped_text(self.stats)
-        if not ok and reason.startswith('no paired poses') and skipped:
+        if unpaired and skipped:
             reason += f' (so far {skipped})'   # (no board, other units): not the clocks
+        if unpaired and self.inputs.tf is not None:   # a frame missing names itself
+            reason += ''.join(f' ({problem})' for problem in self.inputs.tf.problems())
         if not ok:
             self.get_logger().info(f'capture refused: {reason}')
         response.success, response.message = bool(ok), reason

@@ -283,7 +283,8 @@ class Capture:
                     f'{_short(sensor_m * 1e3)} mm in the last {span_s:.2g} s (bands '
                     f'{_short(config.sensor_rotation_band_deg)} deg, '
                     f'{_short(config.sensor_translation_band_m * 1e3)} mm): is the object '
-                    'fixed and detected reliably?')
+                    'fixed and detected reliably? A detector this noisy at a real stop needs '
+                    'wider sensor bands')
         return None
 
     def _motion_reason(self):
