@@ -125,8 +125,16 @@ def test_the_known_translation_fills_only_the_undetermined_part():
                                without.translation - np.dot(without.translation, d) * d,
                                atol=1e-12)
     assert 'from known_translation' in given.warnings[0]
+    assert not any('known_translation is not used' in w for w in given.warnings)
     assert np.linalg.norm(given.translation - cell.mounting.position) * 1e3 < \
         4 * given.translation_uncertainty_mm
+    # A robot that turns its link freely determines all of it: the value given is unused,
+    # which was not said.
+    free, _ = simulation.samples(rng, cell, 20, 0.1, 0.001)
+    used = calibrate(free, CalibrationOptions(known_translation=known))
+    assert any(w.startswith('known_translation is not used: the motions determine the whole '
+                            'translation') for w in used.warnings), used.warnings
+    np.testing.assert_array_equal(used.translation, calibrate(free).translation)
 
 
 @pytest.mark.parametrize('turn_deg', [1.0, 2.0])

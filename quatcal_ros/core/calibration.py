@@ -304,8 +304,9 @@ def _solve(samples, options, previous=None):
                                                  options, check=previous is None), None)
             except reduced_dof.EssentialSampleError as reduced:
                 advice.append(f'(The translations can fix it, but {reduced}.)')
-            except DegenerateMotionError as reduced:
-                advice.append(f'(Nor can the translations fix it: {reduced}.)')
+            except DegenerateMotionError as reduced:   # (said once: 'nor can ... either')
+                why = str(reduced).removeprefix(reduced_dof.NOT_EITHER)
+                advice.append(f'(Nor can the translations fix it: {why}.)')
         raise type(error)(' '.join([str(error)] + advice)) from None
     return _estimate(samples, rotations, positions, fit, options, previous)
 
@@ -786,6 +787,9 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     convention = (list(previous.convention) if previous is not None else conventions.warnings(
         samples, options, conventions.misfit(rotation_residuals, translation.residuals)))
     warnings = half_turn_warnings + convention
+    if options.known_translation is not None:   # (a robot that turns freely needs none)
+        warnings.append('known_translation is not used: the motions determine the whole '
+                        'translation (it fills only what a SCARA or a gantry leaves open)')
     own = sensor_covariances(samples, options.invert_sensor)
     if previous is None and own is None:
         warnings += _unused_covariances(samples)

@@ -40,6 +40,8 @@ MAX_ITERATIONS = 30
 STEP_TOLERANCE = 1e-10       # squared step length in units of its sigmas
 MIN_NOISE = np.array([1e-6] * 3 + [1e-6] * 3)
 MAX_CONDITION = 1e12         # of the normal matrix over the determined directions
+# How the error begins when those directions are not determined either.
+NOT_EITHER = 'the translations do not fix the rotation either: '
 # A sample the fit cannot do without has leverage 1: within this of it (rounding). Measured
 # on SCARA and gantry cells: 1e-12 where three samples leave no spare equation without one;
 # 3e-5 and more elsewhere, where the leave-one-out uncertainty is cautious (error / reported
@@ -121,9 +123,8 @@ def fit(rotations, positions, motion, known=None):
         g = np.einsum('nai,na->i', J, e)
         if np.linalg.cond(A) > MAX_CONDITION:
             raise DegenerateMotionError(
-                'the translations do not fix the rotation either: move the link to positions '
-                'spread in at least two directions (and, for a single rotation axis, turn it '
-                'by different angles)')
+                NOT_EITHER + 'move the link to positions spread in at least two directions '
+                '(and, for a single rotation axis, turn it by different angles)')
         step = -np.linalg.solve(A, g)
         x_q, x_t, o_q, o_t = apply_step(basis @ step, x_q, x_t, o_q, o_t)
         if step @ A @ step < STEP_TOLERANCE:

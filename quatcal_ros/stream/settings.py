@@ -166,8 +166,9 @@ SETTINGS = (
             choices=SETUPS, tools=BOTH + PLAN),
     Setting('capture_mode', 'auto',
             'auto: take a sample whenever both poses stay still for still_window_s after a '
-            'motion; manual: only on ~/capture; continuous: for runs without stops, a sample '
-            'each time the link has turned by continuous_step_deg (default min_motion_deg).',
+            'motion; manual (the node only): only on ~/capture; continuous: for runs without '
+            'stops, a sample each time the link has turned by continuous_step_deg (default '
+            'min_motion_deg).',
             choices=CAPTURE_MODES, tools=REPLAY),
     Setting('still_window_s', 0.5,
             'Seconds (header stamps) both poses must stay within the still bands for a '
