@@ -135,6 +135,9 @@ def test_the_node_on_a_tf_cell_converges_to_the_truth(tf_harness, tmp_path):
     bad_counts = {reason: count for (where, reason), count in h.node.stats.bad.items()
                   if where == '/tf'}
     assert bad_counts.get('non_finite', 0) == 1 and bad_counts.get('breaks_tree', 0) == 2
+    # Named by its frames (/tf carries many): it said 'transform.translation.x is nan' alone.
+    assert h.node.stats.example('/tf', 'non_finite') == (
+        'base_link -> shoulder: transform.translation.x is nan')
 
     # ~/save writes easy_handeye2's file naming the four TF frames the node reads.
     calib = tmp_path / 'cell.calib'

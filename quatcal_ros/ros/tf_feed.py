@@ -136,8 +136,10 @@ class TfFeed:
             except TreeError as error:
                 self.screen.bad(topic, 'breaks_tree', error)
                 continue
-            except BadPoseError as error:
-                self.screen.bad(topic, message_checks.pose_error_reason(error), error)
+            except BadPoseError as error:   # named by its frames: /tf carries many
+                self.screen.bad(topic, message_checks.pose_error_reason(error),
+                                f'{transform.header.frame_id} -> {transform.child_frame_id}: '
+                                f'{error}')
                 continue
             except ValueError as error:   # nanosec out of range
                 self.screen.bad(topic, 'bad_stamp', error)
