@@ -329,6 +329,12 @@ def test_a_tf_bag_missing_a_static_frame_names_it_and_tf_static(repo_root, strea
     if static_topic:
         assert 'No transform on /tf_static names camera either: check the frame name' \
             in done.stderr
+        # Not asked for: it said the bag had no /tf_static.
+        only_tf = run_replay(repo_root, tmp_path / 'tf', '--link-frames', 'base_link', 'tool0',
+                             '--sensor-frames', 'camera', 'marker', '--tf-topics', '/tf')
+        assert only_tf.returncode == 2
+        assert ('The bag has /tf_static, but --tf-topics did not ask for it: fixed frames'
+                in only_tf.stderr), only_tf.stderr
     else:
         assert 'The bag has no /tf_static' in done.stderr
         assert 'ros2 bag record /tf /tf_static' in done.stderr

@@ -246,6 +246,7 @@ class ReplayReport:
     tf_frames: tuple = ()                                  # every frame the TF tree knew
     tf_swapped: list = field(default_factory=list)   # TfFeed.swapped_frames' warnings
     static_tf_topics: tuple = ()                           # those read, e.g. /tf_static
+    static_tf_unread: tuple = ()                           # the bag's others, not asked for
     counters: dict = field(default_factory=dict)           # the session's, at the end
 
     def unread_text(self):
@@ -638,6 +639,9 @@ class _Run:
         report.tf_frames = tuple(sorted(self.tree.frames))
         report.static_tf_topics = tuple(topic for topic in self.replay.tf_topics
                                         if is_static_tf_topic(topic))
+        report.static_tf_unread = tuple(topic for topic in sorted(self.replay.bag.topics)
+                                        if is_static_tf_topic(topic)
+                                        and topic not in self.replay.tf_topics)
         report.counters = self.session.counters
         return report
 

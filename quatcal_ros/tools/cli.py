@@ -707,6 +707,10 @@ def _missing_static_hint(report, frames):
     if not missing:
         return ''
     statics = report.static_tf_topics
+    if not statics and report.static_tf_unread:
+        return (f'. The bag has {" and ".join(report.static_tf_unread)}, but --tf-topics did '
+                'not ask for it: fixed frames (those of robot_state_publisher, a camera '
+                "driver's optical frame) are published there; add it to --tf-topics")
     if not statics:
         return ('. The bag has no /tf_static: fixed frames (those of robot_state_publisher, '
                 "a camera driver's optical frame) are published there; record it too (ros2 bag "
