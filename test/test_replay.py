@@ -716,6 +716,16 @@ def test_a_clock_offset_beyond_the_pairing_window_is_named_with_its_correction(
     # Stamps on one clock: no centre, as before (the ETH recording, below, searches around 0).
 
 
+def test_topics_given_without_a_leading_slash_are_the_bags(repo_root, streams, tmp_path):
+    # 'robot/tool0_pose' was refused although the bag's topics, listed, held /robot/tool0_pose.
+    write_bag(tmp_path / 'poses', {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED},
+              topic_messages(streams, POSE_STAMPED))
+    done = run_replay(repo_root, tmp_path / 'poses', '--link-topic', 'link_pose',
+                      '--sensor-topic', 'sensor_pose', '--quiet')
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)['samples'] == 10
+
+
 def test_a_clock_offset_within_the_pairing_window_is_named_from_the_log_times(
         repo_root, streams, tmp_path):
     # Sensor stamps 1.5 s ahead: the poses pair, with the wrong partners, and the answer came

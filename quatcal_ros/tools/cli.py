@@ -174,6 +174,11 @@ def _solve_images(prog, args):
 REDUCED_DOF_ON_POSES = 'a robot that cannot turn the link freely is solved on the poses'
 
 
+def absolute_topic(name):
+    """Return a topic name as a bag holds it: resolved in the root namespace (a/b -> /a/b)."""
+    return name if name.startswith('/') else '/' + name
+
+
 def _named_by_image(result, names):
     """
     Return `result` with every entry that names a sample naming its image too (solve DIR).
@@ -385,21 +390,24 @@ def replay_parser():
                   '(geometry_msgs PoseStamped, TransformStamped, PoseWithCovarianceStamped, '
                   'nav_msgs/Odometry) or from the TF tree')
     link = inputs.add_mutually_exclusive_group(required=True)
-    link.add_argument('--link-topic', metavar='T', help='topic of the link poses')
+    link.add_argument('--link-topic', metavar='T', type=absolute_topic,
+                      help='topic of the link poses')
     link.add_argument('--link-frames', nargs=2, metavar=('BASE', 'LINK'),
                       help='link pose T_BASE_LINK from the TF topics')
     sensor = inputs.add_mutually_exclusive_group(required=True)
-    sensor.add_argument('--sensor-topic', metavar='T', help='topic of the sensor poses')
+    sensor.add_argument('--sensor-topic', metavar='T', type=absolute_topic,
+                        help='topic of the sensor poses')
     sensor.add_argument('--sensor-frames', nargs=2, metavar=('SENSOR', 'OBJECT'),
                         help='sensor pose T_SENSOR_OBJECT from the TF topics')
-    sensor.add_argument('--image-topic', metavar='T',
+    sensor.add_argument('--image-topic', metavar='T', type=absolute_topic,
                         help='camera images (sensor_msgs Image or CompressedImage): the board '
                              'of --board-file is found in each, and the estimate is refined '
                              'on the corners of the samples')
-    inputs.add_argument('--camera-info-topic', metavar='T',
+    inputs.add_argument('--camera-info-topic', metavar='T', type=absolute_topic,
                         help='CameraInfo of --image-topic (default: camera_info beside it, '
                              'e.g. /camera/color/camera_info for /camera/color/image_raw)')
-    inputs.add_argument('--tf-topics', nargs='+', metavar='T', default=['/tf', '/tf_static'],
+    inputs.add_argument('--tf-topics', nargs='+', metavar='T', type=absolute_topic,
+                        default=['/tf', '/tf_static'],
                         help='TFMessage topics read with --*-frames; names ending in '
                              'tf_static hold static transforms (default: /tf /tf_static)')
     add_setting_options(inputs, 'replay', ('board_file',))
