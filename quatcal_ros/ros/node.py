@@ -35,7 +35,6 @@ from geometry_msgs.msg import QuaternionStamped
 from geometry_msgs.msg import TransformStamped
 from quatcal_ros.core.planner import plan_next_pose
 from quatcal_ros.core.pose import Pose
-from quatcal_ros.files import exports
 from quatcal_ros.files import journal
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
 from quatcal_ros.files.text_input import BadInputError
@@ -48,7 +47,7 @@ from quatcal_ros.ros.event_log import EventLog
 from quatcal_ros.ros.image_samples import ImageSamples
 from quatcal_ros.ros.inputs import NodeInputs
 from quatcal_ros.ros.qos import DIAGNOSTICS_QOS, LATCHED_QOS, quiet_publisher_events
-from quatcal_ros.ros.static_tf import rerooted, StaticTf
+from quatcal_ros.ros.static_tf import broadcast_advice, StaticTf
 from quatcal_ros.stream import arrival_lag
 from quatcal_ros.stream import frame_notices
 from quatcal_ros.stream import settings
@@ -517,32 +516,9 @@ class CalibratorNode(Node):
             self.get_logger().warning(f'result {response.message}')
         elif saved.ok:
             self.get_logger().info(f'result {response.message}')
-            self.get_logger().info(self._broadcast_advice(result, frames))
+            self.get_logger().info(broadcast_advice(
+                result, frames, self.inputs.tf.tree if self.inputs.tf is not None else None))
         return response
-
-    def _broadcast_advice(self, result, frames):
-        """
-        Return the log line with the command that broadcasts `result` on /tf_static.
-
-        With TF input, under the frames publish_tf uses (static_tf.rerooted): a sensor frame
-        that already has a parent (the camera driver's camera_link) would get a second one.
-        """
-        parent, child = frames
-        target = None
-        if self.inputs.tf is not None:
-            target, refused = rerooted(Pose.create(result.translation, result.quaternion),
-                                       parent, child, self.inputs.tf.tree)
-            if refused:
-                return ('to broadcast the result on /tf_static: no transform can be given '
-                        'without breaking the TF tree: ' + refused.removeprefix('publish_tf: '))
-        if target is None or target[1] == normalize_frame(child):
-            return ('to broadcast the result on /tf_static: '
-                    + exports.static_transform_publisher_command(result, *frames))
-        parent, root, pose = target
-        moved = replace(result, quaternion=pose.quaternion, translation=pose.position)
-        return (f'to broadcast the result on /tf_static ({child} already hangs from {root} in '
-                f'TF: the mounting composed with the static {root} -> {child}): '
-                + exports.static_transform_publisher_command(moved, parent, root))
 
     # --- parameters at runtime -------------------------------------------------------------
 

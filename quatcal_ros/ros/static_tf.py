@@ -19,6 +19,10 @@ resumed at start is broadcast before the camera driver's latched transform arriv
 the optical frame a second parent for the life of the node; it is broadcast again, re-rooted.
 """
 
+from dataclasses import replace
+
+from quatcal_ros.core.pose import Pose
+from quatcal_ros.files import exports
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.qos import quiet_publisher_events, TF_STATIC_BROADCAST_QOS
 from quatcal_ros.stream.tf_tree import normalize_frame
@@ -150,3 +154,26 @@ def rerooted(pose, parent, child, tree):
     if root == child:
         return (parent, child, pose), None
     return (parent, root, pose @ tree.lookup(root, child, 0).inverse()), None   # any stamp
+
+
+def broadcast_advice(result, frames, tree=None):
+    """
+    Return the log line with the command that broadcasts `result` (parent, child `frames`).
+
+    With TF input (`tree`), under the frames the broadcast uses (`rerooted`): a sensor frame
+    that already has a parent (the camera driver's camera_link) would get a second one.
+    """
+    parent, child = frames
+    target, refused = (None, None) if tree is None else rerooted(
+        Pose.create(result.translation, result.quaternion), parent, child, tree)
+    if refused:
+        return ('to broadcast the result on /tf_static: no transform can be given without '
+                'breaking the TF tree: ' + refused.removeprefix('publish_tf: '))
+    if target is None or target[1] == normalize_frame(child):
+        return ('to broadcast the result on /tf_static: '
+                + exports.static_transform_publisher_command(result, *frames))
+    parent, root, pose = target
+    moved = replace(result, quaternion=pose.quaternion, translation=pose.position)
+    return (f'to broadcast the result on /tf_static ({child} already hangs from {root} in TF: '
+            f'the mounting composed with the static {root} -> {child}): '
+            + exports.static_transform_publisher_command(moved, parent, root))

@@ -121,17 +121,17 @@ class TfFeed:
                     # Ours against another publisher's, in either order (a resumed estimate
                     # is broadcast before the camera driver's /tf_static comes, or after it
                     # but heard back later): theirs stands, ours is broadcast again.
-                    if static and (parent, child) in self.ours:
-                        self.ours.discard((parent, child))
-                        replaced = True
-                        continue
-                    if not (static and (known, child) in self.ours):
+                    ours = [edge for edge in ((parent, child), (known, child))
+                            if static and edge in self.ours]
+                    if not ours:
                         raise TreeError(f'{parent!r} -> {child!r} would give {child!r} a '
                                         f'second parent (it has {known!r}): two publishers '
                                         'disagree')
-                    self.tree.remove_edge(child)
-                    self.ours.discard((known, child))
+                    self.ours.discard(ours[0])
                     replaced = True
+                    if ours[0][0] == parent:
+                        continue   # (theirs is in the tree already)
+                    self.tree.remove_edge(child)
                 stored = self.tree.set_transform(parent, child, stamp_ns, pose, static, keep)
             except TreeError as error:
                 self.screen.bad(topic, 'breaks_tree', error)

@@ -174,11 +174,6 @@ def _solve_images(prog, args):
 REDUCED_DOF_ON_POSES = 'a robot that cannot turn the link freely is solved on the poses'
 
 
-def absolute_topic(name):
-    """Return a topic name as a bag holds it: resolved in the root namespace (a/b -> /a/b)."""
-    return name if name.startswith('/') else '/' + name
-
-
 def _named_by_image(result, names):
     """
     Return `result` with every entry that names a sample naming its image too (solve DIR).
@@ -376,6 +371,11 @@ CAPTURE = ('capture_mode', 'still_window_s', 'still_rotation_deg', 'still_transl
            'sensor_still_rotation_deg', 'sensor_still_translation_m', 'min_still_pairs',
            'continuous_step_deg', 'max_gap_s', 'pairing_tolerance_s', 'link_frame_id',
            'sensor_frame_id', 'max_position_m')
+
+
+def absolute_topic(name):
+    """Return a topic name as a bag holds it: resolved in the root namespace (a/b -> /a/b)."""
+    return name if name.startswith('/') else '/' + name
 
 
 def replay_parser():

@@ -22,8 +22,7 @@ alone, which cannot see a view's shared errors: with the robot's pose off by 0.1
 0.5-1 mm per view, true error / model 6-10x at 5-7 synthetic views, 4.7-5.4x on halves (7
 views) of a real ChArUco recording; over the views' blocks 0.80-1.24x at 6-7 synthetic views
 (test_vision.py's cells and another 40 of each), 1.14-1.62x at 5, 1.23-1.29x on those real
-halves. `cramer_rao_covariance` is the bound for
-independent Gaussian pixel noise.
+halves. `cramer_rao_covariance` is the bound for independent Gaussian pixel noise.
 """
 
 from dataclasses import dataclass
