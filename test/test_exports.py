@@ -307,3 +307,17 @@ def test_the_xacro_macro_can_be_called_for_any_frame_name(child, name):
     assert macro.get('name') == name and macro.get('params') == 'parent:=tool$${0}'
     ElementTree.fromstring(f'<r xmlns:xacro="x"><xacro:{name} parent="p"/></r>')   # callable
     assert macro.find('joint/child').get('link') == child.replace('${', '$${')
+
+
+def test_a_joint_note_is_a_well_formed_xml_comment():
+    # With TF input the joint is the one the tree can take, and says why above it; a frame
+    # name with -- in it must not end the comment early.
+    import xml.etree.ElementTree as ElementTree
+    from types import SimpleNamespace
+    result = SimpleNamespace(quaternion=[1.0, 0.0, 0.0, 0.0], translation=[0.1, 0.0, 0.2])
+    note = 'cam--optical already hangs from camera in TF: the static camera -> cam--optical'
+    joints = exports.description_joints(result, 'tool0', 'camera', note)
+    for text in joints.values():
+        assert '<!-- cam- -optical already hangs from camera in TF' in text
+        ElementTree.fromstring(text)   # well formed (a -- inside a comment is not)
+    assert exports.description_joints(result, 'tool0', 'camera')['urdf'].startswith('<joint')

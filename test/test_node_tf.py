@@ -179,11 +179,12 @@ def test_tf_input_needs_all_four_frames(domain_id):
         rclpy.try_shutdown(context=context)
 
 
-def test_publish_tf_gives_no_frame_a_second_parent(tf_harness):
+def test_publish_tf_gives_no_frame_a_second_parent(tf_harness, tmp_path):
     """The optical frame is under camera_link: the node broadcasts tool0 -> camera_link."""
     cell, streams = tf_cell(12, 10)
     # link_frame and sensor_frame left out: the result is named by the TF frames
-    h = tf_harness([Parameter('publish_tf', value=True)])
+    h = tf_harness([Parameter('publish_tf', value=True),
+                    Parameter('result_file', value=str(tmp_path / 'r.yaml'))])
     heard = []
     h.driver.create_subscription(TFMessage, '/tf_static', heard.append, TF_STATIC_BROADCAST_QOS)
     publish_camera_driver(h, streams)
@@ -215,6 +216,19 @@ def test_publish_tf_gives_no_frame_a_second_parent(tf_harness):
     line = Pose.create(values[:3], quat.wxyz_from_xyzw(values[3:]))
     np.testing.assert_allclose(line.position, conversions.pose_from_msg(ours()[-1]).position,
                                atol=1e-9)
+    # So is the saved file's URDF joint (its transform stays the calibrated frames').
+    save = h.driver.create_client(Trigger, '/calibrator/save')
+    h.spin_until(save.service_is_ready, what='the ~/save service')
+    future = save.call_async(Trigger.Request())
+    h.spin_until(future.done, what='~/save')
+    saved = yaml.safe_load((tmp_path / 'r.yaml').read_text())
+    assert saved['child_frame'] == 'camera_color_optical_frame'
+    assert saved['urdf'].startswith('<!-- camera_color_optical_frame already hangs from '
+                                    'camera_link in TF'), saved['urdf']
+    assert '<parent link="tool0"/>' in saved['urdf']
+    assert '<child link="camera_link"/>' in saved['urdf']
+    xyz = re.search(r'xyz="([^"]+)"', saved['urdf']).group(1).split()
+    np.testing.assert_allclose([float(v) for v in xyz], line.position, atol=1e-9)
 
 
 def test_save_puts_swapped_link_frames_before_the_setup_advice(tf_harness, tmp_path):

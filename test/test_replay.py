@@ -264,6 +264,49 @@ def test_tf_bag_with_static_frames_in_both_chains(repo_root, streams, tmp_path):
             in json.loads(swapped.stdout)['warnings']), swapped.stdout
 
 
+def test_a_tf_bag_gives_the_joint_the_tree_can_take(repo_root, streams, tmp_path):
+    """
+    The sensor frame the detector names (camera_optical) hangs from camera in the bag.
+
+    The command, the URDF joint and the xacro macro were tool0 -> camera_optical: pasted,
+    a second parent. They are tool0 -> camera, the mounting composed with the static
+    camera -> camera_optical; the result file's transform stays the calibrated one.
+    """
+    optical = Pose.create([0.01, 0.02, 0.0], [0.5, -0.5, 0.5, -0.5])
+    messages = [('/tf_static', streams.link[0][0], tf_message(
+        conversions.transform_stamped_msg(optical, 0, 'camera', 'camera_optical',
+                                          typestore=TYPESTORE)))]
+    messages += [('/tf', stamp + MS, tf_message(msg(TRANSFORM_STAMPED, pose, stamp,
+                                                    'base_link', 'tool0')))
+                 for stamp, pose in streams.link]
+    messages += [('/tf', delivered, tf_message(msg(TRANSFORM_STAMPED, optical.inverse() @ pose,
+                                                   stamp, 'camera_optical', 'marker')))
+                 for (stamp, pose), delivered in zip(streams.sensor,
+                                                     streams.sensor_delivery_ns)]
+    write_bag(tmp_path / 'tf', {'/tf': TF_TYPE, '/tf_static': TF_TYPE},
+              sorted(messages, key=lambda m: m[1]), 'mcap')
+    done = run_replay(repo_root, tmp_path / 'tf', '--link-frames', 'base_link', 'tool0',
+                      '--sensor-frames', 'camera_optical', 'marker', '--result-out',
+                      tmp_path / 'r.yaml')
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    command = out['static_transform_publisher']
+    assert command.endswith('--frame-id tool0 --child-frame-id camera'), command
+    values = [float(v) for v in re.findall(r'--(?:x|y|z|qx|qy|qz|qw) (\S+)', command)]
+    joined = Pose.create(values[:3], quat.wxyz_from_xyzw(values[3:]))
+    calibrated = Pose.create([out['translation'][k] for k in 'xyz'], rotation(out))
+    assert_allclose(joined.position, (calibrated @ optical.inverse()).position, atol=1e-9)
+    assert np.degrees(quat.angle_between(joined.quaternion, streams.truth.quaternion)) < \
+        3 * out['uncertainty_deg']
+    document = read_result_yaml(tmp_path / 'r.yaml')
+    assert (document['parent_frame'], document['child_frame']) == ('tool0', 'camera_optical')
+    note = ('<!-- camera_optical already hangs from camera in TF: the mounting composed with '
+            'the static camera -> camera_optical -->')
+    for text in (out['urdf'], document['urdf'], document['xacro']):
+        assert note in text and '<child link="camera"/>' in text, text
+        assert 'camera_optical_mount' not in text
+
+
 def replay_with_marker_on_tf(repo_root, tmp_path, streams, messages):
     """Replay TF `messages` and the marker on /tf (camera -> marker), base_link -> tool0."""
     messages = messages + [

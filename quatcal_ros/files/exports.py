@@ -242,11 +242,16 @@ def urdf_rpy(result):
     return float(np.arctan2(R[2, 1], R[2, 2])), pitch, float(np.arctan2(R[1, 0], R[0, 0]))
 
 
-def _joint(result, parent_link, child_frame, indent=''):
-    """Return the fixed <joint> element of the result; parent_link: the (escaped) link name."""
+def _joint(result, parent_link, child_frame, indent='', note=''):
+    """
+    Return the fixed <joint> element of the result; parent_link: the (escaped) link name.
+
+    note: why the joint is not the calibrated frames' (stream.tf_joint), an XML comment above.
+    """
     xyz = ' '.join(_number(v) for v in _translation(result))
     rpy = ' '.join(_number(v) for v in urdf_rpy(result))
-    lines = [f'<joint name="{escape(f"{child_frame}_mount_joint")}" type="fixed">',
+    comment = [f'<!-- {note.replace("--", "- -")} -->'] if note else []   # (no -- in one)
+    lines = [*comment, f'<joint name="{escape(f"{child_frame}_mount_joint")}" type="fixed">',
              f'  <parent link="{parent_link}"/>',
              f'  <child link="{escape(str(child_frame))}"/>',
              f'  <origin xyz="{xyz}" rpy="{rpy}"/>',
@@ -254,17 +259,18 @@ def _joint(result, parent_link, child_frame, indent=''):
     return ''.join(f'{indent}{line}\n' for line in lines)
 
 
-def urdf_joint(result, parent_frame, child_frame):
+def urdf_joint(result, parent_frame, child_frame, note=''):
     """
     Return the fixed URDF joint parent_frame -> child_frame of the result (text).
 
     <joint name=".." type="fixed"><parent link=".."/><child link=".."/><origin xyz=".."
-    rpy=".."/></joint>, to commit the mounting into a robot description.
+    rpy=".."/></joint>, to commit the mounting into a robot description; `note` (why these
+    frames) an XML comment above it.
     """
-    return _joint(result, escape(str(parent_frame)), child_frame)
+    return _joint(result, escape(str(parent_frame)), child_frame, note=note)
 
 
-def xacro_macro(result, parent_frame, child_frame):
+def xacro_macro(result, parent_frame, child_frame, note=''):
     """
     Return the result as a xacro macro (text): the fixed joint, with the parent a parameter.
 
@@ -281,9 +287,21 @@ def xacro_macro(result, parent_frame, child_frame):
     return ('<?xml version="1.0"?>\n'
             '<robot xmlns:xacro="http://www.ros.org/wiki/xacro">\n'
             f'  <xacro:macro name="{name}_mount" params="parent:={default}">\n'
-            + _joint(result, '${parent}', _xacro_literal(str(child_frame)), indent='    ')
+            + _joint(result, '${parent}', _xacro_literal(str(child_frame)), indent='    ',
+                     note=_xacro_literal(note))
             + '  </xacro:macro>\n'
             '</robot>\n')
+
+
+def description_joints(result, parent_frame, child_frame, note=''):
+    """
+    Return {'urdf': .., 'xacro': ..}: the fixed joint of the result, for a robot description.
+
+    With TF input pass a stream.tf_joint.Joint's fields: the joint a tree can take.
+    :raises ValueError: when the result has no (finite) translation.
+    """
+    return {'urdf': urdf_joint(result, parent_frame, child_frame, note),
+            'xacro': xacro_macro(result, parent_frame, child_frame, note)}
 
 
 def _xacro_literal(text):

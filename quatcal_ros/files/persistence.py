@@ -162,7 +162,8 @@ def _plain_number(value):
     return finite_or_none(value)
 
 
-def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extra=None):
+def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extra=None,
+                    joint=None):
     """
     Build the result YAML's content as plain Python types.
 
@@ -172,6 +173,8 @@ def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extr
     :param child_frame: sensor frame.
     :param setup: 'eye_in_hand' or 'eye_to_hand'.
     :param extra: optional dict of further top-level keys (for example the source bag).
+    :param joint: the stream.tf_joint.Joint of the "urdf" and "xacro" keys (with TF input:
+        the joint the transform tree can take), or None: parent_frame -> child_frame.
     :return: a dict that yaml.safe_dump accepts.
     """
     w, x, y, z = (float(c) for c in np.asarray(result.quaternion, dtype=float).reshape(4))
@@ -196,8 +199,9 @@ def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extr
         'warnings': [str(text) for text in (getattr(result, 'warnings', None) or [])],
     }
     try:   # the fixed joint of the mounting, to commit into the robot description
-        document['urdf'] = exports.urdf_joint(result, parent_frame, child_frame)
-        document['xacro'] = exports.xacro_macro(result, parent_frame, child_frame)
+        document.update(exports.description_joints(result, parent_frame, child_frame)
+                        if joint is None else exports.description_joints(
+                            joint.result, joint.parent, joint.child, joint.note))
     except (AttributeError, ValueError):   # no (finite) translation
         pass
     validation = getattr(result, 'validation', None)
@@ -218,9 +222,10 @@ def _estimate(estimate):
             for key, value in document.items()}
 
 
-def format_result_yaml(result, parent_frame, child_frame, setup='eye_in_hand', extra=None):
+def format_result_yaml(result, parent_frame, child_frame, setup='eye_in_hand', extra=None,
+                       joint=None):
     """Return the result YAML text (see result_document for the arguments)."""
-    document = result_document(result, parent_frame, child_frame, setup, extra)
+    document = result_document(result, parent_frame, child_frame, setup, extra, joint)
     header = ('# Hand-eye calibration by quatcal_ros (Chou and Kamel 1988): the mounting.\n'
               '# rotation (quaternion x, y, z, w) and translation (m) of the transform\n'
               '# parent_frame -> child_frame; matrix maps child_frame coordinates to\n'
@@ -229,13 +234,13 @@ def format_result_yaml(result, parent_frame, child_frame, setup='eye_in_hand', e
 
 
 def write_result_yaml(path, result, parent_frame, child_frame, setup='eye_in_hand',
-                      extra=None):
+                      extra=None, joint=None):
     """
     Write the result YAML to `path` atomically; return the absolute path written.
 
     :raises OSError: when the file cannot be written (the previous file, if any, is kept).
     """
-    text = format_result_yaml(result, parent_frame, child_frame, setup, extra)
+    text = format_result_yaml(result, parent_frame, child_frame, setup, extra, joint)
     return atomic_write_text(path, text)
 
 

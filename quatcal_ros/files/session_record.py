@@ -142,7 +142,7 @@ class Saved:
 
 
 def save_result(result, frames, setup, result_file=None, easy_handeye2_file=None,
-                easy_handeye2_frames=None, extra=None):
+                easy_handeye2_frames=None, extra=None, joint=None):
     """
     Write `result` to the files given, each atomically (the old file stays when one fails).
 
@@ -153,12 +153,13 @@ def save_result(result, frames, setup, result_file=None, easy_handeye2_file=None
     :param easy_handeye2_frames: its other frame names {robot_base_frame, robot_effector_frame,
         tracking_marker_frame: name}, those known.
     :param extra: more top-level keys of the result YAML (the replay's source bag).
+    :param joint: the result YAML's joint in the TF tree (stream.tf_joint.Joint), or None.
     """
     saved = Saved()
     parent, child = frames
     if result_file:
         _write(saved, 'result', result_file, lambda: persistence.format_result_yaml(
-            result, parent, child, setup=setup, extra=extra))
+            result, parent, child, setup=setup, extra=extra, joint=joint))
     if easy_handeye2_file:
         _write(saved, 'easy_handeye2', easy_handeye2_file, lambda: exports.easy_handeye2_yaml(
             result, parent, child, setup=setup,

@@ -245,6 +245,7 @@ class ReplayReport:
     tf_stale: int = 0   # transforms older than the TF buffer (also counted as out_of_order)
     tf_frames: tuple = ()                                  # every frame the TF tree knew
     tf_swapped: list = field(default_factory=list)   # TfFeed.swapped_frames' warnings
+    tree: object = None   # the TF tree at the end (the result's joint in it, tf_joint)
     static_tf_topics: tuple = ()                           # those read, e.g. /tf_static
     static_tf_unread: tuple = ()                           # the bag's others, not asked for
     counters: dict = field(default_factory=dict)           # the session's, at the end
@@ -637,6 +638,7 @@ class _Run:
         report.tf_stale = sum(self.tree.stale.values())
         report.tf_swapped = self.tf.swapped_frames()
         report.tf_frames = tuple(sorted(self.tree.frames))
+        report.tree = self.tree
         report.static_tf_topics = tuple(topic for topic in self.replay.tf_topics
                                         if is_static_tf_topic(topic))
         report.static_tf_unread = tuple(topic for topic in sorted(self.replay.bag.topics)

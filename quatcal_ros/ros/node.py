@@ -51,6 +51,7 @@ from quatcal_ros.ros.static_tf import broadcast_advice, StaticTf
 from quatcal_ros.stream import arrival_lag
 from quatcal_ros.stream import frame_notices
 from quatcal_ros.stream import settings
+from quatcal_ros.stream import tf_joint
 from quatcal_ros.stream.log_throttle import StandingLog
 from quatcal_ros.stream.message_checks import LINK, SENSOR
 from quatcal_ros.stream.session import EstimateUpdated, SampleCaptured, Session
@@ -505,8 +506,10 @@ class CalibratorNode(Node):
         if self.inputs.tf is not None:   # the right fix before the setup advice it looks like
             result = replace(result, warnings=[*self.inputs.tf.swapped_frames(),
                                                *result.warnings])
+        tree = self.inputs.tf.tree if self.inputs.tf is not None else None
         saved = save_result(result, frames, config.setup, config.result_file,
-                            config.easy_handeye2_file, easy_handeye2_frames(config))
+                            config.easy_handeye2_file, easy_handeye2_frames(config),
+                            joint=tf_joint.joint(result, frames, tree))
         response.success, response.message = saved.ok, '; '.join(saved.texts())
         if not saved.ok:
             self.get_logger().error(response.message)
@@ -516,8 +519,7 @@ class CalibratorNode(Node):
             self.get_logger().warning(f'result {response.message}')
         elif saved.ok:
             self.get_logger().info(f'result {response.message}')
-            self.get_logger().info(broadcast_advice(
-                result, frames, self.inputs.tf.tree if self.inputs.tf is not None else None))
+            self.get_logger().info(broadcast_advice(result, frames, tree))
         return response
 
     # --- parameters at runtime -------------------------------------------------------------

@@ -19,12 +19,10 @@ resumed at start is broadcast before the camera driver's latched transform arriv
 the optical frame a second parent for the life of the node; it is broadcast again, re-rooted.
 """
 
-from dataclasses import replace
-
-from quatcal_ros.core.pose import Pose
 from quatcal_ros.files import exports
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.qos import quiet_publisher_events, TF_STATIC_BROADCAST_QOS
+from quatcal_ros.stream import tf_joint
 from quatcal_ros.stream.tf_tree import normalize_frame
 from tf2_msgs.msg import TFMessage
 
@@ -91,9 +89,10 @@ class StaticTf:
         for old_parent, old_child in self.sent:   # ours, from another parent: replaced
             if old_parent != parent and tree.parent(old_child) == old_parent:
                 tree.remove_edge(old_child)
-        target, refused = rerooted(pose, parent, child, tree)
+        target, refused = tf_joint.rerooted(pose, parent, child, tree)
         if target is None:
-            return self._refuse(refused)
+            return self._refuse(f'publish_tf: {refused}: nothing is broadcast (the result is '
+                                'on ~/transform)')
         if target[1] != child:
             self._say(f'publish_tf: {child} already has a parent in TF '
                       f'({tree.parent(child)}): broadcasting {parent} -> {target[1]}, the '
@@ -127,53 +126,18 @@ class StaticTf:
         return 'broadcast', None
 
 
-def rerooted(pose, parent, child, tree):
-    """
-    Return ((parent, root, T_parent_root), None) that gives no frame of `tree` a second parent.
-
-    root: the top of `child`'s static subtree (child itself when it has no parent), the
-    mounting T_parent_child composed with the static root -> child chain. (None, why) when a
-    moving transform holds that subtree, or it is connected to `parent` already.
-    """
-    parent, child = normalize_frame(parent), normalize_frame(child)
-    root = child
-    while True:
-        above = tree.parent(root)
-        if above is None or above == parent or not tree.is_static(root):
-            break
-        root = above
-    above = tree.parent(root)
-    if above is not None and above != parent:
-        return None, (f'publish_tf: {child} hangs from {above} by a moving transform on /tf, '
-                      f'so a transform {parent} -> {root} would give {root} a second parent: '
-                      'nothing is broadcast (the result is on ~/transform)')
-    if above is None and tree.chain(root, parent) is not None:
-        return None, (f'publish_tf: {root} is already connected to {parent} in TF: another '
-                      f'transform {parent} -> {root} would close a loop: nothing is broadcast '
-                      '(the result is on ~/transform)')
-    if root == child:
-        return (parent, child, pose), None
-    return (parent, root, pose @ tree.lookup(root, child, 0).inverse()), None   # any stamp
-
-
 def broadcast_advice(result, frames, tree=None):
     """
     Return the log line with the command that broadcasts `result` (parent, child `frames`).
 
-    With TF input (`tree`), under the frames the broadcast uses (`rerooted`): a sensor frame
-    that already has a parent (the camera driver's camera_link) would get a second one.
+    With TF input (`tree`), under the frames the broadcast uses (tf_joint.joint): a sensor
+    frame that already has a parent (the camera driver's camera_link) would get a second one.
     """
-    parent, child = frames
-    target, refused = (None, None) if tree is None else rerooted(
-        Pose.create(result.translation, result.quaternion), parent, child, tree)
-    if refused:
+    mount = tf_joint.joint(result, frames, tree)
+    if mount.breaks:
         return ('to broadcast the result on /tf_static: no transform can be given without '
-                'breaking the TF tree: ' + refused.removeprefix('publish_tf: '))
-    if target is None or target[1] == normalize_frame(child):
-        return ('to broadcast the result on /tf_static: '
-                + exports.static_transform_publisher_command(result, *frames))
-    parent, root, pose = target
-    moved = replace(result, quaternion=pose.quaternion, translation=pose.position)
-    return (f'to broadcast the result on /tf_static ({child} already hangs from {root} in TF: '
-            f'the mounting composed with the static {root} -> {child}): '
-            + exports.static_transform_publisher_command(moved, parent, root))
+                f'breaking the TF tree: {mount.note}: nothing is broadcast (the result is on '
+                '~/transform)')
+    return (f'to broadcast the result on /tf_static{f" ({mount.note})" if mount.note else ""}: '
+            + exports.static_transform_publisher_command(mount.result, mount.parent,
+                                                         mount.child))

@@ -24,6 +24,7 @@ from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import format_samples
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
 from quatcal_ros.files.text_input import BadInputError
+from quatcal_ros.stream import tf_joint
 from quatcal_ros.stream.arrival_lag import APART_NS, stamps_apart
 from quatcal_ros.stream.capture import unsteady_sensor_note
 from quatcal_ros.stream.recorded_stream import RecordedStream
@@ -288,7 +289,7 @@ def solve_frames(args, named=None):
 
 
 def print_result(prog, session, where='', warnings=(), frames=None, extra=None, result=None,
-                 limits=PlanLimits(), report=None):
+                 limits=PlanLimits(), report=None, tree=None):
     """
     Print the session's result as JSON (exit 0) or why there is none (exit 2 or 3).
 
@@ -298,6 +299,8 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     result: the CalibrationResult to print instead of the session's (`solve DIR`: the same
     with the estimate on the pixels at the top level). limits: the next-pose planner's.
     report: the --report path, or None; the page's title is `where` without its colon.
+    tree: the TF tree of the input (replay over TF), or None: the command and the joint are
+    given where the tree can take them (tf_joint.joint).
     """
     if len(session.samples) < 3:
         copies = session.counters['repeated_samples']
@@ -315,10 +318,11 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     result = with_warnings(result, warnings)
     document = result.to_json_dict()
     parent, child = frames or exports.default_frames(result.setup)
+    mount = tf_joint.joint(result, (parent, child), tree)
     document['static_transform_publisher'] = exports.static_transform_publisher_command(
-        result, parent, child)
-    document['urdf'] = exports.urdf_joint(result, parent, child)
-    document['xacro'] = exports.xacro_macro(result, parent, child)
+        mount.result, mount.parent, mount.child)
+    document.update(exports.description_joints(mount.result, mount.parent, mount.child,
+                                               mount.note))
     options = session.config.calibration
     planned = plan_next_pose(session.samples, result, options.setup, options.invert_sensor,
                              limits)
@@ -533,7 +537,8 @@ def replay_main(argv=None):
             return status
     return print_result(prog, session, where, warnings, frames=_replay_frames(args, report),
                         extra=extra, result=on_pixels and on_pixels[0],
-                        limits=plan_limits(settings_of(args)), report=args.report)
+                        limits=plan_limits(settings_of(args)), report=args.report,
+                        tree=report.tree)
 
 
 def _sensor_input(bag, args, config):
@@ -848,7 +853,8 @@ def _write_result(prog, args, result, session, warnings, report, link, sensor):
     source = {'bag': str(args.bag), 'link': str(link), 'sensor': str(sensor),
               'capture': session.config.capture.mode}
     saved = save_result(with_warnings(result, warnings), frames, args.setup,
-                        result_file=args.result_out, extra={'source': source})
+                        result_file=args.result_out, extra={'source': source},
+                        joint=tf_joint.joint(result, frames, report.tree))
     for _, target, error in saved.failed:
         return fail(prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)
     return 0
