@@ -135,6 +135,59 @@ def test_auto_needs_a_real_motion_before_the_next_sample():
     assert stand(turned(link, 3.0, shift=(0.03, 0, 0)), 3.0) == []
 
 
+def flipped(pairs, rng, share, degrees=30.0):
+    """Return `pairs` with `share` of their sensor poses turned by `degrees` (a marker flip)."""
+    flips = rng.random(len(pairs)) < share
+    return [Pair(p.stamp_ns, p.link, turned(p.sensor, degrees, axis=(1.0, 0.0, 0.0)))
+            if flip else p for p, flip in zip(pairs, flips)], int(flips.sum())
+
+
+def test_a_marker_that_flips_for_a_frame_costs_the_frame_not_the_stop():
+    # A tenth of the frames flipped: a still window with one of them was not still, and 12 of
+    # 15 stops of a recording gave no sample, without a word.
+    rng = np.random.default_rng(15)
+    cell, trajectory, pairs = stop_and_go_pairs(rng, 8, noise_deg=0.2)
+    pairs, flips = flipped(pairs, rng, 0.1)
+    capture = Capture(CaptureConfig())
+    samples = run(capture, pairs)
+    assert len(samples) == 8
+    for sample in samples:   # no flip averaged in: one of ~13 frames would be 2 deg off
+        assert rotation_error_deg(sample.sensor, cell.sensor_pose(sample.link)) < 0.3
+    assert 0 < capture.sensor_jumps <= flips
+
+
+def test_frames_left_out_are_exactly_the_jumps_and_a_moved_object_still_waits():
+    rng = np.random.default_rng(16)
+    link = Pose.create([0.4, 0.0, 0.5], [0.0, 1.0, 0.0, 0.0])
+    sensor = Pose.create([0.0, 0.0, 0.7], [0.0, 1.0, 0.0, 0.0])
+    pairs = still_pairs(rng, link, sensor, START_NS, 0.6, 50.0, noise_deg=0.1, noise_m=0.0002)
+    jumped = {5, 6, 12}   # inside the window, a run of two among them
+    pairs = [Pair(p.stamp_ns, p.link, turned(p.sensor, 20.0)) if i in jumped else p
+             for i, p in enumerate(pairs)]
+    capture = Capture(CaptureConfig())
+    (sample,) = run(capture, pairs)
+    window = [p for i, p in enumerate(pairs[:26]) if i not in jumped]   # 0.5 s at 50 Hz
+    assert_allclose(sample.sensor.quaternion,
+                    quat.average([p.sensor.quaternion for p in window]), atol=1e-12)
+    assert_allclose(sample.sensor.position,
+                    np.mean([p.sensor.position for p in window], axis=0), atol=1e-12)
+    assert capture.sensor_jumps == 3
+    # The object moved (knocked) a fifth of a window ago: the poses before are out of band,
+    # the oldest among them: not still until a whole window at the new place.
+    moved = turned(sensor, 0.0, shift=(0.02, 0.0, 0.0))
+    capture = Capture(CaptureConfig(mode='manual'))
+    before = still_pairs(rng, link, sensor, START_NS, 0.1, 50.0)
+    after = still_pairs(rng, link, moved, START_NS + 100 * MS, 0.5, 50.0)
+    run(capture, before + after)
+    refused, reason = capture.capture_now(after[-1].stamp_ns)
+    assert refused is None and reason.startswith('sensor pose is not steady: 0 deg, 20 mm')
+    later = still_pairs(rng, link, moved, START_NS + 600 * MS, 0.2, 50.0)
+    run(capture, later)
+    sample, text = capture.capture_now(later[-1].stamp_ns)
+    assert sample is not None and 'left out' not in text
+    assert_allclose(sample.sensor.position, moved.position, atol=1e-12)
+
+
 def test_manual_mode_captures_only_on_request():
     rng = np.random.default_rng(13)
     link = Pose.create([0.4, 0.0, 0.5], [0.0, 1.0, 0.0, 0.0])
@@ -183,6 +236,15 @@ def test_manual_refusals_say_why():
     run(capture, wobbling)
     assert capture.capture_now(now)[1].startswith(
         'sensor pose is not steady: 3 deg, 0 mm in the last 0.5 s (bands 1 deg, 5 mm)')
+
+    capture = Capture(config)   # one in five frames jumps: a sample, saying so
+    flipping = [Pair(START_NS + i * 20 * MS, link, turned(sensor, 3.0 * (i % 5 == 2)))
+                for i in range(51)]
+    run(capture, flipping)
+    sample, text = capture.capture_now(now)
+    assert text == ('averaged 26 pairs over 0.5 s, 5 sensor pose(s) left out: they jumped '
+                    'over 2x the sensor bands (a marker flip?)')
+    assert_allclose(sample.sensor.quaternion, sensor.quaternion, atol=1e-12)
 
     capture = Capture(config)
     run(capture, still_pairs(rng, link, sensor, START_NS, 0.3, 30.0))

@@ -881,3 +881,22 @@ def test_a_marker_that_moves_during_the_bag_is_warned_about(tmp_path, capsys):
         warned = [w for w in out['warnings'] if 'has the marker or the sensor moved' in w]
         assert len(warned) == (name == 'moved'), out['warnings']
     assert 'from sample 12 on' in warned[0]
+
+
+def test_a_marker_that_flips_for_single_frames_costs_no_stop(repo_root, streams, tmp_path):
+    # One sensor message in eight flipped by 30 deg: stops were lost without a word; now every
+    # stop gives its sample and the summary counts the frames left out.
+    rng = np.random.default_rng(52)
+    flip = quat.from_axis_angle([1.0, 0.0, 0.0], np.radians(30.0))
+    flips = rng.random(len(streams.sensor)) < 0.125
+    sensor = [(stamp, Pose(pose.position, quat.multiply(pose.quaternion, flip)) if flipped
+               else pose) for (stamp, pose), flipped in zip(streams.sensor, flips)]
+    write_bag(tmp_path / 'flips', {'/link_pose': POSE_STAMPED, '/sensor_pose': POSE_STAMPED},
+              topic_messages(dataclasses.replace(streams, sensor=sensor), POSE_STAMPED),
+              'sqlite3')
+    done = run_replay(repo_root, tmp_path / 'flips', *TOPICS)
+    out = assert_recovers(done, streams.truth)
+    assert out['samples'] == 10, done.stderr
+    left = int(re.search(r'; (\d+) sensor poses left out of still samples: they jumped over 2x '
+                         r'the sensor bands\)', done.stderr).group(1))
+    assert 0 < left <= flips.sum()

@@ -87,7 +87,7 @@ def test_stop_and_go_streams_give_one_sample_per_stop_and_the_mounting():
     assert counters == {
         'link_messages': len(streams.link), 'sensor_messages': len(streams.sensor),
         'pairs': len(streams.sensor), 'unpaired': 0, 'samples': 8, 'motions': 28,
-        'rejected': 0, 'time_jumps': 0, 'repeated_samples': 0}
+        'rejected': 0, 'time_jumps': 0, 'repeated_samples': 0, 'sensor_jumps': 0}
     assert session.rates_hz['link'] == pytest.approx(500.0)
 
 

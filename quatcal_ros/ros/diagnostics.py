@@ -267,6 +267,7 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
         # repeat earlier samples after one are not added twice.
         'time_jumps': counters['time_jumps'],
         'repeated_samples': counters['repeated_samples'],
+        'sensor_jumps': counters['sensor_jumps'],   # left out of still samples (a flip)
     }
     for (stream, reason), count in sorted(stats.bad.items()):
         values[message_checks.diagnostic_key(stream, reason)] = count

@@ -14,7 +14,13 @@ Modes:
 
 "Still for a window" means: every pair from the last one at least window_ns older than the
 newest up to the newest lies within the bands of the newest pose, so a gap in the stream
-cannot hide a motion.  Quaternions are (w, x, y, z); stamps are integer nanoseconds.
+cannot hide a motion. The sensor poses may break that at a few frames inside the window that
+jump beyond JUMP_BANDS times a sensor band (at most one in MAX_JUMP_SHARE, never the oldest,
+so the object stood where it stands now a whole window ago): a marker that flips, or a
+detection of the wrong thing, for a frame. Those frames are left out of the sample, and
+counted; before, one such frame cost the whole stop without a word (a tenth of the frames
+flipped lost 12 of 15 stops of a recording). A frame just outside a band is noise: the window
+is not still, as before. Quaternions are (w, x, y, z); stamps are integer nanoseconds.
 """
 
 from dataclasses import dataclass
@@ -31,6 +37,13 @@ MODES = ('auto', 'manual', 'continuous')
 # Capture.paired_ns, the /diagnostics rule for a robot that never stops. A detector at 0.2 Hz
 # still counts; the streams paused longer (the marker out of view) do not.
 PAIRED_STEP_NS = 5_000_000_000
+# At most one sensor pose in this many of a still window may jump out of the sensor bands and
+# be left out (module doc): a quarter keeps a majority of three in four around the newest pose.
+MAX_JUMP_SHARE = 4
+# A sensor pose this many sensor bands from the newest is a jump, not noise (a marker flip
+# turns the pose by tens of degrees; a detector's noise that reaches twice the band needs
+# wider bands).
+JUMP_BANDS = 2.0
 
 
 @dataclass(frozen=True)
@@ -135,14 +148,13 @@ class _PairWindow:
         link, sensor = self.link.poses_at_ends(), self.sensor.poses_at_ends()
         return pose_change(*link) + pose_change(*sensor)
 
-    def spread(self):
-        """Largest rotation (deg) and translation (m) from the newest pose: (2,) each."""
+    def changes(self):
+        """Rotation (deg) and translation (m) of every kept pose from the newest: (2, n) each."""
         q, p = self._arrays()
-        angles = np.degrees(quat.angle_between(q, q[:, -1:]))
-        distances = np.linalg.norm(p - p[:, -1:], axis=-1)
-        return angles.max(axis=1), distances.max(axis=1)
+        return (np.degrees(quat.angle_between(q, q[:, -1:])),
+                np.linalg.norm(p - p[:, -1:], axis=-1))
 
-    def average_sample(self):
+    def average_sample(self, left_out=None):
         """
         One Sample: the mean of the kept pairs, stamped at the middle of their span.
 
@@ -151,16 +163,16 @@ class _PairWindow:
         had left the sample without one, and the session's every sample with it:
         calibration.sensor_covariances): not divided by the number of frames, whose errors in
         a still window are mostly shared (the same view of the target); refine fits the
-        overall scale anyway.
+        overall scale anyway. left_out: a mask of the sensor poses not averaged (jumps).
         """
         q, p = self._arrays()
-        p = p.mean(axis=1)
+        kept = np.ones(len(self), bool) if left_out is None else ~left_out
         stamp = self.link.oldest_ns + self.span_ns // 2
-        poses = self.sensor.poses()
+        poses = [pose for pose, keep in zip(self.sensor.poses(), kept) if keep]
         given = [pose.covariance for pose in poses if pose.covariance is not None]
         covariance = np.mean(given, axis=0) if 2 * len(given) > len(poses) else None
-        return Sample(stamp, Pose(p[0], quat.average(q[0])),
-                      Pose(p[1], quat.average(q[1]), covariance))
+        return Sample(stamp, Pose(p[0].mean(axis=0), quat.average(q[0])),
+                      Pose(p[1][kept].mean(axis=0), quat.average(q[1][kept]), covariance))
 
 
 def unsteady_sensor_note(count, config, band_names):
@@ -190,6 +202,10 @@ class Capture:
         # Pairs at which the link stayed within its still bands but the sensor pose did not:
         # what keeps a noisy sensor from ever giving a still sample (its bands are too tight).
         self.unsteady_sensor = 0
+        # Sensor poses left out of the still samples taken: they jumped over JUMP_BANDS times
+        # the sensor bands for a frame or a few (module doc).
+        self.sensor_jumps = 0
+        self._jumps = None   # the mask of the latest still window's (_still_reason)
         # The stamps this timeline's pairs cover: the steps between consecutive pairs up to
         # PAIRED_STEP_NS (a pause of the streams, or stamps that leap, is not paired time).
         self.paired_ns = 0
@@ -218,7 +234,7 @@ class Capture:
         if self.config.mode == 'continuous':
             return self._continuous_sample(pair)
         if self.config.mode == 'auto' and self._moved and self._is_still():
-            return self._take(self._window.average_sample())
+            return self._take_window()
         return None
 
     def capture_now(self, now_ns):
@@ -230,9 +246,17 @@ class Capture:
         refusal = self._still_reason() or self._motion_reason()
         if refusal:
             return None, refusal
-        sample = self._take(self._window.average_sample())
+        jumps = int(self._jumps.sum())
+        sample = self._take_window()
+        left = (f', {jumps} sensor pose(s) left out: they jumped over {JUMP_BANDS:g}x the '
+                'sensor bands (a marker flip?)' if jumps else '')
         return sample, (f'averaged {len(self._window)} pairs over '
-                        f'{self._window.span_ns * 1e-9:.2g} s')
+                        f'{self._window.span_ns * 1e-9:.2g} s{left}')
+
+    def _take_window(self):
+        """Take the still window's sample (_still_reason has just passed it)."""
+        self.sensor_jumps += int(self._jumps.sum())
+        return self._take(self._window.average_sample(self._jumps))
 
     def _take(self, sample):
         self.note_sample(sample)
@@ -270,21 +294,26 @@ class Capture:
         if len(window) < config.min_still_pairs:
             return (f'only {len(window)} paired poses in the last {span_s:.2g} s (need '
                     f'{config.min_still_pairs}): is the sensor dropping frames?')
-        (link_deg, sensor_deg), (link_m, sensor_m) = window.spread()
+        degrees, metres = window.changes()
+        (link_deg, sensor_deg), (link_m, sensor_m) = degrees.max(axis=1), metres.max(axis=1)
         if link_deg > config.rotation_band_deg:
             return (f'robot is moving: link rotated {_short(link_deg)} deg in the last '
                     f'{span_s:.2g} s (band {_short(config.rotation_band_deg)} deg)')
         if link_m > config.translation_band_m:
             return (f'robot is moving: link moved {_short(link_m * 1e3)} mm in the last '
                     f'{span_s:.2g} s (band {_short(config.translation_band_m * 1e3)} mm)')
-        if sensor_deg > config.sensor_rotation_band_deg or \
-                sensor_m > config.sensor_translation_band_m:
+        band_deg, band_m = config.sensor_rotation_band_deg, config.sensor_translation_band_m
+        jumps = (degrees[1] > JUMP_BANDS * band_deg) | (metres[1] > JUMP_BANDS * band_m)
+        outside = (degrees[1] > band_deg) | (metres[1] > band_m)
+        if jumps[0] or (outside & ~jumps).any() or MAX_JUMP_SHARE * jumps.sum() > len(window) \
+                or len(window) - jumps.sum() < config.min_still_pairs:
             return (f'sensor pose is not steady: {_short(sensor_deg)} deg, '
                     f'{_short(sensor_m * 1e3)} mm in the last {span_s:.2g} s (bands '
                     f'{_short(config.sensor_rotation_band_deg)} deg, '
                     f'{_short(config.sensor_translation_band_m * 1e3)} mm): is the object '
                     'fixed and detected reliably? A detector this noisy at a real stop needs '
                     'wider sensor bands')
+        self._jumps = jumps
         return None
 
     def _motion_reason(self):

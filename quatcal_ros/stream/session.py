@@ -364,7 +364,8 @@ class Session:
         rejected: messages and samples not used; time_jumps: new timelines started;
         repeated_samples: samples not added because they repeat earlier ones (module doc);
         unsteady_sensor: paired poses at which the link stood still but the sensor pose
-        moved beyond its still bands (auto capture).
+        moved beyond its still bands (auto capture); sensor_jumps: sensor poses left out of
+        still samples, over twice the sensor bands for a frame or a few (a marker flip).
         """
         samples = self._sample_count()
         return {
@@ -378,6 +379,7 @@ class Session:
             'time_jumps': self._counts['time_jumps'],
             'repeated_samples': self._counts['repeated_samples'],
             'unsteady_sensor': self._capture.unsteady_sensor,
+            'sensor_jumps': self._capture.sensor_jumps,
         }
 
     @property

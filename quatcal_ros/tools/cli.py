@@ -26,7 +26,7 @@ from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_res
 from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.stream import tf_joint
 from quatcal_ros.stream.arrival_lag import APART_NS, stamps_apart
-from quatcal_ros.stream.capture import unsteady_sensor_note
+from quatcal_ros.stream.capture import JUMP_BANDS, unsteady_sensor_note
 from quatcal_ros.stream.recorded_stream import RecordedStream
 from quatcal_ros.stream.session import Rejected, Session
 from quatcal_ros.stream.settings import check_config, ConfigError, IMAGES_NOT_INVERTED, \
@@ -706,10 +706,13 @@ def _run(replay, config, args, label):
 
 def _summary(prog, report, session, seconds):
     counters = session.counters
+    jumps = counters['sensor_jumps']
+    jumps = (f'; {jumps} sensor poses left out of still samples: they jumped over '
+             f'{JUMP_BANDS:g}x the sensor bands' if jumps else '')
     print(f'{prog}: {report.messages} messages in {seconds:.1f} s: '
           f'{counters["link_messages"]} link and {counters["sensor_messages"]} sensor poses, '
           f'{counters["pairs"]} pairs, {counters["samples"]} samples '
-          f'({session.config.capture.mode} capture)', file=sys.stderr)
+          f'({session.config.capture.mode} capture{jumps})', file=sys.stderr)
 
 
 def _missing_static_hint(report, frames):
