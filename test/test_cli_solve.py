@@ -437,3 +437,30 @@ def test_a_huge_number_is_shown_cut_in_the_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert 'row 2, field stamp: 9999' in err and '... is not a finite number' in err
     assert len(err) < 300
+
+
+def test_solve_writes_the_result_file_the_node_writes(tmp_path, capsys):
+    # Only the node and replay wrote it: an offline solve had no file with the quality, both
+    # estimates, the validation and the URDF joint.
+    from quatcal_ros.files.persistence import read_result_yaml
+    from quatcal_ros.tools.cli import solve_main
+    _, path, _ = write_cell_csv(tmp_path / 'cell.csv', 8, 12, rotation_noise_deg=0.3)
+    target = tmp_path / 'out' / 'calibration.yaml'
+    assert solve_main([str(path), '--result-out', str(target), '--parent-frame', 'tool0',
+                       '--child-frame', 'camera_optical', '--validation-max-rotation-deg',
+                       '0.001']) == 0
+    out = json.loads(capsys.readouterr().out)
+    saved = read_result_yaml(target)
+    assert (saved['parent_frame'], saved['child_frame']) == ('tool0', 'camera_optical')
+    assert saved['format'] == 'quatcal_ros/mounting' and saved['setup'] == 'eye_in_hand'
+    assert saved['quaternion_xyzw'] == pytest.approx(
+        [out['rotation'][k] for k in 'xyzw'], abs=1e-6)
+    assert saved['quality']['samples'] == out['samples'] == 12
+    assert saved['source'] == {'samples': str(path)}
+    # The warnings saved are those printed: the failed validation's too.
+    assert saved['warnings'] == out['warnings'] and saved['validation']['verdict'] == 'fail'
+    assert saved['warnings'][0].startswith('validation failed')
+    assert '<child link="camera_optical"/>' in saved['urdf']
+    # An output that is the input is refused, as the others are.
+    assert solve_main([str(path), '--result-out', str(path)]) == 2
+    assert '--result-out' in capsys.readouterr().err

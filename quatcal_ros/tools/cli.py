@@ -74,6 +74,9 @@ def solve_main(argv=None):
              'numbers row-major); moveit-json: [[eef_wrt_world, obj_wrt_sensor], ...] 4x4')
     add_frame_arguments(parser)
     add_report_argument(parser)
+    parser.add_argument('--result-out', metavar='FILE.yaml',
+                        help="also write the result YAML (as the node's ~/save and replay's "
+                             '--result-out)')
     parser.add_argument('--easy-handeye2-out', metavar='FILE',
                         help='also write the result in the easy_handeye2 calibration layout '
                              '(e.g. ~/.ros2/easy_handeye2/calibrations/NAME.calib)')
@@ -87,7 +90,8 @@ def solve_main(argv=None):
         return fail(parser.prog, 'the samples path is empty: give a samples file or an image '
                                  'dataset folder', EXIT_BAD_INPUT)
     folder = Path(args.samples).is_dir()
-    outputs = {'--report': args.report, '--easy-handeye2-out': args.easy_handeye2_out}
+    outputs = {'--report': args.report, '--result-out': args.result_out,
+               '--easy-handeye2-out': args.easy_handeye2_out}
     problem = output_problem([('dataset' if folder else 'file', args.samples)], outputs)
     if problem:
         return fail(parser.prog, problem, EXIT_BAD_INPUT)
@@ -105,11 +109,11 @@ def solve_main(argv=None):
     session = Session(session_config(settings_of(args)))
     copies = _copies(session.add_samples(imported.samples))
     session.estimate()   # one full solve over all of them
-    failed = _write_easy_handeye2(parser.prog, args, session.result, frames, imported.frames)
+    warnings = [*imported.warnings, *_copies_warning(copies)]
+    failed = _write_files(parser.prog, args, session.result, frames, warnings, imported.frames)
     if failed:
         return failed
-    return print_result(parser.prog, session, f'{args.samples}: ',
-                        [*imported.warnings, *_copies_warning(copies)], frames=frames,
+    return print_result(parser.prog, session, f'{args.samples}: ', warnings, frames=frames,
                         limits=plan_limits(settings_of(args)),
                         report=args.report)
 
@@ -146,18 +150,16 @@ def _solve_images(prog, args):
         return print_result(prog, session, where)
     frames = solve_frames(args)
     if result.unobservable:   # as the node and replay: the pixel fit has no gauge there
-        failed = _write_easy_handeye2(prog, args, result, frames)
+        warnings = [_on_poses(REDUCED_DOF_ON_POSES)]
+        failed = _write_files(prog, args, result, frames, warnings)
         return failed or print_result(
-            prog, session, where, [_on_poses(REDUCED_DOF_ON_POSES)], frames=frames,
+            prog, session, where, warnings, frames=frames,
             result=result,
             limits=plan_limits(settings_of(args)), report=args.report,
             extra={'views': views, 'pose_based_method': result.method})
     fit = refine_from_poses(data.samples, data.corners(), data.camera, result, args.setup,
                             args.robust)
     on_pixels = result_on_pixels(result, fit)
-    failed = _write_easy_handeye2(prog, args, on_pixels, frames)
-    if failed:
-        return failed
     # On images the usual cause: the board's or the camera's numbers, which no fit can see.
     hint = (['on camera images a failed validation most often means wrong numbers in '
              'board.yaml (square_length_m, marker_length_m: measure the printed board) or '
@@ -166,6 +168,9 @@ def _solve_images(prog, args):
     if data.refused:   # said only in the JSON's views.refused, and on no page
         hint.append(f'{len(data.refused)} of {total} images are not used: '
                     f'{data.refusal_summary()} (the "views" key lists each)')
+    failed = _write_files(prog, args, on_pixels, frames, hint)
+    if failed:
+        return failed
     return print_result(prog, session, where, hint, frames=frames, result=on_pixels,
                         limits=plan_limits(settings_of(args)), report=args.report,
                         extra={'views': views, 'reprojection': fit.to_json_dict(),
@@ -197,20 +202,23 @@ def _on_poses(why):
     return f'the estimate is on the board poses, not on the pixels: {why}'
 
 
-def _write_easy_handeye2(prog, args, result, frames, named=None):
+def _write_files(prog, args, result, frames, warnings=(), named=None):
     """
-    Write --easy-handeye2-out when it is given and there is a result; return fail's status.
+    Write `solve`'s --result-out and --easy-handeye2-out, those given, when there is a result.
 
+    Return fail's status, or None. warnings: those the printed result adds (published).
     named: the frames the samples file named, by easy_handeye2 parameter name (the base or
     effector frame and the marker frame that the result's frames do not give).
     """
-    if result is None or not args.easy_handeye2_out:
+    if result is None or not (args.result_out or args.easy_handeye2_out):
         return None
     named = named or {}
     keep = ('robot_base_frame' if args.setup == 'eye_in_hand' else 'robot_effector_frame',
             'tracking_marker_frame')
-    saved = save_result(result, frames, args.setup, easy_handeye2_file=args.easy_handeye2_out,
-                        easy_handeye2_frames={key: named.get(key, '') for key in keep})
+    saved = save_result(published(result, warnings), frames, args.setup,
+                        result_file=args.result_out, easy_handeye2_file=args.easy_handeye2_out,
+                        easy_handeye2_frames={key: named.get(key, '') for key in keep},
+                        extra={'source': {'samples': str(args.samples)}})
     for _, target, error in saved.failed:
         return fail(prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)
     return None
@@ -310,12 +318,7 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     if session.result is None:
         return fail(prog, f'{where}the rotation cannot be determined: {session.last_error}',
                     EXIT_UNDETERMINED)
-    result = result or session.result
-    failed = failure_warning(result.validation)
-    if failed:   # said in the warnings too, not only there
-        warnings = [f'{failed} (the "validation" key lists each sample, the worst first)',
-                    *warnings]
-    result = with_warnings(result, warnings)
+    result = published(result or session.result, warnings)
     document = result.to_json_dict()
     parent, child = frames or exports.default_frames(result.setup)
     mount = tf_joint.joint(result, (parent, child), tree)
@@ -337,11 +340,13 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     return 0
 
 
-def with_warnings(result, warnings):
-    """Return the CalibrationResult `result` with `warnings` appended to its own."""
-    if not warnings:
-        return result
-    return replace(result, warnings=[*result.warnings, *warnings])
+def published(result, warnings):
+    """Return `result` as it is printed and saved: `warnings` added, and a failed validation's."""
+    failed = failure_warning(result.validation)
+    if failed:   # said in the warnings too, not only there
+        warnings = [f'{failed} (the "validation" key lists each sample, the worst first)',
+                    *warnings]
+    return replace(result, warnings=[*result.warnings, *warnings]) if warnings else result
 
 
 def fail(prog, message, status):
@@ -855,7 +860,7 @@ def _write_result(prog, args, result, session, warnings, report, link, sensor):
                   file=sys.stderr)
     source = {'bag': str(args.bag), 'link': str(link), 'sensor': str(sensor),
               'capture': session.config.capture.mode}
-    saved = save_result(with_warnings(result, warnings), frames, args.setup,
+    saved = save_result(published(result, warnings), frames, args.setup,
                         result_file=args.result_out, extra={'source': source},
                         joint=tf_joint.joint(result, frames, report.tree))
     for _, target, error in saved.failed:
