@@ -20,6 +20,7 @@ from quatcal_ros.core import bounds
 from quatcal_ros.core import heavy_tails
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core import refine as refine_module
+from quatcal_ros.core import sensor_scale
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions
 from quatcal_ros.core.motions import SampleRotations
 from quatcal_ros.core.pose import Pose, Sample
@@ -692,6 +693,19 @@ def test_positions_all_in_millimetres_are_named_and_the_rotation_kept():
     assert not result.usable and result.to_json_dict()['usable'] is False
     assert np.degrees(quat.angle_between(result.quaternion, right.quaternion)) < 1e-6
     np.testing.assert_allclose(result.translation, 1000.0 * right.translation, rtol=1e-6)
+
+
+def test_a_board_close_to_the_camera_in_millimetres_is_named_too():
+    # Both medians had to pass 100 m: a board 60 mm from the camera, in millimetres, was not.
+    rng = np.random.default_rng(23)
+    link = rng.normal(size=(12, 3)) * 300.0 + [800.0, 0.0, 400.0]   # mm
+    sensor = rng.normal(size=(12, 3)) * 5.0 + [0.0, 0.0, 60.0]      # mm
+    said = sensor_scale.all_in_millimetres(link, sensor)
+    assert said and 'look to be in millimetres, all of them' in said
+    # A sensor 60 m away with the link in metres is no such thing (nor is the link alone in
+    # millimetres: the scale fit names that factor).
+    assert sensor_scale.all_in_millimetres(link / 1000.0, sensor) is None
+    assert sensor_scale.all_in_millimetres(link, sensor / 1000.0) is None
 
 
 def test_too_few_samples_to_judge_the_scale():

@@ -43,10 +43,13 @@ MIN_SAMPLES = 8
 # A factor between a pair of these is positions in that unit where metres were due (the
 # sensor's over the link's, or its inverse): the unit that a factor beyond 10 names.
 UNITS = ((500.0, 2000.0, 'millimetres'), (70.0, 150.0, 'centimetres'), (30.0, 50.0, 'inches'))
-# Link and sensor positions both farther than this from their origins (median, metres) are in
-# millimetres, not a robot cell: no camera sees its board, no robot reaches, 100 m away. The
-# scale fit, which compares the two, cannot see them scaled alike.
+# Link positions farther than this from the base (median, metres) are in millimetres, not a
+# robot cell: no robot reaches 100 m. With sensor positions beyond the second figure they are
+# all in millimetres (a board 10 mm from the camera is too close to see, while no detector or
+# tracker sees 10 m away at every pose). The scale fit, which compares the two, cannot see
+# them scaled alike; a board closer than 100 mm was missed when both had to pass 100 m.
 ALL_IN_MILLIMETRES_M = 100.0
+ALL_IN_MILLIMETRES_SENSOR_M = 10.0
 # From this many samples the fit is weighted again by its own residuals (fit).
 REFIT_SAMPLES = 20
 AXES = 'xyz'
@@ -172,7 +175,7 @@ def all_in_millimetres(link_positions, sensor_positions):
     """Return the warning for link and sensor positions alike in millimetres, or None."""
     link, sensor = (float(np.median(np.linalg.norm(positions, axis=1)))
                     for positions in (link_positions, sensor_positions))
-    if not min(link, sensor) > ALL_IN_MILLIMETRES_M:
+    if not (link > ALL_IN_MILLIMETRES_M and sensor > ALL_IN_MILLIMETRES_SENSOR_M):
         return None
     return (f'the sensor sees its target a median {sensor:.4g} m away and the link stands '
             f'{link:.4g} m from its base: the positions look to be in millimetres, all of them. '
