@@ -900,3 +900,20 @@ def test_a_marker_that_flips_for_single_frames_costs_no_stop(repo_root, streams,
     left = int(re.search(r'; (\d+) sensor poses left out of still samples: they jumped over 2x '
                          r'the sensor bands\)', done.stderr).group(1))
     assert 0 < left <= flips.sum()
+
+
+def test_a_detector_that_hangs_the_camera_under_the_marker_is_not_called_swapped(
+        repo_root, streams, tmp_path):
+    # Some detectors publish marker -> camera (to place the camera in the tree). The frames
+    # are given right and the poses compose; it was said to look swapped all the same.
+    messages = [('/tf', stamp + MS, tf_message(msg(TRANSFORM_STAMPED, pose, stamp, 'base_link',
+                                                   'tool0')))
+                for stamp, pose in streams.link]
+    messages += [('/tf', delivered, tf_message(msg(TRANSFORM_STAMPED, pose.inverse(), stamp,
+                                                   'marker', 'camera')))
+                 for (stamp, pose), delivered in zip(streams.sensor, streams.sensor_delivery_ns)]
+    write_bag(tmp_path / 'tf', {'/tf': TF_TYPE}, sorted(messages, key=lambda m: m[1]), 'mcap')
+    done = run_replay(repo_root, tmp_path / 'tf', '--link-frames', 'base_link', 'tool0',
+                      '--sensor-frames', 'camera', 'marker', '--tf-topics', '/tf')
+    out = assert_recovers(done, streams.truth)
+    assert not any('look swapped' in text for text in out['warnings']), out['warnings']

@@ -1,5 +1,7 @@
 """Tests of stream.tf_tree: chains through the tree, interpolation, FramePoses streams."""
 
+from types import SimpleNamespace
+
 from hypothesis import given, settings
 from hypothesis import strategies as st
 import numpy as np
@@ -306,7 +308,8 @@ def test_link_frames_given_the_wrong_way_round_are_named():
     tree.set_transform('camera', 'marker', START_NS, turn)
     frames = {'link_pose': ('tool0', 'base_link'), 'sensor_pose': ('marker', 'camera')}
     feed = TfFeed(tree, PoseScreen(), frames, lambda *pose: None, link='link_pose')
-    assert feed.problems() == [
+    # (the link frames' stays whatever the estimate: no robot hangs its base below its tool)
+    assert feed.problems(SimpleNamespace(warnings=[])) == feed.problems() == [
         'TF input: the link frames look swapped: the base frame given, tool0, hangs below the '
         'effector frame given, base_link, in the TF tree; a link pose is the effector in the '
         'robot base frame (base base_link, effector tool0?)']   # (not the sensor's frames)
@@ -332,7 +335,16 @@ def test_tracking_frames_given_the_wrong_way_round_are_named():
         'TF input: the tracking frames look swapped: the camera frame given, aruco_marker, '
         'hangs below the marker frame given, camera_optical, in the TF tree; a sensor pose is '
         'the marker in the camera frame (tracking_base_frame camera_optical, '
-        'tracking_marker_frame aruco_marker?)']
+        'tracking_marker_frame aruco_marker?), unless the detector publishes the camera under '
+        'the marker on purpose']
     right = TfFeed(tree, PoseScreen(), {'sensor_pose': ('camera_optical', 'aruco_marker')},
                    lambda *pose: None, sensor='sensor_pose')
     assert right.swapped_frames() == []
+    # A detector that publishes the camera under the marker on purpose: once an estimate fits
+    # the sensor poses as composed (no frame-convention warning), it is not said; while the
+    # estimate says another convention fits far better, it stays.
+    fits = SimpleNamespace(warnings=['the motions are small'])
+    assert feed.swapped_frames(fits) == []
+    misfit = SimpleNamespace(warnings=['frame convention: the samples fit badly as configured'])
+    assert len(feed.swapped_frames(misfit)) == 1
+    assert feed.swapped_frames(None) == feed.swapped_frames()

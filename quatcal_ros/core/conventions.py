@@ -69,6 +69,9 @@ NOT_RIGID_DEG = 10.0
 LONG_MOUNTING_M = 0.25
 EXCHANGED_RATIO = 2.0
 
+# The start of every warning that another frame convention fits far better.
+PREFIX = 'frame convention:'
+
 
 def warnings(samples, options, screen=None):
     """
@@ -108,7 +111,7 @@ def _better_convention(samples, options, screen=None):
     rotation, position = current
     if _score(current) < BETTER_FACTOR * _score(others[best]):
         return []
-    said = (f'frame convention: the samples fit badly as configured (median residual '
+    said = (f'{PREFIX} the samples fit badly as configured (median residual '
             f'{rotation:.2f} deg, {position:.1f} mm) but well as')
     mirror = _mirror(*best)
     if mirror in others and _score(others[mirror]) < MIRROR_FACTOR * _score(others[best]):

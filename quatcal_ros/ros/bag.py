@@ -35,8 +35,8 @@ from quatcal_ros.ros import cdr
 from quatcal_ros.ros.conversions import frame_ids
 from quatcal_ros.ros.image_input import ImageInput
 from quatcal_ros.ros.pose_screen import PoseScreen
-from quatcal_ros.ros.tf_feed import DEFAULT_TF_TOPICS, is_static_tf_topic, TF_MAX_GAP_NS, \
-    TfFeed
+from quatcal_ros.ros.tf_feed import DEFAULT_TF_TOPICS, is_static_tf_topic, kept_swapped, \
+    TF_MAX_GAP_NS, TfFeed
 from quatcal_ros.stream import frame_notices
 from quatcal_ros.stream.message_checks import CheckConfig, LINK, SENSOR
 from quatcal_ros.stream.tf_tree import normalize_frame
@@ -648,16 +648,17 @@ class _Run:
         return report
 
 
-def frame_warnings(report, setup='eye_in_hand', invert_sensor=False):
+def frame_warnings(report, setup='eye_in_hand', invert_sensor=False, result=None):
     """
     Return warnings on the frames of the streams the replay used.
 
     stream.frame_notices' on the messages' frames, and TfFeed.swapped_frames' on TF input's
-    link and tracking frames.
+    link and tracking frames (those the estimate `result` leaves standing: tf_feed.kept_swapped).
     """
     seen = {checked: report.frames[stream] for stream, checked in STREAMS.items()
             if stream in report.frames}
-    return report.tf_swapped + frame_notices.notices(seen, setup, invert_sensor)
+    return (kept_swapped(report.tf_swapped, result)
+            + frame_notices.notices(seen, setup, invert_sensor))
 
 
 # The stamp-to-log-time lags at a stream's two ends agree this well (clock_offset_ns).

@@ -211,9 +211,13 @@ class NodeInputs:
             stats.restart_sequence(stream, always=self._counted.get(stream) != gids)
             self._counted[stream] = gids
 
-    def problems(self):
-        """Return the TF frame pairs that cannot be composed, in words (none for pose topics)."""
-        return self.tf.problems() if self.tf is not None else []
+    def problems(self, result=None):
+        """
+        Return the TF frame pairs that cannot be composed, in words (none for pose topics).
+
+        result: the latest estimate, or None (TfFeed.swapped_frames).
+        """
+        return self.tf.problems(result) if self.tf is not None else []
 
     def _on_pose(self, stream, msg):
         if stream != LINK:

@@ -396,7 +396,7 @@ class CalibratorNode(Node):
         A misspelt frame showed on /diagnostics alone: the log stayed silent. Not at once:
         the frames of /tf_static and /tf come in over the first second or two.
         """
-        found = self.inputs.problems()
+        found = self.inputs.problems(self.session.result)
         self._log_standing(self._tf_log, found)
         return found
 
@@ -465,7 +465,8 @@ class CalibratorNode(Node):
         if unpaired and skipped:
             reason += f' (so far {skipped})'   # (no board, other units): not the clocks
         if unpaired and self.inputs.tf is not None:   # a frame missing names itself
-            reason += ''.join(f' ({problem})' for problem in self.inputs.tf.problems())
+            reason += ''.join(f' ({problem})' for problem in self.inputs.tf.problems(
+                self.session.result))
         if not ok:
             self.get_logger().info(f'capture refused: {reason}')
         response.success, response.message = bool(ok), reason
@@ -504,7 +505,7 @@ class CalibratorNode(Node):
         config = self.config
         frames = config.result_frames
         if self.inputs.tf is not None:   # the right fix before the setup advice it looks like
-            result = replace(result, warnings=[*self.inputs.tf.swapped_frames(),
+            result = replace(result, warnings=[*self.inputs.tf.swapped_frames(result),
                                                *result.warnings])
         tree = self.inputs.tf.tree if self.inputs.tf is not None else None
         saved = save_result(result, frames, config.setup, config.result_file,

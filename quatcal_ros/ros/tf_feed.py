@@ -14,6 +14,7 @@ The first parent a frame is seen with stays its parent (tf2 would re-parent it, 
 moving every frame below it).
 """
 
+from quatcal_ros.core.conventions import PREFIX as CONVENTION_WARNING
 from quatcal_ros.ros.conversions import BadPoseError, pose_from_msg, stamp_ns_from_header
 from quatcal_ros.stream import message_checks
 from quatcal_ros.stream.tf_tree import FramePoses, normalize_frame, TransformTree, TreeError
@@ -32,6 +33,20 @@ TF_CACHE_NS = 2_000_000_000
 TF_TIME_JUMP_NS = TF_CACHE_NS
 # Frames named in a problem's text, at most.
 MAX_FRAMES_NAMED = 12
+# The start of TfFeed.swapped_frames' warning on the tracking frames.
+TRACKING_SWAPPED = 'TF input: the tracking frames look swapped'
+
+
+def kept_swapped(warnings, result):
+    """
+    Return TfFeed.swapped_frames' `warnings` that estimate `result` (or None) leaves standing.
+
+    The tracking frames' goes when the estimate fits the sensor poses as composed (no
+    frame-convention warning): the detector publishes the camera under the marker on purpose.
+    """
+    fits = result is not None and not any(text.startswith(CONVENTION_WARNING)
+                                          for text in result.warnings)
+    return [text for text in warnings if not (fits and text.startswith(TRACKING_SWAPPED))]
 
 
 def is_static_tf_topic(topic):
@@ -67,7 +82,7 @@ class TfFeed:
         self.on_ours_replaced = None
         self.watchers = {stream: FramePoses(tree, *pair) for stream, pair in frames.items()}
 
-    def swapped_frames(self):
+    def swapped_frames(self, result=None):
         """
         Return a warning for each frame pair given the wrong way round in the tree: [] if none.
 
@@ -76,14 +91,21 @@ class TfFeed:
         nothing else shows it: swapped link frames looked like the other setup (the
         frame-convention check advised it), swapped tracking frames like inverted sensor
         poses, whose positions take the rotation noise times the distance (no still sample).
+        A detector may publish the camera under the marker on purpose, though: with the
+        estimate `result` and no frame-convention warning in it, the data fit the tracking
+        frames as given and they are not said to look swapped (kept_swapped).
         """
+        return kept_swapped(self._swapped(), result)
+
+    def _swapped(self):
         found = []
         for stream, what, base, tip, names in (
                 (self.link, 'link', 'base', 'effector',
                  'a link pose is the effector in the robot base frame (base {}, effector {}?)'),
                 (self.sensor, 'tracking', 'camera', 'marker',
                  'a sensor pose is the marker in the camera frame (tracking_base_frame {}, '
-                 'tracking_marker_frame {}?)')):
+                 'tracking_marker_frame {}?), unless the detector publishes the camera under '
+                 'the marker on purpose')):
             watcher = self.watchers.get(stream)
             if watcher is None or watcher.source not in self.tree.path_to_root(
                     watcher.target)[1:]:
@@ -169,8 +191,12 @@ class TfFeed:
             except TreeError as error:
                 self.screen.bad(topic, 'breaks_tree', error)
 
-    def problems(self):
-        """Return sentences naming each frame pair that cannot be composed from the tree."""
+    def problems(self, result=None):
+        """
+        Return sentences naming each frame pair that cannot be composed from the tree.
+
+        And those of swapped_frames (`result`: the latest estimate, or None).
+        """
         found = []
         frames = self.tree.frames
         for watcher in self.watchers.values():
@@ -185,7 +211,7 @@ class TfFeed:
             else:
                 why = self.tree.disconnection(target, source)
             found.append(f'TF input: {target} -> {source} cannot be composed: {why}')
-        return found + self.swapped_frames()
+        return found + self.swapped_frames(result)
 
     def finish(self):
         """Close the frame watchers (what they still wait for is counted as dropped)."""

@@ -513,7 +513,7 @@ def replay_main(argv=None):
     # exactly what `solve` computes from the --samples-out file.
     session.estimate()
     warnings = (notes + report.warnings()
-                + bag.frame_warnings(report, args.setup, args.invert_sensor))
+                + bag.frame_warnings(report, args.setup, args.invert_sensor, session.result))
     if not args.estimate_time_offset:   # (the search starts from what the log times say)
         warnings += _logged_clocks(bag.clock_offset_ns(replay, report),
                                    config.sensor_offset_ns)
