@@ -180,12 +180,15 @@ SETTINGS = (
             'Largest link translation (metres) within the still window that counts as still.',
             unit='m', low=1e-6, high=0.1, tools=REPLAY),
     Setting('sensor_still_rotation_deg', 1.0,
-            'Largest sensor-pose rotation (degrees) within the still window that counts as '
-            'still (detections are noisier than the robot).', unit='deg', low=0.001,
+            'Largest sensor-pose rotation (degrees) from the newest within the still window '
+            'that counts as still (detections are noisier than the robot). The oldest frame '
+            'must be within it, a quarter of the others may pass it (noise, averaged), and '
+            'those beyond twice it are left out (a marker flip).', unit='deg', low=0.001,
             high=30.0, tools=REPLAY),
     Setting('sensor_still_translation_m', 0.005,
-            'Largest sensor-pose translation (metres) within the still window that counts as '
-            'still.', unit='m', low=1e-6, high=1.0, tools=REPLAY),
+            'Largest sensor-pose translation (metres) from the newest within the still '
+            'window that counts as still, as sensor_still_rotation_deg.', unit='m', low=1e-6,
+            high=1.0, tools=REPLAY),
     Setting('min_still_pairs', 3,
             'Fewest paired poses a still window must hold for a sample.', low=1, high=10000,
             tools=REPLAY),
