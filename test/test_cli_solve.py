@@ -464,3 +464,34 @@ def test_solve_writes_the_result_file_the_node_writes(tmp_path, capsys):
     # An output that is the input is refused, as the others are.
     assert solve_main([str(path), '--result-out', str(path)]) == 2
     assert '--result-out' in capsys.readouterr().err
+
+
+def test_a_result_from_a_frame_to_itself_is_refused_and_leading_slashes_dropped(tmp_path,
+                                                                                capsys):
+    # --parent-frame camera (the child's default) wrote a joint and a command from camera to
+    # camera, exit 0; '/tool0' kept its slash, which tf2 refuses in a frame id.
+    from quatcal_ros.tools.cli import solve_main
+    _, path, _ = write_cell_csv(tmp_path / 'cell.csv', 8, 8, rotation_noise_deg=0.3)
+    assert solve_main([str(path), '--parent-frame', 'camera',
+                       '--result-out', str(tmp_path / 'r.yaml')]) == 2
+    err = capsys.readouterr().err
+    assert "the result would be a transform from frame 'camera' to itself" in err
+    assert not (tmp_path / 'r.yaml').exists()
+    assert solve_main([str(path), '--parent-frame', '/tool0', '--child-frame', '/cam']) == 0
+    command = json.loads(capsys.readouterr().out)['static_transform_publisher']
+    assert command.endswith('--frame-id tool0 --child-frame-id cam')
+
+
+def test_an_estimate_not_to_use_is_said_on_stderr_and_in_the_result_file(repo_root, tmp_path):
+    # Exit 0 (the contract) with nothing on stderr: a script that redirected stdout wrote a
+    # result file 45 degrees off and heard nothing. The file had no `usable` either.
+    samples = repo_root / 'data' / 'moveit_pose_samples' / 'pose_samples.json'
+    done = run_solve(repo_root, samples, '--result-out', tmp_path / 'r.yaml')   # eye_in_hand
+    assert done.returncode == 0
+    assert json.loads(done.stdout)['usable'] is False
+    assert 'warning: ' in done.stderr and 'the estimate says not to use it ("usable": false)' \
+        in done.stderr
+    from quatcal_ros.files.persistence import read_result_yaml
+    assert read_result_yaml(tmp_path / 'r.yaml')['usable'] is False
+    right = run_solve(repo_root, samples, '--setup', 'eye_to_hand')
+    assert right.returncode == 0 and 'usable' not in right.stderr

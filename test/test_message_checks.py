@@ -680,3 +680,19 @@ def test_waiting_for_poses_says_why_the_first_bad_message_was_skipped():
     assert status_message(Session(), stats) == (
         'waiting for poses (3 bad messages skipped, most for no_board on sensor_pose, the '
         'first: 17 markers of DICT_5X5_100 seen: check squares_x and squares_y)')
+
+
+def test_the_inputs_problems_come_before_the_estimates_warnings_on_diagnostics():
+    # Swapped TF frames: the frame-convention warning advised another setup first, and the
+    # swap (the cause) came last in a 1700-character status.
+    from types import SimpleNamespace
+    from quatcal_ros.ros.diagnostics import calibrator_status
+    session = Session()
+    result = SimpleNamespace(warnings=['frame convention: use --setup eye_to_hand'],
+                             residual_rms_deg=0.1, validation={}, motions=3, inliers=3,
+                             uncertainty_deg=0.1, method='refined', translation=[0, 0, 0],
+                             translation_uncertainty_mm=1.0, hint='')
+    status = calibrator_status(session, mc.StreamStats(), 0, 'tool0',
+                               problems=['TF input: the link frames look swapped'],
+                               result=result)
+    assert status.message.index('look swapped') < status.message.index('frame convention')

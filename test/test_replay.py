@@ -917,3 +917,11 @@ def test_a_detector_that_hangs_the_camera_under_the_marker_is_not_called_swapped
                       '--sensor-frames', 'camera', 'marker', '--tf-topics', '/tf')
     out = assert_recovers(done, streams.truth)
     assert not any('look swapped' in text for text in out['warnings']), out['warnings']
+
+
+def test_a_result_from_a_frame_to_itself_is_refused_before_reading(repo_root, bags):
+    done = run_replay(repo_root, bags / 'pose', *TOPICS, '--parent-frame', 'cam',
+                      '--child-frame', '/cam')
+    assert done.returncode == 2
+    assert "the result would be a transform from frame 'cam' to itself" in done.stderr
+    assert 'messages in' not in done.stderr   # (nothing read)

@@ -197,6 +197,8 @@ def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extr
                       for name in ('closed_form', 'refined')},
         'hint': str(getattr(result, 'hint', '') or ''),
         'warnings': [str(text) for text in (getattr(result, 'warnings', None) or [])],
+        # false when a warning says not to use the estimate (CalibrationResult.usable)
+        'usable': bool(getattr(result, 'usable', True)),
     }
     try:   # the fixed joint of the mounting, to commit into the robot description
         document.update(exports.description_joints(result, parent_frame, child_frame)

@@ -221,13 +221,16 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
     counters = session.counters
     stale = stats.stale_reasons(now_ns, STALE_AFTER_S, started_ns, topics, composed)
     found = list(dict.fromkeys(text for _, text in stale))   # (TF input: one topic, /tf)
+    # The input's problems before the estimate's warnings: they are the causes (swapped TF
+    # frames make the frame-convention warning advise another setup).
+    found += [text for text in problems if text]
     if result is not None and result.residual_rms_deg > HIGH_RESIDUAL_DEG:
         found.append(f'high residual {result.residual_rms_deg:.2f} deg RMS: check the frame '
                      'conventions and the time alignment of the streams')
     if result is not None:
         found += list(result.warnings)
     validation = (result.validation if result is not None else None) or {}
-    found += [text for text in (failure_warning(validation), *problems) if text]
+    found += [text for text in (failure_warning(validation),) if text]
     if (result is None and not counters['samples'] and session.config.capture.mode == 'auto'
             and session.paired_seconds >= NEVER_STILL_S):
         found.append(f'no still sample in {session.paired_seconds:.0f} s of paired poses')

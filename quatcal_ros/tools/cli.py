@@ -15,7 +15,7 @@ import sys
 import time
 
 from quatcal_ros.core.planner import plan_next_pose, PlanLimits
-from quatcal_ros.core.units import NS_PER_S
+from quatcal_ros.core.units import DO_NOT_USE, NS_PER_S
 from quatcal_ros.core.validation import failure_warning
 from quatcal_ros.files import exports
 from quatcal_ros.files import importers
@@ -31,6 +31,7 @@ from quatcal_ros.stream.recorded_stream import RecordedStream
 from quatcal_ros.stream.session import Rejected, Session
 from quatcal_ros.stream.settings import check_config, ConfigError, IMAGES_NOT_INVERTED, \
     plan_limits, session_config
+from quatcal_ros.stream.tf_tree import normalize_frame
 from quatcal_ros.stream.time_offset import find_time_offset
 from quatcal_ros.tools.options import add_setting_options, settings_of
 from quatcal_ros.tools.output_paths import output_problem
@@ -105,7 +106,10 @@ def solve_main(argv=None):
         return fail(parser.prog, error, EXIT_BAD_INPUT)
     args.setup = args.setup or imported.setup or 'eye_in_hand'
     args.invert_sensor = bool(imported.invert_sensor)
-    frames = solve_frames(args, imported.frames)
+    try:
+        frames = solve_frames(args, imported.frames)
+    except BadInputError as error:
+        return fail(parser.prog, f'{args.samples}: {error}', EXIT_BAD_INPUT)
     session = Session(session_config(settings_of(args)))
     copies = _copies(session.add_samples(imported.samples))
     session.estimate()   # one full solve over all of them
@@ -125,6 +129,10 @@ def _solve_images(prog, args):
     from quatcal_ros.vision.reprojection import refine_from_poses
     args.setup = args.setup or 'eye_in_hand'
     where = f'{args.samples}: '
+    try:
+        frames = solve_frames(args)
+    except BadInputError as error:
+        return fail(prog, error, EXIT_BAD_INPUT)
     progress = Progress(None, 'images', enabled=sys.stderr.isatty())
 
     def show(done, total):
@@ -148,7 +156,6 @@ def _solve_images(prog, args):
                           f'pose; at least 3 are needed{refused}', EXIT_BAD_INPUT)
     if result is None:   # why there is none
         return print_result(prog, session, where)
-    frames = solve_frames(args)
     if result.unobservable:   # as the node and replay: the pixel fit has no gauge there
         warnings = [_on_poses(REDUCED_DOF_ON_POSES)]
         failed = _write_files(prog, args, result, frames, warnings)
@@ -288,12 +295,28 @@ def solve_frames(args, named=None):
     Return (parent, child) frames of the outputs: the options, else the file's, else defaults.
 
     named: frame names from the samples file, by easy_handeye2 parameter name.
+    :raises BadInputError: when they are one frame (frames_problem).
     """
     named = named or {}
     named_parent = named.get('robot_effector_frame' if args.setup == 'eye_in_hand'
                              else 'robot_base_frame')
-    return exports.choose_frames(args.setup, (args.parent_frame, args.child_frame),
-                                 (named_parent, named.get('tracking_base_frame')))
+    frames = exports.choose_frames(args.setup, (args.parent_frame, args.child_frame),
+                                   (named_parent, named.get('tracking_base_frame')))
+    problem = frames_problem(frames)
+    if problem:
+        raise BadInputError(problem)
+    return tuple(normalize_frame(frame) for frame in frames)
+
+
+def frames_problem(frames):
+    """Say why the result's (parent, child) `frames` cannot be used (one frame), or ''."""
+    parent, child = (normalize_frame(frame) for frame in frames)
+    if parent != child:
+        return ''
+    return (f'the result would be a transform from frame {child!r} to itself (its '
+            'static_transform_publisher line, URDF joint and files): give the link frame '
+            '(eye_in_hand) or the robot base frame (eye_to_hand) as --parent-frame and the '
+            'sensor frame as --child-frame')
 
 
 def print_result(prog, session, where='', warnings=(), frames=None, extra=None, result=None,
@@ -319,6 +342,10 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
         return fail(prog, f'{where}the rotation cannot be determined: {session.last_error}',
                     EXIT_UNDETERMINED)
     result = published(result or session.result, warnings)
+    if not result.usable:   # a script that reads only the exit status hears it here
+        said = next(text for text in result.warnings if DO_NOT_USE in text)
+        print(f'{prog}: warning: {where}the estimate says not to use it ("usable": false): '
+              f'{said}', file=sys.stderr)
     document = result.to_json_dict()
     parent, child = frames or exports.default_frames(result.setup)
     mount = tf_joint.joint(result, (parent, child), tree)
@@ -456,6 +483,10 @@ def replay_main(argv=None):
     except ConfigError as error:
         return fail(prog, f'bad option: {error}', EXIT_BAD_INPUT)
     config = session_config(chosen, images=args.image_topic is not None)
+    if args.parent_frame and args.child_frame and frames_problem((args.parent_frame,
+                                                                  args.child_frame)):
+        return fail(prog, frames_problem((args.parent_frame, args.child_frame)),
+                    EXIT_BAD_INPUT)
     problem = output_problem([('bag', args.bag), ('file', args.board_file)], {
         '--samples-out': args.samples_out, '--journal-out': args.journal_out,
         '--result-out': args.result_out, '--report': args.report})
@@ -823,8 +854,9 @@ def _few_samples(session, report, logged_ns=None):
 def _replay_frames(args, report):
     """Return (parent, child) of the outputs: the options, the messages' frames, defaults."""
     from quatcal_ros.ros.bag import result_frames
-    return exports.choose_frames(args.setup, (args.parent_frame, args.child_frame),
-                                 result_frames(report, args.setup, args.invert_sensor))
+    return tuple(normalize_frame(frame) for frame in exports.choose_frames(
+        args.setup, (args.parent_frame, args.child_frame),
+        result_frames(report, args.setup, args.invert_sensor)))
 
 
 def _write_journal(prog, args, session, report):
