@@ -272,7 +272,9 @@ def test_manual_refusals_say_why():
                 for i in range(51)]
     run(capture, wobbling)
     assert capture.capture_now(now)[1].startswith(
-        'sensor pose is not steady: 3 deg, 0 mm in the last 0.5 s (bands 1 deg, 5 mm)')
+        'sensor pose is not steady: 3 deg, 0 mm in the last 0.5 s (bands 1 deg, 5 mm; the '
+        'rotation beyond): is the object fixed and detected reliably? Just after a stop the '
+        'sensor (its latency) may still show the motion: try again in a moment.')
 
     capture = Capture(config)   # one in five frames jumps: a sample, saying so
     flipping = [Pair(START_NS + i * 20 * MS, link, turned(sensor, 3.0 * (i % 5 == 2)))

@@ -310,12 +310,17 @@ class Capture:
         outside = (degrees[1] > band_deg) | (metres[1] > band_m)
         if outside[0] or MAX_OUTSIDE_SHARE * outside.sum() > len(window) \
                 or len(window) - jumps.sum() < config.min_still_pairs:
+            beyond = [name for name, off in (('rotation', degrees[1] > band_deg),
+                                             ('translation', metres[1] > band_m))
+                      if off[0] or MAX_OUTSIDE_SHARE * off.sum() > len(window)]
+            which = (f'the {" and the ".join(beyond)} beyond' if beyond
+                     else 'too few frames within them')
             return (f'sensor pose is not steady: {_short(sensor_deg)} deg, '
                     f'{_short(sensor_m * 1e3)} mm in the last {span_s:.2g} s (bands '
-                    f'{_short(config.sensor_rotation_band_deg)} deg, '
-                    f'{_short(config.sensor_translation_band_m * 1e3)} mm): is the object '
-                    'fixed and detected reliably? A detector this noisy at a real stop needs '
-                    'wider sensor bands')
+                    f'{_short(band_deg)} deg, {_short(band_m * 1e3)} mm; {which}): is the '
+                    'object fixed and detected reliably? Just after a stop the sensor (its '
+                    'latency) may still show the motion: try again in a moment. A detector '
+                    'this noisy at a real stop needs wider sensor bands')
         self._jumps = jumps
         return None
 
