@@ -396,6 +396,11 @@ def test_invalid_parameters_are_refused_at_start(domain_id):
                                               r'mean still_window_s\?\)'):
             CalibratorNode(context=context,
                            parameter_overrides=[Parameter('still_windw_s', value=0.7)])
+        # -p still_window_s:=1 is an integer: rclpy's error named no remedy.
+        with pytest.raises(ConfigError, match=r'parameter still_window_s: 1 is an integer, and '
+                                              r'still_window_s is a real number: write 1\.0'):
+            CalibratorNode(context=context,
+                           parameter_overrides=[Parameter('still_window_s', value=1)])
         # One like no parameter of its (a launch file's global robot_description) is said.
         node = CalibratorNode(context=context, parameter_overrides=[
             Parameter('robot_description', value='<robot/>')])

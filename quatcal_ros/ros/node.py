@@ -490,8 +490,9 @@ class CalibratorNode(Node):
         if self.journal.problem:
             self.get_logger().error(self.journal.problem)
         response.success = True
-        response.message = (f'session cleared: {discarded} samples discarded (the last '
-                            f'~/rotation stays latched until a new estimate){journal_text}')
+        response.message = (f'session cleared: the new one starts without the {discarded} '
+                            'samples (the last ~/rotation and ~/transform stay latched until a '
+                            f'new estimate){journal_text}')
         self.get_logger().info(response.message)
         return response
 

@@ -19,6 +19,7 @@ from rcl_interfaces.msg import FloatingPointRange
 from rcl_interfaces.msg import IntegerRange
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
+from rclpy.parameter import Parameter
 from rclpy.utilities import remove_ros_args
 import yaml
 
@@ -53,6 +54,13 @@ def declare_parameters(node):
         try:
             node.declare_parameter(setting.name, setting.default, descriptor(setting))
         except ParameterException as error:
+            given = getattr(node, '_parameter_overrides', {}).get(setting.name)
+            if isinstance(setting.default, float) and given is not None and \
+                    given.type_ == Parameter.Type.INTEGER:   # rclpy names no remedy
+                raise ConfigError(f'parameter {setting.name}: {given.value} is an integer, and '
+                                  f'{setting.name} is a real number: write {given.value}.0 '
+                                  '(ROS takes a number without a decimal point as an '
+                                  'integer)') from None
             raise ConfigError(f'parameter {setting.name}: {error}') from None
     # What -p and the params file set for this node (rclpy keeps them, declared or not): a
     # name no parameter has was ignored without a word (still_windw_s). One close to a
