@@ -696,3 +696,16 @@ def test_the_inputs_problems_come_before_the_estimates_warnings_on_diagnostics()
                                problems=['TF input: the link frames look swapped'],
                                result=result)
     assert status.message.index('look swapped') < status.message.index('frame convention')
+
+
+def test_an_estimates_log_line_gives_the_translation_too():
+    # It gave the quaternion alone: the translation was on ~/transform and in the file only.
+    from types import SimpleNamespace
+    from quatcal_ros.ros.diagnostics import describe_result
+    result = SimpleNamespace(quaternion=[1.0, 0.0, 0.0, 0.0], translation=[0.0099, -0.0106, 0.05],
+                             residual_rms_deg=0.128, uncertainty_deg=0.036,
+                             translation_uncertainty_mm=0.55, samples=11, inliers=55,
+                             motions=55, hint='motions excite all axes')
+    line = describe_result(result)
+    assert ', translation (0.0099, -0.0106, 0.0500) m, residual 0.128 deg RMS, uncertainty 0.036 ' \
+           'deg and 0.55 mm, from 11 samples' in line, line

@@ -52,11 +52,16 @@ def format_quaternion_xyzw(q_wxyz):
 
 
 def describe_result(result):
-    """One log line for a new estimate."""
-    return (f'estimate: {format_quaternion_xyzw(result.quaternion)}, residual '
-            f'{result.residual_rms_deg:.3f} deg RMS, uncertainty {result.uncertainty_deg:.3f} '
-            f'deg, from {result.samples} samples ({result.inliers} of {result.motions} '
-            f'motions used); next: {result.hint}')
+    """One log line for a new estimate: the rotation, the translation, their uncertainties."""
+    translation, uncertainty = '', f'{result.uncertainty_deg:.3f} deg'
+    if result.translation is not None:
+        x, y, z = (float(v) for v in result.translation)
+        translation = f', translation ({x:.4f}, {y:.4f}, {z:.4f}) m'
+        uncertainty += f' and {result.translation_uncertainty_mm:.2f} mm'
+    return (f'estimate: {format_quaternion_xyzw(result.quaternion)}{translation}, residual '
+            f'{result.residual_rms_deg:.3f} deg RMS, uncertainty {uncertainty}, from '
+            f'{result.samples} samples ({result.inliers} of {result.motions} motions used); '
+            f'next: {result.hint}')
 
 
 class InputWatch:
