@@ -707,5 +707,5 @@ def test_an_estimates_log_line_gives_the_translation_too():
                              translation_uncertainty_mm=0.55, samples=11, inliers=55,
                              motions=55, hint='motions excite all axes')
     line = describe_result(result)
-    assert ', translation (0.0099, -0.0106, 0.0500) m, residual 0.128 deg RMS, uncertainty 0.036 ' \
-           'deg and 0.55 mm, from 11 samples' in line, line
+    assert (', translation (0.0099, -0.0106, 0.0500) m, residual 0.128 deg RMS, uncertainty '
+            '0.036 deg and 0.55 mm, from 11 samples') in line, line
