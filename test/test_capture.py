@@ -203,6 +203,12 @@ def test_a_frame_just_outside_the_sensor_bands_is_noise_and_averaged():
     window = [p.sensor.quaternion for p in pairs[25:]]
     assert_allclose(sample.sensor.quaternion, quat.average(window), atol=1e-12)
     assert capture.sensor_jumps == 0
+    # One in three frames outside the band is too noisy a detector: refused (auto mode too),
+    # and counted as an unsteady sensor for the advice to widen its bands.
+    noisy = [Pair(p.stamp_ns, link, turned(sensor, 1.5 if i % 3 == 1 else 0.0))
+             for i, p in enumerate(pairs)]
+    auto = Capture(CaptureConfig())
+    assert run(auto, noisy) == [] and auto.unsteady_sensor > 0
     # The oldest frame outside the band is a motion, not noise: refused.
     pairs[25] = Pair(pairs[25].stamp_ns, link, turned(sensor, 1.5))
     capture = Capture(CaptureConfig(mode='manual'))
@@ -281,8 +287,8 @@ def test_manual_refusals_say_why():
                 for i in range(51)]
     run(capture, flipping)
     sample, text = capture.capture_now(now)
-    assert text == ('averaged 26 pairs over 0.5 s, 5 sensor pose(s) left out: they jumped '
-                    'over 2x the sensor bands (a marker flip?)')
+    assert text == ('averaged 26 link and 21 sensor poses over 0.5 s, 5 sensor pose(s) left '
+                    'out: they jumped over 2x the sensor bands (a marker flip?)')
     assert_allclose(sample.sensor.quaternion, sensor.quaternion, atol=1e-12)
 
     capture = Capture(config)

@@ -315,9 +315,9 @@ def test_a_joint_note_is_a_well_formed_xml_comment():
     import xml.etree.ElementTree as ElementTree
     from types import SimpleNamespace
     result = SimpleNamespace(quaternion=[1.0, 0.0, 0.0, 0.0], translation=[0.1, 0.0, 0.2])
-    note = 'cam--optical already hangs from camera in TF: the static camera -> cam--optical'
+    note = 'cam---optical already hangs from camera in TF: the static camera -> cam---optical'
     joints = exports.description_joints(result, 'tool0', 'camera', note)
     for text in joints.values():
-        assert '<!-- cam- -optical already hangs from camera in TF' in text
+        assert '<!-- cam- - -optical already hangs from camera in TF' in text
         ElementTree.fromstring(text)   # well formed (a -- inside a comment is not)
     assert exports.description_joints(result, 'tool0', 'camera')['urdf'].startswith('<joint')

@@ -246,7 +246,7 @@ def test_estimate_needs_two_non_parallel_motions_then_save_and_reset(harness_fac
     assert values['state'] == 'estimating' and values['samples'] == '5'
     assert float(values['uncertainty_deg']) < 0.01
     for key in ('motions', 'inliers', 'residual_rms_deg', 'hint', 'link_messages',
-                'sensor_messages', 'bad_messages'):
+                'sensor_messages', 'bad_messages', 'sensor_jumps'):
         assert key in values
 
     # A runtime change re-estimates from the same samples and publishes again.

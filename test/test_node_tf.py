@@ -237,7 +237,8 @@ def test_save_puts_swapped_link_frames_before_the_setup_advice(tf_harness, tmp_p
     cell, streams = tf_cell(12, 10)
     h = tf_harness([Parameter('robot_base_frame', value='tool0'),
                     Parameter('robot_effector_frame', value='base_link'),
-                    Parameter('result_file', value=str(tmp_path / 'r.yaml'))])
+                    Parameter('result_file', value=str(tmp_path / 'r.yaml')),
+                    Parameter('validation_max_rotation_deg', value=0.001)])
     publish_camera_driver(h, streams)
     play(h, cell_messages(streams))
     h.spin_until(lambda: h.rotations, what='an estimate')
@@ -249,6 +250,8 @@ def test_save_puts_swapped_link_frames_before_the_setup_advice(tf_harness, tmp_p
     assert warnings[0].startswith('TF input: the link frames look swapped: the base frame '
                                   'given, tool0, hangs below the effector frame given, '
                                   'base_link'), warnings
+    # A failed validation is in the saved warnings, as in solve's and replay's files.
+    assert any(w.startswith('validation failed: ') for w in warnings), warnings
 
 
 def test_a_capture_refused_on_tf_input_names_the_frame_it_misses(tf_harness):

@@ -919,9 +919,15 @@ def test_a_detector_that_hangs_the_camera_under_the_marker_is_not_called_swapped
     assert not any('look swapped' in text for text in out['warnings']), out['warnings']
 
 
-def test_a_result_from_a_frame_to_itself_is_refused_before_reading(repo_root, bags):
+def test_a_result_from_a_frame_to_itself_is_refused_before_reading(repo_root, bags, tmp_path):
     done = run_replay(repo_root, bags / 'pose', *TOPICS, '--parent-frame', 'cam',
                       '--child-frame', '/cam')
     assert done.returncode == 2
     assert "the result would be a transform from frame 'cam' to itself" in done.stderr
     assert 'messages in' not in done.stderr   # (nothing read)
+    # One option naming the frame the messages name for the other (the sensor's 'camera').
+    done = run_replay(repo_root, bags / 'pose', *TOPICS, '--parent-frame', 'camera',
+                      '--result-out', tmp_path / 'one_frame.yaml')
+    assert done.returncode == 2, done.stdout
+    assert "the result would be a transform from frame 'camera' to itself" in done.stderr
+    assert not (tmp_path / 'one_frame.yaml').exists()

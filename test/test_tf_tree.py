@@ -309,7 +309,8 @@ def test_link_frames_given_the_wrong_way_round_are_named():
     frames = {'link_pose': ('tool0', 'base_link'), 'sensor_pose': ('marker', 'camera')}
     feed = TfFeed(tree, PoseScreen(), frames, lambda *pose: None, link='link_pose')
     # (the link frames' stays whatever the estimate: no robot hangs its base below its tool)
-    assert feed.problems(SimpleNamespace(warnings=[])) == feed.problems() == [
+    assert feed.problems(SimpleNamespace(warnings=[], usable=True, samples=9)) == \
+        feed.problems() == [
         'TF input: the link frames look swapped: the base frame given, tool0, hangs below the '
         'effector frame given, base_link, in the TF tree; a link pose is the effector in the '
         'robot base frame (base base_link, effector tool0?)']   # (not the sensor's frames)
@@ -343,8 +344,14 @@ def test_tracking_frames_given_the_wrong_way_round_are_named():
     # A detector that publishes the camera under the marker on purpose: once an estimate fits
     # the sensor poses as composed (no frame-convention warning), it is not said; while the
     # estimate says another convention fits far better, it stays.
-    fits = SimpleNamespace(warnings=['the motions are small'])
+    fits = SimpleNamespace(warnings=['the motions are small'], usable=True, samples=5)
     assert feed.swapped_frames(fits) == []
-    misfit = SimpleNamespace(warnings=['frame convention: the samples fit badly as configured'])
+    misfit = SimpleNamespace(warnings=['frame convention: the samples fit badly as configured'],
+                             usable=False, samples=5)
     assert len(feed.swapped_frames(misfit)) == 1
+    # Nor from an estimate not to use (a fit that is no rigid mounting), or from too few
+    # samples for the convention check to tell (3: it never warned).
+    assert len(feed.swapped_frames(SimpleNamespace(warnings=[], usable=False,
+                                                   samples=9))) == 1
+    assert len(feed.swapped_frames(SimpleNamespace(warnings=[], usable=True, samples=4))) == 1
     assert feed.swapped_frames(None) == feed.swapped_frames()

@@ -8,7 +8,7 @@ noise included, and the verdict compares it with the user's thresholds. The wors
 named so they can be inspected (or dropped).
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -73,6 +73,20 @@ def not_enough_samples(count, needed, thresholds=Thresholds()):
             'reason': f'{count} good samples: the leave-one-out validation needs {needed}',
             'rms_rotation_deg': None, 'rms_translation_mm': None,
             'thresholds': thresholds.to_json_dict(), 'worst': [], 'samples': []}
+
+
+def published(result, warnings=()):
+    """
+    Return CalibrationResult `result` as it is printed and saved, with `warnings` added.
+
+    After its own warnings, a failed validation's comes first of them (said in the warnings,
+    not only in "validation"). The tools' JSON and files and the node's ~/save all use it.
+    """
+    failed = failure_warning(result.validation)
+    if failed:
+        warnings = [f'{failed} (the "validation" key lists each sample, the worst first)',
+                    *warnings]
+    return replace(result, warnings=[*result.warnings, *warnings]) if warnings else result
 
 
 def failure_warning(validation):

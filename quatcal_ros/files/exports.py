@@ -250,7 +250,7 @@ def _joint(result, parent_link, child_frame, indent='', note=''):
     """
     xyz = ' '.join(_number(v) for v in _translation(result))
     rpy = ' '.join(_number(v) for v in urdf_rpy(result))
-    comment = [f'<!-- {note.replace("--", "- -")} -->'] if note else []   # (no -- in one)
+    comment = [f'<!-- {re.sub(r"-(?=-)", "- ", note)} -->'] if note else []   # (no -- in one)
     lines = [*comment, f'<joint name="{escape(f"{child_frame}_mount_joint")}" type="fixed">',
              f'  <parent link="{parent_link}"/>',
              f'  <child link="{escape(str(child_frame))}"/>',

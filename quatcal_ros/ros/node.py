@@ -35,6 +35,7 @@ from geometry_msgs.msg import QuaternionStamped
 from geometry_msgs.msg import TransformStamped
 from quatcal_ros.core.planner import plan_next_pose
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.core.validation import published
 from quatcal_ros.files import journal
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
 from quatcal_ros.files.text_input import BadInputError
@@ -491,8 +492,8 @@ class CalibratorNode(Node):
             self.get_logger().error(self.journal.problem)
         response.success = True
         response.message = (f'session cleared: the new one starts without the {discarded} '
-                            'samples (the last ~/rotation and ~/transform stay latched until a '
-                            f'new estimate){journal_text}')
+                            'samples (what is latched stays until a new estimate: ~/rotation, '
+                            f'~/transform, ~/next_pose, /tf_static){journal_text}')
         self.get_logger().info(response.message)
         return response
 
@@ -508,6 +509,7 @@ class CalibratorNode(Node):
         if self.inputs.tf is not None:   # the right fix before the setup advice it looks like
             result = replace(result, warnings=[*self.inputs.tf.swapped_frames(result),
                                                *result.warnings])
+        result = published(result)   # as the tools save it: a failed validation said
         tree = self.inputs.tf.tree if self.inputs.tf is not None else None
         saved = save_result(result, frames, config.setup, config.result_file,
                             config.easy_handeye2_file, easy_handeye2_frames(config),

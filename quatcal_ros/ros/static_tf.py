@@ -27,6 +27,9 @@ from quatcal_ros.stream.tf_tree import normalize_frame
 from tf2_msgs.msg import TFMessage
 
 
+NOT_BROADCAST = 'nothing is broadcast (the result is on ~/transform)'
+
+
 class StaticTf:
     """The /tf_static output of a node: made on demand, with its state in words."""
 
@@ -91,8 +94,7 @@ class StaticTf:
                 tree.remove_edge(old_child)
         target, refused = tf_joint.rerooted(pose, parent, child, tree)
         if target is None:
-            return self._refuse(f'publish_tf: {refused}: nothing is broadcast (the result is '
-                                'on ~/transform)')
+            return self._refuse(f'publish_tf: {refused}: {NOT_BROADCAST}')
         if target[1] != child:
             self._say(f'publish_tf: {child} already has a parent in TF '
                       f'({tree.parent(child)}): broadcasting {parent} -> {target[1]}, the '
@@ -136,8 +138,7 @@ def broadcast_advice(result, frames, tree=None):
     mount = tf_joint.joint(result, frames, tree)
     if mount.breaks:
         return ('to broadcast the result on /tf_static: no transform can be given without '
-                f'breaking the TF tree: {mount.note}: nothing is broadcast (the result is on '
-                '~/transform)')
+                f'breaking the TF tree: {mount.breaks}: {NOT_BROADCAST}')
     return (f'to broadcast the result on /tf_static{f" ({mount.note})" if mount.note else ""}: '
             + exports.static_transform_publisher_command(mount.result, mount.parent,
                                                          mount.child))

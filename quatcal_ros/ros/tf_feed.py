@@ -33,19 +33,25 @@ TF_CACHE_NS = 2_000_000_000
 TF_TIME_JUMP_NS = TF_CACHE_NS
 # Frames named in a problem's text, at most.
 MAX_FRAMES_NAMED = 12
-# The start of TfFeed.swapped_frames' warning on the tracking frames.
-TRACKING_SWAPPED = 'TF input: the tracking frames look swapped'
+# The start of TfFeed.swapped_frames' warnings: {what} is 'link' or 'tracking'.
+SWAPPED = 'TF input: the {} frames look swapped'
+TRACKING_SWAPPED = SWAPPED.format('tracking')
+# From this many samples the frame-convention check tells inverted sensor poses (what swapped
+# tracking frames give) from right ones: with 3, none of 20 cells warned; with 4, all 20.
+CONVENTION_DECIDES_SAMPLES = 5
 
 
 def kept_swapped(warnings, result):
     """
     Return TfFeed.swapped_frames' `warnings` that estimate `result` (or None) leaves standing.
 
-    The tracking frames' goes when the estimate fits the sensor poses as composed (no
-    frame-convention warning): the detector publishes the camera under the marker on purpose.
+    The tracking frames' goes when the estimate fits the sensor poses as composed (usable,
+    without a frame-convention warning, from enough samples for that check to tell): the
+    detector publishes the camera under the marker on purpose.
     """
-    fits = result is not None and not any(text.startswith(CONVENTION_WARNING)
-                                          for text in result.warnings)
+    fits = (result is not None and result.usable
+            and result.samples >= CONVENTION_DECIDES_SAMPLES
+            and not any(text.startswith(CONVENTION_WARNING) for text in result.warnings))
     return [text for text in warnings if not (fits and text.startswith(TRACKING_SWAPPED))]
 
 
@@ -110,10 +116,9 @@ class TfFeed:
             if watcher is None or watcher.source not in self.tree.path_to_root(
                     watcher.target)[1:]:
                 continue
-            found.append(f'TF input: the {what} frames look swapped: the {base} frame given, '
-                         f'{watcher.target}, hangs below the {tip} frame given, '
-                         f'{watcher.source}, in the TF tree; '
-                         + names.format(watcher.source, watcher.target))
+            found.append(f'{SWAPPED.format(what)}: the {base} frame given, {watcher.target}, '
+                         f'hangs below the {tip} frame given, {watcher.source}, in the TF '
+                         'tree; ' + names.format(watcher.source, watcher.target))
         return found
 
     def take(self, topic, msg, static, now_ns=0, keep=False):

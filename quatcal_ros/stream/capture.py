@@ -43,6 +43,8 @@ PAIRED_STEP_NS = 5_000_000_000
 # At most one sensor pose in this many of a still window may be outside the sensor bands of the
 # newest (module doc): a quarter keeps a majority of three in four around it.
 MAX_OUTSIDE_SHARE = 4
+# The start of a still window's refusal for the sensor's poses (Capture.unsteady_sensor counts).
+SENSOR_NOT_STEADY = 'sensor pose is not steady'
 # A sensor pose this many sensor bands from the newest is a jump, not noise (a marker flip
 # turns the pose by tens of degrees; a detector's noise that reaches twice the band needs
 # wider bands).
@@ -251,10 +253,13 @@ class Capture:
             return None, refusal
         jumps = int(self._jumps.sum())
         sample = self._take_window()
-        left = (f', {jumps} sensor pose(s) left out: they jumped over {JUMP_BANDS:g}x the '
-                'sensor bands (a marker flip?)' if jumps else '')
-        return sample, (f'averaged {len(self._window)} pairs over '
-                        f'{self._window.span_ns * 1e-9:.2g} s{left}')
+        pairs = len(self._window)
+        if not jumps:
+            return sample, f'averaged {pairs} pairs over {self._window.span_ns * 1e-9:.2g} s'
+        return sample, (f'averaged {pairs} link and {pairs - jumps} sensor poses over '
+                        f'{self._window.span_ns * 1e-9:.2g} s, {jumps} sensor pose(s) left '
+                        f'out: they jumped over {JUMP_BANDS:g}x the sensor bands (a marker '
+                        'flip?)')
 
     def _take_window(self):
         """Take the still window's sample (_still_reason has just passed it)."""
@@ -284,7 +289,9 @@ class Capture:
                 or sensor_m > config.sensor_translation_band_m):
             self.unsteady_sensor += 1
             return False
-        return self._still_reason() is None
+        reason = self._still_reason()
+        self.unsteady_sensor += bool(reason and reason.startswith(SENSOR_NOT_STEADY))
+        return reason is None
 
     def _still_reason(self):
         """Why the latest window is not still, or None when it is."""
@@ -313,9 +320,10 @@ class Capture:
             beyond = [name for name, off in (('rotation', degrees[1] > band_deg),
                                              ('translation', metres[1] > band_m))
                       if off[0] or MAX_OUTSIDE_SHARE * off.sum() > len(window)]
-            which = (f'the {" and the ".join(beyond)} beyond' if beyond
-                     else 'too few frames within them')
-            return (f'sensor pose is not steady: {_short(sensor_deg)} deg, '
+            which = (f'the {" and the ".join(beyond)} beyond' if beyond else
+                     f'{len(window) - jumps.sum()} frames within them, {jumps.sum()} jumped: '
+                     f'min_still_pairs is {config.min_still_pairs}')
+            return (f'{SENSOR_NOT_STEADY}: {_short(sensor_deg)} deg, '
                     f'{_short(sensor_m * 1e3)} mm in the last {span_s:.2g} s (bands '
                     f'{_short(band_deg)} deg, {_short(band_m * 1e3)} mm; {which}): is the '
                     'object fixed and detected reliably? Just after a stop the sensor (its '

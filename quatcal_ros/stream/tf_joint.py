@@ -22,8 +22,8 @@ class Joint:
     parent: str
     child: str
     result: object      # the calibration result, its transform that of parent -> child
-    note: str = ''      # '' when it is the calibrated frames' edge; else why it is not
-    breaks: bool = False    # no edge can be added without breaking the tree (note says why)
+    note: str = ''      # '' when it is the calibrated frames' edge as the tree takes it
+    breaks: str = ''    # why no edge can be added without breaking the tree, or ''
 
 
 def rerooted(pose, parent, child, tree):
@@ -60,15 +60,16 @@ def joint(result, frames, tree=None):
 
     Without a tree (pose topics) it is the calibrated frames' own edge.
     """
-    parent, child = frames
+    parent, child = (normalize_frame(frame) for frame in frames)
     if tree is None:
         return Joint(parent, child, result)
     target, refused = rerooted(Pose.create(result.translation, result.quaternion), parent,
                                child, tree)
-    if refused:
-        return Joint(parent, child, result, refused, breaks=True)
+    if refused:   # the calibrated edge, said to break the tree
+        return Joint(parent, child, result, 'added to the TF tree as it was, this joint breaks '
+                     f'it: {refused}', breaks=refused)
     _, root, pose = target
-    if root == normalize_frame(child):
+    if root == child:
         return Joint(parent, child, result)
     moved = replace(result, quaternion=pose.quaternion, translation=pose.position)
     return Joint(parent, root, moved,

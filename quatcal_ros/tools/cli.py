@@ -16,7 +16,7 @@ import time
 
 from quatcal_ros.core.planner import plan_next_pose, PlanLimits
 from quatcal_ros.core.units import DO_NOT_USE, NS_PER_S
-from quatcal_ros.core.validation import failure_warning
+from quatcal_ros.core.validation import published
 from quatcal_ros.files import exports
 from quatcal_ros.files import importers
 from quatcal_ros.files.journal import JournalHeader, JournalRefused
@@ -330,8 +330,8 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     result: the CalibrationResult to print instead of the session's (`solve DIR`: the same
     with the estimate on the pixels at the top level). limits: the next-pose planner's.
     report: the --report path, or None; the page's title is `where` without its colon.
-    tree: the TF tree of the input (replay over TF), or None: the command and the joint are
-    given where the tree can take them (tf_joint.joint).
+    tree: the TF tree of the input (replay: empty without TF input), or None: the command and
+    the joint are given where the tree can take them (tf_joint.joint).
     """
     if len(session.samples) < 3:
         copies = session.counters['repeated_samples']
@@ -341,14 +341,17 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     if session.result is None:
         return fail(prog, f'{where}the rotation cannot be determined: {session.last_error}',
                     EXIT_UNDETERMINED)
+    parent, child = frames or exports.default_frames((result or session.result).setup)
+    mount = tf_joint.joint(result or session.result, (parent, child), tree)
+    if mount.breaks:   # (the command and the joint say it too)
+        warnings = [*warnings, f'TF: the static_transform_publisher line and the urdf joint '
+                               f'are {parent} -> {child} as calibrated, and {mount.note}']
     result = published(result or session.result, warnings)
     if not result.usable:   # a script that reads only the exit status hears it here
         said = next(text for text in result.warnings if DO_NOT_USE in text)
         print(f'{prog}: warning: {where}the estimate says not to use it ("usable": false): '
               f'{said}', file=sys.stderr)
     document = result.to_json_dict()
-    parent, child = frames or exports.default_frames(result.setup)
-    mount = tf_joint.joint(result, (parent, child), tree)
     document['static_transform_publisher'] = exports.static_transform_publisher_command(
         mount.result, mount.parent, mount.child)
     document.update(exports.description_joints(mount.result, mount.parent, mount.child,
@@ -365,15 +368,6 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
             return status
     print(json.dumps(document, indent=2))
     return 0
-
-
-def published(result, warnings):
-    """Return `result` as it is printed and saved: `warnings` added, and a failed validation's."""
-    failed = failure_warning(result.validation)
-    if failed:   # said in the warnings too, not only there
-        warnings = [f'{failed} (the "validation" key lists each sample, the worst first)',
-                    *warnings]
-    return replace(result, warnings=[*result.warnings, *warnings]) if warnings else result
 
 
 def fail(prog, message, status):
@@ -483,10 +477,9 @@ def replay_main(argv=None):
     except ConfigError as error:
         return fail(prog, f'bad option: {error}', EXIT_BAD_INPUT)
     config = session_config(chosen, images=args.image_topic is not None)
-    if args.parent_frame and args.child_frame and frames_problem((args.parent_frame,
-                                                                  args.child_frame)):
-        return fail(prog, frames_problem((args.parent_frame, args.child_frame)),
-                    EXIT_BAD_INPUT)
+    one_frame = frames_problem((args.parent_frame, args.child_frame))   # before reading
+    if args.parent_frame and args.child_frame and one_frame:
+        return fail(prog, one_frame, EXIT_BAD_INPUT)
     problem = output_problem([('bag', args.bag), ('file', args.board_file)], {
         '--samples-out': args.samples_out, '--journal-out': args.journal_out,
         '--result-out': args.result_out, '--report': args.report})
@@ -524,6 +517,9 @@ def replay_main(argv=None):
                           f'{report.unread_text()}; pass --partial to use what could be read',
                     EXIT_BAD_INPUT)
     where = f'{args.bag}: '
+    one_frame = frames_problem(_replay_frames(args, report))   # one option and the messages'
+    if one_frame:
+        return fail(prog, f'{where}{one_frame} (nothing written)', EXIT_BAD_INPUT)
     if len(session.samples) < 3:   # no output written: a file from an earlier run stays
         outputs = (('--samples-out', args.samples_out), ('--journal-out', args.journal_out))
         unwritten = [option for option, path in outputs if path]
