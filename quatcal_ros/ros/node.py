@@ -149,8 +149,8 @@ class CalibratorNode(Node):
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(
-            f'calibrating {self.config.setup} rotation {" -> ".join(self.config.result_frames)} '
-            f'from {self.inputs.describe()}, '
+            f'calibrating the {self.config.setup} mounting '
+            f'{" -> ".join(self.config.result_frames)} from {self.inputs.describe()}, '
             f'capture mode {self.config.capture_mode}')
         self._start_tf_broadcast()
         self.input_watch = InputWatch(self.inputs.type_names, self.now_ns(), self.inputs.reliable)
