@@ -487,6 +487,9 @@ def test_pose_with_covariance_messages_weight_the_samples(harness_factory, param
     values = {kv.key: kv.value for kv in h.node.diagnostic_status().values}
     assert values['next_pose'].startswith('position ') and 'expected uncertainty' in \
         values['next_pose']
+    # Beside the model's figure now: the reported (measured) one can be smaller than the
+    # model's expected after the pose, which read as a proposal that makes it worse.
+    assert "(the model's figures: now " in values['next_pose']
     bad = conversions.pose_with_covariance_stamped_msg(cell.home, start + 20 * NS, 'camera')
     bad.pose.covariance[7] = -1.0   # not positive definite
     h.sensor_pub.publish(bad)

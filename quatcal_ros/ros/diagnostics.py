@@ -294,7 +294,10 @@ def _next_pose_text(next_pose):
     position = ' '.join(f'{v:.4f}' for v in next_pose.link.position)
     return (f'position {position} m, quaternion (x, y, z, w) {x:.5f} {y:.5f} {z:.5f} {w:.5f}; '
             f'expected uncertainty {next_pose.uncertainty_deg:.4f} deg, '
-            f'{next_pose.translation_uncertainty_mm:.3f} mm')
+            f"{next_pose.translation_uncertainty_mm:.3f} mm (the model's figures: now "
+            f'{next_pose.current_uncertainty_deg:.4f} deg, '
+            f'{next_pose.current_translation_uncertainty_mm:.3f} mm; the reported uncertainty '
+            'is measured over the samples)')
 
 
 def _number_text(value):
