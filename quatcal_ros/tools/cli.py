@@ -341,12 +341,13 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     if session.result is None:
         return fail(prog, f'{where}the rotation cannot be determined: {session.last_error}',
                     EXIT_UNDETERMINED)
-    parent, child = frames or exports.default_frames((result or session.result).setup)
-    mount = tf_joint.joint(result or session.result, (parent, child), tree)
+    result = result or session.result
+    parent, child = frames or exports.default_frames(result.setup)
+    mount = tf_joint.joint(result, (parent, child), tree)
     if mount.breaks:   # (the command and the joint say it too)
         warnings = [*warnings, f'TF: the static_transform_publisher line and the urdf joint '
                                f'are {parent} -> {child} as calibrated, and {mount.note}']
-    result = published(result or session.result, warnings)
+    result = published(result, warnings)
     if not result.usable:   # a script that reads only the exit status hears it here
         said = next(text for text in result.warnings if DO_NOT_USE in text)
         print(f'{prog}: warning: {where}the estimate says not to use it ("usable": false): '
@@ -477,9 +478,10 @@ def replay_main(argv=None):
     except ConfigError as error:
         return fail(prog, f'bad option: {error}', EXIT_BAD_INPUT)
     config = session_config(chosen, images=args.image_topic is not None)
-    one_frame = frames_problem((args.parent_frame, args.child_frame))   # before reading
-    if args.parent_frame and args.child_frame and one_frame:
-        return fail(prog, one_frame, EXIT_BAD_INPUT)
+    if args.parent_frame and args.child_frame:   # (before reading the bag)
+        one_frame = frames_problem((args.parent_frame, args.child_frame))
+        if one_frame:
+            return fail(prog, one_frame, EXIT_BAD_INPUT)
     problem = output_problem([('bag', args.bag), ('file', args.board_file)], {
         '--samples-out': args.samples_out, '--journal-out': args.journal_out,
         '--result-out': args.result_out, '--report': args.report})
