@@ -2,6 +2,7 @@
 
 import os
 from pathlib import Path
+import re
 import subprocess
 import sys
 from types import SimpleNamespace
@@ -26,9 +27,12 @@ def test_demo_in_process_prints_estimate_truth_and_error(domain, capsys):
     out, err = capsys.readouterr()
     assert status == 0, out + err
     assert 'sample 3: estimate x, y, z, w = (' in out
-    for words in ('estimated rotation (x, y, z, w):', 'reported uncertainty:',
-                  'ground truth (x, y, z, w):', 'true error:', 'OK:'):
+    for words in ('estimated rotation (x, y, z, w):', 'estimated translation (m):',
+                  'reported uncertainty:', 'ground truth (x, y, z, w):',
+                  'ground truth translation (m):', 'true error:', 'OK:'):
         assert words in out
+    # The translation's error is checked against its uncertainty too (it was not shown).
+    assert re.search(r'true error: +[\d.]+ deg, [\d.]+ mm', out), out
 
 
 def test_demo_gives_up_at_the_time_limit(domain, capsys):
@@ -60,10 +64,11 @@ def test_demo_checks_the_simulated_cells_options_against_its_limits(option, valu
         assert '--seed must be within 0 to 2147483647' in said
 
 
-def _result(angle_deg, uncertainty_deg, samples=10):
+def _result(angle_deg, uncertainty_deg, samples=10, off_mm=0.0, uncertainty_mm=1.0):
     q = quat.from_axis_angle([0.0, 0.0, 1.0], np.radians(angle_deg))
     return SimpleNamespace(quaternion=q, uncertainty_deg=uncertainty_deg, samples=samples,
-                           residual_rms_deg=0.1)
+                           residual_rms_deg=0.1, translation=np.array([1e-3 * off_mm, 0, 0]),
+                           translation_uncertainty_mm=uncertainty_mm)
 
 
 def test_report_judges_the_true_error(capsys):
@@ -72,6 +77,9 @@ def test_report_judges_the_true_error(capsys):
     assert demo.report(args, _result(0.2, 0.09), truth) == 0
     assert demo.report(args, _result(0.3, 0.09), truth) == 1
     assert 'exceeds 3x' in capsys.readouterr().err
+    # The translation is judged too (it was neither shown nor checked).
+    assert demo.report(args, _result(0.2, 0.09, off_mm=3.5, uncertainty_mm=1.0), truth) == 1
+    assert 'the true translation error 3.5000 mm exceeds 3x' in capsys.readouterr().err
     assert demo.report(args, _result(0.01, 0.5, samples=5), truth) == 1
     assert 'not converged' in capsys.readouterr().err
     assert demo.report(args, None, truth) == 1

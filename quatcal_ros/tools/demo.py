@@ -3,7 +3,8 @@
 
 Runs the sim_cell node and the calibrator node in one process (a private rclpy Context, one
 executor), prints a line per new estimate, and at the end the estimated rotation with its
-uncertainty, the simulator's ground truth (from /sim_cell/ground_truth) and the true error.
+uncertainty, the simulator's ground truth (from /sim_cell/ground_truth) and the true error,
+the translation's too.
 The robot stops and moves faster than sim_cell's defaults so the demo takes under a minute.
 
 Exit status: 0 when the estimate converged (uncertainty below --uncertainty-deg, or
@@ -102,6 +103,11 @@ def format_xyzw(q_wxyz):
     return '(' + ', '.join(f'{v:+.6f}' for v in quat.xyzw_from_wxyz(q_wxyz)) + ')'
 
 
+def format_xyz(position):
+    """Return a position as (+x, +y, +z), metres to 4 decimals."""
+    return '(' + ', '.join(f'{float(v):+.4f}' for v in position) + ')'
+
+
 class Demo:
     """The two nodes, a ground-truth listener, and the loop that watches the estimate."""
 
@@ -174,25 +180,32 @@ def report(args, result, truth):
         print(f'FAILED: no estimate within {args.time_limit_s:g} s', file=sys.stderr)
         return 1
     print(f'estimated rotation (x, y, z, w): {format_xyzw(result.quaternion)}')
-    print(f'reported uncertainty:           {result.uncertainty_deg:.4f} deg '
-          f'({result.samples} samples, residual {result.residual_rms_deg:.4f} deg RMS)')
+    print(f'estimated translation (m):       {format_xyz(result.translation)}')
+    print(f'reported uncertainty:            {result.uncertainty_deg:.4f} deg, '
+          f'{result.translation_uncertainty_mm:.2f} mm ({result.samples} samples, residual '
+          f'{result.residual_rms_deg:.4f} deg RMS)')
     if truth is None:
         print('FAILED: no ground truth received from /sim_cell/ground_truth', file=sys.stderr)
         return 1
     error = float(np.degrees(quat.angle_between(result.quaternion, truth.quaternion)))
-    print(f'ground truth (x, y, z, w):      {format_xyzw(truth.quaternion)}')
-    print(f'true error:                     {error:.4f} deg')
+    error_mm = 1e3 * float(np.linalg.norm(np.asarray(result.translation) - truth.position))
+    print(f'ground truth (x, y, z, w):       {format_xyzw(truth.quaternion)}')
+    print(f'ground truth translation (m):    {format_xyz(truth.position)}')
+    print(f'true error:                      {error:.4f} deg, {error_mm:.2f} mm')
     if result.uncertainty_deg >= args.uncertainty_deg and result.samples < args.max_samples:
         print(f'FAILED: not converged within {args.time_limit_s:g} s (uncertainty '
               f'{result.uncertainty_deg:.3f} deg, target {args.uncertainty_deg:g} deg)',
               file=sys.stderr)
         return 1
-    limit = ERROR_FACTOR * result.uncertainty_deg
-    if not error <= limit:
-        print(f'FAILED: the true error {error:.4f} deg exceeds {ERROR_FACTOR:g}x the reported '
-              f'uncertainty ({limit:.4f} deg)', file=sys.stderr)
-        return 1
-    print(f'OK: the true error is within {ERROR_FACTOR:g}x the reported uncertainty')
+    for what, off, reported, unit in (('rotation', error, result.uncertainty_deg, 'deg'),
+                                      ('translation', error_mm,
+                                       result.translation_uncertainty_mm, 'mm')):
+        if not off <= ERROR_FACTOR * reported:
+            print(f'FAILED: the true {what} error {off:.4f} {unit} exceeds {ERROR_FACTOR:g}x '
+                  f'the reported uncertainty ({ERROR_FACTOR * reported:.4f} {unit})',
+                  file=sys.stderr)
+            return 1
+    print(f'OK: the true errors are within {ERROR_FACTOR:g}x the reported uncertainties')
     return 0
 
 
