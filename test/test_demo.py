@@ -26,7 +26,7 @@ def test_demo_in_process_prints_estimate_truth_and_error(domain, capsys):
     status = demo.main(['--seed', '3', '--uncertainty-deg', '0.3'])
     out, err = capsys.readouterr()
     assert status == 0, out + err
-    assert 'sample 3: estimate x, y, z, w = (' in out
+    assert '3 samples: estimate x, y, z, w = (' in out and '1 sample: no estimate' in out
     for words in ('estimated rotation (x, y, z, w):', 'estimated translation (m):',
                   'reported uncertainty:', 'ground truth (x, y, z, w):',
                   'ground truth translation (m):', 'true error:', 'OK:'):

@@ -167,9 +167,10 @@ class Demo:
 def progress_line(samples, session):
     """One line per new sample: the estimate and its uncertainty, or why there is none."""
     result = session.result
+    count = f'{samples} sample{"s" if samples != 1 else ""}'   # (the node numbers from 0)
     if result is None:
-        return f'sample {samples}: no estimate yet (needs motions about two different axes)'
-    return (f'sample {samples}: estimate x, y, z, w = {format_xyzw(result.quaternion)}, '
+        return f'{count}: no estimate yet (needs motions about two different axes)'
+    return (f'{count}: estimate x, y, z, w = {format_xyzw(result.quaternion)}, '
             f'uncertainty {result.uncertainty_deg:.3f} deg, residual '
             f'{result.residual_rms_deg:.3f} deg')
 
