@@ -22,6 +22,7 @@ from quatcal_ros.ros.sim_cell import CAMERA_LINK_TO_SENSOR as CAMERA_LINK_TO_OPT
 from quatcal_ros.ros.sim_cell import shoulder_pose as shoulder
 from quatcal_ros.ros.static_tf import broadcast_advice
 from quatcal_ros.sim import simulation
+from quatcal_ros.stream import tf_joint
 from quatcal_ros.stream.settings import ConfigError
 import rclpy
 from rclpy.context import Context
@@ -208,7 +209,8 @@ def test_publish_tf_gives_no_frame_a_second_parent(tf_harness, tmp_path):
         3 * result.uncertainty_deg
     # The command ~/save logs to broadcast it is the same transform (it was tool0 -> the
     # optical frame: pasted, a second parent).
-    said = broadcast_advice(result, h.node.config.result_frames, h.node.inputs.tf.tree)
+    said = broadcast_advice(tf_joint.joint(result, h.node.config.result_frames,
+                                           h.node.inputs.tf.tree))
     assert said.startswith('to broadcast the result on /tf_static (camera_color_optical_frame '
                            'already hangs from camera_link in TF'), said
     values = [float(v) for v in re.findall(r'--(?:x|y|z|qx|qy|qz|qw) (\S+)', said)]

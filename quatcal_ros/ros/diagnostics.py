@@ -235,7 +235,8 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
     if result is not None:
         found += list(result.warnings)
     validation = (result.validation if result is not None else None) or {}
-    found += [failure_warning(validation)] if failure_warning(validation) else []
+    failed = failure_warning(validation)
+    found += [failed] if failed else []
     if (result is None and not counters['samples'] and session.config.capture.mode == 'auto'
             and session.paired_seconds >= NEVER_STILL_S):
         found.append(f'no still sample in {session.paired_seconds:.0f} s of paired poses')

@@ -510,10 +510,11 @@ class CalibratorNode(Node):
             result = replace(result, warnings=[*self.inputs.tf.swapped_frames(result),
                                                *result.warnings])
         result = published(result)   # as the tools save it: a failed validation said
-        tree = self.inputs.tf.tree if self.inputs.tf is not None else None
+        mount = tf_joint.joint(result, frames,
+                               self.inputs.tf.tree if self.inputs.tf is not None else None)
         saved = save_result(result, frames, config.setup, config.result_file,
                             config.easy_handeye2_file, easy_handeye2_frames(config),
-                            joint=tf_joint.joint(result, frames, tree))
+                            joint=mount)
         response.success, response.message = saved.ok, '; '.join(saved.texts())
         if not saved.ok:
             self.get_logger().error(response.message)
@@ -523,7 +524,7 @@ class CalibratorNode(Node):
             self.get_logger().warning(f'result {response.message}')
         elif saved.ok:
             self.get_logger().info(f'result {response.message}')
-            self.get_logger().info(broadcast_advice(result, frames, tree))
+            self.get_logger().info(broadcast_advice(mount))
         return response
 
     # --- parameters at runtime -------------------------------------------------------------

@@ -128,14 +128,14 @@ class StaticTf:
         return 'broadcast', None
 
 
-def broadcast_advice(result, frames, tree=None):
+def broadcast_advice(mount):
     """
-    Return the log line with the command that broadcasts `result` (parent, child `frames`).
+    Return the log line with the command that broadcasts the mounting `mount`.
 
-    With TF input (`tree`), under the frames the broadcast uses (tf_joint.joint): a sensor
-    frame that already has a parent (the camera driver's camera_link) would get a second one.
+    mount: its tf_joint.Joint, which with TF input is under the frames the broadcast uses: a
+    sensor frame that already has a parent (the camera driver's camera_link) would get a
+    second one.
     """
-    mount = tf_joint.joint(result, frames, tree)
     if mount.breaks:
         return ('to broadcast the result on /tf_static: no transform can be given without '
                 f'breaking the TF tree: {mount.breaks}: {NOT_BROADCAST}')

@@ -97,9 +97,9 @@ class TfFeed:
         nothing else shows it: swapped link frames looked like the other setup (the
         frame-convention check advised it), swapped tracking frames like inverted sensor
         poses, whose positions take the rotation noise times the distance (no still sample).
-        A detector may publish the camera under the marker on purpose, though: with the
-        estimate `result` and no frame-convention warning in it, the data fit the tracking
-        frames as given and they are not said to look swapped (kept_swapped).
+        A detector may publish the camera under the marker on purpose, though: once the
+        estimate `result` fits the tracking frames as given, they are not said to look
+        swapped (kept_swapped says when).
         """
         return kept_swapped(self._swapped(), result)
 

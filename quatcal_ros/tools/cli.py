@@ -209,23 +209,28 @@ def _on_poses(why):
     return f'the estimate is on the board poses, not on the pixels: {why}'
 
 
-def _write_files(prog, args, result, frames, warnings=(), named=None):
+def _write_files(prog, args, result, frames, warnings=(), named=None, source=None,
+                 joint=None):
     """
-    Write `solve`'s --result-out and --easy-handeye2-out, those given, when there is a result.
+    Write --result-out and (`solve`) --easy-handeye2-out, those given, when there is a result.
 
     Return fail's status, or None. warnings: those the printed result adds (published).
     named: the frames the samples file named, by easy_handeye2 parameter name (the base or
     effector frame and the marker frame that the result's frames do not give).
+    source: the result file's "source" (default: `solve`'s samples); joint: its
+    tf_joint.Joint (replay over TF), or None.
     """
-    if result is None or not (args.result_out or args.easy_handeye2_out):
+    easy_handeye2_out = getattr(args, 'easy_handeye2_out', None)   # (solve's only)
+    if result is None or not (args.result_out or easy_handeye2_out):
         return None
     named = named or {}
     keep = ('robot_base_frame' if args.setup == 'eye_in_hand' else 'robot_effector_frame',
             'tracking_marker_frame')
     saved = save_result(published(result, warnings), frames, args.setup,
-                        result_file=args.result_out, easy_handeye2_file=args.easy_handeye2_out,
+                        result_file=args.result_out, easy_handeye2_file=easy_handeye2_out,
                         easy_handeye2_frames={key: named.get(key, '') for key in keep},
-                        extra={'source': {'samples': str(args.samples)}})
+                        extra={'source': source or {'samples': str(args.samples)}},
+                        joint=joint)
     for _, target, error in saved.failed:
         return fail(prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)
     return None
@@ -890,12 +895,8 @@ def _write_result(prog, args, result, session, warnings, report, link, sensor):
                   file=sys.stderr)
     source = {'bag': str(args.bag), 'link': str(link), 'sensor': str(sensor),
               'capture': session.config.capture.mode}
-    saved = save_result(published(result, warnings), frames, args.setup,
-                        result_file=args.result_out, extra={'source': source},
+    return _write_files(prog, args, result, frames, warnings, source=source,
                         joint=tf_joint.joint(result, frames, report.tree))
-    for _, target, error in saved.failed:
-        return fail(prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)
-    return 0
 
 
 if __name__ == '__main__':
