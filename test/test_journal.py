@@ -72,6 +72,27 @@ def test_header_line_round_trip_and_odd_frame_names():
     assert JournalHeader.parse(HEADER.line()).invert_sensor is None
 
 
+def test_the_tf_joint_round_trips_in_the_header():
+    # A frame with a comma is percent-encoded: the comma separates the numbers.
+    chain = ('camera link,2', (0.01, -0.02, 0.1 / 3, 0.5, -0.5, 0.5, -0.5))
+    header = JournalHeader('eye_in_hand', 'tool0', 'optical', False, chain)
+    line = header.line()
+    assert line.endswith(' invert_sensor=false static_chain=camera%20link%2C2,0.01,-0.02,'
+                         f'{0.1 / 3!r},0.5,-0.5,0.5,-0.5')
+    assert JournalHeader.parse(line) == header   # the numbers exactly (repr)
+    # Not compared on resume: a node without the tree yet goes on with the journal.
+    assert not header.differences(replace(HEADER, sensor_frame='optical'))
+
+
+@pytest.mark.parametrize('value', ['camera_link,0,0,0,0,0,0', 'camera_link,0,0,0,0,0,0,2',
+                                   ',0,0,0,0,0,0,1', 'camera_link,0,0,nan,0,0,0,1',
+                                   'camera_link,0,0,x,0,0,0,1'])
+def test_a_bad_tf_joint_in_the_header_is_refused(value):
+    with pytest.raises(JournalError, match=r'f.csv, row 1: static_chain=.* is not a frame and '
+                                           'a transform x,y,z,qx,qy,qz,qw with a unit'):
+        JournalHeader.parse(HEADER.line() + f' static_chain={value}', 'f.csv')
+
+
 @pytest.mark.parametrize('line, words', [
     ('stamp,link_x', 'not a quatcal_ros samples journal'),
     ('# quatcal_ros samples journal v2 setup=eye_in_hand', "version 'v2'"),

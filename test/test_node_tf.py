@@ -8,6 +8,7 @@ stamped at its exposure and delivered late, as in simulation.stop_and_go_streams
 reads them with the four frame parameters of easy_handeye2.
 """
 
+import json
 import re
 import time
 
@@ -24,6 +25,7 @@ from quatcal_ros.ros.static_tf import broadcast_advice
 from quatcal_ros.sim import simulation
 from quatcal_ros.stream import tf_joint
 from quatcal_ros.stream.settings import ConfigError
+from quatcal_ros.tools.cli import solve_main
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -180,7 +182,7 @@ def test_tf_input_needs_all_four_frames(domain_id):
         rclpy.try_shutdown(context=context)
 
 
-def test_publish_tf_gives_no_frame_a_second_parent(tf_harness, tmp_path):
+def test_publish_tf_gives_no_frame_a_second_parent(tf_harness, tmp_path, capsys):
     """The optical frame is under camera_link: the node broadcasts tool0 -> camera_link."""
     cell, streams = tf_cell(12, 10)
     # link_frame and sensor_frame left out: the result is named by the TF frames
@@ -231,6 +233,18 @@ def test_publish_tf_gives_no_frame_a_second_parent(tf_harness, tmp_path):
     assert '<child link="camera_link"/>' in saved['urdf']
     xyz = re.search(r'xyz="([^"]+)"', saved['urdf']).group(1).split()
     np.testing.assert_allclose([float(v) for v in xyz], line.position, atol=1e-9)
+    # The journal records the static chain, so a solve of it later gives the same joint (it
+    # gave tool0 -> the optical frame: the journal knew no tree).
+    header = h.node.journal.header
+    assert header.static_chain[0] == 'camera_link'
+    assert h.node.journal.path.read_text().split('\n', 1)[0] == header.line()
+    assert solve_main([str(h.node.journal.path)]) == 0
+    solved = json.loads(capsys.readouterr().out)
+    assert solved['static_transform_publisher'].endswith(
+        '--frame-id tool0 --child-frame-id camera_link')
+    values = [float(v) for v in re.findall(r'--(?:x|y|z|qx|qy|qz|qw) (\S+)',
+                                           solved['static_transform_publisher'])]
+    np.testing.assert_allclose(values[:3], line.position, atol=1e-6)
 
 
 def test_save_puts_swapped_link_frames_before_the_setup_advice(tf_harness, tmp_path):

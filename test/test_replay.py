@@ -23,7 +23,7 @@ from quatcal_ros.ros import conversions
 from quatcal_ros.ros.bag import ReplayReport, TF_TYPE, TYPESTORE, write_bag
 from quatcal_ros.sim import simulation as sim
 from quatcal_ros.stream.session import Session, SessionConfig
-from quatcal_ros.tools.cli import _few_samples, replay_main
+from quatcal_ros.tools.cli import _few_samples, replay_main, solve_main
 from quatcal_ros.tools.progress import Progress
 
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
@@ -264,7 +264,7 @@ def test_tf_bag_with_static_frames_in_both_chains(repo_root, streams, tmp_path):
             in json.loads(swapped.stdout)['warnings']), swapped.stdout
 
 
-def test_a_tf_bag_gives_the_joint_the_tree_can_take(repo_root, streams, tmp_path):
+def test_a_tf_bag_gives_the_joint_the_tree_can_take(repo_root, streams, tmp_path, capsys):
     """
     The sensor frame the detector names (camera_optical) hangs from camera in the bag.
 
@@ -287,7 +287,7 @@ def test_a_tf_bag_gives_the_joint_the_tree_can_take(repo_root, streams, tmp_path
               sorted(messages, key=lambda m: m[1]), 'mcap')
     done = run_replay(repo_root, tmp_path / 'tf', '--link-frames', 'base_link', 'tool0',
                       '--sensor-frames', 'camera_optical', 'marker', '--result-out',
-                      tmp_path / 'r.yaml')
+                      tmp_path / 'r.yaml', '--journal-out', tmp_path / 'journal.csv')
     assert done.returncode == 0, done.stderr
     out = json.loads(done.stdout)
     command = out['static_transform_publisher']
@@ -305,6 +305,20 @@ def test_a_tf_bag_gives_the_joint_the_tree_can_take(repo_root, streams, tmp_path
     for text in (out['urdf'], document['urdf'], document['xacro']):
         assert note in text and '<child link="camera"/>' in text, text
         assert 'camera_optical_mount' not in text
+    # The journal records the static chain: solved later, it gives the same joint; solved
+    # for another sensor frame, the calibrated edge (the chain is camera_optical's).
+    assert solve_main([str(tmp_path / 'journal.csv'), '--result-out',
+                       str(tmp_path / 'again.yaml')]) == 0
+    solved = json.loads(capsys.readouterr().out)
+    assert solved['static_transform_publisher'].endswith('--child-frame-id camera')
+    assert note in solved['urdf'] and note in read_result_yaml(tmp_path / 'again.yaml')['urdf']
+    again = [float(v) for v in re.findall(r'--(?:x|y|z|qx|qy|qz|qw) (\S+)',
+                                          solved['static_transform_publisher'])]
+    assert_allclose(again, values, atol=1e-6)   # (the same samples, solved again)
+    assert solve_main([str(tmp_path / 'journal.csv'), '--child-frame', 'lens']) == 0
+    solved = json.loads(capsys.readouterr().out)
+    assert solved['static_transform_publisher'].endswith('--frame-id tool0 --child-frame-id lens')
+    assert 'already hangs' not in solved['urdf']
 
 
 def replay_with_marker_on_tf(repo_root, tmp_path, streams, messages):

@@ -7,7 +7,7 @@ from numpy.testing import assert_allclose
 
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
-from quatcal_ros.stream.tf_joint import joint
+from quatcal_ros.stream.tf_joint import joint, recorded_tree, static_chain
 from quatcal_ros.stream.tf_tree import TransformTree
 
 OPTICAL = Pose.create([0.01, 0.02, 0.0], [0.5, -0.5, 0.5, -0.5])   # camera_link -> optical
@@ -65,3 +65,24 @@ def test_a_joint_that_would_break_the_tree_says_so():
     loop.set_transform('camera_link', 'base_link', 0, Pose.identity(), static=True)
     mount = joint(RESULT, ('tool0', 'optical'), loop)
     assert 'would close a loop' in mount.breaks, mount
+
+
+def test_the_static_chain_a_journal_records_gives_the_same_joint_again():
+    tree = driver_tree()
+    root, values = static_chain('tool0', '/optical', tree)
+    assert root == 'camera_link'
+    assert_allclose(values[:3], OPTICAL.position, atol=1e-15)
+    assert_allclose(values[3:], quat.xyzw_from_wxyz(OPTICAL.quaternion), atol=1e-15)
+    again = joint(RESULT, ('tool0', 'optical'), recorded_tree('optical', (root, values)))
+    mount = joint(RESULT, ('tool0', 'optical'), tree)
+    assert (again.parent, again.child, again.note) == (mount.parent, mount.child, mount.note)
+    assert_allclose(again.result.translation, mount.result.translation, atol=1e-15)
+    assert_allclose(again.result.quaternion, mount.result.quaternion, atol=1e-15)
+
+
+def test_no_static_chain_where_the_joint_is_the_calibrated_edge():
+    assert static_chain('tool0', 'optical', None) is None              # pose topics
+    assert static_chain('tool0', 'camera_link', driver_tree()) is None   # no parent
+    moving = driver_tree()
+    moving.set_transform('shoulder', 'camera_link', 0, Pose.identity())
+    assert static_chain('tool0', 'optical', moving) is None            # would break the tree

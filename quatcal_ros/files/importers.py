@@ -61,7 +61,7 @@ class ImportedSamples:
     parameter name ('robot_base_frame', ...), empty ones left out.  warnings: sentences for
     the result's warnings (what the file left open).  invert_sensor: whether to solve the
     sensor poses inverted: the caller's value (load_samples), else a journal header's, or None
-    (neither says).
+    (neither says). static_chain: a journal's TF joint (journal.JournalHeader), or None.
     """
 
     samples: list
@@ -70,6 +70,7 @@ class ImportedSamples:
     frames: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
     invert_sensor: bool = None
+    static_chain: tuple = None
 
 
 # --- reading files ---------------------------------------------------------------------------
@@ -353,7 +354,8 @@ def _csv_samples(text, name, setup=None, invert_sensor=None):
                         f'link_frame {header.link_frame} is the default flange name, not the '
                         'robot base: the result is named from the default base frame (give '
                         '--parent-frame to name it)')
-    return ImportedSamples(samples, 'csv', header.setup, frames, warnings, invert)
+    return ImportedSamples(samples, 'csv', header.setup, frames, warnings, invert,
+                           header.static_chain)
 
 
 def load_samples(path, file_format='auto', setup=None, invert_sensor=None):

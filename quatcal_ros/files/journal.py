@@ -10,8 +10,10 @@ line that says what the file is and how its samples were taken:
 
 so `python -m quatcal_ros solve JOURNAL` reads it as it is, with the node's setup and
 invert_sensor (the first line goes on: `invert_sensor=false`, or true; journals of earlier
-versions leave it out).  Header values are percent-encoded (urllib.parse.quote) when they hold
-anything but letters, digits and _/.:-.
+versions leave it out) and, with TF input, where the mounting joins the TF tree
+(`static_chain=camera_link,x,y,z,qx,qy,qz,qw` when the sensor frame hangs from a static
+parent: JournalHeader).  Header values are percent-encoded (urllib.parse.quote) when they
+hold anything but letters, digits and _/.:-.
 
 Crash safety: the two header lines are written with persistence.atomic_write_text (temporary
 file, fsync, rename), so a journal either exists whole or not at all.  Each sample is then
@@ -33,6 +35,7 @@ The file is data: it is parsed as numbers, never evaluated.  No rclpy here.
 
 from dataclasses import dataclass, field, replace
 import errno
+import math
 import os
 from pathlib import Path
 import time
@@ -51,8 +54,9 @@ except ImportError:   # pragma: no cover
 MAGIC = '# quatcal_ros samples journal'
 VERSION = 1
 HEADER_KEYS = ('setup', 'link_frame', 'sensor_frame')
-# Keys a header may leave out (journals of earlier versions): invert_sensor, true or false.
-OPTIONAL_KEYS = ('invert_sensor',)
+# Keys a header may leave out (journals of earlier versions): invert_sensor, true or false;
+# static_chain, the sensor frame's static parent with TF input (JournalHeader).
+OPTIONAL_KEYS = ('invert_sensor', 'static_chain')
 BOOLEANS = {'true': True, 'false': False}
 # The robot base of eye-to-hand journals of earlier versions when link_frame was not set.
 LEGACY_BASE_FRAME = DEFAULT_FRAMES['eye_in_hand'][0]
@@ -83,12 +87,17 @@ class JournalHeader:
 
     The samples are the poses as received, so invert_sensor (None: not recorded) says how to
     solve them, not what they are: a session resumed with another value goes on.
+    static_chain: with TF input, where the sensor frame already hangs in the TF tree, the top
+    of its static subtree and the static transform from it to the sensor frame, (root, (x, y,
+    z, qx, qy, qz, qw)), or None (stream.tf_joint.static_chain): the mounting's joint goes
+    there. Neither is compared when resuming.
     """
 
     setup: str
     link_frame: str
     sensor_frame: str
     invert_sensor: bool = None
+    static_chain: tuple = None
 
     def line(self):
         """Return the first line of the journal (without its end of line)."""
@@ -96,6 +105,10 @@ class JournalHeader:
                   for key in HEADER_KEYS]
         if self.invert_sensor is not None:
             values.append(f'invert_sensor={boolean_text(self.invert_sensor)}')
+        if self.static_chain is not None:
+            root, numbers = self.static_chain
+            values.append(f'static_chain={quote(root, safe=SAFE_CHARACTERS)},'
+                          + ','.join(repr(float(number)) for number in numbers))
         return f'{MAGIC} v{VERSION} {" ".join(values)}'
 
     @staticmethod
@@ -121,7 +134,9 @@ class JournalHeader:
             key, sep, value = item.partition('=')
             if not sep or key not in HEADER_KEYS + OPTIONAL_KEYS or key in values:
                 raise JournalError(f'{name}, row 1: unexpected {item!r} in the journal header')
-            values[key] = unquote(value)
+            values[key] = value if key == 'static_chain' else unquote(value)
+        if 'static_chain' in values:
+            values['static_chain'] = _static_chain(values['static_chain'], name)
         if 'invert_sensor' in values:
             invert = BOOLEANS.get(values['invert_sensor'])
             if invert is None:
@@ -146,6 +161,21 @@ class JournalHeader:
         """
         return [f'{key} {getattr(self, key)!r} (parameters: {getattr(other, key)!r})'
                 for key in HEADER_KEYS if getattr(self, key) != getattr(other, key)]
+
+
+def _static_chain(text, name):
+    """Return a header's static_chain=ROOT,x,y,z,qx,qy,qz,qw as JournalHeader holds it."""
+    root, *numbers = text.split(',')
+    try:
+        values = tuple(float(number) for number in numbers)
+    except ValueError:
+        values = ()
+    if (not root or len(values) != 7 or not all(map(math.isfinite, values))
+            or abs(math.hypot(*values[3:]) - 1.0) > 1e-6):
+        raise JournalError(f'{name}, row 1: static_chain={shown(text)!r} in the journal header '
+                           'is not a frame and a transform x,y,z,qx,qy,qz,qw with a unit '
+                           'quaternion')
+    return unquote(root), values
 
 
 @dataclass(frozen=True)

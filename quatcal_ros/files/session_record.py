@@ -47,6 +47,11 @@ class SamplesJournal:
         return self.journal.path
 
     @property
+    def header(self):
+        """Return the journal's JournalHeader (its first line, or the one to be written)."""
+        return self.journal.header
+
+    @property
     def count(self):
         """Return the number of samples the journal holds."""
         return self.journal.count

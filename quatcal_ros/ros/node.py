@@ -220,6 +220,8 @@ class CalibratorNode(Node):
         of the new samples, whose events are handled the same way.
         """
         captured = [event.sample for event in events if isinstance(event, SampleCaptured)]
+        if captured and self.inputs.tf is not None:   # the TF joint, once the tree shows it
+            self.log.messages(self.journal.set_header(self._journal_header()))
         self.log.messages(self.journal.append(captured, self.session.samples))
         if self.images is not None:
             self.log.messages(self.images.keep(captured))
@@ -340,8 +342,23 @@ class CalibratorNode(Node):
     # --- samples journal -------------------------------------------------------------------
 
     def _journal_header(self):
-        return journal.JournalHeader(self.config.setup, *self.config.result_frames,
-                                     self.config.invert_sensor)
+        """
+        Return the journal's first line: setup, frames, invert_sensor and the TF joint.
+
+        With TF input, the sensor frame's static parent chain as the tree holds it now (kept
+        from the journal while the tree has none for the same sensor frame: a resumed node
+        before the driver's /tf_static).
+        """
+        frames = self.config.result_frames
+        header = journal.JournalHeader(self.config.setup, *frames, self.config.invert_sensor)
+        inputs = getattr(self, 'inputs', None)   # (None while the node is built)
+        if inputs is None or inputs.tf is None:
+            return header
+        chain = tf_joint.static_chain(*frames, inputs.tf.tree)
+        recorded = getattr(self, 'journal', None) and self.journal.header
+        if chain is None and recorded is not None and recorded.sensor_frame == frames[1]:
+            chain = recorded.static_chain
+        return replace(header, static_chain=chain)
 
     def _resume(self):
         """Log what opening the journal did; estimate from its samples when resuming."""

@@ -6,13 +6,14 @@ is the optical frame, which the camera driver's /tf_static already hangs from ca
 transform, or a URDF joint, link -> optical frame would give it a second parent. The mounting
 joins the tree at the top of the sensor frame's static subtree instead (camera_link), composed
 with the static chain down to the sensor frame. The node's /tf_static broadcast, the command
-it logs on ~/save, and the result file's and the replay's joints all use it.
+it logs on ~/save, and the result file's and the replay's joints all use it; the samples
+journal records that chain (static_chain), so that `solve` of a journal gives the same joint.
 """
 
 from dataclasses import dataclass, replace
 
 from quatcal_ros.core.pose import Pose
-from quatcal_ros.stream.tf_tree import normalize_frame
+from quatcal_ros.stream.tf_tree import normalize_frame, TransformTree
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,16 @@ def rerooted(pose, parent, child, tree):
     already.
     """
     parent, child = normalize_frame(parent), normalize_frame(child)
+    root, refused = _static_root(parent, child, tree)
+    if refused:
+        return None, refused
+    if root == child:
+        return (parent, child, pose), None
+    return (parent, root, pose @ tree.lookup(root, child, 0).inverse()), None   # any stamp
+
+
+def _static_root(parent, child, tree):
+    """Return (the top of `child`'s static subtree, None), or (None, why no edge fits)."""
     root = child
     while True:
         above = tree.parent(root)
@@ -49,9 +60,34 @@ def rerooted(pose, parent, child, tree):
     if above is None and tree.chain(root, parent) is not None:
         return None, (f'{root} is already connected to {parent} in TF: another transform '
                       f'{parent} -> {root} would close a loop')
-    if root == child:
-        return (parent, child, pose), None
-    return (parent, root, pose @ tree.lookup(root, child, 0).inverse()), None   # any stamp
+    return root, None
+
+
+def static_chain(parent, child, tree):
+    """
+    Return (root, (x, y, z, qx, qy, qz, qw)) of the static root -> child the joint goes by.
+
+    What a samples journal records of the TF tree (files.journal), so that a solve of it gives
+    the node's joint (recorded_tree). None when the joint is the calibrated edge itself: no
+    tree (pose topics), the child has no static parent, or no edge fits (rerooted's refusals).
+    """
+    if tree is None:   # (pose topics)
+        return None
+    parent, child = normalize_frame(parent), normalize_frame(child)
+    root, refused = _static_root(parent, child, tree)
+    if refused or root == child:
+        return None
+    found = tree.lookup(root, child, 0)   # (static: any stamp)
+    w, x, y, z = (float(value) for value in found.quaternion)
+    return root, (*(float(value) for value in found.position), x, y, z, w)
+
+
+def recorded_tree(child, chain):
+    """Return a TransformTree of the one static edge static_chain gave (root -> child)."""
+    root, (x, y, z, qx, qy, qz, qw) = chain
+    tree = TransformTree()
+    tree.set_transform(root, child, 0, Pose.create((x, y, z), (qw, qx, qy, qz)), static=True)
+    return tree
 
 
 def joint(result, frames, tree=None):

@@ -114,12 +114,28 @@ def solve_main(argv=None):
     copies = _copies(session.add_samples(imported.samples))
     session.estimate()   # one full solve over all of them
     warnings = [*imported.warnings, *_copies_warning(copies)]
-    failed = _write_files(parser.prog, args, session.result, frames, warnings, imported.frames)
+    tree = _journal_tree(imported, frames)
+    joint = (tf_joint.joint(session.result, frames, tree)
+             if tree is not None and session.result is not None else None)
+    failed = _write_files(parser.prog, args, session.result, frames, warnings, imported.frames,
+                          joint=joint)
     if failed:
         return failed
     return print_result(parser.prog, session, f'{args.samples}: ', warnings, frames=frames,
                         limits=plan_limits(settings_of(args)),
-                        report=args.report)
+                        report=args.report, tree=tree)
+
+
+def _journal_tree(imported, frames):
+    """
+    Return the TF tree a journal recorded for the result's joint (its static_chain), or None.
+
+    Only for the frames it was recorded for: another child frame (--child-frame) has none.
+    """
+    named = imported.frames.get('tracking_base_frame')
+    if imported.static_chain is None or named is None or normalize_frame(named) != frames[1]:
+        return None
+    return tf_joint.recorded_tree(frames[1], imported.static_chain)
 
 
 def _solve_images(prog, args):
@@ -866,7 +882,8 @@ def _write_journal(prog, args, session, report):
     """Write the samples as a samples journal (the node's samples_file, resume:=true reads it)."""
     parent, child = _replay_frames(args, report)
     try:
-        header = JournalHeader(args.setup, parent, child, args.invert_sensor)
+        header = JournalHeader(args.setup, parent, child, args.invert_sensor,
+                               tf_joint.static_chain(parent, child, report.tree))
         record = SamplesJournal(args.journal_out, header, resume=False, resumable=False)
     except (JournalRefused, OSError) as error:
         return fail(prog, f'{args.journal_out}: cannot write: {error}', EXIT_BAD_INPUT)
