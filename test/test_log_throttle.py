@@ -94,3 +94,22 @@ def test_a_standing_problem_is_logged_once_after_its_delay_and_again_when_it_ret
     assert log.due(['no frame tool_0 (seen: a)'], 16) == ['no frame tool_0 (seen: a)']
     once = StandingLog(forget=False)
     assert once.due(['x'], 0) == ['x'] and once.due([], 1) == [] and once.due(['x'], 2) == []
+
+
+def test_a_capture_refused_again_and_again_is_logged_once_per_period_with_its_count():
+    # A client polling ~/capture until the robot is still flooded the log: a line per call.
+    now = [0.0]
+    logger = Lines()
+    log = EventLog(logger, clock=lambda: now[0])
+    for k in range(10):
+        now[0] = 0.2 * k
+        log.capture_refused(f'robot is moving: link rotated {k + 1}.0 deg in the last 1.0 s')
+    log.capture_refused('no motion since the last sample (0.1 deg, 0.2 mm): move the robot first')
+    assert logger.lines == [
+        ('info', 'capture refused: robot is moving: link rotated 1.0 deg in the last 1.0 s'),
+        ('info', 'capture refused: no motion since the last sample (0.1 deg, 0.2 mm): move the '
+                 'robot first')]   # another refusal: at once
+    now[0] = LOG_THROTTLE_S
+    log.capture_refused('robot is moving: link rotated 0.5 deg in the last 1.0 s')
+    assert logger.lines[-1] == ('info', 'capture refused: robot is moving: link rotated 0.5 deg '
+                                'in the last 1.0 s (refused so 9 more times since last logged)')

@@ -3,9 +3,10 @@ What the live node says in its log about the session: samples, estimates, refusa
 
 `EventLog.log(events, move_check)` writes one line per session event (stream/session.py):
 a captured sample with its link position, each estimate (diagnostics.describe_result) with
-the samples newly rejected since the last one and its warnings, throttled refusals and
-notices, and the moved-marker warning that `move_check(result)` returns. `messages` writes
-the (level, text) pairs of the journal and the result files.
+the samples newly rejected since the last one and its warnings, throttled refusals (of
+poses, and of ~/capture: capture_refused) and notices, and the moved-marker warning that
+`move_check(result)` returns. `messages` writes the (level, text) pairs of the journal and
+the result files.
 
 An estimate's warnings come back with every estimate, and a clock-jump notice or a refused
 pose can come with every message (in the node the pose screen counts refused poses before
@@ -75,6 +76,19 @@ class EventLog:
                 self.logger.warning(warning)
         if moved:
             self.logger.warning(moved)
+
+    def capture_refused(self, reason):
+        """
+        Log a refused ~/capture: the same refusal (numbers aside) once per LOG_THROTTLE_S.
+
+        A client that asks until the robot is still calls many times a second; each answer
+        has its reason, the log counts the repeats.
+        """
+        text = f'capture refused: {reason}'
+        count = self._throttle.due(NUMBER.sub('#', text), self.clock())
+        if count is not None:
+            again = f' (refused so {count - 1} more times since last logged)' if count > 1 else ''
+            self.logger.info(text + again)
 
     def _due(self, text):
         """

@@ -486,7 +486,7 @@ class CalibratorNode(Node):
             reason += ''.join(f' ({problem})' for problem in self.inputs.tf.problems(
                 self.session.result))
         if not ok:
-            self.get_logger().info(f'capture refused: {reason}')
+            self.log.capture_refused(reason)
         response.success, response.message = bool(ok), reason
         return response
 
