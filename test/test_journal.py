@@ -8,7 +8,9 @@ or foreign files and journals that are not resumed are moved aside with a timest
 
 from dataclasses import replace
 import errno
+import json
 import os
+import re
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -17,6 +19,8 @@ from journal_files import write_journal
 import numpy as np
 from numpy.testing import assert_allclose
 import pytest
+from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.pose import Pose
 from quatcal_ros.files import journal
 from quatcal_ros.files.journal import JournalError, JournalHeader, JournalRefused
 from quatcal_ros.files.samples_csv import COLUMNS, COVARIANCE_COLUMNS, format_samples
@@ -86,11 +90,19 @@ def test_the_tf_joint_round_trips_in_the_header():
 
 @pytest.mark.parametrize('value', ['camera_link,0,0,0,0,0,0', 'camera_link,0,0,0,0,0,0,2',
                                    ',0,0,0,0,0,0,1', 'camera_link,0,0,nan,0,0,0,1',
-                                   'camera_link,0,0,x,0,0,0,1'])
+                                   'camera_link,0,0,x,0,0,0,1', 'camera_link,1_0,0,0,0,0,0,1',
+                                   '%2F,0,0,0,0,0,0,1', 'camera,0,0,0,0,0,0,1',
+                                   '%2Fcamera,0,0,0,0,0,0,1'])
 def test_a_bad_tf_joint_in_the_header_is_refused(value):
-    with pytest.raises(JournalError, match=r'f.csv, row 1: static_chain=.* is not a frame and '
-                                           'a transform x,y,z,qx,qy,qz,qw with a unit'):
+    # (the root the sensor frame itself: a hand-edited line gave a traceback in solve)
+    with pytest.raises(JournalError, match=r'f.csv, row 1: static_chain=.* is not a frame other '
+                                           'than camera and a transform x,y,z,qx,qy,qz,qw with '
+                                           'a unit quaternion'):
         JournalHeader.parse(HEADER.line() + f' static_chain={value}', 'f.csv')
+    # A quaternion written to 4 digits by hand is one.
+    assert JournalHeader.parse(HEADER.line() + ' static_chain=camera_link,0,0,0,0.7071,0,0,'
+                               '0.7071').static_chain == ('camera_link', (0, 0, 0, 0.7071, 0, 0,
+                                                                          0.7071))
 
 
 @pytest.mark.parametrize('line, words', [
@@ -133,6 +145,29 @@ def test_solve_reads_a_journal_as_a_samples_csv(tmp_path, capsys):
     written_journal(path, make_samples(8))
     assert cli.solve_main([str(path)]) == 0
     assert '"samples": 8' in capsys.readouterr().out
+
+
+def test_solve_of_a_journal_with_a_tf_joint_hangs_the_mounting_where_the_tree_takes_it(
+        tmp_path, capsys):
+    # camera_link -> camera (the sensor frame) static: the joint is tool0 -> camera_link.
+    path = tmp_path / 'samples.csv'
+    chain = ('camera_link', (0.01, 0.02, 0.0, -0.5, 0.5, -0.5, 0.5))
+    written_journal(path, make_samples(8), replace(HEADER, static_chain=chain))
+    assert cli.solve_main([str(path)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    command = out['static_transform_publisher']
+    assert command.endswith('--frame-id tool0 --child-frame-id camera_link'), command
+    values = [float(v) for v in re.findall(r'--(?:x|y|z|qx|qy|qz|qw) (\S+)', command)]
+    joined = Pose.create(values[:3], quat.wxyz_from_xyzw(values[3:]))
+    x, y, z, qx, qy, qz, qw = chain[1]
+    back = joined @ Pose.create((x, y, z), (qw, qx, qy, qz))   # = the calibrated mounting
+    assert_allclose(back.position, [out['translation'][k] for k in 'xyz'], atol=2e-10)
+    assert out['urdf'].startswith('<!-- camera already hangs from camera_link in TF')
+    # Edited by hand so that the sensor frame is its own parent: an error, not a traceback.
+    text = path.read_text().replace('static_chain=camera_link,', 'static_chain=%2Fcamera,')
+    path.write_text(text)
+    assert cli.solve_main([str(path)]) == 2
+    assert f'{path}, row 1: static_chain=' in capsys.readouterr().err
 
 
 def test_every_append_is_fsynced(tmp_path, monkeypatch):

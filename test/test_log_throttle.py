@@ -109,7 +109,12 @@ def test_a_capture_refused_again_and_again_is_logged_once_per_period_with_its_co
         ('info', 'capture refused: robot is moving: link rotated 1.0 deg in the last 1.0 s'),
         ('info', 'capture refused: no motion since the last sample (0.1 deg, 0.2 mm): move the '
                  'robot first')]   # another refusal: at once
-    now[0] = LOG_THROTTLE_S
+    now[0] = 600.0   # asked again ten minutes later
     log.capture_refused('robot is moving: link rotated 0.5 deg in the last 1.0 s')
     assert logger.lines[-1] == ('info', 'capture refused: robot is moving: link rotated 0.5 deg '
-                                'in the last 1.0 s (refused so 9 more times since last logged)')
+                                'in the last 1.0 s (9 more like it since it was logged 600 s '
+                                'ago)')
+    log.reset()
+    log.capture_refused('robot is moving: link rotated 0.5 deg in the last 1.0 s')
+    assert logger.lines[-1] == ('info', 'capture refused: robot is moving: link rotated 0.5 deg '
+                                'in the last 1.0 s')

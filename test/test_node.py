@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import time
+import types
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
@@ -303,9 +304,14 @@ def test_manual_capture_service(harness_factory):
                                     '[0.0, 0.0, 2000000.0] m is farther than') in refused.message
     # ~/reset starts the count over: what was skipped before it is not this session's.
     assert h.call('reset').success
+    said = []   # the node's log lines from here
+    h.node.log.logger = types.SimpleNamespace(info=said.append, warning=said.append)
     refused = h.call('capture')
     assert not refused.success and 'so far' not in refused.message
     assert h.node.stats.bad_total == 8   # (/diagnostics keeps counting since the start)
+    # Asked again at once (a client polling until the robot is still): answered, logged once.
+    assert h.call('capture').message == refused.message
+    assert said == [f'capture refused: {refused.message}']
 
     def publish_still(link):
         now = h.node.now_ns()

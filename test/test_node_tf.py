@@ -8,16 +8,19 @@ stamped at its exposure and delivered late, as in simulation.stop_and_go_streams
 reads them with the four frame parameters of easy_handeye2.
 """
 
+from dataclasses import replace
 import json
 import re
 import time
+import types
 
 import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
+from quatcal_ros.files import journal
 from quatcal_ros.ros import conversions
-from quatcal_ros.ros.node import CalibratorNode
+from quatcal_ros.ros.node import CalibratorNode, journal_header
 from quatcal_ros.ros.qos import TF_QOS, TF_STATIC_BROADCAST_QOS
 from quatcal_ros.ros.sim_cell import CAMERA_LINK_TO_SENSOR as CAMERA_LINK_TO_OPTICAL
 from quatcal_ros.ros.sim_cell import shoulder_pose as shoulder
@@ -25,6 +28,7 @@ from quatcal_ros.ros.static_tf import broadcast_advice
 from quatcal_ros.sim import simulation
 from quatcal_ros.stream import tf_joint
 from quatcal_ros.stream.settings import ConfigError
+from quatcal_ros.stream.tf_tree import TransformTree
 from quatcal_ros.tools.cli import solve_main
 import rclpy
 from rclpy.context import Context
@@ -424,3 +428,21 @@ def test_a_late_transform_is_only_late_not_a_time_jump(tf_harness):
     assert h.node.session.counters['time_jumps'] == 0
     assert not h.node.stats.bad
     h.spin_until(lambda: h.node.session.result is not None, what='an estimate')
+
+
+def test_the_journal_header_keeps_a_recorded_tf_joint_until_the_tree_shows_one():
+    """A resumed node before the driver's /tf_static keeps the journal's static chain."""
+    config = types.SimpleNamespace(setup='eye_in_hand', invert_sensor=False,
+                                   result_frames=('tool0', 'optical'))
+    plain = journal.JournalHeader('eye_in_hand', 'tool0', 'optical', False)
+    assert journal_header(config) == plain   # pose topics: no joint
+    tree = TransformTree()
+    tree.set_transform('camera_link', 'optical', 0, CAMERA_LINK_TO_OPTICAL, static=True)
+    chain = tf_joint.static_chain('tool0', 'optical', tree)
+    assert chain[0] == 'camera_link'
+    assert journal_header(config, tree, plain).static_chain == chain
+    recorded = replace(plain, static_chain=('camera', (0, 0, 0, 0, 0, 0, 1)))
+    assert journal_header(config, TransformTree(), recorded) == recorded   # kept
+    assert journal_header(config, tree, recorded).static_chain == chain    # the tree's now
+    other = replace(recorded, sensor_frame='lens')   # recorded for another sensor frame
+    assert journal_header(config, TransformTree(), other) == plain

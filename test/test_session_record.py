@@ -187,7 +187,8 @@ def test_a_new_header_that_could_not_be_written_is_written_with_the_next_sample(
     monkeypatch.setattr(journal, 'atomic_write_text', full_disk)
     changed = replace(HEADER, setup='eye_to_hand')
     ((level, text),) = record.set_header(changed)
-    assert level == 'error' and text.startswith('the new setup or frames are not yet recorded')
+    assert level == 'error' and text.startswith(
+        'the new setup, frames or TF joint are not yet recorded')
     assert record.problem == text and journal.read_journal(path).header == HEADER
     monkeypatch.setattr(journal, 'atomic_write_text', real_write)
     assert record.append(samples[1:2], samples[:2]) == [] and record.sync() == []

@@ -41,7 +41,7 @@ from pathlib import Path
 import time
 from urllib.parse import quote, unquote
 
-from quatcal_ros.core.units import DEFAULT_FRAMES, SETUPS, shown
+from quatcal_ros.core.units import DEFAULT_FRAMES, MESSAGE_NORM_TOLERANCE, SETUPS, shown
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import COLUMNS, format_samples, header_columns, parse_samples
 from quatcal_ros.files.text_input import BadInputError, MAX_TEXT_CHARACTERS
@@ -135,8 +135,6 @@ class JournalHeader:
             if not sep or key not in HEADER_KEYS + OPTIONAL_KEYS or key in values:
                 raise JournalError(f'{name}, row 1: unexpected {item!r} in the journal header')
             values[key] = value if key == 'static_chain' else unquote(value)
-        if 'static_chain' in values:
-            values['static_chain'] = _static_chain(values['static_chain'], name)
         if 'invert_sensor' in values:
             invert = BOOLEANS.get(values['invert_sensor'])
             if invert is None:
@@ -151,6 +149,9 @@ class JournalHeader:
         if values['setup'] not in SETUPS:
             raise JournalError(f'{name}, row 1: setup={shown(values["setup"])!r} in the journal '
                                f'header is not one of {", ".join(SETUPS)}')
+        if 'static_chain' in values:
+            values['static_chain'] = _static_chain(values['static_chain'],
+                                                   values['sensor_frame'], name)
         return JournalHeader(**values)
 
     def differences(self, other):
@@ -163,19 +164,25 @@ class JournalHeader:
                 for key in HEADER_KEYS if getattr(self, key) != getattr(other, key)]
 
 
-def _static_chain(text, name):
-    """Return a header's static_chain=ROOT,x,y,z,qx,qy,qz,qw as JournalHeader holds it."""
+def _static_chain(text, sensor_frame, name):
+    """
+    Return a header's static_chain=ROOT,x,y,z,qx,qy,qz,qw as JournalHeader holds it.
+
+    ROOT is another frame than the sensor frame (leading slashes aside, as TF names go).
+    """
     root, *numbers = text.split(',')
-    try:
-        values = tuple(float(number) for number in numbers)
+    root = unquote(root)
+    try:   # (float() reads 1_0 as 10: refused, as in the samples)
+        values = tuple(float(number) for number in numbers if '_' not in number)
     except ValueError:
         values = ()
-    if (not root or len(values) != 7 or not all(map(math.isfinite, values))
-            or abs(math.hypot(*values[3:]) - 1.0) > 1e-6):
+    if (not root.lstrip('/') or root.lstrip('/') == sensor_frame.lstrip('/')
+            or len(values) != 7 or not all(map(math.isfinite, values))
+            or abs(math.hypot(*values[3:]) - 1.0) > MESSAGE_NORM_TOLERANCE):
         raise JournalError(f'{name}, row 1: static_chain={shown(text)!r} in the journal header '
-                           'is not a frame and a transform x,y,z,qx,qy,qz,qw with a unit '
-                           'quaternion')
-    return unquote(root), values
+                           f'is not a frame other than {sensor_frame} and a transform x,y,z,qx,'
+                           'qy,qz,qw with a unit quaternion')
+    return root, values
 
 
 @dataclass(frozen=True)

@@ -110,8 +110,9 @@ class SamplesJournal:
             unsaved = self.journal.unwritten
             if not self.journal.header_written:
                 also = f', nor {unsaved} captured samples saved' if unsaved else ''
-                self.problem = (f'the new setup or frames are not yet recorded in {self.path}'
-                                f'{also} ({reason}): tried again with the next sample')
+                self.problem = (f'the new setup, frames or TF joint are not yet recorded in '
+                                f'{self.path}{also} ({reason}): tried again with the next '
+                                'sample')
             elif unsaved:
                 self.problem = (
                     f'{unsaved} captured samples not yet saved to '

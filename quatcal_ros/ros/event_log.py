@@ -35,11 +35,13 @@ class EventLog:
         self.clock = clock                # seconds, for the throttle
         self._rejected_samples = set()   # reported already: each is logged once
         self._throttle = LogThrottle()    # per line without its numbers
+        self._refusals_logged = {}        # a ~/capture refusal's key: when last logged
 
     def reset(self):
         """Forget the samples reported rejected and the throttled lines (a cleared session)."""
         self._rejected_samples = set()
         self._throttle.clear()
+        self._refusals_logged.clear()
 
     def log(self, events, move_check):
         """Log `events`; move_check(result) returns a moved-marker warning or None."""
@@ -85,10 +87,15 @@ class EventLog:
         has its reason, the log counts the repeats.
         """
         text = f'capture refused: {reason}'
-        count = self._throttle.due(NUMBER.sub('#', text), self.clock())
-        if count is not None:
-            again = f' (refused so {count - 1} more times since last logged)' if count > 1 else ''
-            self.logger.info(text + again)
+        key, now = NUMBER.sub('#', text), self.clock()
+        count = self._throttle.due(key, now)
+        if count is None:
+            return
+        if count > 1:
+            text += (f' ({count - 1} more like it since it was logged '
+                     f'{now - self._refusals_logged[key]:.0f} s ago)')
+        self._refusals_logged[key] = now
+        self.logger.info(text)
 
     def _due(self, text):
         """

@@ -72,6 +72,24 @@ SESSION_STREAMS = {LINK: 'link', SENSOR: 'sensor'}
 TF_PROBLEM_LOG_S = 5.0
 
 
+def journal_header(config, tree=None, recorded=None):
+    """
+    Return the journal's first line: setup, frames, invert_sensor and the TF joint.
+
+    tree: with TF input, the TF tree; its static chain above the sensor frame is recorded
+    (tf_joint.static_chain), else the one of `recorded` (the journal's header now), if any,
+    while it is the same sensor frame's: a resumed node before the driver's /tf_static.
+    """
+    frames = config.result_frames
+    header = journal.JournalHeader(config.setup, *frames, config.invert_sensor)
+    if tree is None:
+        return header
+    chain = tf_joint.static_chain(*frames, tree)
+    if chain is None and recorded is not None and recorded.sensor_frame == frames[1]:
+        chain = recorded.static_chain
+    return replace(header, static_chain=chain)
+
+
 class CalibratorNode(Node):
     """The `calibrator` node (module docstring); raises ConfigError on bad parameters."""
 
@@ -80,7 +98,7 @@ class CalibratorNode(Node):
         try:
             self.config = parameters.declare_parameters(self)
             self._tf_frames = settings.tf_frames(self.config)
-            self.journal = SamplesJournal(self.config.samples_file, self._journal_header(),
+            self.journal = SamplesJournal(self.config.samples_file, journal_header(self.config),
                                           self.config.resume)
         except (journal.JournalRefused, OSError) as error:
             self.destroy_node()
@@ -342,23 +360,10 @@ class CalibratorNode(Node):
     # --- samples journal -------------------------------------------------------------------
 
     def _journal_header(self):
-        """
-        Return the journal's first line: setup, frames, invert_sensor and the TF joint.
-
-        With TF input, the sensor frame's static parent chain as the tree holds it now (kept
-        from the journal while the tree has none for the same sensor frame: a resumed node
-        before the driver's /tf_static).
-        """
-        frames = self.config.result_frames
-        header = journal.JournalHeader(self.config.setup, *frames, self.config.invert_sensor)
-        inputs = getattr(self, 'inputs', None)   # (None while the node is built)
-        if inputs is None or inputs.tf is None:
-            return header
-        chain = tf_joint.static_chain(*frames, inputs.tf.tree)
-        recorded = getattr(self, 'journal', None) and self.journal.header
-        if chain is None and recorded is not None and recorded.sensor_frame == frames[1]:
-            chain = recorded.static_chain
-        return replace(header, static_chain=chain)
+        """Return the journal's first line for the parameters and the TF tree now."""
+        return journal_header(self.config,
+                              self.inputs.tf.tree if self.inputs.tf is not None else None,
+                              self.journal.header)
 
     def _resume(self):
         """Log what opening the journal did; estimate from its samples when resuming."""
