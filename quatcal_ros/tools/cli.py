@@ -115,10 +115,8 @@ def solve_main(argv=None):
     session.estimate()   # one full solve over all of them
     warnings = [*imported.warnings, *_copies_warning(copies)]
     tree = _journal_tree(imported, frames)
-    joint = (tf_joint.joint(session.result, frames, tree)
-             if tree is not None and session.result is not None else None)
     failed = _write_files(parser.prog, args, session.result, frames, warnings, imported.frames,
-                          joint=joint)
+                          tree=tree)
     if failed:
         return failed
     return print_result(parser.prog, session, f'{args.samples}: ', warnings, frames=frames,
@@ -226,15 +224,15 @@ def _on_poses(why):
 
 
 def _write_files(prog, args, result, frames, warnings=(), named=None, source=None,
-                 joint=None):
+                 tree=None):
     """
     Write --result-out and (`solve`) --easy-handeye2-out, those given, when there is a result.
 
     Return fail's status, or None. warnings: those the printed result adds (published).
     named: the frames the samples file named, by easy_handeye2 parameter name (the base or
     effector frame and the marker frame that the result's frames do not give).
-    source: the result file's "source" (default: `solve`'s samples); joint: its
-    tf_joint.Joint (replay over TF), or None.
+    source: the result file's "source" (default: `solve`'s samples); tree: the TF tree the
+    joint joins (tf_joint.joint: a replay over TF, a journal's static_chain), or None.
     """
     easy_handeye2_out = getattr(args, 'easy_handeye2_out', None)   # (solve's only)
     if result is None or not (args.result_out or easy_handeye2_out):
@@ -246,7 +244,7 @@ def _write_files(prog, args, result, frames, warnings=(), named=None, source=Non
                         result_file=args.result_out, easy_handeye2_file=easy_handeye2_out,
                         easy_handeye2_frames={key: named.get(key, '') for key in keep},
                         extra={'source': source or {'samples': str(args.samples)}},
-                        joint=joint)
+                        joint=tf_joint.joint(result, frames, tree))
     for _, target, error in saved.failed:
         return fail(prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)
     return None
@@ -913,7 +911,7 @@ def _write_result(prog, args, result, session, warnings, report, link, sensor):
     source = {'bag': str(args.bag), 'link': str(link), 'sensor': str(sensor),
               'capture': session.config.capture.mode}
     return _write_files(prog, args, result, frames, warnings, source=source,
-                        joint=tf_joint.joint(result, frames, report.tree))
+                        tree=report.tree)
 
 
 if __name__ == '__main__':
