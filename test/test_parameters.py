@@ -2,6 +2,7 @@
 
 import argparse
 from dataclasses import fields
+import importlib
 import math
 
 import pytest
@@ -320,6 +321,25 @@ def test_board_poses_from_images_are_never_taken_as_inverted():
     assert not config(Settings(), images=True).calibration.sensor_invertible
     assert not config(Settings(sensor_input='image', board_file='board.yaml')) \
         .calibration.sensor_invertible
+
+
+@pytest.mark.parametrize('tool', ['sim_cell', 'target_detector'])
+def test_the_other_nodes_have_a_help_and_refuse_what_ros_would_silently_ignore(tool, capsys):
+    # `sim_cell --help` printed nothing and started the cell.
+    module = importlib.import_module(f'quatcal_ros.ros.{tool}')
+    assert module.main([tool, '--help']) == 0
+    said = capsys.readouterr().out
+    assert said.startswith(f'usage: ros2 run quatcal_ros {tool} [--ros-args [-p NAME:=VALUE')
+    assert all(f'\n  {name} (' in said for name in module.PARAMETERS)
+    assert not rclpy.ok()   # nothing started
+    assert module.main([tool, '--seed', '3']) == 2
+    assert capsys.readouterr().err.startswith(f'{tool}: error: unexpected argument(s) --seed 3')
+    name = next(iter(module.PARAMETERS))
+    status, said = module.command_line_problem([tool, f'{name}:=3'])
+    assert (status, said) == (2, f'{name}:=3: outside --ros-args, ROS takes NAME:=VALUE for a '
+                                 'topic remap, not a parameter; give parameters as --ros-args '
+                                 f'-p {name}:=3 (see --help)')
+    assert module.command_line_problem([tool, '--ros-args', '-p', f'{name}:=3']) is None
 
 
 def test_the_calibrator_command_line_refuses_what_ros_would_silently_ignore(capsys):

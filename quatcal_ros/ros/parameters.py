@@ -12,6 +12,7 @@ import difflib
 import re
 import textwrap
 
+from quatcal_ros.ros import command_line
 from quatcal_ros.stream.settings import ConfigError, NODE_NAME, PRESENTATION, SETTING_BY_NAME
 from quatcal_ros.stream.settings import SETTINGS
 from quatcal_ros.stream.settings import Settings
@@ -20,7 +21,6 @@ from rcl_interfaces.msg import IntegerRange
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.parameter import Parameter
-from rclpy.utilities import remove_ros_args
 import yaml
 
 __all__ = ['command_line_problem', 'ConfigError', 'declare_parameters', 'descriptor', 'help_text',
@@ -122,48 +122,23 @@ def _described(setting):
 
 def help_text():
     """Return the calibrator's --help: how to give parameters, and each with its default."""
-    lines = [f'usage: ros2 run quatcal_ros {NODE_NAME} [--ros-args [-p NAME:=VALUE ...] '
-             '[--params-file FILE.yaml] [-r TOPIC:=NEW_TOPIC ...]]', '',
-             'The live hand-eye calibration node: topics, services and a session step by '
-             "step are in the package's README.", '', 'parameters (default):']
-    for setting in SETTINGS:
-        lines.append(f'  {setting.name} ({_yaml_value(setting.default)})')
-        lines += textwrap.wrap(_described(setting), 95, initial_indent='      ',
-                               subsequent_indent='      ')
-    return '\n'.join(lines)
+    return command_line.help_text(
+        NODE_NAME, 'The live hand-eye calibration node: topics, services and a session step by '
+        "step are in the package's README.",
+        [(setting.name, _yaml_value(setting.default), _described(setting))
+         for setting in SETTINGS])
 
 
 def command_line_problem(arguments):
     """
     Return (exit status, text) for a command line the node must not start with, or None.
 
-    arguments: the whole command line (program name first). --help or -h asks for help_text
-    (0), after --ros-args too (rcl knows no such argument). A parameter written NAME:=VALUE
-    outside --ros-args is taken by ROS as a topic remap, silently (2), and so is any other
-    argument the node does not know (`--setup eye_to_hand`, the offline tools' form); ROS
-    arguments rcl cannot read (a params file that is not there) are named (2) instead of
-    ending rclpy.init with a traceback.
+    arguments: the whole command line (program name first): command_line.problem's cases
+    (--help, `--setup eye_to_hand`, the offline tools' form, a parameter outside --ros-args),
+    then a params file without a section for this node.
     """
-    own = arguments[1:]
-    if '--ros-args' in own:
-        own = own[:own.index('--ros-args')]
-    if any(argument in ('-h', '--help') for argument in arguments[1:]):   # (after too)
-        return 0, help_text()
-    misplaced = [a for a in own if a.split(':=', 1)[0] in SETTING_BY_NAME and ':=' in a]
-    if misplaced:
-        return 2, (f'{" ".join(misplaced)}: outside --ros-args, ROS takes NAME:=VALUE for a '
-                   'topic remap, not a parameter; give parameters as --ros-args -p '
-                   f'{misplaced[0]} (see --help)')
-    try:
-        unknown = remove_ros_args(arguments)[1:]
-    except Exception as error:   # noqa: B902 - rcl's parse errors (rclpy.init's traceback)
-        return 2, f'the ROS arguments cannot be read: {error}'
-    if unknown:
-        name = unknown[0].lstrip('-').replace('-', '_')
-        example = (f' (--ros-args -p {name}:=VALUE)' if name in SETTING_BY_NAME else '')
-        return 2, (f'unexpected argument(s) {" ".join(unknown)}: ROS arguments (parameters, '
-                   f'a params file, remaps) go after --ros-args{example}; see --help')
-    return _params_file_problem(arguments)
+    return (command_line.problem(arguments, help_text, SETTING_BY_NAME)
+            or _params_file_problem(arguments))
 
 
 def _params_file_problem(arguments):

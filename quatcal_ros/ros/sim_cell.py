@@ -34,7 +34,7 @@ import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.units import ns_from_s, NS_PER_S, SETUPS
-from quatcal_ros.ros import conversions, spin
+from quatcal_ros.ros import command_line, conversions, spin
 from quatcal_ros.ros.qos import LATCHED_QOS, TF_QOS, TF_STATIC_BROADCAST_QOS
 from quatcal_ros.sim import simulation
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -294,10 +294,21 @@ class SimCell(Node):
                 f'visited all {self.config.n_stops} stops; holding the last pose')
 
 
+def command_line_problem(arguments):
+    """Return (exit status, text) for --help or a command line sim_cell must not start with."""
+    def help_text():
+        return command_line.help_text(
+            NODE_NAME, 'A simulated hand-eye cell whose answer is known (its ~/ground_truth): '
+            'link_pose and sensor_pose, or /tf and /tf_static with tf_mode:=true.',
+            [(name, '[]' if isinstance(default, Parameter.Type) else default, text)
+             for name, (default, text, _) in PARAMETERS.items()])
+    return command_line.problem(arguments, help_text, PARAMETERS)
+
+
 def main(args=None):
     """Run the sim_cell node until SIGINT or SIGTERM (exit 0); 2 on bad parameters."""
     return spin.run(SimCell, NODE_NAME, (ValueError, ParameterException), 'bad parameters',
-                    args)
+                    args, command_line_problem)
 
 
 if __name__ == '__main__':

@@ -21,7 +21,7 @@ import time
 import cv2
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from quatcal_ros.files.text_input import BadInputError
-from quatcal_ros.ros import conversions, spin
+from quatcal_ros.ros import command_line, conversions, spin
 from quatcal_ros.ros.image_input import camera_of, view_of
 from quatcal_ros.ros.qos import quiet_publisher_events
 from quatcal_ros.stream.log_throttle import LogThrottle
@@ -140,9 +140,20 @@ class TargetDetector(Node):
             self.get_logger().warning(f'{reason} ({self.counts[reason]} so far): {detail}')
 
 
+def command_line_problem(arguments):
+    """Return (exit status, text) for --help or a command line the detector must not start with."""
+    def help_text():
+        return command_line.help_text(
+            NODE_NAME, 'The calibration board in camera images: its pose on ~/pose for the '
+            'calibrator (pose_type:=pose_with_covariance).',
+            [(name, default, text) for name, (default, text) in PARAMETERS.items()])
+    return command_line.problem(arguments, help_text, PARAMETERS)
+
+
 def main(args=None):
     """Run the target detector; return 2 (after logging the reason) for bad parameters."""
-    return spin.run(TargetDetector, NODE_NAME, ValueError, 'invalid parameters', args)
+    return spin.run(TargetDetector, NODE_NAME, ValueError, 'invalid parameters', args,
+                    command_line_problem)
 
 
 if __name__ == '__main__':

@@ -1,0 +1,60 @@
+"""
+A node's own command line: --help, and arguments that ROS would take silently for other things.
+
+A node's parameters go after --ros-args (`-p NAME:=VALUE`); before it, ROS takes NAME:=VALUE
+for a topic remap and ignores any other argument, so a mistyped command line starts the node
+as if it were right (`sim_cell --help` started the cell). `problem` names those cases before
+rclpy.init; spin.run prints its answer and exits (0 for --help, 2 otherwise).
+"""
+
+import textwrap
+
+from rclpy.utilities import remove_ros_args
+
+
+def problem(arguments, help_text, names):
+    """
+    Return (exit status, text) for a command line the node must not start with, or None.
+
+    arguments: the whole command line (program name first); help_text(): the node's --help;
+    names: its parameter names. --help or -h asks for help_text (0), after --ros-args too
+    (rcl knows no such argument). A parameter written NAME:=VALUE outside --ros-args (2), any
+    other argument the node does not know (2), ROS arguments rcl cannot read (2, instead of
+    rclpy.init's traceback).
+    """
+    own = arguments[1:]
+    if '--ros-args' in own:
+        own = own[:own.index('--ros-args')]
+    if any(argument in ('-h', '--help') for argument in arguments[1:]):   # (after too)
+        return 0, help_text()
+    misplaced = [a for a in own if a.split(':=', 1)[0] in names and ':=' in a]
+    if misplaced:
+        return 2, (f'{" ".join(misplaced)}: outside --ros-args, ROS takes NAME:=VALUE for a '
+                   'topic remap, not a parameter; give parameters as --ros-args -p '
+                   f'{misplaced[0]} (see --help)')
+    try:
+        unknown = remove_ros_args(arguments)[1:]
+    except Exception as error:   # noqa: B902 - rcl's parse errors (rclpy.init's traceback)
+        return 2, f'the ROS arguments cannot be read: {error}'
+    if unknown:
+        name = unknown[0].lstrip('-').replace('-', '_')
+        example = f' (--ros-args -p {name}:=VALUE)' if name in names else ''
+        return 2, (f'unexpected argument(s) {" ".join(unknown)}: ROS arguments (parameters, '
+                   f'a params file, remaps) go after --ros-args{example}; see --help')
+    return None
+
+
+def help_text(node_name, about, parameters):
+    """
+    Return a node's --help: how to give parameters, what it is, each parameter and default.
+
+    parameters: [(name, default, description)].
+    """
+    lines = [f'usage: ros2 run quatcal_ros {node_name} [--ros-args [-p NAME:=VALUE ...] '
+             '[--params-file FILE.yaml] [-r TOPIC:=NEW_TOPIC ...]]', '',
+             *textwrap.wrap(about, 95), '', 'parameters (default):']
+    for name, default, description in parameters:
+        lines.append(f'  {name} ({default})')
+        lines += textwrap.wrap(description, 95, initial_indent='      ',
+                               subsequent_indent='      ')
+    return '\n'.join(lines)
