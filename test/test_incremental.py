@@ -144,6 +144,20 @@ def test_incremental_result_matches_a_full_solve_of_the_same_samples():
     assert a.excitation == pytest.approx(b.excitation, rel=1e-6)
 
 
+def test_solve_fully_gives_calibrate_after_warm_solves_and_nothing_new_after_a_full_one():
+    """What the node's ~/save asks: its file is then what `solve` of the journal gives."""
+    _, samples = synthetic(7, 16, rotation_noise_deg=0.3, translation_noise_m=0.001)
+    calibrator = Calibrator(full_solve_every=100, small=12)
+    live(calibrator, samples)
+    warm = calibrator.result
+    calibrator.solve_fully()
+    assert calibrator.due and calibrator.estimate() == []
+    full = calibrate(samples).to_json_dict()
+    assert calibrator.result.to_json_dict() == full != warm.to_json_dict()   # exactly
+    calibrator.solve_fully()   # the last estimate was a full one: nothing to do
+    assert not calibrator.due
+
+
 def test_samples_make_an_estimate_due_and_estimate_brings_it_up_to_date():
     _, samples = synthetic(8, 16, rotation_noise_deg=0.3, translation_noise_m=0.001)
     calibrator = Calibrator()

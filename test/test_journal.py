@@ -88,17 +88,23 @@ def test_the_tf_joint_round_trips_in_the_header():
     assert not header.differences(replace(HEADER, sensor_frame='optical'))
 
 
-@pytest.mark.parametrize('value', ['camera_link,0,0,0,0,0,0', 'camera_link,0,0,0,0,0,0,2',
-                                   ',0,0,0,0,0,0,1', 'camera_link,0,0,nan,0,0,0,1',
-                                   'camera_link,0,0,x,0,0,0,1', 'camera_link,1_0,0,0,0,0,0,1',
-                                   '%2F,0,0,0,0,0,0,1', 'camera,0,0,0,0,0,0,1',
-                                   '%2Fcamera,0,0,0,0,0,0,1'])
-def test_a_bad_tf_joint_in_the_header_is_refused(value):
+@pytest.mark.parametrize('value, problem', [
+    ('camera_link,0,0,0,0,0,0', '6 numbers, 7 expected'),
+    ('camera_link,0,0,0,0,0,0,2', 'the quaternion has norm 2, not 1'),
+    (',0,0,0,0,0,0,1', 'no frame'), ('%2F,0,0,0,0,0,0,1', 'no frame'),
+    ('camera_link,0,0,nan,0,0,0,1', 'not all numbers are finite numbers'),
+    ('camera_link,0,0,x,0,0,0,1', 'not all numbers are finite numbers'),
+    ('camera_link,1_0,0,0,0,0,0,1', 'not all numbers are finite numbers'),
+    ('camera,0,0,0,0,0,0,1', 'the frame is the sensor frame camera itself'),
+    ('%2Fcamera,0,0,0,0,0,0,1', 'the frame is the sensor frame camera itself')])
+def test_a_bad_tf_joint_in_the_header_is_refused(value, problem):
     # (the root the sensor frame itself: a hand-edited line gave a traceback in solve)
-    with pytest.raises(JournalError, match=r'f.csv, row 1: static_chain=.* is not a frame other '
-                                           'than camera and a transform x,y,z,qx,qy,qz,qw with '
-                                           'a unit quaternion'):
+    with pytest.raises(JournalError) as raised:
         JournalHeader.parse(HEADER.line() + f' static_chain={value}', 'f.csv')
+    assert str(raised.value) == (
+        f"f.csv, row 1: static_chain='{value}' in the journal header: {problem} (expected "
+        'FRAME,x,y,z,qx,qy,qz,qw: the static parent of the sensor frame and the transform from '
+        'it)')
     # A quaternion written to 4 digits by hand is one.
     assert JournalHeader.parse(HEADER.line() + ' static_chain=camera_link,0,0,0,0.7071,0,0,'
                                '0.7071').static_chain == ('camera_link', (0, 0, 0, 0.7071, 0, 0,
@@ -163,6 +169,15 @@ def test_solve_of_a_journal_with_a_tf_joint_hangs_the_mounting_where_the_tree_ta
     back = joined @ Pose.create((x, y, z), (qw, qx, qy, qz))   # = the calibrated mounting
     assert_allclose(back.position, [out['translation'][k] for k in 'xyz'], atol=2e-10)
     assert out['urdf'].startswith('<!-- camera already hangs from camera_link in TF')
+    # --child-frame camera_link, the chain's root, gave the camera's transform under its name.
+    assert cli.solve_main([str(path), '--child-frame', '/camera_link']) == 0
+    rooted = json.loads(capsys.readouterr().out)
+    assert rooted['static_transform_publisher'] == command
+    assert rooted['rotation'] == out['rotation']
+    assert ('--child-frame camera_link is the static parent of the sensor frame camera in the '
+            "journal's TF tree: the result is the calibrated tool0 -> camera, and its "
+            'static_transform_publisher line and URDF joint are tool0 -> camera_link (the '
+            'transform to camera_link)') in rooted['warnings']
     # Edited by hand so that the sensor frame is its own parent: an error, not a traceback.
     text = path.read_text().replace('static_chain=camera_link,', 'static_chain=%2Fcamera,')
     path.write_text(text)

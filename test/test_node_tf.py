@@ -14,6 +14,7 @@ import re
 import time
 import types
 
+from journal_files import write_journal
 import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
@@ -430,6 +431,14 @@ def test_a_late_transform_is_only_late_not_a_time_jump(tf_harness):
     h.spin_until(lambda: h.node.session.result is not None, what='an estimate')
 
 
+def camera_tree():
+    """Return a tree of the camera driver's camera_link -> optical frame alone."""
+    tree = TransformTree()
+    tree.set_transform('camera_link', 'camera_color_optical_frame', 0, CAMERA_LINK_TO_OPTICAL,
+                       static=True)
+    return tree
+
+
 def test_the_journal_header_keeps_a_recorded_tf_joint_until_the_tree_shows_one():
     """A resumed node before the driver's /tf_static keeps the journal's static chain."""
     config = types.SimpleNamespace(setup='eye_in_hand', invert_sensor=False,
@@ -446,3 +455,27 @@ def test_the_journal_header_keeps_a_recorded_tf_joint_until_the_tree_shows_one()
     assert journal_header(config, tree, recorded).static_chain == chain    # the tree's now
     other = replace(recorded, sensor_frame='lens')   # recorded for another sensor frame
     assert journal_header(config, TransformTree(), other) == plain
+
+
+def test_a_resumed_node_joins_the_tree_where_its_journal_says_before_tf_static(
+        tf_harness, tmp_path):
+    """Resumed before the camera driver's /tf_static: ~/save said tool0 -> the optical frame."""
+    rng = np.random.default_rng(5)
+    samples, _ = simulation.samples(rng, simulation.random_cell(rng), 8,
+                                    rotation_noise_deg=0.1, translation_noise_m=0.001)
+    optical = 'camera_color_optical_frame'
+    chain = tf_joint.static_chain('tool0', optical, camera_tree())
+    write_journal(tmp_path / 'samples.csv', samples,
+                  journal.JournalHeader('eye_in_hand', 'tool0', optical, False, chain))
+    h = tf_harness([Parameter('samples_file', value=str(tmp_path / 'samples.csv')),
+                    Parameter('resume', value=True),
+                    Parameter('result_file', value=str(tmp_path / 'r.yaml'))])
+    assert h.node.session.result is not None   # from the journal's samples
+    save = h.driver.create_client(Trigger, '/calibrator/save')
+    h.spin_until(save.service_is_ready, what='the ~/save service')
+    future = save.call_async(Trigger.Request())
+    h.spin_until(future.done, what='~/save')
+    assert future.result().success, future.result().message
+    saved = yaml.safe_load((tmp_path / 'r.yaml').read_text())
+    assert '<child link="camera_link"/>' in saved['urdf'], saved['urdf']
+    assert saved['urdf'].startswith(f'<!-- {optical} already hangs from camera_link in TF')

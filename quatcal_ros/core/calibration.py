@@ -1077,6 +1077,7 @@ class Calibrator:
         self.last_error = 'no samples yet'
         self._solution = None
         self._estimated = 0   # samples the last estimate() covered
+        self._warm = False    # whether the last estimate was warm-started
 
     @property
     def due(self):
@@ -1107,6 +1108,7 @@ class Calibrator:
         try:
             self._solution = _solve(self.samples, self.options,
                                     self._solution if warm else None)
+            self._warm = bool(warm)
         except DegenerateMotionError as error:
             self._solution = None
             self.last_error = str(error)
@@ -1118,6 +1120,16 @@ class Calibrator:
             newest = [r for r in self._solution.result.rejected if r.get('sample') == n - 1]
             return [f'sample {n - 1} rejected: {r["reason"]}' for r in newest]
         return []
+
+    def solve_fully(self):
+        """
+        Have the next estimate() run the full pipeline when the last was warm-started.
+
+        Its answer is then that of `calibrate` on the same samples (what `solve` of the
+        journal gives): the node asks before it saves.
+        """
+        if self._warm:
+            self._estimated = 0
 
     def full_solve_step(self, n):
         """

@@ -165,24 +165,35 @@ class JournalHeader:
 
 
 def _static_chain(text, sensor_frame, name):
-    """
-    Return a header's static_chain=ROOT,x,y,z,qx,qy,qz,qw as JournalHeader holds it.
-
-    ROOT is another frame than the sensor frame (leading slashes aside, as TF names go).
-    """
+    """Return a header's static_chain=ROOT,x,y,z,qx,qy,qz,qw as JournalHeader holds it."""
     root, *numbers = text.split(',')
     root = unquote(root)
+    problem = _chain_problem(root, numbers, sensor_frame)
+    if problem:
+        raise JournalError(f'{name}, row 1: static_chain={shown(text)!r} in the journal header: '
+                           f'{problem} (expected FRAME,x,y,z,qx,qy,qz,qw: the static parent '
+                           'of the sensor frame and the transform from it)')
+    return root, tuple(float(number) for number in numbers)
+
+
+def _chain_problem(root, numbers, sensor_frame):
+    """Say what is wrong with a static_chain's frame and numbers, or ''."""
+    if not root.lstrip('/'):
+        return 'no frame'
+    if root.lstrip('/') == sensor_frame.lstrip('/'):   # (leading slashes aside, as TF's)
+        return f'the frame is the sensor frame {sensor_frame} itself'
+    if len(numbers) != 7:
+        return f'{len(numbers)} numbers, 7 expected'
     try:   # (float() reads 1_0 as 10: refused, as in the samples)
-        values = tuple(float(number) for number in numbers if '_' not in number)
+        values = [float(number) for number in numbers if '_' not in number]
     except ValueError:
-        values = ()
-    if (not root.lstrip('/') or root.lstrip('/') == sensor_frame.lstrip('/')
-            or len(values) != 7 or not all(map(math.isfinite, values))
-            or abs(math.hypot(*values[3:]) - 1.0) > MESSAGE_NORM_TOLERANCE):
-        raise JournalError(f'{name}, row 1: static_chain={shown(text)!r} in the journal header '
-                           f'is not a frame other than {sensor_frame} and a transform x,y,z,qx,'
-                           'qy,qz,qw with a unit quaternion')
-    return root, values
+        values = []
+    if len(values) != 7 or not all(map(math.isfinite, values)):
+        return 'not all numbers are finite numbers'
+    norm = math.hypot(*values[3:])
+    if abs(norm - 1.0) > MESSAGE_NORM_TOLERANCE:
+        return f'the quaternion has norm {norm:.6g}, not 1'
+    return ''
 
 
 @dataclass(frozen=True)

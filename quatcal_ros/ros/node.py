@@ -369,6 +369,7 @@ class CalibratorNode(Node):
         """Log what opening the journal did; estimate from its samples when resuming."""
         report = self.journal.report
         self.log.messages(report.messages)
+        self._resume_tf_joint()
         if self.images is not None:
             self.log.messages(self.images.restore(report.samples))
         if report.samples:   # already in the journal: not appended again, not logged
@@ -376,6 +377,23 @@ class CalibratorNode(Node):
             if self.session.result is None:
                 self.get_logger().info(f'no estimate from the resumed samples yet: '
                                        f'{self.session.last_error}')
+
+    def _resume_tf_joint(self):
+        """
+        Start the TF tree with a resumed journal's static chain (JournalHeader.static_chain).
+
+        Until the camera driver's /tf_static comes, the result's joint (~/save, publish_tf)
+        would else be link -> sensor frame: pasted or broadcast, a second parent.
+        """
+        recorded, sensor_frame = self.journal.header, self.config.result_frames[1]
+        if (self.inputs.tf is None or recorded.static_chain is None
+                or recorded.sensor_frame != sensor_frame
+                or self.inputs.tf.tree.parent(sensor_frame) is not None):
+            return
+        tf_joint.add_static_chain(self.inputs.tf.tree, sensor_frame, recorded.static_chain)
+        self.get_logger().info(
+            f'the journal says {sensor_frame} hangs from {recorded.static_chain[0]} in TF: the '
+            'result joins the tree there until /tf_static says otherwise')
 
     def _add_known_samples(self, samples):
         events = self.session.add_samples(samples)
@@ -521,6 +539,7 @@ class CalibratorNode(Node):
 
     def _on_save(self, request, response):
         self.inputs.flush()
+        self.handle_events(self.session.full_estimate())   # as `solve` of the journal gives
         result = self.result
         if result is None:
             response.success = False

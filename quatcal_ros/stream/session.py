@@ -317,6 +317,16 @@ class Session:
             events.append(EstimateUpdated(self._calibrator.result))
         return events
 
+    def full_estimate(self):
+        """
+        Bring the estimate to the full solve of every sample; return its events.
+
+        None when it is that already; else the live warm-started estimate is solved again
+        in full (calibration.Calibrator.solve_fully), as `solve` of the same samples.
+        """
+        self._calibrator.solve_fully()
+        return self.estimate()
+
     def pop_events(self):
         """Events not yet returned (those of capture()); each event is returned once."""
         events, self._pending = self._pending, []

@@ -84,10 +84,20 @@ def static_chain(parent, child, tree):
 
 def recorded_tree(child, chain):
     """Return a TransformTree of the one static edge static_chain gave (root -> child)."""
-    root, (x, y, z, qx, qy, qz, qw) = chain
     tree = TransformTree()
-    tree.set_transform(root, child, 0, Pose.create((x, y, z), (qw, qx, qy, qz)), static=True)
+    add_static_chain(tree, child, chain)
     return tree
+
+
+def add_static_chain(tree, child, chain):
+    """
+    Put the static edge root -> child that static_chain gave into `tree`.
+
+    The TF tree's own /tf_static for `child` replaces it when it comes (a resumed node
+    starts with the journal's, so that its joint is right before the camera driver's).
+    """
+    root, (x, y, z, qx, qy, qz, qw) = chain
+    tree.set_transform(root, child, 0, Pose.create((x, y, z), (qw, qx, qy, qz)), static=True)
 
 
 def joint(result, frames, tree=None):

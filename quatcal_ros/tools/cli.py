@@ -114,7 +114,8 @@ def solve_main(argv=None):
     copies = _copies(session.add_samples(imported.samples))
     session.estimate()   # one full solve over all of them
     warnings = [*imported.warnings, *_copies_warning(copies)]
-    tree = _journal_tree(imported, frames)
+    frames, tree, said = _journal_tree(imported, frames)
+    warnings += said
     failed = _write_files(parser.prog, args, session.result, frames, warnings, imported.frames,
                           tree=tree)
     if failed:
@@ -126,14 +127,26 @@ def solve_main(argv=None):
 
 def _journal_tree(imported, frames):
     """
-    Return the TF tree a journal recorded for the result's joint (its static_chain), or None.
+    Return (frames, the TF tree a journal recorded for the result's joint or None, warnings).
 
-    Only for the frames it was recorded for: another child frame (--child-frame) has none.
+    The tree is the journal's static_chain, for the sensor frame it was recorded for: another
+    child frame (--child-frame) has none. A child frame that is the chain's root (camera_link
+    for its optical frame) is what the joint gives: the result stays the sensor frame's.
     """
     named = imported.frames.get('tracking_base_frame')
-    if imported.static_chain is None or named is None or normalize_frame(named) != frames[1]:
-        return None
-    return tf_joint.recorded_tree(frames[1], imported.static_chain)
+    if imported.static_chain is None or named is None:
+        return frames, None, []
+    sensor, root = normalize_frame(named), normalize_frame(imported.static_chain[0])
+    warnings = []
+    if frames[1] == root:
+        warnings.append(f'--child-frame {root} is the static parent of the sensor frame '
+                        f"{sensor} in the journal's TF tree: the result is the calibrated "
+                        f'{frames[0]} -> {sensor}, and its static_transform_publisher line and '
+                        f'URDF joint are {frames[0]} -> {root} (the transform to {root})')
+        frames = (frames[0], sensor)
+    if frames[1] != sensor:
+        return frames, None, warnings
+    return frames, tf_joint.recorded_tree(sensor, imported.static_chain), warnings
 
 
 def _solve_images(prog, args):
