@@ -173,6 +173,7 @@ def test_solve_of_a_journal_with_a_tf_joint_hangs_the_mounting_where_the_tree_ta
     assert cli.solve_main([str(path), '--child-frame', '/camera_link']) == 0
     rooted = json.loads(capsys.readouterr().out)
     assert rooted['static_transform_publisher'] == command
+    assert (rooted['parent_frame'], rooted['child_frame']) == ('tool0', 'camera')
     assert rooted['rotation'] == out['rotation']
     assert ('--child-frame camera_link is the static parent of the sensor frame camera in the '
             "journal's TF tree: the result is the calibrated tool0 -> camera, and its "

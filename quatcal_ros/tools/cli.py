@@ -385,6 +385,7 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
         print(f'{prog}: warning: {where}the estimate says not to use it ("usable": false): '
               f'{said}', file=sys.stderr)
     document = result.to_json_dict()
+    document['parent_frame'], document['child_frame'] = parent, child   # (the calibrated)
     document['static_transform_publisher'] = exports.static_transform_publisher_command(
         mount.result, mount.parent, mount.child)
     document.update(exports.description_joints(mount.result, mount.parent, mount.child,
