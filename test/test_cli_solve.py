@@ -408,6 +408,19 @@ def test_an_empty_samples_path_is_not_the_current_folder(capsys):
     assert 'the samples path is empty' in capsys.readouterr().err
 
 
+@pytest.mark.parametrize('content', ['metadata.yaml', 'run_0.mcap', 'run_0.db3'])
+def test_a_bag_folder_given_to_solve_is_named_with_replay(tmp_path, capsys, content):
+    # It said 'robot_poses.csv missing' (an image folder's), with --invert-sensor that
+    # camera images cannot be inverted.
+    from quatcal_ros.tools.cli import solve_main
+    (tmp_path / 'bag').mkdir()
+    (tmp_path / 'bag' / content).write_text('')
+    for options in ([], ['--invert-sensor']):
+        assert solve_main([str(tmp_path / 'bag'), *options]) == 2
+        assert (f'{tmp_path / "bag"} is a rosbag2 recording, not a samples file or an image '
+                'dataset folder: replay reads it') in capsys.readouterr().err
+
+
 def test_an_output_below_a_file_says_the_parent_is_a_file(tmp_path, capsys):
     from quatcal_ros.tools.cli import solve_main
     _, path, _ = write_cell_csv(tmp_path / 'cell.csv', 8, 6)

@@ -315,6 +315,11 @@ BAD_INPUTS = [
      lambda d: set_path(d, [2, 'effector_wrt_world', 0], 3.0),
      'bad.yaml, entry [2], field effector_wrt_world: the upper-left 3x3 block is not a '
      'rotation'),
+    ('bad.yaml', 'moveit',   # a flipped axis (it was asked whether it was transposed)
+     lambda d: [set_path(d, [2, 'effector_wrt_world', k], -d[2]['effector_wrt_world'][k])
+                for k in (0, 4, 8)],
+     'bad.yaml, entry [2], field effector_wrt_world: the upper-left 3x3 block is a reflection '
+     '(determinant -1), not a rotation: one axis of a frame is flipped'),
     ('bad.yaml', 'moveit',
      lambda d: set_path(d, [2, 'effector_wrt_world', 5], None),
      'bad.yaml, entry [2], field effector_wrt_world[1][1]: None is not a number'),

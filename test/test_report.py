@@ -84,6 +84,12 @@ def test_rejected_and_down_weighted_samples_are_marked(cell):
                                          if result.sample_ok[n['sample']]])
     assert {i for i, s in enumerate(states) if s == 'rejected'} == set(
         np.flatnonzero(~np.asarray(result.sample_ok)).tolist())
+    # The page says which and why (the figure's rejected bars had no height, no reason).
+    page = report_html(result, samples, CalibrationOptions(), ('tool0', 'camera'))
+    for entry in [e for e in result.rejected if 'sample' in e]:
+        assert f'<li>sample {entry["sample"]} rejected: ' in page
+    for entry in result.noisy:
+        assert f'<li>sample {entry["sample"]} down-weighted (weight ' in page
 
 
 def test_the_convergence_ends_at_the_answer_and_the_axes_are_unit(cell):

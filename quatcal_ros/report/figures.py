@@ -39,7 +39,8 @@ def sample_residuals(rotation_deg, translation_mm, state, thresholds):
     Bars of each sample's leave-one-out prediction error (deg, mm), coloured by state.
 
     state: per sample 'used', 'noisy' (down-weighted) or 'rejected'; thresholds: the
-    validation's (max_rotation_deg, max_translation_mm), drawn as lines.
+    validation's (max_rotation_deg, max_translation_mm), drawn as lines. A sample without a
+    prediction (NaN: a rejected one, outside the leave-one-out) is a shaded column.
     """
     pyplot = _pyplot()
     colours = [{'used': USED, 'noisy': NOISY, 'rejected': REJECTED}[s] for s in state]
@@ -48,6 +49,8 @@ def sample_residuals(rotation_deg, translation_mm, state, thresholds):
     for ax, values, limit, unit in ((axes[0], rotation_deg, thresholds[0], 'deg'),
                                     (axes[1], translation_mm, thresholds[1], 'mm')):
         ax.bar(index, np.nan_to_num(values), color=colours, width=0.8)
+        for k in np.flatnonzero(np.isnan(values)):
+            ax.axvspan(k - 0.4, k + 0.4, color=colours[k], alpha=0.3, linewidth=0)
         ax.axhline(limit, color='#555555', linestyle='--', linewidth=0.8)
         ax.set_ylabel(f'prediction error ({unit})')
     axes[1].set_xlabel('sample')

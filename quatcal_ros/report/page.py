@@ -52,8 +52,9 @@ def report_html(result, samples, options, frames, title='', time_offset=None):
     sections += [
         '<h2>Each sample, predicted from the others</h2>',
         '<p>The object pose of each sample predicted by the estimate of all the other samples '
-        '(leave-one-out), against the one observed; the dashed lines are the thresholds.</p>',
-        _figure(_sample_figure(result, len(samples))),
+        '(leave-one-out), against the one observed; the dashed lines are the thresholds. A '
+        'rejected sample is not predicted: its column is shaded.</p>',
+        _figure(_sample_figure(result, len(samples))), _set_aside(result),
         '<h2>The estimate as samples were added</h2>',
         '<p>Each prefix of the samples solved again with the same options: its distance from '
         'the final answer, and the uncertainty it reported.</p>',
@@ -147,6 +148,16 @@ def _degrees(value):
 def _time_offset(offset):
     sentence = offset_sentence(offset)
     return f'<h2>Time offset</h2><p>{escape(sentence[0].upper() + sentence[1:])}.</p>'
+
+
+def _set_aside(result):
+    """Return the rejected and the down-weighted samples with their reasons, as a list."""
+    items = [f'sample {entry["sample"]} rejected: {entry["reason"]}'
+             for entry in result.rejected if 'sample' in entry]
+    items += [f'sample {entry["sample"]} down-weighted (weight {entry["weight"]:.2g}): '
+              f'{entry["reason"]}' for entry in result.noisy]
+    return ('<ul>' + ''.join(f'<li>{escape(item)}</li>' for item in items) + '</ul>'
+            if items else '')
 
 
 def _sample_figure(result, count):

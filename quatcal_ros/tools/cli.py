@@ -96,6 +96,11 @@ def solve_main(argv=None):
     problem = output_problem([('dataset' if folder else 'file', args.samples)], outputs)
     if problem:
         return fail(parser.prog, problem, EXIT_BAD_INPUT)
+    if folder and _is_bag(Path(args.samples)):
+        return fail(parser.prog, f'{args.samples} is a rosbag2 recording, not a samples file '
+                                 'or an image dataset folder: replay reads it (python -m '
+                                 f'quatcal_ros replay {args.samples} --link-topic TOPIC '
+                                 '--sensor-topic TOPIC)', EXIT_BAD_INPUT)
     if folder:
         if args.invert_sensor:
             return fail(parser.prog, f'bad option: {IMAGES_NOT_INVERTED}', EXIT_BAD_INPUT)
@@ -123,6 +128,12 @@ def solve_main(argv=None):
     return print_result(parser.prog, session, f'{args.samples}: ', warnings, frames=frames,
                         limits=plan_limits(settings_of(args)),
                         report=args.report, tree=tree)
+
+
+def _is_bag(folder):
+    """Return whether `folder` holds a rosbag2 recording (its metadata, or its storage files)."""
+    return ((folder / 'metadata.yaml').is_file()
+            or any(path.suffix in ('.mcap', '.db3') for path in folder.iterdir()))
 
 
 def _journal_tree(imported, frames):
