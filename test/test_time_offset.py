@@ -149,6 +149,9 @@ def test_speeds_that_align_nowhere_in_the_search_are_not_taken_for_an_offset(eth
     assert near.correlation > 0.5 and abs(near.offset_ns + 3_020 * MS) < 15 * MS
     assert near.to_json_dict()['speeds_aligned']
     assert 'align nowhere' not in offset_sentence(near.to_json_dict())
+    # Its residuals are the search's, not the capture's residual_rms_deg (they moved apart).
+    assert ('RMS residual of the search (the same sensor frames, the link at each shifted '
+            "stamp: not the capture's residual_rms_deg)") in offset_sentence(found)
 
 
 def test_the_simulated_clock_offset_mode_is_found_and_undone():

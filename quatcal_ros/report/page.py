@@ -126,9 +126,10 @@ def offset_sentence(offset):
     around = (f', searched around the given {given:+.3f} s, where the RMS residual is '
               f'{_degrees(offset.get("residual_at_given_deg"))}' if given else '')
     said = (f'sensor stamps shifted by {1e3 * offset["sensor_offset_s"]:+.1f} ms (speed '
-            f'correlation {offset["correlation"]:.2f}{around}); RMS residual '
-            f'{_degrees(offset["residual_without_deg"])} without any offset, '
-            f'{_degrees(offset["residual_with_deg"])} with it{where}')
+            f'correlation {offset["correlation"]:.2f}{around}); RMS residual of the search '
+            f'(the same sensor frames, the link at each shifted stamp: not the capture\'s '
+            f'residual_rms_deg) {_degrees(offset["residual_without_deg"])} without any '
+            f'offset, {_degrees(offset["residual_with_deg"])} with it{where}')
     if offset.get('speeds_aligned', True):
         return said
     centre = given or 0.0
