@@ -127,7 +127,7 @@ def offset_sentence(offset):
               f'{_degrees(offset.get("residual_at_given_deg"))}' if given else '')
     said = (f'sensor stamps shifted by {1e3 * offset["sensor_offset_s"]:+.1f} ms (speed '
             f'correlation {offset["correlation"]:.2f}{around}); RMS residual of the search '
-            f'(the same sensor frames, the link at each shifted stamp: not the capture\'s '
+            f"(the same sensor frames, the link at each shifted stamp: not the capture's "
             f'residual_rms_deg) {_degrees(offset["residual_without_deg"])} without any '
             f'offset, {_degrees(offset["residual_with_deg"])} with it{where}')
     if offset.get('speeds_aligned', True):
