@@ -92,9 +92,9 @@ def test_the_tf_joint_round_trips_in_the_header():
     ('camera_link,0,0,0,0,0,0', '6 numbers, 7 expected'),
     ('camera_link,0,0,0,0,0,0,2', 'the quaternion has norm 2, not 1'),
     (',0,0,0,0,0,0,1', 'no frame'), ('%2F,0,0,0,0,0,0,1', 'no frame'),
-    ('camera_link,0,0,nan,0,0,0,1', 'not all numbers are finite numbers'),
-    ('camera_link,0,0,x,0,0,0,1', 'not all numbers are finite numbers'),
-    ('camera_link,1_0,0,0,0,0,0,1', 'not all numbers are finite numbers'),
+    ('camera_link,0,0,nan,0,0,0,1', 'not 7 finite numbers'),
+    ('camera_link,0,0,x,0,0,0,1', 'not 7 finite numbers'),
+    ('camera_link,1_0,0,0,0,0,0,1', 'not 7 finite numbers'),
     ('camera,0,0,0,0,0,0,1', 'the frame is the sensor frame camera itself'),
     ('%2Fcamera,0,0,0,0,0,0,1', 'the frame is the sensor frame camera itself')])
 def test_a_bad_tf_joint_in_the_header_is_refused(value, problem):
@@ -103,8 +103,8 @@ def test_a_bad_tf_joint_in_the_header_is_refused(value, problem):
         JournalHeader.parse(HEADER.line() + f' static_chain={value}', 'f.csv')
     assert str(raised.value) == (
         f"f.csv, row 1: static_chain='{value}' in the journal header: {problem} (expected "
-        'FRAME,x,y,z,qx,qy,qz,qw: the static parent of the sensor frame and the transform from '
-        'it)')
+        'FRAME,x,y,z,qx,qy,qz,qw: the top of the static chain above the sensor frame and the '
+        'transform from it)')
     # A quaternion written to 4 digits by hand is one.
     assert JournalHeader.parse(HEADER.line() + ' static_chain=camera_link,0,0,0,0.7071,0,0,'
                                '0.7071').static_chain == ('camera_link', (0, 0, 0, 0.7071, 0, 0,
@@ -175,9 +175,9 @@ def test_solve_of_a_journal_with_a_tf_joint_hangs_the_mounting_where_the_tree_ta
     assert rooted['static_transform_publisher'] == command
     assert (rooted['parent_frame'], rooted['child_frame']) == ('tool0', 'camera')
     assert rooted['rotation'] == out['rotation']
-    assert ('--child-frame camera_link is the static parent of the sensor frame camera in the '
-            "journal's TF tree: the result is the calibrated tool0 -> camera, and its "
-            'static_transform_publisher line and URDF joint are tool0 -> camera_link (the '
+    assert ('--child-frame camera_link is the top of the static chain above the sensor frame '
+            "camera in the journal's TF tree: the result is the calibrated tool0 -> camera, and "
+            'its static_transform_publisher line and URDF joint are tool0 -> camera_link (the '
             'transform to camera_link)') in rooted['warnings']
     # Edited by hand so that the sensor frame is its own parent: an error, not a traceback.
     text = path.read_text().replace('static_chain=camera_link,', 'static_chain=%2Fcamera,')

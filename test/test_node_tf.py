@@ -479,3 +479,22 @@ def test_a_resumed_node_joins_the_tree_where_its_journal_says_before_tf_static(
     saved = yaml.safe_load((tmp_path / 'r.yaml').read_text())
     assert '<child link="camera_link"/>' in saved['urdf'], saved['urdf']
     assert saved['urdf'].startswith(f'<!-- {optical} already hangs from camera_link in TF')
+    assert 'frames seen: none' in ' '.join(h.node.inputs.tf.problems())   # (the journal's)
+    # The driver's own chain has one more frame: it replaces the journal's edge (it was
+    # refused as a second parent, the journal's edge kept for good).
+    colour = Pose.create([0.0, 0.015, 0.0], [1.0, 0.0, 0.0, 0.0])
+    h.publish([('camera_link', 'camera_color_frame', 0, colour),
+               ('camera_color_frame', optical, 0, colour.inverse() @ CAMERA_LINK_TO_OPTICAL)],
+              static=True)
+    h.spin_until(lambda: h.node.inputs.tf.tree.parent(optical) == 'camera_color_frame',
+                 what="the driver's /tf_static")
+    assert h.node.stats.bad_total == 0
+    future = save.call_async(Trigger.Request())
+    h.spin_until(future.done, what='~/save')
+    again = yaml.safe_load((tmp_path / 'r.yaml').read_text())
+    assert '<child link="camera_link"/>' in again['urdf']   # the same joint, to rounding
+
+    def origin(urdf):
+        return [float(v) for key in ('xyz', 'rpy')
+                for v in re.search(f'{key}="([^"]+)"', urdf).group(1).split()]
+    np.testing.assert_allclose(origin(again['urdf']), origin(saved['urdf']), atol=1e-9)

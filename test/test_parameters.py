@@ -330,6 +330,7 @@ def test_the_other_nodes_have_a_help_and_refuse_what_ros_would_silently_ignore(t
     assert module.main([tool, '--help']) == 0
     said = capsys.readouterr().out
     assert said.startswith(f'usage: ros2 run quatcal_ros {tool} [--ros-args [-p NAME:=VALUE')
+    assert '(True)' not in said and '(False)' not in said   # defaults as YAML writes them
     assert all(f'\n  {name} (' in said for name in module.PARAMETERS)
     assert not rclpy.ok()   # nothing started
     assert module.main([tool, '--seed', '3']) == 2
@@ -340,6 +341,7 @@ def test_the_other_nodes_have_a_help_and_refuse_what_ros_would_silently_ignore(t
                                  'topic remap, not a parameter; give parameters as --ros-args '
                                  f'-p {name}:=3 (see --help)')
     assert module.command_line_problem([tool, '--ros-args', '-p', f'{name}:=3']) is None
+    assert module.command_line_problem([tool, 'use_sim_time:=true'])[0] == 2   # (rclpy's)
 
 
 def test_the_calibrator_command_line_refuses_what_ros_would_silently_ignore(capsys):

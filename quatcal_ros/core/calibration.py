@@ -1077,7 +1077,7 @@ class Calibrator:
         self.last_error = 'no samples yet'
         self._solution = None
         self._estimated = 0   # samples the last estimate() covered
-        self._warm = False    # whether the last estimate was warm-started
+        self._full_at = 0     # samples the last full solve (successful or not) was of
 
     @property
     def due(self):
@@ -1105,10 +1105,11 @@ class Calibrator:
             return []
         warm = (new == 1 and self._solution is not None and n > self.small
                 and n % self.full_solve_step(n))
+        if not warm:
+            self._full_at = n
         try:
             self._solution = _solve(self.samples, self.options,
                                     self._solution if warm else None)
-            self._warm = bool(warm)
         except DegenerateMotionError as error:
             self._solution = None
             self.last_error = str(error)
@@ -1123,12 +1124,12 @@ class Calibrator:
 
     def solve_fully(self):
         """
-        Have the next estimate() run the full pipeline when the last was warm-started.
+        Have the next estimate() run the full pipeline unless it ran on these samples.
 
         Its answer is then that of `calibrate` on the same samples (what `solve` of the
-        journal gives): the node asks before it saves.
+        journal gives), not a warm-started one: the node asks before it saves.
         """
-        if self._warm:
+        if self._full_at != len(self.samples):
             self._estimated = 0
 
     def full_solve_step(self, n):

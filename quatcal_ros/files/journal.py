@@ -55,7 +55,7 @@ MAGIC = '# quatcal_ros samples journal'
 VERSION = 1
 HEADER_KEYS = ('setup', 'link_frame', 'sensor_frame')
 # Keys a header may leave out (journals of earlier versions): invert_sensor, true or false;
-# static_chain, the sensor frame's static parent with TF input (JournalHeader).
+# static_chain, the static chain above the sensor frame with TF input (JournalHeader).
 OPTIONAL_KEYS = ('invert_sensor', 'static_chain')
 BOOLEANS = {'true': True, 'false': False}
 # The robot base of eye-to-hand journals of earlier versions when link_frame was not set.
@@ -171,8 +171,8 @@ def _static_chain(text, sensor_frame, name):
     problem = _chain_problem(root, numbers, sensor_frame)
     if problem:
         raise JournalError(f'{name}, row 1: static_chain={shown(text)!r} in the journal header: '
-                           f'{problem} (expected FRAME,x,y,z,qx,qy,qz,qw: the static parent '
-                           'of the sensor frame and the transform from it)')
+                           f'{problem} (expected FRAME,x,y,z,qx,qy,qz,qw: the top of the '
+                           'static chain above the sensor frame and the transform from it)')
     return root, tuple(float(number) for number in numbers)
 
 
@@ -189,7 +189,7 @@ def _chain_problem(root, numbers, sensor_frame):
     except ValueError:
         values = []
     if len(values) != 7 or not all(map(math.isfinite, values)):
-        return 'not all numbers are finite numbers'
+        return 'not 7 finite numbers'
     norm = math.hypot(*values[3:])
     if abs(norm - 1.0) > MESSAGE_NORM_TOLERANCE:
         return f'the quaternion has norm {norm:.6g}, not 1'

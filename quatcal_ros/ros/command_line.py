@@ -27,6 +27,7 @@ def problem(arguments, help_text, names):
         own = own[:own.index('--ros-args')]
     if any(argument in ('-h', '--help') for argument in arguments[1:]):   # (after too)
         return 0, help_text()
+    names = set(names) | {'use_sim_time'}   # (rclpy's own, every node has it)
     misplaced = [a for a in own if a.split(':=', 1)[0] in names and ':=' in a]
     if misplaced:
         return 2, (f'{" ".join(misplaced)}: outside --ros-args, ROS takes NAME:=VALUE for a '
@@ -54,7 +55,8 @@ def help_text(node_name, about, parameters):
              '[--params-file FILE.yaml] [-r TOPIC:=NEW_TOPIC ...]]', '',
              *textwrap.wrap(about, 95), '', 'parameters (default):']
     for name, default, description in parameters:
-        lines.append(f'  {name} ({default})')
+        shown = str(default).lower() if isinstance(default, bool) else default   # (as YAML)
+        lines.append(f'  {name} ({shown})')
         lines += textwrap.wrap(description, 95, initial_indent='      ',
                                subsequent_indent='      ')
     return '\n'.join(lines)

@@ -390,7 +390,7 @@ class CalibratorNode(Node):
                 or recorded.sensor_frame != sensor_frame
                 or self.inputs.tf.tree.parent(sensor_frame) is not None):
             return
-        tf_joint.add_static_chain(self.inputs.tf.tree, sensor_frame, recorded.static_chain)
+        self.inputs.tf.assume_static_chain(sensor_frame, recorded.static_chain)
         self.get_logger().info(
             f'the journal says {sensor_frame} hangs from {recorded.static_chain[0]} in TF: the '
             'result joins the tree there until /tf_static says otherwise')

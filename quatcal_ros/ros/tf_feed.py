@@ -16,7 +16,7 @@ moving every frame below it).
 
 from quatcal_ros.core.conventions import PREFIX as CONVENTION_WARNING
 from quatcal_ros.ros.conversions import BadPoseError, pose_from_msg, stamp_ns_from_header
-from quatcal_ros.stream import message_checks
+from quatcal_ros.stream import message_checks, tf_joint
 from quatcal_ros.stream.tf_tree import FramePoses, normalize_frame, TransformTree, TreeError
 
 DEFAULT_TF_TOPICS = ('/tf', '/tf_static')
@@ -86,7 +86,21 @@ class TfFeed:
         # on_ours_replaced() is called (the node broadcasts again, under that parent).
         self.ours = set()
         self.on_ours_replaced = None
+        # Children whose static edge a resumed journal gave (assume_static_chain), until a
+        # /tf_static transform to them comes.
+        self.assumed = set()
         self.watchers = {stream: FramePoses(tree, *pair) for stream, pair in frames.items()}
+
+    def assume_static_chain(self, child, chain):
+        """
+        Hold a journal's static chain above `child` (tf_joint.static_chain) in the tree.
+
+        Any /tf_static transform to `child` replaces it (under its own parent, as the camera
+        driver's chain may have more frames), and on_ours_replaced() is called: the joint the
+        node broadcasts follows the tree.
+        """
+        tf_joint.add_static_chain(self.tree, child, chain)
+        self.assumed.add(normalize_frame(child))
 
     def swapped_frames(self, result=None):
         """
@@ -143,6 +157,10 @@ class TfFeed:
                 if not parent or not child:
                     raise TreeError(f'a transform {parent!r} -> {child!r} with an empty frame '
                                     'id (tf2 refuses it)')
+                if static and child in self.assumed:   # the journal's, until this came
+                    self.assumed.discard(child)
+                    self.tree.remove_edge(child)
+                    replaced = True
                 known = self.tree.parent(child)
                 if known is not None and known != parent:
                     # Ours against another publisher's, in either order (a resumed estimate
@@ -204,15 +222,17 @@ class TfFeed:
         """
         found = []
         frames = self.tree.frames
+        # (the frames of a journal's assumed edge were not seen on /tf or /tf_static)
+        heard = frames - self.assumed - {self.tree.parent(child) for child in self.assumed}
         for watcher in self.watchers.values():
             target, source = watcher.target, watcher.source
             if self.tree.chain(target, source) is not None:
                 continue
             unknown = [frame for frame in (target, source) if frame not in frames]
-            seen = ', '.join(sorted(frames)[:MAX_FRAMES_NAMED]) or 'none'
+            seen = ', '.join(sorted(heard)[:MAX_FRAMES_NAMED]) or 'none'
             if unknown:
                 why = (f'no frame {" or ".join(unknown)} on /tf or /tf_static yet (frames '
-                       f'seen: {seen}{", ..." if len(frames) > MAX_FRAMES_NAMED else ""})')
+                       f'seen: {seen}{", ..." if len(heard) > MAX_FRAMES_NAMED else ""})')
             else:
                 why = self.tree.disconnection(target, source)
             found.append(f'TF input: {target} -> {source} cannot be composed: {why}')

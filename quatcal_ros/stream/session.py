@@ -321,8 +321,8 @@ class Session:
         """
         Bring the estimate to the full solve of every sample; return its events.
 
-        None when it is that already; else the live warm-started estimate is solved again
-        in full (calibration.Calibrator.solve_fully), as `solve` of the same samples.
+        No events when it is that already; else the live warm-started estimate is solved
+        again in full (calibration.Calibrator.solve_fully), as `solve` of the same samples.
         """
         self._calibrator.solve_fully()
         return self.estimate()

@@ -90,12 +90,7 @@ def recorded_tree(child, chain):
 
 
 def add_static_chain(tree, child, chain):
-    """
-    Put the static edge root -> child that static_chain gave into `tree`.
-
-    The TF tree's own /tf_static for `child` replaces it when it comes (a resumed node
-    starts with the journal's, so that its joint is right before the camera driver's).
-    """
+    """Put the static edge root -> child that static_chain gave into `tree`."""
     root, (x, y, z, qx, qy, qz, qw) = chain
     tree.set_transform(root, child, 0, Pose.create((x, y, z), (qw, qx, qy, qz)), static=True)
 

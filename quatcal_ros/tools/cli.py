@@ -141,8 +141,8 @@ def _journal_tree(imported, frames):
     Return (frames, the TF tree a journal recorded for the result's joint or None, warnings).
 
     The tree is the journal's static_chain, for the sensor frame it was recorded for: another
-    child frame (--child-frame) has none. A child frame that is the chain's root (camera_link
-    for its optical frame) is what the joint gives: the result stays the sensor frame's.
+    child frame (--child-frame) has none. A child frame that is the chain's top (camera_link
+    above its optical frame) is what the joint gives: the result stays the sensor frame's.
     """
     named = imported.frames.get('tracking_base_frame')
     if imported.static_chain is None or named is None:
@@ -150,10 +150,11 @@ def _journal_tree(imported, frames):
     sensor, root = normalize_frame(named), normalize_frame(imported.static_chain[0])
     warnings = []
     if frames[1] == root:
-        warnings.append(f'--child-frame {root} is the static parent of the sensor frame '
-                        f"{sensor} in the journal's TF tree: the result is the calibrated "
-                        f'{frames[0]} -> {sensor}, and its static_transform_publisher line and '
-                        f'URDF joint are {frames[0]} -> {root} (the transform to {root})')
+        warnings.append(f'--child-frame {root} is the top of the static chain above the '
+                        f"sensor frame {sensor} in the journal's TF tree: the result is the "
+                        f'calibrated {frames[0]} -> {sensor}, and its static_transform_publisher '
+                        f'line and URDF joint are {frames[0]} -> {root} (the transform to '
+                        f'{root})')
         frames = (frames[0], sensor)
     if frames[1] != sensor:
         return frames, None, warnings
