@@ -18,6 +18,7 @@ from journal_files import write_journal
 import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.calibration import calibrate
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.files import journal
 from quatcal_ros.ros import conversions
@@ -461,21 +462,28 @@ def test_a_resumed_node_joins_the_tree_where_its_journal_says_before_tf_static(
         tf_harness, tmp_path):
     """Resumed before the camera driver's /tf_static: ~/save said tool0 -> the optical frame."""
     rng = np.random.default_rng(5)
-    samples, _ = simulation.samples(rng, simulation.random_cell(rng), 8,
+    samples, _ = simulation.samples(rng, simulation.random_cell(rng), 15,
                                     rotation_noise_deg=0.1, translation_noise_m=0.001)
     optical = 'camera_color_optical_frame'
     chain = tf_joint.static_chain('tool0', optical, camera_tree())
-    write_journal(tmp_path / 'samples.csv', samples,
+    write_journal(tmp_path / 'samples.csv', samples[:14],
                   journal.JournalHeader('eye_in_hand', 'tool0', optical, False, chain))
     h = tf_harness([Parameter('samples_file', value=str(tmp_path / 'samples.csv')),
                     Parameter('resume', value=True),
                     Parameter('result_file', value=str(tmp_path / 'r.yaml'))])
     assert h.node.session.result is not None   # from the journal's samples
+    # One more sample, as captured live: its estimate is warm-started from the last one.
+    h.node.handle_events(h.node.session.add_samples(samples[14:]))
+    full = calibrate(h.node.session.samples,   # (as the journal gave them back)
+                     h.node.session.config.calibration).to_json_dict()
+    assert h.node.session.result.to_json_dict() != full
     save = h.driver.create_client(Trigger, '/calibrator/save')
     h.spin_until(save.service_is_ready, what='the ~/save service')
     future = save.call_async(Trigger.Request())
     h.spin_until(future.done, what='~/save')
     assert future.result().success, future.result().message
+    # ~/save solved in full first: its file is what `solve` of the journal gives.
+    assert h.node.session.result.to_json_dict() == full
     saved = yaml.safe_load((tmp_path / 'r.yaml').read_text())
     assert '<child link="camera_link"/>' in saved['urdf'], saved['urdf']
     assert saved['urdf'].startswith(f'<!-- {optical} already hangs from camera_link in TF')
