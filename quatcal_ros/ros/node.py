@@ -392,8 +392,8 @@ class CalibratorNode(Node):
             return
         self.inputs.tf.assume_static_chain(sensor_frame, recorded.static_chain)
         self.get_logger().info(
-            f'the journal says {sensor_frame} hangs from {recorded.static_chain[0]} in TF: the '
-            'result joins the tree there until /tf_static says otherwise')
+            f'the journal says {sensor_frame} hangs below {recorded.static_chain[0]} in TF: '
+            'the result joins the tree there until /tf_static says otherwise')
 
     def _add_known_samples(self, samples):
         events = self.session.add_samples(samples)
