@@ -23,10 +23,12 @@ from quatcal_ros.core.pose import Pose
 from quatcal_ros.files import journal
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.node import CalibratorNode, journal_header
+from quatcal_ros.ros.pose_screen import PoseScreen
 from quatcal_ros.ros.qos import TF_QOS, TF_STATIC_BROADCAST_QOS
 from quatcal_ros.ros.sim_cell import CAMERA_LINK_TO_SENSOR as CAMERA_LINK_TO_OPTICAL
 from quatcal_ros.ros.sim_cell import shoulder_pose as shoulder
 from quatcal_ros.ros.static_tf import broadcast_advice
+from quatcal_ros.ros.tf_feed import TfFeed
 from quatcal_ros.sim import simulation
 from quatcal_ros.stream import tf_joint
 from quatcal_ros.stream.settings import ConfigError
@@ -506,3 +508,16 @@ def test_a_resumed_node_joins_the_tree_where_its_journal_says_before_tf_static(
         return [float(v) for key in ('xyz', 'rpy')
                 for v in re.search(f'{key}="([^"]+)"', urdf).group(1).split()]
     np.testing.assert_allclose(origin(again['urdf']), origin(saved['urdf']), atol=1e-9)
+
+
+def test_the_frames_named_as_seen_are_not_the_nodes_own_broadcast():
+    """Before the camera's TF came, 'frames seen' listed the node's own /tf_static frames."""
+    frames = {'link': ('base_link', 'tool0'), 'sensor': ('optical', 'marker')}
+    feed = TfFeed(TfFeed.new_tree(), PoseScreen(), frames, lambda *pose: None, link='link',
+                  sensor='sensor')
+    feed.tree.set_transform('base_link', 'tool0', 0, Pose.identity())
+    feed.tree.set_transform('tool0', 'camera_link', 0, Pose.identity(), static=True)
+    feed.ours = {('tool0', 'camera_link')}   # (heard back)
+    assert feed.problems() == ['TF input: optical -> marker cannot be composed: no frame '
+                               'optical or marker on /tf or /tf_static yet (frames seen: '
+                               'base_link, tool0)']

@@ -355,3 +355,15 @@ def test_tracking_frames_given_the_wrong_way_round_are_named():
                                                    samples=9))) == 1
     assert len(feed.swapped_frames(SimpleNamespace(warnings=[], usable=True, samples=4))) == 1
     assert feed.swapped_frames(None) == feed.swapped_frames()
+
+
+def test_frames_without_some_edges_are_those_the_other_edges_hold():
+    # The frames a TF input names as seen leave out the node's own broadcast and a journal's.
+    tree = TransformTree()
+    tree.set_transform('base_link', 'tool0', 0, Pose.identity())
+    tree.set_transform('tool0', 'camera_link', 0, Pose.identity(), static=True)   # ours
+    tree.set_transform('camera_link', 'optical', 0, Pose.identity(), static=True)
+    everything = {'base_link', 'tool0', 'camera_link', 'optical'}
+    assert tree.frames_without(set()) == tree.frames == everything
+    assert tree.frames_without({'camera_link'}) == everything   # (held by other edges)
+    assert tree.frames_without({'camera_link', 'optical'}) == {'base_link', 'tool0'}

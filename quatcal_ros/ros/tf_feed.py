@@ -222,8 +222,8 @@ class TfFeed:
         """
         found = []
         frames = self.tree.frames
-        # (the frames of a journal's assumed edge were not seen on /tf or /tf_static)
-        heard = frames - self.assumed - {self.tree.parent(child) for child in self.assumed}
+        # Seen from others: not the node's own broadcast heard back, nor a journal's edge.
+        heard = self.tree.frames_without(self.assumed | {child for _, child in self.ours})
         for watcher in self.watchers.values():
             target, source = watcher.target, watcher.source
             if self.tree.chain(target, source) is not None:

@@ -105,6 +105,11 @@ class TransformTree:
         """Return every frame the tree knows (a set)."""
         return set(self._edges) | {edge.parent for edge in self._edges.values()}
 
+    def frames_without(self, children):
+        """Return the frames of every edge but those that hold `children` (a set of frames)."""
+        return {frame for child, edge in self._edges.items() if child not in children
+                for frame in (child, edge.parent)}
+
     def parent(self, frame):
         """Return the parent of `frame`, or None for a root or an unknown frame."""
         edge = self._edges.get(normalize_frame(frame))
