@@ -508,3 +508,16 @@ def test_an_estimate_not_to_use_is_said_on_stderr_and_in_the_result_file(repo_ro
     assert read_result_yaml(tmp_path / 'r.yaml')['usable'] is False
     right = run_solve(repo_root, samples, '--setup', 'eye_to_hand')
     assert right.returncode == 0 and 'usable' not in right.stderr
+
+
+@pytest.mark.parametrize('inverted', [False, True])
+def test_the_json_and_the_result_file_say_whether_the_sensor_poses_were_inverted(
+        tmp_path, capsys, inverted):
+    # A --samples-out CSV records no convention: the result says which one solved it.
+    from quatcal_ros.files.persistence import read_result_yaml
+    from quatcal_ros.tools.cli import solve_main
+    _, path, _ = write_cell_csv(tmp_path / 'cell.csv', 8, 8)
+    options = ['--invert-sensor'] if inverted else []
+    assert solve_main([str(path), '--result-out', str(tmp_path / 'r.yaml'), *options]) == 0
+    assert json.loads(capsys.readouterr().out)['invert_sensor'] is inverted
+    assert read_result_yaml(tmp_path / 'r.yaml')['invert_sensor'] is inverted

@@ -185,6 +185,7 @@ class CalibrationResult:
     unobservable: list = field(default_factory=list)
     # The scale of the sensor's positions that fits best (sensor_scale.py), or None.
     sensor_scale: object = None
+    invert_sensor: bool = False     # as configured: the sensor poses were inverted
 
     def sample_states(self, count):
         """Return 'used', 'noisy' (down-weighted) or 'rejected' for each of `count` samples."""
@@ -214,6 +215,7 @@ class CalibrationResult:
             'rejected': self.rejected,
             'warnings': self.warnings,
             'setup': self.setup,
+            'invert_sensor': self.invert_sensor,
             'pairs': self.pairs,
             'inlier_samples': self.inlier_samples,
             'noise_deg': finite_or_none(self.noise_deg),
@@ -357,7 +359,8 @@ def _reduced_result(samples, rotations, positions, motion, options, check=True):
         hint=('reduced-DOF motions (the link cannot turn freely): more positions spread across '
               'the workspace' + (', and turns by different angles,' if motion.kind == 'single_axis'
                                  else '') + ' reduce the uncertainty'),
-        setup=options.setup, pairs=options.pairs, rejected=[], warnings=warnings,
+        setup=options.setup, invert_sensor=options.invert_sensor, pairs=options.pairs,
+        rejected=[], warnings=warnings,
         translation=found.x_t, translation_uncertainty_mm=mm,
         translation_noise_mm=float(noise_mm), method='refined', closed_form=closed,
         refined=refined,
@@ -964,7 +967,8 @@ def _report(fit, options, closed, refined, noise, warnings, refinement, scale=No
         uncertainty_deg=published.uncertainty_deg,
         noise_deg=float(noise[0]), excitation=ratio, weakest_axis=axis,
         hint=quality.next_motion_hint(ratio, axis, _parent_frame(options)),
-        setup=options.setup, pairs=options.pairs, rejected=fit.rejected, warnings=warnings,
+        setup=options.setup, invert_sensor=options.invert_sensor, pairs=options.pairs,
+        rejected=fit.rejected, warnings=warnings,
         translation=published.translation,
         translation_uncertainty_mm=published.translation_uncertainty_mm,
         translation_noise_mm=float(noise[1]), method='refined' if refined else 'closed-form',

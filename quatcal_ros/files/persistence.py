@@ -187,6 +187,7 @@ def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extr
         'parent_frame': str(parent_frame),
         'child_frame': str(child_frame),
         'setup': str(setup),
+        'invert_sensor': bool(getattr(result, 'invert_sensor', False)),
         'method': str(getattr(result, 'method', '') or ''),
         'rotation': {'x': x, 'y': y, 'z': z, 'w': w},
         'translation': None if translation is None else quat.xyz_json(
