@@ -12,6 +12,7 @@ corners and publish the estimate with method reprojection within its uncertainty
 import json
 
 from geometry_msgs.msg import PoseStamped, TransformStamped
+from journal_files import write_journal
 import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
@@ -21,6 +22,7 @@ from quatcal_ros.files import plain_yaml
 from quatcal_ros.files.corners_file import corners_path, read_corners
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros.node import CalibratorNode
+from quatcal_ros.sim import simulation
 from quatcal_ros.stream.settings import ConfigError
 from quatcal_ros.vision.board import parse_board
 from quatcal_ros.vision.render import cell_views, Renderer
@@ -215,11 +217,18 @@ def test_image_mode_needs_a_readable_board_file(domain_id, tmp_path, board_file)
                 Parameter('sensor_input', value='image'),
                 Parameter('samples_file', value=str(tmp_path / 's.csv'))])
         (tmp_path / 'bad.yaml').write_text(json.dumps({'type': 'hexagons'}))
+        rng = np.random.default_rng(2)
+        samples, _ = simulation.samples(rng, simulation.random_cell(rng), 4)
+        earlier = write_journal(tmp_path / 's.csv', samples)
         with pytest.raises(ConfigError, match='bad.yaml'):
             CalibratorNode(context=context, parameter_overrides=[
                 Parameter('sensor_input', value='image'),
                 Parameter('board_file', value=str(tmp_path / 'bad.yaml')),
                 Parameter('samples_file', value=str(tmp_path / 's.csv'))])
+        # The journal of an earlier session stays where it was (it was moved aside, silently,
+        # by a start that then failed).
+        assert (tmp_path / 's.csv').read_bytes() == earlier
+        assert not list(tmp_path.glob('s.csv.previous-*'))
         # A board's pose in an image is T_camera_board: inverted, a replay's answer was 1.6 km.
         with pytest.raises(ConfigError, match='invert_sensor does not apply to camera images'):
             CalibratorNode(context=context, parameter_overrides=[

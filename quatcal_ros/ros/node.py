@@ -58,6 +58,7 @@ from quatcal_ros.stream.message_checks import LINK, SENSOR
 from quatcal_ros.stream.session import EstimateUpdated, SampleCaptured, Session
 from quatcal_ros.stream.settings import ConfigError, easy_handeye2_frames
 from quatcal_ros.stream.tf_tree import normalize_frame
+from quatcal_ros.vision.board import read_board
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -98,11 +99,16 @@ class CalibratorNode(Node):
         try:
             self.config = parameters.declare_parameters(self)
             self._tf_frames = settings.tf_frames(self.config)
+            if self.config.sensor_input == 'image':   # before the journal moves a file aside
+                read_board(self.config.board_file)
             self.journal = SamplesJournal(self.config.samples_file, journal_header(self.config),
                                           self.config.resume)
         except (journal.JournalRefused, OSError) as error:
             self.destroy_node()
             raise ConfigError(f'samples_file {self.config.samples_file}: {error}') from None
+        except BadInputError as error:
+            self.destroy_node()
+            raise ConfigError(str(error)) from None
         except ConfigError:
             self.destroy_node()
             raise
