@@ -661,6 +661,23 @@ def test_positions_in_millimetres_are_named_as_units_not_a_board_size(link_mm):
     assert not any('millimetres' in w for w in negated.warnings), negated.warnings
 
 
+@pytest.mark.parametrize('factor', [10.0, 0.5, 1.15])
+def test_a_board_size_far_off_says_not_to_use_the_estimate(factor):
+    # A board of 0.3 m given for 0.03 m: usable true, its 2.7 m mounting first called an
+    # exchange of link and sensor poses. Beyond 10 % on every axis the translation is useless.
+    rng = np.random.default_rng(23)
+    samples, _ = simulation.samples(rng, simulation.random_cell(rng), 20, 0.2, 0.001)
+    result = calibrate(simulation.scaled_sensor_positions(samples, factor))
+    (said,) = [w for w in result.warnings if SCALE_WORDS in w]
+    assert "is the marker's or the board's size given right" in said, said
+    assert said.endswith('Off by over 10%, the translation is wrong by tens of millimetres or '
+                         'more: do not use this estimate') and not result.usable
+    assert not any('look exchanged' in w for w in result.warnings), result.warnings
+    # Within 10 %, said and usable (the 2 % of the real recordings' test above).
+    near = calibrate(simulation.scaled_sensor_positions(samples, 1.05))
+    assert near.usable and any(SCALE_WORDS in w for w in near.warnings)
+
+
 @pytest.mark.parametrize('factor, unit', [(100.0, 'centimetres'), (1 / 0.0254, 'inches'),
                                           (20.0, None)])
 def test_a_units_factor_is_named_by_its_size(factor, unit):

@@ -823,15 +823,16 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     else:
         noise = (refinement.rotation_noise_deg, refinement.translation_noise_mm)
     answer = refined or closed
-    warnings += conventions.exchanged_warnings(
-        options.setup, answer.translation,
-        translation.object_position if refined is None else refinement.object_translation)
     scale = sensor_scale.fit(
         rotations.link_matrices[ok], positions.link[ok], positions.sensor[ok],
         quat.matrix_from_quaternion(answer.quaternion),
         None if refinement is None else refinement.noise_covariance[3:, 3:])
     # A scale is judged only where a rigid mounting fits: else the misfit is what it sees.
     fits = not convention and not np.degrees(fit.residual_rms) > conventions.NOT_RIGID_DEG
+    if not (fits and sensor_scale.grossly_off(scale)):   # (its long mounting is the scale's)
+        warnings += conventions.exchanged_warnings(
+            options.setup, answer.translation,
+            translation.object_position if refined is None else refinement.object_translation)
     warnings += [text for text in (sensor_scale.warning(scale),) if text and fits]
     millimetres = sensor_scale.all_in_millimetres(positions.link[ok], positions.sensor[ok])
     warnings += [millimetres] if millimetres else []

@@ -52,6 +52,10 @@ ALL_IN_MILLIMETRES_M = 100.0
 ALL_IN_MILLIMETRES_SENSOR_M = 10.0
 # From this many samples the fit is weighted again by its own residuals (fit).
 REFIT_SAMPLES = 20
+# Sensor positions this much too large or small on every axis (a board size mistyped, such as
+# 0.3 for 0.03 m) move the mounting's translation by 30-100 mm at a camera's 0.3-1 m from its
+# target, far beyond any use: the warning then says not to use the estimate.
+SIZE_UNUSABLE = 0.10
 AXES = 'xyz'
 
 
@@ -164,11 +168,33 @@ def warning(found):
     else:
         look = 'off by ' + ', '.join(f'{100 * w:+.1f} % along {axis}' for axis, w
                                      in zip(np.array(list(AXES))[off], wrong))
-    return (f"the sensor's positions fit the mounting best scaled by ({axes}; +- one "
+    said = (f"the sensor's positions fit the mounting best scaled by ({axes}; +- one "
             f"standard deviation) along the sensor's axes, not by 1: they look {look}{where}: "
             f"{cause} The mounting's translation takes the error, and so does the rotation "
             'of an estimate on camera pixels (a rigid mounting no longer fits them); the '
             'rotation from the poses does not')
+    if grossly_off(found):
+        said += (f'. Off by over {SIZE_UNUSABLE:.0%}, the translation is wrong by tens of '
+                 f'millimetres or more: {DO_NOT_USE}')
+    return said
+
+
+def grossly_off(found):
+    """
+    Return whether the sensor positions are too large or small by SIZE_UNUSABLE on every axis.
+
+    (Or more: positions in another unit.) Then the mounting comes out as long as the error
+    makes it, and warnings that judge its length (an exchange of the link and sensor poses)
+    see only that.
+    """
+    if found is None:
+        return False
+    if not np.all(found.scale > 0.0):   # (mirrored positions: no size)
+        return False
+    wrong = 1.0 / found.scale - 1.0
+    return bool(np.all(np.abs(wrong) > SIZE_UNUSABLE)
+                and (np.all(wrong > 0) or np.all(wrong < 0))
+                and np.all(np.abs(found.scale - 1.0) > SIGMAS * found.uncertainty))
 
 
 def all_in_millimetres(link_positions, sensor_positions):
