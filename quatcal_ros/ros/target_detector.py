@@ -7,10 +7,10 @@ For each image it finds the board of `board_file` (vision/detect.py: sub-pixel c
 PnP, the per-view checks) and publishes:
 - `~/pose` (geometry_msgs/PoseWithCovarianceStamped): T_camera_board with the image's header
   (stamp, camera frame), the covariance from the PnP Jacobian at the pixel noise its residuals
-  show, in ROS's order; the calibrator takes it with pose_type:=pose_with_covariance, other
-  tools as any PoseWithCovarianceStamped;
+  show, in ROS's order; the calibrator takes it with sensor_pose_type:=pose_with_covariance,
+  other tools as any PoseWithCovarianceStamped;
 - `~/debug_image` (sensor_msgs/Image, bgr8, with debug_image:=true): the image with the
-  corners found and the board's axes drawn.
+  corners found and the board's axes drawn, while something subscribes to it.
 A refused view (no board, too few corners, blurred, an ambiguous or badly fitting pose) and a
 bad message (an unknown encoding, a truncated image, a CameraInfo of zeros) are counted by
 reason, logged at most every 5 s per reason, and skipped.
@@ -20,6 +20,7 @@ import time
 
 import cv2
 from geometry_msgs.msg import PoseWithCovarianceStamped
+import numpy as np
 from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.ros import command_line, conversions, spin
 from quatcal_ros.ros.image_input import camera_of, view_of
@@ -120,8 +121,8 @@ class TargetDetector(Node):
         else:
             self.pose_publisher.publish(conversions.pose_with_covariance_stamped_msg(
                 view.pose, stamp_ns, msg.header.frame_id))
-        if self.debug_publisher is not None:
-            self.debug_publisher.publish(conversions.bgr_image_msg(
+        if self.debug_publisher is not None and self.debug_publisher.get_subscription_count():
+            self.debug_publisher.publish(conversions.bgr_image_msg(   # (drawn when watched)
                 self._drawn(gray, view), msg.header))
 
     def _drawn(self, gray, view):
@@ -129,10 +130,20 @@ class TargetDetector(Node):
         if view.image_points is not None:
             for u, v in view.image_points:
                 cv2.circle(image, (int(round(u)), int(round(v))), 3, (0, 255, 0), 1)
-        if view.ok:
-            rvec, _ = cv2.Rodrigues(view.pose.rotation)
-            cv2.drawFrameAxes(image, self.camera.K, self.camera.D, rvec, view.pose.position,
-                              0.5 * min(self.board.extent_m))
+        if view.ok:   # the board's axes x red, y green, z blue
+            length = 0.5 * min(self.board.extent_m)
+            ends, _ = cv2.projectPoints(np.vstack([np.zeros(3), length * np.eye(3)]),
+                                        cv2.Rodrigues(view.pose.rotation)[0],
+                                        view.pose.position, self.camera.K, self.camera.D)
+            # Clipped to the image here: cv2.drawFrameAxes logged a warning for every frame
+            # whose axes left it (a board near the edge).
+            origin, *tips = np.clip(np.rint(ends.reshape(-1, 2)), -1e6, 1e6).astype(int)
+            height, width = image.shape[:2]
+            for tip, colour in zip(tips, ((0, 0, 255), (0, 255, 0), (255, 0, 0))):
+                inside, start, end = cv2.clipLine((0, 0, width, height), tuple(origin.tolist()),
+                                                  tuple(tip.tolist()))
+                if inside:
+                    cv2.line(image, start, end, colour, 2)
         return image
 
     def _log(self, reason, detail):
@@ -145,7 +156,7 @@ def command_line_problem(arguments):
     def help_text():
         return command_line.help_text(
             NODE_NAME, 'The calibration board in camera images: its pose on ~/pose for the '
-            'calibrator (pose_type:=pose_with_covariance).',
+            "calibrator (sensor_pose_type:=pose_with_covariance beside a robot's PoseStamped).",
             [(name, default, text) for name, (default, text) in PARAMETERS.items()])
     return command_line.problem(arguments, help_text, PARAMETERS)
 
