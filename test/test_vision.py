@@ -554,6 +554,20 @@ def test_solve_dir_with_no_usable_view_names_the_refusals(tmp_path, renderers, c
             f'{names[3]}: not an image OpenCV can read)') in err
 
 
+def test_an_image_without_its_row_is_said_not_to_be_used(tmp_path, renderers, capsys):
+    # A row deleted from robot_poses.csv: its image was left out without a word.
+    _, names = write_rendered_dataset(tmp_path, renderers['charuco'], 8, seed=5)
+    poses = tmp_path / 'robot_poses.csv'
+    poses.write_text(''.join(line for line in poses.read_text().splitlines(True)
+                             if not line.startswith(names[2])))
+    (tmp_path / 'images' / 'notes.txt').write_text('not an image')
+    assert solve_main([str(tmp_path)]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result['views']['used'] == 7
+    assert (f'1 image(s) in images/ are not used: no row of robot_poses.csv names them '
+            f'({names[2]}), so they have no robot pose; is a row missing?') in result['warnings']
+
+
 def test_renamed_images_are_named_beside_the_missing_ones(tmp_path, renderers, capsys):
     # Every row's image 'missing', and nothing said that the folder held other files.
     _, names = write_rendered_dataset(tmp_path, renderers['charuco'], 4, seed=5)

@@ -214,6 +214,11 @@ def _solve_images(prog, args):
     if data.refused:   # said only in the JSON's views.refused, and on no page
         hint.append(f'{len(data.refused)} of {total} images are not used: '
                     f'{data.refusal_summary()} (the "views" key lists each)')
+    if data.unlisted:   # (an image without its row was left out without a word)
+        shown = ', '.join(data.unlisted[:3]) + (', ...' if len(data.unlisted) > 3 else '')
+        hint.append(f'{len(data.unlisted)} image(s) in images/ are not used: no row of '
+                    f'robot_poses.csv names them ({shown}), so they have no robot pose; is a '
+                    'row missing?')
     failed = _write_files(prog, args, on_pixels, frames, hint)
     if failed:
         return failed

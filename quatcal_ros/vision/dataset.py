@@ -47,6 +47,7 @@ class ImageDataset:
     samples: list = field(default_factory=list)    # one per image used
     views: list = field(default_factory=list)      # detect.View of each image used
     refused: list = field(default_factory=list)    # {'image', 'reason', 'detail'}
+    unlisted: list = field(default_factory=list)   # images in the folder that no row names
 
     def refused_json(self):
         return list(self.refused)
@@ -120,26 +121,32 @@ def load_image_dataset(folder, checks=Checks(), progress=None):
                                         'detail': view.detail})
         if progress is not None:
             progress(index + 1, len(rows))
-    _name_unlisted(dataset, folder / IMAGES_FOLDER, {name for name, _ in rows})
+    unlisted = _unlisted(folder / IMAGES_FOLDER, {name for name, _ in rows})
+    dataset.unlisted = [name for name in unlisted if Path(name).suffix.lower() in IMAGE_SUFFIXES]
+    _name_unlisted(dataset, unlisted)
     return dataset
 
 
 # Files a desktop leaves in a folder of pictures: no image a row could have meant.
 SYSTEM_FILES = ('thumbs.db', 'desktop.ini')
+# What an image's file name ends with (ImageDataset.unlisted).
+IMAGE_SUFFIXES = ('.png', '.jpg', '.jpeg', '.bmp', '.tif', '.tiff', '.pgm', '.ppm')
 
 
-def _name_unlisted(dataset, images, listed):
+def _unlisted(images, listed):
+    """Return the files in the folder `images` that no row names (not hidden, not a desktop's)."""
+    try:
+        return sorted(p.name for p in images.iterdir() if p.name not in listed
+                      and p.is_file() and not p.name.startswith('.')
+                      and p.name.lower() not in SYSTEM_FILES)
+    except OSError:
+        return []
+
+
+def _name_unlisted(dataset, unlisted):
     """Add to each missing image's refusal the images no row names (renamed files?)."""
     missing = [entry for entry in dataset.refused if entry['detail'].startswith('missing')]
-    if not missing:
-        return
-    try:
-        unlisted = sorted(p.name for p in images.iterdir() if p.name not in listed
-                          and p.is_file() and not p.name.startswith('.')
-                          and p.name.lower() not in SYSTEM_FILES)
-    except OSError:
-        return
-    if unlisted:
+    if missing and unlisted:
         shown = ', '.join(unlisted[:3]) + (', ...' if len(unlisted) > 3 else '')
         for entry in missing:
             entry['detail'] += (f'; {IMAGES_FOLDER}/ holds {len(unlisted)} file(s) that no row '
