@@ -550,8 +550,21 @@ def test_solve_dir_with_no_usable_view_names_the_refusals(tmp_path, renderers, c
     assert solve_main([str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert (f'0 of 4 images gave a usable board pose; at least 3 are needed. Refused: '
-            f'no_board 3 (first: {names[0]}: no corner found); unreadable_image 1 (first: '
-            f'{names[3]}: not an image OpenCV can read)') in err
+            f'no_board 3 (first: {names[0]}: no corner found; the image has almost no contrast '
+            '(98 % of its pixels at levels 128 to 128 of 255): too dark, overexposed, or the '
+            f'lens covered?); unreadable_image 1 (first: {names[3]}: not an image OpenCV can '
+            'read)') in err
+
+
+def test_a_dark_view_is_said_to_be_dark(tmp_path, renderers, capsys):
+    # An image at 8 % of full brightness was refused as 'the board is too small in the image'.
+    _, names = write_rendered_dataset(tmp_path, renderers['charuco'], 6, seed=5)
+    path = tmp_path / 'images' / names[0]
+    cv2.imwrite(str(path), (cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) * 0.08).astype(np.uint8))
+    assert solve_main([str(tmp_path)]) == 0
+    (refused,) = json.loads(capsys.readouterr().out)['views']['refused']
+    assert refused['image'] == names[0] and refused['reason'] == 'no_board', refused
+    assert 'the image has almost no contrast' in refused['detail'], refused
 
 
 def test_an_image_without_its_row_is_said_not_to_be_used(tmp_path, renderers, capsys):

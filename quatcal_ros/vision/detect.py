@@ -77,6 +77,9 @@ def _no_corner(gray, board):
 
 # Markers smaller than this (side, pixels) rarely give ChArUco corners: the board is too far.
 SMALL_MARKER_PX = 20.0
+# An image whose 1st to 99th percentile of levels spans less than this fraction of its range
+# holds too little contrast for a board to be seen: dark, washed out, or covered.
+LOW_CONTRAST = 0.15
 # The largest dictionary of each family (the smaller ones are its first ids), probed for the
 # markers a view holds when the board's own dictionary sees none.
 PROBED_DICTIONARIES = ('DICT_4X4_1000', 'DICT_5X5_1000', 'DICT_6X6_1000', 'DICT_7X7_1000',
@@ -84,6 +87,16 @@ PROBED_DICTIONARIES = ('DICT_4X4_1000', 'DICT_5X5_1000', 'DICT_6X6_1000', 'DICT_
                        'DICT_APRILTAG_36h10', 'DICT_APRILTAG_36h11', 'DICT_ARUCO_MIP_36h12')
 # So many markers of one dictionary are no accident of texture.
 MIN_PROBED_MARKERS = 4
+
+
+def _exposure(gray):
+    """Return '; the image ...' when its levels span too little of their range, else ''."""
+    top = np.iinfo(gray.dtype).max if np.issubdtype(gray.dtype, np.integer) else 1.0
+    low, high = np.percentile(gray, (1, 99))
+    if (high - low) >= LOW_CONTRAST * top:
+        return ''
+    return (f'; the image has almost no contrast (98 % of its pixels at levels {low:.0f} to '
+            f'{high:.0f} of {top:.0f}): too dark, overexposed, or the lens covered?')
 
 
 def _markers(gray, dictionary):
@@ -119,7 +132,7 @@ def detect(gray, board, camera, checks=Checks()):
                            f'{camera.width}x{camera.height}')
     object_points, image_points = find_corners(gray, board)
     if len(image_points) == 0:
-        return View(refused='no_board', detail=_no_corner(gray, board))
+        return View(refused='no_board', detail=_no_corner(gray, board) + _exposure(gray))
     if len(image_points) < checks.min_corners:
         return View(object_points, image_points, refused='too_few_corners',
                     detail=f'{len(image_points)} corners, at least {checks.min_corners}')
