@@ -661,17 +661,20 @@ def test_positions_in_millimetres_are_named_as_units_not_a_board_size(link_mm):
     assert not any('millimetres' in w for w in negated.warnings), negated.warnings
 
 
-@pytest.mark.parametrize('factor', [10.0, 0.5, 1.15])
+@pytest.mark.parametrize('factor', [10.0, 8.0, 1 / 8.0, 0.5, 1.15, (1.0, 1.0, 1.3)])
 def test_a_board_size_far_off_says_not_to_use_the_estimate(factor):
     # A board of 0.3 m given for 0.03 m: usable true, its 2.7 m mounting first called an
-    # exchange of link and sensor poses. Beyond 10 % on every axis the translation is useless.
+    # exchange of link and sensor poses. Beyond 10 % on an axis the translation is useless
+    # (a depth 30 % off, a focal length's error, moved it 250 mm on the real recordings).
     rng = np.random.default_rng(23)
     samples, _ = simulation.samples(rng, simulation.random_cell(rng), 20, 0.2, 0.001)
     result = calibrate(simulation.scaled_sensor_positions(samples, factor))
     (said,) = [w for w in result.warnings if SCALE_WORDS in w]
-    assert "is the marker's or the board's size given right" in said, said
-    assert said.endswith('Off by over 10%, the translation is wrong by tens of millimetres or '
-                         'more: do not use this estimate') and not result.usable
+    cause = ("is the camera's focal length" if isinstance(factor, tuple) else
+             "is the marker's or the board's size given right")   # (10: no unit, a size)
+    assert cause in said, said
+    assert said.endswith('Off by over 10 %, the translation is wrong by tens of millimetres '
+                         'or more: do not use this estimate') and not result.usable
     assert not any('look exchanged' in w for w in result.warnings), result.warnings
     # Within 10 %, said and usable (the 2 % of the real recordings' test above).
     near = calibrate(simulation.scaled_sensor_positions(samples, 1.05))

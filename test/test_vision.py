@@ -28,8 +28,8 @@ from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.tools.cli import solve_main
 from quatcal_ros.vision.board import parse_board
 from quatcal_ros.vision.camera import camera_from, parse_camera
-from quatcal_ros.vision.detect import _pnp, _with_pose, Checks, detect, pose_covariance, \
-    pose_from_rvec
+from quatcal_ros.vision.detect import _exposure, _pnp, _with_pose, Checks, detect, \
+    pose_covariance, pose_from_rvec
 from quatcal_ros.vision.image_sensor import result_on_pixels
 from quatcal_ros.vision.render import cell_views, Renderer, view_poses, write_dataset
 from quatcal_ros.vision.reprojection import cramer_rao_covariance, refine_from_poses, \
@@ -550,10 +550,9 @@ def test_solve_dir_with_no_usable_view_names_the_refusals(tmp_path, renderers, c
     assert solve_main([str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert (f'0 of 4 images gave a usable board pose; at least 3 are needed. Refused: '
-            f'no_board 3 (first: {names[0]}: no corner found; the image has almost no contrast '
-            '(98 % of its pixels at levels 128 to 128 of 255): too dark, overexposed, or the '
-            f'lens covered?); unreadable_image 1 (first: {names[3]}: not an image OpenCV can '
-            'read)') in err
+            f'no_board 3 (first: {names[0]}: no corner found; the image is uniform (98 % of its '
+            'pixels at levels 128 to 128 of 255): is the camera seeing anything?); '
+            f'unreadable_image 1 (first: {names[3]}: not an image OpenCV can read)') in err
 
 
 def test_a_dark_view_is_said_to_be_dark(tmp_path, renderers, capsys):
@@ -564,7 +563,10 @@ def test_a_dark_view_is_said_to_be_dark(tmp_path, renderers, capsys):
     assert solve_main([str(tmp_path)]) == 0
     (refused,) = json.loads(capsys.readouterr().out)['views']['refused']
     assert refused['image'] == names[0] and refused['reason'] == 'no_board', refused
-    assert 'the image has almost no contrast' in refused['detail'], refused
+    assert '; the image is dark (98 % of its pixels at levels ' in refused['detail'], refused
+    # A board far away on a plain wall, well lit: no word about the exposure.
+    wall = np.random.default_rng(1).integers(100, 121, (480, 640)).astype(np.uint8)
+    assert _exposure(wall) == ''
 
 
 def test_an_image_without_its_row_is_said_not_to_be_used(tmp_path, renderers, capsys):

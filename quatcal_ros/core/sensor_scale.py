@@ -52,10 +52,14 @@ ALL_IN_MILLIMETRES_M = 100.0
 ALL_IN_MILLIMETRES_SENSOR_M = 10.0
 # From this many samples the fit is weighted again by its own residuals (fit).
 REFIT_SAMPLES = 20
-# Sensor positions this much too large or small on every axis (a board size mistyped, such as
-# 0.3 for 0.03 m) move the mounting's translation by 30-100 mm at a camera's 0.3-1 m from its
-# target, far beyond any use: the warning then says not to use the estimate.
+# Sensor positions this much too large or small along an axis (a board size mistyped, such as
+# 0.3 for 0.03 m; a focal length 30 % off, along the depth) move the mounting's translation by
+# 30-100 mm or more at a camera's 0.3-1 m from its target, far beyond any use: the warning
+# then says not to use the estimate.
 SIZE_UNUSABLE = 0.10
+# A factor beyond this (or below its inverse) on every axis is positions in another unit; a
+# factor of 10 is a size mistyped (0.3 for 0.03 m), named as such.
+UNITS_FACTOR = 15.0
 AXES = 'xyz'
 
 
@@ -144,7 +148,7 @@ def warning(found):
     axes = ', '.join(f'{axis} {scale:.4f} +- {sd:.4f}' for axis, scale, sd
                      in zip(AXES, found.scale, found.uncertainty))
     factor = float(np.median(found.scale))
-    if off.all() and factor > 0.0 and not 0.1 < factor < 10.0:   # units: mm for metres
+    if off.all() and factor > 0.0 and not 1.0 / UNITS_FACTOR < factor < UNITS_FACTOR:
         size = max(factor, 1.0 / factor)
         unit = next((name for low, high, name in UNITS if low < size < high), None)
         look = (f'look to be in {unit}' if unit else
@@ -174,27 +178,24 @@ def warning(found):
             'of an estimate on camera pixels (a rigid mounting no longer fits them); the '
             'rotation from the poses does not')
     if grossly_off(found):
-        said += (f'. Off by over {SIZE_UNUSABLE:.0%}, the translation is wrong by tens of '
-                 f'millimetres or more: {DO_NOT_USE}')
+        said += (f'. Off by over {100 * SIZE_UNUSABLE:.0f} %, the translation is wrong by '
+                 f'tens of millimetres or more: {DO_NOT_USE}')
     return said
 
 
 def grossly_off(found):
     """
-    Return whether the sensor positions are too large or small by SIZE_UNUSABLE on every axis.
+    Return whether the sensor positions are too large or small by SIZE_UNUSABLE on some axis.
 
-    (Or more: positions in another unit.) Then the mounting comes out as long as the error
-    makes it, and warnings that judge its length (an exchange of the link and sensor poses)
-    see only that.
+    Said (off 1 by SIGMAS of its uncertainty) and positive: mirrored positions have no size.
+    Then the mounting comes out as long as the error makes it, and warnings that judge its
+    length (an exchange of the link and sensor poses) see only that.
     """
-    if found is None:
-        return False
-    if not np.all(found.scale > 0.0):   # (mirrored positions: no size)
+    if found is None or not np.all(found.scale > 0.0):
         return False
     wrong = 1.0 / found.scale - 1.0
-    return bool(np.all(np.abs(wrong) > SIZE_UNUSABLE)
-                and (np.all(wrong > 0) or np.all(wrong < 0))
-                and np.all(np.abs(found.scale - 1.0) > SIGMAS * found.uncertainty))
+    said = np.abs(found.scale - 1.0) > np.maximum(MIN_ERROR, SIGMAS * found.uncertainty)
+    return bool(np.any(said & (np.abs(wrong) > SIZE_UNUSABLE)))
 
 
 def all_in_millimetres(link_positions, sensor_positions):

@@ -122,8 +122,9 @@ def load_image_dataset(folder, checks=Checks(), progress=None):
         if progress is not None:
             progress(index + 1, len(rows))
     unlisted = _unlisted(folder / IMAGES_FOLDER, {name for name, _ in rows})
-    dataset.unlisted = [name for name in unlisted if Path(name).suffix.lower() in IMAGE_SUFFIXES]
-    _name_unlisted(dataset, unlisted)
+    if not _name_unlisted(dataset, unlisted):   # (else a missing image's refusal names them)
+        dataset.unlisted = [name for name in unlisted
+                            if Path(name).suffix.lower() in IMAGE_SUFFIXES]
     return dataset
 
 
@@ -144,14 +145,15 @@ def _unlisted(images, listed):
 
 
 def _name_unlisted(dataset, unlisted):
-    """Add to each missing image's refusal the images no row names (renamed files?)."""
+    """Add to each missing image's refusal the files no row names (renamed?); say if any."""
     missing = [entry for entry in dataset.refused if entry['detail'].startswith('missing')]
-    if missing and unlisted:
-        shown = ', '.join(unlisted[:3]) + (', ...' if len(unlisted) > 3 else '')
-        for entry in missing:
-            entry['detail'] += (f'; {IMAGES_FOLDER}/ holds {len(unlisted)} file(s) that no row '
-                                f'of robot_poses.csv names ({shown}): are the rows named '
-                                'after them?')
+    if not (missing and unlisted):
+        return False
+    shown = ', '.join(unlisted[:3]) + (', ...' if len(unlisted) > 3 else '')
+    for entry in missing:
+        entry['detail'] += (f'; {IMAGES_FOLDER}/ holds {len(unlisted)} file(s) that no row of '
+                            f'robot_poses.csv names ({shown}): are the rows named after them?')
+    return True
 
 
 def _read_gray(path):

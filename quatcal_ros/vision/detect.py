@@ -77,9 +77,11 @@ def _no_corner(gray, board):
 
 # Markers smaller than this (side, pixels) rarely give ChArUco corners: the board is too far.
 SMALL_MARKER_PX = 20.0
-# An image whose 1st to 99th percentile of levels spans less than this fraction of its range
-# holds too little contrast for a board to be seen: dark, washed out, or covered.
-LOW_CONTRAST = 0.15
+# An image whose 99th percentile of levels is below this fraction of their range is dark; one
+# whose 1st percentile is above one minus it is overexposed; one whose 1st to 99th span less
+# than UNIFORM of it shows nothing (a board far away on a plain wall is none of these).
+EXPOSURE_LIMIT = 0.25
+UNIFORM = 0.02
 # The largest dictionary of each family (the smaller ones are its first ids), probed for the
 # markers a view holds when the board's own dictionary sees none.
 PROBED_DICTIONARIES = ('DICT_4X4_1000', 'DICT_5X5_1000', 'DICT_6X6_1000', 'DICT_7X7_1000',
@@ -90,13 +92,17 @@ MIN_PROBED_MARKERS = 4
 
 
 def _exposure(gray):
-    """Return '; the image ...' when its levels span too little of their range, else ''."""
+    """Return '; the image is ...' when it is dark, overexposed or uniform, else ''."""
     top = np.iinfo(gray.dtype).max if np.issubdtype(gray.dtype, np.integer) else 1.0
     low, high = np.percentile(gray, (1, 99))
-    if (high - low) >= LOW_CONTRAST * top:
-        return ''
-    return (f'; the image has almost no contrast (98 % of its pixels at levels {low:.0f} to '
-            f'{high:.0f} of {top:.0f}): too dark, overexposed, or the lens covered?')
+    levels = f'98 % of its pixels at levels {low:.0f} to {high:.0f} of {top:.0f}'
+    if high < EXPOSURE_LIMIT * top:
+        return f'; the image is dark ({levels}): exposure, lighting, or the lens covered?'
+    if low > (1.0 - EXPOSURE_LIMIT) * top:
+        return f'; the image is overexposed ({levels}): exposure or lighting?'
+    if high - low < UNIFORM * top:
+        return f'; the image is uniform ({levels}): is the camera seeing anything?'
+    return ''
 
 
 def _markers(gray, dictionary):
