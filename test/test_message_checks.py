@@ -680,6 +680,10 @@ def test_waiting_for_poses_says_why_the_first_bad_message_was_skipped():
     assert status_message(Session(), stats) == (
         'waiting for poses (3 bad messages skipped, most for no_board on sensor_pose, the '
         'first: 17 markers of DICT_5X5_100 seen: check squares_x and squares_y)')
+    # The cause of today may not be the commonest: it said only the first, long fixed.
+    stats.note_bad(mc.SENSOR, 'blurred', 0, 'sharpness 3 below 40')
+    assert status_message(Session(), stats).endswith(
+        'check squares_x and squares_y; the latest for blurred)')
 
 
 def test_the_inputs_problems_come_before_the_estimates_warnings_on_diagnostics():

@@ -150,7 +150,9 @@ def skipped_text(stats, stream=None):
     Return 'N bad messages skipped, most for REASON on STREAM, the first: WHY', or ''.
 
     Of `stream` alone when given, since the session started (~/reset starts over); WHY is
-    the first such message's explanation (its hint).
+    the first such message's explanation (its hint). When STREAM's latest bad message had
+    another reason, '; the latest for REASON' follows: a cause fixed long ago (a camera_info
+    that came late) stayed the only one named.
     """
     counts = [(key, n) for key, n in stats.bad_in_session().most_common()
               if stream in (None, key[0])]
@@ -158,8 +160,10 @@ def skipped_text(stats, stream=None):
         return ''
     (where, reason), _ = counts[0]
     example = stats.example(where, reason)
+    latest = stats.last_bad.get(where)
     return (f'{sum(n for _, n in counts)} bad messages skipped, most for {reason} on {where}'
-            f'{f", the first: {example}" if example else ""}')
+            f'{f", the first: {example}" if example else ""}'
+            f'{f"; the latest for {latest}" if latest and latest != reason else ""}')
 
 
 def status_message(session, stats, topics=None, composed=(), result=None):
