@@ -141,8 +141,7 @@ def warning(found):
     """Return the warning a SensorScale calls for, or None."""
     if found is None:
         return None
-    error = found.scale - 1.0
-    off = (np.abs(error) > MIN_ERROR) & (np.abs(error) > SIGMAS * found.uncertainty)
+    off = _off(found)
     if not np.any(off):
         return None
     axes = ', '.join(f'{axis} {scale:.4f} +- {sd:.4f}' for axis, scale, sd
@@ -193,9 +192,14 @@ def grossly_off(found):
     """
     if found is None or not np.all(found.scale > 0.0):
         return False
-    wrong = 1.0 / found.scale - 1.0
-    said = np.abs(found.scale - 1.0) > np.maximum(MIN_ERROR, SIGMAS * found.uncertainty)
-    return bool(np.any(said & (np.abs(wrong) > SIZE_UNUSABLE)))
+    wrong = 1.0 / found.scale - 1.0   # how far the positions are off, per axis
+    return bool(np.any(_off(found) & (np.abs(wrong) > SIZE_UNUSABLE)))
+
+
+def _off(found):
+    """Return the mask of the axes whose factor is off 1 enough to be said (MIN_ERROR, SIGMAS)."""
+    error = np.abs(found.scale - 1.0)
+    return (error > MIN_ERROR) & (error > SIGMAS * found.uncertainty)
 
 
 def all_in_millimetres(link_positions, sensor_positions):

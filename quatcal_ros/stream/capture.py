@@ -210,7 +210,6 @@ class Capture:
         # Sensor poses left out of the still samples taken: they jumped over JUMP_BANDS times
         # the sensor bands for a frame or a few (module doc).
         self.sensor_jumps = 0
-        self._jumps = None   # the mask of the latest still window's (_still_reason)
         # The stamps this timeline's pairs cover: the steps between consecutive pairs up to
         # PAIRED_STEP_NS (a pause of the streams, or stamps that leap, is not paired time).
         self.paired_ns = 0
@@ -239,7 +238,7 @@ class Capture:
         if self.config.mode == 'continuous':
             return self._continuous_sample(pair)
         if self.config.mode == 'auto' and self._moved and self._is_still():
-            return self._take_window()
+            return self._take_window()[0]
         return None
 
     def capture_now(self, now_ns):
@@ -251,8 +250,7 @@ class Capture:
         refusal = self._still_reason() or self._motion_reason()
         if refusal:
             return None, refusal
-        jumps = int(self._jumps.sum())
-        sample = self._take_window()
+        sample, jumps = self._take_window()
         pairs = len(self._window)
         if not jumps:
             return sample, f'averaged {pairs} pairs over {self._window.span_ns * 1e-9:.2g} s'
@@ -262,9 +260,16 @@ class Capture:
                         'flip?)')
 
     def _take_window(self):
-        """Take the still window's sample (_still_reason has just passed it)."""
-        self.sensor_jumps += int(self._jumps.sum())
-        return self._take(self._window.average_sample(self._jumps))
+        """Take the still window's sample (_still_reason has just passed it), and its jumps."""
+        jumps = self._jumped(*self._window.changes())
+        self.sensor_jumps += int(jumps.sum())
+        return self._take(self._window.average_sample(jumps)), int(jumps.sum())
+
+    def _jumped(self, degrees, metres):
+        """Return the mask of the sensor poses beyond JUMP_BANDS sensor bands (changes())."""
+        config = self.config
+        return ((degrees[1] > JUMP_BANDS * config.sensor_rotation_band_deg)
+                | (metres[1] > JUMP_BANDS * config.sensor_translation_band_m))
 
     def _take(self, sample):
         self.note_sample(sample)
@@ -313,13 +318,15 @@ class Capture:
             return (f'robot is moving: link moved {_short(link_m * 1e3)} mm in the last '
                     f'{span_s:.2g} s (band {_short(config.translation_band_m * 1e3)} mm)')
         band_deg, band_m = config.sensor_rotation_band_deg, config.sensor_translation_band_m
-        jumps = (degrees[1] > JUMP_BANDS * band_deg) | (metres[1] > JUMP_BANDS * band_m)
-        outside = (degrees[1] > band_deg) | (metres[1] > band_m)
-        if outside[0] or MAX_OUTSIDE_SHARE * outside.sum() > len(window) \
-                or len(window) - jumps.sum() < config.min_still_pairs:
-            beyond = [name for name, off in (('rotation', degrees[1] > band_deg),
-                                             ('translation', metres[1] > band_m))
-                      if off[0] or MAX_OUTSIDE_SHARE * off.sum() > len(window)]
+        jumps = self._jumped(degrees, metres)
+
+        def too_many(outside):   # the oldest frame, or over one in MAX_OUTSIDE_SHARE
+            return outside[0] or MAX_OUTSIDE_SHARE * outside.sum() > len(window)
+        rotation, translation = degrees[1] > band_deg, metres[1] > band_m
+        if too_many(rotation | translation) or len(window) - jumps.sum() < config.min_still_pairs:
+            beyond = [name for name, outside in (('rotation', rotation),
+                                                 ('translation', translation))
+                      if too_many(outside)]
             which = (f'the {" and the ".join(beyond)} beyond' if beyond else
                      f'{len(window) - jumps.sum()} frames within them, {jumps.sum()} jumped: '
                      f'min_still_pairs is {config.min_still_pairs}')
@@ -329,7 +336,6 @@ class Capture:
                     'object fixed and detected reliably? Just after a stop the sensor (its '
                     'latency) may still show the motion: try again in a moment. A detector '
                     'this noisy at a real stop needs wider sensor bands')
-        self._jumps = jumps
         return None
 
     def _motion_reason(self):

@@ -17,7 +17,7 @@ import time
 from quatcal_ros.core.planner import plan_next_pose, PlanLimits
 from quatcal_ros.core.units import DO_NOT_USE, NS_PER_S
 from quatcal_ros.core.validation import published
-from quatcal_ros.files import exports
+from quatcal_ros.files import bag_folder, exports
 from quatcal_ros.files import importers
 from quatcal_ros.files.journal import JournalHeader, JournalRefused
 from quatcal_ros.files.persistence import atomic_write_text
@@ -132,8 +132,8 @@ def solve_main(argv=None):
 
 def _is_bag(folder):
     """Return whether `folder` holds a rosbag2 recording (its metadata, or its storage files)."""
-    return ((folder / 'metadata.yaml').is_file()
-            or any(path.suffix in ('.mcap', '.db3') for path in folder.iterdir()))
+    return ((folder / bag_folder.INDEX).is_file()
+            or bool(bag_folder.storage_files(folder, bag_folder.READABLE_SUFFIXES)))
 
 
 def _journal_tree(imported, frames):
@@ -215,10 +215,7 @@ def _solve_images(prog, args):
         hint.append(f'{len(data.refused)} of {total} images are not used: '
                     f'{data.refusal_summary()} (the "views" key lists each)')
     if data.unlisted:   # (an image without its row was left out without a word)
-        shown = ', '.join(data.unlisted[:3]) + (', ...' if len(data.unlisted) > 3 else '')
-        hint.append(f'{len(data.unlisted)} image(s) in images/ are not used: no row of '
-                    f'robot_poses.csv names them ({shown}), so they have no robot pose; is a '
-                    'row missing?')
+        hint.append(data.unlisted_summary())
     failed = _write_files(prog, args, on_pixels, frames, hint)
     if failed:
         return failed

@@ -60,6 +60,12 @@ class ImageDataset:
         return '; '.join(f"{reason} {count} (first: {first[reason]['image']}: "
                          f"{first[reason]['detail']})" for reason, count in counts.most_common())
 
+    def unlisted_summary(self):
+        """Say which images no row names (`unlisted`): they have no robot pose."""
+        return (f'{len(self.unlisted)} image(s) in {IMAGES_FOLDER}/ are not used: no row of '
+                f'robot_poses.csv names them ({_first_names(self.unlisted)}), so they have no '
+                'robot pose; is a row missing?')
+
     def refuse_copies(self, copies):
         """Refuse the views {position used: position of the used view it repeats}."""
         self.refused += [{'image': self.names[copy], 'reason': 'repeated_view',
@@ -149,11 +155,16 @@ def _name_unlisted(dataset, unlisted):
     missing = [entry for entry in dataset.refused if entry['detail'].startswith('missing')]
     if not (missing and unlisted):
         return False
-    shown = ', '.join(unlisted[:3]) + (', ...' if len(unlisted) > 3 else '')
     for entry in missing:
         entry['detail'] += (f'; {IMAGES_FOLDER}/ holds {len(unlisted)} file(s) that no row of '
-                            f'robot_poses.csv names ({shown}): are the rows named after them?')
+                            f'robot_poses.csv names ({_first_names(unlisted)}): are the rows '
+                            'named after them?')
     return True
+
+
+def _first_names(names):
+    """Return the first three of `names`, ', ...' after them when there are more."""
+    return ', '.join(names[:3]) + (', ...' if len(names) > 3 else '')
 
 
 def _read_gray(path):
