@@ -88,7 +88,7 @@ def halves_table(data, setup, halves, rng, source):
     sources = set()
     for _ in range(halves):
         half = solve(data, np.sort(rng.choice(n, n // 2, replace=False)), setup)
-        sources.add('view_blocks' if half[1].resampled is not None else 'model')
+        sources.add(half[1].uncertainty_from)
         for name, estimate, full in zip(('pose-based', 'pixels'), half, whole):
             deviations[name].append(off(estimate, full.quaternion, full.translation))
     print(f'{source}: {n} views used ({len(data.refused)} refused), {halves} '

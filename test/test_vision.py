@@ -33,7 +33,7 @@ from quatcal_ros.vision.detect import _exposure, _pnp, _with_pose, Checks, detec
 from quatcal_ros.vision.image_sensor import result_on_pixels
 from quatcal_ros.vision.render import cell_views, Renderer, view_poses, write_dataset
 from quatcal_ros.vision.reprojection import cramer_rao_covariance, refine_from_poses, \
-    refine_reprojection
+    refine_reprojection, VIEW_ERROR_EVIDENCE
 
 CAMERA = camera_from(640, 480, [[600, 0, 320], [0, 600, 240], [0, 0, 1]], 'plumb_bob',
                      [0, 0, 0, 0, 0])
@@ -277,20 +277,75 @@ def test_the_reprojection_refinement_reaches_its_bound_and_is_honest(renderers):
 
 @pytest.mark.parametrize('views, robot_deg, robot_mm', [(6, 0.0, 0.0), (8, 0.0, 0.0),
                                                         (30, 0.0, 0.0), (6, 0.1, 0.5),
-                                                        (7, 0.3, 1.0)])
+                                                        (7, 0.3, 1.0), (10, 0.2, 1.0)])
 def test_the_uncertainty_over_blocks_of_views_is_honest(renderers, views, robot_deg,
                                                         robot_mm):
-    # Left out a block at a time (a jackknife), each block's share of the leverage made it
-    # cautious: true error / reported 0.61-0.65 at 8 views. With the blocks' scores leverage
-    # corrected (HC2): 0.97-1.11 from 8 to 30 views. From 6 views on, with the robot's errors
-    # too, which the pixel model alone put at 6-10x (the view's corners share them): these
-    # cells 0.80-1.08 (6 views with the robot's errors: 1.02, 0.80), so the honesty
-    # yardstick's band, [0.7, 1.3], for the cells below 8 views or with the robot's errors.
+    # Without the robot's errors (the fit on the pixels' noise alone): left out a block at a
+    # time (a jackknife), each block's share of the leverage made it cautious: true error /
+    # reported 0.61-0.65 at 8 views. With the blocks' scores leverage corrected (HC2):
+    # 0.97-1.11 from 8 to 30 views. With the robot's errors the views' errors are fitted,
+    # and the blocks are left out with the noise fitted again (the sandwich alone: 1.44 at 10
+    # views, blind to the noise model's estimation from a few views). That jackknife is
+    # cautious by the blocks' leverage at 6-7 views (other seeds' 40 cells: 0.75-0.86; these
+    # 0.88 and 0.66 at 6 views): the band's low end 0.6 there, over-confidence still 1.3.
     errors, _, reported, _, _ = reprojection_trials(renderers, views, 40 if robot_deg else 60,
                                                     robot_deg=robot_deg, robot_mm=robot_mm)
     ratio = np.sqrt(errors.mean(axis=0) / reported.mean(axis=0))
-    low, high = (0.8, 1.25) if views >= 8 and not robot_deg else (0.7, 1.3)
+    if not robot_deg:
+        low, high = (0.8, 1.25) if views >= 8 else (0.7, 1.3)
+    else:
+        low, high = (0.6, 1.3) if views < 8 else (0.7, 1.3)
     assert np.all((low <= ratio) & (ratio <= high)), ratio
+
+
+def test_the_views_shared_errors_are_fitted_when_the_corners_show_them(renderers):
+    """With the robot's pose off, each view's error is fitted: twice as accurate, honest."""
+    shared, plain = [], []
+    for trial in range(12):
+        rng = np.random.default_rng(200 + trial)
+        X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 16, 0.3)
+        links = robot_error(rng, links, 0.2, 1.0)
+        link_q = np.array([link.quaternion for link in links])
+        link_t = np.array([link.position for link in links])
+        start = calibrate([Sample(s.stamp_ns, link, s.sensor)
+                           for s, link in zip(samples, links)])
+        model = (start.quaternion, start.translation, O.quaternion, O.position + 0.01)
+        fit = refine_reprojection(link_q, link_t, corners, CAMERA, *model)
+        assert fit.views_share_errors and fit.uncertainty_from == 'view_jackknife'
+        assert fit.view_error_evidence > 10 * VIEW_ERROR_EVIDENCE
+        # The view error in the camera frame: about the robot's 0.2 deg and 1 mm per pose.
+        assert 0.03 < np.degrees(np.linalg.norm(fit.view_error[:3])) < 0.6
+        assert 0.3 < 1e3 * np.linalg.norm(fit.view_error[3:]) < 3.0
+        without = refine_reprojection(link_q, link_t, corners, CAMERA, *model,
+                                      view_errors=False)
+        for estimate, errors in ((fit, shared), (without, plain)):
+            errors.append((quat.angle_between(estimate.quaternion, X.quaternion),
+                           np.linalg.norm(estimate.translation - X.position)))
+    shared, plain = np.sqrt(np.mean(np.square(shared), axis=0)), \
+        np.sqrt(np.mean(np.square(plain), axis=0))
+    # Measured on these cells: rotation 2.5x, translation 1.8x more accurate (30 other
+    # cells: 2.5x and 1.8x); counted as independent, a view's corners outvote the others.
+    assert shared[0] < plain[0] / 1.8 and shared[1] < plain[1] / 1.3, (shared, plain)
+
+
+def test_without_shared_errors_the_fit_on_the_pixels_noise_alone_is_kept(renderers):
+    # On 60 cells of 6-8 views without the robot's errors twice the log-likelihood ratio
+    # was at most 6.1 against the threshold's 22.46: no view error is fitted to noise (at
+    # 6-8 views it made the error 1.4-1.5x larger).
+    for trial in range(8):
+        rng = np.random.default_rng(300 + trial)
+        X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 7, 0.3)
+        link_q = np.array([link.quaternion for link in links])
+        link_t = np.array([link.position for link in links])
+        start = calibrate(samples)
+        model = (start.quaternion, start.translation, O.quaternion, O.position + 0.01)
+        fit = refine_reprojection(link_q, link_t, corners, CAMERA, *model)
+        assert not fit.views_share_errors and fit.uncertainty_from == 'view_blocks'
+        assert fit.view_error_evidence < VIEW_ERROR_EVIDENCE
+        without = refine_reprojection(link_q, link_t, corners, CAMERA, *model,
+                                      view_errors=False)
+        assert np.array_equal(fit.quaternion, without.quaternion)
+        assert np.array_equal(fit.translation, without.translation)
 
 
 def test_too_few_views_for_blocks_say_the_uncertainty_leaves_out_the_robots_errors(renderers):
@@ -310,6 +365,20 @@ def test_too_few_views_for_blocks_say_the_uncertainty_leaves_out_the_robots_erro
     fit = refine_from_poses(samples, corners, CAMERA, result)
     assert fit.resampled is not None
     assert result_on_pixels(result, fit).warnings == result.warnings
+
+
+def test_too_few_views_with_shared_errors_say_the_model_fitted_them_to_few_views(renderers):
+    rng = np.random.default_rng(7)
+    X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 5, 0.3)
+    links = robot_error(rng, links, 0.3, 1.0)
+    samples = [Sample(s.stamp_ns, link, s.sensor) for s, link in zip(samples, links)]
+    result = calibrate(samples)
+    fit = refine_from_poses(samples, corners, CAMERA, result)
+    assert fit.views_share_errors and fit.resampled is None and fit.uncertainty_from == 'model'
+    said = [w for w in result_on_pixels(result, fit).warnings if 'views the uncertainty' in w]
+    assert said == ["with 5 views the uncertainty on the pixels is the model's, whose errors "
+                    'shared by all corners of a view are fitted to 5 views only; from 6 views '
+                    'on it is measured over the views']
 
 
 def test_a_few_bad_corners_do_not_inflate_the_pixel_noise(renderers):

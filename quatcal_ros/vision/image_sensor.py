@@ -173,11 +173,18 @@ def result_on_pixels(result, fit):
 
     Its warnings say when the uncertainty is the pixel model's alone (too few views).
     """
-    few = ([f'with {len(fit.view_rms_px)} views the uncertainty on the pixels is the pixel '
-            "noise's alone: it leaves out errors that all corners of a view share (the "
-            "robot's pose error, on real cells often several times larger); from "
-            f'{MIN_BLOCK_VIEWS} views on it is measured over the views']
-           if fit.resampled is None else [])
+    views = len(fit.view_rms_px)
+    if fit.resampled is not None:
+        few = []
+    elif fit.views_share_errors:
+        few = [f"with {views} views the uncertainty on the pixels is the model's, whose "
+               f'errors shared by all corners of a view are fitted to {views} views only; '
+               f'from {MIN_BLOCK_VIEWS} views on it is measured over the views']
+    else:
+        few = [f"with {views} views the uncertainty on the pixels is the pixel noise's "
+               "alone: it leaves out errors that all corners of a view share (the robot's "
+               'pose error, on real cells often several times larger); from '
+               f'{MIN_BLOCK_VIEWS} views on it is measured over the views']
     return replace(result, quaternion=fit.quaternion,
                    matrix=quat.matrix_from_quaternion(fit.quaternion),
                    translation=fit.translation, uncertainty_deg=fit.uncertainty_deg,
