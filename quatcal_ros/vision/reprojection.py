@@ -18,8 +18,8 @@ variances D fitted with the pixel noise by EM (ViewNoise); the Gauss-Newton step
 each view by its covariance sigma^2 W^-1 + G D G^T (G: the pixels' Jacobian of that error,
 by the Woodbury identity, _ViewSums). The fit without them (D = 0) is kept when the corners
 do not show them: twice the log-likelihood ratio below VIEW_ERROR_EVIDENCE (on 60 synthetic
-cells of 6-8 views without them, at most 6.1; with the robot off by 0.03 deg and 0.1 mm,
-median 23). With the robot's pose off by 0.2 deg and 1 mm, 8-16 synthetic views, 30 cells
+cells of 6-8 views without them, at most 6.2; with the robot off by 0.03 deg and 0.1 mm,
+median 24). With the robot's pose off by 0.2 deg and 1 mm, 8-16 synthetic views, 30 cells
 each, the views' errors took the rotation error from 1.07-0.64 deg to 0.48-0.26 (as the
 pose-based fit's or better) and the translation from 4.7-3.3 mm to 3.2-1.8; without them
 the views' corners counted as independent.
@@ -57,7 +57,9 @@ MIN_BLOCK_VIEWS = 6            # fewer views: the model's covariance (module doc
 DIFFERENCE_STEP = 1e-7         # radians and metres
 START_VIEW_ERROR = 1e-3        # the views' shared errors' start (rad, m): EM cannot leave 0
 NOISE_ITERATIONS = 200         # EM steps of the noise fit, at most
-NOISE_TOLERANCE = 1e-2         # ... until -log L falls by less (the view-error test: 11.2)
+NOISE_TOLERANCE = 1e-2         # ... until -log L falls by less (the test below: 11.2 in -log L)
+EVIDENCE_TOLERANCE = 1e-6      # ... for the test's maximum-likelihood fits
+VARIANCE_FLOOR = 1e-12         # px^2
 NOISE_REFITS = 8               # Gauss-Newton steps that refit the noise, then it stays
 # The views' errors are fitted when twice the log-likelihood ratio exceeds chi^2 of 6 degrees
 # of freedom at 0.999 (a test at the boundary, D = 0: conservative); below, without them.
@@ -70,9 +72,11 @@ class ViewNoise:
     The pixels' noise model: each corner's own, and each view's shared board pose error.
 
     pixel_variance: px^2 per axis (divided by a corner's Huber weight); view_sd: (6,) standard
-    deviations of the view's board pose error in the camera frame, rotation vector (rad)
-    then translation (m), x y z (the view's robot pose error as the camera sees it, and the
-    camera model's: a focal length off moves every view in depth).
+    deviations of the view's board pose error, x y z in the camera frame: a turn about the
+    board's origin (rotation vector, rad), then a shift (m). That is the robot's pose error
+    as the camera sees it, and the camera model's (a focal length off moves every view in
+    depth), approximately: the variances are independent, so a turn of the robot's link,
+    which also moves the board by its lever arm, shows as both.
     """
 
     pixel_variance: float
@@ -89,7 +93,10 @@ class Corners:
 
     @staticmethod
     def of(views):
-        """Stack (object_points, image_points) of each view."""
+        """Stack (object_points, image_points) of each view, in order (_ViewSums needs it)."""
+        for i, (points, _) in enumerate(views):
+            if len(points) == 0:
+                raise ValueError(f'view {i} has no corners')
         return Corners(np.concatenate([np.full(len(o), i) for i, (o, _) in enumerate(views)]),
                        np.concatenate([o for o, _ in views]).astype(float),
                        np.concatenate([u for _, u in views]).astype(float))
@@ -111,7 +118,7 @@ class ReprojectionFit(ReportedUncertainty):
     iterations: int
     view_rms_px: np.ndarray        # (N,) RMS residual of each view
     view_error: np.ndarray         # (6,) ViewNoise.view_sd of the fit, zeros without
-    view_error_evidence: float = 0.0   # 2 log-likelihood ratio of the views' errors
+    view_error_evidence: float = None   # 2 log-likelihood ratio of the views' errors (tested)
 
     @property
     def model(self):
@@ -149,7 +156,8 @@ class ReprojectionFit(ReportedUncertainty):
                 'pixel_noise_px': float(self.pixel_noise_px),
                 'view_error_deg': [float(v) for v in np.degrees(self.view_error[:3])],
                 'view_error_mm': [float(v) for v in 1e3 * self.view_error[3:]],
-                'view_error_evidence': float(self.view_error_evidence),
+                'view_error_evidence': (None if self.view_error_evidence is None
+                                        else float(self.view_error_evidence)),
                 'reprojection_rms_px': float(self.rms_px),
                 'worst_view_rms_px': float(np.max(self.view_rms_px)),
                 'converged': bool(self.converged), 'iterations': int(self.iterations)}
@@ -212,7 +220,8 @@ class _ViewSums:
     Each view's weighted sums of its corners' Jacobians and residuals.
 
     J: of the 12 unknowns (None: the sums of the noise's likelihood alone), G: of the view's
-    error, e: the residuals, for the view's covariance C = sigma^2 W^-1 + G D G^T.
+    error (None: no view error), e: the residuals, for the view's covariance
+    C = sigma^2 W^-1 + G D G^T. The corners come view by view, as Corners.of stacks them.
 
     Every product with C^-1 goes through the Woodbury identity with the 6 x 6
     B = I + D^1/2 G^T P G D^1/2 (P = W / sigma^2): no corner-sized matrix is formed.
@@ -223,14 +232,19 @@ class _ViewSums:
 
         def per_view(terms):
             return np.add.reduceat(terms, starts, axis=0)
-        wG = G * w[:, None, None]
+        views = len(starts)
         if J is not None:
             wJ = J * w[:, None, None]
             self.JWJ = per_view(np.einsum('kai,kaj->kij', wJ, J))
-            self.JWG = per_view(np.einsum('kai,kaj->kij', wJ, G))
             self.JWe = per_view(np.einsum('kai,ka->ki', wJ, e))
-        self.GWG = per_view(np.einsum('kai,kaj->kij', wG, G))
-        self.GWe = per_view(np.einsum('kai,ka->ki', wG, e))
+            self.JWG = (np.zeros((views, 12, 6)) if G is None else
+                        per_view(np.einsum('kai,kaj->kij', wJ, G)))
+        if G is None:
+            self.GWG, self.GWe = np.zeros((views, 6, 6)), np.zeros((views, 6))
+        else:
+            wG = G * w[:, None, None]
+            self.GWG = per_view(np.einsum('kai,kaj->kij', wG, G))
+            self.GWe = per_view(np.einsum('kai,ka->ki', wG, e))
         self.eWe = per_view(np.einsum('ka,ka->k', e * w[:, None], e))
         self.count = per_view(np.full(len(w), 2.0))
         self.log_w = per_view(2.0 * np.log(w))
@@ -238,8 +252,8 @@ class _ViewSums:
     def of_views(self, keep):
         """Return the sums of the views `keep` (a boolean mask or indices) alone."""
         part = object.__new__(_ViewSums)
-        for name in ('JWJ', 'JWG', 'GWG', 'JWe', 'GWe', 'eWe', 'count', 'log_w'):
-            setattr(part, name, getattr(self, name)[keep])
+        for name, sums in vars(self).items():
+            setattr(part, name, sums[keep])
         return part
 
     def _woodbury(self, noise):
@@ -260,17 +274,19 @@ class _ViewSums:
                    - np.linalg.slogdet(B_inv)[1])
         return 0.5 * float(np.sum(quadratic + log_det))
 
-    def fit_noise(self, noise, unknowns_per_variance=2):
+    def fit_noise(self, noise, unknowns_per_variance=2, tolerance=NOISE_TOLERANCE):
         """
-        Return the ViewNoise of greatest likelihood, from `noise` (EM).
+        Return the ViewNoise fitted from `noise` by EM.
 
         The views' errors are the missing data: each step sets every variance to its mean
         given the corners (the posterior mean squared plus the posterior variance), summed
         over the views less `unknowns_per_variance` (the 12 unknowns move the views' board
-        poses as 2 views' errors do; 0: the maximum-likelihood fit).
+        poses as 2 views' errors do, a correction for a few views, with which EM is no longer
+        sure to raise the likelihood: it stops when it does not); 0: maximum likelihood.
         """
         last = np.inf
         for _ in range(NOISE_ITERATIONS):
+            before = noise
             d, B_inv, u = self._woodbury(noise)
             posterior = d[:, None] * B_inv * d
             mean = d * np.einsum('vij,vj->vi', B_inv, u)
@@ -279,10 +295,12 @@ class _ViewSums:
             misfit = (self.eWe - 2.0 * np.einsum('vi,vi->v', mean, self.GWe)
                       + np.einsum('vi,vij,vj->v', mean, self.GWG, mean)
                       + np.einsum('vij,vji->v', self.GWG, posterior))
-            noise = ViewNoise(max(float(misfit.sum() / self.count.sum()), 1e-12),
+            noise = ViewNoise(max(float(misfit.sum() / self.count.sum()), VARIANCE_FLOOR),
                               np.sqrt(view_variance))
             value = self.negative_log_likelihood(noise)
-            if last - value < NOISE_TOLERANCE:
+            if value > last:
+                return before
+            if last - value < tolerance:
                 break
             last = value
         return noise
@@ -310,33 +328,46 @@ def refine_reprojection(link_q, link_t, views, camera, x_q, x_t, o_q, o_t, robus
     corners = Corners.of(views)
     model = (np.asarray(x_q, float), np.asarray(x_t, float), np.asarray(o_q, float),
              np.asarray(o_t, float))
-    plain, plain_w, at_plain, plain_spread = _fit(link_q, link_t, corners, camera, model,
-                                                  robust, max_iterations, False)
+    plain, plain_w, plain_spread = _fit(link_q, link_t, corners, camera, model, robust,
+                                        max_iterations, False)
     if view_errors is False:
-        return replace(plain, resampled=plain_spread())
-    shared, _, _, shared_spread = _fit(link_q, link_t, corners, camera, plain.model, robust,
-                                       max_iterations, True)
-    # Both fits' likelihoods with the plain fit's weights, each at its own answer.
-    e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, shared.model)
-    at_shared = _ViewSums(None, view_jacobian(link_q, link_t, corners, camera, shared.model),
-                          e, plain_w, corners.view)
-    none = ViewNoise(max(float(at_plain.eWe.sum() / at_plain.count.sum()), 1e-12), np.zeros(6))
-    fitted = at_shared.fit_noise(ViewNoise(shared.pixel_noise_px ** 2, shared.view_error), 0)
-    evidence = 2.0 * (at_plain.negative_log_likelihood(none)
-                      - at_shared.negative_log_likelihood(fitted))
+        return replace(plain, resampled=plain_spread(), view_error_evidence=None)
+    shared, _, shared_spread = _fit(link_q, link_t, corners, camera, plain.model, robust,
+                                    max_iterations, True)
+    evidence = _evidence(link_q, link_t, corners, camera, plain, shared, plain_w)
     chosen = view_errors if view_errors is not None else evidence >= VIEW_ERROR_EVIDENCE
     fit, spread = (shared, shared_spread) if chosen else (plain, plain_spread)
     return replace(fit, resampled=spread(), view_error_evidence=evidence)
 
 
+def _evidence(link_q, link_t, corners, camera, plain, shared, w):
+    """
+    Return twice the log-likelihood ratio of the views' errors (VIEW_ERROR_EVIDENCE).
+
+    Both likelihoods with the plain fit's weights w, their noise by maximum likelihood; with
+    the views' errors at the better of the two fits' answers (so never below the plain one's).
+    """
+    def sums_at(model):
+        e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, model)
+        return _ViewSums(None, view_jacobian(link_q, link_t, corners, camera, model), e, w,
+                         corners.view)
+    at_plain, at_shared = sums_at(plain.model), sums_at(shared.model)
+    none = ViewNoise(max(float(at_plain.eWe.sum() / at_plain.count.sum()), VARIANCE_FLOOR),
+                     np.zeros(6))
+    start = ViewNoise(shared.pixel_noise_px ** 2,
+                      np.maximum(shared.view_error, START_VIEW_ERROR))
+    fitted = min(sums.negative_log_likelihood(sums.fit_noise(start, 0, EVIDENCE_TOLERANCE))
+                 for sums in (at_plain, at_shared))
+    return 2.0 * (at_plain.negative_log_likelihood(none) - fitted)
+
+
 def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared):
     """
-    Return (ReprojectionFit, weights, _ViewSums, covariance over the views) from `model`.
+    Return (ReprojectionFit, weights, covariance over the views) from `model`.
 
     The covariance is a function, called for the chosen fit alone (`resampled` None here).
-    shared: with the views' errors; else without, their Jacobian G left at zero.
+    shared: with the views' errors; else without.
     """
-    no_view_error = None if shared else np.zeros((len(corners.view), 2, 6))
     e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, model)
     w, sigma = _weights(e, robust)
     noise = ViewNoise(sigma ** 2, np.full(6, START_VIEW_ERROR if shared else 0.0))
@@ -344,7 +375,7 @@ def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared)
     for iterations in range(1, max_iterations + 1):
         e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, model)
         J = jacobian(link_q, link_t, corners, camera, model)
-        G = view_jacobian(link_q, link_t, corners, camera, model) if shared else no_view_error
+        G = view_jacobian(link_q, link_t, corners, camera, model) if shared else None
         if not shared:
             w, sigma = _weights(e, robust)
             noise = ViewNoise(sigma ** 2, noise.view_sd)
@@ -364,7 +395,7 @@ def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared)
             break
     e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, model)
     J = jacobian(link_q, link_t, corners, camera, model)
-    G = view_jacobian(link_q, link_t, corners, camera, model) if shared else no_view_error
+    G = view_jacobian(link_q, link_t, corners, camera, model) if shared else None
     if not shared:
         w, sigma = _weights(e, robust)
         noise = ViewNoise(sigma ** 2, noise.view_sd)
@@ -382,7 +413,7 @@ def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared)
         object_translation=model[3], pixel_noise_px=float(np.sqrt(noise.pixel_variance)),
         rms_px=float(np.sqrt(squared.mean())), model_covariance=A_inv,
         resampled=None, converged=converged, iterations=iterations, view_rms_px=view_rms,
-        view_error=noise.view_sd), w, sums, spread
+        view_error=noise.view_sd), w, spread
 
 
 def refine_from_poses(samples, views, camera, result, setup='eye_in_hand', robust=True):
@@ -425,7 +456,7 @@ def _weights(e, robust):
         clipped = np.minimum(r, HUBER_SIGMAS * sigma)
         sigma = max(float(np.sqrt(np.sum(clipped * clipped) / (HUBER_SCALE_FACTOR * dof))),
                     1e-6)
-    return np.minimum(1.0, HUBER_SIGMAS * sigma / np.maximum(r, 1e-12)), sigma
+    return _huber(e, sigma), sigma
 
 
 def _view_jackknife(sums, noise, n_views):
