@@ -159,6 +159,10 @@ def test_estimate_refined_on_the_corners_of_each_sample(make_harness, board_file
     diagnosed = h.node.diagnostic_status()
     status = {v.key: v.value for v in diagnosed.values}
     assert status['method'] == 'reprojection'
+    # The fit on the pixels: its corners' noise (the sim's 0.3 px, as the detector finds
+    # corners) and each view's shared error (the sim's robot is exact: none, or a trace).
+    assert 0.05 < float(status['pixel_noise_px']) < 2.0
+    assert len(status['view_error_deg'].split()) == len(status['view_error_mm'].split()) == 3
     # The message says the published uncertainty, the key's (it said the pose-based one's).
     assert diagnosed.message.startswith(f'estimating: uncertainty {result.uncertainty_deg:.2g} '
                                         'deg'), diagnosed.message
@@ -180,7 +184,11 @@ def test_estimate_refined_on_the_corners_of_each_sample(make_harness, board_file
                                camera.position + 0.1 * camera.rotation[:, 2], atol=1e-9)
     saved = h.node._on_save(None, Response())
     assert saved.success, saved.message
-    assert plain_yaml.load_file(result_file)['method'] == 'reprojection'
+    saved = plain_yaml.load_file(result_file)
+    assert saved['method'] == 'reprojection'
+    assert saved['reprojection']['pixel_noise_px'] == pytest.approx(
+        float(status['pixel_noise_px']), rel=1e-5)
+    assert saved['reprojection']['uncertainty_from'] in ('view_blocks', 'view_jackknife')
 
 
 def test_resumed_session_refines_on_the_corners_it_kept(make_harness, board_file, tmp_path):

@@ -483,7 +483,8 @@ def test_solve_dir_refines_on_the_pixels_and_lists_refused_views(repo_root, tmp_
     row, = [line for line in rows if line.startswith(names[2] + ',')]
     rows.append('copy.png' + row[len(names[2]):])
     (tmp_path / 'robot_poses.csv').write_text('\n'.join(rows) + '\n')
-    done = run_solve(repo_root, tmp_path, '--easy-handeye2-out', tmp_path / 'cell.calib')
+    done = run_solve(repo_root, tmp_path, '--easy-handeye2-out', tmp_path / 'cell.calib',
+                     '--result-out', tmp_path / 'result.yaml')
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout)
     assert result['method'] == 'reprojection' and result['pose_based_method'] == 'refined'
@@ -506,6 +507,9 @@ def test_solve_dir_refines_on_the_pixels_and_lists_refused_views(repo_root, tmp_
     assert angle < 4 * result['uncertainty_deg'] + 0.01
     assert error_mm < 4 * result['translation_uncertainty_mm'] + 0.05
     assert result['reprojection']['reprojection_rms_px'] < 0.5
+    # The result file holds the fit on the pixels too (it held the answer alone).
+    assert plain_yaml.load_file(tmp_path / 'result.yaml')['reprojection'] == \
+        result['reprojection']
     assert result['refined'] is not None and result['closed_form'] is not None
     assert result['noise_model']['sample_covariances'] == 'input'
     assert '<joint' in result['urdf']

@@ -186,6 +186,9 @@ class CalibrationResult:
     # The scale of the sensor's positions that fits best (sensor_scale.py), or None.
     sensor_scale: object = None
     invert_sensor: bool = False     # as configured: the sensor poses were inverted
+    # The fit on the board corners' pixels (vision/reprojection.py), JSON-ready, when the
+    # top-level fields hold it (method reprojection); else None.
+    reprojection: dict = None
 
     def sample_states(self, count):
         """Return 'used', 'noisy' (down-weighted) or 'rejected' for each of `count` samples."""
@@ -235,6 +238,7 @@ class CalibrationResult:
             'sensor_scale': (self.sensor_scale.to_json_dict()
                              if self.sensor_scale is not None else None),
             'usable': self.usable,
+            **({'reprojection': self.reprojection} if self.reprojection is not None else {}),
         }
 
 

@@ -207,6 +207,9 @@ def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extr
                             joint.result, joint.parent, joint.child, joint.note))
     except (AttributeError, ValueError):   # no (finite) translation
         pass
+    reprojection = getattr(result, 'reprojection', None)
+    if reprojection:   # the fit on the pixels: its pixel noise and views' errors
+        document['reprojection'] = reprojection
     validation = getattr(result, 'validation', None)
     if validation:
         document['validation'] = {key: value for key, value in validation.items()

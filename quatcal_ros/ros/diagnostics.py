@@ -239,6 +239,7 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
     if result is not None:
         found += list(result.warnings)
     validation = (result.validation if result is not None else None) or {}
+    on_pixels = (result.reprojection if result is not None else None) or {}
     failed = failure_warning(validation)
     found += [failed] if failed else []
     if (result is None and not counters['samples'] and session.config.capture.mode == 'auto'
@@ -258,6 +259,10 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
         'translation_xyz_m': (' '.join(f'{v:.6f}' for v in result.translation)
                               if result is not None else ''),
         'translation_uncertainty_mm': _number_text(result and result.translation_uncertainty_mm),
+        # the fit on the pixels (image input): the corners' noise, each view's shared error
+        'pixel_noise_px': _number_text(on_pixels.get('pixel_noise_px')),
+        'view_error_deg': ' '.join(f'{v:.3g}' for v in on_pixels.get('view_error_deg', ())),
+        'view_error_mm': ' '.join(f'{v:.3g}' for v in on_pixels.get('view_error_mm', ())),
         'validation': validation.get('verdict', ''),
         'validation_rms_rotation_deg': _number_text(validation.get('rms_rotation_deg')),
         'validation_rms_translation_mm': _number_text(validation.get('rms_translation_mm')),

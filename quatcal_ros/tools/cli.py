@@ -221,8 +221,7 @@ def _solve_images(prog, args):
         return failed
     return print_result(prog, session, where, hint, frames=frames, result=on_pixels,
                         limits=plan_limits(settings_of(args)), report=args.report,
-                        extra={'views': views, 'reprojection': fit.to_json_dict(),
-                               'pose_based_method': result.method})
+                        extra={'views': views, 'pose_based_method': result.method})
 
 
 REDUCED_DOF_ON_POSES = 'a robot that cannot turn the link freely is solved on the poses'
@@ -609,8 +608,7 @@ def replay_main(argv=None):
                 f'{len(images.corners)} samples kept corners (3 are needed; the time-offset '
                 'search keeps none)'))
     if on_pixels is not None:
-        extra.update({'reprojection': on_pixels[1].to_json_dict(),
-                      'pose_based_method': session.result.method})
+        extra['pose_based_method'] = session.result.method
     if session.result is not None and args.result_out:
         status = _write_result(prog, args, on_pixels[0] if on_pixels else session.result,
                                session, warnings, report, link, sensor)

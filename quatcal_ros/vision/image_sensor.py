@@ -189,4 +189,5 @@ def result_on_pixels(result, fit):
                    matrix=quat.matrix_from_quaternion(fit.quaternion),
                    translation=fit.translation, uncertainty_deg=fit.uncertainty_deg,
                    translation_uncertainty_mm=fit.translation_uncertainty_mm,
-                   method='reprojection', warnings=[*result.warnings, *few])
+                   method='reprojection', warnings=[*result.warnings, *few],
+                   reprojection=fit.to_json_dict())
