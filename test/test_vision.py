@@ -21,10 +21,11 @@ import cv2
 import numpy as np
 import pytest
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.calibration import calibrate
+from quatcal_ros.core.calibration import calibrate, CalibrationOptions
 from quatcal_ros.core.pose import Pose, residual_order, Sample
 from quatcal_ros.files import plain_yaml
 from quatcal_ros.files.text_input import BadInputError
+from quatcal_ros.report.page import convergence, report_html
 from quatcal_ros.tools.cli import solve_main
 from quatcal_ros.vision.board import parse_board
 from quatcal_ros.vision.camera import camera_from, parse_camera
@@ -385,6 +386,28 @@ def test_too_few_views_with_shared_errors_say_the_model_fitted_them_to_few_views
     assert said == ["with 5 views the uncertainty on the pixels is the model's, whose errors "
                     'shared by all corners of a view are fitted to 5 views only; from 6 views '
                     'on it is measured over the views']
+
+
+def test_the_report_of_a_fit_on_the_pixels_shows_it_beside_the_pose_based_one(renderers):
+    rng = np.random.default_rng(8)
+    X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 10, 0.3)
+    links = robot_error(rng, links, 0.2, 1.0)
+    samples = [Sample(s.stamp_ns, link, s.sensor) for s, link in zip(samples, links)]
+    options = CalibrationOptions()
+    result = calibrate(samples, options)
+    on_pixels = result_on_pixels(result, refine_from_poses(samples, corners, CAMERA, result))
+    page = report_html(on_pixels, samples, options, ('tool0', 'camera'))
+    fit = on_pixels.reprojection
+    assert f'pixel noise {fit["pixel_noise_px"]:.3g} px' in page
+    assert "what all corners of a view share, from the robot's pose or the camera model" in page
+    apart = np.degrees(quat.angle_between(result.quaternion, on_pixels.quaternion))
+    assert f'<th>pose-based estimate</th><td>{apart:.3g} deg and ' in page
+    # The prefixes (pose-based) end at the pose-based answer, not at the pixels' one (the
+    # figure had mixed the two estimators: its last point jumped by their difference).
+    counts, deg, _, mm, _ = convergence(on_pixels, samples, options)
+    assert counts[-1] == len(samples) and deg[-1] < 1e-9 and mm[-1] < 1e-9
+    assert 'On camera images the prefixes are solved on the board poses' in page
+    assert 'fit on the pixels' not in report_html(result, samples, options, ('tool0', 'cam'))
 
 
 def test_a_few_bad_corners_do_not_inflate_the_pixel_noise(renderers):

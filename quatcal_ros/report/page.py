@@ -57,7 +57,10 @@ def report_html(result, samples, options, frames, title='', time_offset=None):
         _figure(_sample_figure(result, len(samples))), _set_aside(result),
         '<h2>The estimate as samples were added</h2>',
         '<p>Each prefix of the samples solved again with the same options: its distance from '
-        'the final answer, and the uncertainty it reported.</p>',
+        'the final answer, and the uncertainty it reported.'
+        + (' On camera images the prefixes are solved on the board poses, and measured from '
+           'the pose-based answer of all samples (which the fit on the pixels then refines).'
+           if result.reprojection else '') + '</p>',
         _figure(_convergence_figure(result, samples, options)),
         '<h2>Coverage of rotation axes</h2>',
         f'<p>The rotation axis of each motion between consecutive samples, in the '
@@ -92,11 +95,35 @@ def _answer(result, parent, child):
             ('samples', f'{result.samples} ({result.samples - result.inlier_samples} rejected, '
                         f'{len(result.noisy)} down-weighted)'),
             ('motions', f'{result.inliers} of {result.motions} used, residual '
-                        f'{result.residual_rms_deg:.3g} deg RMS')]
+                        f'{result.residual_rms_deg:.3g} deg RMS')] + _on_pixels(result)
     table = ''.join(f'<tr><th>{name}</th><td>{value}</td></tr>' for name, value in rows)
     warnings = ''.join(f'<li class="warn">{escape(text)}</li>' for text in result.warnings)
     return (f'<table>{table}</table>'
             + (f'<h2>Warnings</h2><ul>{warnings}</ul>' if warnings else ''))
+
+
+def _on_pixels(result):
+    """Return the answer table's rows of the fit on the pixels (camera images), if it is one."""
+    fit = result.reprojection
+    if not fit:
+        return []
+    deg, mm = fit['view_error_deg'], fit['view_error_mm']
+    shared = (f'{_vector(deg, 3)} deg and {_vector(mm, 2)} mm (x, y, z in the camera frame, '
+              "standard deviations): what all corners of a view share, from the robot's pose "
+              'or the camera model, fitted'
+              if any(deg) or any(mm) else 'none: the corners show no error a view shares')
+    rows = [('fit on the pixels', f'pixel noise {fit["pixel_noise_px"]:.3g} px, reprojection '
+                                  f'RMS {fit["reprojection_rms_px"]:.3g} px'),
+            ("each view's shared error", shared)]
+    pose_based = result.refined or result.closed_form
+    if pose_based is not None:
+        apart_deg = np.degrees(quat.angle_between(pose_based.quaternion, result.quaternion))
+        apart_mm = 1e3 * np.linalg.norm(np.asarray(pose_based.translation) - result.translation)
+        rows.append(('pose-based estimate', f'{apart_deg:.3g} deg and {apart_mm:.3g} mm from '
+                                            f'this one; uncertainty '
+                                            f'{pose_based.uncertainty_deg:.3g} deg, '
+                                            f'{pose_based.translation_uncertainty_mm:.3g} mm'))
+    return rows
 
 
 def _validation(result):
@@ -174,8 +201,15 @@ def _sample_figure(result, count):
 
 
 def convergence(result, samples, options, points=CONVERGENCE_POINTS):
-    """Return (counts, deg, sigma deg, mm, sigma mm) of prefix estimates against `result`."""
+    """
+    Return (counts, deg, sigma deg, mm, sigma mm) of prefix estimates against `result`.
+
+    Against the pose-based answer of all samples when `result` is the fit on the pixels (the
+    prefixes are pose-based: the pixel fit's own would mix two estimators).
+    """
     n = len(samples)
+    if result.reprojection:
+        result = calibrate(samples, options)
     counts = sorted({int(round(k)) for k in np.linspace(min(4, n), n, points)})
     rows = []
     for k in counts:
