@@ -321,6 +321,29 @@ def test_a_tf_bag_gives_the_joint_the_tree_can_take(repo_root, streams, tmp_path
     assert 'already hangs' not in solved['urdf']
 
 
+def test_a_joint_that_would_break_the_tree_is_said_in_the_json_and_the_result_file(
+        repo_root, streams, tmp_path):
+    # The camera hangs from a moving frame on /tf: any joint to it gives it a second parent.
+    messages = [('/tf', stamp + MS, tf_message(msg(TRANSFORM_STAMPED, pose, stamp,
+                                                   'base_link', 'tool0')))
+                for stamp, pose in streams.link]
+    messages += [('/tf', stamp + MS, tf_message(msg(TRANSFORM_STAMPED, Pose.identity(), stamp,
+                                                    'shoulder', 'camera')))
+                 for stamp, _ in streams.link]
+    messages += [('/tf', delivered, tf_message(msg(TRANSFORM_STAMPED, pose, stamp, 'camera',
+                                                   'marker')))
+                 for (stamp, pose), delivered in zip(streams.sensor, streams.sensor_delivery_ns)]
+    write_bag(tmp_path / 'tf', {'/tf': TF_TYPE}, sorted(messages, key=lambda m: m[1]), 'mcap')
+    done = run_replay(repo_root, tmp_path / 'tf', '--link-frames', 'base_link', 'tool0',
+                      '--sensor-frames', 'camera', 'marker', '--result-out',
+                      tmp_path / 'r.yaml')
+    said = [w for w in json.loads(done.stdout)['warnings'] if w.startswith('TF: ')]
+    assert len(said) == 1 and 'second parent' in said[0], done.stdout
+    # The result file said it in its URDF comment alone.
+    assert said == [w for w in read_result_yaml(tmp_path / 'r.yaml')['warnings']
+                    if w.startswith('TF: ')]
+
+
 def replay_with_marker_on_tf(repo_root, tmp_path, streams, messages):
     """Replay TF `messages` and the marker on /tf (camera -> marker), base_link -> tool0."""
     messages = messages + [

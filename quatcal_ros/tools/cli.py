@@ -266,11 +266,12 @@ def _write_files(prog, args, result, frames, warnings=(), named=None, source=Non
     named = named or {}
     keep = ('robot_base_frame' if args.setup == 'eye_in_hand' else 'robot_effector_frame',
             'tracking_marker_frame')
-    saved = save_result(published(result, warnings), frames, args.setup,
+    result, mount = prepared(result, frames, warnings, tree)
+    saved = save_result(result, frames, args.setup,
                         result_file=args.result_out, easy_handeye2_file=easy_handeye2_out,
                         easy_handeye2_frames={key: named.get(key, '') for key in keep},
                         extra={'source': source or {'samples': str(args.samples)}},
-                        joint=tf_joint.joint(result, frames, tree))
+                        joint=mount)
     for _, target, error in saved.failed:
         return fail(prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)
     return None
@@ -388,11 +389,7 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
                     EXIT_UNDETERMINED)
     result = result or session.result
     parent, child = frames or exports.default_frames(result.setup)
-    mount = tf_joint.joint(result, (parent, child), tree)
-    if mount.breaks:   # (the command and the joint say it too)
-        warnings = [*warnings, f'TF: the static_transform_publisher line and the urdf joint '
-                               f'are {parent} -> {child} as calibrated, and {mount.note}']
-    result = published(result, warnings)
+    result, mount = prepared(result, (parent, child), warnings, tree)
     if not result.usable:   # a script that reads only the exit status hears it here
         said = next(text for text in result.warnings if DO_NOT_USE in text)
         print(f'{prog}: warning: {where}the estimate says not to use it ("usable": false): '
@@ -415,6 +412,21 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
             return status
     print(json.dumps(document, indent=2))
     return 0
+
+
+def prepared(result, frames, warnings=(), tree=None):
+    """
+    Return (the CalibrationResult as printed and written, its tf_joint.Joint).
+
+    `warnings` added (published), and where the joint would break the TF `tree`, that too:
+    the JSON and the result file say the same.
+    """
+    parent, child = frames
+    mount = tf_joint.joint(result, frames, tree)
+    if mount.breaks:   # (the command and the joint say it too)
+        warnings = [*warnings, f'TF: the static_transform_publisher line and the urdf joint '
+                               f'are {parent} -> {child} as calibrated, and {mount.note}']
+    return published(result, warnings), mount
 
 
 def fail(prog, message, status):
