@@ -204,6 +204,11 @@ def test_stale_streams_are_named():
     assert stats.stale_reasons(t0 + 4 * NS) == [
         (mc.LINK, 'link_pose stale: no message for 4.0 s'),
         (mc.SENSOR, 'sensor_pose stale: no message at all in 4.0 s')]
+    # The topic where its name is not the stream's: images (it said sensor_pose alone).
+    assert stats.stale_reasons(t0 + 4 * NS, names={mc.LINK: '/link_pose',
+                                                   mc.SENSOR: '/camera/image_raw'}) == [
+        (mc.LINK, 'link_pose stale: no message for 4.0 s'),
+        (mc.SENSOR, 'sensor_pose stale: no message on /camera/image_raw at all in 4.0 s')]
     stats.note(mc.LINK, t0 + 4 * NS)
     stats.note_good(mc.LINK, t0 + 4 * NS)
     stats.note(mc.SENSOR, t0 + int(0.2 * NS))
@@ -695,7 +700,7 @@ def test_the_inputs_problems_come_before_the_estimates_warnings_on_diagnostics()
     result = SimpleNamespace(warnings=['frame convention: use --setup eye_to_hand'],
                              residual_rms_deg=0.1, validation={}, motions=3, inliers=3,
                              uncertainty_deg=0.1, method='refined', translation=[0, 0, 0],
-                             translation_uncertainty_mm=1.0, hint='')
+                             translation_uncertainty_mm=1.0, hint='', reprojection=None)
     status = calibrator_status(session, mc.StreamStats(), 0, 'tool0',
                                problems=['TF input: the link frames look swapped'],
                                result=result)

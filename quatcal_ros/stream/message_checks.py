@@ -338,6 +338,9 @@ class StreamStats:
         """
         Return [(stream, 'sensor_pose stale: no message for 4.2 s'), ...] (node clock).
 
+        The topic is named where its name is not the stream's ('no message on
+        /camera/image_raw': images, or a remapped topic).
+
         A stream is stale when it has sent nothing, or nothing usable, for after_s.  Before
         the first message of any input, a stream is named only when `started_ns` (when
         the listening began) is given and after_s have passed since: 'no message on TOPIC
@@ -354,8 +357,11 @@ class StreamStats:
         out = []
         for stream in STREAMS:
             last = self.last_ns.get(stream)
-            what = (f'no pose composed from {names.get(stream, stream)}' if stream in composed
-                    else 'no message')
+            # The topic, where its name is not the stream's (remapped, or camera images).
+            topic = names.get(stream, stream)
+            on = '' if topic.rstrip('/').rsplit('/', 1)[-1] == stream else f' on {topic}'
+            what = (f'no pose composed from {topic}' if stream in composed
+                    else f'no message{on}')
             if last is None:
                 age_s = (now_ns - self.first_ns) / NS_PER_S
                 if self.first_ns < limit:
@@ -369,7 +375,7 @@ class StreamStats:
             last_good = self.last_good_ns.get(stream, self.first_ns)
             if last_good < limit:
                 reason = self.last_bad.get(stream, '')
-                out.append((stream, f'{stream} stale: no usable message for '
+                out.append((stream, f'{stream} stale: no usable message{on} for '
                                     f'{(now_ns - last_good) / NS_PER_S:.1f} s (bad messages '
                                     f'only, latest: {REASONS.get(reason, reason)})'))
         return out
