@@ -9,6 +9,7 @@ the Monte-Carlo checks use corners projected with Gaussian pixel noise (no rende
 they test the estimator alone.
 """
 
+from dataclasses import replace
 import json
 import os
 import re
@@ -360,8 +361,15 @@ def test_too_few_views_for_blocks_say_the_uncertainty_leaves_out_the_robots_erro
     X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 5, 0.3)
     result = calibrate(samples)
     fit = refine_from_poses(samples, corners, CAMERA, result)
-    assert fit.resampled is None
+    assert fit.resampled is None and not fit.views_share_errors
     said = [w for w in result_on_pixels(result, fit).warnings if 'views the uncertainty' in w]
+    # (it said the fit left out the robot's errors, after a test that found none)
+    assert said == ["with 5 views the uncertainty on the pixels is the pixel noise's alone: the "
+                    'corners show no error that a view shares, yet so few views show only a '
+                    'large one; from 6 views on it is measured over the views']
+    untested = replace(fit, view_error_evidence=None)   # (view_errors=False: not tested)
+    said = [w for w in result_on_pixels(result, untested).warnings
+            if 'views the uncertainty' in w]
     assert said == ["with 5 views the uncertainty on the pixels is the pixel noise's alone: it "
                     "leaves out errors that all corners of a view share (the robot's pose "
                     'error, on real cells often several times larger); from 6 views on it is '
@@ -398,7 +406,9 @@ def test_the_report_of_a_fit_on_the_pixels_shows_it_beside_the_pose_based_one(re
     on_pixels = result_on_pixels(result, refine_from_poses(samples, corners, CAMERA, result))
     page = report_html(on_pixels, samples, options, ('tool0', 'camera'))
     fit = on_pixels.reprojection
-    assert f'pixel noise {fit["pixel_noise_px"]:.3g} px' in page
+    assert f'pixel noise {fit["pixel_noise_px"]:#.3g} px' in page
+    assert f'{fit["within_view_rms_px"]:#.3g} px once each view' in page
+    assert '<h2>Validation (of the pose-based estimate): ' in page
     assert "what all corners of a view share, from the robot's pose or the camera model" in page
     apart = np.degrees(quat.angle_between(result.quaternion, on_pixels.quaternion))
     assert f'<th>pose-based estimate</th><td>{apart:.3g} deg and ' in page
@@ -408,6 +418,27 @@ def test_the_report_of_a_fit_on_the_pixels_shows_it_beside_the_pose_based_one(re
     assert counts[-1] == len(samples) and deg[-1] < 1e-9 and mm[-1] < 1e-9
     assert 'On camera images the prefixes are solved on the board poses' in page
     assert 'fit on the pixels' not in report_html(result, samples, options, ('tool0', 'cam'))
+
+
+@pytest.mark.parametrize('robot_deg, robot_mm, said', [(0.2, 1.0, False), (1.5, 8.0, True)])
+def test_a_view_error_beyond_a_robots_is_said_with_its_likely_causes(renderers, robot_deg,
+                                                                     robot_mm, said):
+    rng = np.random.default_rng(9)
+    X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 12, 0.3)
+    links = robot_error(rng, links, robot_deg, robot_mm)
+    samples = [Sample(s.stamp_ns, link, s.sensor) for s, link in zip(samples, links)]
+    result = calibrate(samples)
+    fit = refine_from_poses(samples, corners, CAMERA, result)
+    # The corners' RMS residual with each view's error taken out: the pixel noise's (0.3 px
+    # per axis, 0.42 px per corner), where with it they read the robot's error.
+    assert 0.3 < fit.within_view_rms_px < 0.55 < fit.rms_px
+    warned = [w for w in result_on_pixels(result, fit).warnings
+              if w.startswith("each view's board pose is off by up to ")]
+    assert bool(warned) == said, warned
+    if said:
+        assert warned[0].endswith('check the camera intrinsics (camera_info: a focal length or '
+                                  'a distortion off shows in depth, z) and the board '
+                                  '(board.yaml sizes)')
 
 
 def test_a_few_bad_corners_do_not_inflate_the_pixel_noise(renderers):
@@ -439,9 +470,13 @@ def test_solve_dir_names_the_image_of_every_sample_it_reports(tmp_path, renderer
     (images / names[7]).rename(images / names[3])
     (images / 'swap.png').rename(images / names[7])
     (images / names[1]).unlink()
-    assert solve_main([str(tmp_path)]) == 0
+    assert solve_main([str(tmp_path), '--report', str(tmp_path / 'report.html')]) == 0
     result = json.loads(capsys.readouterr().out)
     assert {entry['image'] for entry in result['rejected']} == {names[3], names[7]}
+    # ... and the report page too (it said 'sample 6': after a refused image, another's).
+    page = (tmp_path / 'report.html').read_text()
+    for entry in result['rejected']:
+        assert f'<li>sample {entry["sample"]} ({entry["image"]}) rejected: ' in page
     assert all(entry['reason'].endswith('or the image is paired with the wrong robot pose: '
                                         'check its row in robot_poses.csv')
                for entry in result['rejected'])

@@ -95,7 +95,9 @@ def _answer(result, parent, child):
             ('samples', f'{result.samples} ({result.samples - result.inlier_samples} rejected, '
                         f'{len(result.noisy)} down-weighted)'),
             ('motions', f'{result.inliers} of {result.motions} used, residual '
-                        f'{result.residual_rms_deg:.3g} deg RMS')] + _on_pixels(result)
+                        f'{result.residual_rms_deg:.3g} deg RMS'
+                        + (' (of the pose-based estimate)' if result.reprojection else ''))]
+    rows += _on_pixels(result)
     table = ''.join(f'<tr><th>{name}</th><td>{value}</td></tr>' for name, value in rows)
     warnings = ''.join(f'<li class="warn">{escape(text)}</li>' for text in result.warnings)
     return (f'<table>{table}</table>'
@@ -108,12 +110,18 @@ def _on_pixels(result):
     if not fit:
         return []
     deg, mm = fit['view_error_deg'], fit['view_error_mm']
+    evidence = fit.get('view_error_evidence')
+    test = ('' if evidence is None else
+            f' (likelihood-ratio evidence {evidence:.1f}, fitted from '
+            f'{fit["view_error_threshold"]:g})')
     shared = (f'{_vector(deg, 3)} deg and {_vector(mm, 2)} mm (x, y, z in the camera frame, '
               "standard deviations): what all corners of a view share, from the robot's pose "
-              'or the camera model, fitted'
-              if any(deg) or any(mm) else 'none: the corners show no error a view shares')
-    rows = [('fit on the pixels', f'pixel noise {fit["pixel_noise_px"]:.3g} px, reprojection '
-                                  f'RMS {fit["reprojection_rms_px"]:.3g} px'),
+              f'or the camera model, fitted{test}'
+              if any(deg) or any(mm) else f'none: the corners show no error a view shares{test}')
+    rows = [('fit on the pixels', f'pixel noise {fit["pixel_noise_px"]:#.3g} px; reprojection '
+                                  f'RMS {fit["reprojection_rms_px"]:#.3g} px, '
+                                  f'{fit["within_view_rms_px"]:#.3g} px once each view'
+                                  "'s shared error is taken out"),
             ("each view's shared error", shared)]
     pose_based = result.refined or result.closed_form
     if pose_based is not None:
@@ -130,7 +138,7 @@ def _validation(result):
     validation = result.validation or {}
     verdict = validation.get('verdict', 'unknown')
     thresholds = validation.get('thresholds', {})
-    worst = ', '.join(f'{w["sample"]} ({w["rotation_deg"]:.3g} deg, '
+    worst = ', '.join(f'{_sample(w)} ({w["rotation_deg"]:.3g} deg, '
                       f'{w["translation_mm"]:.3g} mm)' for w in validation.get('worst', []))
     numbers = ''
     if validation.get('rms_rotation_deg') is not None:
@@ -139,7 +147,8 @@ def _validation(result):
                    f'{thresholds.get("max_rotation_deg", float("nan")):g} deg and '
                    f'{thresholds.get("max_translation_mm", float("nan")):g} mm.')
     css = verdict if verdict in ('pass', 'fail') else 'warn'
-    return (f'<h2>Validation: <span class="{css}">{escape(verdict)}</span></h2>'
+    whose = ' (of the pose-based estimate)' if result.reprojection else ''
+    return (f'<h2>Validation{whose}: <span class="{css}">{escape(verdict)}</span></h2>'
             f'<p>{escape(validation.get("reason", ""))}.{numbers}'
             + (f' Worst samples: {worst}.' if worst else '') + '</p>')
 
@@ -178,11 +187,16 @@ def _time_offset(offset):
     return f'<h2>Time offset</h2><p>{escape(sentence[0].upper() + sentence[1:])}.</p>'
 
 
+def _sample(entry):
+    """Return a sample's number, with its image where it has one (solve DIR): '3 (4.png)'."""
+    return f'{entry["sample"]} ({entry["image"]})' if 'image' in entry else str(entry['sample'])
+
+
 def _set_aside(result):
     """Return the rejected and the down-weighted samples with their reasons, as a list."""
-    items = [f'sample {entry["sample"]} rejected: {entry["reason"]}'
+    items = [f'sample {_sample(entry)} rejected: {entry["reason"]}'
              for entry in result.rejected if 'sample' in entry]
-    items += [f'sample {entry["sample"]} down-weighted (weight {entry["weight"]:.2g}): '
+    items += [f'sample {_sample(entry)} down-weighted (weight {entry["weight"]:.2g}): '
               f'{entry["reason"]}' for entry in result.noisy]
     return ('<ul>' + ''.join(f'<li>{escape(item)}</li>' for item in items) + '</ul>'
             if items else '')

@@ -20,8 +20,14 @@ from dataclasses import replace
 import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.vision.detect import detect
-from quatcal_ros.vision.reprojection import MIN_BLOCK_VIEWS, refine_from_poses
+from quatcal_ros.vision.reprojection import MIN_BLOCK_VIEWS, refine_from_poses, \
+    VIEW_ERROR_EVIDENCE
 from quatcal_ros.vision.view import Checks, View
+
+# Each view's shared error beyond a robot's pose error (RMS per axis): the camera model or the
+# board (a focal length or distortion off shows in depth), said in a warning.
+ROBOT_LIKE_VIEW_ERROR_DEG = 0.5
+ROBOT_LIKE_VIEW_ERROR_MM = 5.0
 
 # Usable views kept for the next sample's corners; a still window at 30 Hz has ~15.
 RECENT_VIEWS = 256
@@ -171,23 +177,37 @@ def result_on_pixels(result, fit):
     """
     Return the CalibrationResult `result` with the mounting and uncertainty of `fit`.
 
-    Its warnings say when the uncertainty is the pixel model's alone (too few views).
+    Its warnings say when the uncertainty is the pixel model's alone (too few views), and when
+    each view's shared error is larger than a robot's.
     """
     views = len(fit.view_rms_px)
     if fit.resampled is not None:
-        few = []
+        said = []
     elif fit.views_share_errors:
-        few = [f"with {views} views the uncertainty on the pixels is the model's, whose "
-               f'errors shared by all corners of a view are fitted to {views} views only; '
-               f'from {MIN_BLOCK_VIEWS} views on it is measured over the views']
+        said = [f"with {views} views the uncertainty on the pixels is the model's, whose "
+                f'errors shared by all corners of a view are fitted to {views} views only; '
+                f'from {MIN_BLOCK_VIEWS} views on it is measured over the views']
+    elif fit.view_error_evidence is not None and fit.view_error_evidence < VIEW_ERROR_EVIDENCE:
+        said = [f"with {views} views the uncertainty on the pixels is the pixel noise's "
+                'alone: the corners show no error that a view shares, yet so few views show '
+                f'only a large one; from {MIN_BLOCK_VIEWS} views on it is measured over the '
+                'views']
     else:
-        few = [f"with {views} views the uncertainty on the pixels is the pixel noise's "
-               "alone: it leaves out errors that all corners of a view share (the robot's "
-               'pose error, on real cells often several times larger); from '
-               f'{MIN_BLOCK_VIEWS} views on it is measured over the views']
+        said = [f"with {views} views the uncertainty on the pixels is the pixel noise's "
+                "alone: it leaves out errors that all corners of a view share (the robot's "
+                'pose error, on real cells often several times larger); from '
+                f'{MIN_BLOCK_VIEWS} views on it is measured over the views']
+    degrees, millimetres = np.degrees(fit.view_error[:3]), 1e3 * fit.view_error[3:]
+    if degrees.max() > ROBOT_LIKE_VIEW_ERROR_DEG or millimetres.max() > ROBOT_LIKE_VIEW_ERROR_MM:
+        said.append("each view's board pose is off by up to "
+                    f'{degrees.max():.2g} deg and {millimetres.max():.2g} mm (RMS per axis of '
+                    "the camera frame) beyond the pixel noise, more than a robot's pose error "
+                    f'(over {ROBOT_LIKE_VIEW_ERROR_DEG:g} deg or {ROBOT_LIKE_VIEW_ERROR_MM:g} '
+                    'mm): check the camera intrinsics (camera_info: a focal length or a '
+                    'distortion off shows in depth, z) and the board (board.yaml sizes)')
     return replace(result, quaternion=fit.quaternion,
                    matrix=quat.matrix_from_quaternion(fit.quaternion),
                    translation=fit.translation, uncertainty_deg=fit.uncertainty_deg,
                    translation_uncertainty_mm=fit.translation_uncertainty_mm,
-                   method='reprojection', warnings=[*result.warnings, *few],
+                   method='reprojection', warnings=[*result.warnings, *said],
                    reprojection=fit.to_json_dict())

@@ -117,6 +117,7 @@ class ReprojectionFit(ReportedUncertainty):
     converged: bool
     iterations: int
     view_rms_px: np.ndarray        # (N,) RMS residual of each view
+    within_view_rms_px: float      # RMS residual less each view's shared error (its estimate)
     view_error: np.ndarray         # (6,) ViewNoise.view_sd of the fit, zeros without
     view_error_evidence: float = None   # 2 log-likelihood ratio of the views' errors (tested)
 
@@ -160,6 +161,8 @@ class ReprojectionFit(ReportedUncertainty):
                                         else float(self.view_error_evidence)),
                 'reprojection_rms_px': float(self.rms_px),
                 'worst_view_rms_px': float(np.max(self.view_rms_px)),
+                'within_view_rms_px': float(self.within_view_rms_px),
+                'view_error_threshold': VIEW_ERROR_EVIDENCE,
                 'converged': bool(self.converged), 'iterations': int(self.iterations)}
 
 
@@ -404,6 +407,8 @@ def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared)
     A_inv = np.linalg.pinv(A)
     squared = np.sum(e * e, axis=1)
     view_rms = np.sqrt(np.bincount(corners.view, squared) / np.bincount(corners.view))
+    within = (e - np.einsum('kai,ki->ka', G, sums.view_errors(noise)[corners.view]) if shared
+              else e)
     n_views = len(view_rms)
     spread = (partial(_view_jackknife, sums, noise, n_views) if shared else
               partial(_view_blocks, J, e, w, A_inv / noise.pixel_variance, corners.view,
@@ -413,6 +418,7 @@ def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared)
         object_translation=model[3], pixel_noise_px=float(np.sqrt(noise.pixel_variance)),
         rms_px=float(np.sqrt(squared.mean())), model_covariance=A_inv,
         resampled=None, converged=converged, iterations=iterations, view_rms_px=view_rms,
+        within_view_rms_px=float(np.sqrt(np.mean(np.sum(within * within, axis=1)))),
         view_error=noise.view_sd), w, spread
 
 
