@@ -8,12 +8,17 @@ methods fed by the same detections.
 Each trial renders a ChArUco board (7 x 5 squares of 30 mm) from a known camera (640 x 480,
 f = 600 px) at 0.3-0.9 m, with 2 grey levels of image noise and a slight blur
 (vision/render.py), detects it (vision/detect.py: corners, planar PnP, covariance), and
-solves: ours on the pixels (`solve DIR`'s refinement), ours pose-based (the refined default,
-each view weighed by its PnP covariance), and cv2.calibrateHandEye's TSAI, PARK, HORAUD,
-ANDREFF and DANIILIDIS on the same PnP poses. RMS errors against the truth over the trials.
+solves: ours on the pixels (`solve DIR`'s refinement; and without the views' shared errors,
+every corner counted as independent, as before they were fitted), ours pose-based (the
+refined default, each view weighed by its PnP covariance), and cv2.calibrateHandEye's TSAI,
+PARK, HORAUD, ANDREFF and DANIILIDIS on the same PnP poses. RMS errors against the truth
+over the trials. With --robot-deg D --robot-mm M every method is given the link poses a
+robot reports, each off by D deg and M mm RMS (the images are rendered from the true ones),
+as on a real cell.
 Throughput: detection of one view (corners, PnP, checks) per second at 640 x 480 and 1920 x
 1080, single-threaded BLAS.
-Run: python bench/bench_images.py [--trials 10] [--views 10 20 50]
+Run: python bench/bench_images.py [--trials 10] [--views 10 20 50] [--robot-deg 0.2]
+     [--robot-mm 1] [--no-throughput]
 """
 
 import argparse
@@ -27,7 +32,8 @@ import numpy as np  # noqa: E402
 
 from quatcal_ros.core import quaternion as quat  # noqa: E402
 from quatcal_ros.core.calibration import calibrate  # noqa: E402
-from quatcal_ros.core.pose import Sample  # noqa: E402
+from quatcal_ros.core.pose import Pose, Sample  # noqa: E402
+from quatcal_ros.sim.simulation import add_pose_noise  # noqa: E402
 from quatcal_ros.vision.board import parse_board  # noqa: E402
 from quatcal_ros.vision.camera import camera_from  # noqa: E402
 from quatcal_ros.vision.detect import detect  # noqa: E402
@@ -46,7 +52,7 @@ def camera(width=640, height=480, f=600.0):
                        'plumb_bob', [0, 0, 0, 0, 0])
 
 
-def trial(renderer, views, seed):
+def trial(renderer, views, seed, robot_deg=0.0, robot_mm=0.0):
     """Return {method: (rotation error deg, translation error mm)} of one rendered cell."""
     rng = np.random.default_rng(seed)
     X, _, seen_poses, cell_links = cell_views(rng, renderer, views)
@@ -57,15 +63,23 @@ def trial(renderer, views, seed):
         if view.ok:
             links.append(link)
             found.append(view)
+    if links and (robot_deg or robot_mm):   # what the robot reports: each pose off (RMS)
+        positions, quaternions = add_pose_noise(
+            rng, [link.position for link in links], [link.quaternion for link in links],
+            robot_deg / np.sqrt(3.0), 1e-3 * robot_mm / np.sqrt(3.0))
+        links = [Pose(p, q) for p, q in zip(positions, quaternions)]
     samples = [Sample(i * 10 ** 9, link, view.pose)
                for i, (link, view) in enumerate(zip(links, found))]
     estimates = {}
     pose_based = calibrate(samples)
     estimates['ours, pose-based (refined, PnP covariances)'] = (
         pose_based.quaternion, pose_based.translation)
-    fit = refine_from_poses(samples, [(v.object_points, v.image_points) for v in found],
-                            renderer.camera, pose_based)
+    corners = [(v.object_points, v.image_points) for v in found]
+    fit = refine_from_poses(samples, corners, renderer.camera, pose_based)
     estimates['ours, on the pixels (reprojection)'] = (fit.quaternion, fit.translation)
+    plain = refine_from_poses(samples, corners, renderer.camera, pose_based, view_errors=False)
+    estimates["ours, on the pixels, without the views' shared errors"] = (
+        plain.quaternion, plain.translation)
     for name, method in OPENCV.items():
         R, t = cv2.calibrateHandEye([link.rotation for link in links],
                                     [link.position.reshape(3, 1) for link in links],
@@ -93,14 +107,21 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[1])
     parser.add_argument('--trials', type=int, default=10)
     parser.add_argument('--views', type=int, nargs='+', default=[10, 20, 50])
+    parser.add_argument('--robot-deg', type=float, default=0.0)
+    parser.add_argument('--robot-mm', type=float, default=0.0)
+    parser.add_argument('--no-throughput', action='store_true')
     args = parser.parse_args()
+    if args.robot_deg or args.robot_mm:
+        print(f'(the link poses off by {args.robot_deg:g} deg and {args.robot_mm:g} mm RMS '
+              'per pose)')
     renderer = Renderer(parse_board(BOARD), camera())
     print('| views | method | RMS rotation error (deg) | RMS translation error (mm) |')
     print('|---|---|---|---|')
     for views in args.views:
         errors, used = {}, []
         for k in range(args.trials):
-            found, count = trial(renderer, views, 1000 * views + k)
+            found, count = trial(renderer, views, 1000 * views + k, args.robot_deg,
+                                 args.robot_mm)
             used.append(count)
             for name, pair in found.items():
                 errors.setdefault(name, []).append(pair)
@@ -109,6 +130,8 @@ def main():
             rms = np.sqrt(np.mean(pairs ** 2, axis=0))
             print(f'| {views} | {name} | {rms[0]:.4f} | {rms[1]:.3f} |')
     print(f'({args.trials} rendered cells per row)')
+    if args.no_throughput:
+        return
     print()
     print('| image size | views detected per second (CPU) | views found |')
     print('|---|---|---|')

@@ -162,7 +162,13 @@ def test_replay_of_camera_images_refines_on_the_corners(tmp_path, board_file, ca
     assert result['pose_based_method'] == 'refined'
     assert result['views']['used'] == 8 and result['views']['counts']['bad_image'] == 64 // 7
     assert any('bad_image' in text for text in result['warnings'])
+    # The fit on the pixels with every key it had when the tools added it beside the result.
+    assert {'rotation', 'translation', 'uncertainty_deg', 'translation_uncertainty_mm',
+            'uncertainty_from', 'model_uncertainty_deg', 'model_translation_uncertainty_mm',
+            'pixel_noise_px', 'reprojection_rms_px', 'worst_view_rms_px', 'converged',
+            'iterations'} <= set(result['reprojection'])
     saved = plain_yaml.load_file(tmp_path / 'calibration.yaml')   # the answer printed
+    assert saved['reprojection'] == result['reprojection']
     assert saved['method'] == 'reprojection'
     assert saved['translation']['x'] == pytest.approx(result['translation']['x'], abs=1e-12)
     page = (tmp_path / 'report.html').read_text()

@@ -159,8 +159,8 @@ def test_estimate_refined_on_the_corners_of_each_sample(make_harness, board_file
     diagnosed = h.node.diagnostic_status()
     status = {v.key: v.value for v in diagnosed.values}
     assert status['method'] == 'reprojection'
-    # The fit on the pixels: its corners' noise (the sim's 0.3 px, as the detector finds
-    # corners) and each view's shared error (the sim's robot is exact: none, or a trace).
+    # The fit on the pixels: its corners' noise (as the detector finds the rendered corners)
+    # and each view's shared error (the robot here is exact: none, or a trace).
     assert 0.05 < float(status['pixel_noise_px']) < 2.0
     assert len(status['view_error_deg'].split()) == len(status['view_error_mm'].split()) == 3
     # The message says the published uncertainty, the key's (it said the pose-based one's).

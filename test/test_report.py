@@ -7,6 +7,7 @@ screenshot that is not blank, and log no console error. With QUATCAL_REPORT_SCRE
 the test also writes the README's picture there (docs/report.png).
 """
 
+from dataclasses import replace
 from html.parser import HTMLParser
 import os
 from pathlib import Path
@@ -74,6 +75,14 @@ def test_frame_names_are_drawn_as_they_are(cell):
     samples, options, result = cell
     page = report_html(result, samples, options, ('tool$0', 'cam$x^$'), 'cell 11')
     assert 'cam$x^$' in page and 'tool$0' in page
+
+
+def test_image_names_are_written_as_text(cell):
+    samples, options, result = cell
+    worst = [{**entry, 'image': 'a<b&c.png'} for entry in result.validation['worst']]
+    named = replace(result, validation={**result.validation, 'worst': worst})
+    page = report_html(named, samples, options, ('tool0', 'camera'))
+    assert 'a<b&c.png' not in page and 'a&lt;b&amp;c.png' in page
 
 
 def test_rejected_and_down_weighted_samples_are_marked(cell):

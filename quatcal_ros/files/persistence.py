@@ -209,7 +209,10 @@ def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extr
         pass
     reprojection = getattr(result, 'reprojection', None)
     if reprojection:   # the fit on the pixels: its pixel noise and views' errors
-        document['reprojection'] = reprojection
+        document['reprojection'] = {
+            key: ([_plain_number(v) for v in value] if isinstance(value, list)
+                  else _plain_number(value) if isinstance(value, float) else value)
+            for key, value in reprojection.items()}
     validation = getattr(result, 'validation', None)
     if validation:
         document['validation'] = {key: value for key, value in validation.items()

@@ -110,6 +110,7 @@ def _on_pixels(result):
     if not fit:
         return []
     deg, mm = fit['view_error_deg'], fit['view_error_mm']
+    fitted = any(deg) or any(mm)
     evidence = fit.get('view_error_evidence')
     test = ('' if evidence is None else
             f' (likelihood-ratio evidence {evidence:.1f}, fitted from '
@@ -117,11 +118,11 @@ def _on_pixels(result):
     shared = (f'{_vector(deg, 3)} deg and {_vector(mm, 2)} mm (x, y, z in the camera frame, '
               "standard deviations): what all corners of a view share, from the robot's pose "
               f'or the camera model, fitted{test}'
-              if any(deg) or any(mm) else f'none: the corners show no error a view shares{test}')
+              if fitted else f'none: the corners show no error a view shares{test}')
+    within = (f', {fit["within_view_rms_px"]:#.3g} px once each view' + "'s shared error is "
+              'taken out' if fitted else '')
     rows = [('fit on the pixels', f'pixel noise {fit["pixel_noise_px"]:#.3g} px; reprojection '
-                                  f'RMS {fit["reprojection_rms_px"]:#.3g} px, '
-                                  f'{fit["within_view_rms_px"]:#.3g} px once each view'
-                                  "'s shared error is taken out"),
+                                  f'RMS {fit["reprojection_rms_px"]:#.3g} px{within}'),
             ("each view's shared error", shared)]
     pose_based = result.refined or result.closed_form
     if pose_based is not None:
@@ -150,7 +151,7 @@ def _validation(result):
     whose = ' (of the pose-based estimate)' if result.reprojection else ''
     return (f'<h2>Validation{whose}: <span class="{css}">{escape(verdict)}</span></h2>'
             f'<p>{escape(validation.get("reason", ""))}.{numbers}'
-            + (f' Worst samples: {worst}.' if worst else '') + '</p>')
+            + (f' Worst samples: {escape(worst)}.' if worst else '') + '</p>')
 
 
 def offset_sentence(offset):
@@ -222,8 +223,8 @@ def convergence(result, samples, options, points=CONVERGENCE_POINTS):
     prefixes are pose-based: the pixel fit's own would mix two estimators).
     """
     n = len(samples)
-    if result.reprojection:
-        result = calibrate(samples, options)
+    if result.reprojection:   # (the pose-based answer the session published beside it)
+        result = result.refined or result.closed_form
     counts = sorted({int(round(k)) for k in np.linspace(min(4, n), n, points)})
     rows = []
     for k in counts:

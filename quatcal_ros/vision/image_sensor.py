@@ -189,9 +189,8 @@ def result_on_pixels(result, fit):
                 f'from {MIN_BLOCK_VIEWS} views on it is measured over the views']
     elif fit.view_error_evidence is not None and fit.view_error_evidence < VIEW_ERROR_EVIDENCE:
         said = [f"with {views} views the uncertainty on the pixels is the pixel noise's "
-                'alone: the corners show no error that a view shares, yet so few views show '
-                f'only a large one; from {MIN_BLOCK_VIEWS} views on it is measured over the '
-                'views']
+                'alone (the corners show no error that a view shares); from '
+                f'{MIN_BLOCK_VIEWS} views on it is measured over the views']
     else:
         said = [f"with {views} views the uncertainty on the pixels is the pixel noise's "
                 "alone: it leaves out errors that all corners of a view share (the robot's "
@@ -201,10 +200,12 @@ def result_on_pixels(result, fit):
     if degrees.max() > ROBOT_LIKE_VIEW_ERROR_DEG or millimetres.max() > ROBOT_LIKE_VIEW_ERROR_MM:
         said.append("each view's board pose is off by up to "
                     f'{degrees.max():.2g} deg and {millimetres.max():.2g} mm (RMS per axis of '
-                    "the camera frame) beyond the pixel noise, more than a robot's pose error "
-                    f'(over {ROBOT_LIKE_VIEW_ERROR_DEG:g} deg or {ROBOT_LIKE_VIEW_ERROR_MM:g} '
-                    'mm): check the camera intrinsics (camera_info: a focal length or a '
-                    'distortion off shows in depth, z) and the board (board.yaml sizes)')
+                    "the camera frame) beyond the pixel noise, more than a typical robot's "
+                    f'pose error (over {ROBOT_LIKE_VIEW_ERROR_DEG:g} deg or '
+                    f'{ROBOT_LIKE_VIEW_ERROR_MM:g} mm): check the camera intrinsics '
+                    '(camera_info: a focal length or a distortion off shows in depth, z), the '
+                    "board (board.yaml sizes), and the robot's poses and their stamps (a pose "
+                    'from another moment than the image)')
     return replace(result, quaternion=fit.quaternion,
                    matrix=quat.matrix_from_quaternion(fit.quaternion),
                    translation=fit.translation, uncertainty_deg=fit.uncertainty_deg,

@@ -27,7 +27,7 @@ the views' corners counted as independent.
 Uncertainty, with the views' errors: a jackknife over blocks of views with the noise fitted
 again without each (_view_jackknife). The sandwich alone missed the noise model's own
 estimation from a few views: true error / reported 1.44 at 10 synthetic views; the
-jackknife 0.66-1.21 at 6-16 (cautious at 6-7, where each view left out holds much of the
+jackknife 0.64-1.21 at 6-16 (cautious at 6-7, where each view left out holds much of the
 leverage), 0.93-1.14 on rendered folders of 6-16 views, 0.81 and 0.91 on halves (7 views)
 of a real ChArUco recording.
 Without them: the sandwich with blocks of views as clusters (each block's score, leverage
@@ -348,7 +348,7 @@ def _evidence(link_q, link_t, corners, camera, plain, shared, w):
     Return twice the log-likelihood ratio of the views' errors (VIEW_ERROR_EVIDENCE).
 
     Both likelihoods with the plain fit's weights w, their noise by maximum likelihood; with
-    the views' errors at the better of the two fits' answers (so never below the plain one's).
+    the views' errors at the best of the two fits' answers and of none (so never below 0).
     """
     def sums_at(model):
         e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, model)
@@ -359,9 +359,10 @@ def _evidence(link_q, link_t, corners, camera, plain, shared, w):
                      np.zeros(6))
     start = ViewNoise(shared.pixel_noise_px ** 2,
                       np.maximum(shared.view_error, START_VIEW_ERROR))
+    plain = at_plain.negative_log_likelihood(none)
     fitted = min(sums.negative_log_likelihood(sums.fit_noise(start, 0, EVIDENCE_TOLERANCE))
                  for sums in (at_plain, at_shared))
-    return 2.0 * (at_plain.negative_log_likelihood(none) - fitted)
+    return 2.0 * (plain - min(plain, fitted))
 
 
 def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared):
@@ -422,12 +423,14 @@ def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared)
         view_error=noise.view_sd), w, spread
 
 
-def refine_from_poses(samples, views, camera, result, setup='eye_in_hand', robust=True):
+def refine_from_poses(samples, views, camera, result, setup='eye_in_hand', robust=True,
+                      view_errors=None):
     """
     Return the ReprojectionFit started from a pose-based CalibrationResult of `samples`.
 
     views: [(object_points, image_points)] of each sample's image; the samples the result
     used (sample_ok) are fitted, from its mounting and the mean object pose it implies.
+    view_errors: as refine_reprojection's.
     """
     rotations = SampleRotations.from_samples(samples, setup)
     positions = SamplePositions.from_samples(samples, rotations)
@@ -436,7 +439,8 @@ def refine_from_poses(samples, views, camera, result, setup='eye_in_hand', robus
     o_q, o_t = object_pose(link_q, link_t, rotations.sensor[used], positions.sensor[used],
                            result.quaternion, result.translation)
     return refine_reprojection(link_q, link_t, [v for v, ok in zip(views, used) if ok], camera,
-                               result.quaternion, result.translation, o_q, o_t, robust=robust)
+                               result.quaternion, result.translation, o_q, o_t, robust=robust,
+                               view_errors=view_errors)
 
 
 # E[min(r^2, c^2)] / 2 for a 2-D Gaussian residual of unit sigma per axis (r^2 ~ chi2 with 2
