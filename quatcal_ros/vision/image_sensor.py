@@ -181,21 +181,20 @@ def result_on_pixels(result, fit):
     each view's shared error is larger than a robot's.
     """
     views = len(fit.view_rms_px)
+    few = f'with {views} views the uncertainty on the pixels is'
+    later = f'from {MIN_BLOCK_VIEWS} views on it is measured over the views'
     if fit.resampled is not None:
         said = []
     elif fit.views_share_errors:
-        said = [f"with {views} views the uncertainty on the pixels is the model's, whose "
-                f'errors shared by all corners of a view are fitted to {views} views only; '
-                f'from {MIN_BLOCK_VIEWS} views on it is measured over the views']
+        said = [f"{few} the model's, whose errors shared by all corners of a view are fitted "
+                f'to {views} views only; {later}']
     elif fit.view_error_evidence is not None and fit.view_error_evidence < VIEW_ERROR_EVIDENCE:
-        said = [f"with {views} views the uncertainty on the pixels is the pixel noise's "
-                'alone (the corners show no error that a view shares); from '
-                f'{MIN_BLOCK_VIEWS} views on it is measured over the views']
+        said = [f"{few} the pixel noise's alone (the corners show no error that a view "
+                f'shares); {later}']
     else:
-        said = [f"with {views} views the uncertainty on the pixels is the pixel noise's "
-                "alone: it leaves out errors that all corners of a view share (the robot's "
-                'pose error, on real cells often several times larger); from '
-                f'{MIN_BLOCK_VIEWS} views on it is measured over the views']
+        said = [f"{few} the pixel noise's alone: it leaves out errors that all corners of a "
+                "view share (the robot's pose error, on real cells often several times "
+                f'larger); {later}']
     degrees, millimetres = np.degrees(fit.view_error[:3]), 1e3 * fit.view_error[3:]
     if degrees.max() > ROBOT_LIKE_VIEW_ERROR_DEG or millimetres.max() > ROBOT_LIKE_VIEW_ERROR_MM:
         said.append("each view's board pose is off by up to "

@@ -359,10 +359,10 @@ def _evidence(link_q, link_t, corners, camera, plain, shared, w):
                      np.zeros(6))
     start = ViewNoise(shared.pixel_noise_px ** 2,
                       np.maximum(shared.view_error, START_VIEW_ERROR))
-    plain = at_plain.negative_log_likelihood(none)
+    without = at_plain.negative_log_likelihood(none)
     fitted = min(sums.negative_log_likelihood(sums.fit_noise(start, 0, EVIDENCE_TOLERANCE))
                  for sums in (at_plain, at_shared))
-    return 2.0 * (plain - min(plain, fitted))
+    return 2.0 * (without - min(without, fitted))
 
 
 def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared):
