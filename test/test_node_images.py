@@ -189,6 +189,7 @@ def test_estimate_refined_on_the_corners_of_each_sample(make_harness, board_file
     assert saved['reprojection']['pixel_noise_px'] == pytest.approx(
         float(status['pixel_noise_px']), rel=1e-5)
     assert saved['reprojection']['uncertainty_from'] in ('view_blocks', 'view_jackknife')
+    assert 0 <= saved['reprojection']['worst_view_sample'] < 8
 
 
 def test_resumed_session_refines_on_the_corners_it_kept(make_harness, board_file, tmp_path):

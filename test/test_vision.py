@@ -408,6 +408,8 @@ def test_the_report_of_a_fit_on_the_pixels_shows_it_beside_the_pose_based_one(re
     fit = on_pixels.reprojection
     assert f'pixel noise {fit["pixel_noise_px"]:#.3g} px' in page
     assert f'{fit["within_view_rms_px"]:#.3g} px once each view' in page
+    assert (f'the worst view: sample {fit["worst_view_sample"]}, '
+            f'{fit["worst_view_rms_px"]:#.3g} px RMS') in page
     assert '<h2>Validation (of the pose-based estimate): ' in page
     assert "what all corners of a view share, from the robot's pose or the camera model" in page
     apart = np.degrees(quat.angle_between(result.quaternion, on_pixels.quaternion))
@@ -566,6 +568,10 @@ def test_solve_dir_refines_on_the_pixels_and_lists_refused_views(repo_root, tmp_
     assert angle < 4 * result['uncertainty_deg'] + 0.01
     assert error_mm < 4 * result['translation_uncertainty_mm'] + 0.05
     assert result['reprojection']['reprojection_rms_px'] < 0.5
+    # The worst view by its sample and image (the walkthrough had to search for it).
+    images = {entry['sample']: entry['image'] for entry in result['validation']['samples']}
+    worst = result['reprojection']['worst_view_sample']
+    assert result['reprojection']['worst_view_image'] == images[worst]
     # The result file holds the fit on the pixels too (it held the answer alone).
     assert plain_yaml.load_file(tmp_path / 'result.yaml')['reprojection'] == \
         result['reprojection']

@@ -121,8 +121,13 @@ def _on_pixels(result):
               if fitted else f'none: the corners show no error a view shares{test}')
     within = (f', {fit["within_view_rms_px"]:#.3g} px once each view' + "'s shared error is "
               'taken out' if fitted else '')
+    worst = {'sample': fit['worst_view_sample']}
+    if 'worst_view_image' in fit:
+        worst['image'] = fit['worst_view_image']
     rows = [('fit on the pixels', f'pixel noise {fit["pixel_noise_px"]:#.3g} px; reprojection '
-                                  f'RMS {fit["reprojection_rms_px"]:#.3g} px{within}'),
+                                  f'RMS {fit["reprojection_rms_px"]:#.3g} px{within}; the '
+                                  f'worst view: sample {escape(_sample(worst))}, '
+                                  f'{fit["worst_view_rms_px"]:#.3g} px RMS'),
             ("each view's shared error", shared)]
     pose_based = result.refined or result.closed_form
     if pose_based is not None:

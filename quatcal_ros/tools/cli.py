@@ -206,6 +206,9 @@ def _solve_images(prog, args):
     fit = refine_from_poses(data.samples, data.corners(), data.camera, result, args.setup,
                             args.robust)
     on_pixels = result_on_pixels(result, fit)
+    worst = on_pixels.reprojection['worst_view_sample']   # (by its image, as every sample)
+    on_pixels = replace(on_pixels, reprojection={**on_pixels.reprojection,
+                                                 'worst_view_image': data.names[worst]})
     # On images the usual cause: the board's or the camera's numbers, which no fit can see.
     hint = (['on camera images a failed validation most often means wrong numbers in '
              'board.yaml (square_length_m, marker_length_m: measure the printed board) or '

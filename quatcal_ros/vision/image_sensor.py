@@ -154,7 +154,8 @@ class ImageSensor:
         fit = refine_from_poses([samples[i] for i in have],
                                 [self.corners[samples[i].stamp_ns] for i in have],
                                 self.camera, replace(result, sample_ok=ok), setup, robust)
-        return result_on_pixels(result, fit), fit
+        views = [i for i, used in zip(have, ok) if used]   # the sample of each view fitted
+        return result_on_pixels(result, fit, views), fit
 
 
 def mean_corners(views):
@@ -173,13 +174,18 @@ def mean_corners(views):
             np.array([sums[k] / counts[k] for k in keys], float).reshape(-1, 2))
 
 
-def result_on_pixels(result, fit):
+def result_on_pixels(result, fit, view_samples=None):
     """
     Return the CalibrationResult `result` with the mounting and uncertainty of `fit`.
+
+    view_samples: the sample of each view the fit took (default: those result used); its
+    "reprojection" object names the sample of the worst view (worst_view_sample).
 
     Its warnings say when the uncertainty is the pixel model's alone (too few views), and when
     each view's shared error is larger than a robot's.
     """
+    if view_samples is None:
+        view_samples = np.flatnonzero(result.sample_ok)
     views = len(fit.view_rms_px)
     few = f'with {views} views the uncertainty on the pixels is'
     later = f'from {MIN_BLOCK_VIEWS} views on it is measured over the views'
@@ -210,4 +216,5 @@ def result_on_pixels(result, fit):
                    translation=fit.translation, uncertainty_deg=fit.uncertainty_deg,
                    translation_uncertainty_mm=fit.translation_uncertainty_mm,
                    method='reprojection', warnings=[*result.warnings, *said],
-                   reprojection=fit.to_json_dict())
+                   reprojection={**fit.to_json_dict(), 'worst_view_sample': int(
+                       view_samples[int(np.argmax(fit.view_rms_px))])})
