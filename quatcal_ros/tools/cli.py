@@ -205,10 +205,7 @@ def _solve_images(prog, args):
             extra={'views': views, 'pose_based_method': result.method})
     fit = refine_from_poses(data.samples, data.corners(), data.camera, result, args.setup,
                             args.robust)
-    on_pixels = result_on_pixels(result, fit)
-    worst = on_pixels.reprojection['worst_view_sample']   # (by its image, as every sample)
-    on_pixels = replace(on_pixels, reprojection={**on_pixels.reprojection,
-                                                 'worst_view_image': data.names[worst]})
+    on_pixels = _named_by_image(result_on_pixels(session.result, fit), data.names)
     # On images the usual cause: the board's or the camera's numbers, which no fit can see.
     hint = (['on camera images a failed validation most often means wrong numbers in '
              'board.yaml (square_length_m, marker_length_m: measure the printed board) or '
@@ -234,7 +231,8 @@ def _named_by_image(result, names):
     """
     Return `result` with every entry that names a sample naming its image too (solve DIR).
 
-    A rejected sample's reason adds the other usual cause in a folder: the wrong row.
+    A rejected sample's reason adds the other usual cause in a folder: the wrong row. The fit
+    on the pixels (reprojection) names its worst view's image.
     """
     def named(entries):
         return [{**entry, 'image': names[entry['sample']]} if 'sample' in entry else entry
@@ -244,7 +242,11 @@ def _named_by_image(result, names):
     rejected = [{**entry, 'reason': f'{entry["reason"]}; or the image is paired with the '
                                     'wrong robot pose: check its row in robot_poses.csv'}
                 if 'image' in entry else entry for entry in named(result.rejected)]
-    return replace(result, rejected=rejected, noisy=named(result.noisy), validation=validation)
+    reprojection = result.reprojection and {
+        **result.reprojection,
+        'worst_view_image': names[result.reprojection['worst_view_sample']]}
+    return replace(result, rejected=rejected, noisy=named(result.noisy), validation=validation,
+                   reprojection=reprojection)
 
 
 def _on_poses(why):

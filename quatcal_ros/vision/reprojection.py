@@ -372,9 +372,11 @@ def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared)
     The covariance is a function, called for the chosen fit alone (`resampled` None here).
     shared: with the views' errors; else without.
     """
-    e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, model)
-    w, sigma = _weights(e, robust)
-    noise = ViewNoise(sigma ** 2, np.full(6, START_VIEW_ERROR if shared else 0.0))
+    noise = ViewNoise(1.0, np.zeros(6))   # (without the views' errors: set by each step)
+    if shared:   # the weights and pixel noise then change with the noise fit alone
+        e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, model)
+        w, sigma = _weights(e, robust)
+        noise = ViewNoise(sigma ** 2, np.full(6, START_VIEW_ERROR))
     converged, iterations = False, 0
     for iterations in range(1, max_iterations + 1):
         e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, model)
