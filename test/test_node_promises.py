@@ -333,6 +333,7 @@ def test_diagnostics_carry_the_leave_one_out_validation(rig_factory):
     translation = float(values['validation_rms_translation_mm'])
     assert rotation == pytest.approx(result.validation['rms_rotation_deg'], rel=1e-5)
     assert translation == pytest.approx(result.validation['rms_translation_mm'], rel=1e-5)
+    assert values['validation_rms_reprojection_px'] == ''   # (camera images only)
     # Of the order of the noise (0.1 deg, 0.5 mm per axis, and one sample 8 mm off).
     assert 0.05 < rotation < 1.0
     assert 0.5 < translation < 10.0

@@ -28,12 +28,13 @@ class Thresholds:
                 'max_translation_mm': self.max_translation_mm}
 
 
-def validate(leave_one_out, samples, thresholds=Thresholds()):
+def validate(leave_one_out, samples, thresholds=Thresholds(), fit='poses'):
     """
     Return the JSON object of the validation (DESIGN.md contract 6).
 
     leave_one_out: (K, 6) predicted residuals (rotation vector in radians, position in
-    metres, sensor frame) of the good samples whose indices are `samples` (K,).
+    metres, sensor frame) of the good samples whose indices are `samples` (K,); fit: the
+    estimate's, 'poses' or 'pixels' (the fit on camera images' corners).
     """
     squares = (leave_one_out * leave_one_out).reshape(-1, 2, 3).sum(axis=2)   # (K, 2)
     rotation, translation = np.sqrt(squares).T * np.array([[np.degrees(1.0)], [1e3]])
@@ -57,6 +58,7 @@ def validate(leave_one_out, samples, thresholds=Thresholds()):
               'leave-one-out prediction errors (RMS) above the thresholds: ' + ', '.join(failures))
     return {
         'method': 'leave-one-out',
+        'fit': fit,
         'verdict': verdict,
         'reason': reason,
         'rms_rotation_deg': rms_rotation,
@@ -67,9 +69,9 @@ def validate(leave_one_out, samples, thresholds=Thresholds()):
     }
 
 
-def not_enough_samples(count, needed, thresholds=Thresholds()):
+def not_enough_samples(count, needed, thresholds=Thresholds(), fit='poses'):
     """Return the validation object when too few good samples exist to validate."""
-    return {'method': 'leave-one-out', 'verdict': 'unknown',
+    return {'method': 'leave-one-out', 'fit': fit, 'verdict': 'unknown',
             'reason': f'{count} good samples: the leave-one-out validation needs {needed}',
             'rms_rotation_deg': None, 'rms_translation_mm': None,
             'thresholds': thresholds.to_json_dict(), 'worst': [], 'samples': []}

@@ -162,6 +162,15 @@ def _plain_number(value):
     return finite_or_none(value)
 
 
+def _plain_numbers(value):
+    """Return `value` (JSON-like: dicts, lists, numbers, text) with _plain_number's floats."""
+    if isinstance(value, dict):
+        return {key: _plain_numbers(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_plain_numbers(item) for item in value]
+    return _plain_number(value) if isinstance(value, float) else value
+
+
 def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extra=None,
                     joint=None):
     """
@@ -209,10 +218,7 @@ def result_document(result, parent_frame, child_frame, setup='eye_in_hand', extr
         pass
     reprojection = getattr(result, 'reprojection', None)
     if reprojection:   # the fit on the pixels: its pixel noise and views' errors
-        document['reprojection'] = {
-            key: ([_plain_number(v) for v in value] if isinstance(value, list)
-                  else _plain_number(value) if isinstance(value, float) else value)
-            for key, value in reprojection.items()}
+        document['reprojection'] = _plain_numbers(reprojection)
     validation = getattr(result, 'validation', None)
     if validation:
         document['validation'] = {key: value for key, value in validation.items()

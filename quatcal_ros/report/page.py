@@ -133,10 +133,16 @@ def _on_pixels(result):
     if pose_based is not None:
         apart_deg = np.degrees(quat.angle_between(pose_based.quaternion, result.quaternion))
         apart_mm = 1e3 * np.linalg.norm(np.asarray(pose_based.translation) - result.translation)
+        checked = fit.get('pose_based_validation') or {}
+        said = ('' if checked.get('rms_rotation_deg') is None else
+                f'; its validation {escape(checked["verdict"])} '
+                f'({checked["rms_rotation_deg"]:.3g} deg, '
+                f'{checked["rms_translation_mm"]:.3g} mm)')
         rows.append(('pose-based estimate', f'{apart_deg:.3g} deg and {apart_mm:.3g} mm from '
                                             f'this one; uncertainty '
                                             f'{pose_based.uncertainty_deg:.3g} deg, '
-                                            f'{pose_based.translation_uncertainty_mm:.3g} mm'))
+                                            f'{pose_based.translation_uncertainty_mm:.3g} mm'
+                                            + said))
     return rows
 
 
@@ -145,15 +151,22 @@ def _validation(result):
     verdict = validation.get('verdict', 'unknown')
     thresholds = validation.get('thresholds', {})
     worst = ', '.join(f'{_sample(w)} ({w["rotation_deg"]:.3g} deg, '
-                      f'{w["translation_mm"]:.3g} mm)' for w in validation.get('worst', []))
+                      f'{w["translation_mm"]:.3g} mm'
+                      + (f', {w["reprojection_rms_px"]:.3g} px' if 'reprojection_rms_px' in w
+                         else '') + ')' for w in validation.get('worst', []))
     numbers = ''
     if validation.get('rms_rotation_deg') is not None:
         numbers = (f' RMS prediction error {validation["rms_rotation_deg"]:.3g} deg and '
                    f'{validation["rms_translation_mm"]:.3g} mm against thresholds '
                    f'{thresholds.get("max_rotation_deg", float("nan")):g} deg and '
                    f'{thresholds.get("max_translation_mm", float("nan")):g} mm.')
+    if validation.get('rms_reprojection_px') is not None:
+        numbers += (" Each view's corners lie "
+                    f'{validation["rms_reprojection_px"]:.3g} px (RMS over the views) from '
+                    'the pixels the fit without that view predicts.')
     css = verdict if verdict in ('pass', 'fail') else 'warn'
-    whose = ' (of the pose-based estimate)' if result.reprojection else ''
+    whose = (' (of the pose-based estimate)'
+             if result.reprojection and validation.get('fit') != 'pixels' else '')
     return (f'<h2>Validation{whose}: <span class="{css}">{escape(verdict)}</span></h2>'
             f'<p>{escape(validation.get("reason", ""))}.{numbers}'
             + (f' Worst samples: {escape(worst)}.' if worst else '') + '</p>')

@@ -266,6 +266,7 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
         'validation': validation.get('verdict', ''),
         'validation_rms_rotation_deg': _number_text(validation.get('rms_rotation_deg')),
         'validation_rms_translation_mm': _number_text(validation.get('rms_translation_mm')),
+        'validation_rms_reprojection_px': _number_text(validation.get('rms_reprojection_px')),
         'validation_worst_samples': ' '.join(str(w['sample'])
                                              for w in validation.get('worst', [])),
         'tf_static': tf_static,

@@ -19,6 +19,8 @@ from dataclasses import replace
 
 import numpy as np
 from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core.calibration import MIN_REFINE_SAMPLES
+from quatcal_ros.core.validation import not_enough_samples, Thresholds, validate
 from quatcal_ros.vision.detect import detect
 from quatcal_ros.vision.reprojection import MIN_BLOCK_VIEWS, refine_from_poses, \
     VIEW_ERROR_EVIDENCE
@@ -211,10 +213,34 @@ def result_on_pixels(result, fit, view_samples=None):
                     '(camera_info: a focal length or a distortion off shows in depth, z), the '
                     "board (board.yaml sizes), and the robot's poses and their stamps (a pose "
                     'from another moment than the image)')
+    pose_based = result.validation or {}
     return replace(result, quaternion=fit.quaternion,
                    matrix=quat.matrix_from_quaternion(fit.quaternion),
                    translation=fit.translation, uncertainty_deg=fit.uncertainty_deg,
                    translation_uncertainty_mm=fit.translation_uncertainty_mm,
                    method='reprojection', warnings=[*result.warnings, *said],
+                   validation=(pose_based if fit.leave_one_out is None else
+                               _validation_on_pixels(fit, view_samples, pose_based)),
                    reprojection={**fit.to_json_dict(), 'worst_view_sample': int(
-                       view_samples[int(np.argmax(fit.view_rms_px))])})
+                       view_samples[int(np.argmax(fit.view_rms_px))]),
+                       'pose_based_validation': {key: pose_based.get(key) for key in (
+                           'verdict', 'rms_rotation_deg', 'rms_translation_mm')}})
+
+
+def _validation_on_pixels(fit, view_samples, pose_based):
+    """
+    Return the validation object of the fit on the pixels (fit.leave_one_out).
+
+    Each view's sensor pose against the prediction of the fit without it, with the
+    thresholds of the pose-based one; each sample adds reprojection_rms_px, the RMS of its
+    corners from the pixels that fit predicts, and the object their RMS over the views.
+    """
+    thresholds = Thresholds(**pose_based.get('thresholds', {}))
+    view_samples = [int(k) for k in view_samples]
+    if len(view_samples) < MIN_REFINE_SAMPLES:
+        return not_enough_samples(len(view_samples), MIN_REFINE_SAMPLES, thresholds, 'pixels')
+    checked = validate(fit.leave_one_out, view_samples, thresholds, 'pixels')
+    pixels = dict(zip(view_samples, fit.held_out.rms_px.tolist()))
+    for entry in (*checked['samples'], *checked['worst']):
+        entry['reprojection_rms_px'] = pixels[entry['sample']]
+    return {**checked, 'rms_reprojection_px': float(np.sqrt(np.mean(fit.held_out.rms_px ** 2)))}

@@ -120,6 +120,8 @@ class ReprojectionFit(ReportedUncertainty):
     within_view_rms_px: float      # RMS residual less each view's shared error (its estimate)
     view_error: np.ndarray         # (6,) ViewNoise.view_sd of the fit, zeros without
     view_error_evidence: float = None   # 2 log-likelihood ratio of the views' errors (tested)
+    held_out: 'HeldOut' = None     # what the fit without each view predicts of it
+    leave_one_out: np.ndarray = None   # (N, 6) its sensor pose's errors (refine_from_poses)
 
     @property
     def model(self):
@@ -164,6 +166,27 @@ class ReprojectionFit(ReportedUncertainty):
                 'within_view_rms_px': float(self.within_view_rms_px),
                 'view_error_threshold': VIEW_ERROR_EVIDENCE,
                 'converged': bool(self.converged), 'iterations': int(self.iterations)}
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """What the fit without each view predicts of it: its sensor pose and its corners."""
+
+    quaternion: np.ndarray   # (N, 4) the board's orientation in the camera frame
+    translation: np.ndarray  # (N, 3) its position there (m)
+    rms_px: np.ndarray       # (N,) RMS of the view's corners from their predicted pixels
+
+    def errors(self, sensor_q, sensor_t):
+        """
+        Return the observed sensor poses' errors from the predicted ones (N, 6).
+
+        As refine's residuals: a rotation vector (rad), then a position (m), sensor frame.
+        """
+        errors = np.empty((len(self.rms_px), 6))
+        errors[:, :3] = quat.rotation_vector(quat.multiply(sensor_q,
+                                                           quat.conjugate(self.quaternion)))
+        errors[:, 3:] = sensor_t - self.translation
+        return errors
 
 
 def board_in_camera(link_q, link_t, model):
@@ -310,11 +333,16 @@ class _ViewSums:
 
     def normal_equations(self, noise):
         """Return J^T C^-1 J (12 x 12) and J^T C^-1 e (12,), summed over the views."""
+        A, g = self.view_normal_equations(noise)
+        return A.sum(axis=0), g.sum(axis=0)
+
+    def view_normal_equations(self, noise):
+        """Return each view's J^T C^-1 J (N, 12, 12) and J^T C^-1 e (N, 12)."""
         d, B_inv, u = self._woodbury(noise)
         U = self.JWG * d / noise.pixel_variance
         A = self.JWJ / noise.pixel_variance - U @ B_inv @ np.swapaxes(U, 1, 2)
         g = self.JWe / noise.pixel_variance - np.einsum('vij,vjk,vk->vi', U, B_inv, u)
-        return A.sum(axis=0), g.sum(axis=0)
+        return A, g
 
 
 def refine_reprojection(link_q, link_t, views, camera, x_q, x_t, o_q, o_t, robust=True,
@@ -331,16 +359,18 @@ def refine_reprojection(link_q, link_t, views, camera, x_q, x_t, o_q, o_t, robus
     corners = Corners.of(views)
     model = (np.asarray(x_q, float), np.asarray(x_t, float), np.asarray(o_q, float),
              np.asarray(o_t, float))
-    plain, plain_w, plain_spread = _fit(link_q, link_t, corners, camera, model, robust,
-                                        max_iterations, False)
+    plain, plain_w, plain_spread, plain_held_out = _fit(link_q, link_t, corners, camera, model,
+                                                        robust, max_iterations, False)
     if view_errors is False:
-        return replace(plain, resampled=plain_spread(), view_error_evidence=None)
-    shared, _, shared_spread = _fit(link_q, link_t, corners, camera, plain.model, robust,
-                                    max_iterations, True)
+        return replace(plain, resampled=plain_spread(), held_out=plain_held_out(),
+                       view_error_evidence=None)
+    shared, _, shared_spread, shared_held_out = _fit(link_q, link_t, corners, camera,
+                                                     plain.model, robust, max_iterations, True)
     evidence = _evidence(link_q, link_t, corners, camera, plain, shared, plain_w)
     chosen = view_errors if view_errors is not None else evidence >= VIEW_ERROR_EVIDENCE
-    fit, spread = (shared, shared_spread) if chosen else (plain, plain_spread)
-    return replace(fit, resampled=spread(), view_error_evidence=evidence)
+    fit, spread, held_out = ((shared, shared_spread, shared_held_out) if chosen else
+                             (plain, plain_spread, plain_held_out))
+    return replace(fit, resampled=spread(), held_out=held_out(), view_error_evidence=evidence)
 
 
 def _evidence(link_q, link_t, corners, camera, plain, shared, w):
@@ -367,9 +397,10 @@ def _evidence(link_q, link_t, corners, camera, plain, shared, w):
 
 def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared):
     """
-    Return (ReprojectionFit, weights, covariance over the views) from `model`.
+    Return (ReprojectionFit, weights, covariance over the views, HeldOut) from `model`.
 
-    The covariance is a function, called for the chosen fit alone (`resampled` None here).
+    The covariance and the HeldOut are functions, called for the chosen fit alone
+    (`resampled` and `held_out` None here).
     shared: with the views' errors; else without.
     """
     noise = ViewNoise(1.0, np.zeros(6))   # (without the views' errors: set by each step)
@@ -422,7 +453,36 @@ def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared)
         rms_px=float(np.sqrt(squared.mean())), model_covariance=A_inv,
         resampled=None, converged=converged, iterations=iterations, view_rms_px=view_rms,
         within_view_rms_px=float(np.sqrt(np.mean(np.sum(within * within, axis=1)))),
-        view_error=noise.view_sd), w, spread
+        view_error=noise.view_sd), w, spread, partial(_held_out, link_q, link_t, corners,
+                                                      camera, model, sums, noise)
+
+
+def _held_out(link_q, link_t, corners, camera, model, sums, noise):
+    """
+    Return the HeldOut of the fit `model` with the _ViewSums and the noise at it.
+
+    The fit without view k is one Gauss-Newton step from the answer with the other views'
+    normal equations (the noise kept), as refine's leave-one-out: exact for a linear model,
+    and within a small fraction of the uncertainty this close to the optimum.
+    """
+    A, g = sums.view_normal_equations(noise)
+    without, rhs = A.sum(axis=0) - A, (g.sum(axis=0) - g)[..., None]
+    try:
+        steps = np.linalg.solve(without, rhs)[..., 0]
+    except np.linalg.LinAlgError:   # a view the others cannot do without
+        steps = (np.linalg.pinv(without) @ rhs)[..., 0]
+    n = len(steps)
+    quaternions, translations, rms = np.empty((n, 4)), np.empty((n, 3)), np.empty(n)
+    for k, step in enumerate(steps):
+        x_q, x_t, o_q, o_t = moved = apply_step(step, *model)
+        R_S, t_S = board_in_camera(link_q[k:k + 1], link_t[k:k + 1], moved)
+        quaternions[k] = quat.multiply(quat.multiply(quat.conjugate(x_q),
+                                                     quat.conjugate(link_q[k])), o_q)
+        translations[k] = t_S[0]
+        rows = corners.view == k
+        e = corners.pixels[rows] - camera.project(corners.points[rows] @ R_S[0].T + t_S[0])
+        rms[k] = np.sqrt(np.mean(np.sum(e * e, axis=1)))
+    return HeldOut(quaternions, translations, rms)
 
 
 def refine_from_poses(samples, views, camera, result, setup='eye_in_hand', robust=True,
@@ -432,17 +492,21 @@ def refine_from_poses(samples, views, camera, result, setup='eye_in_hand', robus
 
     views: [(object_points, image_points)] of each sample's image; the samples the result
     used (sample_ok) are fitted, from its mounting and the mean object pose it implies.
-    view_errors: as refine_reprojection's.
+    view_errors: as refine_reprojection's. Its leave_one_out: each view's sensor pose (the
+    board's in the camera frame, from its corners alone) against the fit without that view's
+    prediction (HeldOut.errors), as the pose-based validation measures its estimate.
     """
     rotations = SampleRotations.from_samples(samples, setup)
     positions = SamplePositions.from_samples(samples, rotations)
     used = np.asarray(result.sample_ok, dtype=bool)
     link_q, link_t = rotations.link[used], positions.link[used]
-    o_q, o_t = object_pose(link_q, link_t, rotations.sensor[used], positions.sensor[used],
-                           result.quaternion, result.translation)
-    return refine_reprojection(link_q, link_t, [v for v, ok in zip(views, used) if ok], camera,
-                               result.quaternion, result.translation, o_q, o_t, robust=robust,
-                               view_errors=view_errors)
+    sensor_q, sensor_t = rotations.sensor[used], positions.sensor[used]
+    o_q, o_t = object_pose(link_q, link_t, sensor_q, sensor_t, result.quaternion,
+                           result.translation)
+    fit = refine_reprojection(link_q, link_t, [v for v, ok in zip(views, used) if ok], camera,
+                              result.quaternion, result.translation, o_q, o_t, robust=robust,
+                              view_errors=view_errors)
+    return replace(fit, leave_one_out=fit.held_out.errors(sensor_q, sensor_t))
 
 
 # E[min(r^2, c^2)] / 2 for a 2-D Gaussian residual of unit sigma per axis (r^2 ~ chi2 with 2
