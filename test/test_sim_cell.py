@@ -29,6 +29,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import CameraInfo, Image
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -245,6 +246,55 @@ def test_follows_the_ros_clock_with_use_sim_time(context, namespace):
     assert np.all(np.diff(stamps) == 10 ** 7)
 
 
+def test_camera_images_show_the_board_where_the_cell_puts_it(context, namespace, repo_root):
+    """With camera_images the sensor stream is a camera's: the board at the true pose."""
+    from quatcal_ros.vision.detect import detect
+    values = {'camera_images': True, 'board_file': str(repo_root / 'config' / 'sim_board.yaml'),
+              'seed': 2, 'sensor_rate_hz': 10.0, 'still_s': 0.5, 'move_s': 0.5,
+              'link_rate_hz': 50.0, 'drop_probability': 0.0}
+    sim_node = SimCell(context=context, namespace=namespace,
+                       parameter_overrides=_overrides(**values))
+    recorder = Node('sim_cell_camera', context=context, namespace=namespace)
+    images, infos, poses = [], [], []
+    camera_qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT)  # keeps all
+    recorder.create_subscription(Image, 'image', images.append, camera_qos)
+    recorder.create_subscription(CameraInfo, 'camera_info', infos.append, camera_qos)
+    recorder.create_subscription(PoseStamped, 'sensor_pose', poses.append, QoSProfile(depth=10))
+    executor = SingleThreadedExecutor(context=context)
+    for node in (sim_node, recorder):
+        executor.add_node(node)
+    try:
+        assert spin_until(executor, lambda: min(len(images), len(infos)) >= 8, 30.0), (
+            len(images), len(infos))
+    finally:
+        executor.shutdown()
+        sim_node.destroy_node()
+        recorder.destroy_node()
+    assert not poses   # the camera replaces the sensor pose
+    by_stamp = {conv.stamp_ns_from_header(info.header): info for info in infos}
+    camera = sim_node.camera
+    origin = sim_node._origin_ns
+    for image in images[:8]:
+        stamp = conv.stamp_ns_from_header(image.header)
+        info = by_stamp[stamp]   # each image with the camera_info of its stamp
+        assert image.header.frame_id == info.header.frame_id == 'camera'
+        seen_as = conv.camera_from_camera_info(info)
+        assert (seen_as.width, seen_as.height) == (640, 480)
+        assert np.array_equal(seen_as.K, camera.camera.K)
+        assert np.array_equal(seen_as.D, camera.camera.D)
+        gray = np.frombuffer(bytes(image.data), np.uint8).reshape(image.height, image.width)
+        view = detect(gray, camera.renderer.board, camera.camera)
+        assert view.ok, (view.refused, view.detail)
+        # The true T_sensor_obj at the exposure (no clock offset, no latency in the stamp).
+        p, q = sim_node.cell.sensor_poses(*sim_node._trajectory.link_poses(
+            np.array([stamp - origin])))
+        truth = Pose(p[0], q[0]) @ camera.object_to_board
+        # Rendered corners found to about 0.1 px: the pose to a small fraction of a degree
+        # and a few millimetres along the line of sight at 0.5-1 m.
+        assert np.degrees(quat.angle_between(view.pose.quaternion, truth.quaternion)) < 0.3
+        assert np.linalg.norm(view.pose.position - truth.position) < 0.005
+
+
 @pytest.mark.parametrize('overrides, error, message', [
     ({'setup': 'on_the_table'}, ValueError, 'setup'),
     ({'robot': 'hexapod'}, ValueError, 'parameter robot must be one of'),
@@ -252,6 +302,7 @@ def test_follows_the_ros_clock_with_use_sim_time(context, namespace):
     ({'mounting_xyz': [0.1, 0.2, 0.3]}, ValueError, 'give both'),
     ({'drop_probability': 1.5}, InvalidParameterValueException, 'drop_probability'),
     ({'link_rate_hz': 0.0}, InvalidParameterValueException, 'link_rate_hz'),
+    ({'camera_images': True}, ValueError, 'camera_images needs board_file'),
 ])
 def test_bad_parameters_are_named(context, overrides, error, message):
     with pytest.raises(error, match=message):

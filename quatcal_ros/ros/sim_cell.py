@@ -20,6 +20,15 @@ sensor_frame on /tf_static, and the detector's sensor_frame -> marker_frame on /
 camera's rate, with the same noise, latency and drops. The calibrator reads it with
 robot_base_frame, robot_effector_frame, tracking_base_frame and tracking_marker_frame.
 
+With camera_images:=true the sensor is a camera instead (either mode): it publishes `image`
+(sensor_msgs/Image, mono8) and `camera_info` of the board in board_file (sensor-data QoS, as a
+camera driver does), rendered at the true pose T_sensor_obj (the board's centre at the
+object, facing the camera) with the pixel noise and blur of a real image (vision.render),
+with the same rate, latency, clock offset and drops; rotation_noise_deg, translation_noise_m
+and outlier_fraction do not apply (the calibrator's detector finds the noise in the corners).
+The stops then keep the board within IMAGE_VIEW_ANGLE_DEG of the optical axis, at most
+IMAGE_INCIDENCE_DEG oblique, so that its corners stay in the image.
+
 With robot:=scara the link turns about base z only (by up to rotation_spread_deg), with
 robot:=gantry not at all: the calibrator then solves what such motions determine and names the
 rest (its "unobservable" output). With seed S, the poses are those of
@@ -41,7 +50,9 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile
+from rclpy.qos import qos_profile_sensor_data, QoSProfile
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
 
 NODE_NAME = 'sim_cell'
@@ -81,7 +92,20 @@ PARAMETERS = {
                 'camera_link -> sensor_frame, the marker) instead of link_pose and sensor_pose',
                 None),
     'marker_frame': ('marker', 'the observed marker frame (tf_mode)', None),
+    'camera_images': (False, 'publish camera images of the board in board_file (image, '
+                      'camera_info) instead of the sensor pose: for the calibrator with '
+                      'sensor_input:=image', None),
+    'board_file': ('', 'the board camera_images draws (board.yaml; the calibrator reads the '
+                   'same file)', None),
 }
+# camera_images: the camera, how far off its axis and how obliquely a stop may show the board
+# (its corners then stay in the image), and an image's noise (grey levels) and blur (px).
+CAMERA_SIZE = (640, 480)
+CAMERA_MATRIX = [[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]]
+IMAGE_VIEW_ANGLE_DEG = 20.0
+IMAGE_INCIDENCE_DEG = 50.0
+IMAGE_NOISE = 2.0
+IMAGE_BLUR_PX = 0.6
 # tf_mode: the camera driver's static transform to the sensor frame (an optical frame: z
 # forward, x right, y down), and the first joint.
 CAMERA_LINK = 'camera_link'
@@ -121,6 +145,8 @@ class SimCellConfig:
     sensor_frame: str
     tf_mode: bool
     marker_frame: str
+    camera_images: bool
+    board_file: str
 
 
 def _descriptor(description, limits):
@@ -161,7 +187,44 @@ def read_config(node):
         raise ValueError(f'parameter setup must be one of {SETUPS}, not {setup!r}')
     values['mounting'] = mounting_from_parameters(values.pop('mounting_xyz'),
                                                   values.pop('mounting_rpy_deg'))
+    if values['camera_images'] and not values['board_file']:
+        raise ValueError('camera_images needs board_file: the board to draw (e.g. '
+                         'config/sim_board.yaml; give the calibrator the same file)')
     return SimCellConfig(**values)
+
+
+class SimCamera:
+    """The camera of camera_images: renders the board at a pose T_sensor_obj."""
+
+    def __init__(self, board_file, seed):
+        from quatcal_ros.vision.board import read_board   # cv2 only with camera_images
+        from quatcal_ros.vision.camera import camera_from
+        from quatcal_ros.vision.render import Renderer
+        self.camera = camera_from(*CAMERA_SIZE, CAMERA_MATRIX, 'plumb_bob', [0.0] * 5)
+        self.renderer = Renderer(read_board(board_file), self.camera)
+        # The object frame faces the camera (z towards it); the board's z faces away, its
+        # origin at a corner: T_obj_board turns it half a turn about x, centred.
+        width_m, height_m = self.renderer.board.extent_m
+        turn = quat.multiply(quat.from_rotation_vector([np.pi, 0.0, 0.0]),
+                             self.renderer.facing)
+        self.object_to_board = Pose(
+            -quat.matrix_from_quaternion(turn) @ [width_m / 2, height_m / 2, 0.0], turn)
+        self._rng = np.random.default_rng([seed, 1])   # (the cell's own draws stay as they were)
+
+    def messages(self, seen, stamp_ns, frame_id):
+        """Return the Image (mono8) and the CameraInfo of the board at T_sensor_obj `seen`."""
+        gray = self.renderer.render(seen @ self.object_to_board, self._rng, IMAGE_NOISE,
+                                    IMAGE_BLUR_PX)
+        header = Header(stamp=conversions.time_msg(stamp_ns), frame_id=frame_id)
+        height, width = gray.shape
+        info = CameraInfo(header=header, width=width, height=height,
+                          distortion_model=self.camera.distortion_model)
+        info.k = [float(v) for v in self.camera.K.ravel()]
+        info.d = [float(v) for v in self.camera.D]
+        info.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+        info.p = [float(v) for v in np.column_stack([self.camera.K, np.zeros(3)]).ravel()]
+        return (Image(header=header, height=height, width=width, encoding='mono8',
+                      is_bigendian=0, step=width, data=gray.tobytes()), info)
 
 
 def _due_times(next_index, until_ns, rate_hz):
@@ -180,9 +243,13 @@ class SimCell(Node):
         self.config = config = read_config(self)
         rng = np.random.default_rng(config.seed)
         self.cell = simulation.random_cell(rng, config.setup, mounting=config.mounting)
+        self.camera = (SimCamera(config.board_file, config.seed) if config.camera_images
+                       else None)
+        view = ({'max_view_angle_deg': IMAGE_VIEW_ANGLE_DEG,
+                 'max_incidence_deg': IMAGE_INCIDENCE_DEG} if self.camera else {})
         self._trajectory = simulation.StopAndGo(
             rng, self.cell, config.still_s, config.move_s, config.n_stops,
-            config.rotation_spread_deg, config.robot)
+            config.rotation_spread_deg, config.robot, **view)
         self._sensor = simulation.SensorModel(
             rng, config.rotation_noise_deg, config.translation_noise_m,
             config.drop_probability, config.outlier_fraction)
@@ -195,6 +262,11 @@ class SimCell(Node):
                 TFMessage, '/tf_static', TF_STATIC_BROADCAST_QOS)
         else:
             self._link_pub = self.create_publisher(PoseStamped, 'link_pose', stream_qos)
+        if self.camera:
+            self._image_pub = self.create_publisher(Image, 'image', qos_profile_sensor_data)
+            self._info_pub = self.create_publisher(CameraInfo, 'camera_info',
+                                                   qos_profile_sensor_data)
+        elif not config.tf_mode:
             self._sensor_pub = self.create_publisher(PoseStamped, 'sensor_pose', stream_qos)
         self._truth_pub = self.create_publisher(TransformStamped, '~/ground_truth', LATCHED_QOS)
         self._origin_ns = None      # clock time of trajectory time 0
@@ -276,10 +348,16 @@ class SimCell(Node):
         self._next_frame += len(times)
         true_p, true_q = self.cell.sensor_poses(*self._trajectory.link_poses(times))
         positions, quaternions, kept, _ = self._sensor.observe(true_p, true_q)
+        if self.camera:   # the image's pixels carry the noise
+            positions, quaternions = true_p, true_q
         config = self.config
         for t, p, q in zip(times[kept].tolist(), positions[kept], quaternions[kept]):
             stamp, seen = self._origin_ns + t + self._clock_offset_ns, Pose(p, q)
-            if config.tf_mode:
+            if self.camera:
+                image, info = self.camera.messages(seen, stamp, config.sensor_frame)
+                self._info_pub.publish(info)
+                self._image_pub.publish(image)
+            elif config.tf_mode:
                 self._tf_pub.publish(TFMessage(transforms=[conversions.transform_stamped_msg(
                     seen, stamp, config.sensor_frame, config.marker_frame)]))
             else:

@@ -465,11 +465,11 @@ class StopAndGo:
     stop k is held during [k P, k P + still) with P = still + move; the move to stop k + 1
     follows, SLERP in orientation and a straight line in position, both with minimum-jerk
     timing.  n_stops = 0 runs forever; otherwise the robot holds the last stop from
-    k = n_stops - 1 on.
+    k = n_stops - 1 on.  max_view_angle_deg, max_incidence_deg: stop_poses' (an arm's).
     """
 
     def __init__(self, rng, cell, still_s=1.5, move_s=2.0, n_stops=0, rotation_spread_deg=30.0,
-                 robot='arm'):
+                 robot='arm', max_view_angle_deg=45.0, max_incidence_deg=65.0):
         if robot not in ROBOTS:
             raise ValueError(f'robot must be one of {ROBOTS}, not {robot!r}')
         if still_s < 0.0 or move_s <= 0.0:
@@ -483,6 +483,8 @@ class StopAndGo:
         self.n_stops = int(n_stops)
         self.rotation_spread_deg = rotation_spread_deg
         self.robot = robot
+        self.view = {'max_view_angle_deg': max_view_angle_deg,
+                     'max_incidence_deg': max_incidence_deg}
         self._rng = rng.spawn(1)[0]
         self._positions = np.empty((0, 3))
         self._quaternions = np.empty((0, 4))
@@ -501,8 +503,8 @@ class StopAndGo:
                 self._rng, self.cell, 1, self.robot, turn_deg=self.rotation_spread_deg))[0]
                 for _ in range(new)])
         elif new > 0:
-            p, q = _stack([stop_poses(self._rng, self.cell, 1, self.rotation_spread_deg)[0]
-                           for _ in range(new)])
+            p, q = _stack([stop_poses(self._rng, self.cell, 1, self.rotation_spread_deg,
+                                      **self.view)[0] for _ in range(new)])
         if new > 0:
             self._positions = np.concatenate([self._positions, p])
             self._quaternions = np.concatenate([self._quaternions, q])
