@@ -14,11 +14,15 @@ refined default, each view weighed by its PnP covariance), and cv2.calibrateHand
 PARK, HORAUD, ANDREFF and DANIILIDIS on the same PnP poses. RMS errors against the truth
 over the trials. With --robot-deg D --robot-mm M every method is given the link poses a
 robot reports, each off by D deg and M mm RMS (the images are rendered from the true ones),
-as on a real cell.
+as on a real cell. With --focal-error P camera_info's focal lengths are given P % too long
+(the images rendered with the true ones): every method gets the detections made with them, and
+ours on the pixels fits their scale when the corners show it ("with camera_info's focal
+lengths" beside it keeps them). The CPU time of our default fit on the pixels is in each row
+of the views' table (ms per cell).
 Throughput: detection of one view (corners, PnP, checks) per second at 640 x 480 and 1920 x
 1080, single-threaded BLAS.
 Run: python bench/bench_images.py [--trials 10] [--views 10 20 50] [--robot-deg 0.2]
-     [--robot-mm 1] [--no-throughput]
+     [--robot-mm 1] [--focal-error 2] [--no-throughput]
 """
 
 import argparse
@@ -38,7 +42,7 @@ from quatcal_ros.vision.board import parse_board  # noqa: E402
 from quatcal_ros.vision.camera import camera_from  # noqa: E402
 from quatcal_ros.vision.detect import detect  # noqa: E402
 from quatcal_ros.vision.render import cell_views, Renderer, view_poses  # noqa: E402
-from quatcal_ros.vision.reprojection import refine_from_poses  # noqa: E402
+from quatcal_ros.vision.reprojection import refine_from_poses, with_focal_scale  # noqa: E402
 
 BOARD = {'type': 'charuco', 'squares_x': 7, 'squares_y': 5, 'square_length_m': 0.03,
          'marker_length_m': 0.022, 'dictionary': 'DICT_5X5_100'}
@@ -52,14 +56,19 @@ def camera(width=640, height=480, f=600.0):
                        'plumb_bob', [0, 0, 0, 0, 0])
 
 
-def trial(renderer, views, seed, robot_deg=0.0, robot_mm=0.0):
-    """Return {method: (rotation error deg, translation error mm)} of one rendered cell."""
+def trial(renderer, views, seed, robot_deg=0.0, robot_mm=0.0, focal_error=0.0):
+    """
+    Return {method: (rotation error deg, translation error mm)} of one rendered cell.
+
+    And the views found, and the CPU seconds of our default fit on the pixels.
+    """
     rng = np.random.default_rng(seed)
     X, _, seen_poses, cell_links = cell_views(rng, renderer, views)
+    told = with_focal_scale(renderer.camera, 1.0 + focal_error / 100.0)   # camera_info's
     links, found = [], []
     for seen, link in zip(seen_poses, cell_links):
         view = detect(renderer.render(seen, rng, noise=2.0, blur_sigma=0.6), renderer.board,
-                      renderer.camera)
+                      told)
         if view.ok:
             links.append(link)
             found.append(view)
@@ -75,9 +84,15 @@ def trial(renderer, views, seed, robot_deg=0.0, robot_mm=0.0):
     estimates['ours, pose-based (refined, PnP covariances)'] = (
         pose_based.quaternion, pose_based.translation)
     corners = [(v.object_points, v.image_points) for v in found]
-    fit = refine_from_poses(samples, corners, renderer.camera, pose_based)
+    start = time.process_time()
+    fit = refine_from_poses(samples, corners, told, pose_based)
+    cost = time.process_time() - start
     estimates['ours, on the pixels (reprojection)'] = (fit.quaternion, fit.translation)
-    plain = refine_from_poses(samples, corners, renderer.camera, pose_based, view_errors=False)
+    kept = refine_from_poses(samples, corners, told, pose_based, focal=False)
+    estimates["ours, on the pixels, with camera_info's focal lengths"] = (
+        kept.quaternion, kept.translation)
+    plain = refine_from_poses(samples, corners, told, pose_based, view_errors=False,
+                              focal=False)
     estimates["ours, on the pixels, without the views' shared errors"] = (
         plain.quaternion, plain.translation)
     for name, method in OPENCV.items():
@@ -89,7 +104,7 @@ def trial(renderer, views, seed, robot_deg=0.0, robot_mm=0.0):
         estimates[f'OpenCV {name}'] = (quat.quaternion_from_matrix(R), t.ravel())
     return {name: (np.degrees(quat.angle_between(q, X.quaternion)),
                    1e3 * np.linalg.norm(t - X.position))
-            for name, (q, t) in estimates.items()}, len(found)
+            for name, (q, t) in estimates.items()}, len(found), cost
 
 
 def throughput(width, height, repeats=20):
@@ -109,26 +124,33 @@ def main():
     parser.add_argument('--views', type=int, nargs='+', default=[10, 20, 50])
     parser.add_argument('--robot-deg', type=float, default=0.0)
     parser.add_argument('--robot-mm', type=float, default=0.0)
+    parser.add_argument('--focal-error', type=float, default=0.0,
+                        help="camera_info's focal lengths this many percent too long")
     parser.add_argument('--no-throughput', action='store_true')
     args = parser.parse_args()
     if args.robot_deg or args.robot_mm:
         print(f'(the link poses off by {args.robot_deg:g} deg and {args.robot_mm:g} mm RMS '
               'per pose)')
+    if args.focal_error:
+        print(f"(camera_info's focal lengths {args.focal_error:g} % too long)")
     renderer = Renderer(parse_board(BOARD), camera())
     print('| views | method | RMS rotation error (deg) | RMS translation error (mm) |')
     print('|---|---|---|---|')
     for views in args.views:
-        errors, used = {}, []
+        errors, used, costs = {}, [], []
         for k in range(args.trials):
-            found, count = trial(renderer, views, 1000 * views + k, args.robot_deg,
-                                 args.robot_mm)
+            found, count, cost = trial(renderer, views, 1000 * views + k, args.robot_deg,
+                                       args.robot_mm, args.focal_error)
             used.append(count)
+            costs.append(cost)
             for name, pair in found.items():
                 errors.setdefault(name, []).append(pair)
         for name, pairs in errors.items():
             pairs = np.array(pairs)
             rms = np.sqrt(np.mean(pairs ** 2, axis=0))
             print(f'| {views} | {name} | {rms[0]:.4f} | {rms[1]:.3f} |')
+        print(f'| {views} | (CPU of our default fit on the pixels: {1e3 * np.mean(costs):.0f} ms '
+              f'mean, {1e3 * np.max(costs):.0f} ms most) | | |')
     print(f'({args.trials} rendered cells per row)')
     if args.no_throughput:
         return

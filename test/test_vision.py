@@ -35,7 +35,8 @@ from quatcal_ros.vision.detect import _exposure, _pnp, _with_pose, Checks, detec
 from quatcal_ros.vision.image_sensor import result_on_pixels
 from quatcal_ros.vision.render import cell_views, Renderer, view_poses, write_dataset
 from quatcal_ros.vision.reprojection import board_in_camera, cramer_rao_covariance, \
-    refine_from_poses, refine_reprojection, VIEW_ERROR_EVIDENCE
+    FOCAL_EVIDENCE, refine_from_poses, refine_reprojection, VIEW_ERROR_EVIDENCE, \
+    with_focal_scale
 
 CAMERA = camera_from(640, 480, [[600, 0, 320], [0, 600, 240], [0, 0, 1]], 'plumb_bob',
                      [0, 0, 0, 0, 0])
@@ -344,6 +345,9 @@ def test_without_shared_errors_the_fit_on_the_pixels_noise_alone_is_kept(rendere
         fit = refine_reprojection(link_q, link_t, corners, CAMERA, *model)
         assert not fit.views_share_errors and fit.uncertainty_from == 'view_blocks'
         assert fit.view_error_evidence < VIEW_ERROR_EVIDENCE
+        # Nor is a focal scale (on 60 cells without a focal error the statistic was at most
+        # 8.0 against 10.83).
+        assert fit.focal_evidence < FOCAL_EVIDENCE and fit.focal_scale == 1.0
         without = refine_reprojection(link_q, link_t, corners, CAMERA, *model,
                                       view_errors=False)
         assert np.array_equal(fit.quaternion, without.quaternion)
@@ -354,6 +358,37 @@ def test_without_shared_errors_the_fit_on_the_pixels_noise_alone_is_kept(rendere
         refine_reprojection(link_q[:2], link_t[:2], [corners[0], (np.zeros((0, 3)),
                                                                   np.zeros((0, 2)))],
                             CAMERA, *model)
+
+
+def test_a_focal_length_off_in_camera_info_is_fitted(renderers):
+    """camera_info's focal lengths 2 % off, the robot 0.2 deg and 1 mm: the scale is fitted."""
+    # Measured on these 8 cells: every one fitted (evidence 44 median, at least 10.83); the
+    # translation error 11.7 mm with camera_info's focal lengths, 2.5 mm with the fitted
+    # scale, error / reported 0.99 and 1.14.
+    camera = with_focal_scale(CAMERA, 1.02)
+    fitted, fixed, reported = [], [], []
+    for trial in range(8):
+        rng = np.random.default_rng(600 + trial)
+        X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 12, 0.3)
+        links = robot_error(rng, links, 0.2, 1.0)
+        samples = [Sample(s.stamp_ns, link, s.sensor) for s, link in zip(samples, links)]
+        start = calibrate(samples)
+        model = (start.quaternion, start.translation, O.quaternion, O.position + 0.01)
+        fit = refine_reprojection(*robot_poses(links), corners, camera, *model)
+        assert fit.focal_evidence >= FOCAL_EVIDENCE
+        assert abs(fit.focal_scale - 1 / 1.02) < 4 * fit.focal_scale_sd, fit.focal_scale
+        without = refine_reprojection(*robot_poses(links), corners, camera, *model,
+                                      focal=False)
+        assert without.focal_scale == 1.0 and without.focal_scale_sd is None
+        for estimate, errors in ((fit, fitted), (without, fixed)):
+            errors.append((quat.angle_between(estimate.quaternion, X.quaternion) ** 2,
+                           np.sum((estimate.translation - X.position) ** 2)))
+        reported.append((np.radians(fit.uncertainty_deg) ** 2,
+                         (1e-3 * fit.translation_uncertainty_mm) ** 2))
+    fitted, fixed = np.mean(fitted, axis=0), np.mean(fixed, axis=0)
+    assert np.sqrt(fitted[1]) < np.sqrt(fixed[1]) / 3, (fitted, fixed)
+    ratio = np.sqrt(fitted / np.mean(reported, axis=0))
+    assert np.all((0.7 < ratio) & (ratio < 1.35)), ratio
 
 
 def robot_poses(links):
@@ -490,6 +525,8 @@ def test_the_report_of_a_fit_on_the_pixels_shows_it_beside_the_pose_based_one(re
     assert (f'its validation {result.validation["verdict"]} '
             f'({result.validation["rms_rotation_deg"]:.3g} deg, ') in page
     assert "what all corners of a view share, from the robot's pose or the camera model" in page
+    assert ("<th>focal length</th><td>camera_info's: the corners show no error in it "
+            f'(likelihood-ratio evidence {fit["focal_evidence"]:.1f}, fitted from 10.83)') in page
     apart = np.degrees(quat.angle_between(result.quaternion, on_pixels.quaternion))
     assert f'<th>pose-based estimate</th><td>{apart:.3g} deg and ' in page
     # The prefixes (pose-based) end at the pose-based answer, not at the pixels' one (the
@@ -590,6 +627,32 @@ def test_solve_dir_with_a_board_5_percent_too_large_is_not_silent(tmp_path, rend
     # The hint on images follows the published validation: said when it fails.
     assert ('wrong numbers in board.yaml (square_length_m, marker_length_m' in said) == (
         validation['verdict'] == 'fail')
+
+
+def test_solve_dir_with_a_focal_length_5_percent_off_fits_it_and_says_so(tmp_path, renderers,
+                                                                         capsys):
+    # camera_info's focal lengths 5 % long: the board poses 5 % deeper. The fit on the
+    # pixels scales them (measured: 0.9524 of them, the truth 1 / 1.05 = 0.9524) and lands
+    # 0.04 mm from the true translation (reported 0.05; 26.7 mm with them as given); the
+    # validation checks each view's board pose with the scaled focal lengths too.
+    mounting, _ = write_rendered_dataset(tmp_path, renderers['charuco'], 12, seed=100)
+    info = tmp_path / 'camera_info.yaml'
+    document = plain_yaml.load_file(info)
+    for k in (0, 4):
+        document['camera_matrix']['data'][k] *= 1.05
+    info.write_text(plain_yaml.dump(document))
+    assert solve_main([str(tmp_path)]) == 0
+    result = json.loads(capsys.readouterr().out)
+    fit = result['reprojection']
+    assert fit['focal_evidence'] >= fit['focal_threshold'] == FOCAL_EVIDENCE
+    assert abs(fit['focal_scale'] - 1 / 1.05) < 4 * fit['focal_scale_sd']
+    translation = np.array([result['translation'][k] for k in 'xyz'])
+    error_mm = 1e3 * np.linalg.norm(translation - mounting.position)
+    assert error_mm < 4 * result['translation_uncertainty_mm'], (
+        error_mm, result['translation_uncertainty_mm'])
+    assert result['validation']['verdict'] == 'pass'
+    assert any(text.startswith("the corners fit camera_info's focal lengths times 0.95")
+               and 'calibrate the camera again' in text for text in result['warnings'])
 
 
 def test_solve_dir_of_a_gantry_stays_on_the_poses(tmp_path, renderers, capsys):

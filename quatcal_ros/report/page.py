@@ -129,6 +129,16 @@ def _on_pixels(result):
                                   f'worst view: sample {escape(_sample(worst))}, '
                                   f'{fit["worst_view_rms_px"]:#.3g} px RMS'),
             ("each view's shared error", shared)]
+    scale, focal_evidence = fit.get('focal_scale', 1.0), fit.get('focal_evidence')
+    if scale != 1.0:
+        rows.append(('focal length', f"camera_info's times {scale:.4f} "
+                                     f'(+-{fit["focal_scale_sd"]:.2g}), fitted (likelihood-ratio '
+                                     f'evidence {focal_evidence:.1f}, from '
+                                     f'{fit["focal_threshold"]:g})'))
+    elif focal_evidence is not None:
+        rows.append(('focal length', f"camera_info's: the corners show no error in it "
+                                     f'(likelihood-ratio evidence {focal_evidence:.1f}, fitted '
+                                     f'from {fit["focal_threshold"]:g})'))
     pose_based = result.refined or result.closed_form
     if pose_based is not None:
         apart_deg = np.degrees(quat.angle_between(pose_based.quaternion, result.quaternion))

@@ -263,6 +263,7 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
         'pixel_noise_px': _number_text(on_pixels.get('pixel_noise_px')),
         'view_error_deg': ' '.join(f'{v:.3g}' for v in on_pixels.get('view_error_deg', ())),
         'view_error_mm': ' '.join(f'{v:.3g}' for v in on_pixels.get('view_error_mm', ())),
+        'focal_scale': _number_text(on_pixels.get('focal_scale')),
         'validation': validation.get('verdict', ''),
         'validation_rms_rotation_deg': _number_text(validation.get('rms_rotation_deg')),
         'validation_rms_translation_mm': _number_text(validation.get('rms_translation_mm')),

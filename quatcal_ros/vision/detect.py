@@ -204,6 +204,12 @@ def _pnp(object_points, image_points, camera):
     return sorted(solutions, key=lambda s: s[2])
 
 
+def board_pose(object_points, image_points, camera):
+    """Return the board's pose T_camera_board that its corners give alone (PnP), or None."""
+    solutions = _pnp(object_points, image_points, camera)
+    return pose_from_rvec(*solutions[0][:2]) if solutions else None
+
+
 def pose_from_rvec(rvec, tvec):
     """Return the Pose of an OpenCV rotation vector and translation (T_camera_board)."""
     R, _ = cv2.Rodrigues(np.asarray(rvec, dtype=float).reshape(3))

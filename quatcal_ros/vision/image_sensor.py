@@ -213,6 +213,13 @@ def result_on_pixels(result, fit, view_samples=None):
                     '(camera_info: a focal length or a distortion off shows in depth, z), the '
                     "board (board.yaml sizes), and the robot's poses and their stamps (a pose "
                     'from another moment than the image)')
+    if fit.focal_scale != 1.0:
+        said.append(f"the corners fit camera_info's focal lengths times {fit.focal_scale:.4f} "
+                    f'(+-{fit.focal_scale_sd:.2g}, a {100 * (fit.focal_scale - 1):+.1f} % '
+                    f'error; likelihood-ratio evidence {fit.focal_evidence:.0f}), and the '
+                    'mounting is fitted with them: calibrate the camera again (a focal '
+                    "length off moves the board's depth in every view), or check board.yaml's "
+                    'sizes')
     pose_based = result.validation or {}
     return replace(result, quaternion=fit.quaternion,
                    matrix=quat.matrix_from_quaternion(fit.quaternion),

@@ -24,6 +24,13 @@ each, the views' errors took the rotation error from 1.07-0.64 deg to 0.48-0.26 
 pose-based fit's or better) and the translation from 4.7-3.3 mm to 3.2-1.8; without them
 the views' corners counted as independent.
 
+A focal length off in camera_info moves every view's board in depth; the robot's motions
+tell the true depths, so a scale of the focal lengths (the principal point kept) is a 13th
+unknown when the corners show it: twice the log-likelihood ratio at least FOCAL_EVIDENCE.
+With the robot off by 0.2 deg and 1 mm, the focal lengths 2 % off took the translation error
+from 12.7 to 5.4 mm at 8 synthetic views and from 12.4 to 2.1 at 16 (error / reported
+0.91-1.24); on 60 cells without a focal error the statistic was at most 8.0.
+
 Uncertainty, with the views' errors: a jackknife over blocks of views with the noise fitted
 again without each (_view_jackknife). The sandwich alone missed the noise model's own
 estimation from a few views: true error / reported 1.44 at 10 synthetic views; the
@@ -48,6 +55,7 @@ from quatcal_ros.core.motions import SampleRotations
 from quatcal_ros.core.refine import apply_step, object_pose, ReportedUncertainty, \
     uncertainties
 from quatcal_ros.core.translation import SamplePositions
+from quatcal_ros.vision.detect import board_pose
 
 MAX_ITERATIONS = 30
 STEP_TOLERANCE = 1e-6          # in units of the unknowns' sigmas
@@ -64,6 +72,9 @@ NOISE_REFITS = 8               # Gauss-Newton steps that refit the noise, then i
 # The views' errors are fitted when twice the log-likelihood ratio exceeds chi^2 of 6 degrees
 # of freedom at 0.999 (a test at the boundary, D = 0: conservative); below, without them.
 VIEW_ERROR_EVIDENCE = 22.46
+# The focal scale is fitted when twice its log-likelihood ratio exceeds chi^2 of 1 degree of
+# freedom at 0.999; below, camera_info's focal lengths stand.
+FOCAL_EVIDENCE = 10.83
 
 
 @dataclass(frozen=True)
@@ -112,7 +123,7 @@ class ReprojectionFit(ReportedUncertainty):
     object_translation: np.ndarray
     pixel_noise_px: float
     rms_px: float
-    model_covariance: np.ndarray   # 12 x 12
+    model_covariance: np.ndarray   # 12 x 12 (13 x 13 with the focal scale)
     resampled: np.ndarray          # 6 x 6 of X over the views, or None (too few views)
     converged: bool
     iterations: int
@@ -120,6 +131,9 @@ class ReprojectionFit(ReportedUncertainty):
     within_view_rms_px: float      # RMS residual less each view's shared error (its estimate)
     view_error: np.ndarray         # (6,) ViewNoise.view_sd of the fit, zeros without
     view_error_evidence: float = None   # 2 log-likelihood ratio of the views' errors (tested)
+    focal_scale: float = 1.0       # camera_info's focal lengths times this (fitted, else 1)
+    focal_scale_sd: float = None   # its standard deviation, when fitted
+    focal_evidence: float = None   # 2 log-likelihood ratio of fitting it (tested)
     held_out: 'HeldOut' = None     # what the fit without each view predicts of it
     leave_one_out: np.ndarray = None   # (N, 6) its sensor pose's errors (refine_from_poses)
 
@@ -165,6 +179,12 @@ class ReprojectionFit(ReportedUncertainty):
                 'worst_view_rms_px': float(np.max(self.view_rms_px)),
                 'within_view_rms_px': float(self.within_view_rms_px),
                 'view_error_threshold': VIEW_ERROR_EVIDENCE,
+                'focal_scale': float(self.focal_scale),
+                'focal_scale_sd': (None if self.focal_scale_sd is None
+                                   else float(self.focal_scale_sd)),
+                'focal_evidence': (None if self.focal_evidence is None
+                                   else float(self.focal_evidence)),
+                'focal_threshold': FOCAL_EVIDENCE,
                 'converged': bool(self.converged), 'iterations': int(self.iterations)}
 
 
@@ -245,7 +265,7 @@ class _ViewSums:
     """
     Each view's weighted sums of its corners' Jacobians and residuals.
 
-    J: of the 12 unknowns (None: the sums of the noise's likelihood alone), G: of the view's
+    J: of the unknowns (None: the sums of the noise's likelihood alone), G: of the view's
     error (None: no view error), e: the residuals, for the view's covariance
     C = sigma^2 W^-1 + G D G^T. The corners come view by view, as Corners.of stacks them.
 
@@ -263,7 +283,7 @@ class _ViewSums:
             wJ = J * w[:, None, None]
             self.JWJ = per_view(np.einsum('kai,kaj->kij', wJ, J))
             self.JWe = per_view(np.einsum('kai,ka->ki', wJ, e))
-            self.JWG = (np.zeros((views, 12, 6)) if G is None else
+            self.JWG = (np.zeros((views, J.shape[2], 6)) if G is None else
                         per_view(np.einsum('kai,kaj->kij', wJ, G)))
         if G is None:
             self.GWG, self.GWe = np.zeros((views, 6, 6)), np.zeros((views, 6))
@@ -332,12 +352,12 @@ class _ViewSums:
         return noise
 
     def normal_equations(self, noise):
-        """Return J^T C^-1 J (12 x 12) and J^T C^-1 e (12,), summed over the views."""
+        """Return J^T C^-1 J (P x P, P unknowns) and J^T C^-1 e (P,), summed over the views."""
         A, g = self.view_normal_equations(noise)
         return A.sum(axis=0), g.sum(axis=0)
 
     def view_normal_equations(self, noise):
-        """Return each view's J^T C^-1 J (N, 12, 12) and J^T C^-1 e (N, 12)."""
+        """Return each view's J^T C^-1 J (N, P, P) and J^T C^-1 e (N, P)."""
         d, B_inv, u = self._woodbury(noise)
         U = self.JWG * d / noise.pixel_variance
         A = self.JWJ / noise.pixel_variance - U @ B_inv @ np.swapaxes(U, 1, 2)
@@ -346,31 +366,43 @@ class _ViewSums:
 
 
 def refine_reprojection(link_q, link_t, views, camera, x_q, x_t, o_q, o_t, robust=True,
-                        max_iterations=MAX_ITERATIONS, view_errors=None):
+                        max_iterations=MAX_ITERATIONS, view_errors=None, focal=None):
     """
     Fit X and O to the corners of `views` ([(object_points, image_points)], one per link pose).
 
     Starts from (x_q, x_t, o_q, o_t), e.g. the pose-based refinement's answer; returns a
     ReprojectionFit: with each view's shared error when the corners show one
     (VIEW_ERROR_EVIDENCE), else on the pixels' noise alone; view_errors True or False
-    decides instead.
+    decides instead. Then with camera_info's focal lengths scaled when the corners show that
+    too (FOCAL_EVIDENCE); focal True or False decides instead.
     """
     link_q, link_t = np.asarray(link_q, dtype=float), np.asarray(link_t, dtype=float)
     corners = Corners.of(views)
     model = (np.asarray(x_q, float), np.asarray(x_t, float), np.asarray(o_q, float),
              np.asarray(o_t, float))
-    plain, plain_w, plain_spread, plain_held_out = _fit(link_q, link_t, corners, camera, model,
-                                                        robust, max_iterations, False)
-    if view_errors is False:
-        return replace(plain, resampled=plain_spread(), held_out=plain_held_out(),
-                       view_error_evidence=None)
-    shared, _, shared_spread, shared_held_out = _fit(link_q, link_t, corners, camera,
-                                                     plain.model, robust, max_iterations, True)
-    evidence = _evidence(link_q, link_t, corners, camera, plain, shared, plain_w)
-    chosen = view_errors if view_errors is not None else evidence >= VIEW_ERROR_EVIDENCE
-    fit, spread, held_out = ((shared, shared_spread, shared_held_out) if chosen else
-                             (plain, plain_spread, plain_held_out))
-    return replace(fit, resampled=spread(), held_out=held_out(), view_error_evidence=evidence)
+    fit = partial(_fit, link_q, link_t, corners, camera)
+    plain, plain_w, spread, held_out = fit(model, robust, max_iterations, False)
+    evidence, shared = None, False
+    if view_errors is not False:
+        fitted = fit(plain.model, robust, max_iterations, True)
+        evidence = _evidence(link_q, link_t, corners, camera, plain, fitted[0], plain_w)
+        shared = view_errors if view_errors is not None else evidence >= VIEW_ERROR_EVIDENCE
+        if shared:
+            plain, _, spread, held_out = fitted
+    chosen, focal_evidence = plain, None
+    if focal is not False:
+        scaled = fit(plain.model, robust, max_iterations, shared, focal=True)
+        focal_evidence = _focal_evidence(link_q, link_t, corners, camera, plain, scaled[0],
+                                         plain_w, shared)
+        if focal if focal is not None else focal_evidence >= FOCAL_EVIDENCE:
+            chosen, _, spread, held_out = scaled
+    covariance = spread()
+    if chosen.focal_scale != 1.0 or focal:
+        variance = (chosen.model_covariance if covariance is None else covariance)[12, 12]
+        chosen = replace(chosen, focal_scale_sd=float(np.sqrt(variance)))
+    return replace(chosen, resampled=None if covariance is None else covariance[:6, :6],
+                   held_out=held_out(), view_error_evidence=evidence,
+                   focal_evidence=focal_evidence)
 
 
 def _evidence(link_q, link_t, corners, camera, plain, shared, w):
@@ -395,14 +427,51 @@ def _evidence(link_q, link_t, corners, camera, plain, shared, w):
     return 2.0 * (without - min(without, fitted))
 
 
-def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared):
+def _focal_evidence(link_q, link_t, corners, camera, fixed, scaled, w, shared):
+    """
+    Return twice the log-likelihood ratio of fitting the focal scale (FOCAL_EVIDENCE).
+
+    The residuals of the fit with camera_info's focal lengths (`fixed`) and of the one with
+    them scaled, under the same noise family (with the views' errors when `shared`), each
+    with the weights w and its noise by maximum likelihood; never below 0.
+    """
+    def likelihood(fit):
+        seen_by = with_focal_scale(camera, fit.focal_scale)
+        e = corners.pixels - predicted_pixels(link_q, link_t, corners, seen_by, fit.model)
+        G = view_jacobian(link_q, link_t, corners, seen_by, fit.model) if shared else None
+        sums = _ViewSums(None, G, e, w, corners.view)
+        start = ViewNoise(fit.pixel_noise_px ** 2,
+                          np.maximum(fit.view_error, START_VIEW_ERROR) if shared
+                          else np.zeros(6))
+        return sums.negative_log_likelihood(sums.fit_noise(start, 0, EVIDENCE_TOLERANCE))
+    without, with_scale = likelihood(fixed), likelihood(scaled)
+    return 2.0 * max(without - with_scale, 0.0)
+
+
+def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared, focal=False):
     """
     Return (ReprojectionFit, weights, covariance over the views, HeldOut) from `model`.
 
-    The covariance and the HeldOut are functions, called for the chosen fit alone
-    (`resampled` and `held_out` None here).
-    shared: with the views' errors; else without.
+    The covariance (all the unknowns') and the HeldOut are functions, called for the chosen
+    fit alone (`resampled` and `held_out` None here).
+    shared: with the views' errors; else without. focal: with the focal scale as a 13th
+    unknown (with_focal_scale), from 1.
     """
+    scale = 1.0
+
+    def linearised(model, scale):
+        seen_by = with_focal_scale(camera, scale)
+        predicted = predicted_pixels(link_q, link_t, corners, seen_by, model)
+        J = jacobian(link_q, link_t, corners, seen_by, model)
+        if focal:   # u - c = s (f x'): d u / d s = (u - c) / s
+            J = np.concatenate([J, ((predicted - seen_by.K[:2, 2]) / scale)[..., None]],
+                               axis=2)
+        G = view_jacobian(link_q, link_t, corners, seen_by, model) if shared else None
+        return corners.pixels - predicted, J, G
+
+    def moved(step, model, scale):
+        return apply_step(step[:12], *model), scale + (step[12] if focal else 0.0)
+
     noise = ViewNoise(1.0, np.zeros(6))   # (without the views' errors: set by each step)
     if shared:   # the weights and pixel noise then change with the noise fit alone
         e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, model)
@@ -410,9 +479,7 @@ def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared)
         noise = ViewNoise(sigma ** 2, np.full(6, START_VIEW_ERROR))
     converged, iterations = False, 0
     for iterations in range(1, max_iterations + 1):
-        e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, model)
-        J = jacobian(link_q, link_t, corners, camera, model)
-        G = view_jacobian(link_q, link_t, corners, camera, model) if shared else None
+        e, J, G = linearised(model, scale)
         if not shared:
             w, sigma = _weights(e, robust)
             noise = ViewNoise(sigma ** 2, noise.view_sd)
@@ -426,13 +493,11 @@ def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared)
                 sums = _ViewSums(J, G, e, w, corners.view)
         A, g = sums.normal_equations(noise)
         step = np.linalg.lstsq(A, g, rcond=None)[0]
-        model = apply_step(step, *model)
+        model, scale = moved(step, model, scale)
         if float(step @ A @ step) < STEP_TOLERANCE ** 2:
             converged = True
             break
-    e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, model)
-    J = jacobian(link_q, link_t, corners, camera, model)
-    G = view_jacobian(link_q, link_t, corners, camera, model) if shared else None
+    e, J, G = linearised(model, scale)
     if not shared:
         w, sigma = _weights(e, robust)
         noise = ViewNoise(sigma ** 2, noise.view_sd)
@@ -453,48 +518,59 @@ def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared)
         rms_px=float(np.sqrt(squared.mean())), model_covariance=A_inv,
         resampled=None, converged=converged, iterations=iterations, view_rms_px=view_rms,
         within_view_rms_px=float(np.sqrt(np.mean(np.sum(within * within, axis=1)))),
-        view_error=noise.view_sd), w, spread, partial(_held_out, link_q, link_t, corners,
-                                                      camera, model, sums, noise)
+        view_error=noise.view_sd, focal_scale=scale), w, spread, partial(
+            _held_out, link_q, link_t, corners, camera, model, sums, noise, scale, moved)
 
 
-def _held_out(link_q, link_t, corners, camera, model, sums, noise):
+def with_focal_scale(camera, scale):
+    """Return `camera` with its focal lengths (and skew) times `scale`, its centre kept."""
+    if scale == 1.0:
+        return camera
+    K = camera.K.copy()
+    K[:2, :2] *= scale
+    return replace(camera, K=K)
+
+
+def _held_out(link_q, link_t, corners, camera, model, sums, noise, scale, moved):
     """
-    Return the HeldOut of the fit `model` with the _ViewSums and the noise at it.
+    Return the HeldOut of the fit (`model`, focal `scale`) with the _ViewSums and noise at it.
 
     The fit without view k is one Gauss-Newton step from the answer with the other views'
     normal equations (the noise kept), as refine's leave-one-out: exact for a linear model,
     and within a small fraction of the uncertainty this close to the optimum.
     """
     A, g = sums.view_normal_equations(noise)
-    without, rhs = A.sum(axis=0) - A, (g.sum(axis=0) - g)[..., None]
+    others, rhs = A.sum(axis=0) - A, (g.sum(axis=0) - g)[..., None]
     try:
-        steps = np.linalg.solve(without, rhs)[..., 0]
+        steps = np.linalg.solve(others, rhs)[..., 0]
     except np.linalg.LinAlgError:   # a view the others cannot do without
-        steps = (np.linalg.pinv(without) @ rhs)[..., 0]
+        steps = (np.linalg.pinv(others) @ rhs)[..., 0]
     n = len(steps)
     quaternions, translations, rms = np.empty((n, 4)), np.empty((n, 3)), np.empty(n)
     for k, step in enumerate(steps):
-        x_q, x_t, o_q, o_t = moved = apply_step(step, *model)
-        R_S, t_S = board_in_camera(link_q[k:k + 1], link_t[k:k + 1], moved)
+        without, focal = moved(step, model, scale)
+        x_q, x_t, o_q, o_t = without
+        R_S, t_S = board_in_camera(link_q[k:k + 1], link_t[k:k + 1], without)
         quaternions[k] = quat.multiply(quat.multiply(quat.conjugate(x_q),
                                                      quat.conjugate(link_q[k])), o_q)
         translations[k] = t_S[0]
         rows = corners.view == k
-        e = corners.pixels[rows] - camera.project(corners.points[rows] @ R_S[0].T + t_S[0])
+        e = corners.pixels[rows] - with_focal_scale(camera, focal).project(
+            corners.points[rows] @ R_S[0].T + t_S[0])
         rms[k] = np.sqrt(np.mean(np.sum(e * e, axis=1)))
     return HeldOut(quaternions, translations, rms)
 
 
 def refine_from_poses(samples, views, camera, result, setup='eye_in_hand', robust=True,
-                      view_errors=None):
+                      view_errors=None, focal=None):
     """
     Return the ReprojectionFit started from a pose-based CalibrationResult of `samples`.
 
     views: [(object_points, image_points)] of each sample's image; the samples the result
     used (sample_ok) are fitted, from its mounting and the mean object pose it implies.
-    view_errors: as refine_reprojection's. Its leave_one_out: each view's sensor pose (the
-    board's in the camera frame, from its corners alone) against the fit without that view's
-    prediction (HeldOut.errors), as the pose-based validation measures its estimate.
+    view_errors, focal: as refine_reprojection's. Its leave_one_out: each view's board pose
+    from its corners alone (PnP, with the fit's focal scale) against the fit without that
+    view's prediction (HeldOut.errors), as the pose-based validation measures its estimate.
     """
     rotations = SampleRotations.from_samples(samples, setup)
     positions = SamplePositions.from_samples(samples, rotations)
@@ -503,9 +579,16 @@ def refine_from_poses(samples, views, camera, result, setup='eye_in_hand', robus
     sensor_q, sensor_t = rotations.sensor[used], positions.sensor[used]
     o_q, o_t = object_pose(link_q, link_t, sensor_q, sensor_t, result.quaternion,
                            result.translation)
-    fit = refine_reprojection(link_q, link_t, [v for v, ok in zip(views, used) if ok], camera,
-                              result.quaternion, result.translation, o_q, o_t, robust=robust,
-                              view_errors=view_errors)
+    fitted = [v for v, ok in zip(views, used) if ok]
+    fit = refine_reprojection(link_q, link_t, fitted, camera, result.quaternion,
+                              result.translation, o_q, o_t, robust=robust,
+                              view_errors=view_errors, focal=focal)
+    # Each view's board pose from its corners alone, with the fit's camera (its focal scale).
+    seen_by = with_focal_scale(camera, fit.focal_scale)
+    for k, (points, pixels) in enumerate(fitted):
+        pose = board_pose(np.asarray(points, float), np.asarray(pixels, float), seen_by)
+        if pose is not None:   # (else the sample's: a view refused no pose before)
+            sensor_q[k], sensor_t[k] = pose.quaternion, pose.position
     return replace(fit, leave_one_out=fit.held_out.errors(sensor_q, sensor_t))
 
 
@@ -537,7 +620,7 @@ def _weights(e, robust):
 
 def _view_jackknife(sums, noise, n_views):
     """
-    Return X's covariance over blocks of views left out in turn, or None with too few views.
+    Return the unknowns' covariance over blocks of views left out in turn (None: too few views).
 
     Without each block the noise (the views' shared errors above all) is fitted again to the
     other views, and one Gauss-Newton step from the answer gives that replicate's mounting:
@@ -552,7 +635,7 @@ def _view_jackknife(sums, noise, n_views):
         keep[block] = False
         part = sums.of_views(keep)
         A, g = part.normal_equations(part.fit_noise(noise))
-        moves.append(np.linalg.lstsq(A, g, rcond=None)[0][:6])
+        moves.append(np.linalg.lstsq(A, g, rcond=None)[0])
     moves = np.array(moves)
     centred = moves - moves.mean(axis=0)
     count = len(moves)
@@ -561,7 +644,7 @@ def _view_jackknife(sums, noise, n_views):
 
 def _view_blocks(J, e, w, A_inv, view, n_views):
     """
-    Return X's covariance over blocks of views (module docstring), or None with too few views.
+    Return the unknowns' covariance over blocks of views (module docstring; None: too few views).
 
     A^-1 (sum_b s_b s_b^T) A^-1 with s_b = J_b^T W_b^1/2 (I - H_bb)^-1/2 W_b^1/2 e_b, the
     block's whitened residuals corrected by the root of I - H_bb (symmetric, by eigenvalues);
@@ -569,17 +652,18 @@ def _view_blocks(J, e, w, A_inv, view, n_views):
     """
     if n_views < MIN_BLOCK_VIEWS:
         return None
-    scatter = np.zeros((12, 12))
+    unknowns = J.shape[2]
+    scatter = np.zeros((unknowns, unknowns))
     for block in np.array_split(np.arange(n_views), min(VIEW_BLOCKS, n_views)):
         rows = np.isin(view, block)
         root_w = np.sqrt(np.repeat(w[rows], 2))
-        J_b = J[rows].reshape(-1, 12) * root_w[:, None]
+        J_b = J[rows].reshape(-1, unknowns) * root_w[:, None]
         e_b = e[rows].reshape(-1) * root_w
         values, vectors = np.linalg.eigh(np.eye(len(e_b)) - J_b @ A_inv @ J_b.T)
         corrected = vectors @ ((vectors.T @ e_b) / np.sqrt(np.maximum(values, 1e-6)))
         score = J_b.T @ corrected
         scatter += np.outer(score, score)
-    return (A_inv @ scatter @ A_inv)[:6, :6]
+    return A_inv @ scatter @ A_inv
 
 
 def cramer_rao_covariance(link_q, link_t, views, camera, model, sigma_px):
