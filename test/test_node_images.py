@@ -257,7 +257,7 @@ def test_image_mode_needs_a_readable_board_file(domain_id, tmp_path, board_file)
 
 def test_sim_cell_with_camera_images_drives_the_calibrator_on_the_pixels(
         domain_id, tmp_path, repo_root):
-    """sim_cell camera_images:=true and the calibrator sensor_input:=image, one board file."""
+    """sim_cell camera_images:=true, with the robot's pose errors, and sensor_input:=image."""
     from quatcal_ros.ros.sim_cell import SimCell
 
     board_file = str(repo_root / 'config' / 'sim_board.yaml')
@@ -268,7 +268,8 @@ def test_sim_cell_with_camera_images_drives_the_calibrator_on_the_pixels(
         Parameter(name, value=value) for name, value in (
             ('camera_images', True), ('board_file', board_file), ('seed', 4), ('n_stops', 9),
             ('still_s', 1.0), ('move_s', 0.6), ('link_rate_hz', 100.0),
-            ('sensor_rate_hz', 10.0))])
+            ('sensor_rate_hz', 10.0), ('link_rotation_noise_deg', 0.1),
+            ('link_translation_noise_m', 0.0005))])
     node = CalibratorNode(context=context, parameter_overrides=[
         Parameter('sensor_input', value='image'), Parameter('board_file', value=board_file),
         Parameter('samples_file', value=str(tmp_path / 'samples.csv'))])
@@ -281,6 +282,8 @@ def test_sim_cell_with_camera_images_drives_the_calibrator_on_the_pixels(
         result = node.result
         assert result is not None and result.samples >= 8, node.session.last_error
         assert result.method == 'reprojection' and result.validation['fit'] == 'pixels'
+        # The robot's reported poses are off at each stop: each view's shared error is fitted.
+        assert any(result.reprojection['view_error_deg'])
         error_deg = np.degrees(quat.angle_between(result.quaternion,
                                                   cell.cell.mounting.quaternion))
         error_mm = 1e3 * np.linalg.norm(result.translation - cell.cell.mounting.position)

@@ -295,6 +295,49 @@ def test_camera_images_show_the_board_where_the_cell_puts_it(context, namespace,
         assert np.linalg.norm(view.pose.position - truth.position) < 0.005
 
 
+def test_the_robot_reports_each_stop_off_by_its_own_error(context, namespace):
+    """link_*_noise: a repeatable error per stop in link_pose; the sensor sees the truth."""
+    values = {'seed': 3, 'link_rate_hz': 100.0, 'sensor_rate_hz': 20.0, 'still_s': 0.5,
+              'move_s': 0.3, 'drop_probability': 0.0, 'rotation_noise_deg': 0.0,
+              'translation_noise_m': 0.0, 'latency_s': 0.0,
+              'link_rotation_noise_deg': 0.3, 'link_translation_noise_m': 0.002}
+    sim_node = SimCell(context=context, namespace=namespace,
+                       parameter_overrides=_overrides(**values))
+    recorder = Recorder(context, namespace)
+    executor = SingleThreadedExecutor(context=context)
+    for node in (sim_node, recorder.node):
+        executor.add_node(node)
+    try:
+        assert spin_until(executor, lambda: len(recorder.link) >= 250, 30.0)
+    finally:
+        executor.shutdown()
+        sim_node.destroy_node()
+        recorder.node.destroy_node()
+    trajectory, origin = sim_node._trajectory, sim_node._origin_ns
+    apart = {}
+    for _, msg in recorder.link:
+        t = conv.stamp_ns_from_header(msg.header) - origin
+        k, _, s = trajectory.segments([t])
+        if s[0] == 0.0:   # standing still at stop k
+            p, q = trajectory.link_poses([t])
+            reported = conv.pose_from_msg(msg)
+            apart.setdefault(int(k[0]), []).append(
+                (*(reported.position - p[0]),
+                 np.degrees(quat.angle_between(reported.quaternion, q[0]))))
+    assert len(apart) >= 3
+    for k, offsets in apart.items():
+        offsets = np.array(offsets)
+        np.testing.assert_allclose(offsets - offsets[0], 0.0, atol=1e-9)   # the same each time
+        assert 0.0 < offsets[0, 3] < 5 * np.sqrt(3) * 0.3          # degrees, chi with 3 dof
+        assert 0.0 < np.linalg.norm(offsets[0, :3]) < 5 * np.sqrt(3) * 0.002
+    assert len({tuple(np.round(o[0], 12)) for o in apart.values()}) == len(apart)
+    # The sensor sees the true link pose.
+    for _, msg in recorder.sensor[:20]:
+        t = conv.stamp_ns_from_header(msg.header) - origin
+        p, q = sim_node.cell.sensor_poses(*trajectory.link_poses([t]))
+        np.testing.assert_allclose(conv.pose_from_msg(msg).position, p[0], atol=1e-9)
+
+
 @pytest.mark.parametrize('overrides, error, message', [
     ({'setup': 'on_the_table'}, ValueError, 'setup'),
     ({'robot': 'hexapod'}, ValueError, 'parameter robot must be one of'),

@@ -29,6 +29,10 @@ and outlier_fraction do not apply (the calibrator's detector finds the noise in 
 The stops then keep the board within IMAGE_VIEW_ANGLE_DEG of the optical axis, at most
 IMAGE_INCIDENCE_DEG oblique, so that its corners stay in the image.
 
+link_rotation_noise_deg and link_translation_noise_m put the robot's reported pose off at
+each stop by an error of its own (repeatable, as a kinematic error; blended along the moves),
+while the sensor sees the true pose.
+
 With robot:=scara the link turns about base z only (by up to rotation_spread_deg), with
 robot:=gantry not at all: the calibrator then solves what such motions determine and names the
 rest (its "unobservable" output). With seed S, the poses are those of
@@ -75,6 +79,11 @@ PARAMETERS = {
                        (-1.0, 1.0)),
     'drop_probability': (0.05, 'probability that a sensor frame is dropped', (0.0, 1.0)),
     'outlier_fraction': (0.0, 'probability that a frame is a marker flip', (0.0, 1.0)),
+    'link_rotation_noise_deg': (0.0, "the robot's reported link pose error at each stop "
+                                '(repeatable, as a kinematic error): rotation, std per axis '
+                                '(deg)', (0.0, 10.0)),
+    'link_translation_noise_m': (0.0, "the robot's reported link pose error at each stop: "
+                                 'translation, std per axis (m)', (0.0, 0.1)),
     'still_s': (1.5, 'time the robot stands still at each stop (s)', (0.0, 60.0)),
     'move_s': (2.0, 'time of each move between stops (s)', (0.1, 60.0)),
     'rotation_spread_deg': (30.0, 'largest rotation of a stop from home (deg)', (0.0, 90.0)),
@@ -134,6 +143,8 @@ class SimCellConfig:
     clock_offset_s: float
     drop_probability: float
     outlier_fraction: float
+    link_rotation_noise_deg: float
+    link_translation_noise_m: float
     still_s: float
     move_s: float
     rotation_spread_deg: float
@@ -326,7 +337,7 @@ class SimCell(Node):
         if times is None:
             return
         self._next_link += len(times)
-        positions, quaternions = self._trajectory.link_poses(times)
+        positions, quaternions = self._reported(times, *self._trajectory.link_poses(times))
         config = self.config
         for t, p, q in zip(times.tolist(), positions, quaternions):
             stamp, link = self._origin_ns + t, Pose(p, q)
@@ -339,6 +350,33 @@ class SimCell(Node):
                 conversions.transform_stamped_msg(first, stamp, config.base_frame, SHOULDER),
                 conversions.transform_stamped_msg(first.inverse() @ link, stamp, SHOULDER,
                                                   config.link_frame)]))
+
+    def _reported(self, times, positions, quaternions):
+        """
+        Return the link poses as the robot reports them at `times` (trajectory ns).
+
+        Each stop's pose is off by its own error (add_pose_noise of link_rotation_noise_deg and
+        link_translation_noise_m, drawn from the seed and the stop alone), the same every time
+        the robot stands there; along a move the error passes from one stop's to the next's.
+        The sensor sees the true poses.
+        """
+        config = self.config
+        if not (config.link_rotation_noise_deg or config.link_translation_noise_m):
+            return positions, quaternions
+        k, following, s = self._trajectory.segments(times)
+        stops = np.union1d(k, following)
+        errors = np.array([self._stop_error(int(stop)) for stop in stops])   # (stops, 6)
+        fraction = s[:, None]
+        error = ((1.0 - fraction) * errors[np.searchsorted(stops, k)]
+                 + fraction * errors[np.searchsorted(stops, following)])
+        return (positions + error[:, 3:], quat.normalize(
+            quat.multiply(quat.from_rotation_vector(error[:, :3]), quaternions)))
+
+    def _stop_error(self, stop):
+        """Return stop `stop`'s reported pose error: a rotation vector (rad), a shift (m)."""
+        z = np.random.default_rng([self.config.seed, 2, stop]).standard_normal(6)
+        return np.concatenate([z[:3] * np.radians(self.config.link_rotation_noise_deg),
+                               z[3:] * self.config.link_translation_noise_m])
 
     def _publish_frames(self, exposed_before_ns):
         """Publish the frames exposed up to exposed_before_ns (now minus the latency)."""

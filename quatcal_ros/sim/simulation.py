@@ -519,7 +519,12 @@ class StopAndGo:
         start = k * self.period_ns
         return start, start + self.still_ns
 
-    def _segments(self, t_ns):
+    def segments(self, t_ns):
+        """
+        Return where times t_ns are: the stop k left last, the next one, and the fraction s.
+
+        s in [0, 1] of the move from k to the next by minimum-jerk timing (0 while still).
+        """
         t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
         k = np.maximum(t, 0) // self.period_ns
         fraction = (t - k * self.period_ns - self.still_ns) / self.move_ns
@@ -533,11 +538,11 @@ class StopAndGo:
 
     def is_still(self, t_ns):
         """Whether the robot stands still at times t_ns (bool array)."""
-        return self._segments(t_ns)[2] == 0.0
+        return self.segments(t_ns)[2] == 0.0
 
     def link_poses(self, t_ns):
         """T_base_link at times t_ns (int, ns since start): positions (N, 3), quats (N, 4)."""
-        k, following, s = self._segments(t_ns)
+        k, following, s = self.segments(t_ns)
         if len(k) == 0:
             return np.empty((0, 3)), np.empty((0, 4))
         self._ensure(int(following.max()) + 1)
