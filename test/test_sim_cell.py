@@ -274,8 +274,12 @@ def test_camera_images_show_the_board_where_the_cell_puts_it(context, namespace,
     by_stamp = {conv.stamp_ns_from_header(info.header): info for info in infos}
     camera = sim_node.camera
     origin = sim_node._origin_ns
-    for image in images[:8]:
+    checked = 0
+    for image in images:
         stamp = conv.stamp_ns_from_header(image.header)
+        if stamp not in by_stamp:   # (its camera_info lost: best effort)
+            continue
+        checked += 1
         info = by_stamp[stamp]   # each image with the camera_info of its stamp
         assert image.header.frame_id == info.header.frame_id == 'camera'
         seen_as = conv.camera_from_camera_info(info)
@@ -293,6 +297,7 @@ def test_camera_images_show_the_board_where_the_cell_puts_it(context, namespace,
         # and a few millimetres along the line of sight at 0.5-1 m.
         assert np.degrees(quat.angle_between(view.pose.quaternion, truth.quaternion)) < 0.3
         assert np.linalg.norm(view.pose.position - truth.position) < 0.005
+    assert checked >= 6
 
 
 def test_the_robot_reports_each_stop_off_by_its_own_error(context, namespace):

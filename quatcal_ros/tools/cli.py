@@ -210,7 +210,8 @@ def _solve_images(prog, args):
     hint = (['on camera images a failed validation most often means wrong numbers in '
              'board.yaml (square_length_m, marker_length_m: measure the printed board) or '
              'camera_info.yaml (the camera matrix; zero distortion for rectified images)']
-            if on_pixels.validation.get('verdict') == 'fail' else [])
+            if 'fail' in (on_pixels.validation.get('verdict'), result.validation.get('verdict'))
+            else [])
     if data.refused:   # said only in the JSON's views.refused, and on no page
         hint.append(f'{len(data.refused)} of {total} images are not used: '
                     f'{data.refusal_summary()} (the "views" key lists each)')

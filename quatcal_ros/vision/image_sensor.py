@@ -203,16 +203,7 @@ def result_on_pixels(result, fit, view_samples=None):
         said = [f"{few} the pixel noise's alone: it leaves out errors that all corners of a "
                 "view share (the robot's pose error, on real cells often several times "
                 f'larger); {later}']
-    degrees, millimetres = np.degrees(fit.view_error[:3]), 1e3 * fit.view_error[3:]
-    if degrees.max() > ROBOT_LIKE_VIEW_ERROR_DEG or millimetres.max() > ROBOT_LIKE_VIEW_ERROR_MM:
-        said.append("each view's board pose is off by up to "
-                    f'{degrees.max():.2g} deg and {millimetres.max():.2g} mm (RMS per axis of '
-                    "the camera frame) beyond the pixel noise, more than a typical robot's "
-                    f'pose error (over {ROBOT_LIKE_VIEW_ERROR_DEG:g} deg or '
-                    f'{ROBOT_LIKE_VIEW_ERROR_MM:g} mm): check the camera intrinsics '
-                    '(camera_info: a focal length or a distortion off shows in depth, z), the '
-                    "board (board.yaml sizes), and the robot's poses and their stamps (a pose "
-                    'from another moment than the image)')
+    said += _view_error_warning(fit, result.setup)
     if fit.focal_scale != 1.0:
         said.append(f"the corners fit camera_info's focal lengths times {fit.focal_scale:.4f} "
                     f'(+-{fit.focal_scale_sd:.2g}, a {100 * (fit.focal_scale - 1):+.1f} % '
@@ -220,18 +211,57 @@ def result_on_pixels(result, fit, view_samples=None):
                     'mounting is fitted with them: calibrate the camera again (a focal '
                     "length off moves the board's depth in every view), or check board.yaml's "
                     'sizes')
-    pose_based = result.validation or {}
+    validation = pose_based = result.validation or {}
+    reprojection = {**fit.to_json_dict(),
+                    'worst_view_sample': int(view_samples[int(np.argmax(fit.view_rms_px))])}
+    if fit.leave_one_out is not None:   # the fit on the pixels' own; the pose-based beside it
+        validation = _validation_on_pixels(fit, view_samples, pose_based)
+        reprojection['pose_based_validation'] = {key: pose_based.get(key) for key in (
+            'verdict', 'rms_rotation_deg', 'rms_translation_mm')}
+        if pose_based.get('verdict') == 'fail' and validation['verdict'] != 'fail':
+            said.append('the pose-based estimate beside it fails its validation '
+                        f"({pose_based['reason']}): its board poses disagree with the robot's "
+                        'motions as a wrong board size or camera model makes them, which the '
+                        "fit on the pixels takes up in each view's shared error (its views' "
+                        f"corners {validation['rms_reprojection_px']:.2g} px from the pixels "
+                        'predicted without them)')
     return replace(result, quaternion=fit.quaternion,
                    matrix=quat.matrix_from_quaternion(fit.quaternion),
                    translation=fit.translation, uncertainty_deg=fit.uncertainty_deg,
                    translation_uncertainty_mm=fit.translation_uncertainty_mm,
                    method='reprojection', warnings=[*result.warnings, *said],
-                   validation=(pose_based if fit.leave_one_out is None else
-                               _validation_on_pixels(fit, view_samples, pose_based)),
-                   reprojection={**fit.to_json_dict(), 'worst_view_sample': int(
-                       view_samples[int(np.argmax(fit.view_rms_px))]),
-                       'pose_based_validation': {key: pose_based.get(key) for key in (
-                           'verdict', 'rms_rotation_deg', 'rms_translation_mm')}})
+                   validation=validation, reprojection=reprojection)
+
+
+def _view_error_warning(fit, setup):
+    """
+    Return the warning of views' shared errors beyond a typical robot's pose error, or none.
+
+    A turn of the link by ROBOT_LIKE_VIEW_ERROR_DEG also shifts the board across the line
+    from the link's origin to it: by that angle times sqrt(|r|^2 - r_i^2) along camera axis i
+    (r that line in the camera frame, RMS over the views; for eye-to-hand, where the link
+    turns under a fixed camera, sqrt(2/3) |r| on every axis). The shift allowed on an axis
+    is ROBOT_LIKE_VIEW_ERROR_MM plus that.
+    """
+    degrees, millimetres = np.degrees(fit.view_error[:3]), 1e3 * fit.view_error[3:]
+    if setup == 'eye_to_hand':   # the board rides on the link: O = T_link_board
+        lever = np.full(3, np.sqrt(2.0 / 3.0) * np.linalg.norm(fit.object_translation))
+    else:   # from the link's origin (-R_X^T x_t in the camera frame) to each view's board
+        r = fit.held_out.translation + fit.translation @ quat.matrix_from_quaternion(
+            fit.quaternion)
+        lever = np.sqrt(np.mean(np.sum(r * r, axis=1, keepdims=True) - r * r, axis=0))
+    allowed = ROBOT_LIKE_VIEW_ERROR_MM + 1e3 * lever * np.radians(ROBOT_LIKE_VIEW_ERROR_DEG)
+    if degrees.max() <= ROBOT_LIKE_VIEW_ERROR_DEG and np.all(millimetres <= allowed):
+        return []
+    return ["each view's board pose is off by up to "
+            f'{degrees.max():.2g} deg and {millimetres.max():.2g} mm (RMS per axis of the camera '
+            "frame) beyond the pixel noise, more than a typical robot's pose error (over "
+            f'{ROBOT_LIKE_VIEW_ERROR_DEG:g} deg, or {ROBOT_LIKE_VIEW_ERROR_MM:g} mm plus what '
+            f'{ROBOT_LIKE_VIEW_ERROR_DEG:g} deg of the link shifts the board by: '
+            f'{" ".join(f"{v:.2g}" for v in allowed)} mm in x y z): check the camera '
+            'intrinsics (camera_info: a focal length or a distortion off shows in depth, z), the '
+            "board (board.yaml sizes), and the robot's poses and their stamps (a pose from "
+            'another moment than the image)']
 
 
 def _validation_on_pixels(fit, view_samples, pose_based):

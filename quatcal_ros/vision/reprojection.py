@@ -27,7 +27,7 @@ the views' corners counted as independent.
 A focal length off in camera_info moves every view's board in depth; the robot's motions
 tell the true depths, so a scale of the focal lengths (the principal point kept) is a 13th
 unknown when the corners show it: twice the log-likelihood ratio at least FOCAL_EVIDENCE and
-the scale FOCAL_SIGMAS of its jackknife's standard deviations from 1, from MIN_FOCAL_VIEWS
+the scale FOCAL_SIGMAS of its standard deviations over the views from 1, from MIN_FOCAL_VIEWS
 views on (on a real recording's 7-view halves, whose views' errors inflate the likelihood,
 the likelihood alone fitted 0.98-1.02 in 3 of 12, both tests 0.974 and 1.0125 in 2 of 40).
 With the robot off by 0.2 deg and 1 mm, the focal lengths 2 % off took the translation error
@@ -77,12 +77,14 @@ NOISE_REFITS = 8               # Gauss-Newton steps that refit the noise, then i
 VIEW_ERROR_EVIDENCE = 22.46
 # The focal scale is fitted when twice its log-likelihood ratio exceeds chi^2 of 1 degree of
 # freedom at 0.999, and it lies this many of its standard deviations over the views (the
-# jackknife's: from MIN_BLOCK_VIEWS views on) from 1; else camera_info's focal lengths stand.
+# jackknife's, or the blocks' without the views' errors) from 1; else camera_info's stand.
 FOCAL_EVIDENCE = 10.83
 FOCAL_SIGMAS = 3.29
 # ... tested from this many views on: on 7-view halves of a real recording two of 40 fitted
-# 0.974 and 1.0125, each 5 of its standard deviations from 1.
+# 0.974 and 1.0125, each 5 of its standard deviations from 1. (The standard deviation over
+# the views needs MIN_BLOCK_VIEWS of them.)
 MIN_FOCAL_VIEWS = 10
+assert MIN_FOCAL_VIEWS >= MIN_BLOCK_VIEWS
 
 
 @dataclass(frozen=True)
@@ -397,8 +399,8 @@ def refine_reprojection(link_q, link_t, views, camera, x_q, x_t, o_q, o_t, robus
         shared = view_errors if view_errors is not None else evidence >= VIEW_ERROR_EVIDENCE
         if shared:
             chosen, _, spread, held_out = fitted
-    covariance, focal_evidence = None, None
-    if focal or focal is None and len(views) >= MIN_FOCAL_VIEWS:
+    scale_fitted, focal_evidence = False, None
+    if focal or (focal is None and len(views) >= MIN_FOCAL_VIEWS):
         scaled, _, scaled_spread, scaled_held_out = fit_from(chosen.model, robust,
                                                              max_iterations, shared, True)
         focal_evidence = _focal_evidence(link_q, link_t, corners, camera, chosen, scaled,
@@ -408,10 +410,11 @@ def refine_reprojection(link_q, link_t, views, camera, x_q, x_t, o_q, o_t, robus
             variance = (scaled.model_covariance if scaled_covariance is None
                         else scaled_covariance)[12, 12]
             scaled = replace(scaled, focal_scale_sd=float(np.sqrt(variance)))
-            if focal or (scaled_covariance is not None and abs(scaled.focal_scale - 1.0)
-                         >= FOCAL_SIGMAS * scaled.focal_scale_sd):
+            scale_fitted = focal or (scaled_covariance is not None and abs(
+                scaled.focal_scale - 1.0) >= FOCAL_SIGMAS * scaled.focal_scale_sd)
+            if scale_fitted:
                 chosen, covariance, held_out = scaled, scaled_covariance, scaled_held_out
-    if chosen.focal_scale == 1.0:
+    if not scale_fitted:
         covariance = spread()
     return replace(chosen, resampled=None if covariance is None else covariance[:6, :6],
                    held_out=held_out(), view_error_evidence=evidence,
@@ -425,11 +428,8 @@ def _evidence(link_q, link_t, corners, camera, plain, shared, w):
     Both likelihoods with the plain fit's weights w, their noise by maximum likelihood; with
     the views' errors at the best of the two fits' answers and of none (so never below 0).
     """
-    def sums_at(model):
-        e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, model)
-        return _ViewSums(None, view_jacobian(link_q, link_t, corners, camera, model), e, w,
-                         corners.view)
-    at_plain, at_shared = sums_at(plain.model), sums_at(shared.model)
+    at_plain, at_shared = (_likelihood_sums(link_q, link_t, corners, camera, fit, w, True)
+                           for fit in (plain, shared))
     none = ViewNoise(max(float(at_plain.eWe.sum() / at_plain.count.sum()), VARIANCE_FLOOR),
                      np.zeros(6))
     start = ViewNoise(shared.pixel_noise_px ** 2,
@@ -449,16 +449,21 @@ def _focal_evidence(link_q, link_t, corners, camera, fixed, scaled, w, shared):
     with the weights w and its noise by maximum likelihood; never below 0.
     """
     def likelihood(fit):
-        seen_by = with_focal_scale(camera, fit.focal_scale)
-        e = corners.pixels - predicted_pixels(link_q, link_t, corners, seen_by, fit.model)
-        G = view_jacobian(link_q, link_t, corners, seen_by, fit.model) if shared else None
-        sums = _ViewSums(None, G, e, w, corners.view)
+        sums = _likelihood_sums(link_q, link_t, corners, camera, fit, w, shared)
         start = ViewNoise(fit.pixel_noise_px ** 2,
                           np.maximum(fit.view_error, START_VIEW_ERROR) if shared
                           else np.zeros(6))
         return sums.negative_log_likelihood(sums.fit_noise(start, 0, EVIDENCE_TOLERANCE))
     without, with_scale = likelihood(fixed), likelihood(scaled)
     return 2.0 * max(without - with_scale, 0.0)
+
+
+def _likelihood_sums(link_q, link_t, corners, camera, fit, w, shared):
+    """Return the _ViewSums of the noise's likelihood at `fit` (its focal scale), weights w."""
+    seen_by = with_focal_scale(camera, fit.focal_scale)
+    e = corners.pixels - predicted_pixels(link_q, link_t, corners, seen_by, fit.model)
+    G = view_jacobian(link_q, link_t, corners, seen_by, fit.model) if shared else None
+    return _ViewSums(None, G, e, w, corners.view)
 
 
 def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared, focal=False):
