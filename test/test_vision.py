@@ -589,6 +589,20 @@ def test_a_view_error_beyond_a_robots_is_said_with_its_likely_causes(renderers, 
                                   'another moment than the image)')
 
 
+def test_a_failed_pose_based_validation_beside_too_few_views_to_validate(renderers):
+    # The pose-based estimate validated (6 samples or more) and failed, while the views with
+    # corners are too few for the pixels' own: its verdict is unknown, and nothing breaks.
+    rng = np.random.default_rng(9)
+    X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 5, 0.3)
+    result = calibrate(samples)
+    failed = {**result.validation, 'verdict': 'fail', 'reason': 'leave-one-out ... (made up)'}
+    on_pixels = result_on_pixels(replace(result, validation=failed),
+                                 refine_from_poses(samples, corners, CAMERA, result))
+    assert on_pixels.validation['verdict'] == 'unknown'
+    assert on_pixels.reprojection['pose_based_validation']['verdict'] == 'fail'
+    assert not any('the pose-based estimate beside it fails' in w for w in on_pixels.warnings)
+
+
 def test_a_view_error_across_the_link_is_allowed_what_a_turn_of_the_link_shifts(renderers):
     # A turn of the link by 0.5 deg shifts a board 0.3-0.9 m away by up to 8 mm across the
     # line from the link to it (x, y here), not along it (z): 6 mm across is a robot's error,

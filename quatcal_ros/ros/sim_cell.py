@@ -355,9 +355,10 @@ class SimCell(Node):
         """
         Return the link poses as the robot reports them at `times` (trajectory ns).
 
-        Each stop's pose is off by its own error (add_pose_noise of link_rotation_noise_deg and
-        link_translation_noise_m, drawn from the seed and the stop alone), the same every time
-        the robot stands there; along a move the error passes from one stop's to the next's.
+        Each stop's pose is off by its own error (a rotation vector on the left and a shift,
+        std per axis link_rotation_noise_deg and link_translation_noise_m, drawn from the seed
+        and the stop alone), the same every time the robot stands there; along a move the
+        error passes from one stop's to the next's.
         The sensor sees the true poses.
         """
         config = self.config

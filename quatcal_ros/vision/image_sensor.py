@@ -218,7 +218,7 @@ def result_on_pixels(result, fit, view_samples=None):
         validation = _validation_on_pixels(fit, view_samples, pose_based)
         reprojection['pose_based_validation'] = {key: pose_based.get(key) for key in (
             'verdict', 'rms_rotation_deg', 'rms_translation_mm')}
-        if pose_based.get('verdict') == 'fail' and validation['verdict'] != 'fail':
+        if pose_based.get('verdict') == 'fail' and validation['verdict'] == 'pass':
             said.append('the pose-based estimate beside it fails its validation '
                         f"({pose_based['reason']}): its board poses disagree with the robot's "
                         'motions as a wrong board size or camera model makes them, which the '
