@@ -18,9 +18,5 @@ def write_board(folder):
 
 def camera_info_msg(camera=CAMERA):
     """Return the sensor_msgs/CameraInfo (rclpy) of a vision.camera.Camera."""
-    from sensor_msgs.msg import CameraInfo
-    msg = CameraInfo(width=camera.width, height=camera.height,
-                     distortion_model=camera.distortion_model)
-    msg.k = [float(v) for v in camera.K.ravel()]
-    msg.d = [float(v) for v in camera.D]
-    return msg
+    from quatcal_ros.ros.conversions import camera_info_msg as of_camera
+    return of_camera(camera)

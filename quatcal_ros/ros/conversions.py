@@ -359,9 +359,21 @@ def camera_from_camera_info(msg):
                        msg.distortion_model, np.array(msg.d, dtype=float), 'camera_info')
 
 
-def bgr_image_msg(image, header):
-    """Return a sensor_msgs/Image (bgr8) of a BGR uint8 array, with `header`."""
+def camera_info_msg(camera, stamp_ns=0, frame_id=''):
+    """Return the sensor_msgs/CameraInfo (rclpy) of a vision.camera.Camera: its inverse."""
+    from sensor_msgs.msg import CameraInfo
+    return CameraInfo(header=_header(stamp_ns, frame_id, None), width=camera.width,
+                      height=camera.height, distortion_model=camera.distortion_model,
+                      d=[float(v) for v in camera.D], k=[float(v) for v in camera.K.ravel()],
+                      r=[float(v) for v in np.eye(3).ravel()],
+                      p=[float(v) for v in np.column_stack([camera.K, np.zeros(3)]).ravel()])
+
+
+def image_msg(image, header):
+    """Return a sensor_msgs/Image of a uint8 array: mono8 (H, W) or bgr8 (H, W, 3)."""
     from sensor_msgs.msg import Image
     height, width = image.shape[:2]
-    return Image(header=header, height=height, width=width, encoding='bgr8', is_bigendian=0,
-                 step=width * 3, data=np.ascontiguousarray(image).tobytes())
+    channels = 1 if image.ndim == 2 else 3
+    return Image(header=header, height=height, width=width,
+                 encoding='mono8' if channels == 1 else 'bgr8', is_bigendian=0,
+                 step=width * channels, data=np.ascontiguousarray(image).tobytes())

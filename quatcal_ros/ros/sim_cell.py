@@ -56,7 +56,6 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data, QoSProfile
 from sensor_msgs.msg import CameraInfo, Image
-from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
 
 NODE_NAME = 'sim_cell'
@@ -226,16 +225,8 @@ class SimCamera:
         """Return the Image (mono8) and the CameraInfo of the board at T_sensor_obj `seen`."""
         gray = self.renderer.render(seen @ self.object_to_board, self._rng, IMAGE_NOISE,
                                     IMAGE_BLUR_PX)
-        header = Header(stamp=conversions.time_msg(stamp_ns), frame_id=frame_id)
-        height, width = gray.shape
-        info = CameraInfo(header=header, width=width, height=height,
-                          distortion_model=self.camera.distortion_model)
-        info.k = [float(v) for v in self.camera.K.ravel()]
-        info.d = [float(v) for v in self.camera.D]
-        info.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
-        info.p = [float(v) for v in np.column_stack([self.camera.K, np.zeros(3)]).ravel()]
-        return (Image(header=header, height=height, width=width, encoding='mono8',
-                      is_bigendian=0, step=width, data=gray.tobytes()), info)
+        info = conversions.camera_info_msg(self.camera, stamp_ns, frame_id)
+        return conversions.image_msg(gray, info.header), info
 
 
 def _due_times(next_index, until_ns, rate_hz):

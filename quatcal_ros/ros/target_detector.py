@@ -122,7 +122,7 @@ class TargetDetector(Node):
             self.pose_publisher.publish(conversions.pose_with_covariance_stamped_msg(
                 view.pose, stamp_ns, msg.header.frame_id))
         if self.debug_publisher is not None and self.debug_publisher.get_subscription_count():
-            self.debug_publisher.publish(conversions.bgr_image_msg(   # (drawn when watched)
+            self.debug_publisher.publish(conversions.image_msg(   # (drawn when watched)
                 self._drawn(gray, view), msg.header))
 
     def _drawn(self, gray, view):

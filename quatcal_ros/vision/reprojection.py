@@ -410,8 +410,8 @@ def refine_reprojection(link_q, link_t, views, camera, x_q, x_t, o_q, o_t, robus
             variance = (scaled.model_covariance if scaled_covariance is None
                         else scaled_covariance)[12, 12]
             scaled = replace(scaled, focal_scale_sd=float(np.sqrt(variance)))
-            scale_fitted = focal or (scaled_covariance is not None and abs(
-                scaled.focal_scale - 1.0) >= FOCAL_SIGMAS * scaled.focal_scale_sd)
+            scale_fitted = focal or (abs(scaled.focal_scale - 1.0)
+                                     >= FOCAL_SIGMAS * scaled.focal_scale_sd)
             if scale_fitted:
                 chosen, covariance, held_out = scaled, scaled_covariance, scaled_held_out
     if not scale_fitted:
