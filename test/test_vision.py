@@ -24,19 +24,20 @@ import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions
 from quatcal_ros.core.pose import Pose, residual_order, Sample
+from quatcal_ros.core.refine import apply_step
 from quatcal_ros.files import plain_yaml
 from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.report.page import convergence, report_html
 from quatcal_ros.tools.cli import solve_main
 from quatcal_ros.vision.board import parse_board
-from quatcal_ros.vision.camera import camera_from, parse_camera
+from quatcal_ros.vision.camera import camera_from, MODELS, parse_camera
 from quatcal_ros.vision.detect import _exposure, _pnp, _with_pose, Checks, detect, \
-    pose_covariance, pose_from_rvec
+    pixel_jacobian, pose_covariance, pose_from_rvec
 from quatcal_ros.vision.image_sensor import result_on_pixels
 from quatcal_ros.vision.render import cell_views, Renderer, view_poses, write_dataset
-from quatcal_ros.vision.reprojection import board_in_camera, cramer_rao_covariance, \
-    FOCAL_EVIDENCE, refine_from_poses, refine_reprojection, VIEW_ERROR_EVIDENCE, \
-    with_focal_scale
+from quatcal_ros.vision.reprojection import board_in_camera, Corners, \
+    cramer_rao_covariance, FOCAL_EVIDENCE, pixels_and_jacobians, predicted_pixels, \
+    refine_from_poses, refine_reprojection, VIEW_ERROR_EVIDENCE, with_focal_scale
 
 CAMERA = camera_from(640, 480, [[600, 0, 320], [0, 600, 240], [0, 0, 1]], 'plumb_bob',
                      [0, 0, 0, 0, 0])
@@ -122,15 +123,67 @@ def test_bad_camera_info_is_named():
         parse_camera(flat, 'camera_info.yaml')
 
 
-@pytest.mark.parametrize('model, coefficients', [
-    ('plumb_bob', [0.1, -0.2, 0.001, -0.002, 0.05]),
-    ('rational_polynomial', [0.1, -0.2, 0.001, -0.002, 0.05, 0.01, -0.02, 0.03])])
-def test_projection_is_opencvs(model, coefficients):
-    camera = camera_from(640, 480, [[600, 0, 320], [0, 610, 240], [0, 0, 1]], model,
-                         coefficients)
+def distorted_camera(model):
+    """Return a camera with every coefficient of its distortion model set."""
+    coefficients = [0.1, -0.2, 0.001, -0.002, 0.05, 0.01, -0.02, 0.03]
+    return camera_from(640, 480, [[600, 0, 320], [0, 610, 240], [0, 0, 1]], model,
+                       coefficients[:MODELS[model]])
+
+
+@pytest.mark.parametrize('model', MODELS)
+def test_projection_is_opencvs(model):
+    camera = distorted_camera(model)
     points = np.random.default_rng(1).uniform([-0.2, -0.2, 0.5], [0.2, 0.2, 1.0], (50, 3))
     expected, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), camera.K, camera.D)
     np.testing.assert_allclose(camera.project(points), expected.reshape(-1, 2), atol=1e-9)
+
+
+def central_differences(function, x, h=1e-7):
+    """Return d function / d x (..., len(x)) by central differences."""
+    return np.stack([(function(x + h * e) - function(x - h * e)) / (2 * h)
+                     for e in np.eye(len(x))], axis=-1)
+
+
+@pytest.mark.parametrize('model', MODELS)
+def test_the_analytic_jacobians_are_the_models_derivatives(model):
+    # Central differences of 1e-7 are good to about 1e-6 px per unit here (round-off of
+    # pixels near 600 over the step); the entries are up to about 1000 px per rad or m.
+    camera = distorted_camera(model)
+    rng = np.random.default_rng(4)
+    points = rng.uniform([-0.2, -0.2, 0.5], [0.2, 0.2, 1.0], (30, 3))
+    pixels, P = camera.project_with_jacobian(points)
+    np.testing.assert_array_equal(pixels, camera.project(points))
+    for k, point in enumerate(points):
+        np.testing.assert_allclose(P[k], central_differences(camera.project, point), atol=1e-5)
+
+    # the fit's unknowns (X, O) and each view's error (refine.apply_step's coordinates)
+    X, O, _, links = cell_views(rng, Renderer(parse_board(BOARDS['charuco']), camera), 4)
+    corners = Corners.of([(rng.uniform(-0.1, 0.1, (6, 3)), np.zeros((6, 2))) for _ in links])
+    link_q = np.array([link.quaternion for link in links])
+    link_t = np.array([link.position for link in links])
+    model = (X.quaternion, X.position, O.quaternion, O.position)
+    pixels, J, G = pixels_and_jacobians(link_q, link_t, corners, camera, model)
+    np.testing.assert_array_equal(pixels, predicted_pixels(link_q, link_t, corners, camera,
+                                                           model))
+    np.testing.assert_allclose(J, central_differences(
+        lambda step: predicted_pixels(link_q, link_t, corners, camera, apply_step(step, *model)),
+        np.zeros(12)), atol=1e-5)
+    R_S, t_S = board_in_camera(link_q, link_t, model)
+
+    def with_view_error(step):
+        turn = quat.matrix_from_quaternion(quat.from_rotation_vector(step[:3]))
+        return camera.project(np.einsum('kij,kj->ki', (turn @ R_S)[corners.view],
+                                        corners.points) + t_S[corners.view] + step[3:])
+    np.testing.assert_allclose(G, central_differences(with_view_error, np.zeros(6)), atol=1e-5)
+
+    # one view's board pose (the detector's covariance)
+    pose, points = Pose(t_S[0], quat.quaternion_from_matrix(R_S[0])), corners.points[:6]
+
+    def turned(step):
+        rotation = quat.matrix_from_quaternion(quat.from_rotation_vector(step[:3])) @ R_S[0]
+        return camera.project(points @ rotation.T + pose.position + step[3:]).ravel()
+    np.testing.assert_allclose(pixel_jacobian(pose, points, camera),
+                               central_differences(turned, np.zeros(6)), atol=1e-5)
 
 
 # --- detection ------------------------------------------------------------------------------

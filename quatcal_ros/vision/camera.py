@@ -28,19 +28,43 @@ class Camera:
 
     def project(self, points):
         """Return the pixels (..., 2) of camera-frame points (..., 3) (z > 0)."""
+        return self._projected(points, derivatives=False)[0]
+
+    def project_with_jacobian(self, points):
+        """Return the pixels (..., 2) of points (..., 3) and d pixels / d point (..., 2, 3)."""
+        return self._projected(points, derivatives=True)
+
+    def _projected(self, points, derivatives):
         p = np.asarray(points, dtype=float)
-        x, y = p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]
+        inverse_z = 1.0 / p[..., 2]
+        x, y = p[..., 0] * inverse_z, p[..., 1] * inverse_z
         d = np.zeros(8)
         d[:len(self.D)] = self.D
         k1, k2, p1, p2, k3, k4, k5, k6 = d
         r2 = x * x + y * y
-        radial = ((1 + r2 * (k1 + r2 * (k2 + r2 * k3)))
-                  / (1 + r2 * (k4 + r2 * (k5 + r2 * k6))))
+        numerator = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        denominator = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        radial = numerator / denominator
         xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
         yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
         K = self.K
-        return np.stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]],
-                        axis=-1)
+        pixels = np.stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]],
+                          axis=-1)
+        if not derivatives:
+            return pixels, None
+        # d radial / d r2 by the quotient rule, then the distorted point's 2 x 2 Jacobian
+        slope = ((k1 + r2 * (2 * k2 + 3 * k3 * r2)) * denominator
+                 - numerator * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / denominator ** 2
+        cross = 2 * x * y * slope + 2 * p1 * x + 2 * p2 * y          # d xd/dy = d yd/dx
+        distorted = np.stack([
+            np.stack([radial + 2 * x * x * slope + 2 * p1 * y + 6 * p2 * x, cross], axis=-1),
+            np.stack([cross, radial + 2 * y * y * slope + 6 * p1 * y + 2 * p2 * x], axis=-1)],
+            axis=-2)                                                 # (..., 2, 2)
+        # (x, y) = (X, Y) / Z: d (x, y) / d (X, Y, Z)
+        zero = np.zeros_like(x)
+        normalised = np.stack([np.stack([inverse_z, zero, -x * inverse_z], axis=-1),
+                               np.stack([zero, inverse_z, -y * inverse_z], axis=-1)], axis=-2)
+        return pixels, K[:2, :2] @ distorted @ normalised
 
 
 def read_camera_yaml(path):

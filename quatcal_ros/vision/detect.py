@@ -216,22 +216,16 @@ def pose_from_rvec(rvec, tvec):
     return Pose(np.asarray(tvec, dtype=float).reshape(3).copy(), quat.quaternion_from_matrix(R))
 
 
-def pixel_jacobian(pose, object_points, camera, h=1e-6):
-    """Return d pixels / d (left rotation vector, translation) of T_camera_board: (2M, 6)."""
-    R = pose.rotation
-    columns = []
-    for k in range(6):
-        step = np.zeros(6)
-        step[k] = h
-        plus = _project(camera, R, pose.position, object_points, step)
-        minus = _project(camera, R, pose.position, object_points, -step)
-        columns.append((plus - minus).ravel() / (2 * h))
-    return np.stack(columns, axis=1)
+def pixel_jacobian(pose, object_points, camera):
+    """
+    Return d pixels / d (left rotation vector, translation) of T_camera_board: (2M, 6).
 
-
-def _project(camera, R, t, object_points, step):
-    turn = quat.matrix_from_quaternion(quat.from_rotation_vector(step[:3]))
-    return camera.project(object_points @ (turn @ R).T + t + step[3:])
+    Analytic: a corner c = R p + t moves by -[R p]x per rotation vector, by I per shift,
+    chained with the camera's d pixels / dc.
+    """
+    turned = object_points @ pose.rotation.T
+    _, P = camera.project_with_jacobian(turned + pose.position)      # (M, 2, 3)
+    return np.concatenate([-np.cross(P, turned[:, None, :]), P], axis=2).reshape(-1, 6)
 
 
 def pose_covariance(pose, object_points, image_points, camera):

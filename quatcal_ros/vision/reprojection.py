@@ -9,7 +9,7 @@ vectors and translations, as refine's), with Huber weights on each corner's resi
 to a few bad corners) and the pixel noise from Huber's proposal-2 scale (each residual
 clipped at the Huber threshold, so bad corners cannot inflate it: the weighted residuals'
 RMS grew with the bad corners' size, 3.6x the true noise with 3 % of corners 30 px off); the
-Jacobian by central differences of the vectorised model (every corner of every view at once).
+Jacobian analytic, every corner of every view at once (pixels_and_jacobians).
 The intrinsics stay fixed; their misfit shows as a pixel noise above the detector's.
 
 Errors all corners of a view share (the robot's pose error, a focal length off) are a
@@ -65,7 +65,6 @@ STEP_TOLERANCE = 1e-6          # in units of the unknowns' sigmas
 HUBER_SIGMAS = 2.5             # corners beyond this many sigmas are down-weighted
 VIEW_BLOCKS = 20
 MIN_BLOCK_VIEWS = 6            # fewer views: the model's covariance (module docstring)
-DIFFERENCE_STEP = 1e-7         # radians and metres
 START_VIEW_ERROR = 1e-3        # the views' shared errors' start (rad, m): EM cannot leave 0
 NOISE_ITERATIONS = 200         # EM steps of the noise fit, at most
 NOISE_TOLERANCE = 1e-2         # ... until -log L falls by less (the test below: 11.2 in -log L)
@@ -237,38 +236,38 @@ def predicted_pixels(link_q, link_t, corners, camera, model):
     return camera.project(points)
 
 
-def jacobian(link_q, link_t, corners, camera, model):
-    """Return d pixels / d unknowns, (K, 2, 12), by central differences."""
-    columns = []
-    for k in range(12):
-        step = np.zeros(12)
-        step[k] = DIFFERENCE_STEP
-        plus = predicted_pixels(link_q, link_t, corners, camera, apply_step(step, *model))
-        minus = predicted_pixels(link_q, link_t, corners, camera, apply_step(-step, *model))
-        columns.append((plus - minus) / (2 * DIFFERENCE_STEP))
-    return np.stack(columns, axis=-1)
-
-
-def view_jacobian(link_q, link_t, corners, camera, model):
+def pixels_and_jacobians(link_q, link_t, corners, camera, model, shared=True):
     """
-    Return d pixels / d (view error), (K, 2, 6), by central differences.
+    Return the pixels (K, 2) the model predicts and their Jacobians (analytic).
 
-    The view error turns the board pose in the camera frame S by a rotation vector on the
-    left and shifts it (camera frame): ViewNoise.view_sd's coordinates.
+    d pixels / d unknowns (K, 2, 12), and d pixels / d (view error) (K, 2, 6) when `shared`
+    (else None). With c = R_S p + t_S each corner in the camera frame and M = R_X^T R_L^T:
+    the unknowns move as apply_step moves them (rotation vectors a of X and o of O on the
+    left, shifts b of x_t and d of o_t), so dc/da = [c]x R_X^T, dc/db = -R_X^T,
+    dc/do = -[R_S p]x M, dc/dd = M; the view error turns S by a rotation vector on the left
+    and shifts it in the camera frame (ViewNoise.view_sd's coordinates): -[R_S p]x and I.
+    Each is chained with the camera's d pixels / dc (Camera.project_with_jacobian).
     """
-    R_S, t_S = board_in_camera(link_q, link_t, model)
+    x_q, x_t, o_q, o_t = model
+    R_X, R_O = quat.matrix_from_quaternion(x_q), quat.matrix_from_quaternion(o_q)
+    R_L = quat.matrix_from_quaternion(link_q)                       # (N, 3, 3)
+    M = R_X.T @ np.transpose(R_L, (0, 2, 1))                         # (N, 3, 3)
+    t_S = (np.einsum('nji,nj->ni', R_L, o_t - link_t) - x_t) @ R_X   # (N, 3)
     v = corners.view
+    M_v = M[v]
+    turned = np.einsum('kij,kj->ki', M_v @ R_O, corners.points)      # R_S p, (K, 3)
+    c = turned + t_S[v]
+    pixels, P = camera.project_with_jacobian(c)                      # P: (K, 2, 3)
+    # a row r of P times [w]x is (r x w)^T
+    P_turned = np.cross(P, turned[:, None, :])
+    J = np.concatenate([np.cross(P, c[:, None, :]) @ R_X.T, -P @ R_X.T, -P_turned @ M_v,
+                        P @ M_v], axis=2)
+    return pixels, J, (np.concatenate([-P_turned, P], axis=2) if shared else None)
 
-    def pixels(step):
-        turn = quat.matrix_from_quaternion(quat.from_rotation_vector(step[:3]))
-        points = np.einsum('kij,kj->ki', (turn @ R_S)[v], corners.points)
-        return camera.project(points + t_S[v] + step[3:])
-    columns = []
-    for k in range(6):
-        step = np.zeros(6)
-        step[k] = DIFFERENCE_STEP
-        columns.append((pixels(step) - pixels(-step)) / (2 * DIFFERENCE_STEP))
-    return np.stack(columns, axis=-1)
+
+def jacobian(link_q, link_t, corners, camera, model):
+    """Return d pixels / d unknowns, (K, 2, 12) (pixels_and_jacobians)."""
+    return pixels_and_jacobians(link_q, link_t, corners, camera, model, shared=False)[1]
 
 
 class _ViewSums:
@@ -322,9 +321,13 @@ class _ViewSums:
         d, B_inv, u = self._woodbury(noise)
         return d * np.einsum('vij,vj->vi', B_inv, u)
 
-    def negative_log_likelihood(self, noise):
-        """Return -log L of the residuals under `noise` (constant terms left out)."""
-        _, B_inv, u = self._woodbury(noise)
+    def negative_log_likelihood(self, noise, woodbury=None):
+        """
+        Return -log L of the residuals under `noise` (constant terms left out).
+
+        woodbury: _woodbury(noise), when the caller has it.
+        """
+        _, B_inv, u = self._woodbury(noise) if woodbury is None else woodbury
         quadratic = self.eWe / noise.pixel_variance - np.einsum('vi,vij,vj->v', u, B_inv, u)
         log_det = (self.count * np.log(noise.pixel_variance) - self.log_w
                    - np.linalg.slogdet(B_inv)[1])
@@ -341,9 +344,10 @@ class _ViewSums:
         sure to raise the likelihood: it stops when it does not); 0: maximum likelihood.
         """
         last = np.inf
+        woodbury = self._woodbury(noise)
         for _ in range(NOISE_ITERATIONS):
             before = noise
-            d, B_inv, u = self._woodbury(noise)
+            d, B_inv, u = woodbury
             posterior = d[:, None] * B_inv * d
             mean = d * np.einsum('vij,vj->vi', B_inv, u)
             view_variance = (np.sum(mean ** 2 + np.einsum('vii->vi', posterior), axis=0)
@@ -353,7 +357,8 @@ class _ViewSums:
                       + np.einsum('vij,vji->v', self.GWG, posterior))
             noise = ViewNoise(max(float(misfit.sum() / self.count.sum()), VARIANCE_FLOOR),
                               np.sqrt(view_variance))
-            value = self.negative_log_likelihood(noise)
+            woodbury = self._woodbury(noise)
+            value = self.negative_log_likelihood(noise, woodbury)
             if value > last:
                 return before
             if last - value < tolerance:
@@ -461,9 +466,8 @@ def _focal_evidence(link_q, link_t, corners, camera, fixed, scaled, w, shared):
 def _likelihood_sums(link_q, link_t, corners, camera, fit, w, shared):
     """Return the _ViewSums of the noise's likelihood at `fit` (its focal scale), weights w."""
     seen_by = with_focal_scale(camera, fit.focal_scale)
-    e = corners.pixels - predicted_pixels(link_q, link_t, corners, seen_by, fit.model)
-    G = view_jacobian(link_q, link_t, corners, seen_by, fit.model) if shared else None
-    return _ViewSums(None, G, e, w, corners.view)
+    predicted, _, G = pixels_and_jacobians(link_q, link_t, corners, seen_by, fit.model, shared)
+    return _ViewSums(None, G, corners.pixels - predicted, w, corners.view)
 
 
 def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared, focal=False):
@@ -479,12 +483,10 @@ def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared,
 
     def linearised(model, scale):
         seen_by = with_focal_scale(camera, scale)
-        predicted = predicted_pixels(link_q, link_t, corners, seen_by, model)
-        J = jacobian(link_q, link_t, corners, seen_by, model)
+        predicted, J, G = pixels_and_jacobians(link_q, link_t, corners, seen_by, model, shared)
         if focal:   # u - c = s (f x'): d u / d s = (u - c) / s
             J = np.concatenate([J, ((predicted - seen_by.K[:2, 2]) / scale)[..., None]],
                                axis=2)
-        G = view_jacobian(link_q, link_t, corners, seen_by, model) if shared else None
         return corners.pixels - predicted, J, G
 
     def moved(step, model, scale):
