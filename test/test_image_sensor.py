@@ -16,7 +16,7 @@ from quatcal_ros.tools.cli import _sensor_input, replay_main
 from quatcal_ros.vision.board import parse_board
 from quatcal_ros.vision.camera import camera_from
 from quatcal_ros.vision.image_sensor import ImageSensor, mean_corners
-from quatcal_ros.vision.render import cell_views, Renderer
+from quatcal_ros.vision.render import cell_views, Renderer, view_poses
 from rendered_cell import BOARD, CAMERA, write_board
 
 MS = 1_000_000
@@ -118,8 +118,12 @@ def camera_info_msg(stamp_ns):
         p=np.zeros(12), binning_x=0, binning_y=0, roi=roi)
 
 
-def write_image_bag(path, n_stops, seed=4, bad_every=0):
-    """Write a stop-and-go eye-in-hand bag: 50 Hz link poses, 10 Hz images at each stop."""
+def write_image_bag(path, n_stops, seed=4, bad_every=0, info_after=False):
+    """
+    Write a stop-and-go eye-in-hand bag: 50 Hz link poses, 10 Hz images at each stop.
+
+    Each image's camera_info is logged just before it, or just after it (`info_after`).
+    """
     rng = np.random.default_rng(seed)
     renderer = Renderer(parse_board(BOARD), CAMERA)
     mounting, _, seen, links = cell_views(rng, renderer, n_stops, distance_m=(0.35, 0.8))
@@ -134,7 +138,8 @@ def write_image_bag(path, n_stops, seed=4, bad_every=0):
             if i % 5 == 2:
                 images += 1
                 bad = bad_every and images % bad_every == 0
-                messages.append(('/camera/color/camera_info', stamp + 1, camera_info_msg(stamp)))
+                messages.append(('/camera/color/camera_info', stamp + (3 if info_after else 1),
+                                 camera_info_msg(stamp)))
                 messages.append(('/camera/color/image_raw', stamp + 2,
                                  image_msg(stamp, gray, 'yuv422' if bad else 'mono8')))
     bag.write_bag(path, {'/robot/pose': 'geometry_msgs/msg/PoseStamped',
@@ -181,6 +186,16 @@ def test_replay_of_camera_images_refines_on_the_corners(tmp_path, board_file, ca
     assert error_deg < 4 * result['uncertainty_deg'], (error_deg, result['uncertainty_deg'])
     assert error_mm < 4 * result['translation_uncertainty_mm'], (
         error_mm, result['translation_uncertainty_mm'])
+
+
+def test_a_bag_whose_first_image_comes_before_its_camera_info_uses_it(tmp_path, board_file,
+                                                                      capsys):
+    write_image_bag(tmp_path / 'cell', 6, info_after=True)
+    assert replay_main([str(tmp_path / 'cell'), '--link-topic', '/robot/pose',
+                        '--image-topic', '/camera/color/image_raw', '--board-file',
+                        str(board_file), '--still-window-s', '0.5', '--quiet']) == 0
+    counts = json.loads(capsys.readouterr().out)['views']['counts']
+    assert counts['images'] == counts['detected'] == 6 * 8 and 'no_camera_info' not in counts
 
 
 def test_images_are_fed_in_windows_of_bounded_bytes(tmp_path, board_file, capsys,
@@ -273,17 +288,54 @@ def test_a_last_record_without_its_newline_is_kept(tmp_path):
     assert [row[0] for row in read_corners(path)[0]] == [5, 6, 7]
 
 
-def test_images_before_any_camera_info_name_the_topic_it_is_awaited_on():
-    # 'no usable camera_info received yet' did not say where the node listens for it.
+def image_input(board=BOARD):
+    """Return (ImageInput with the camera_info topic named, its PoseScreen)."""
     from quatcal_ros.ros.image_input import ImageInput
     from quatcal_ros.ros.pose_screen import PoseScreen
-    from sensor_msgs.msg import Image
     screen = PoseScreen()
-    images = ImageInput(ImageSensor(parse_board(BOARD)), screen)
+    images = ImageInput(ImageSensor(parse_board(board)), screen)
     images.camera_info_topic = '/camera/color/camera_info'
-    image = Image(height=4, width=4, encoding='mono8', step=4, data=bytes(16))
-    image.header.stamp.sec = 1_700_000_000
-    assert images.take_image(image) is None
+    return images, screen
+
+
+def test_the_image_before_the_first_camera_info_waits_for_it():
+    # A driver publishes an image and its camera_info on two topics: the first image often
+    # came first and was counted as an image without a calibration.
+    images, screen = image_input()
+    rng = np.random.default_rng(3)
+    renderer = Renderer(parse_board(BOARD), CAMERA)
+    truth = view_poses(rng, 1, renderer)[0]
+    gray = renderer.render(truth, rng, noise=1.0)
+    start = 1_700_000_000 * NS_PER_S
+    assert images.take_image(image_msg(start, gray)) is None
+    assert screen.stats.bad == {}                                   # held, not counted
+    assert images.take_image(image_msg(start + 100 * MS, gray)) is None
+    # A newer image replaces it: the first is an image without a calibration after all, and
+    # the message says where the node listens for one.
+    assert screen.stats.bad == {('sensor_pose', 'no_camera_info'): 1}
     assert screen.stats.example('sensor_pose', 'no_camera_info') == (
         'no usable camera_info received yet on /camera/color/camera_info: is it published '
         'there, or under another name (remap camera_info:=...)?')
+    # A camera_info that is no calibration leaves it waiting; the one stamped as it uses it.
+    zeros = camera_info_msg(start + 100 * MS)
+    zeros.k[:] = 0.0
+    assert images.take_camera_info(zeros) is None
+    stamp_ns, pose = images.take_camera_info(camera_info_msg(start + 100 * MS))
+    assert stamp_ns == start + 100 * MS
+    assert np.degrees(quat.angle_between(pose.quaternion, truth.quaternion)) < 0.5
+    assert images.sensor.counts == {'images': 2, 'no_camera_info': 1, 'detected': 1,
+                                    'bad_camera_info': 1}
+    assert screen.stats.bad[('sensor_pose', 'no_camera_info')] == 1
+
+    # A camera_info stamped far from the held image (a driver that stamps it 0, another
+    # camera's): the image was taken without one.
+    images, screen = image_input()
+    images.take_image(image_msg(start, gray))
+    assert images.take_camera_info(camera_info_msg(0)) is None
+    assert screen.stats.bad == {('sensor_pose', 'no_camera_info'): 1}
+    assert images.sensor.camera is not None
+    # An image still held when the run ends is counted: nothing is lost silently.
+    images, screen = image_input()
+    images.take_image(image_msg(start, gray))
+    images.finish()
+    assert screen.stats.bad == {('sensor_pose', 'no_camera_info'): 1}

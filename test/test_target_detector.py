@@ -18,7 +18,7 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
-from rendered_cell import BOARD, CAMERA, camera_info_msg, write_board
+from rendered_cell import BOARD, CAMERA, write_board
 from ros_harness import harnesses_of, SpinMixin
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
@@ -53,8 +53,8 @@ class Harness(SpinMixin):
                         and self.driver.count_publishers('/target_detector/pose'),
                         what='discovery of the target detector')
 
-    def send_info(self, camera=CAMERA):
-        self.info.publish(camera_info_msg(camera))
+    def send_info(self, camera=CAMERA, stamp_s=0):
+        self.info.publish(conversions.camera_info_msg(camera, stamp_s * 10 ** 9))
 
     def send_image(self, gray, stamp_s=100, encoding='mono8'):
         header = Header(frame_id='camera_color_optical_frame')
@@ -85,16 +85,21 @@ def test_board_poses_with_covariance_from_images(make_harness, board_file, trans
     renderer = Renderer(parse_board(BOARD), CAMERA)
     rng = np.random.default_rng(7)
     truths = view_poses(rng, 3, renderer)
-    h.send_image(renderer.render(truths[0], rng))          # no camera_info yet: skipped
+    # Before any camera_info an image waits for it; a newer one replaces it: skipped.
+    h.send_image(renderer.render(truths[0], rng), stamp_s=99)
+    h.send_image(renderer.render(truths[0], rng, noise=2.0, blur_sigma=0.5), stamp_s=100)
     h.spin_until(lambda: h.node.counts['no_camera_info'] == 1, what='a skipped image')
-    h.send_info()
-    h.spin_until(lambda: h.node.camera is not None, what='the camera_info')
+    h.send_info(stamp_s=100)   # the waiting image's: its pose is published
+    h.spin_until(lambda: h.poses, what='the pose of the image before the camera_info')
+    assert h.poses[0].header.stamp.sec == 100 and h.node.counts['images'] == 2
     for k, truth in enumerate(truths):
-        h.send_image(renderer.render(truth, rng, noise=2.0, blur_sigma=0.5), stamp_s=101 + k)
+        if k:
+            h.send_image(renderer.render(truth, rng, noise=2.0, blur_sigma=0.5),
+                         stamp_s=100 + k)
         h.spin_until(lambda: len(h.poses) == k + 1, what=f'pose {k}')
         msg = h.poses[-1]
         assert msg.header.frame_id == 'camera_color_optical_frame'
-        assert msg.header.stamp.sec == 101 + k
+        assert msg.header.stamp.sec == 100 + k
         pose = conversions.pose_from_msg(msg)
         assert np.degrees(quat.angle_between(pose.quaternion, truth.quaternion)) < 0.5
         assert np.linalg.norm(pose.position - truth.position) < 2e-3

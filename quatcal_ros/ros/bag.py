@@ -554,7 +554,6 @@ class _Run:
         """Return the function that takes one raw pose message (rosbags deserialises it)."""
         msgtype = self.replay.msgtypes[topic]
         deserialize = TYPESTORE.deserialize_cdr
-        add = self.adders[stream]
         checked = STREAMS[stream]
         take = (self.poses.take if msgtype not in IMAGE_TYPES
                 else lambda _, msg: self.images.take_image(msg))
@@ -567,12 +566,15 @@ class _Run:
                 self.poses.bad(checked, 'undecodable', f'{type(error).__name__}: {error}')
                 return
             taken = take(checked, msg)
-            if taken is None:
-                return
-            if self._track(stream, taken[0], taken[0]):
-                self.report.frames[stream] = frame_ids(msg)
-            self.poses.verdict(checked, add(*taken), held=self.session.held)
+            if taken is not None:
+                self._add(stream, taken, msg)
         return on_pose
+
+    def _add(self, stream, taken, msg):
+        """Add the pose taken, (stamp_ns, Pose), from message `msg` to the session's `stream`."""
+        if self._track(stream, taken[0], taken[0]):
+            self.report.frames[stream] = frame_ids(msg)
+        self.poses.verdict(STREAMS[stream], self.adders[stream](*taken), held=self.session.held)
 
     def _on_rows(self, stream, msgtype, raws, decoded, start, stop):
         """Take the decoded poses of raws[start:stop] (cdr.DecodedPoses rows) at once."""
@@ -610,7 +612,10 @@ class _Run:
         except Exception as error:   # noqa: B902 - whatever rosbags raises on bad bytes
             self.poses.bad(SENSOR, 'bad_camera_info', f'{type(error).__name__}: {error}')
             return
-        self.images.take_camera_info(msg)
+        held = self.images.first_image.held
+        taken = self.images.take_camera_info(msg)
+        if taken is not None:   # the image held for the first camera_info
+            self._add('sensor', taken, held[0])
 
     def on_tf(self, topic, raw, static, keep=False):
         """
@@ -628,6 +633,8 @@ class _Run:
     def finish(self, count):
         """Close the TF watchers and return the completed ReplayReport."""
         self.tf.finish()
+        if self.images is not None:
+            self.images.finish()
         self.poses.verdict(None, self.session.end_streams(), count=0)
         report = self.report
         stats = self.poses.stats

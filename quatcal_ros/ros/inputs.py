@@ -295,7 +295,9 @@ class NodeInputs:
 
     def _on_camera_info(self, msg):
         self.flush()
-        self.images.take_camera_info(msg)
+        taken = self.images.take_camera_info(msg)
+        if taken is not None:   # the image held for the first camera_info
+            self._deliver(SENSOR, taken, self._node.now_ns())
 
     def _on_image(self, msg):
         self.flush()

@@ -23,7 +23,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 import numpy as np
 from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.ros import command_line, conversions, spin
-from quatcal_ros.ros.image_input import camera_of, view_of
+from quatcal_ros.ros.image_input import FirstImage, view_of
 from quatcal_ros.ros.qos import quiet_publisher_events
 from quatcal_ros.stream.log_throttle import LogThrottle
 from quatcal_ros.vision.board import read_board
@@ -73,6 +73,7 @@ class TargetDetector(Node):
             min_corners=int(values['min_corners']),
             max_reprojection_px=float(values['max_reprojection_px']),
             min_sharpness=float(values['min_sharpness'])))
+        self.first_image = FirstImage()   # an image before the first camera_info, held for it
         self.pose_publisher = self.create_publisher(
             PoseWithCovarianceStamped, '~/pose', 10, event_callbacks=quiet_publisher_events())
         self.debug_publisher = (self.create_publisher(Image, '~/debug_image', 2,
@@ -99,7 +100,7 @@ class TargetDetector(Node):
         return self.sensor.counts
 
     def _on_camera_info(self, msg):
-        text, error = camera_of(self.sensor, msg)
+        text, error, _ = self.first_image.take_camera_info(self.sensor, msg, self._detect)
         if error is not None:
             self._log('bad_camera_info', str(error))
         elif text:
@@ -113,6 +114,10 @@ class TargetDetector(Node):
             self.counts['bad_image'] += 1
             self._log('bad_image', str(error))
             return
+        self.first_image.take_image(self.sensor, msg, stamp_ns, self._detect)
+
+    def _detect(self, msg, stamp_ns):
+        """Publish the board pose in an image (and the debug image when watched)."""
         gray, view = view_of(self.sensor, msg, stamp_ns)
         if not view.ok:
             self._log(view.refused, view.detail)
