@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 
 from quatcal_ros.core import quaternion as quat  # noqa: E402
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions  # noqa: E402
-from quatcal_ros.core.pose import Pose  # noqa: E402
+from quatcal_ros.sim.simulation import robot_reported  # noqa: E402
 from quatcal_ros.vision.board import parse_board  # noqa: E402
 from quatcal_ros.vision.camera import camera_from  # noqa: E402
 from quatcal_ros.vision.dataset import load_image_dataset  # noqa: E402
@@ -48,12 +48,8 @@ def rendered_folder(folder, views, robot_deg, robot_mm, rng):
     renderer = Renderer(parse_board(BOARD), camera)
     mounting, _, seen, links = cell_views(rng, renderer, views, distance_m=(0.3, 0.8))
     images = [renderer.render(s, rng, noise=2.0, blur_sigma=0.6) for s in seen]
-    reported = [Pose(link.position + rng.normal(0.0, 1e-3 * robot_mm / np.sqrt(3.0), 3),
-                     quat.multiply(quat.from_rotation_vector(
-                         rng.normal(0.0, np.radians(robot_deg) / np.sqrt(3.0), 3)),
-                         link.quaternion)) for link in links]
     write_dataset(folder, BOARD, camera, [f'view_{i:03d}.png' for i in range(views)],
-                  reported, images)
+                  robot_reported(rng, links, robot_deg, robot_mm), images)
     return mounting
 
 

@@ -36,8 +36,8 @@ import numpy as np  # noqa: E402
 
 from quatcal_ros.core import quaternion as quat  # noqa: E402
 from quatcal_ros.core.calibration import calibrate  # noqa: E402
-from quatcal_ros.core.pose import Pose, Sample  # noqa: E402
-from quatcal_ros.sim.simulation import add_pose_noise  # noqa: E402
+from quatcal_ros.core.pose import Sample  # noqa: E402
+from quatcal_ros.sim.simulation import robot_reported  # noqa: E402
 from quatcal_ros.vision.board import parse_board  # noqa: E402
 from quatcal_ros.vision.camera import camera_from  # noqa: E402
 from quatcal_ros.vision.detect import detect  # noqa: E402
@@ -73,10 +73,7 @@ def trial(renderer, views, seed, robot_deg=0.0, robot_mm=0.0, focal_error=0.0):
             links.append(link)
             found.append(view)
     if links and (robot_deg or robot_mm):   # what the robot reports: each pose off (RMS)
-        positions, quaternions = add_pose_noise(
-            rng, [link.position for link in links], [link.quaternion for link in links],
-            robot_deg / np.sqrt(3.0), 1e-3 * robot_mm / np.sqrt(3.0))
-        links = [Pose(p, q) for p, q in zip(positions, quaternions)]
+        links = robot_reported(rng, links, robot_deg, robot_mm)
     samples = [Sample(i * 10 ** 9, link, view.pose)
                for i, (link, view) in enumerate(zip(links, found))]
     estimates = {}

@@ -28,6 +28,7 @@ from quatcal_ros.core.refine import apply_step
 from quatcal_ros.files import plain_yaml
 from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.report.page import convergence, report_html
+from quatcal_ros.sim.simulation import robot_reported
 from quatcal_ros.tools.cli import solve_main
 from quatcal_ros.vision.board import parse_board
 from quatcal_ros.vision.camera import camera_from, MODELS, parse_camera
@@ -262,14 +263,6 @@ def synthetic_cell(rng, renderer, views, pixel_noise):
     return mounting, board_pose, links, corners, samples
 
 
-def robot_error(rng, links, rotation_deg, translation_mm):
-    """Return the link poses a robot reports, each off by the given RMS errors (per pose)."""
-    return [Pose(link.position + rng.normal(0.0, 1e-3 * translation_mm / np.sqrt(3.0), 3),
-                 quat.multiply(quat.from_rotation_vector(
-                     rng.normal(0.0, np.radians(rotation_deg) / np.sqrt(3.0), 3)),
-                     link.quaternion)) for link in links]
-
-
 def reprojection_trials(renderers, views, trials, bad_fraction=0.0, bad_px=30.0,
                         robot_deg=0.0, robot_mm=0.0):
     """
@@ -290,7 +283,7 @@ def reprojection_trials(renderers, views, trials, bad_fraction=0.0, bad_px=30.0,
             turn = rng.uniform(0.0, 2 * np.pi, bad.sum())
             pixels[bad] += bad_px * np.column_stack([np.cos(turn), np.sin(turn)])
         if robot_deg or robot_mm:
-            links = robot_error(rng, links, robot_deg, robot_mm)
+            links = robot_reported(rng, links, robot_deg, robot_mm)
             samples = [Sample(s.stamp_ns, link, s.sensor) for s, link in zip(samples, links)]
         link_q = np.array([link.quaternion for link in links])
         link_t = np.array([link.position for link in links])
@@ -360,7 +353,7 @@ def test_the_views_shared_errors_are_fitted_when_the_corners_show_them(renderers
     for trial in range(12):
         rng = np.random.default_rng(200 + trial)
         X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 16, 0.3)
-        links = robot_error(rng, links, 0.2, 1.0)
+        links = robot_reported(rng, links, 0.2, 1.0)
         link_q = np.array([link.quaternion for link in links])
         link_t = np.array([link.position for link in links])
         start = calibrate([Sample(s.stamp_ns, link, s.sensor)
@@ -423,7 +416,7 @@ def test_a_focal_length_off_in_camera_info_is_fitted(renderers):
     for trial in range(8):
         rng = np.random.default_rng(600 + trial)
         X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 12, 0.3)
-        links = robot_error(rng, links, 0.2, 1.0)
+        links = robot_reported(rng, links, 0.2, 1.0)
         samples = [Sample(s.stamp_ns, link, s.sensor) for s, link in zip(samples, links)]
         start = calibrate(samples)
         model = (start.quaternion, start.translation, O.quaternion, O.position + 0.01)
@@ -450,7 +443,7 @@ def test_the_focal_scale_is_tested_from_10_views_and_kept_far_from_1_alone(rende
                                                                            monkeypatch):
     rng = np.random.default_rng(600)
     X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 12, 0.3)
-    links = robot_error(rng, links, 0.2, 1.0)
+    links = robot_reported(rng, links, 0.2, 1.0)
     start = calibrate([Sample(s.stamp_ns, link, s.sensor) for s, link in zip(samples, links)])
     model = (start.quaternion, start.translation, O.quaternion, O.position + 0.01)
     camera = with_focal_scale(CAMERA, 1.02)
@@ -488,7 +481,7 @@ def test_each_view_is_predicted_as_the_fit_without_it_would(renderers, seed, rob
     # (translation) with them.
     rng = np.random.default_rng(seed)
     X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 10, 0.3)
-    links = robot_error(rng, links, robot_deg, robot_mm)
+    links = robot_reported(rng, links, robot_deg, robot_mm)
     samples = [Sample(s.stamp_ns, link, s.sensor) for s, link in zip(samples, links)]
     fit = refine_from_poses(samples, corners, CAMERA, calibrate(samples))
     assert fit.views_share_errors == bool(robot_deg)
@@ -526,7 +519,7 @@ def test_the_validation_on_the_pixels_predicts_new_views(renderers, robot_deg, r
     for trial in range(15):
         rng = np.random.default_rng(trial)
         X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 22, 0.3)
-        links = robot_error(rng, links, robot_deg, robot_mm)
+        links = robot_reported(rng, links, robot_deg, robot_mm)
         samples = [Sample(s.stamp_ns, link, s.sensor) for s, link in zip(samples, links)]
         fit = refine_from_poses(samples[:12], corners[:12], CAMERA, calibrate(samples[:12]))
         errors = fit.leave_one_out.reshape(-1, 2, 3)
@@ -569,7 +562,7 @@ def test_too_few_views_for_blocks_say_the_uncertainty_leaves_out_the_robots_erro
 def test_too_few_views_with_shared_errors_say_the_model_fitted_them_to_few_views(renderers):
     rng = np.random.default_rng(7)
     X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 5, 0.3)
-    links = robot_error(rng, links, 0.3, 1.0)
+    links = robot_reported(rng, links, 0.3, 1.0)
     samples = [Sample(s.stamp_ns, link, s.sensor) for s, link in zip(samples, links)]
     result = calibrate(samples)
     fit = refine_from_poses(samples, corners, CAMERA, result)
@@ -583,7 +576,7 @@ def test_too_few_views_with_shared_errors_say_the_model_fitted_them_to_few_views
 def test_the_report_of_a_fit_on_the_pixels_shows_it_beside_the_pose_based_one(renderers):
     rng = np.random.default_rng(8)
     X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 10, 0.3)
-    links = robot_error(rng, links, 0.2, 1.0)
+    links = robot_reported(rng, links, 0.2, 1.0)
     samples = [Sample(s.stamp_ns, link, s.sensor) for s, link in zip(samples, links)]
     options = CalibrationOptions()
     result = calibrate(samples, options)
@@ -625,7 +618,7 @@ def test_a_view_error_beyond_a_robots_is_said_with_its_likely_causes(renderers, 
                                                                      robot_mm, said):
     rng = np.random.default_rng(9)
     X, O, links, corners, samples = synthetic_cell(rng, renderers['charuco'], 12, 0.3)
-    links = robot_error(rng, links, robot_deg, robot_mm)
+    links = robot_reported(rng, links, robot_deg, robot_mm)
     samples = [Sample(s.stamp_ns, link, s.sensor) for s, link in zip(samples, links)]
     result = calibrate(samples)
     fit = refine_from_poses(samples, corners, CAMERA, result)

@@ -275,6 +275,19 @@ def add_pose_noise(rng, positions, quaternions, rotation_noise_deg=0.0, translat
     return positions + z[:, 3:] * translation_noise_m, noisy_q
 
 
+def robot_reported(rng, links, rotation_deg, translation_mm):
+    """
+    Return the poses a robot reports for the true link poses `links` (Poses).
+
+    Each is off by its own draw of add_pose_noise, of RMS rotation_deg and translation_mm
+    (angle and length; the standard deviation per axis is that over sqrt(3)).
+    """
+    positions, quaternions = add_pose_noise(
+        rng, [link.position for link in links], [link.quaternion for link in links],
+        rotation_deg / math.sqrt(3.0), 1e-3 * translation_mm / math.sqrt(3.0))
+    return [Pose(p, q) for p, q in zip(positions, quaternions)]
+
+
 def add_sensor_noise(rng, positions, quaternions, covariance):
     """
     Noisy copies of sensor poses with a 6x6 covariance in the sensor frame.
