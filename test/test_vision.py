@@ -439,6 +439,23 @@ def test_a_focal_length_off_in_camera_info_is_fitted(renderers):
     assert np.all((0.7 < ratio) & (ratio < 1.35)), ratio
 
 
+def test_the_pixel_noise_counts_every_unknown_fitted(renderers):
+    # With the focal scale, 13 unknowns: the noise's degrees of freedom were 2K - 12.
+    X, O, links, corners, _ = synthetic_cell(np.random.default_rng(8), renderers['charuco'],
+                                             8, 0.3)
+    link_q, link_t = robot_poses(links)
+    for focal, unknowns in ((False, 12), (True, 13)):
+        fit = refine_reprojection(link_q, link_t, corners, CAMERA, X.quaternion, X.position,
+                                  O.quaternion, O.position, robust=False, view_errors=False,
+                                  focal=focal)
+        stacked = Corners.of(corners)
+        e = stacked.pixels - predicted_pixels(link_q, link_t, stacked,
+                                              with_focal_scale(CAMERA, fit.focal_scale),
+                                              fit.model)
+        assert fit.pixel_noise_px == pytest.approx(np.sqrt(np.sum(e * e) / (e.size - unknowns)),
+                                                   rel=1e-9)
+
+
 def test_the_focal_scale_is_tested_from_10_views_and_kept_far_from_1_alone(renderers,
                                                                            monkeypatch):
     rng = np.random.default_rng(600)

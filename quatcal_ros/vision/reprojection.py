@@ -491,17 +491,18 @@ def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared,
 
     def moved(step, model, scale):
         return apply_step(step[:12], *model), scale + (step[12] if focal else 0.0)
+    unknowns = 13 if focal else 12
 
     noise = ViewNoise(1.0, np.zeros(6))   # (without the views' errors: set by each step)
     if shared:   # the weights and pixel noise then change with the noise fit alone
         e = corners.pixels - predicted_pixels(link_q, link_t, corners, camera, model)
-        w, sigma = _weights(e, robust)
+        w, sigma = _weights(e, robust, unknowns)
         noise = ViewNoise(sigma ** 2, np.full(6, START_VIEW_ERROR))
     converged, iterations = False, 0
     for iterations in range(1, max_iterations + 1):
         e, J, G = linearised(model, scale)
         if not shared:
-            w, sigma = _weights(e, robust)
+            w, sigma = _weights(e, robust, unknowns)
             noise = ViewNoise(sigma ** 2, noise.view_sd)
         sums = _ViewSums(J, G, e, w, corners.view)
         if shared and iterations <= NOISE_REFITS:   # (then fixed: the steps converge as GN's)
@@ -519,7 +520,7 @@ def _fit(link_q, link_t, corners, camera, model, robust, max_iterations, shared,
             break
     e, J, G = linearised(model, scale)
     if not shared:
-        w, sigma = _weights(e, robust)
+        w, sigma = _weights(e, robust, unknowns)
         noise = ViewNoise(sigma ** 2, noise.view_sd)
     sums = _ViewSums(J, G, e, w, corners.view)
     A, _ = sums.normal_equations(noise)
@@ -624,10 +625,10 @@ def _huber(e, sigma):
     return np.minimum(1.0, HUBER_SIGMAS * sigma / np.maximum(r, 1e-12))
 
 
-def _weights(e, robust):
+def _weights(e, robust, unknowns):
     """Return each corner's Huber weight and the pixel noise sigma (per axis)."""
     r = np.linalg.norm(e, axis=1)
-    dof = max(e.size - 12, 1)
+    dof = max(e.size - unknowns, 1)
     if not robust:
         return np.ones(len(r)), max(float(np.sqrt(np.sum(r * r) / dof)), 1e-6)
     sigma = max(float(np.median(r)) / 1.1774, 1e-6)   # the median of a 2-D Gaussian's norm
