@@ -622,6 +622,13 @@ def test_the_report_of_a_fit_on_the_pixels_shows_it_beside_the_pose_based_one(re
             f'(likelihood-ratio evidence {fit["focal_evidence"]:.1f}, fitted from 10.83)') in page
     apart = np.degrees(quat.angle_between(result.quaternion, on_pixels.quaternion))
     assert f'<th>pose-based estimate</th><td>{apart:.3g} deg and ' in page
+    # With the focal lengths scaled, the pose-based row says its poses did not scale them.
+    assert "its board poses use camera_info's focal lengths" not in page
+    scaled = replace(on_pixels, reprojection={**fit, 'focal_scale': 0.98,
+                                              'focal_scale_sd': 0.002, 'focal_evidence': 40.0})
+    page_scaled = report_html(scaled, samples, options, ('tool0', 'camera'))
+    assert "<th>focal length</th><td>camera_info's times 0.9800 (+-0.002)" in page_scaled
+    assert "; its board poses use camera_info's focal lengths</td>" in page_scaled
     # The prefixes (pose-based) end at the pose-based answer, not at the pixels' one (the
     # figure had mixed the two estimators: its last point jumped by their difference).
     counts, deg, _, mm, _ = convergence(on_pixels, samples, options)

@@ -148,6 +148,8 @@ def _on_pixels(result):
                 f'; its validation {escape(checked["verdict"])} '
                 f'({checked["rms_rotation_deg"]:.3g} deg, '
                 f'{checked["rms_translation_mm"]:.3g} mm)')
+        if scale != 1.0:   # (its poses are PnP's with the focal lengths the fit scaled)
+            said += "; its board poses use camera_info's focal lengths"
         rows.append(('pose-based estimate', f'{apart_deg:.3g} deg and {apart_mm:.3g} mm from '
                                             f'this one; uncertainty '
                                             f'{pose_based.uncertainty_deg:.3g} deg, '
