@@ -5,6 +5,7 @@ On domain ids reserved on this host (conftest).  The streams are checked by thei
 contents, not by when they arrive: no rate or delay measured on the wall clock is asserted.
 """
 
+import itertools
 import os
 import signal
 import subprocess
@@ -298,6 +299,27 @@ def test_camera_images_show_the_board_where_the_cell_puts_it(context, namespace,
         assert np.degrees(quat.angle_between(view.pose.quaternion, truth.quaternion)) < 0.3
         assert np.linalg.norm(view.pose.position - truth.position) < 0.005
     assert checked >= 6
+
+
+@pytest.mark.parametrize('robot', ['scara', 'gantry'])
+def test_the_stops_of_every_robot_show_the_camera_the_board(repo_root, robot):
+    # A SCARA's stops were drawn without the camera's view in mind: 7 of 50 eye-in-hand
+    # stops showed too little of the board to find it.
+    from quatcal_ros.ros.sim_cell import IMAGE_INCIDENCE_DEG, IMAGE_VIEW_ANGLE_DEG, SimCamera
+    from quatcal_ros.vision.detect import detect
+    camera = SimCamera(str(repo_root / 'config' / 'sim_board.yaml'), 1)
+    for setup, seed in itertools.product(sim.SETUPS, range(5)):
+        rng = np.random.default_rng(seed)
+        cell = sim.random_cell(rng, setup)
+        trajectory = sim.StopAndGo(rng, cell, n_stops=10, robot=robot,
+                                   max_view_angle_deg=IMAGE_VIEW_ANGLE_DEG,
+                                   max_incidence_deg=IMAGE_INCIDENCE_DEG)
+        for k in range(10):
+            stop = trajectory.stop(k)
+            p, q = cell.sensor_poses(stop.position[None], stop.quaternion[None])
+            gray = camera.renderer.render(Pose(p[0], q[0]) @ camera.object_to_board, rng)
+            view = detect(gray, camera.renderer.board, camera.camera)
+            assert view.ok, (setup, seed, k, view.refused, view.detail)
 
 
 def test_the_robot_reports_each_stop_off_by_its_own_error(context, namespace):

@@ -478,7 +478,8 @@ class StopAndGo:
     stop k is held during [k P, k P + still) with P = still + move; the move to stop k + 1
     follows, SLERP in orientation and a straight line in position, both with minimum-jerk
     timing.  n_stops = 0 runs forever; otherwise the robot holds the last stop from
-    k = n_stops - 1 on.  max_view_angle_deg, max_incidence_deg: stop_poses' (an arm's).
+    k = n_stops - 1 on.  max_view_angle_deg, max_incidence_deg: stop_poses' (every robot's
+    stops are redrawn until the sensor sees the object so).
     """
 
     def __init__(self, rng, cell, still_s=1.5, move_s=2.0, n_stops=0, rotation_spread_deg=30.0,
@@ -512,15 +513,24 @@ class StopAndGo:
     def _ensure(self, count):
         new = count - len(self._positions)
         if new > 0 and self.robot != 'arm':
-            p, q = _stack([poses_from_arrays(*reduced_dof_poses(
-                self._rng, self.cell, 1, self.robot, turn_deg=self.rotation_spread_deg))[0]
-                for _ in range(new)])
+            p, q = _stack([self._reduced_dof_stop() for _ in range(new)])
         elif new > 0:
             p, q = _stack([stop_poses(self._rng, self.cell, 1, self.rotation_spread_deg,
                                       **self.view)[0] for _ in range(new)])
         if new > 0:
             self._positions = np.concatenate([self._positions, p])
             self._quaternions = np.concatenate([self._quaternions, q])
+
+    def _reduced_dof_stop(self, max_tries=1000):
+        """Return a reduced_dof_poses() stop from which the sensor sees the object (`view`)."""
+        for _ in range(max_tries):
+            p, q = reduced_dof_poses(self._rng, self.cell, 1, self.robot,
+                                     turn_deg=self.rotation_spread_deg)
+            if _in_view(*self.cell.sensor_poses(p, q), **self.view)[0]:
+                return Pose(p[0], q[0])
+        raise ValueError(f'no {self.robot} stop with the object in view after {max_tries} '
+                         f'draws: reduce rotation_spread_deg ({self.rotation_spread_deg}) or '
+                         f'widen max_view_angle_deg ({self.view["max_view_angle_deg"]})')
 
     def stop(self, k):
         """T_base_link of stop k."""
