@@ -41,7 +41,8 @@ from pathlib import Path
 import time
 from urllib.parse import quote, unquote
 
-from quatcal_ros.core.units import DEFAULT_FRAMES, MESSAGE_NORM_TOLERANCE, SETUPS, shown
+from quatcal_ros.core.units import DEFAULT_FRAMES, MESSAGE_NORM_TOLERANCE, \
+    quaternion_norm_problem, SETUPS, shown
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import COLUMNS, format_samples, header_columns, parse_samples
 from quatcal_ros.files.text_input import BadInputError, MAX_TEXT_CHARACTERS
@@ -190,10 +191,7 @@ def _chain_problem(root, numbers, sensor_frame):
         values = []
     if len(values) != 7 or not all(map(math.isfinite, values)):
         return 'not 7 finite numbers'
-    norm = math.hypot(*values[3:])
-    if abs(norm - 1.0) > MESSAGE_NORM_TOLERANCE:
-        return f'the quaternion has norm {norm:.6g}, not 1'
-    return ''
+    return quaternion_norm_problem(values[3:], MESSAGE_NORM_TOLERANCE) or ''
 
 
 @dataclass(frozen=True)
