@@ -102,6 +102,12 @@ GOOD_ROW = '1.0,0,0,0,0,0,0,1,0,0,1,0,0,0,1'
      '1 sample(s) (2 more repeat earlier ones exactly); at least 3'),
     ('# a comment\n' + ','.join(COLUMNS) + ',link_x\n' + GOOD_ROW + ',1\n',
      'row 2 (header): column(s) link_x more than once'),
+    # a value too many, at the end (dropped silently before) or inside (the next fields
+    # shifted: blamed on a quaternion)
+    (','.join(COLUMNS) + '\n' + GOOD_ROW + ',7\n',
+     'row 2: 16 fields, the header has 15: a value too many, or a decimal comma?'),
+    (','.join(COLUMNS) + '\n' + GOOD_ROW.replace(',', ',0,5,', 1) + '\n',
+     'row 2: 17 fields, the header has 15'),
 ])
 def test_bad_input_exits_2_naming_row_and_field(repo_root, tmp_path, text, expected):
     path = tmp_path / 'bad.csv'
@@ -110,6 +116,25 @@ def test_bad_input_exits_2_naming_row_and_field(repo_root, tmp_path, text, expec
     assert done.returncode == 2
     assert expected in done.stderr and str(path) in done.stderr
     assert 'Traceback' not in done.stderr and done.stdout == ''
+
+
+def test_option_help_names_other_options_as_options():
+    # It named them as the node's parameters (validation_max_translation_mm).
+    import argparse
+    from quatcal_ros.tools.options import add_setting_options
+    parser = argparse.ArgumentParser()
+    add_setting_options(parser, 'solve')
+    helps = {action.dest: action.help for action in parser._actions}
+    assert helps['validation_max_rotation_deg'].endswith(
+        'is at most this angle and --validation-max-translation-mm; 0 to 180 deg; default 1.0')
+    assert 'validation_max' not in ' '.join(map(str, helps.values()))
+
+
+def test_empty_fields_after_a_row_are_a_trailing_comma():
+    from quatcal_ros.files.samples_csv import parse_samples
+    rows = [GOOD_ROW, GOOD_ROW.replace('1.0,', '2.0,', 1) + ',', GOOD_ROW + ', ,']
+    samples = parse_samples(','.join(COLUMNS) + '\n' + '\n'.join(rows) + '\n', 'a.csv')
+    assert [sample.stamp_ns for sample in samples] == [10 ** 9, 2 * 10 ** 9, 10 ** 9]
 
 
 def covariance_samples(n=12, seed=31):
@@ -243,6 +268,13 @@ def test_solve_on_a_journal_takes_its_invert_sensor(tmp_path, capsys):
     result = solved('--no-invert-sensor')
     assert any('the journal was recorded with invert_sensor true; it is solved with false, '
                'as the options say' in warning for warning in result['warnings'])
+    # Both: the last one had won, silently.
+    for both in (['--invert-sensor', '--no-invert-sensor'], ['--no-invert', '--invert']):
+        with pytest.raises(SystemExit) as raised:
+            solve_main([str(path), *both])
+        assert raised.value.code == 2
+        assert ('--invert-sensor and --no-invert-sensor say opposite things: give one'
+                in capsys.readouterr().err)
 
 
 @pytest.mark.parametrize('torn', ['cut', 'all_fields'])
@@ -462,8 +494,13 @@ def test_solve_writes_the_result_file_the_node_writes(tmp_path, capsys):
     assert solve_main([str(path), '--result-out', str(target), '--parent-frame', 'tool0',
                        '--child-frame', 'camera_optical', '--validation-max-rotation-deg',
                        '0.001']) == 0
-    out = json.loads(capsys.readouterr().out)
-    saved = read_result_yaml(target)
+    printed = capsys.readouterr()
+    out = json.loads(printed.out)
+    # A failed validation is said on stderr too (only the JSON and the file said it).
+    assert printed.err == (f'solve: warning: {path}: validation failed: leave-one-out prediction '
+                           'errors (RMS) above the thresholds: rotation '
+                           f'{out["validation"]["rms_rotation_deg"]:.3f} deg > 0.001 deg\n')
+    saved = read_result_yaml(target)   # (in a folder made for it)
     assert (saved['parent_frame'], saved['child_frame']) == ('tool0', 'camera_optical')
     assert saved['format'] == 'quatcal_ros/mounting' and saved['setup'] == 'eye_in_hand'
     assert saved['quaternion_xyzw'] == pytest.approx(

@@ -86,7 +86,8 @@ def published(result, warnings=()):
     """
     failed = failure_warning(result.validation)
     if failed:
-        warnings = [f'{failed} (the "validation" key lists each sample, the worst first)',
+        warnings = [f"{failed} (each sample's prediction error is listed with the validation, "
+                    'the worst first)',
                     *warnings]
     return replace(result, warnings=[*result.warnings, *warnings]) if warnings else result
 

@@ -72,6 +72,9 @@ def _parse_rows(reader, name):
     for row in reader:
         if not row or all(not cell.strip() for cell in row):
             continue
+        if any(cell.strip() for cell in row[len(header):]):   # (empty ones: a trailing comma)
+            raise BadInputError(f'{name}, row {reader.line_num}: {len(row)} fields, the header '
+                                f'has {len(header)}: a value too many, or a decimal comma?')
         sample = _sample_from_row(row, index, name, reader.line_num)
         if covariance_index:
             covariance = _covariance(row, covariance_index, name, reader.line_num)

@@ -16,7 +16,7 @@ import time
 
 from quatcal_ros.core.planner import plan_next_pose, PlanLimits
 from quatcal_ros.core.units import DO_NOT_USE, NS_PER_S
-from quatcal_ros.core.validation import published
+from quatcal_ros.core.validation import failure_warning, published
 from quatcal_ros.files import bag_folder, exports
 from quatcal_ros.files import importers
 from quatcal_ros.files.journal import JournalHeader, JournalRefused
@@ -33,7 +33,7 @@ from quatcal_ros.stream.settings import check_config, ConfigError, IMAGES_NOT_IN
     plan_limits, session_config
 from quatcal_ros.stream.tf_tree import normalize_frame
 from quatcal_ros.stream.time_offset import find_time_offset
-from quatcal_ros.tools.options import add_setting_options, settings_of
+from quatcal_ros.tools.options import add_setting_options, HelpFormatter, settings_of
 from quatcal_ros.tools.output_paths import output_problem
 from quatcal_ros.tools.progress import Progress
 
@@ -51,9 +51,10 @@ ESTIMATOR = ('setup', 'pairs', 'robust', 'invert_sensor', 'method', 'min_motion_
 def solve_main(argv=None):
     """`solve SAMPLES`: estimate the mounting from a samples file, print JSON."""
     parser = argparse.ArgumentParser(
-        prog='solve', description='Hand-eye calibration (Chou-Kamel) from a samples file: '
-                                  'the samples CSV, or samples saved by easy_handeye2 or '
-                                  'moveit_calibration; prints one JSON object.')
+        prog='solve', formatter_class=HelpFormatter,
+        description='Hand-eye calibration (Chou-Kamel) from a samples file: the samples CSV, '
+                    'or samples saved by easy_handeye2 or moveit_calibration; prints one JSON '
+                    'object.')
     parser.add_argument('samples', help='samples file: the samples CSV (README, section '
                                         "3) or another tool's samples (see --format); or an "
                                         'image dataset folder (images/, robot_poses.csv, '
@@ -63,9 +64,9 @@ def solve_main(argv=None):
     # Unset unless given: an easy_handeye2 file may name the setup (else eye_in_hand), a
     # journal its setup and invert_sensor (else false).
     parser.set_defaults(setup=None, invert_sensor=None)
-    parser.add_argument('--no-invert-sensor', dest='invert_sensor', action='store_const',
-                        const=False, help='the sensor poses are not inverted, whatever the '
-                                          "journal's header says")
+    parser.add_argument('--no-invert-sensor', action='store_true',
+                        help="the sensor poses are not inverted, whatever the journal's header "
+                             'says')
     parser.add_argument(
         '--format', choices=('auto',) + importers.FORMATS, default='auto',
         help='format of the samples file. auto (default): .csv = samples CSV, .samples = '
@@ -82,6 +83,10 @@ def solve_main(argv=None):
                         help='also write the result in the easy_handeye2 calibration layout '
                              '(e.g. ~/.ros2/easy_handeye2/calibrations/NAME.calib)')
     args = parser.parse_args(argv)
+    if args.no_invert_sensor:
+        if args.invert_sensor:   # (the last of the two had won)
+            parser.error('--invert-sensor and --no-invert-sensor say opposite things: give one')
+        args.invert_sensor = False
     asked_invert, args.invert_sensor = args.invert_sensor, bool(args.invert_sensor)
     try:
         settings_of(args, setup=args.setup or 'eye_in_hand')   # the file may name the setup
@@ -400,6 +405,9 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
         said = next(text for text in result.warnings if DO_NOT_USE in text)
         print(f'{prog}: warning: {where}the estimate says not to use it ("usable": false): '
               f'{said}', file=sys.stderr)
+    failed = failure_warning(result.validation)
+    if failed:   # (as in the warnings; only the JSON said it)
+        print(f'{prog}: warning: {where}{failed}', file=sys.stderr)
     document = result.to_json_dict()
     document['parent_frame'], document['child_frame'] = parent, child   # (the calibrated)
     document['static_transform_publisher'] = exports.static_transform_publisher_command(
@@ -476,9 +484,9 @@ def absolute_topic(name):
 def replay_parser():
     """Return the argument parser of `replay`."""
     parser = argparse.ArgumentParser(
-        prog='replay', description='Hand-eye calibration (Chou-Kamel) from a rosbag2 recording '
-                                   "(sqlite3 or mcap), through the live node's session; "
-                                   'prints one JSON object.')
+        prog='replay', formatter_class=HelpFormatter,
+        description='Hand-eye calibration (Chou-Kamel) from a rosbag2 recording (sqlite3 or '
+                    "mcap), through the live node's session; prints one JSON object.")
     parser.add_argument('bag', metavar='BAG_DIR', help='rosbag2 directory (or .db3/.mcap file)')
     inputs = parser.add_argument_group(
         'inputs', 'link poses T_base_link and sensor poses T_sensor_obj, each from a topic '

@@ -25,6 +25,7 @@ from quatcal_ros.ros import conversions
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.ros.qos import LATCHED_QOS
 from quatcal_ros.ros.sim_cell import PARAMETERS as SIM_PARAMETERS, SimCell
+from quatcal_ros.tools.options import HelpFormatter
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -37,7 +38,7 @@ ERROR_FACTOR = 3.0   # the true error must be within this many reported uncertai
 def parse_args(argv):
     """Command-line options (argv without the program name)."""
     parser = argparse.ArgumentParser(
-        prog='python -m quatcal_ros demo',
+        prog='python -m quatcal_ros demo', formatter_class=HelpFormatter,
         description='Calibrate a simulated cell with the live calibrator node and compare the '
                     'estimate with the ground truth.')
     parser.add_argument('--seed', type=int, default=7, help='seed of the simulated cell')

@@ -9,6 +9,8 @@ options into the checked stream.settings.Settings the session is made from.
 """
 
 import argparse
+import re
+import textwrap
 
 from quatcal_ros.stream.settings import DEFAULTS, SETTINGS, Settings
 
@@ -27,6 +29,13 @@ OFFLINE_HELP = {
 }
 
 
+class HelpFormatter(argparse.HelpFormatter):
+    """argparse's help, whose lines never break inside an --option-name at its hyphens."""
+
+    def _split_lines(self, text, width):
+        return textwrap.wrap(' '.join(text.split()), width, break_on_hyphens=False)
+
+
 def option_name(setting):
     """Return the command-line option of `setting`, e.g. --still-window-s."""
     return OPTION_NAMES.get(setting.name, '--' + setting.name.replace('_', '-'))
@@ -43,7 +52,7 @@ def add_setting_options(parser, tool, names=None):
         if tool not in setting.tools or (names is not None and setting.name not in names):
             continue
         flag = option_name(setting)
-        words = [setting.description.rstrip('.')]
+        words = [_as_options(setting.description.rstrip('.'), tool)]
         if isinstance(setting.default, bool):
             words = [OFFLINE_HELP.get(setting.name, words[0])]
         elif setting.name in OFFLINE_HELP:
@@ -63,6 +72,14 @@ def add_setting_options(parser, tool, names=None):
                             choices=choices, type=None if choices else _parser_of(setting),
                             metavar=None if choices else setting.unit.upper() or 'VALUE',
                             help='; '.join(words).replace('%', '%%'))
+
+
+def _as_options(text, tool):
+    """Return `text` with the settings it names that `tool` offers named as its options."""
+    for setting in SETTINGS:
+        if '_' in setting.name and tool in setting.tools:   # (one word may be a plain word)
+            text = re.sub(rf'\b{setting.name}\b', option_name(setting), text)
+    return text
 
 
 def _parser_of(setting):

@@ -28,7 +28,7 @@ from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, \
     quaternion_norm_problem
 from quatcal_ros.files import plain_yaml
 from quatcal_ros.files.persistence import atomic_write_text
-from quatcal_ros.tools.options import add_setting_options
+from quatcal_ros.tools.options import add_setting_options, HelpFormatter
 
 EXIT_BAD_INPUT = 2
 # The workspace box around the start position when none is given, half-width in metres.
@@ -38,9 +38,9 @@ DEFAULT_BOX_HALF_M = 0.25
 def parser():
     """Return the argument parser of `plan`."""
     parse = argparse.ArgumentParser(
-        prog='plan', description='Link poses for a fresh hand-eye calibration, each chosen to '
-                                 'shrink the expected uncertainty most (D-optimal); prints '
-                                 'YAML.')
+        prog='plan', formatter_class=HelpFormatter,
+        description='Link poses for a fresh hand-eye calibration, each chosen to shrink the '
+                    'expected uncertainty most (D-optimal); prints YAML.')
     parse.add_argument('--start', nargs=7, type=float, required=True,
                        metavar=('X', 'Y', 'Z', 'QX', 'QY', 'QZ', 'QW'),
                        help='the start pose of the link, T_base_link (m; quaternion x y z w)')
