@@ -35,10 +35,22 @@ def test_demo_in_process_prints_estimate_truth_and_error(domain, capsys):
     assert re.search(r'true error: +[\d.]+ deg, [\d.]+ mm', out), out
 
 
-def test_demo_gives_up_at_the_time_limit(domain, capsys):
+def test_demo_gives_up_at_the_time_limit_saying_what_the_calibrator_waits_for(domain, capsys):
     status = demo.main(['--time-limit-s', '0.5'])
     assert status == 1
-    assert 'FAILED' in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert re.search(r'FAILED: no estimate within 0.5 s \(the calibrator: (waiting for poses|'
+                     r'collecting)', err), err
+
+
+def test_a_noisier_sensor_widens_the_demos_still_band(domain, capsys):
+    # With 1.5 deg of noise per frame the default band (1 deg) never saw the sensor still:
+    # no sample, and the demo said only that no estimate came.
+    assert demo.sensor_band_deg(0.2) == 1.0   # the calibrator's default
+    status = demo.main(['--seed', '3', '--uncertainty-deg', '0.3', '--noise-deg', '1.5',
+                        '--time-limit-s', '60'])
+    out, err = capsys.readouterr()
+    assert status == 0, out + err
 
 
 @pytest.mark.parametrize('argv', [['--uncertainty-deg', '0'], ['--uncertainty-deg', 'nan'],

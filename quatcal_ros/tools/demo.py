@@ -13,6 +13,7 @@ Exit status: 0 when the estimate converged (uncertainty below --uncertainty-deg,
 """
 
 import argparse
+import math
 import os
 import sys
 import tempfile
@@ -22,9 +23,11 @@ from geometry_msgs.msg import TransformStamped
 import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.ros import conversions
+from quatcal_ros.ros.diagnostics import status_message
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.ros.qos import LATCHED_QOS
 from quatcal_ros.ros.sim_cell import PARAMETERS as SIM_PARAMETERS, SimCell
+from quatcal_ros.stream.settings import DEFAULTS
 from quatcal_ros.tools.options import HelpFormatter
 import rclpy
 from rclpy.context import Context
@@ -96,7 +99,19 @@ def _sim_parameters(args):
 def _calibrator_parameters(args):
     link_frame = 'tool0' if args.setup == 'eye_in_hand' else 'base_link'
     return [Parameter('setup', value=args.setup), Parameter('link_frame', value=link_frame),
-            Parameter('still_window_s', value=0.25)]
+            Parameter('still_window_s', value=0.25),
+            Parameter('sensor_still_rotation_deg', value=sensor_band_deg(args.noise_deg))]
+
+
+def sensor_band_deg(noise_deg):
+    """
+    Return the sensor's still band for the simulated noise: the default, or wider.
+
+    Two frames' rotations (noise_deg per axis each) differ by sqrt(6) noise_deg RMS; at twice
+    that most frames of a stop lie within the band (at most a quarter may pass it). With the
+    default noise, the default band (1 deg), as a user's calibrator has.
+    """
+    return max(DEFAULTS['sensor_still_rotation_deg'], 2.0 * math.sqrt(6.0) * noise_deg)
 
 
 def format_xyzw(q_wxyz):
@@ -156,6 +171,11 @@ class Demo:
                 break
         return self.calibrator.session.result
 
+    def status(self):
+        """Return the calibrator's state in the words of its /diagnostics."""
+        node = self.calibrator
+        return status_message(node.session, node.stats, node.inputs.topics)
+
     def close(self):
         self.executor.shutdown()
         for node in (self.listener, self.calibrator, self.sim):
@@ -176,10 +196,11 @@ def progress_line(samples, session):
             f'{result.residual_rms_deg:.3f} deg')
 
 
-def report(args, result, truth):
-    """Print the final lines; return the exit status."""
+def report(args, result, truth, status=''):
+    """Print the final lines; return the exit status (status: the calibrator's state)."""
     if result is None:
-        print(f'FAILED: no estimate within {args.time_limit_s:g} s', file=sys.stderr)
+        print(f'FAILED: no estimate within {args.time_limit_s:g} s (the calibrator: '
+              f'{status})', file=sys.stderr)
         return 1
     print(f'estimated rotation (x, y, z, w): {format_xyzw(result.quaternion)}')
     print(f'estimated translation (m):       {format_xyz(result.translation)}')
@@ -222,7 +243,7 @@ def main(argv=None):
         print(f'demo: {args.setup} cell, seed {args.seed}; target uncertainty '
               f'{args.uncertainty_deg:g} deg', flush=True)
         result = demo.run()
-        return report(args, result, demo.truth)
+        return report(args, result, demo.truth, demo.status())
     except KeyboardInterrupt:
         print('demo: interrupted', file=sys.stderr)
         return 130
