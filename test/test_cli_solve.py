@@ -108,6 +108,13 @@ GOOD_ROW = '1.0,0,0,0,0,0,0,1,0,0,1,0,0,0,1'
      'row 2: 16 fields, the header has 15: a value too many, or a decimal comma?'),
     (','.join(COLUMNS) + '\n' + GOOD_ROW.replace(',', ',0,5,', 1) + '\n',
      'row 2: 17 fields, the header has 15'),
+    # no header row: said so, and a pose stream (as the ETH recording's) named
+    (GOOD_ROW + '\n', 'row 1 (header): missing column(s) stamp, link_x, link_y, link_z, '
+     'link_qx, link_qy, link_qz, link_qw, sensor_x, sensor_y, sensor_z, sensor_qx, sensor_qy, '
+     'sensor_qz, sensor_qw (the first row is 15 numbers, not column names); expected'),
+    ('1.0,0.5,0,0.3,0,0,0,1\n' * 3, '(the first row is 8 numbers, not column names, and 8 a '
+     'row are one pose stream (a stamp, a position, a quaternion), not samples of a link and '
+     'a sensor pose: give two pose streams to replay as topics of a bag)'),
 ])
 def test_bad_input_exits_2_naming_row_and_field(repo_root, tmp_path, text, expected):
     path = tmp_path / 'bad.csv'
