@@ -362,6 +362,15 @@ def test_yaml_is_read_as_plain_data_only(tmp_path):
     path.write_text('joint_names: [a, b]\njoint_values: [[0, 1]]\n')
     with pytest.raises(BadInputError, match='not a samples file this tool knows'):
         importers.load_samples(path)
+    # A file of no format the name tells, that is not YAML either (a README): what solve
+    # reads, not only the YAML parser's complaint.
+    path = tmp_path / 'SOURCE.md'
+    path.write_text('# Source\n\nThe poses of [x](y).\n- one\nnot: a: mapping\n')
+    with pytest.raises(BadInputError) as raised:
+        importers.load_samples(path)
+    assert str(raised.value).startswith(f'{path}: not a samples file this tool knows: expected')
+    assert str(raised.value).endswith('pass --format to say which (read as YAML: line 5: not '
+                                      'readable YAML: mapping values are not allowed here)')
 
 
 def test_solve_exits_2_naming_the_entry(repo_root, tmp_path):

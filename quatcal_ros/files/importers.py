@@ -362,6 +362,15 @@ def _csv_samples(text, name, setup=None, invert_sensor=None):
                            header.static_chain)
 
 
+def _not_ours(name):
+    """Say that file `name` is in none of the formats (content guessed)."""
+    return (f'{name}: not a samples file this tool knows: expected a samples CSV, an '
+            'easy_handeye2 .samples YAML (parameters, samples: [{robot, tracking}]), a '
+            'moveit_calibration samples YAML ([{effector_wrt_world, object_wrt_sensor}]) or a '
+            'moveit pose_samples.json ([[eef_wrt_world, obj_wrt_sensor]]); pass --format to '
+            'say which')
+
+
 def load_samples(path, file_format='auto', setup=None, invert_sensor=None):
     """
     Read still samples from a samples CSV or another tool's samples file.
@@ -389,17 +398,19 @@ def load_samples(path, file_format='auto', setup=None, invert_sensor=None):
         return _csv_samples(text, name, setup, invert_sensor)
     if not text.strip():
         raise BadInputError(f'{name}: empty file')
-    document = (_load_json(text, name) if file_format == 'moveit-json' or suffix == '.json'
-                else _load_yaml(text, name))
+    as_json = file_format == 'moveit-json' or suffix == '.json'
+    try:
+        document = _load_json(text, name) if as_json else _load_yaml(text, name)
+    except BadInputError as error:
+        if file_format != 'auto':
+            raise
+        said = str(error).removeprefix(f'{name}, ')
+        raise BadInputError(f'{_not_ours(name)} (read as {"JSON" if as_json else "YAML"}: '
+                            f'{said})') from None
     if file_format == 'auto':
         file_format = detect_format(document)
         if file_format is None:
-            raise BadInputError(
-                f'{name}: not a samples file this tool knows: expected a samples CSV, an '
-                'easy_handeye2 .samples YAML (parameters, samples: [{robot, tracking}]), a '
-                'moveit_calibration samples YAML ([{effector_wrt_world, object_wrt_sensor}]) '
-                'or a moveit pose_samples.json ([[eef_wrt_world, obj_wrt_sensor]]); pass '
-                '--format to say which')
+            raise BadInputError(_not_ours(name))
     if file_format == 'easy_handeye2':
         imported = parse_easy_handeye2_samples(document, name, setup)
     elif file_format == 'moveit':
