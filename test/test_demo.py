@@ -47,8 +47,9 @@ def test_a_noisier_sensor_widens_the_demos_still_band(domain, capsys):
     # With 1.5 deg of noise per frame the default band (1 deg) never saw the sensor still:
     # no sample, and the demo said only that no estimate came.
     assert demo.sensor_band_deg(0.2) == 1.0   # the calibrator's default
-    status = demo.main(['--seed', '3', '--uncertainty-deg', '0.3', '--noise-deg', '1.5',
-                        '--time-limit-s', '60'])
+    assert demo.sensor_band_deg(1.5) == pytest.approx(7.348, abs=1e-3)
+    assert demo.sensor_band_deg(10.0) == 30.0   # the setting's largest (49 was refused)
+    status = demo.main(['--seed', '3', '--uncertainty-deg', '0.3', '--noise-deg', '1.5'])
     out, err = capsys.readouterr()
     assert status == 0, out + err
 

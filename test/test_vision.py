@@ -968,6 +968,14 @@ def test_robot_poses_with_a_column_twice_are_refused(tmp_path):
     path.write_text('image,link_x,link_y,link_z,link_qx,link_qy,link_qz,link_qw,link_x\n')
     with pytest.raises(BadInputError, match='row 1 .header.: column.s. link_x more than once'):
         read_robot_poses(path)
+    # Without its header row: said so, and not called a pose stream (that is the samples CSV's
+    # hint, for 8 numbers a row; robot_poses.csv has 8 columns).
+    path.write_text('0,0.4,0,0.4,0,0,0,1\n')
+    with pytest.raises(BadInputError) as raised:
+        read_robot_poses(path)
+    assert str(raised.value).endswith('(the first row is 8 numbers, not column names); expected '
+                                      'image,link_x,link_y,link_z,link_qx,link_qy,link_qz,'
+                                      'link_qw')
 
 
 def test_solve_dir_with_no_usable_view_names_the_refusals(tmp_path, renderers, capsys):

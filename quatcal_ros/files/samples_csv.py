@@ -195,7 +195,7 @@ def check_header(header, required, where, known=None):
     if missing:
         other = [s for s in (';', '\t', '|') if len(header) == 1 and s in header[0]]
         hint = (f' (the header is one column separated by {other[0]!r}: columns must be '
-                'separated by commas)' if other else _numbers_hint(header))
+                'separated by commas)' if other else _numbers_hint(header, required))
         raise BadInputError(f'{where}: missing column(s) {", ".join(missing)}{hint}; '
                             f'expected {",".join(required)}')
     known = required if known is None else known
@@ -205,7 +205,7 @@ def check_header(header, required, where, known=None):
                             'one holds the value?')
 
 
-def _numbers_hint(header):
+def _numbers_hint(header, required):
     """Say so when the header row is numbers (a file without one), else ''."""
     try:
         [float(cell) for cell in header]
@@ -213,7 +213,7 @@ def _numbers_hint(header):
         return ''
     stream = (', and 8 a row are one pose stream (a stamp, a position, a quaternion), not '
               'samples of a link and a sensor pose: give two pose streams to replay as topics '
-              'of a bag' if len(header) == 8 else '')
+              'of a bag' if len(header) == 8 and required == COLUMNS else '')
     return f' (the first row is {len(header)} numbers, not column names{stream})'
 
 

@@ -205,7 +205,7 @@ def status_message(session, stats, topics=None, composed=(), result=None):
         sensor = unsteady_sensor_note(counters['unsteady_sensor'], capture,
                                       ('sensor_still_rotation_deg', 'sensor_still_translation_m'))
         never = ('; a robot that never stops needs capture_mode continuous'
-                 if session.paired_seconds >= NEVER_STOPS_HINT_S and not sensor else '')
+                 if session.paired_seconds >= NEVER_STOPS_HINT_S else '')
         return (f'collecting: no still sample yet from {counters["pairs"]} paired poses: stop '
                 f'the robot at each pose for {capture.window_ns * 1e-9:g} s (still_window_s) '
                 f'after each motion{sensor}{never}')

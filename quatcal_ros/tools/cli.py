@@ -912,12 +912,12 @@ def _few_samples(session, report, logged_ns=None):
         return (f'{count} sample(s) from {pairs} paired poses; at least 3 are needed: the '
                 f'link must turn by {capture.continuous_step_deg:g} deg between samples '
                 '(--continuous-step-deg)')
-    unsteady = _unsteady_sensor(capture, session)   # (then the link did stop)
     return (f'{count} still sample(s) from {pairs} paired poses; at least 3 are needed: '
             f'the robot must stop for {_seconds(capture.window_ns):g} s (link within '
             f'{capture.rotation_band_deg:g} deg and {capture.translation_band_m:g} m) after '
             f'each motion of {capture.min_departure_deg:g} deg or more'
-            + (unsteady or '; for a recording without stops use --capture continuous'))
+            f'{_unsteady_sensor(capture, session)}; for a recording without stops use '
+            '--capture continuous')
 
 
 def _replay_frames(args, report):

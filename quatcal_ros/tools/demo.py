@@ -27,7 +27,7 @@ from quatcal_ros.ros.diagnostics import status_message
 from quatcal_ros.ros.node import CalibratorNode
 from quatcal_ros.ros.qos import LATCHED_QOS
 from quatcal_ros.ros.sim_cell import PARAMETERS as SIM_PARAMETERS, SimCell
-from quatcal_ros.stream.settings import DEFAULTS
+from quatcal_ros.stream.settings import ConfigError, SETTING_BY_NAME
 from quatcal_ros.tools.options import HelpFormatter
 import rclpy
 from rclpy.context import Context
@@ -109,9 +109,11 @@ def sensor_band_deg(noise_deg):
 
     Two frames' rotations (noise_deg per axis each) differ by sqrt(6) noise_deg RMS; at twice
     that most frames of a stop lie within the band (at most a quarter may pass it). With the
-    default noise, the default band (1 deg), as a user's calibrator has.
+    default noise, the default band (1 deg), as a user's calibrator has; at most the
+    setting's largest (30 deg, from 6.1 deg of noise on).
     """
-    return max(DEFAULTS['sensor_still_rotation_deg'], 2.0 * math.sqrt(6.0) * noise_deg)
+    band = SETTING_BY_NAME['sensor_still_rotation_deg']
+    return min(max(band.default, 2.0 * math.sqrt(6.0) * noise_deg), band.high)
 
 
 def format_xyzw(q_wxyz):
@@ -244,6 +246,9 @@ def main(argv=None):
               f'{args.uncertainty_deg:g} deg', flush=True)
         result = demo.run()
         return report(args, result, demo.truth, demo.status())
+    except ConfigError as error:   # (a parameter the demo derives, out of its range)
+        print(f'demo: error: {error}', file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print('demo: interrupted', file=sys.stderr)
         return 130

@@ -38,7 +38,7 @@ Uncertainty, with the views' errors: a jackknife over blocks of views with the n
 again without each (_view_jackknife). The sandwich alone missed the noise model's own
 estimation from a few views: true error / reported 1.44 at 10 synthetic views; the
 jackknife 0.64-1.21 at 6-16 (cautious at 6-7, where each view left out holds much of the
-leverage), 0.93-1.14 on rendered folders of 6-16 views, 0.81 and 0.91 on halves (7 views)
+leverage), 0.80-1.16 on rendered folders of 6-16 views, 0.81 and 0.91 on halves (7 views)
 of a real ChArUco recording.
 Without them: the sandwich with blocks of views as clusters (each block's score, leverage
 corrected as HC2 does: (I - H_bb)^-1/2, H_bb the block's part of the hat matrix), which sees
