@@ -44,6 +44,7 @@ setup(
             'replay = quatcal_ros.__main__:replay',
             'plan = quatcal_ros.__main__:plan',
             'demo = quatcal_ros.__main__:demo',
+            'poses_to_bag = quatcal_ros.__main__:poses_to_bag',
         ],
     },
 )

@@ -33,6 +33,8 @@ TOOLS = {
              'link poses for a fresh calibration (prints YAML)'),
     'demo': ('quatcal_ros.tools.demo', 'main',
              'calibrator against the simulated cell, until it converges'),
+    'poses_to_bag': ('quatcal_ros.tools.poses_to_bag', 'main',
+                     'two pose-stream files (t x y z qx qy qz qw) as a bag for replay'),
 }
 
 
@@ -88,6 +90,11 @@ def plan():
 def demo():
     """Entry point of `ros2 run quatcal_ros demo`."""
     sys.exit(main(['demo', *sys.argv[1:]]))
+
+
+def poses_to_bag():
+    """Entry point of `ros2 run quatcal_ros poses_to_bag`."""
+    sys.exit(main(['poses_to_bag', *sys.argv[1:]]))
 
 
 if __name__ == '__main__':

@@ -466,6 +466,37 @@ def test_eth_real_recording_replays_in_continuous_mode(repo_root, eth_bag):
     assert 'Traceback' not in strict.stderr
 
 
+def test_poses_to_bag_writes_the_recordings_bag_from_its_files(repo_root, eth_bag, tmp_path,
+                                                               datasets_dir, capsys):
+    # The ETH recording is two files of timed poses: poses_to_bag gives replay the bag of this
+    # module's own conversion, but for its stamps: exact decimals, where eth_streams multiplies
+    # float seconds near 1.5e9 by 1e9 (off by up to about 128 ns, which moves the answer by
+    # about 1e-8).
+    from quatcal_ros.tools.poses_to_bag import main
+    folder, out = datasets_dir / 'ethz_robot_arm_real', tmp_path / 'eth'
+    assert main([str(folder / 'link_hinge_in_base.csv'), str(folder / 'ir_camera_in_target.csv'),
+                 str(out), '--link-topic', '/link', '--sensor-topic', '/camera',
+                 '--sensor-frame-id', 'target']) == 0
+    assert capsys.readouterr().out == (
+        f'{out}: 2817 link poses on /link, 1703 sensor poses on /camera (sqlite3). Replay it '
+        f'with:\n  python -m quatcal_ros replay {out} --link-topic /link --sensor-topic '
+        '/camera\n')
+    options = ('--link-topic', '/link', '--sensor-topic', '/camera', '--invert-sensor',
+               '--capture', 'continuous')
+    ours, theirs = (run_replay(repo_root, bag, *options) for bag in (out, eth_bag))
+    assert ours.returncode == theirs.returncode == 0, ours.stderr + theirs.stderr
+    ours, theirs = json.loads(ours.stdout), json.loads(theirs.stdout)
+    assert ours['samples'] == theirs['samples']
+    assert_allclose(rotation(ours), rotation(theirs), atol=1e-7)
+    assert_allclose([ours['translation'][k] for k in 'xyz'],
+                    [theirs['translation'][k] for k in 'xyz'], atol=1e-8)   # metres
+    assert ours['residual_rms_deg'] == pytest.approx(theirs['residual_rms_deg'], abs=1e-6)
+    # Never over a bag, nor into a folder that exists.
+    assert main([str(folder / 'link_hinge_in_base.csv'), str(folder / 'ir_camera_in_target.csv'),
+                 str(out)]) == 2
+    assert f'poses_to_bag: error: {out} exists: give a new directory' in capsys.readouterr().err
+
+
 def test_eth_time_offset_is_estimated_applied_and_reported(repo_root, eth_bag):
     done = run_replay(repo_root, eth_bag, '--link-topic', '/link', '--sensor-topic', '/camera',
                       '--invert-sensor', '--capture', 'continuous', '--estimate-time-offset')

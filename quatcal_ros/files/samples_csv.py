@@ -117,12 +117,12 @@ def _sample_from_row(row, index, name, line):
         raise BadInputError(f'{name}, row {line}, field stamp: {values["stamp"]:g} s is out of '
                             f'range (seconds, at most {MAX_STAMP_S:.3g} in magnitude)')
     return Sample(
-        stamp_ns=_stamp_ns(row[index['stamp']].strip()),
+        stamp_ns=stamp_ns_from_text(row[index['stamp']].strip()),
         link=pose_from_values(values, 'link', name, line),
         sensor=pose_from_values(values, 'sensor', name, line))
 
 
-def _stamp_ns(text):
+def stamp_ns_from_text(text):
     """Return the stamp `text` (seconds, a checked finite number) in nanoseconds, exactly."""
     return int((Decimal(text) * NS_PER_S).to_integral_value(ROUND_HALF_EVEN))
 
