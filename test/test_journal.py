@@ -91,6 +91,9 @@ def test_the_tf_joint_round_trips_in_the_header():
 @pytest.mark.parametrize('value, problem', [
     ('camera_link,0,0,0,0,0,0', '6 numbers, 7 expected'),
     ('camera_link,0,0,0,0,0,0,2', 'the quaternion has norm 2, not 1 (tolerance 0.001)'),
+    # just beyond the tolerance, the digits that show it (4 gave 'norm 1.001')
+    ('camera_link,0,0,0,0,0,0,1.0011', 'the quaternion has norm 1.0011, not 1 (tolerance '
+                                       '0.001)'),
     (',0,0,0,0,0,0,1', 'no frame'), ('%2F,0,0,0,0,0,0,1', 'no frame'),
     ('camera_link,0,0,nan,0,0,0,1', 'not 7 finite numbers'),
     ('camera_link,0,0,x,0,0,0,1', 'not 7 finite numbers'),

@@ -64,4 +64,5 @@ def quaternion_norm_problem(xyzw, tolerance):
     norm = math.sqrt(sum(float(v) * float(v) for v in xyzw))
     if abs(norm - 1.0) <= tolerance:
         return None
-    return f'the quaternion has norm {norm:.4g}, not 1 (tolerance {tolerance:g})'
+    digits = 6 if abs(norm - 1.0) < 0.01 else 4   # (1.0011 is not '1.001' at tolerance 0.001)
+    return f'the quaternion has norm {norm:.{digits}g}, not 1 (tolerance {tolerance:g})'
