@@ -10,7 +10,7 @@ import re
 import numpy as np
 import pytest
 
-from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core import conventions, quaternion as quat
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions, Calibrator
 from quatcal_ros.core.leastsq import MotionSystem
 from quatcal_ros.core.motions import Motions, pair_indices, SampleRotations
@@ -304,10 +304,21 @@ def test_calibrator_estimates_from_the_first_two_non_parallel_motions():
     assert calibrator.result is None and 'at least 3' in calibrator.last_error
     calibrator.add_sample(samples[2])
     assert calibrator.estimate() == [] and calibrator.result.samples == 3
+    # Three samples fit every setup and invert_sensor alike: said (a wrong one gave a plausible
+    # answer metres off, with no word); from the fourth on, in the warm solves too, checked.
+    assert calibrator.result.warnings == [
+        'frame convention: not checked yet: 3 samples fit every setup and invert_sensor alike; '
+        'from 4 samples on a wrong one is named']
     for sample in samples[3:]:
         calibrator.add_sample(sample)
         calibrator.estimate()
+        assert calibrator.result.warnings == [], calibrator.result.warnings
     assert error_deg(calibrator.result, cell) < 3 * calibrator.result.uncertainty_deg + 0.01
+    inverted = [Sample(s.stamp_ns, s.link, s.sensor.inverse()) for s in samples]
+    assert conventions.unchecked(calibrate(inverted[:3]).warnings)
+    named = calibrate(inverted[:4]).warnings
+    assert named[0].startswith('frame convention: the samples fit badly as configured') and \
+        'invert_sensor' in named[0], named
     calibrator.reset()
     assert calibrator.result is None and calibrator.samples == []
 

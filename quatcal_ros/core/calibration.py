@@ -302,7 +302,8 @@ def _solve(samples, options, previous=None):
         else:
             fit = _consecutive(rotations, options, start)
     except DegenerateMotionError as error:
-        advice = conventions.warnings(samples, options) if previous is None else []
+        advice = (conventions.warnings(samples, options)   # (not 'not checked yet' here)
+                  if previous is None and n >= conventions.CHECKED_FROM_SAMPLES else [])
         motion = reduced_dof.reduced_motion(rotations, options.min_motion_deg)
         if motion is not None:   # a SCARA or a gantry: solve what the translations fix
             try:

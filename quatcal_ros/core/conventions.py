@@ -71,6 +71,10 @@ EXCHANGED_RATIO = 2.0
 
 # The start of every warning that another frame convention fits far better.
 PREFIX = 'frame convention:'
+# Fewer samples than this (two independent motions) fit every convention alike. (The live
+# calibrator solves in full up to 12 samples, so the warning never carries into a warm solve.)
+CHECKED_FROM_SAMPLES = 4
+NOT_CHECKED = f'{PREFIX} not checked yet:'
 
 
 def warnings(samples, options, screen=None):
@@ -78,10 +82,20 @@ def warnings(samples, options, screen=None):
     Return a warning naming the fix when another convention fits far better, else [].
 
     It ends by saying not to use the estimate as configured (units.DO_NOT_USE). The rest as
-    `_better_convention`.
+    `_better_convention`. With fewer than CHECKED_FROM_SAMPLES samples, a warning that no
+    convention can be ruled out yet (3 samples with the sensor poses inverted gave a
+    plausible answer metres off, with no word).
     """
+    if len(samples) < CHECKED_FROM_SAMPLES:
+        return [f'{NOT_CHECKED} {len(samples)} samples fit every setup and invert_sensor '
+                f'alike; from {CHECKED_FROM_SAMPLES} samples on a wrong one is named']
     return [f'{text}; {DO_NOT_USE} as configured'
             for text in _better_convention(samples, options, screen)]
+
+
+def unchecked(convention_warnings):
+    """Return whether the warnings of `warnings` say the convention was not checked yet."""
+    return any(text.startswith(NOT_CHECKED) for text in convention_warnings)
 
 
 def _better_convention(samples, options, screen=None):
@@ -307,7 +321,8 @@ def exchanged_warnings(setup, translation, object_position):
     return [f'the mounting comes out {mounting:.2f} m long while the observed object is only '
             f"{distance:.2f} m from the origin of the link poses' frame (the robot base): for "
             'a sensor on the link, the two look exchanged. Are the link and sensor poses '
-            'swapped (the link_pose and sensor_pose topics, or the columns of a file)? '
+            'swapped (the link_pose and sensor_pose topics, or the columns of a file), or the '
+            'sensor poses inverted (invert_sensor)? '
             "Exchanged, they fit exactly as well, and the answer is the object's pose instead "
             'of the mounting (if the link poses are in a world frame whose origin is near the '
             'object, this may be right)']
