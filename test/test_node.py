@@ -820,6 +820,17 @@ def test_a_stop_signal_at_any_moment_of_start_up_exits_0(
     assert 'Traceback' not in (tmp_path / 'log').read_text()
 
 
+def test_a_stale_stream_is_logged_once_while_its_seconds_grow():
+    # A remapped topic that never sent: /diagnostics said so, the log stayed silent.
+    from quatcal_ros.ros.node import without_numbers
+    from quatcal_ros.stream.log_throttle import StandingLog
+    log = StandingLog(5e9, key=without_numbers)
+    texts = ['link_pose stale: no message on /robot/tool_pose at all in {:.1f} s'.format(s)
+             for s in (3.1, 5.9, 8.4, 12.0)]
+    assert [log.due([text], now) for text, now in zip(texts, (0, 3e9, 5e9, 9e9))] == [
+        [], [], [texts[2]], []]
+
+
 def test_publishers_of_the_wrong_type_are_named(domain_id):
     from geometry_msgs.msg import PointStamped
     h = Harness(domain_id)
@@ -836,6 +847,14 @@ def test_publishers_of_the_wrong_type_are_named(domain_id):
         assert '/sensor_pose has publishers of type geometry_msgs/msg/PointStamped; the node ' \
             'subscribes geometry_msgs/msg/PoseStamped (parameter pose_type, or ' \
             'sensor_pose_type)' in status.message
+        # Only /diagnostics said so; the log is told once it has stood a while, then once.
+        h.node._input_log.after = 0   # (as if it had stood INPUT_PROBLEM_LOG_S)
+        with logged_warnings(h.node) as warned:
+            h.node.diagnostic_status()
+            h.node.diagnostic_status()
+        said = [w for w in warned if w.startswith('/sensor_pose has publishers of type '
+                                                  'geometry_msgs/msg/PointStamped')]
+        assert len(said) == 1, warned
         wrong.destroy_node()
     finally:
         rclpy.try_shutdown(context=other)

@@ -28,6 +28,7 @@ Times come from header stamps and the node clock (so use_sim_time and bag replay
 """
 
 from dataclasses import replace
+import re
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
@@ -54,7 +55,7 @@ from quatcal_ros.stream import frame_notices
 from quatcal_ros.stream import settings
 from quatcal_ros.stream import tf_joint
 from quatcal_ros.stream.log_throttle import StandingLog
-from quatcal_ros.stream.message_checks import LINK, SENSOR
+from quatcal_ros.stream.message_checks import LINK, SENSOR, STALE_AFTER_S
 from quatcal_ros.stream.session import EstimateUpdated, SampleCaptured, Session
 from quatcal_ros.stream.settings import ConfigError, easy_handeye2_frames
 from quatcal_ros.stream.tf_tree import normalize_frame
@@ -71,6 +72,8 @@ NODE_NAME = settings.NODE_NAME
 SESSION_STREAMS = {LINK: 'link', SENSOR: 'sensor'}
 # A TF input problem (a frame not in the tree) standing this long (steady clock) is logged.
 TF_PROBLEM_LOG_S = 5.0
+# ... and so is a silent or stale pose stream, or publishers of the wrong type.
+INPUT_PROBLEM_LOG_S = 5.0
 
 
 def journal_header(config, tree=None, recorded=None):
@@ -89,6 +92,11 @@ def journal_header(config, tree=None, recorded=None):
     if chain is None and recorded is not None and recorded.sensor_frame == frames[1]:
         chain = recorded.static_chain
     return replace(header, static_chain=chain)
+
+
+def without_numbers(text):
+    """Return `text` with each number replaced by '#': a problem known whatever its seconds."""
+    return re.sub(r'[0-9][0-9.]*', '#', text)
 
 
 class CalibratorNode(Node):
@@ -140,6 +148,9 @@ class CalibratorNode(Node):
         # frames changes) once it has stood TF_PROBLEM_LOG_S, while it stands.
         self._frames_log = StandingLog(forget=False)
         self._clock_log = StandingLog(key=lambda text: 'clocks')
+        # A silent or stale stream, publishers of the wrong type: logged once they have stood
+        # INPUT_PROBLEM_LOG_S (their texts carry the seconds since: keyed without numbers).
+        self._input_log = StandingLog(INPUT_PROBLEM_LOG_S * 1e9, key=without_numbers)
         self._tf_log = StandingLog(TF_PROBLEM_LOG_S * 1e9,
                                    key=lambda text: text.split(':', 2)[1])
         self._frames = {}   # stream: its latest (header, child) frames judged (_frame_problems)
@@ -424,12 +435,18 @@ class CalibratorNode(Node):
         tf_static, tf_problem = self.static_tf.state(self.config.publish_tf)
         self.inputs.check_publishers()
         now_ns = self.now_ns()
+        watched = self.input_watch.problems(
+            self.stats, self.inputs.topics, self.get_publishers_info_by_topic,
+            self.session.counters['time_jumps'], now_ns,
+            self.get_parameter('use_sim_time').value, self._steady.now().nanoseconds)
+        stale = self.stats.stale_reasons(now_ns, STALE_AFTER_S, self.input_watch.started_ns,
+                                         self.inputs.topics, self.inputs.composed)
+        # (/diagnostics alone said that nothing came on a pose topic: the log stayed silent)
+        self._log_standing(self._input_log, [*dict.fromkeys(text for _, text in stale),
+                                             *watched])
         problems = [self.moves.warning(len(self.session.samples)), self.journal.problem,
-                    tf_problem, *self.input_watch.problems(
-                        self.stats, self.inputs.topics, self.get_publishers_info_by_topic,
-                        self.session.counters['time_jumps'], now_ns,
-                        self.get_parameter('use_sim_time').value, self._steady.now().nanoseconds),
-                    *self._input_problems(), *self._frame_problems(), self._clock_problem()]
+                    tf_problem, *watched, *self._input_problems(), *self._frame_problems(),
+                    self._clock_problem()]
         return calibrator_status(self.session, self.stats, now_ns,
                                  self.config.result_frames[0], problems, tf_static,
                                  self.input_watch.started_ns, self.inputs.topics,
