@@ -718,3 +718,38 @@ def test_an_estimates_log_line_gives_the_translation_too():
     line = describe_result(result)
     assert (', translation (0.0099, -0.0106, 0.0500) m, residual 0.128 deg RMS, uncertainty '
             '0.036 deg and 0.55 mm, from 11 samples') in line, line
+
+
+def test_three_samples_leave_the_convention_unchecked_said_but_no_problem():
+    # Every estimate from 3 samples says 'frame convention: not checked yet': the state of the
+    # check, on /diagnostics with the level OK, logged as information (not a warning).
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from quatcal_ros.ros.diagnostics import calibrator_status
+    from quatcal_ros.ros.event_log import EventLog
+    from quatcal_ros.stream.session import EstimateUpdated, SessionConfig
+    rng = np.random.default_rng(2)
+    samples, _ = simulation.samples(rng, simulation.random_cell(rng), 4, rotation_noise_deg=0.1)
+    session = Session(SessionConfig())
+    session.add_samples(samples[:3])
+    session.estimate()
+    assert session.result is not None
+    status = calibrator_status(session, mc.StreamStats(), 0, 'tool0')
+    assert status.level == DiagnosticStatus.OK, status.message
+    assert '; frame convention: not checked yet: 3 samples fit every' in status.message
+
+    class Logger:
+        def __init__(self):
+            self.lines = []
+
+        def info(self, text):
+            self.lines.append(('info', text))
+
+        def warning(self, text):
+            self.lines.append(('warning', text))
+    logger = Logger()
+    EventLog(logger).log([EstimateUpdated(session.result)], lambda result: None)
+    assert ('info', session.result.warnings[0]) in logger.lines
+    assert not [line for line in logger.lines if line[0] == 'warning']
+    session.add_samples(samples[3:])
+    session.estimate()
+    assert 'not checked' not in calibrator_status(session, mc.StreamStats(), 0, 'tool0').message

@@ -11,7 +11,7 @@ those given.
 from diagnostic_msgs.msg import DiagnosticStatus
 from diagnostic_msgs.msg import KeyValue
 import numpy as np
-from quatcal_ros.core import quaternion as quat
+from quatcal_ros.core import conventions, quaternion as quat
 from quatcal_ros.core.validation import failure_warning
 from quatcal_ros.stream import message_checks
 from quatcal_ros.stream.capture import unsteady_sensor_note
@@ -236,8 +236,11 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
     if result is not None and result.residual_rms_deg > HIGH_RESIDUAL_DEG:
         found.append(f'high residual {result.residual_rms_deg:.2f} deg RMS: check the frame '
                      'conventions and the time alignment of the streams')
+    # 'not checked yet' (3 samples) is the state of the frame-convention check, no problem
+    notes = [w for w in (result.warnings if result is not None else [])
+             if conventions.unchecked([w])]
     if result is not None:
-        found += list(result.warnings)
+        found += [w for w in result.warnings if w not in notes]
     validation = (result.validation if result is not None else None) or {}
     on_pixels = (result.reprojection if result is not None else None) or {}
     failed = failure_warning(validation)
@@ -293,7 +296,8 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
         values[message_checks.diagnostic_key(stream, reason)] = count
     return DiagnosticStatus(
         level=DiagnosticStatus.WARN if found else DiagnosticStatus.OK, name=name,
-        message='; '.join([status_message(session, stats, topics, composed, result)] + found),
+        message='; '.join([status_message(session, stats, topics, composed, result)] + notes
+                          + found),
         hardware_id=hardware_id,
         values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
 

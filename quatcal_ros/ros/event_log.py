@@ -19,6 +19,7 @@ names its sample, and there is one per sample given.
 import re
 import time
 
+from quatcal_ros.core import conventions
 from quatcal_ros.ros.diagnostics import describe_result
 from quatcal_ros.stream.log_throttle import LogThrottle
 from quatcal_ros.stream.session import EstimateUpdated, Notice, Rejected, SampleCaptured
@@ -74,8 +75,9 @@ class EventLog:
             self.logger.info(f'rejected sample {index}: {rejected[index]}')
         self._rejected_samples = set(rejected)
         for warning in result.warnings:
-            if self._due(warning):
-                self.logger.warning(warning)
+            if self._due(warning):   # ('not checked yet' is a state, said as such)
+                (self.logger.info if conventions.unchecked([warning])
+                 else self.logger.warning)(warning)
         if moved:
             self.logger.warning(moved)
 
