@@ -736,17 +736,8 @@ def test_three_samples_leave_the_convention_unchecked_said_but_no_problem():
     status = calibrator_status(session, mc.StreamStats(), 0, 'tool0')
     assert status.level == DiagnosticStatus.OK, status.message
     assert '; frame convention: not checked yet: 3 samples fit every' in status.message
-
-    class Logger:
-        def __init__(self):
-            self.lines = []
-
-        def info(self, text):
-            self.lines.append(('info', text))
-
-        def warning(self, text):
-            self.lines.append(('warning', text))
-    logger = Logger()
+    from test_log_throttle import Lines   # (a logger that keeps its lines)
+    logger = Lines()
     EventLog(logger).log([EstimateUpdated(session.result)], lambda result: None)
     assert ('info', session.result.warnings[0]) in logger.lines
     assert not [line for line in logger.lines if line[0] == 'warning']
