@@ -75,9 +75,13 @@ class EventLog:
             self.logger.info(f'rejected sample {index}: {rejected[index]}')
         self._rejected_samples = set(rejected)
         for warning in result.warnings:
-            if self._due(warning):   # ('not checked yet' is a state, said as such)
-                (self.logger.info if conventions.unchecked([warning])
-                 else self.logger.warning)(warning)
+            if not self._due(warning):
+                continue
+            # ('not checked yet' is a state, said as such; rclpy wants one severity a line)
+            if conventions.unchecked([warning]):
+                self.logger.info(warning)
+            else:
+                self.logger.warning(warning)
         if moved:
             self.logger.warning(moved)
 
