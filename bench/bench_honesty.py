@@ -26,8 +26,8 @@ import numpy as np
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate, CalibrationOptions
 from quatcal_ros.core.pose import Pose
-from quatcal_ros.core.quaternion import wxyz_from_xyzw
 from quatcal_ros.files.importers import read_moveit_json_samples
+from quatcal_ros.files.pose_streams import read_pose_stream
 from quatcal_ros.sim import simulation
 from quatcal_ros.stream.capture import CaptureConfig
 from quatcal_ros.stream.session import Session, SessionConfig
@@ -40,9 +40,8 @@ def eth_samples():
     folder = DATA / 'ethz_robot_arm_real'
 
     def load(name):
-        rows = np.loadtxt(folder / name, delimiter=',')
-        stamps = np.rint(rows[:, 0] * 1e9).astype(np.int64)
-        return [(int(s), Pose(r[1:4], wxyz_from_xyzw(r[4:8]))) for s, r in zip(stamps, rows)]
+        stamps, positions, quaternions = read_pose_stream(folder / name)
+        return [(s, Pose(p, q)) for s, p, q in zip(stamps, positions, quaternions)]
     link, camera = load('link_hinge_in_base.csv'), load('ir_camera_in_target.csv')
     session = Session(SessionConfig(capture=CaptureConfig(mode='continuous'),
                                     calibration=CalibrationOptions(invert_sensor=True)))

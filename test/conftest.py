@@ -20,10 +20,8 @@ import tempfile
 
 from hypothesis import HealthCheck, settings
 from hypothesis.configuration import set_hypothesis_home_dir
-import numpy as np
 import pytest
 from quatcal_ros.core.pose import Pose
-from quatcal_ros.core.quaternion import wxyz_from_xyzw
 import ros_domains
 import user_files
 
@@ -189,10 +187,10 @@ def eth_streams(datasets_dir):
     Link: sr300_hinge in base_link, ~50 Hz. Camera: the IR camera in the target frame, ~30 Hz
     (SOURCE.md: the inverse of T_sensor_obj, so solve it with invert_sensor).
     """
+    from quatcal_ros.files.pose_streams import read_pose_stream
     folder = datasets_dir / 'ethz_robot_arm_real'
 
     def load(name):
-        rows = np.loadtxt(folder / name, delimiter=',')
-        stamps = np.rint(rows[:, 0] * 1e9).astype(np.int64)
-        return [(int(s), Pose(r[1:4], wxyz_from_xyzw(r[4:8]))) for s, r in zip(stamps, rows)]
+        stamps, positions, quaternions = read_pose_stream(folder / name)
+        return [(s, Pose(p, q)) for s, p, q in zip(stamps, positions, quaternions)]
     return load('link_hinge_in_base.csv'), load('ir_camera_in_target.csv')

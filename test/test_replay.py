@@ -469,9 +469,8 @@ def test_eth_real_recording_replays_in_continuous_mode(repo_root, eth_bag):
 def test_poses_to_bag_writes_the_recordings_bag_from_its_files(repo_root, eth_bag, tmp_path,
                                                                datasets_dir, capsys):
     # The ETH recording is two files of timed poses: poses_to_bag gives replay the bag of this
-    # module's own conversion, but for its stamps: exact decimals, where eth_streams multiplies
-    # float seconds near 1.5e9 by 1e9 (off by up to about 128 ns, which moves the answer by
-    # about 1e-8).
+    # module's own conversion (eth_streams reads the files as poses_to_bag does; its bag was
+    # built with float stamps, off by up to about 128 ns, once: the tolerances below).
     from quatcal_ros.tools.poses_to_bag import main
     folder, out = datasets_dir / 'ethz_robot_arm_real', tmp_path / 'eth'
     assert main([str(folder / 'link_hinge_in_base.csv'), str(folder / 'ir_camera_in_target.csv'),

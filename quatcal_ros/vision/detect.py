@@ -225,7 +225,17 @@ def pixel_jacobian(pose, object_points, camera):
     """
     turned = object_points @ pose.rotation.T
     _, P = camera.project_with_jacobian(turned + pose.position)      # (M, 2, 3)
-    return np.concatenate([-np.cross(P, turned[:, None, :]), P], axis=2).reshape(-1, 6)
+    return pose_jacobian(P, turned).reshape(-1, 6)
+
+
+def pose_jacobian(P, turned):
+    """
+    Return d pixels / d (left rotation vector, shift) of a board pose in the camera frame.
+
+    P (..., 2, 3): the camera's d pixels / dc at each corner c = R p + t; turned: R p
+    (..., 3). A row r of P times -[R p]x is -(r x R p)^T. Returns (..., 2, 6).
+    """
+    return np.concatenate([-np.cross(P, turned[..., None, :]), P], axis=-1)
 
 
 def pose_covariance(pose, object_points, image_points, camera):

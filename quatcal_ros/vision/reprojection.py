@@ -58,7 +58,7 @@ from quatcal_ros.core.motions import SampleRotations
 from quatcal_ros.core.refine import apply_step, object_pose, ReportedUncertainty, \
     uncertainties
 from quatcal_ros.core.translation import SamplePositions
-from quatcal_ros.vision.detect import board_pose
+from quatcal_ros.vision.detect import board_pose, pose_jacobian
 
 MAX_ITERATIONS = 30
 STEP_TOLERANCE = 1e-6          # in units of the unknowns' sigmas
@@ -220,12 +220,18 @@ class HeldOut:
 
 def board_in_camera(link_q, link_t, model):
     """Return each view's board pose in the camera frame S = inv(X) inv(L) O: R (N, 3, 3), t."""
+    _, M, R_O, t_S = _camera_frame(link_q, link_t, model)
+    return M @ R_O, t_S
+
+
+def _camera_frame(link_q, link_t, model):
+    """Return R_X, M = R_X^T R_L^T (N, 3, 3), R_O and each view's t_S (N, 3)."""
     x_q, x_t, o_q, o_t = model
     R_X, R_O = quat.matrix_from_quaternion(x_q), quat.matrix_from_quaternion(o_q)
     R_L = quat.matrix_from_quaternion(link_q)                       # (N, 3, 3)
-    R_S = R_X.T @ np.transpose(R_L, (0, 2, 1)) @ R_O                 # (N, 3, 3)
+    M = R_X.T @ np.transpose(R_L, (0, 2, 1))                         # (N, 3, 3)
     t_S = (np.einsum('nji,nj->ni', R_L, o_t - link_t) - x_t) @ R_X   # (N, 3)
-    return R_S, t_S
+    return R_X, M, R_O, t_S
 
 
 def predicted_pixels(link_q, link_t, corners, camera, model):
@@ -248,21 +254,17 @@ def pixels_and_jacobians(link_q, link_t, corners, camera, model, shared=True):
     and shifts it in the camera frame (ViewNoise.view_sd's coordinates): -[R_S p]x and I.
     Each is chained with the camera's d pixels / dc (Camera.project_with_jacobian).
     """
-    x_q, x_t, o_q, o_t = model
-    R_X, R_O = quat.matrix_from_quaternion(x_q), quat.matrix_from_quaternion(o_q)
-    R_L = quat.matrix_from_quaternion(link_q)                       # (N, 3, 3)
-    M = R_X.T @ np.transpose(R_L, (0, 2, 1))                         # (N, 3, 3)
-    t_S = (np.einsum('nji,nj->ni', R_L, o_t - link_t) - x_t) @ R_X   # (N, 3)
+    R_X, M, R_O, t_S = _camera_frame(link_q, link_t, model)
     v = corners.view
     M_v = M[v]
     turned = np.einsum('kij,kj->ki', M_v @ R_O, corners.points)      # R_S p, (K, 3)
     c = turned + t_S[v]
     pixels, P = camera.project_with_jacobian(c)                      # P: (K, 2, 3)
-    # a row r of P times [w]x is (r x w)^T
-    P_turned = np.cross(P, turned[:, None, :])
-    J = np.concatenate([np.cross(P, c[:, None, :]) @ R_X.T, -P @ R_X.T, -P_turned @ M_v,
+    G = pose_jacobian(P, turned)                                      # (K, 2, 6)
+    # a row r of P times [w]x is (r x w)^T; G's first block is -P [R_S p]x
+    J = np.concatenate([np.cross(P, c[:, None, :]) @ R_X.T, -P @ R_X.T, G[..., :3] @ M_v,
                         P @ M_v], axis=2)
-    return pixels, J, (np.concatenate([-P_turned, P], axis=2) if shared else None)
+    return pixels, J, (G if shared else None)
 
 
 def jacobian(link_q, link_t, corners, camera, model):
