@@ -155,13 +155,17 @@ class JournalHeader:
                                                    values['sensor_frame'], name)
         return JournalHeader(**values)
 
-    def differences(self, other):
+    def differences(self, other, origins=None):
         """
         Return 'key: mine vs other' for each of HEADER_KEYS that differs from `other`.
 
         Not invert_sensor: the samples are the same poses either way (the class docstring).
+        origins: {key: why other's value is not the parameter as given} (Settings'
+        result_frame_origins), said after it.
         """
-        return [f'{key} {getattr(self, key)!r} (parameters: {getattr(other, key)!r})'
+        origins = origins or {}
+        return [f'{key} {getattr(self, key)!r} (parameters: {getattr(other, key)!r}'
+                f'{", " + origins[key] if key in origins else ""})'
                 for key in HEADER_KEYS if getattr(self, key) != getattr(other, key)]
 
 
@@ -573,7 +577,7 @@ def lock(path):
     return fd
 
 
-def start(path, header, resume, now=None, resumable=True):
+def start(path, header, resume, now=None, resumable=True, origins=None):
     """
     Open the journal at `path` for a node starting up; the policy of the module docstring.
 
@@ -593,6 +597,8 @@ def start(path, header, resume, now=None, resumable=True):
     :param resume: the resume parameter.
     :param resumable: whether the caller can resume (the node); the offline tools' journal
         is a new one whatever is at the path, and the warning does not offer resume:=true.
+    :param origins: {header key: why its value is not the parameter as given}, for the
+        refusal (JournalHeader.differences).
     :return: (Journal, StartReport).
     :raises JournalRefused: in use by another process, setup or frames differ (resume), or
         the path is a directory.
@@ -606,7 +612,7 @@ def start(path, header, resume, now=None, resumable=True):
                              'name a regular file (it is never moved aside or replaced)')
     lock_fd = lock(path)
     try:
-        return _start_locked(path, header, resume, lock_fd, now, resumable)
+        return _start_locked(path, header, resume, lock_fd, now, resumable, origins)
     except BaseException:
         if lock_fd is not None:
             os.close(lock_fd)
@@ -629,7 +635,7 @@ def _unnamed_base(recorded, wanted):
             and wanted.link_frame != LEGACY_BASE_FRAME)
 
 
-def _start_locked(path, header, resume, lock_fd, now, resumable=True):
+def _start_locked(path, header, resume, lock_fd, now, resumable=True, origins=None):
     report = StartReport()
     try:
         contents = read_journal(path)
@@ -653,7 +659,7 @@ def _start_locked(path, header, resume, lock_fd, now, resumable=True):
         unnamed = _unnamed_base(recorded, header)
         # An earlier version's unnamed base is compared as the base the parameters name.
         differences = (replace(recorded, link_frame=header.link_frame) if unnamed
-                       else recorded).differences(header)
+                       else recorded).differences(header, origins)
         if differences:
             raise JournalRefused(
                 f'resume:=true refused: {path} was recorded with {", ".join(differences)}; '

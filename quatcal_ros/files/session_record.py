@@ -27,19 +27,20 @@ class SamplesJournal:
     `problem` says what is not saved while something is not (None when all is well).
     """
 
-    def __init__(self, path, header, resume, resumable=True):
+    def __init__(self, path, header, resume, resumable=True, origins=None):
         """
         Open (or create) the journal at `path`; with resume, reload its samples.
 
         `report` (journal.StartReport) holds the samples to resume and the messages to log;
-        resumable: as journal.start takes it (False for the offline tools).
+        resumable, origins: as journal.start takes them (resumable False for the offline
+        tools).
         :raises journal.JournalRefused: in use by another node, or recorded with another
             setup or frames while resume is true.
         :raises OSError: when the journal cannot be written.
         """
         self.problem = None
         self.journal, self.report = journal.start(path, header, resume,
-                                                  resumable=resumable)
+                                                  resumable=resumable, origins=origins)
 
     @property
     def path(self):

@@ -110,7 +110,8 @@ class CalibratorNode(Node):
             if self.config.sensor_input == 'image':   # before the journal moves a file aside
                 read_board(self.config.board_file)
             self.journal = SamplesJournal(self.config.samples_file, journal_header(self.config),
-                                          self.config.resume)
+                                          self.config.resume,
+                                          origins=self.config.result_frame_origins)
         except (journal.JournalRefused, OSError) as error:
             self.destroy_node()
             raise ConfigError(f'samples_file {self.config.samples_file}: {error}') from None

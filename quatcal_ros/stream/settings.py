@@ -373,14 +373,31 @@ def _result_frames(self):
     tracking_base_frame. Without, link_frame left at its default (a flange's name) names the
     robot base with eye_to_hand: link_frame_id, or base_link (units.DEFAULT_FRAMES).
     """
-    frames = []
-    for name, frame, _, tf_frame in _result_frame_sources(self):
+    return tuple(frame for frame, _ in _result_frames_and_origins(self))
+
+
+def _result_frame_origins(self):
+    """
+    Return {name: why its frame is not the value given} of the result frames.
+
+    For messages that quote result_frames: a value equal to the default counts as unset.
+    """
+    return {name: origin for (_, origin), name in
+            zip(_result_frames_and_origins(self), ('link_frame', 'sensor_frame')) if origin}
+
+
+def _result_frames_and_origins(self):
+    """Yield (frame, '' or why it is not the value given) of link_frame and sensor_frame."""
+    for name, frame, tf_name, tf_frame in _result_frame_sources(self):
+        left = f'{name} left at its default {frame!r}'
         if frame == DEFAULTS[name] and tf_frame:
-            frame = tf_frame
+            yield tf_frame, f'as with TF input {left} is the TF frame {tf_name}'
         elif frame == DEFAULTS[name] and name == 'link_frame' and self.setup == 'eye_to_hand':
-            frame = self.link_frame_id or DEFAULT_FRAMES['eye_to_hand'][0]
-        frames.append(frame)
-    return tuple(frames)
+            base = DEFAULT_FRAMES['eye_to_hand'][0]
+            yield (self.link_frame_id or base,
+                   f'as with eye_to_hand {left} names the robot base: link_frame_id, or {base!r}')
+        else:
+            yield frame, ''
 
 
 def _result_frame_sources(settings):
@@ -422,6 +439,7 @@ Settings = make_dataclass(
         'as_dict': _as_dict,
         'updated': _updated,
         'result_frames': property(_result_frames),
+        'result_frame_origins': property(_result_frame_origins),
     })
 
 
