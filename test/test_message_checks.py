@@ -164,17 +164,25 @@ def test_session_rejections_carry_their_reason():
     assert mc.rejected_reason(Rejected('link_pose', 'why')) == 'malformed'
 
 
-def test_pairing_notice_with_an_unknown_rate():
+def test_pairing_notice_waits_for_known_rates():
     # Found by test_fuzz: stamps jumping ahead and back leave a stream with too few poses
     # for a rate when the first pair forms; the notice used to fail formatting None. (The
     # link's jump back at 40 ms confirms the sensor's at 15 ms: a new timeline from there.)
+    # It now waits until both streams' rates are known, and is said once.
     session = Session()
     events = []
     for stream, stamp_ms in (('l', 0), ('l', 10), ('s', 3002), ('s', 15), ('l', 3004),
                              ('l', 40), ('s', 50), ('l', 60), ('l', 70), ('s', 3008)):
         add = session.add_link_pose if stream == 'l' else session.add_sensor_pose
         events += add(stamp_ms * MS, Pose.identity())
-    assert any(isinstance(e, Notice) and 'rate unknown' in e.text for e in events)
+    assert not any(isinstance(e, Notice) and 'pairing by' in e.text for e in events)
+    for stamp_ms in range(3010, 4200, 10):   # link 100 Hz, sensor 25 Hz
+        events += session.add_link_pose(stamp_ms * MS, Pose.identity())
+        if stamp_ms % 40 == 0:
+            events += session.add_sensor_pose((stamp_ms - 2) * MS, Pose.identity())
+    said = [e.text for e in events if isinstance(e, Notice) and 'pairing by' in e.text]
+    assert said == ['pairing by header stamps: link poses (100 Hz) interpolated at the sensor '
+                    'stamps (25 Hz)']
 
 
 def test_stream_stats_count_and_throttle():

@@ -74,6 +74,28 @@ def test_link_is_interpolated_at_sensor_stamps_exactly():
         assert_same_pose(pair.link, link_truth.at(stamp), atol=1e-9)
 
 
+@pytest.mark.parametrize('sensor_hz, window_s', [(30.0, 2.0), (2.0, 2.0), (30.0, 0.4)])
+def test_typical_rates_wait_for_a_span_and_ignore_a_lost_message(sensor_hz, window_s):
+    # The subscription's second camera frame is lost: the mean rate of the first three kept
+    # stamps read 20 Hz for a 30 Hz camera; the median interval reads 30 Hz. The rates wait
+    # for four stamps spanning half a second (or half the window, when shorter).
+    sensor_times = [t for k, t in enumerate(stamps(sensor_hz, 3.0)) if k != 1]
+    pairer = Pairer(PairingConfig(window_ns=int(window_s * NS)))
+    wait_ns = min(0.5, window_s / 2) * NS
+    said = None
+    for stamp, kind in sorted([(s, 0) for s in stamps(100.0, 3.0)] +
+                              [(s, 1) for s in sensor_times]):
+        pairer.add(LINK if kind == 0 else SENSOR, stamp, Pose.identity())
+        rates = pairer.typical_rates_hz()
+        if rates is not None and said is None:
+            said = stamp
+            # (the stamps are whole nanoseconds: 1 ns in 33 ms is 3e-8)
+            assert rates == pytest.approx({LINK: 100.0, SENSOR: sensor_hz}, rel=1e-7)
+        if stamp - START_NS < wait_ns - 10 * NS / 1000:
+            assert rates is None
+    assert said is not None and said - START_NS <= max(wait_ns, 4 / sensor_hz * NS) + 0.01 * NS
+
+
 def test_faster_sensor_stream_is_interpolated_at_link_stamps():
     rng = np.random.default_rng(2)
     sensor_truth = ConstantTwist(rng, degrees_per_s=600.0, metres_per_s=0.2)

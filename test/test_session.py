@@ -68,9 +68,9 @@ def test_stop_and_go_streams_give_one_sample_per_stop_and_the_mounting():
     session = Session()
     assert session.state == 'waiting for poses'
     events = feed(session, messages, live=True)
-    # Rates from the first few poses (the camera's drops make its rate under 30 Hz).
-    assert re.fullmatch(r'pairing by header stamps: link poses \(500 Hz\) interpolated at the '
-                        r'sensor stamps \(\d\d(\.\d)? Hz\)', of_type(events, Notice)[0].text)
+    # The median intervals: the camera's dropped frames do not lower its rate.
+    assert of_type(events, Notice)[0].text == ('pairing by header stamps: link poses (500 Hz) '
+                                               'interpolated at the sensor stamps (30 Hz)')
     captured = of_type(events, SampleCaptured)
     assert [event.index for event in captured] == list(range(8))
     assert session.samples == [event.sample for event in captured]

@@ -35,6 +35,12 @@ SENSOR = 'sensor'
 MIN_RATE_SAMPLES = 3
 # The slower stream takes over as the interpolated one only when clearly faster (hysteresis).
 ROLE_SWITCH_RATIO = 1.5
+# A stream's rate is said (typical_rates_hz) once it keeps RATE_POSES stamps spanning
+# RATE_SPAN_NS (or half the window when that is shorter): the median of three intervals
+# survives one lost or late message among the first of a subscription, a mean does not. (A
+# stream too slow to keep RATE_POSES in the window, below 1.5 Hz at 2 s, has none said.)
+RATE_POSES = 4
+RATE_SPAN_NS = 500_000_000
 
 
 @dataclass(frozen=True)
@@ -104,6 +110,21 @@ class Pairer:
     def rates_hz(self):
         """Observed rate of each stream, {'link': Hz or None, 'sensor': Hz or None}."""
         return {name: _rate_hz(stream) for name, stream in self._streams.items()}
+
+    def typical_rates_hz(self):
+        """
+        Each stream's rate to report, {'link': Hz, 'sensor': Hz}, or None until both are known.
+
+        From the median interval of its kept stamps (a dropped or late message does not
+        change it), once there are RATE_POSES of them spanning RATE_SPAN_NS (or half the
+        window).
+        """
+        span_ns = min(RATE_SPAN_NS, self.config.window_ns // 2)
+        if any(len(stream) < RATE_POSES or stream.span_ns < span_ns
+               for stream in self._streams.values()):
+            return None
+        return {name: 1e9 / stream.median_interval_ns()
+                for name, stream in self._streams.items()}
 
     def buffered(self):
         """Poses kept per stream, {'link': count, 'sensor': count}."""

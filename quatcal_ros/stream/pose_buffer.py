@@ -21,7 +21,8 @@ O(log n) bisection, appending and forgetting amortised O(1), inserting before th
 """
 
 import bisect
-from itertools import repeat
+from itertools import islice, repeat
+import statistics
 from typing import NamedTuple, Optional
 
 from quatcal_ros.core import quaternion as quat
@@ -103,6 +104,14 @@ class PoseBuffer:
     def span_ns(self):
         """Return the time from the oldest kept stamp to the newest (0 when empty)."""
         return self._stamps[-1] - self._stamps[self._start] if self._stamps else 0
+
+    def median_interval_ns(self):
+        """Return the median interval between kept stamps (ns), or None with fewer than two."""
+        if len(self) < 2:
+            return None
+        stamps = self._stamps
+        return statistics.median(b - a for a, b in zip(islice(stamps, self._start, None),
+                                                       islice(stamps, self._start + 1, None)))
 
     # --- adding ------------------------------------------------------------------------
 

@@ -459,8 +459,8 @@ class Session:
         if not pairs and self._pairer.unpaired_total == self._unpaired_seen:
             return []   # most poses: nothing happened
         events = self._unpaired_notice(bool(pairs))
-        if pairs and not self._counts['pairs']:
-            events.append(self._pairing_notice())
+        if pairs and not self._counts['pairing_notices']:
+            events += self._pairing_notice()
         for pair in pairs:
             self._counts['pairs'] += 1
             sample = self._capture.add_pair(pair)
@@ -527,13 +527,15 @@ class Session:
         return Rejected(what, reason, code)
 
     def _pairing_notice(self):
+        """Return [the Notice of which stream is interpolated and the rates], once known."""
+        rates = self._pairer.typical_rates_hz()
+        if rates is None:
+            return []
+        self._counts['pairing_notices'] += 1
         faster = self._pairer.faster
         slower = LINK if faster == SENSOR else SENSOR
-        # A rate is None when a stamp far ahead left too few poses in the window.
-        rates = {stream: 'rate unknown' if hz is None else f'{hz:.3g} Hz'
-                 for stream, hz in self._pairer.rates_hz().items()}
-        return Notice(f'pairing by header stamps: {faster} poses ({rates[faster]}) '
-                      f'interpolated at the {slower} stamps ({rates[slower]})')
+        return [Notice(f'pairing by header stamps: {faster} poses ({rates[faster]:.3g} Hz) '
+                       f'interpolated at the {slower} stamps ({rates[slower]:.3g} Hz)')]
 
     def _new_timeline(self, stream, stamp_ns, pose):
         """
