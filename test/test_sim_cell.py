@@ -373,6 +373,9 @@ def test_the_robot_reports_each_stop_off_by_its_own_error(context, namespace):
     ({'drop_probability': 1.5}, InvalidParameterValueException, 'drop_probability'),
     ({'link_rate_hz': 0.0}, InvalidParameterValueException, 'link_rate_hz'),
     ({'camera_images': True}, ValueError, 'camera_images needs board_file'),
+    # A misspelt name was ignored without a word (tf_mod:=true published no TF).
+    ({'tf_mod': True}, ValueError, r'no such parameter: tf_mod \(did you mean tf_mode\?\); '
+                                   r'`sim_cell --help`'),
 ])
 def test_bad_parameters_are_named(context, overrides, error, message):
     with pytest.raises(error, match=message):

@@ -132,6 +132,19 @@ def test_bad_images_and_camera_info_are_counted_and_skipped(make_harness, board_
         assert line in logged, (line, logged)
 
 
+def test_a_misspelt_parameter_is_refused(domain_id, board_file):
+    context = Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    try:
+        with pytest.raises(ValueError, match=r'no such parameter: min_corner \(did you mean '
+                                             r'min_corners\?\); `target_detector --help`'):
+            TargetDetector(context=context, parameter_overrides=[
+                Parameter('board_file', value=str(board_file)),
+                Parameter('min_corner', value=6)])
+    finally:
+        rclpy.shutdown(context=context)
+
+
 @pytest.mark.parametrize('name, value, words', [
     ('min_corners', 3, 'min_corners must be at least 4 (a board pose needs 4 corners), not 3'),
     ('max_reprojection_px', 0.0, 'max_reprojection_px must be positive, not 0.0'),

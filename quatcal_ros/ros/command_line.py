@@ -7,6 +7,7 @@ as if it were right (`sim_cell --help` started the cell). `problem` names those 
 rclpy.init; spin.run prints its answer and exits (0 for --help, 2 otherwise).
 """
 
+import difflib
 import textwrap
 
 from rclpy.utilities import remove_ros_args
@@ -43,6 +44,26 @@ def problem(arguments, help_text, names):
         return 2, (f'unexpected argument(s) {" ".join(unknown)}: ROS arguments (parameters, '
                    f'a params file, remaps) go after --ros-args{example}; see --help')
     return None
+
+
+def unknown_parameters(node, names, node_name):
+    """
+    Return (refusal or None, warning or None) for the parameters set for `node` it lacks.
+
+    What -p and a params file set for this node (rclpy keeps them, declared or not): a name
+    no parameter has was ignored without a word (still_windw_s, tf_mod). One close to a
+    parameter's (`names`) is a typo: the refusal. Others may be meant for other nodes (a
+    params file's /** section, a launch file's global parameters): the warning.
+    """
+    unknown = sorted(name for name in getattr(node, '_parameter_overrides', {})
+                     if not node.has_parameter(name) and not name.startswith('qos_overrides.'))
+    close = {name: difflib.get_close_matches(name, names, 1) for name in unknown}
+    typos = [f'{name} (did you mean {close[name][0]}?)' for name in unknown if close[name]]
+    refusal = (f'no such parameter: {", ".join(typos)}; `{node_name} --help` lists every '
+               'parameter') if typos else None
+    warning = (f'parameters set for this node that it does not have, ignored: '
+               f'{", ".join(unknown)}') if unknown else None
+    return refusal, warning
 
 
 def help_text(node_name, about, parameters):

@@ -8,7 +8,6 @@ at startup (`declare_parameters`, which raises ConfigError with the reason) and 
 not declared here.  `params_file_text` renders config/calibrator.yaml from the table.
 """
 
-import difflib
 import re
 import textwrap
 
@@ -62,20 +61,11 @@ def declare_parameters(node):
                                   '(ROS takes a number without a decimal point as an '
                                   'integer)') from None
             raise ConfigError(f'parameter {setting.name}: {error}') from None
-    # What -p and the params file set for this node (rclpy keeps them, declared or not): a
-    # name no parameter has was ignored without a word (still_windw_s). One close to a
-    # parameter's is a typo: refused. Others may be meant for other nodes (a params file's
-    # /** section, a launch file's global parameters): said.
-    unknown = sorted(name for name in getattr(node, '_parameter_overrides', {})
-                     if not node.has_parameter(name) and not name.startswith('qos_overrides.'))
-    close = {name: difflib.get_close_matches(name, SETTING_BY_NAME, 1) for name in unknown}
-    typos = [f'{name} (did you mean {close[name][0]}?)' for name in unknown if close[name]]
-    if typos:
-        raise ConfigError(f'no such parameter: {", ".join(typos)}; `calibrator --help` lists '
-                          'every parameter')
-    if unknown:
-        node.get_logger().warning(f'parameters set for this node that it does not have, '
-                                  f'ignored: {", ".join(unknown)}')
+    refusal, warning = command_line.unknown_parameters(node, SETTING_BY_NAME, NODE_NAME)
+    if refusal:
+        raise ConfigError(refusal)
+    if warning:
+        node.get_logger().warning(warning)
     return Settings.from_values(
         {setting.name: node.get_parameter(setting.name).value for setting in SETTINGS})
 

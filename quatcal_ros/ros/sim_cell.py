@@ -189,6 +189,11 @@ def read_config(node):
     for name, (default, description, limits) in PARAMETERS.items():
         parameter = node.declare_parameter(name, default, _descriptor(description, limits))
         values[name] = parameter.value
+    refusal, warning = command_line.unknown_parameters(node, PARAMETERS, NODE_NAME)
+    if refusal:
+        raise ValueError(refusal)
+    if warning:
+        node.get_logger().warning(warning)
     if values['robot'] not in simulation.ROBOTS:
         raise ValueError(f'parameter robot must be one of {simulation.ROBOTS}, not '
                          f'{values["robot"]!r}')

@@ -58,6 +58,11 @@ class TargetDetector(Node):
         values = {name: self.declare_parameter(
             name, default, ParameterDescriptor(description=text, read_only=True)).value
             for name, (default, text) in PARAMETERS.items()}
+        refusal, warning = command_line.unknown_parameters(self, PARAMETERS, NODE_NAME)
+        if refusal:
+            raise ValueError(refusal)
+        if warning:
+            self.get_logger().warning(warning)
         if values['image_transport'] not in TRANSPORTS:
             raise ValueError(f'image_transport must be one of {TRANSPORTS}, not '
                              f'{values["image_transport"]!r}')
