@@ -464,6 +464,10 @@ def test_with_the_noise_in_the_robot_poses_the_right_fix_is_still_named():
         result = calibrate(samples, CalibrationOptions(invert_sensor=True))
         (said,) = [w for w in result.warnings if w.startswith('frame convention')]
         assert 'drop --invert-sensor' in said, said
+        # The mirror's fit is said in one form (it alternated between a noise ratio alone
+        # and the fit alone as samples came), the ratio beside it when it was refined.
+        assert re.search(r'Its mirror image, [a-z_ ]+, also fits \(\d\.\d\d deg, '
+                         r'\d+\.\d mm(; its refined noise \d\.\dx as large)?\)', said), said
 
 
 def test_inverted_sensor_poses_with_bad_detections_are_still_named():

@@ -705,7 +705,7 @@ def test_the_inputs_problems_come_before_the_estimates_warnings_on_diagnostics()
     from types import SimpleNamespace
     from quatcal_ros.ros.diagnostics import calibrator_status
     session = Session()
-    result = SimpleNamespace(warnings=['frame convention: use --setup eye_to_hand'],
+    result = SimpleNamespace(warnings=['frame convention: ... set setup to eye_to_hand'],
                              residual_rms_deg=0.1, validation={}, motions=3, inliers=3,
                              uncertainty_deg=0.1, method='refined', translation=[0, 0, 0],
                              translation_uncertainty_mm=1.0, hint='', reprojection=None)

@@ -206,7 +206,7 @@ def test_a_wrong_convention_is_named_not_published_quietly(options):
     (warning,) = [w for w in result.warnings if 'far better' in w]
     assert 'far better with setup eye_in_hand and invert_sensor false' in warning
     # The fix names what to change, and only that.
-    fix = ('drop --invert-sensor' if options.invert_sensor else 'use --setup eye_in_hand')
+    fix = ('drop --invert-sensor' if options.invert_sensor else '--setup eye_in_hand')
     assert fix in warning and ('--setup' in warning) == (options.setup != 'eye_in_hand')
 
 

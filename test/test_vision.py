@@ -932,8 +932,9 @@ def test_solve_dir_with_the_wrong_setup_names_only_a_fix_it_accepts(tmp_path, re
     assert solve_main([str(tmp_path), '--setup', 'eye_to_hand']) == 0
     (said,) = [w for w in json.loads(capsys.readouterr().out)['warnings']
                if w.startswith('frame convention')]
-    assert said.endswith('use --setup eye_in_hand (the node: setup:=eye_in_hand); do not use '
-                         'this estimate as configured') and 'invert' not in said, said
+    assert said.endswith('set setup to eye_in_hand (the node: setup:=eye_in_hand; the offline '
+                         'tools: --setup eye_in_hand); do not use this estimate as configured') \
+        and 'invert' not in said, said
 
 
 def test_solve_dir_without_the_layout_exits_2_naming_the_file(tmp_path, capsys):

@@ -139,7 +139,8 @@ def _better_convention(samples, options, screen=None):
                     f'{fix(options, *best)}, or {fix(options, *mirror)}; the right one '
                     "answers with where the sensor is mounted, the other with the object's "
                     'pose']
-        worse = f'{noise[mirror] / noise[best]:.1f}x the sensor noise'
+        worse = (f'{_fit_text(others[mirror])}; its refined noise '
+                 f'{noise[mirror] / noise[best]:.1f}x as large')
     elif mirror in others and _good(others[mirror]):
         worse = _fit_text(others[mirror])
     else:
@@ -210,18 +211,20 @@ def fix(options, setup, invert):
     """
     Return what to change in `options` for setup and invert_sensor `invert`: its words.
 
-    The offline tools' option first, then the node's parameter (the core serves both).
+    The setting, then the node's parameter and the offline tools' option (the core serves
+    both).
     """
     words = []
     if setup != options.setup:
-        words.append(f'use --setup {setup} (the node: setup:={setup})')
+        words.append(f'set setup to {setup} (the node: setup:={setup}; the offline tools: '
+                     f'--setup {setup})')
     if invert != options.invert_sensor:
         words.append('the sensor poses are inverted (the sensor in the object frame instead of '
-                     'the object in the sensor frame): use --invert-sensor (the node: '
-                     'invert_sensor:=true)' if invert else
-                     'the sensor poses are not inverted: drop --invert-sensor (--no-invert-'
-                     'sensor for a journal recorded with invert_sensor true; the node: '
-                     'invert_sensor:=false)')
+                     'the object in the sensor frame): set invert_sensor to true (the node: '
+                     'invert_sensor:=true; the offline tools: --invert-sensor)' if invert else
+                     'the sensor poses are not inverted: set invert_sensor to false (the node: '
+                     'invert_sensor:=false; the offline tools: drop --invert-sensor, or '
+                     '--no-invert-sensor for a journal recorded with invert_sensor true)')
     return '; '.join(words)
 
 
