@@ -397,6 +397,11 @@ def test_invalid_parameters_are_refused_at_start(domain_id):
             with pytest.raises(ConfigError, match=name):
                 CalibratorNode(context=context,
                                parameter_overrides=[Parameter(name, value=value)])
+        # Out of range in the table's words (rclpy's named the parameter twice).
+        with pytest.raises(ConfigError, match=r'^parameter still_window_s must be between 0\.05 '
+                                              r'and 10, not 20\.0$'):
+            CalibratorNode(context=context,
+                           parameter_overrides=[Parameter('still_window_s', value=20.0)])
         # A misspelled name was ignored without a word, and the default used.
         with pytest.raises(ConfigError, match=r'no such parameter: still_windw_s \(did you '
                                               r'mean still_window_s\?\)'):

@@ -60,6 +60,11 @@ def declare_parameters(node):
                                   f'{setting.name} is a real number: write {given.value}.0 '
                                   '(ROS takes a number without a decimal point as an '
                                   'integer)') from None
+            # The table's own words (rclpy's repeat the name: '... out of range Min: 0.05,
+            # Max: 10.0, value: 20.0: still_window_s').
+            problem = setting.check(given.value) if given is not None else None
+            if problem:
+                raise ConfigError(f'parameter {setting.name} {problem}') from None
             raise ConfigError(f'parameter {setting.name}: {error}') from None
     refusal, warning = command_line.unknown_parameters(node, SETTING_BY_NAME, NODE_NAME)
     if refusal:
