@@ -24,7 +24,7 @@ from quatcal_ros.ros import conversions as conv
 from quatcal_ros.ros.sim_cell import SimCell
 from quatcal_ros.sim import simulation as sim
 import rclpy
-from rclpy.exceptions import InvalidParameterValueException
+from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -370,8 +370,11 @@ def test_the_robot_reports_each_stop_off_by_its_own_error(context, namespace):
     ({'robot': 'hexapod'}, ValueError, 'parameter robot must be one of'),
     ({'mounting_xyz': [0.1, 0.2]}, ValueError, 'mounting_xyz'),
     ({'mounting_xyz': [0.1, 0.2, 0.3]}, ValueError, 'give both'),
-    ({'drop_probability': 1.5}, InvalidParameterValueException, 'drop_probability'),
-    ({'link_rate_hz': 0.0}, InvalidParameterValueException, 'link_rate_hz'),
+    ({'drop_probability': 1.5}, ValueError,
+     r'^parameter drop_probability must be between 0 and 1, not 1\.5$'),
+    ({'link_rate_hz': 0.0}, ValueError, 'parameter link_rate_hz must be between'),
+    ({'link_rate_hz': 'fast'}, InvalidParameterTypeException, 'link_rate_hz'),
+    ({'link_rate_hz': 500}, InvalidParameterTypeException, 'link_rate_hz'),   # (an integer)
     ({'camera_images': True}, ValueError, 'camera_images needs board_file'),
     # A misspelt name was ignored without a word (tf_mod:=true published no TF).
     ({'tf_mod': True}, ValueError, r'no such parameter: tf_mod \(did you mean tf_mode\?\); '

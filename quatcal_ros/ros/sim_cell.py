@@ -187,7 +187,16 @@ def read_config(node):
     """Declare the node's parameters (PARAMETERS) and return them as a SimCellConfig."""
     values = {}
     for name, (default, description, limits) in PARAMETERS.items():
-        parameter = node.declare_parameter(name, default, _descriptor(description, limits))
+        try:
+            parameter = node.declare_parameter(name, default, _descriptor(description, limits))
+        except ParameterException:
+            given = getattr(getattr(node, '_parameter_overrides', {}).get(name), 'value', None)
+            if limits is None or isinstance(given, bool) or not isinstance(given, (int, float)) \
+                    or limits[0] <= given <= limits[1]:
+                raise
+            # (rclpy's words name the parameter twice)
+            raise ValueError(f'parameter {name} must be between {limits[0]:g} and '
+                             f'{limits[1]:g}, not {given!r}') from None
         values[name] = parameter.value
     refusal, warning = command_line.unknown_parameters(node, PARAMETERS, NODE_NAME)
     if refusal:
