@@ -453,6 +453,13 @@ def test_eth_real_recording_replays_in_continuous_mode(repo_root, eth_bag):
     assert done.returncode == 0, done.stderr
     out = json.loads(done.stdout)
     assert out['residual_rms_deg'] < 1.0 and out['samples'] > 30
+    # Taken in motion, the samples need the streams' time offset (20 ms here, which moves
+    # the answer by 1.3 times its uncertainty): said, with how far 10 ms moves them.
+    (moving,) = [w for w in out['warnings'] if 'taken while the link turned' in w]
+    assert moving == ('the samples were taken while the link turned (median 8.1 deg/s between '
+                      'them): each 10 ms by which the sensor stamps are off moves them by about '
+                      '0.081 deg (the uncertainty: 0.16 deg); --estimate-time-offset measures '
+                      'the offset (or give it, --sensor-time-offset)')
     # Auto mode finds no stop in this recording and falls back, saying so.
     auto = run_replay(repo_root, eth_bag, '--link-topic', '/link', '--sensor-topic', '/camera',
                       '--invert-sensor')
@@ -507,6 +514,7 @@ def test_eth_time_offset_is_estimated_applied_and_reported(repo_root, eth_bag):
     assert 'searched_around_s' not in found   # logged at their stamps: one clock
     assert found['residual_with_deg'] < found['residual_without_deg']
     assert any(w.startswith('time offset: sensor stamps shifted by') for w in out['warnings'])
+    assert not any('taken while the link turned' in w for w in out['warnings'])
     # Auto capture finds no stop here: it falls back with the search too (it once exited 2).
     auto = run_replay(repo_root, eth_bag, '--link-topic', '/link', '--sensor-topic', '/camera',
                       '--invert-sensor', '--estimate-time-offset')
@@ -520,6 +528,8 @@ def test_eth_time_offset_is_estimated_applied_and_reported(repo_root, eth_bag):
                        '--sensor-time-offset', str(found['sensor_offset_s']))
     assert fixed.returncode == 0, fixed.stderr
     assert_allclose(rotation(json.loads(fixed.stdout)), rotation(out), atol=1e-9)
+    assert not any('taken while the link turned' in w
+                   for w in json.loads(fixed.stdout)['warnings'])
 
 
 def test_malformed_messages_are_skipped_and_reported(repo_root, streams, tmp_path):

@@ -46,6 +46,24 @@ class TimeOffset:
     correlation: float      # normalised cross-correlation at the offset, in [-1, 1]
 
 
+def link_speed_deg_s(samples):
+    """
+    Return the median speed (deg/s) the link turned at between consecutive samples, or None.
+
+    Samples taken while the robot moves (continuous capture) shift by this much per second
+    of an offset between the two streams' stamps.
+    """
+    stamps = np.array([s.stamp_ns for s in samples], dtype=np.int64)
+    if len(stamps) < 2:
+        return None
+    q = np.array([s.link.quaternion for s in samples])
+    dt = np.diff(stamps) / NS_PER_S
+    keep = dt > 0
+    if not keep.any():
+        return None
+    return float(np.degrees(np.median(quat.angle_between(q[:-1], q[1:])[keep] / dt[keep])))
+
+
 def angular_speed(stamps_ns, quaternions, baseline_s=0.1):
     """
     Return (times in s, angular speed in rad/s) of a pose stream.

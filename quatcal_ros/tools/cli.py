@@ -32,7 +32,7 @@ from quatcal_ros.stream.session import Rejected, Session
 from quatcal_ros.stream.settings import check_config, ConfigError, IMAGES_NOT_INVERTED, \
     plan_limits, session_config
 from quatcal_ros.stream.tf_tree import normalize_frame
-from quatcal_ros.stream.time_offset import find_time_offset
+from quatcal_ros.stream.time_offset import find_time_offset, link_speed_deg_s
 from quatcal_ros.tools.options import add_setting_options, HelpFormatter, settings_of
 from quatcal_ros.tools.output_paths import output_problem
 from quatcal_ros.tools.progress import Progress
@@ -618,6 +618,7 @@ def replay_main(argv=None):
     if not args.estimate_time_offset:   # (the search starts from what the log times say)
         warnings += _logged_clocks(bag.clock_offset_ns(replay, report),
                                    config.sensor_offset_ns)
+        warnings += _moving_samples(session)
     if session.result is not None:   # the live node's moved-marker watch, over the whole bag
         options = config.calibration
         moved = MoveWatch().check(session.samples, session.result.quaternion, options.setup,
@@ -716,6 +717,34 @@ def _logged_clocks(logged_ns, given_ns):
             'clocks are offset, and poses may have been paired with the wrong partners; '
             f'{_logged_fix(logged_ns)} (or the {late} poses took that long to reach the '
             'recorder)']
+
+
+# The stamp offset whose effect on samples taken in motion is weighed (_moving_samples).
+OFFSET_WEIGHED_NS = 10_000_000
+
+
+def _moving_samples(session):
+    """
+    Return [the hint that samples taken in motion need the time offset], or [].
+
+    With continuous capture and no sensor time offset given: stamps of two devices are
+    rarely the same moment (a camera stamps at the end of its exposure, a driver when it
+    sends), and tens of ms matter in motion (the ETH arm recording's 20 ms moved its answer
+    by 1.3 times its uncertainty). How far 10 ms moves the samples lets the user judge.
+    """
+    result = session.result
+    if (result is None or session.config.capture.mode != 'continuous'
+            or session.config.sensor_offset_ns):
+        return []
+    speed = link_speed_deg_s(session.samples)
+    if speed is None:
+        return []
+    shift = speed * OFFSET_WEIGHED_NS / NS_PER_S
+    return [f'the samples were taken while the link turned (median {speed:.2g} deg/s between '
+            f'them): each {OFFSET_WEIGHED_NS / 1e6:.0f} ms by which the sensor stamps are off '
+            f'moves them by about {shift:.2g} deg (the uncertainty: '
+            f'{result.uncertainty_deg:.2g} deg); --estimate-time-offset measures the offset '
+            '(or give it, --sensor-time-offset)']
 
 
 def _logged_fix(logged_ns):
