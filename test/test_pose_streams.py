@@ -57,7 +57,13 @@ def test_poses_to_bag_names_what_is_wrong(tmp_path, capsys):
     assert '--link-topic and --sensor-topic are both /link_pose' in capsys.readouterr().err
     assert main([str(good), str(tmp_path / 'none.txt'), str(tmp_path / 'bag')]) == 2
     assert 'none.txt' in capsys.readouterr().err
-    # Written, with mcap too, in a folder made for it
-    assert main([str(good), str(good), str(tmp_path / 'new' / 'bag'), '--storage', 'mcap']) == 0
-    assert (tmp_path / 'new' / 'bag' / 'metadata.yaml').is_file()
+    # Written, with mcap too, in a folder made for it; its storage file named after it
+    # (it kept the hidden name of the partial folder, which a copy of '*' lost).
+    assert main([str(good), str(good), str(tmp_path / 'new' / 'bag'), '--storage', 'mcap',
+                 '--link-topic', 'robot/pose']) == 0
+    assert sorted(p.name for p in (tmp_path / 'new' / 'bag').iterdir()) == [
+        'bag.mcap', 'metadata.yaml']
     assert [p.name for p in (tmp_path / 'new').iterdir()] == ['bag']   # no partial left
+    # The topic written absolute, as rosbag2's are.
+    assert capsys.readouterr().out.startswith(f'{tmp_path / "new" / "bag"}: 2 link poses on '
+                                              '/robot/pose, 2 sensor poses on /sensor_pose')

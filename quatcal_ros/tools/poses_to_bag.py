@@ -5,7 +5,8 @@ A recording exported as two files of timed poses (files/pose_streams.py: `t x y 
 qw` a row, as the ETH hand-eye datasets and TUM trajectories are) becomes a rosbag2 of
 geometry_msgs/PoseStamped on two topics, each message logged at its stamp, so that `replay`
 captures samples from them, pairs their stamps and can estimate their time offset as from
-any recording. The bag is written beside OUT_BAG and renamed to it when complete.
+any recording. The bag is written in a folder beside OUT_BAG, under OUT_BAG's name (its
+storage file is named after it), and moved to OUT_BAG when complete.
 """
 
 import argparse
@@ -52,6 +53,9 @@ def main(argv=None):
     """Convert; print what was written and the replay command; return the exit status."""
     args = parser().parse_args(argv)
     out = Path(args.bag)
+    # rosbag2's topic names are absolute ('link_pose' played back would be relative).
+    args.link_topic, args.sensor_topic = ('/' + topic.lstrip('/')
+                                          for topic in (args.link_topic, args.sensor_topic))
     if args.link_topic == args.sensor_topic:
         return _fail(f'--link-topic and --sensor-topic are both {args.link_topic}')
     if os.path.lexists(out):
@@ -71,17 +75,20 @@ def main(argv=None):
          in enumerate(streams.items())
          for stamp, position, quaternion in zip(stamps, positions, quaternions)),
         key=lambda m: m[1:3])   # by stamp, the link first at equal stamps
+    # The bag is written as OUT_BAG's name in a folder of its own (its storage file takes
+    # that name), then moved in one rename.
     partial = out.parent / f'.{out.name}.partial-{os.getpid()}'
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        bag.write_bag(partial, {topic: POSE_STAMPED for topic in streams}, (
+        partial.mkdir(parents=True)
+        bag.write_bag(partial / out.name, {topic: POSE_STAMPED for topic in streams}, (
             (topic, stamp, pose_stamped_msg(Pose(position, quaternion), stamp, frame,
                                             bag.TYPESTORE))
             for topic, stamp, _, position, quaternion, frame in messages), args.storage)
-        os.rename(partial, out)
+        os.rename(partial / out.name, out)
     except OSError as error:
-        shutil.rmtree(partial, ignore_errors=True)
         return _fail(f'{out}: cannot write: {error}')
+    finally:
+        shutil.rmtree(partial, ignore_errors=True)
     counts = [len(stamps) for (stamps, _, _), _ in streams.values()]
     print(f'{out}: {counts[0]} link poses on {args.link_topic}, {counts[1]} sensor poses on '
           f'{args.sensor_topic} ({args.storage}). Replay it with:\n'
