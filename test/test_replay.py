@@ -258,10 +258,17 @@ def test_tf_bag_with_static_frames_in_both_chains(repo_root, streams, tmp_path):
     swapped = run_replay(repo_root, tmp_path / 'tf', '--link-frames', 'tool0', 'base_link',
                          '--sensor-frames', 'camera', 'marker', '--quiet')
     assert swapped.returncode == 0, swapped.stderr
-    assert ('TF input: the link frames look swapped: the base frame given, tool0, hangs below '
-            'the effector frame given, base_link, in the TF tree; a link pose is the effector in '
-            'the robot base frame (base base_link, effector tool0?)'
-            in json.loads(swapped.stdout)['warnings']), swapped.stdout
+    said = json.loads(swapped.stdout)['warnings']
+    assert said[0] == (
+        'TF input: the link frames look swapped: the base frame given, tool0, hangs below '
+        'the effector frame given, base_link, in the TF tree; a link pose is the effector in '
+        'the robot base frame (base base_link, effector tool0?)'), said
+    # The cause comes first, on stderr too: it was last in the JSON, and stderr gave only
+    # the advice it makes wrong (set setup to eye_to_hand).
+    errors = swapped.stderr.splitlines()
+    assert errors[0].startswith(f'replay: warning: {tmp_path / "tf"}: TF input: the link frames '
+                                'look swapped'), swapped.stderr
+    assert any('set setup to eye_to_hand' in line for line in errors[1:]), swapped.stderr
 
 
 def test_a_tf_bag_gives_the_joint_the_tree_can_take(repo_root, streams, tmp_path, capsys):

@@ -77,19 +77,23 @@ def not_enough_samples(count, needed, thresholds=Thresholds(), fit='poses'):
             'thresholds': thresholds.to_json_dict(), 'worst': [], 'samples': []}
 
 
-def published(result, warnings=()):
+def published(result, warnings=(), causes=()):
     """
     Return CalibrationResult `result` as it is printed and saved, with `warnings` added.
 
     After its own warnings, a failed validation's comes first of them (said in the warnings,
-    not only in "validation"). The tools' JSON and files and the node's ~/save all use it.
+    not only in "validation"). causes: the input's problems that explain the estimate's
+    warnings (TF frames given swapped), before them all. The tools' JSON and files and the
+    node's ~/save all use it.
     """
     failed = failure_warning(result.validation)
     if failed:
         warnings = [f"{failed} (each sample's prediction error is listed with the validation, "
                     'the worst first)',
                     *warnings]
-    return replace(result, warnings=[*result.warnings, *warnings]) if warnings else result
+    if not (warnings or causes):
+        return result
+    return replace(result, warnings=[*causes, *result.warnings, *warnings])
 
 
 def failure_warning(validation):

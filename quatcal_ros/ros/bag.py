@@ -655,17 +655,20 @@ class _Run:
         return report
 
 
-def frame_warnings(report, setup='eye_in_hand', invert_sensor=False, result=None):
-    """
-    Return warnings on the frames of the streams the replay used.
-
-    stream.frame_notices' on the messages' frames, and TfFeed.swapped_frames' on TF input's
-    link and tracking frames (those the estimate `result` leaves standing: tf_feed.kept_swapped).
-    """
+def frame_warnings(report, setup='eye_in_hand', invert_sensor=False):
+    """Return stream.frame_notices' warnings on the frames of the messages the replay used."""
     seen = {checked: report.frames[stream] for stream, checked in STREAMS.items()
             if stream in report.frames}
-    return (kept_swapped(report.tf_swapped, result)
-            + frame_notices.notices(seen, setup, invert_sensor))
+    return frame_notices.notices(seen, setup, invert_sensor)
+
+
+def swapped_frames(report, result=None):
+    """
+    Return TfFeed.swapped_frames' warnings on TF input's link and tracking frames.
+
+    Those the estimate `result` leaves standing (tf_feed.kept_swapped).
+    """
+    return kept_swapped(report.tf_swapped, result)
 
 
 # The stamp-to-log-time lags at a stream's two ends agree this well (clock_offset_ns).

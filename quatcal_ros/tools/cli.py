@@ -261,7 +261,7 @@ def _on_poses(why):
 
 
 def _write_files(prog, args, result, frames, warnings=(), named=None, source=None,
-                 tree=None):
+                 tree=None, causes=()):
     """
     Write --result-out and (`solve`) --easy-handeye2-out, those given, when there is a result.
 
@@ -269,7 +269,8 @@ def _write_files(prog, args, result, frames, warnings=(), named=None, source=Non
     named: the frames the samples file named, by easy_handeye2 parameter name (the base or
     effector frame and the marker frame that the result's frames do not give).
     source: the result file's "source" (default: `solve`'s samples); tree: the TF tree the
-    joint joins (tf_joint.joint: a replay over TF, a journal's static_chain), or None.
+    joint joins (tf_joint.joint: a replay over TF, a journal's static_chain), or None;
+    causes: as validation.published takes them.
     """
     easy_handeye2_out = getattr(args, 'easy_handeye2_out', None)   # (solve's only)
     if result is None or not (args.result_out or easy_handeye2_out):
@@ -277,7 +278,7 @@ def _write_files(prog, args, result, frames, warnings=(), named=None, source=Non
     named = named or {}
     keep = ('robot_base_frame' if args.setup == 'eye_in_hand' else 'robot_effector_frame',
             'tracking_marker_frame')
-    result, mount = prepared(result, frames, warnings, tree)
+    result, mount = prepared(result, frames, warnings, tree, causes)
     saved = save_result(result, frames, args.setup,
                         result_file=args.result_out, easy_handeye2_file=easy_handeye2_out,
                         easy_handeye2_frames={key: named.get(key, '') for key in keep},
@@ -377,7 +378,7 @@ def frames_problem(frames):
 
 
 def print_result(prog, session, where='', warnings=(), frames=None, extra=None, result=None,
-                 limits=PlanLimits(), report=None, tree=None):
+                 limits=PlanLimits(), report=None, tree=None, causes=()):
     """
     Print the session's result as JSON (exit 0) or why there is none (exit 2 or 3).
 
@@ -388,7 +389,9 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     with the estimate on the pixels at the top level). limits: the next-pose planner's.
     report: the --report path, or None; the page's title is `where` without its colon.
     tree: the TF tree of the input (replay: empty without TF input), or None: the command and
-    the joint are given where the tree can take them (tf_joint.joint).
+    the joint are given where the tree can take them (tf_joint.joint). causes: the input's
+    problems that explain the estimate's warnings (validation.published), said first on
+    stderr too.
     """
     if len(session.samples) < 3:
         copies = session.counters['repeated_samples']
@@ -400,7 +403,9 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
                     EXIT_UNDETERMINED)
     result = result or session.result
     parent, child = frames or exports.default_frames(result.setup)
-    result, mount = prepared(result, (parent, child), warnings, tree)
+    result, mount = prepared(result, (parent, child), warnings, tree, causes)
+    for cause in causes:   # (before the advice they make wrong: 'set setup to ...')
+        print(f'{prog}: warning: {where}{cause}', file=sys.stderr)
     if not result.usable:   # a script that reads only the exit status hears it here
         said = next(text for text in result.warnings if DO_NOT_USE in text)
         print(f'{prog}: warning: {where}the estimate says not to use it ("usable": false): '
@@ -428,19 +433,19 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     return 0
 
 
-def prepared(result, frames, warnings=(), tree=None):
+def prepared(result, frames, warnings=(), tree=None, causes=()):
     """
     Return (the CalibrationResult as printed and written, its tf_joint.Joint).
 
-    `warnings` added (published), and where the joint would break the TF `tree`, that too:
-    the JSON and the result file say the same.
+    `warnings` and `causes` added (published), and where the joint would break the TF
+    `tree`, that too: the JSON and the result file say the same.
     """
     parent, child = frames
     mount = tf_joint.joint(result, frames, tree)
     if mount.breaks:   # (the command and the joint say it too)
         warnings = [*warnings, f'TF: the static_transform_publisher line and the urdf joint '
                                f'are {parent} -> {child} as calibrated, and {mount.note}']
-    return published(result, warnings), mount
+    return published(result, warnings, causes), mount
 
 
 def fail(prog, message, status):
@@ -614,7 +619,9 @@ def replay_main(argv=None):
     # exactly what `solve` computes from the --samples-out file.
     session.estimate()
     warnings = (notes + report.warnings()
-                + bag.frame_warnings(report, args.setup, args.invert_sensor, session.result))
+                + bag.frame_warnings(report, args.setup, args.invert_sensor))
+    # TF frames given swapped explain the convention advice and the failed validation.
+    causes = bag.swapped_frames(report, session.result)
     if not args.estimate_time_offset:   # (the search starts from what the log times say)
         warnings += _logged_clocks(bag.clock_offset_ns(replay, report),
                                    config.sensor_offset_ns)
@@ -638,13 +645,13 @@ def replay_main(argv=None):
         extra['pose_based_method'] = session.result.method
     if session.result is not None and args.result_out:
         status = _write_result(prog, args, on_pixels[0] if on_pixels else session.result,
-                               session, warnings, report, link, sensor)
+                               session, warnings, report, link, sensor, causes)
         if status:
             return status
     return print_result(prog, session, where, warnings, frames=_replay_frames(args, report),
                         extra=extra, result=on_pixels and on_pixels[0],
                         limits=plan_limits(settings_of(args)), report=args.report,
-                        tree=report.tree)
+                        tree=report.tree, causes=causes)
 
 
 def _sensor_input(bag, args, config):
@@ -977,7 +984,7 @@ def _write_journal(prog, args, session, report):
     return EXIT_BAD_INPUT if messages else 0
 
 
-def _write_result(prog, args, result, session, warnings, report, link, sensor):
+def _write_result(prog, args, result, session, warnings, report, link, sensor, causes=()):
     from quatcal_ros.ros.bag import result_frames
     seen = result_frames(report, args.setup, args.invert_sensor)
     frames = _replay_frames(args, report)
@@ -992,7 +999,7 @@ def _write_result(prog, args, result, session, warnings, report, link, sensor):
     source = {'bag': str(args.bag), 'link': str(link), 'sensor': str(sensor),
               'capture': session.config.capture.mode}
     return _write_files(prog, args, result, frames, warnings, source=source,
-                        tree=report.tree)
+                        tree=report.tree, causes=causes)
 
 
 if __name__ == '__main__':
