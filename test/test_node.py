@@ -407,11 +407,18 @@ def test_invalid_parameters_are_refused_at_start(domain_id):
                                               r'mean still_window_s\?\)'):
             CalibratorNode(context=context,
                            parameter_overrides=[Parameter('still_windw_s', value=0.7)])
-        # -p still_window_s:=1 is an integer: rclpy's error named no remedy.
-        with pytest.raises(ConfigError, match=r'parameter still_window_s: 1 is an integer, and '
-                                              r'still_window_s is a real number: write 1\.0'):
+        # -p still_window_s:=1 is an integer, which ROS refuses for a real number: taken as
+        # 1.0 (it was refused, with the remedy 'write 1.0').
+        node = CalibratorNode(context=context,
+                              parameter_overrides=[Parameter('still_window_s', value=1)])
+        assert node.config.still_window_s == 1.0
+        assert node.get_parameter('still_window_s').type_ == Parameter.Type.DOUBLE
+        node.destroy_node()
+        # A value of another type is refused in the table's words.
+        with pytest.raises(ConfigError, match='^parameter still_window_s must be a number, '
+                                              "not 'long'$"):
             CalibratorNode(context=context,
-                           parameter_overrides=[Parameter('still_window_s', value=1)])
+                           parameter_overrides=[Parameter('still_window_s', value='long')])
         # One like no parameter of its (a launch file's global robot_description) is said.
         node = CalibratorNode(context=context, parameter_overrides=[
             Parameter('robot_description', value='<robot/>')])
@@ -430,6 +437,10 @@ def test_parameters_at_runtime(harness_factory, monkeypatch):
         (result,) = node.set_parameters([parameter])
         assert not result.successful and words in result.reason, result.reason
     assert node.config.pairs == 'all' and node.get_parameter('pairs').value == 'all'
+    # `ros2 param set /calibrator still_window_s 1` sends an integer: taken as 1.0.
+    (result,) = node.set_parameters([Parameter('still_window_s', value=1)])
+    assert result.successful and node.config.still_window_s == 1.0
+    assert node.get_parameter('still_window_s').type_ == Parameter.Type.DOUBLE
     (result,) = node.set_parameters([Parameter('pairs', value='consecutive')])
     assert result.successful
     assert node.config.pairs == 'consecutive'

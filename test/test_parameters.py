@@ -142,7 +142,8 @@ def test_declare_parameters_with_overrides(context):
 
 @pytest.mark.parametrize('override, words', [
     (Parameter('still_window_s', value=100.0), 'still_window_s'),
-    (Parameter('still_window_s', value=1), 'still_window_s'),     # integer for a double
+    (Parameter('still_window_s', value=100), 'still_window_s'),   # an integer, taken as real
+    (Parameter('still_window_s', value='1'), "must be a number, not '1'"),
     (Parameter('setup', value='sideways'), 'setup'),
     (Parameter('robust', value='yes'), 'robust'),
 ])

@@ -24,7 +24,6 @@ from quatcal_ros.ros import conversions as conv
 from quatcal_ros.ros.sim_cell import SimCell
 from quatcal_ros.sim import simulation as sim
 import rclpy
-from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -367,14 +366,20 @@ def test_the_robot_reports_each_stop_off_by_its_own_error(context, namespace):
 
 @pytest.mark.parametrize('overrides, error, message', [
     ({'setup': 'on_the_table'}, ValueError, 'setup'),
-    ({'robot': 'hexapod'}, ValueError, 'parameter robot must be one of'),
+    ({'robot': 'hexapod'}, ValueError,
+     "^parameter robot must be one of arm, scara, gantry, not 'hexapod'$"),
     ({'mounting_xyz': [0.1, 0.2]}, ValueError, 'mounting_xyz'),
     ({'mounting_xyz': [0.1, 0.2, 0.3]}, ValueError, 'give both'),
     ({'drop_probability': 1.5}, ValueError,
      r'^parameter drop_probability must be between 0 and 1, not 1\.5$'),
     ({'link_rate_hz': 0.0}, ValueError, 'parameter link_rate_hz must be between'),
-    ({'link_rate_hz': 'fast'}, InvalidParameterTypeException, 'link_rate_hz'),
-    ({'link_rate_hz': 500}, InvalidParameterTypeException, 'link_rate_hz'),   # (an integer)
+    ({'link_rate_hz': 'fast'}, ValueError,
+     "^parameter link_rate_hz must be a number, not 'fast'$"),
+    ({'seed': -1}, ValueError, '^parameter seed must be between 0 and 2147483647, not -1$'),
+    ({'tf_mode': 1}, ValueError, '^parameter tf_mode must be true or false, not 1$'),
+    ({'mounting_xyz': '0 0 0.1'}, ValueError,
+     r'^parameter mounting_xyz must be a list of numbers, such as \'\[0\.0, 0\.0, 0\.1\]\', '
+     r'not \'0 0 0\.1\'$'),
     ({'camera_images': True}, ValueError, 'camera_images needs board_file'),
     # A misspelt name was ignored without a word (tf_mod:=true published no TF).
     ({'tf_mod': True}, ValueError, r'no such parameter: tf_mod \(did you mean tf_mode\?\); '
@@ -383,6 +388,19 @@ def test_the_robot_reports_each_stop_off_by_its_own_error(context, namespace):
 def test_bad_parameters_are_named(context, overrides, error, message):
     with pytest.raises(error, match=message):
         SimCell(context=context, parameter_overrides=_overrides(**overrides))
+
+
+def test_integers_are_taken_for_real_numbers(context):
+    # -p sensor_rate_hz:=30 (the README's defaults are written so) and -p
+    # mounting_xyz:='[0, 0, 1]' are integers to ROS, which refused them for real numbers.
+    node = SimCell(context=context, parameter_overrides=_overrides(
+        sensor_rate_hz=30, mounting_xyz=[0, 0, 1], mounting_rpy_deg=[0.0, 90.0, 0.0]))
+    try:
+        assert node.config.sensor_rate_hz == 30.0
+        assert node.get_parameter('sensor_rate_hz').type_ == Parameter.Type.DOUBLE
+        np.testing.assert_array_equal(node.config.mounting.position, [0.0, 0.0, 1.0])
+    finally:
+        node.destroy_node()
 
 
 def test_parameters_are_described_with_ranges(context):

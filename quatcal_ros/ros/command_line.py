@@ -10,7 +10,13 @@ rclpy.init; spin.run prints its answer and exits (0 for --help, 2 otherwise).
 import difflib
 import textwrap
 
+from rclpy.parameter import Parameter
 from rclpy.utilities import remove_ros_args
+
+# A parameter of these types given as the integer type beside it is taken as its reals.
+REALS_OF_INTEGERS = {Parameter.Type.DOUBLE: (Parameter.Type.INTEGER, float),
+                     Parameter.Type.DOUBLE_ARRAY: (Parameter.Type.INTEGER_ARRAY,
+                                                   lambda values: [float(v) for v in values])}
 
 
 def problem(arguments, help_text, names):
@@ -44,6 +50,31 @@ def problem(arguments, help_text, names):
         return 2, (f'unexpected argument(s) {" ".join(unknown)}: ROS arguments (parameters, '
                    f'a params file, remaps) go after --ros-args{example}; see --help')
     return None
+
+
+def accept_integers_for_reals(node, real_types):
+    """
+    Let an integer stand for a real-valued parameter of `node`, at start and when set.
+
+    real_types: {name: Parameter.Type.DOUBLE or DOUBLE_ARRAY}. ROS reads `-p
+    still_window_s:=1` and `ros2 param set ... still_window_s 1` as an integer, which a
+    parameter declared as a real refuses ('Wrong parameter type'); the meaning is plain.
+    Call it before declaring: it converts the overrides rclpy keeps (-p, a params file),
+    and adds a pre-set callback for every later change.
+    """
+    def reals(parameters):
+        converted = []
+        for parameter in parameters:
+            integer, convert = REALS_OF_INTEGERS.get(real_types.get(parameter.name), (None, None))
+            converted.append(Parameter(parameter.name, real_types[parameter.name],
+                                       convert(parameter.value))
+                             if integer is not None and parameter.type_ == integer
+                             else parameter)
+        return converted
+
+    overrides = getattr(node, '_parameter_overrides', {})
+    overrides.update((parameter.name, parameter) for parameter in reals(overrides.values()))
+    node.add_pre_set_parameters_callback(reals)
 
 
 def unknown_parameters(node, names, node_name):

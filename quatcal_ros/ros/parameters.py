@@ -49,17 +49,14 @@ def declare_parameters(node):
     :raises ConfigError: with the reason, for a value of the wrong type, out of range, or not
         one of the allowed choices (from parameter_overrides or --ros-args -p).
     """
+    command_line.accept_integers_for_reals(node, {
+        setting.name: Parameter.Type.DOUBLE for setting in SETTINGS
+        if type(setting.default) is float})
     for setting in SETTINGS:
         try:
             node.declare_parameter(setting.name, setting.default, descriptor(setting))
         except ParameterException as error:
             given = getattr(node, '_parameter_overrides', {}).get(setting.name)
-            if isinstance(setting.default, float) and given is not None and \
-                    given.type_ == Parameter.Type.INTEGER:   # rclpy names no remedy
-                raise ConfigError(f'parameter {setting.name}: {given.value} is an integer, and '
-                                  f'{setting.name} is a real number: write {given.value}.0 '
-                                  '(ROS takes a number without a decimal point as an '
-                                  'integer)') from None
             # The table's own words (rclpy's repeat the name: '... out of range Min: 0.05,
             # Max: 10.0, value: 20.0: still_window_s').
             problem = setting.check(given.value) if given is not None else None

@@ -170,6 +170,19 @@ def _descriptor(description, limits):
     return descriptor
 
 
+def _problem(default, limits, given):
+    """Say what a parameter of `default` and `limits` takes that `given` is not, or None."""
+    kind = default if isinstance(default, Parameter.Type) else type(default)
+    number = isinstance(given, (int, float)) and not isinstance(given, bool)
+    if not (kind is type(given) or kind is float and number):
+        return f'{KINDS[kind]}, not {given!r}'
+    if limits is not None and number and not limits[0] <= given <= limits[1]:
+        low, high = (f'{limit:g}' if isinstance(limit, float) else str(limit)
+                     for limit in limits)
+        return f'between {low} and {high}, not {given!r}'
+    return None
+
+
 def mounting_from_parameters(xyz, rpy_deg):
     """Mounting Pose from the two array parameters; None when both are empty (random)."""
     xyz, rpy_deg = list(xyz or []), list(rpy_deg or [])
@@ -183,20 +196,27 @@ def mounting_from_parameters(xyz, rpy_deg):
     return Pose.create(xyz, simulation.quaternion_wxyz_from_rpy(roll, pitch, yaw))
 
 
+# What a parameter of each default's type takes, for messages.
+KINDS = {bool: 'true or false', int: 'a whole number', float: 'a number', str: 'text',
+         Parameter.Type.DOUBLE_ARRAY: "a list of numbers, such as '[0.0, 0.0, 0.1]'"}
+
+
 def read_config(node):
     """Declare the node's parameters (PARAMETERS) and return them as a SimCellConfig."""
+    command_line.accept_integers_for_reals(node, {
+        name: Parameter.Type.DOUBLE if type(default) is float else default
+        for name, (default, _, _) in PARAMETERS.items()
+        if type(default) is float or default == Parameter.Type.DOUBLE_ARRAY})
     values = {}
     for name, (default, description, limits) in PARAMETERS.items():
         try:
             parameter = node.declare_parameter(name, default, _descriptor(description, limits))
-        except ParameterException:
-            given = getattr(getattr(node, '_parameter_overrides', {}).get(name), 'value', None)
-            if limits is None or isinstance(given, bool) or not isinstance(given, (int, float)) \
-                    or limits[0] <= given <= limits[1]:
+        except ParameterException:   # (rclpy's words name the parameter twice)
+            given = getattr(node, '_parameter_overrides', {}).get(name)
+            problem = given and _problem(default, limits, given.value)
+            if not problem:
                 raise
-            # (rclpy's words name the parameter twice)
-            raise ValueError(f'parameter {name} must be between {limits[0]:g} and '
-                             f'{limits[1]:g}, not {given!r}') from None
+            raise ValueError(f'parameter {name} must be {problem}') from None
         values[name] = parameter.value
     refusal, warning = command_line.unknown_parameters(node, PARAMETERS, NODE_NAME)
     if refusal:
@@ -204,11 +224,11 @@ def read_config(node):
     if warning:
         node.get_logger().warning(warning)
     if values['robot'] not in simulation.ROBOTS:
-        raise ValueError(f'parameter robot must be one of {simulation.ROBOTS}, not '
-                         f'{values["robot"]!r}')
+        raise ValueError(f'parameter robot must be one of {", ".join(simulation.ROBOTS)}, '
+                         f'not {values["robot"]!r}')
     if values['setup'] not in SETUPS:
         setup = values['setup']
-        raise ValueError(f'parameter setup must be one of {SETUPS}, not {setup!r}')
+        raise ValueError(f'parameter setup must be one of {", ".join(SETUPS)}, not {setup!r}')
     values['mounting'] = mounting_from_parameters(values.pop('mounting_xyz'),
                                                   values.pop('mounting_rpy_deg'))
     if values['camera_images'] and not values['board_file']:
