@@ -132,10 +132,16 @@ def test_bad_images_and_camera_info_are_counted_and_skipped(make_harness, board_
         assert line in logged, (line, logged)
 
 
-def test_a_misspelt_parameter_is_refused(domain_id, board_file):
+def test_a_misspelt_parameter_is_refused_a_whole_number_taken(domain_id, board_file):
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)
     try:
+        # (and a whole number is taken for a real one)
+        node = TargetDetector(context=context, parameter_overrides=[
+            Parameter('board_file', value=str(board_file)),
+            Parameter('max_reprojection_px', value=3)])
+        assert node.sensor.checks.max_reprojection_px == 3.0
+        node.destroy_node()
         with pytest.raises(ValueError, match=r'no such parameter: min_corner \(did you mean '
                                              r'min_corners\?\); `target_detector --help`'):
             TargetDetector(context=context, parameter_overrides=[

@@ -31,6 +31,7 @@ from quatcal_ros.vision.image_sensor import ImageSensor
 from quatcal_ros.vision.view import Checks
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
@@ -55,6 +56,9 @@ class TargetDetector(Node):
 
     def __init__(self, **kwargs):
         super().__init__(NODE_NAME, **kwargs)
+        command_line.accept_integers_for_reals(self, {
+            name: Parameter.Type.DOUBLE for name, (default, _) in PARAMETERS.items()
+            if type(default) is float})
         values = {name: self.declare_parameter(
             name, default, ParameterDescriptor(description=text, read_only=True)).value
             for name, (default, text) in PARAMETERS.items()}
