@@ -203,6 +203,27 @@ def test_bad_sensor_covariances_are_named(change, expected):
         parse_samples(header.replace(',sensor_cov_x_x', '') + '\n', 'cov.csv')
 
 
+def test_a_misspelt_column_is_named_with_the_one_meant():
+    # The missing one was named, not the typo beside it; a misspelt optional column was lost
+    # (a covariance column: all 21 or none, blamed on the one it stood for).
+    text = format_samples(covariance_samples(3))
+    header, *rows = text.splitlines()
+    for wrong, right, expected in (
+            ('link_qw', 'link_w', 'missing column(s) link_qw; unknown column(s) link_w (did you '
+                                  'mean link_qw?); expected stamp,'),
+            ('sensor_cov_x_y', 'sensor_cov_y_x', 'row 1 (header): unknown column(s) '
+                                                 'sensor_cov_y_x (did you mean sensor_cov_x_y?)'),
+            ('stamp', 'Stamp', 'missing column(s) stamp; unknown column(s) Stamp (did you mean '
+                               'stamp?)')):
+        misspelt = header.replace(f',{wrong},', f',{right},').replace(f'{wrong},', f'{right},', 1)
+        with pytest.raises(BadInputError) as raised:
+            parse_samples('\n'.join([misspelt, *rows]) + '\n', 'cov.csv')
+        assert expected in str(raised.value), raised.value
+    # Another column is ignored: a note, or velocities beside the poses.
+    extra = [f'{row},seen twice,0.1' for row in rows]
+    assert len(parse_samples('\n'.join([header + ',note,link_vx', *extra]) + '\n')) == 3
+
+
 def test_missing_file_and_bad_arguments_exit_2(repo_root, tmp_path):
     done = run_solve(repo_root, tmp_path / 'nope.csv')
     assert done.returncode == 2 and 'cannot read' in done.stderr

@@ -18,6 +18,7 @@ deviation below 1e-9 m or rad).
 
 import csv
 from decimal import Decimal, ROUND_HALF_EVEN
+import difflib
 import io
 import math
 
@@ -36,6 +37,10 @@ COVARIANCE_COLUMNS = tuple(f'sensor_cov_{COVARIANCE_AXES[i]}_{COVARIANCE_AXES[j]
                            for i, j in COVARIANCE_ENTRIES)
 # Stamps are integer nanoseconds in the core (int64, as rosbag2 stores them).
 MAX_STAMP_S = 2 ** 63 / 1e9
+# A column this like a known one the header lacks is a typo of it (difflib's ratio: link_w for
+# link_qw 0.92, sensor_cov_y_x for sensor_cov_x_y 0.86, Stamp for stamp 0.8; stamp_ns for
+# stamp, 0.77, is another column).
+TYPO_CUTOFF = 0.8
 
 
 def read_samples(path):
@@ -190,19 +195,33 @@ def check_header(header, required, where, known=None):
     Each column of `required` must be in `header`, and none of `known` (default `required`)
     in it twice. A header of one column that holds another separator says so: a
     spreadsheet's export with semicolons or tabs is the usual cause of every column missing.
+    Other columns are ignored, but one whose name is close to a known one is a typo (link_w,
+    sensor_cov_y_x): named, with the one meant (an optional column misspelt was lost).
     """
+    known = required if known is None else known
     missing = [column for column in required if column not in header]
+    typos = _typos(header, known)
     if missing:
         other = [s for s in (';', '\t', '|') if len(header) == 1 and s in header[0]]
         hint = (f' (the header is one column separated by {other[0]!r}: columns must be '
                 'separated by commas)' if other else _numbers_hint(header, required))
-        raise BadInputError(f'{where}: missing column(s) {", ".join(missing)}{hint}; '
-                            f'expected {",".join(required)}')
-    known = required if known is None else known
+        raise BadInputError(f'{where}: missing column(s) {", ".join(missing)}{hint}'
+                            f'{"; " + typos if typos else ""}; expected {",".join(required)}')
+    if typos:
+        raise BadInputError(f'{where}: {typos}')
     twice = [column for column in known if header.count(column) > 1]
     if twice:
         raise BadInputError(f'{where}: column(s) {", ".join(twice)} more than once: which '
                             'one holds the value?')
+
+
+def _typos(header, known):
+    """Say which columns of `header` look like misspelt `known` ones it lacks, or ''."""
+    absent = [column for column in known if column not in header]
+    close = {column: difflib.get_close_matches(column, absent, 1, TYPO_CUTOFF)
+             for column in header if column and column not in known}
+    said = [f'{column} (did you mean {meant[0]}?)' for column, meant in close.items() if meant]
+    return f'unknown column(s) {", ".join(said)}' if said else ''
 
 
 def _numbers_hint(header, required):
