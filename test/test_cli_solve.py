@@ -433,9 +433,15 @@ def test_a_file_appended_to_itself_gives_the_answer_of_the_file(tmp_path, capsys
     assert doubled['rotation'] == once['rotation']
     warning, = [w for w in doubled['warnings'] if 'repeat earlier ones exactly' in w]
     assert warning.startswith('12 sample(s) repeat earlier ones exactly')
-    assert '12 = 0, 13 = 1, 14 = 2' in warning and ', ...)' in warning
+    # By file rows, as the errors give them (the header is row 1): they were numbered from 0.
+    assert '(row = the row it repeats, rows of the file as its errors count them: 14 = 2, ' \
+        '15 = 3, 16 = 4' in warning and ', ...)' in warning
     assert warning.endswith('the sample numbers elsewhere in this output count the samples '
                             'kept, in file order')
+    # A file without rows (moveit's YAML, easy_handeye2's) numbers its samples from 0.
+    from quatcal_ros.tools.cli import _copies_warning
+    assert '(sample = the one it repeats, numbered from 0 in the file: 3 = 1)' in \
+        _copies_warning({3: 1})[0]
 
 
 def test_an_output_that_is_the_input_is_refused_and_nothing_is_written(tmp_path, capsys):

@@ -41,7 +41,7 @@ from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw, 
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, position_problem, \
     quaternion_norm_problem, shown
 from quatcal_ros.files import exports, journal, plain_yaml
-from quatcal_ros.files.samples_csv import parse_samples
+from quatcal_ros.files.samples_csv import parse_samples_and_rows
 from quatcal_ros.files.text_input import BadInputError, read_text
 
 FORMATS = ('csv', 'easy_handeye2', 'moveit', 'moveit-json')
@@ -62,6 +62,7 @@ class ImportedSamples:
     the result's warnings (what the file left open).  invert_sensor: whether to solve the
     sensor poses inverted: the caller's value (load_samples), else a journal header's, or None
     (neither says). static_chain: a journal's TF joint (journal.JournalHeader), or None.
+    rows: the file row of each sample (a CSV's, as its errors count them), or None.
     """
 
     samples: list
@@ -71,6 +72,7 @@ class ImportedSamples:
     warnings: list = field(default_factory=list)
     invert_sensor: bool = None
     static_chain: tuple = None
+    rows: list = None
 
 
 # --- reading files ---------------------------------------------------------------------------
@@ -329,7 +331,8 @@ def _csv_samples(text, name, setup=None, invert_sensor=None):
     """
     first = text.split('\n', 1)[0].rstrip('\r')
     if not first.startswith(journal.MAGIC):
-        return ImportedSamples(parse_samples(text, name), 'csv', invert_sensor=invert_sensor)
+        samples, rows = parse_samples_and_rows(text, name)
+        return ImportedSamples(samples, 'csv', invert_sensor=invert_sensor, rows=rows)
     try:
         header = journal.JournalHeader.parse(first, name)
     except journal.JournalError as error:
@@ -337,7 +340,7 @@ def _csv_samples(text, name, setup=None, invert_sensor=None):
     # A journal's last line may be one a crash interrupted: dropped, as the node's resume does.
     end = text.rfind('\n') + 1
     text, warnings = journal.complete_lines(text[:end], name, len(text[end:].encode('utf-8')))
-    samples = parse_samples(text, name)
+    samples, rows = parse_samples_and_rows(text, name)
     recorded = header.invert_sensor
     if invert_sensor is not None and recorded is not None and invert_sensor != recorded:
         warnings.append(f'{name}: the journal was recorded with invert_sensor '
@@ -345,11 +348,11 @@ def _csv_samples(text, name, setup=None, invert_sensor=None):
                         f'{journal.boolean_text(invert_sensor)}, as the options say')
     invert = recorded if invert_sensor is None else invert_sensor
     if setup is not None and setup != header.setup:
-        return ImportedSamples(samples, 'csv', setup, invert_sensor=invert, warnings=[
-            *warnings,
-            f'{name}: the journal was recorded with setup {header.setup}; it is solved as '
-            f'{setup}, as --setup says (its frame names, {header.link_frame} -> '
-            f'{header.sensor_frame}, belong to {header.setup} and are not used)'])
+        said = (f'{name}: the journal was recorded with setup {header.setup}; it is solved as '
+                f'{setup}, as --setup says (its frame names, {header.link_frame} -> '
+                f'{header.sensor_frame}, belong to {header.setup} and are not used)')
+        return ImportedSamples(samples, 'csv', setup, invert_sensor=invert, rows=rows,
+                               warnings=[*warnings, said])
     parent = 'robot_effector_frame' if header.setup == 'eye_in_hand' else 'robot_base_frame'
     frames = {parent: header.link_frame, 'tracking_base_frame': header.sensor_frame}
     if journal.unnamed_base(header):   # the default base names it, as a resumed node does
@@ -359,7 +362,7 @@ def _csv_samples(text, name, setup=None, invert_sensor=None):
                         'robot base: the result is named from the default base frame (give '
                         '--parent-frame to name it)')
     return ImportedSamples(samples, 'csv', header.setup, frames, warnings, invert,
-                           header.static_chain)
+                           header.static_chain, rows)
 
 
 def _not_ours(name):

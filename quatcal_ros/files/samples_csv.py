@@ -50,6 +50,11 @@ def read_samples(path):
 
 def parse_samples(text, name='<samples>'):
     """Parse samples from the text of a samples CSV (text_input.read_text's)."""
+    return parse_samples_and_rows(text, name)[0]
+
+
+def parse_samples_and_rows(text, name='<samples>'):
+    """Return parse_samples' samples and the file row of each (as the errors count them)."""
     reader = csv.reader(io.StringIO(text, newline=''))
     try:
         return _parse_rows(reader, name)
@@ -73,7 +78,7 @@ def _parse_rows(reader, name):
         raise BadInputError(f'{where}: covariance column(s) {", ".join(missing)} '
                             f'missing: give all {len(COVARIANCE_COLUMNS)} sensor_cov_* or none')
     covariance_index = [header.index(column) for column in given]
-    samples = []
+    samples, rows = [], []
     for row in reader:
         if not row or all(not cell.strip() for cell in row):
             continue
@@ -88,7 +93,8 @@ def _parse_rows(reader, name):
                                 Pose(sample.sensor.position, sample.sensor.quaternion,
                                      covariance))
         samples.append(sample)
-    return samples
+        rows.append(reader.line_num)
+    return samples, rows
 
 
 def _covariance(row, columns, name, line):

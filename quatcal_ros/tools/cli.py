@@ -123,7 +123,7 @@ def solve_main(argv=None):
     session = Session(session_config(settings_of(args)))
     copies = _copies(session.add_samples(imported.samples))
     session.estimate()   # one full solve over all of them
-    warnings = [*imported.warnings, *_copies_warning(copies)]
+    warnings = [*imported.warnings, *_copies_warning(copies, imported.rows)]
     frames, tree, said = _journal_tree(imported, frames)
     warnings += said
     failed = _write_files(parser.prog, args, session.result, frames, warnings, imported.frames,
@@ -301,16 +301,23 @@ def _copies(events):
     return {event.given: stored[event.repeats] for event in refused if event.code == 'repeated'}
 
 
-def _copies_warning(copies):
-    """Return the warning (a list of one, or none) that `copies` were each counted once."""
+def _copies_warning(copies, rows=None):
+    """
+    Return the warning (a list of one, or none) that `copies` were each counted once.
+
+    rows: the file row of each sample (a CSV's), which name them; else their numbers from 0.
+    """
     if not copies:
         return []
-    pairs = ', '.join(f'{copy} = {original}' for copy, original in list(copies.items())[:10])
+    name = (lambda k: rows[k]) if rows else (lambda k: k)
+    pairs = ', '.join(f'{name(copy)} = {name(original)}'
+                      for copy, original in list(copies.items())[:10])
     more = ', ...' if len(copies) > 10 else ''
-    return [f'{len(copies)} sample(s) repeat earlier ones exactly (sample = the one it repeats, '
-            f'numbered from 0 in the file: {pairs}{more}): a copied row is not a new '
-            'measurement, so each was counted once; the sample numbers elsewhere in this '
-            'output count the samples kept, in file order']
+    what = ('row = the row it repeats, rows of the file as its errors count them' if rows else
+            'sample = the one it repeats, numbered from 0 in the file')
+    return [f'{len(copies)} sample(s) repeat earlier ones exactly ({what}: {pairs}{more}): a '
+            'copied row is not a new measurement, so each was counted once; the sample '
+            'numbers elsewhere in this output count the samples kept, in file order']
 
 
 def add_report_argument(parser):
