@@ -518,20 +518,21 @@ def test_a_huge_number_is_shown_cut_in_the_error(tmp_path, capsys):
     assert len(err) < 300
 
 
-def test_solve_writes_the_result_file_the_node_writes(tmp_path, capsys):
+def test_solve_writes_the_result_file_the_node_writes(tmp_path, capsys, monkeypatch):
     # Only the node and replay wrote it: an offline solve had no file with the quality, both
     # estimates, the validation and the URDF joint.
     from quatcal_ros.files.persistence import read_result_yaml
     from quatcal_ros.tools.cli import solve_main
     _, path, _ = write_cell_csv(tmp_path / 'cell.csv', 8, 12, rotation_noise_deg=0.3)
     target = tmp_path / 'out' / 'calibration.yaml'
-    assert solve_main([str(path), '--result-out', str(target), '--parent-frame', 'tool0',
+    monkeypatch.chdir(tmp_path)   # the samples named relative: the file says where they are
+    assert solve_main(['cell.csv', '--result-out', str(target), '--parent-frame', 'tool0',
                        '--child-frame', 'camera_optical', '--validation-max-rotation-deg',
                        '0.001']) == 0
     printed = capsys.readouterr()
     out = json.loads(printed.out)
     # A failed validation is said on stderr too (only the JSON and the file said it).
-    assert printed.err == (f'solve: warning: {path}: validation failed: leave-one-out prediction '
+    assert printed.err == ('solve: warning: cell.csv: validation failed: leave-one-out prediction '
                            'errors (RMS) above the thresholds: rotation '
                            f'{out["validation"]["rms_rotation_deg"]:.3f} deg > 0.001 deg\n')
     saved = read_result_yaml(target)   # (in a folder made for it)
@@ -540,7 +541,7 @@ def test_solve_writes_the_result_file_the_node_writes(tmp_path, capsys):
     assert saved['quaternion_xyzw'] == pytest.approx(
         [out['rotation'][k] for k in 'xyzw'], abs=1e-6)
     assert saved['quality']['samples'] == out['samples'] == 12
-    assert saved['source'] == {'samples': str(path)}
+    assert saved['source'] == {'samples': str(path)}   # (absolute: 'cell.csv' named no file)
     # The warnings saved are those printed: the failed validation's too.
     assert saved['warnings'] == out['warnings'] and saved['validation']['verdict'] == 'fail'
     assert saved['warnings'][0].startswith('validation failed')

@@ -19,7 +19,7 @@ from quatcal_ros.core.units import DO_NOT_USE, NS_PER_S
 from quatcal_ros.core.validation import failure_warning, published
 from quatcal_ros.files import bag_folder, exports
 from quatcal_ros.files import importers
-from quatcal_ros.files.journal import JournalHeader, JournalRefused
+from quatcal_ros.files.journal import absolute, JournalHeader, JournalRefused
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import format_samples
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
@@ -282,7 +282,7 @@ def _write_files(prog, args, result, frames, warnings=(), named=None, source=Non
     saved = save_result(result, frames, args.setup,
                         result_file=args.result_out, easy_handeye2_file=easy_handeye2_out,
                         easy_handeye2_frames={key: named.get(key, '') for key in keep},
-                        extra={'source': source or {'samples': str(args.samples)}},
+                        extra={'source': source or {'samples': str(absolute(args.samples))}},
                         joint=mount)
     for _, target, error in saved.failed:
         return fail(prog, f'{target}: cannot write: {error}', EXIT_BAD_INPUT)
@@ -1003,7 +1003,7 @@ def _write_result(prog, args, result, session, warnings, report, link, sensor, c
                   'PoseStamped names only the frame it is in, not a child frame): '
                   f'{chosen!r} written to {args.result_out}; --{role}-frame sets it',
                   file=sys.stderr)
-    source = {'bag': str(args.bag), 'link': str(link), 'sensor': str(sensor),
+    source = {'bag': str(absolute(args.bag)), 'link': str(link), 'sensor': str(sensor),
               'capture': session.config.capture.mode}
     return _write_files(prog, args, result, frames, warnings, source=source,
                         tree=report.tree, causes=causes)
