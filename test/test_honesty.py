@@ -301,6 +301,7 @@ def test_the_fitted_noise_model_finds_the_pnp_shape():
     np.testing.assert_allclose(model['translation_noise_mm'], 1e3 * sd[3:], rtol=0.25)
     np.testing.assert_allclose(model['rotation_noise_deg'][:2], np.degrees(sd[:2]), rtol=0.25)
     assert model['correlation'][0][4] > 0.6 and model['correlation'][1][3] < -0.6
+    assert [model['correlation'][k][k] for k in range(6)] == [1.0] * 6   # (not 1 - 1e-16)
     assert model['distribution'] == 'gaussian'
 
 

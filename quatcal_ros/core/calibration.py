@@ -993,7 +993,9 @@ def _noise_model(refinement, robust):
         return None
     covariance = refinement.noise_covariance
     sd = np.sqrt(np.diag(covariance))
-    return _noise_json(np.degrees(sd[:3]), 1e3 * sd[3:], covariance / np.outer(sd, sd),
+    correlation = covariance / np.outer(sd, sd)
+    np.fill_diagonal(correlation, 1.0)   # (by definition; the division left 1 - 1e-16)
+    return _noise_json(np.degrees(sd[:3]), 1e3 * sd[3:], correlation,
                        refinement.noise.nu, refinement.noise.shape.name, robust,
                        _uncertainty_source(refinement), uncertainties(refinement.covariance),
                        uncertainties(refinement.model_covariance),
