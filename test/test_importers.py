@@ -19,7 +19,7 @@ import pytest
 from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.pose import Sample
 from quatcal_ros.files import importers
-from quatcal_ros.files.samples_csv import format_samples
+from quatcal_ros.files.samples_csv import COLUMNS, format_samples
 from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.sim import simulation
 import yaml
@@ -383,6 +383,20 @@ def test_solve_exits_2_naming_the_entry(repo_root, tmp_path):
     assert "entry samples[3], field robot.translation.x: 'oops' is not a number" in done.stderr
     done = run_solve(repo_root, tmp_path / 'missing.yaml')
     assert done.returncode == 2 and 'missing.yaml: cannot read' in done.stderr
+
+
+def test_a_file_of_another_format_is_said_in_a_users_words(tmp_path):
+    # A CSV read with --format moveit was 'expected a list of samples ..., got str'.
+    path = tmp_path / 'samples.csv'
+    path.write_text(','.join(COLUMNS) + '\n' + '1.0,0,0,0,0,0,0,1,0,0,1,0,0,0,1\n')
+    with pytest.raises(BadInputError) as caught:
+        importers.load_samples(path, 'moveit')
+    assert str(caught.value) == (
+        f'{path}: expected a list of samples with effector_wrt_world and object_wrt_sensor, '
+        'got plain text, not YAML or JSON structure (a samples CSV? --format csv reads one)')
+    path.write_text('samples: 3\nother: 1\n')
+    with pytest.raises(BadInputError, match=r'got a mapping with samples, other$'):
+        importers.load_samples(path, 'moveit')
 
 
 BILLION_LAUGHS = ('a: &a [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n' + ''.join(

@@ -99,10 +99,23 @@ def _number(value, where):
     return number
 
 
-def _mapping(value, where, keys):
+def _described(document, top=True):
+    """Say what a parsed YAML or JSON document (or, not `top`, a value in one) is."""
+    if document is None and top:
+        return 'nothing (an empty document)'
+    if isinstance(document, str) and top:   # (a CSV, or any text, reads as one YAML string)
+        return 'plain text, not YAML or JSON structure (a samples CSV? --format csv reads one)'
+    if isinstance(document, dict):
+        return f'a mapping with {", ".join(map(str, list(document)[:5]))}'
+    if isinstance(document, list):
+        return f'a list of {len(document)} entries'
+    return f'{type(document).__name__} {shown(repr(document))}'
+
+
+def _mapping(value, where, keys, top=False):
     if not isinstance(value, dict):
         raise BadInputError(f'{where}: expected a mapping with {", ".join(keys)}, got '
-                            f'{type(value).__name__} {shown(repr(value))}')
+                            f'{_described(value, top)}')
     missing = [key for key in keys if key not in value]
     if missing:
         raise BadInputError(f'{where}: missing {", ".join(missing)}')
@@ -189,7 +202,7 @@ def parse_easy_handeye2_samples(document, name='<easy_handeye2 samples>', setup=
     :return: ImportedSamples (format 'easy_handeye2').
     """
     _check_setup(setup)
-    document = _mapping(document, f'{name}: the top level', ('samples',))
+    document = _mapping(document, f'{name}: the top level', ('samples',), top=True)
     parameters = document.get('parameters') or {}
     if not isinstance(parameters, dict):
         raise BadInputError(f'{name}, field parameters: expected a mapping, got '
@@ -261,7 +274,7 @@ def parse_moveit_samples(document, name='<moveit samples>'):
     """Read a parsed moveit_calibration samples YAML (list of 16-number matrices)."""
     if not isinstance(document, list):
         raise BadInputError(f'{name}: expected a list of samples with effector_wrt_world and '
-                            f'object_wrt_sensor, got {type(document).__name__}')
+                            f'object_wrt_sensor, got {_described(document)}')
     samples = []
     for i, entry in enumerate(document):
         where = f'{name}, entry [{i}]'
@@ -278,7 +291,7 @@ def parse_moveit_json_samples(document, name='<moveit json samples>'):
     """Read a parsed moveit_calibration pose_samples.json: [[eef_wrt_world, obj_wrt_sensor]]."""
     if not isinstance(document, list):
         raise BadInputError(f'{name}: expected a list of [eef_wrt_world, obj_wrt_sensor] '
-                            f'pairs, got {type(document).__name__}')
+                            f'pairs, got {_described(document)}')
     samples = []
     for i, entry in enumerate(document):
         where = f'{name}, entry [{i}]'
