@@ -203,6 +203,15 @@ def test_bad_sensor_covariances_are_named(change, expected):
         parse_samples(header.replace(',sensor_cov_x_x', '') + '\n', 'cov.csv')
 
 
+def test_comment_lines_are_skipped_after_the_header_too():
+    # Only those before the header were: '# left out' was 'not a number' in field stamp.
+    text = format_samples(covariance_samples(4))
+    header, *rows = text.splitlines()
+    commented = [header, rows[0], '# ' + rows[1], '  # a note', *rows[2:]]
+    kept = parse_samples('\n'.join(commented) + '\n')
+    assert format_samples(kept) == '\n'.join([header, rows[0], *rows[2:]]) + '\n'
+
+
 def test_a_misspelt_column_is_named_with_the_one_meant():
     # The missing one was named, not the typo beside it; a misspelt optional column was lost
     # (a covariance column: all 21 or none, blamed on the one it stood for).

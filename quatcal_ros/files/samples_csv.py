@@ -80,8 +80,8 @@ def _parse_rows(reader, name):
     covariance_index = [header.index(column) for column in given]
     samples, rows = [], []
     for row in reader:
-        if not row or all(not cell.strip() for cell in row):
-            continue
+        if not row or all(not cell.strip() for cell in row) or row[0].lstrip().startswith('#'):
+            continue   # (a blank line, or a comment: a row left out by hand)
         if any(cell.strip() for cell in row[len(header):]):   # (empty ones: a trailing comma)
             raise BadInputError(f'{name}, row {reader.line_num}: {len(row)} fields, the header '
                                 f'has {len(header)}: a value too many, or a decimal comma?')
