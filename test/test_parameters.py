@@ -388,11 +388,17 @@ def test_the_calibrator_command_line_refuses_what_ros_would_silently_ignore(caps
                  ['--ros-args', '-p', 'setup:=eye_to_hand', '-r', 'sensor_pose:=/aruco'],
                  ['--ros-args', '-r', '__node:=cal', '-p', 'link_frame:=tool0']):
         assert parameters.command_line_problem(['calibrator', *line]) is None, line
-    # A params file that is not there ended rclpy.init with a traceback.
-    status, said = parameters.command_line_problem(
-        ['calibrator', '--ros-args', '--params-file', 'no_such_calibrator.yaml'])
+    # A params file that is not there ended rclpy.init with a traceback, then rcl's words
+    # (with its C source lines).
+    assert parameters.command_line_problem(
+        ['calibrator', '--ros-args', '--params-file', 'no_such_calibrator.yaml']) == (
+        2, '--params-file no_such_calibrator.yaml: no such file')
+    assert parameters.command_line_problem(
+        ['calibrator', '--ros-args', '--params-file', '/']) == (
+        2, '--params-file /: not a file')
+    # rcl's own refusals stay said.
+    status, said = parameters.command_line_problem(['calibrator', '--ros-args', '-p', ':=1'])
     assert status == 2 and said.startswith('the ROS arguments cannot be read: ')
-    assert "'--params-file no_such_calibrator.yaml'" in said
 
 
 def test_a_params_file_without_the_nodes_section_is_refused(tmp_path):

@@ -8,6 +8,7 @@ rclpy.init; spin.run prints its answer and exits (0 for --help, 2 otherwise).
 """
 
 import difflib
+import os
 import textwrap
 
 from rclpy.parameter import Parameter
@@ -40,6 +41,10 @@ def problem(arguments, help_text, names):
         return 2, (f'{" ".join(misplaced)}: outside --ros-args, ROS takes NAME:=VALUE for a '
                    'topic remap, not a parameter; give parameters as --ros-args -p '
                    f'{misplaced[0]} (see --help)')
+    for option, value in zip(arguments, arguments[1:]):   # (rcl says its own source lines)
+        if option == '--params-file' and not os.path.isfile(value):
+            return 2, (f'--params-file {value}: no such file'
+                       if not os.path.exists(value) else f'--params-file {value}: not a file')
     try:
         unknown = remove_ros_args(arguments)[1:]
     except Exception as error:   # noqa: B902 - rcl's parse errors (rclpy.init's traceback)
