@@ -371,6 +371,10 @@ def test_the_tool_list_names_every_tool_in_one_column(capsys):
     assert [line.split()[0] for line in listed] == list(tools.TOOLS)
     columns = {len(line) - len(line[2:].split(' ', 1)[1].lstrip()) for line in listed}
     assert len(columns) == 1   # every description starts in the same column
+    # A misspelt tool names the one meant.
+    assert tools.main(['solv', 'x.csv']) == 2
+    assert capsys.readouterr().err.startswith(
+        "quatcal_ros: unknown tool 'solv' (did you mean solve?)\nusage:")
 
 
 def test_every_tool_entry_sets_the_thread_count(monkeypatch, capsys):

@@ -41,7 +41,7 @@ ERROR_FACTOR = 3.0   # the true error must be within this many reported uncertai
 def parse_args(argv):
     """Command-line options (argv without the program name)."""
     parser = argparse.ArgumentParser(
-        prog='python -m quatcal_ros demo', formatter_class=HelpFormatter,
+        prog='demo', formatter_class=HelpFormatter,
         description='Calibrate a simulated cell with the live calibrator node and compare the '
                     'estimate with the ground truth.')
     parser.add_argument('--seed', type=int, default=7, help='seed of the simulated cell')
