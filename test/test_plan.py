@@ -27,7 +27,11 @@ def seven(pose):
 def run_plan(tmp_path, capsys, *options):
     out = tmp_path / 'plan.yaml'
     assert plan_main(['--out', str(out), *options]) == 0, capsys.readouterr().err
-    return plain_yaml.load_file(out)
+    document = plain_yaml.load_file(out)
+    # (written without a word before)
+    assert capsys.readouterr().err.endswith(
+        f'plan: info: {len(document["poses"])} poses written to {out}\n')
+    return document
 
 
 def test_the_poses_keep_the_limits_and_the_target_in_view(tmp_path, capsys):

@@ -186,6 +186,8 @@ def main(argv=None):
         except OSError as error:
             print(f'plan: error: {args.out}: cannot write: {error}', file=sys.stderr)
             return EXIT_BAD_INPUT
+        print(f'plan: info: {len(document["poses"])} poses written to {args.out}',
+              file=sys.stderr)
     else:
         write_stdout(text)
     return 0
