@@ -250,6 +250,19 @@ def test_command_line_values_out_of_the_table_are_refused(argv, words):
         _replay_options(argv)
 
 
+def test_tf_input_with_the_robot_frames_alone_names_the_image_input():
+    # The camera-image session sets these two alone: the refusal pointed nowhere.
+    from quatcal_ros.stream.settings import tf_frames
+    robot = {'robot_base_frame': 'base_link', 'robot_effector_frame': 'tool0'}
+    with pytest.raises(ConfigError, match=r'^TF input needs all four frames: '
+                                          r'tracking_base_frame, tracking_marker_frame not set '
+                                          r'\(with camera images, sensor_input:=image, the two '
+                                          r'robot frames alone\)$'):
+        tf_frames(Settings.from_values({**DEFAULTS, **robot}))
+    with pytest.raises(ConfigError, match='tracking_marker_frame not set$'):
+        tf_frames(Settings.from_values({**DEFAULTS, **robot, 'tracking_base_frame': 'cam'}))
+
+
 def test_with_tf_input_the_result_is_named_by_the_tf_frames():
     tf = {'robot_base_frame': 'base_link', 'robot_effector_frame': 'flange',
           'tracking_base_frame': 'cam_optical', 'tracking_marker_frame': 'marker'}

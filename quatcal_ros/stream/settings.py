@@ -532,8 +532,10 @@ def tf_frames(settings):
         names = TF_FRAMES
     missing = [name for name, value in zip(names, values) if not value]
     if missing:
+        images = (' (with camera images, sensor_input:=image, the two robot frames alone)'
+                  if len(names) == 4 and missing == list(TF_FRAMES[2:]) else '')
         raise ConfigError(f'TF input needs {"both" if len(names) == 2 else "all four"} frames: '
-                          f'{", ".join(missing)} not set')
+                          f'{", ".join(missing)} not set{images}')
     frames = {LINK: tuple(values[:2])}
     if len(values) == 4:
         frames[SENSOR] = tuple(values[2:])
