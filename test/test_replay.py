@@ -25,6 +25,7 @@ from quatcal_ros.sim import simulation as sim
 from quatcal_ros.stream.session import Session, SessionConfig
 from quatcal_ros.tools.cli import _few_samples, replay_main, solve_main
 from quatcal_ros.tools.progress import Progress
+import yaml
 
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
 TRANSFORM_STAMPED = 'geometry_msgs/msg/TransformStamped'
@@ -246,8 +247,18 @@ def test_tf_bag_with_static_frames_in_both_chains(repo_root, streams, tmp_path):
     # Leading slashes (tf1's style) name the same frames and stay out of the outputs.
     done = run_replay(repo_root, tmp_path / 'tf', '--link-frames', '/base_link', '/tool0',
                       '--sensor-frames', 'camera', 'marker', '--result-out',
-                      tmp_path / 'r.yaml')
+                      tmp_path / 'r.yaml', '--easy-handeye2-out', tmp_path / 'cell.calib')
     out = assert_recovers(done, streams.truth)
+    # easy_handeye2's file too (only solve wrote it), with the frames the TF input named.
+    calib = yaml.safe_load((tmp_path / 'cell.calib').read_text())
+    assert calib['transform']['rotation'] == out['rotation']
+    assert calib['transform']['translation'] == out['translation']
+    assert {key: calib['parameters'][key] for key in (
+        'robot_base_frame', 'robot_effector_frame', 'tracking_base_frame',
+        'tracking_marker_frame')} == {'robot_base_frame': 'base_link',
+                                      'robot_effector_frame': 'tool0',
+                                      'tracking_base_frame': 'camera',
+                                      'tracking_marker_frame': 'marker'}
     assert out['static_transform_publisher'].endswith('--frame-id tool0 --child-frame-id camera')
     assert out['samples'] == 10 and out['warnings'] == []
     assert f'{len(streams.link)} link and {len(streams.sensor)} sensor poses' in done.stderr

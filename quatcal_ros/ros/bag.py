@@ -698,6 +698,22 @@ def clock_offset_ns(replay, report):
     return lag['link'] - lag['sensor']
 
 
+def easy_handeye2_frames(report, invert_sensor=False):
+    """
+    Return the frames the replay saw, by easy_handeye2 parameter name (empty ones left out).
+
+    The link poses' base and link frames, the sensor poses' sensor and object frames (a
+    PoseStamped names only its header frame: the object's is then unknown).
+    """
+    base, link = report.frames.get('link', (None, None))
+    sensor, seen = report.frames.get('sensor', (None, None))
+    if invert_sensor:
+        sensor, seen = seen, sensor
+    named = {'robot_base_frame': base, 'robot_effector_frame': link,
+             'tracking_base_frame': sensor, 'tracking_marker_frame': seen}
+    return {key: frame for key, frame in named.items() if frame}
+
+
 def result_frames(report, setup='eye_in_hand', invert_sensor=False):
     """
     Return (parent, child) frames of the result from what the replay saw; None when unknown.

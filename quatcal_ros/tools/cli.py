@@ -79,9 +79,7 @@ def solve_main(argv=None):
     parser.add_argument('--result-out', metavar='FILE.yaml',
                         help="also write the result YAML (as the node's ~/save and replay's "
                              '--result-out)')
-    parser.add_argument('--easy-handeye2-out', metavar='FILE',
-                        help='also write the result in the easy_handeye2 calibration layout '
-                             '(e.g. ~/.ros2/easy_handeye2/calibrations/NAME.calib)')
+    add_easy_handeye2_argument(parser)
     args = parser.parse_args(argv)
     if args.no_invert_sensor:
         if args.invert_sensor:   # (the last of the two had won)
@@ -263,7 +261,7 @@ def _on_poses(why):
 def _write_files(prog, args, result, frames, warnings=(), named=None, source=None,
                  tree=None, causes=()):
     """
-    Write --result-out and (`solve`) --easy-handeye2-out, those given, when there is a result.
+    Write --result-out and --easy-handeye2-out, those given, when there is a result.
 
     Return fail's status, or None. warnings: those the printed result adds (published).
     named: the frames the samples file named, by easy_handeye2 parameter name (the base or
@@ -272,7 +270,7 @@ def _write_files(prog, args, result, frames, warnings=(), named=None, source=Non
     joint joins (tf_joint.joint: a replay over TF, a journal's static_chain), or None;
     causes: as validation.published takes them.
     """
-    easy_handeye2_out = getattr(args, 'easy_handeye2_out', None)   # (solve's only)
+    easy_handeye2_out = args.easy_handeye2_out
     if result is None or not (args.result_out or easy_handeye2_out):
         return None
     named = named or {}
@@ -318,6 +316,13 @@ def _copies_warning(copies, rows=None):
     return [f'{len(copies)} sample(s) repeat earlier ones exactly ({what}: {pairs}{more}): a '
             'copied row is not a new measurement, so each was counted once; the sample '
             'numbers elsewhere in this output count the samples kept, in file order']
+
+
+def add_easy_handeye2_argument(parser):
+    """--easy-handeye2-out FILE of `solve` and `replay`."""
+    parser.add_argument('--easy-handeye2-out', metavar='FILE',
+                        help='also write the result in the easy_handeye2 calibration layout '
+                             '(e.g. ~/.ros2/easy_handeye2/calibrations/NAME.calib)')
 
 
 def add_report_argument(parser):
@@ -537,6 +542,7 @@ def replay_parser():
                               'moved aside, never overwritten')
     outputs.add_argument('--result-out', metavar='FILE.yaml',
                          help="write the result YAML (as the node's ~/save)")
+    add_easy_handeye2_argument(outputs)
     outputs.add_argument('--parent-frame', help='parent frame in --result-out (default: the '
                                                 'link frame, or base frame for eye_to_hand, '
                                                 'as the messages name it)')
@@ -568,7 +574,8 @@ def replay_main(argv=None):
             return fail(prog, one_frame, EXIT_BAD_INPUT)
     problem = output_problem([('bag', args.bag), ('file', args.board_file)], {
         '--samples-out': args.samples_out, '--journal-out': args.journal_out,
-        '--result-out': args.result_out, '--report': args.report})
+        '--result-out': args.result_out, '--report': args.report,
+        '--easy-handeye2-out': args.easy_handeye2_out})
     if problem:
         return fail(prog, problem, EXIT_BAD_INPUT)
     try:
@@ -650,7 +657,7 @@ def replay_main(argv=None):
                 'search keeps none)'))
     if on_pixels is not None:
         extra['pose_based_method'] = session.result.method
-    if session.result is not None and args.result_out:
+    if session.result is not None and (args.result_out or args.easy_handeye2_out):
         status = _write_result(prog, args, on_pixels[0] if on_pixels else session.result,
                                session, warnings, report, link, sensor, causes)
         if status:
@@ -992,7 +999,7 @@ def _write_journal(prog, args, session, report):
 
 
 def _write_result(prog, args, result, session, warnings, report, link, sensor, causes=()):
-    from quatcal_ros.ros.bag import result_frames
+    from quatcal_ros.ros.bag import easy_handeye2_frames, result_frames
     seen = result_frames(report, args.setup, args.invert_sensor)
     frames = _replay_frames(args, report)
     for role, given, chosen in zip(('parent', 'child'),
@@ -1001,11 +1008,12 @@ def _write_result(prog, args, result, session, warnings, report, link, sensor, c
         if not given and not args.quiet:
             print(f'{prog}: note: the messages name no {role} frame for the result (a '
                   'PoseStamped names only the frame it is in, not a child frame): '
-                  f'{chosen!r} written to {args.result_out}; --{role}-frame sets it',
-                  file=sys.stderr)
+                  f'{chosen!r} written to {args.result_out or args.easy_handeye2_out}; '
+                  f'--{role}-frame sets it', file=sys.stderr)
     source = {'bag': str(absolute(args.bag)), 'link': str(link), 'sensor': str(sensor),
               'capture': session.config.capture.mode}
-    return _write_files(prog, args, result, frames, warnings, source=source,
+    return _write_files(prog, args, result, frames, warnings,
+                        easy_handeye2_frames(report, args.invert_sensor), source=source,
                         tree=report.tree, causes=causes)
 
 
