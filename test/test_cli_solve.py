@@ -12,7 +12,7 @@ from quatcal_ros.core import quaternion as quat
 from quatcal_ros.core.calibration import calibrate
 from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.files.samples_csv import COLUMNS, COVARIANCE_COLUMNS, format_samples, \
-    parse_samples
+    parse_samples, parse_samples_and_rows
 from quatcal_ros.files.text_input import BadInputError
 from quatcal_ros.sim import simulation
 
@@ -210,6 +210,11 @@ def test_comment_lines_are_skipped_after_the_header_too():
     commented = [header, rows[0], '# ' + rows[1], '  # a note', *rows[2:]]
     kept = parse_samples('\n'.join(commented) + '\n')
     assert format_samples(kept) == '\n'.join([header, rows[0], *rows[2:]]) + '\n'
+    # A quote in a comment opened a CSV field that swallowed the rows up to the next quote.
+    quoted = [header, rows[0], '#left out,"robot slipped', rows[1], rows[2], '# "end', rows[3]]
+    samples, lines = parse_samples_and_rows('\n'.join(quoted) + '\n')
+    assert format_samples(samples) == '\n'.join([header, *rows[:4]]) + '\n'
+    assert lines == [2, 4, 5, 7]
 
 
 def test_a_misspelt_column_is_named_with_the_one_meant():

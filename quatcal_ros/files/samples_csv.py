@@ -21,6 +21,7 @@ from decimal import Decimal, ROUND_HALF_EVEN
 import difflib
 import io
 import math
+import re
 
 import numpy as np
 from quatcal_ros.core.pose import covariance_problem, Pose, Sample
@@ -53,9 +54,14 @@ def parse_samples(text, name='<samples>'):
     return parse_samples_and_rows(text, name)[0]
 
 
+# A comment line: '#' first (after blanks). Blanked before the CSV is split: a quote in one
+# would open a field that swallows the rows after it.
+COMMENT_LINE = re.compile(r'^[ \t]*#[^\n]*', re.MULTILINE)
+
+
 def parse_samples_and_rows(text, name='<samples>'):
     """Return parse_samples' samples and the file row of each (as the errors count them)."""
-    reader = csv.reader(io.StringIO(text, newline=''))
+    reader = csv.reader(io.StringIO(COMMENT_LINE.sub('', text), newline=''))
     try:
         return _parse_rows(reader, name)
     except csv.Error as error:   # a field over the csv module's size limit, ...
@@ -64,8 +70,8 @@ def parse_samples_and_rows(text, name='<samples>'):
 
 def _parse_rows(reader, name):
     header = next(reader, None)
-    while header is not None and header and header[0].lstrip().startswith('#'):
-        header = next(reader, None)   # a comment line before the header row
+    while header is not None and not any(cell.strip() for cell in header):
+        header = next(reader, None)   # a blank or comment line before the header row
     if header is None:
         raise BadInputError(f'{name}: empty file: expected the header row {",".join(COLUMNS)}')
     header = [column.strip() for column in header]
@@ -80,7 +86,7 @@ def _parse_rows(reader, name):
     covariance_index = [header.index(column) for column in given]
     samples, rows = [], []
     for row in reader:
-        if not row or all(not cell.strip() for cell in row) or row[0].lstrip().startswith('#'):
+        if not any(cell.strip() for cell in row):
             continue   # (a blank line, or a comment: a row left out by hand)
         if any(cell.strip() for cell in row[len(header):]):   # (empty ones: a trailing comma)
             raise BadInputError(f'{name}, row {reader.line_num}: {len(row)} fields, the header '
