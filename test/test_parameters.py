@@ -142,7 +142,7 @@ def test_declare_parameters_with_overrides(context):
 
 @pytest.mark.parametrize('override, words', [
     (Parameter('still_window_s', value=100.0), 'still_window_s'),
-    (Parameter('still_window_s', value=100), 'still_window_s'),   # an integer, taken as real
+    (Parameter('still_window_s', value=100), 'must be between 0.05 and 10, not 100.0'),  # real
     (Parameter('still_window_s', value='1'), "must be a number, not '1'"),
     (Parameter('setup', value='sideways'), 'setup'),
     (Parameter('robust', value='yes'), 'robust'),
@@ -409,9 +409,14 @@ def test_the_calibrator_command_line_refuses_what_ros_would_silently_ignore(caps
     assert parameters.command_line_problem(
         ['calibrator', '--ros-args', '--params-file', '/']) == (
         2, '--params-file /: not a file')
-    # rcl's own refusals stay said.
+    # rcl's own refusals stay said; a list of whole and decimal numbers in plain words.
     status, said = parameters.command_line_problem(['calibrator', '--ros-args', '-p', ':=1'])
     assert status == 2 and said.startswith('the ROS arguments cannot be read: ')
+    from quatcal_ros.ros import sim_cell
+    assert sim_cell.command_line_problem(
+        ['sim_cell', '--ros-args', '-p', 'mounting_xyz:=[0, 0, 0.1]']) == (
+        2, 'a list of numbers mixes whole and decimal numbers, which ROS refuses: write each '
+           'with a decimal point (e.g. [0.0, 0.0, 0.1])')
 
 
 def test_a_params_file_without_the_nodes_section_is_refused(tmp_path):

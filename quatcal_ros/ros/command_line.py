@@ -27,8 +27,9 @@ def problem(arguments, help_text, names):
     arguments: the whole command line (program name first); help_text(): the node's --help;
     names: its parameter names. --help or -h asks for help_text (0), after --ros-args too
     (rcl knows no such argument). A parameter written NAME:=VALUE outside --ros-args (2), any
-    other argument the node does not know (2), ROS arguments rcl cannot read (2, instead of
-    rclpy.init's traceback).
+    other argument the node does not know (2), a --params-file that is not a file (2), ROS
+    arguments rcl cannot read (2, instead of rclpy.init's traceback; a list mixing whole and
+    decimal numbers in plain words).
     """
     own = arguments[1:]
     if '--ros-args' in own:
@@ -48,6 +49,9 @@ def problem(arguments, help_text, names):
     try:
         unknown = remove_ros_args(arguments)[1:]
     except Exception as error:   # noqa: B902 - rcl's parse errors (rclpy.init's traceback)
+        if 'Sequence should be of same type' in str(error):   # (rcl's words name its sources)
+            return 2, ('a list of numbers mixes whole and decimal numbers, which ROS refuses: '
+                       'write each with a decimal point (e.g. [0.0, 0.0, 0.1])')
         return 2, f'the ROS arguments cannot be read: {error}'
     if unknown:
         name = unknown[0].lstrip('-').replace('-', '_')

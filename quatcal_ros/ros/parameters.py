@@ -88,7 +88,7 @@ def params_file_text():
         '# Use: ros2 run quatcal_ros calibrator --ros-args --params-file calibrator.yaml',
         '# Generated from the settings table (quatcal_ros/stream/settings.py):',
         '#   python -m quatcal_ros.ros.parameters > config/calibrator.yaml',
-        '# Numbers that are floats must be written with a decimal point (1.0, not 1).',
+        '# A whole number is taken for a real-valued parameter (1 for 1.0).',
         '# read-only: set at startup only; every other parameter can be changed at runtime',
         '# (ros2 param set), and the estimate is recomputed from the samples so far, except',
         '# for those marked "keeps the estimate" (they change only the outputs or the checks).',
