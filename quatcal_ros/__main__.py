@@ -53,9 +53,9 @@ def main(argv=None):
         print(usage())
         return 0 if argv else 2
     if argv[0] not in TOOLS:
-        import difflib
-        close = difflib.get_close_matches(argv[0], TOOLS, 1)
-        meant = f' (did you mean {close[0]}?)' if close else ''
+        from quatcal_ros.files.text_input import typo_of
+        close = typo_of(argv[0], TOOLS)
+        meant = f' (did you mean {close}?)' if close else ''
         print(f'quatcal_ros: unknown tool {argv[0]!r}{meant}\n{usage()}', file=sys.stderr)
         return 2
     module, function, _ = TOOLS[argv[0]]

@@ -33,8 +33,8 @@ LAYERS = {
     'tools': ({'core', 'stream', 'files', 'sim', 'ros', 'vision', 'report', 'tools'},
               {'numpy', 'yaml'} | ROS),
     # quatcal_ros/__main__.py (imports its tools by name; ros.stop_signals first for the
-    # nodes) and solver.py (the contract's name)
-    '': ({'core', 'ros'}, set()),
+    # nodes; files.text_input's typo check for a tool's name) and solver.py (the contract's)
+    '': ({'core', 'files', 'ros'}, set()),
 }
 
 

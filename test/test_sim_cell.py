@@ -403,6 +403,14 @@ def test_integers_are_taken_for_real_numbers(context):
         node.destroy_node()
 
 
+def test_a_launch_files_global_parameters_are_no_typos(context):
+    # A params file's /** section for every node of a robot: map_frame is like marker_frame,
+    # base_frame_id like base_frame, but no misspelling of them (the node refused to start).
+    node = SimCell(context=context, parameter_overrides=_overrides(
+        map_frame='map', base_frame_id='base', odom_frame='odom'))
+    node.destroy_node()
+
+
 def test_parameters_are_described_with_ranges(context):
     node = SimCell(context=context)
     try:

@@ -18,7 +18,6 @@ deviation below 1e-9 m or rad).
 
 import csv
 from decimal import Decimal, ROUND_HALF_EVEN
-import difflib
 import io
 import math
 import re
@@ -27,7 +26,7 @@ import numpy as np
 from quatcal_ros.core.pose import covariance_problem, Pose, Sample
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, NS_PER_S, \
     position_problem, quaternion_norm_problem, shown
-from quatcal_ros.files.text_input import BadInputError, read_text
+from quatcal_ros.files.text_input import BadInputError, read_text, typo_of
 
 COLUMNS = ('stamp',
            'link_x', 'link_y', 'link_z', 'link_qx', 'link_qy', 'link_qz', 'link_qw',
@@ -38,10 +37,6 @@ COVARIANCE_COLUMNS = tuple(f'sensor_cov_{COVARIANCE_AXES[i]}_{COVARIANCE_AXES[j]
                            for i, j in COVARIANCE_ENTRIES)
 # Stamps are integer nanoseconds in the core (int64, as rosbag2 stores them).
 MAX_STAMP_S = 2 ** 63 / 1e9
-# A column this like a known one the header lacks is a typo of it (difflib's ratio: link_w for
-# link_qw 0.92, sensor_cov_y_x for sensor_cov_x_y 0.86, Stamp for stamp 0.8; stamp_ns for
-# stamp, 0.77, is another column).
-TYPO_CUTOFF = 0.8
 
 
 def read_samples(path):
@@ -230,9 +225,9 @@ def check_header(header, required, where, known=None):
 def _typos(header, known):
     """Say which columns of `header` look like misspelt `known` ones it lacks, or ''."""
     absent = [column for column in known if column not in header]
-    close = {column: difflib.get_close_matches(column, absent, 1, TYPO_CUTOFF)
+    close = {column: typo_of(column, absent)
              for column in header if column and column not in known}
-    said = [f'{column} (did you mean {meant[0]}?)' for column, meant in close.items() if meant]
+    said = [f'{column} (did you mean {meant}?)' for column, meant in close.items() if meant]
     return f'unknown column(s) {", ".join(said)}' if said else ''
 
 

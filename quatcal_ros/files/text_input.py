@@ -7,10 +7,24 @@ naming the file, wherever it is read.
 """
 
 from contextlib import contextmanager
+import difflib
 
 # The most text a whole-file reader takes, and the largest journal (some 600,000 samples): far
 # above any samples, result, camera or board file.
 MAX_TEXT_CHARACTERS = 256 * 1024 * 1024
+# A name this like a known one (difflib's ratio) and within TYPO_LENGTH characters of its
+# length is its typo: still_windw_s 0.96, link_w for link_qw 0.92, sensor_cov_y_x for
+# sensor_cov_x_y 0.86, Stamp 0.8. Not another program's name: map_frame for marker_frame 0.76,
+# base_frame_id for base_frame 0.87 but 3 longer (a launch file's global parameters).
+TYPO_RATIO = 0.8
+TYPO_LENGTH = 2
+
+
+def typo_of(name, names):
+    """Return the name of `names` that `name` looks like a misspelling of, or None."""
+    close = [known for known in difflib.get_close_matches(name, names, 3, TYPO_RATIO)
+             if abs(len(known) - len(name)) <= TYPO_LENGTH]
+    return close[0] if close else None
 
 
 class BadInputError(ValueError):

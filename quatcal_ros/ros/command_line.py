@@ -7,10 +7,10 @@ as if it were right (`sim_cell --help` started the cell). `problem` names those 
 rclpy.init; spin.run prints its answer and exits (0 for --help, 2 otherwise).
 """
 
-import difflib
 import os
 import textwrap
 
+from quatcal_ros.files.text_input import typo_of
 from rclpy.parameter import Parameter
 from rclpy.utilities import remove_ros_args
 
@@ -97,8 +97,8 @@ def unknown_parameters(node, names, node_name):
     """
     unknown = sorted(name for name in getattr(node, '_parameter_overrides', {})
                      if not node.has_parameter(name) and not name.startswith('qos_overrides.'))
-    close = {name: difflib.get_close_matches(name, names, 1) for name in unknown}
-    typos = [f'{name} (did you mean {close[name][0]}?)' for name in unknown if close[name]]
+    close = {name: typo_of(name, names) for name in unknown}
+    typos = [f'{name} (did you mean {close[name]}?)' for name in unknown if close[name]]
     refusal = (f'no such parameter: {", ".join(typos)}; `{node_name} --help` lists every '
                'parameter') if typos else None
     warning = (f'parameters set for this node that it does not have, ignored: '
