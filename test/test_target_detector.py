@@ -142,6 +142,13 @@ def test_a_misspelt_parameter_is_refused_a_whole_number_taken(domain_id, board_f
             Parameter('max_reprojection_px', value=3)])
         assert node.sensor.checks.max_reprojection_px == 3.0
         node.destroy_node()
+        # A value of the wrong type ended in rclpy's traceback.
+        for name, value, words in (('max_reprojection_px', 'abc', "a number, not 'abc'"),
+                                   ('min_corners', 4.5, 'a whole number, not 4.5')):
+            with pytest.raises(ValueError, match=f'^parameter {name} must be {words}$'):
+                TargetDetector(context=context, parameter_overrides=[
+                    Parameter('board_file', value=str(board_file)),
+                    Parameter(name, value=value)])
         with pytest.raises(ValueError, match=r'no such parameter: min_corner \(did you mean '
                                              r'min_corners\?\); `target_detector --help`'):
             TargetDetector(context=context, parameter_overrides=[

@@ -170,19 +170,6 @@ def _descriptor(description, limits):
     return descriptor
 
 
-def _problem(default, limits, given):
-    """Say what a parameter of `default` and `limits` takes that `given` is not, or None."""
-    kind = default if isinstance(default, Parameter.Type) else type(default)
-    number = isinstance(given, (int, float)) and not isinstance(given, bool)
-    if not (kind is type(given) or kind is float and number):
-        return f'{KINDS[kind]}, not {given!r}'
-    if limits is not None and number and not limits[0] <= given <= limits[1]:
-        low, high = (f'{limit:g}' if isinstance(limit, float) else str(limit)
-                     for limit in limits)
-        return f'between {low} and {high}, not {given!r}'
-    return None
-
-
 def mounting_from_parameters(xyz, rpy_deg):
     """Mounting Pose from the two array parameters; None when both are empty (random)."""
     xyz, rpy_deg = list(xyz or []), list(rpy_deg or [])
@@ -196,11 +183,6 @@ def mounting_from_parameters(xyz, rpy_deg):
     return Pose.create(xyz, simulation.quaternion_wxyz_from_rpy(roll, pitch, yaw))
 
 
-# What a parameter of each default's type takes, for messages.
-KINDS = {bool: 'true or false', int: 'a whole number', float: 'a number', str: 'text',
-         Parameter.Type.DOUBLE_ARRAY: "a list of numbers, such as '[0.0, 0.0, 0.1]'"}
-
-
 def read_config(node):
     """Declare the node's parameters (PARAMETERS) and return them as a SimCellConfig."""
     command_line.accept_integers_for_reals(node, {
@@ -209,15 +191,8 @@ def read_config(node):
         if type(default) is float or default == Parameter.Type.DOUBLE_ARRAY})
     values = {}
     for name, (default, description, limits) in PARAMETERS.items():
-        try:
-            parameter = node.declare_parameter(name, default, _descriptor(description, limits))
-        except ParameterException:   # (rclpy's words name the parameter twice)
-            given = getattr(node, '_parameter_overrides', {}).get(name)
-            problem = given and _problem(default, limits, given.value)
-            if not problem:
-                raise
-            raise ValueError(f'parameter {name} must be {problem}') from None
-        values[name] = parameter.value
+        values[name] = command_line.declared(node, name, default,
+                                             _descriptor(description, limits), limits)
     refusal, warning = command_line.unknown_parameters(node, PARAMETERS, NODE_NAME)
     if refusal:
         raise ValueError(refusal)

@@ -30,6 +30,7 @@ from quatcal_ros.vision.board import read_board
 from quatcal_ros.vision.image_sensor import ImageSensor
 from quatcal_ros.vision.view import Checks
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
@@ -59,8 +60,8 @@ class TargetDetector(Node):
         command_line.accept_integers_for_reals(self, {
             name: Parameter.Type.DOUBLE for name, (default, _) in PARAMETERS.items()
             if type(default) is float})
-        values = {name: self.declare_parameter(
-            name, default, ParameterDescriptor(description=text, read_only=True)).value
+        values = {name: command_line.declared(
+            self, name, default, ParameterDescriptor(description=text, read_only=True))
             for name, (default, text) in PARAMETERS.items()}
         refusal, warning = command_line.unknown_parameters(self, PARAMETERS, NODE_NAME)
         if refusal:
@@ -177,7 +178,8 @@ def command_line_problem(arguments):
 
 def main(args=None):
     """Run the target detector; return 2 (after logging the reason) for bad parameters."""
-    return spin.run(TargetDetector, NODE_NAME, ValueError, 'invalid parameters', args,
+    return spin.run(TargetDetector, NODE_NAME, (ValueError, ParameterException),
+                    'invalid parameters', args,
                     command_line_problem)
 
 
