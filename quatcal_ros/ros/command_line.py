@@ -118,8 +118,9 @@ def accept_integers_for_reals(node, real_types):
                              else parameter)
         return converted
 
-    overrides = getattr(node, '_parameter_overrides', {})
+    overrides = node._parameter_overrides   # (rclpy's: declare_parameter reads them)
     overrides.update((parameter.name, parameter) for parameter in reals(overrides.values()))
+    # rclpy joins the lists its pre-set callbacks return: one per node, or each doubled.
     node.add_pre_set_parameters_callback(reals)
 
 

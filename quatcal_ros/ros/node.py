@@ -571,10 +571,10 @@ class CalibratorNode(Node):
             return response
         config = self.config
         frames = config.result_frames
-        if self.inputs.tf is not None:   # the right fix before the setup advice it looks like
-            result = replace(result, warnings=[*self.inputs.tf.swapped_frames(result),
-                                               *result.warnings])
-        result = published(result)   # as the tools save it: a failed validation said
+        # As the tools save it: frames given swapped (the right fix) before the setup advice
+        # they look like, a failed validation said.
+        result = published(result, causes=(self.inputs.tf.swapped_frames(result)
+                                           if self.inputs.tf is not None else ()))
         mount = tf_joint.joint(result, frames,
                                self.inputs.tf.tree if self.inputs.tf is not None else None)
         saved = save_result(result, frames, config.setup, config.result_file,

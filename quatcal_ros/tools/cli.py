@@ -761,7 +761,7 @@ def _moving_samples(session):
     if speed is None:
         return []
     shift = speed * OFFSET_WEIGHED_NS / NS_PER_S
-    return [f'the samples were taken while the link turned (median {speed:.2g} deg/s between '
+    return [f'the samples were taken while the link turned (median {speed:.1f} deg/s between '
             f'them): each {OFFSET_WEIGHED_NS / 1e6:.0f} ms by which the sensor stamps are off '
             f'moves them by about {shift:.2g} deg (the uncertainty: '
             f'{result.uncertainty_deg:.2g} deg); --estimate-time-offset measures the offset '
