@@ -296,13 +296,13 @@ def test_result_frames_not_as_given_say_why():
     assert Settings().result_frame_origins == {}
     assert Settings().updated(setup='eye_to_hand', link_frame='base').result_frame_origins == {}
     assert Settings().updated(setup='eye_to_hand').result_frame_origins == {
-        'link_frame': "as with eye_to_hand link_frame left at its default 'tool0' names the "
+        'link_frame': "as, with eye_to_hand, link_frame left at its default 'tool0' names the "
                       "robot base: link_frame_id, or 'base_link'"}
     tf = {'robot_base_frame': 'base_link', 'robot_effector_frame': 'flange',
           'tracking_base_frame': 'cam_optical', 'tracking_marker_frame': 'marker'}
     assert Settings.from_values({**DEFAULTS, **tf, 'sensor_frame': 'cam_optical'}) \
         .result_frame_origins == {
-            'link_frame': "as with TF input link_frame left at its default 'tool0' is the TF "
+            'link_frame': "as, with TF input, link_frame left at its default 'tool0' is the TF "
                           'frame robot_effector_frame'}
 
 

@@ -275,9 +275,9 @@ def test_resume_is_refused_for_another_setup_or_frames(tmp_path, domain_id):
         assert ("setup 'eye_to_hand' (parameters: 'eye_in_hand')" in str(error.value)) \
             == (not extra)
         # The base the parameters name, and why it is not link_frame's default value.
-        assert ("link_frame 'world' (parameters: 'base_link', as with eye_to_hand link_frame "
-                "left at its default 'tool0' names the robot base" in str(error.value)) \
-            == bool(extra)
+        said = ("link_frame 'world' (parameters: 'base_link', as, with eye_to_hand, link_frame "
+                "left at its default 'tool0' names the robot base")
+        assert (said in str(error.value)) == bool(extra)
     assert path.read_bytes() == before
     assert aside_files(tmp_path, 'previous') == aside_files(tmp_path, 'corrupt') == []
 

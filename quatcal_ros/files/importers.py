@@ -106,7 +106,10 @@ def _described(document, top=True):
     if isinstance(document, str) and top:   # (a CSV, or any text, reads as one YAML string)
         return 'plain text, not YAML or JSON structure (a samples CSV? --format csv reads one)'
     if isinstance(document, dict):
-        return f'a mapping with {", ".join(map(str, list(document)[:5]))}'
+        keys = list(document)
+        more = ', ...' if len(keys) > 5 else ''
+        return (f'a mapping with {", ".join(map(str, keys[:5]))}{more}' if keys
+                else 'an empty mapping')
     if isinstance(document, list):
         return f'a list of {len(document)} entries'
     return f'{type(document).__name__} {shown(repr(document))}'

@@ -391,11 +391,12 @@ def _result_frames_and_origins(self):
     for name, frame, tf_name, tf_frame in _result_frame_sources(self):
         left = f'{name} left at its default {frame!r}'
         if frame == DEFAULTS[name] and tf_frame:
-            yield tf_frame, f'as with TF input {left} is the TF frame {tf_name}'
+            yield tf_frame, f'as, with TF input, {left} is the TF frame {tf_name}'
         elif frame == DEFAULTS[name] and name == 'link_frame' and self.setup == 'eye_to_hand':
             base = DEFAULT_FRAMES['eye_to_hand'][0]
             yield (self.link_frame_id or base,
-                   f'as with eye_to_hand {left} names the robot base: link_frame_id, or {base!r}')
+                   f'as, with eye_to_hand, {left} names the robot base: link_frame_id, or '
+                   f'{base!r}')
         else:
             yield frame, ''
 
