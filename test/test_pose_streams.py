@@ -42,7 +42,7 @@ def test_a_bad_row_is_named_with_its_field(text, expected):
     assert expected in str(raised.value), raised.value
 
 
-def test_poses_to_bag_names_what_is_wrong(tmp_path, capsys):
+def test_poses_to_bag_names_what_is_wrong(tmp_path, capsys, monkeypatch):
     from quatcal_ros.tools.poses_to_bag import main
     good, bad = tmp_path / 'link.txt', tmp_path / 'camera.txt'
     good.write_text('1 0 0 0 0 0 0 1\n2 0 0 0.1 0 0 0 1\n')
@@ -67,3 +67,16 @@ def test_poses_to_bag_names_what_is_wrong(tmp_path, capsys):
     # The topic written absolute, as rosbag2's are.
     assert capsys.readouterr().out.startswith(f'{tmp_path / "new" / "bag"}: 2 link poses on '
                                               '/robot/pose, 2 sensor poses on /sensor_pose')
+    # A write that fails leaves no partial folder behind.
+    from quatcal_ros.ros import bag
+
+    def full_disk(path, *args):
+        (path / 'half.db3').parent.mkdir(parents=True)
+        (path / 'half.db3').write_text('x')
+        raise OSError(28, 'No space left on device')
+    monkeypatch.setattr(bag, 'write_bag', full_disk)
+    capsys.readouterr()
+    assert main([str(good), str(good), str(tmp_path / 'full' / 'bag')]) == 2
+    assert capsys.readouterr().err == (f'poses_to_bag: error: {tmp_path / "full" / "bag"}: '
+                                       'cannot write: [Errno 28] No space left on device\n')
+    assert list((tmp_path / 'full').iterdir()) == []
