@@ -9,6 +9,7 @@ tested in test_node.py.  A domain id reserved on this host (conftest's domain_id
 tests apart from everything else.
 """
 
+import dataclasses
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TransformStamped
@@ -224,6 +225,37 @@ def test_publish_tf_holds_an_estimate_that_says_not_to_use_it(make_harness, cell
     (done,) = h.node.set_parameters([Parameter('setup', value='eye_in_hand')])
     assert done.successful and h.node.session.result.usable
     assert values_of(h.node.diagnostic_status())['tf_static'] == 'broadcast'
+
+
+def test_publish_tf_waits_for_the_convention_check_and_withdraws_a_wrong_one(
+        make_harness, cell_and_samples):
+    # A wrong setup's 3-sample estimate (3 samples fit every convention) was latched, 176 deg
+    # off, and kept as 'the last one without such a warning' when sample 4 found it wrong.
+    _, samples = cell_and_samples
+    h = make_harness([Parameter('publish_tf', value=True),
+                      Parameter('setup', value='eye_to_hand')])
+    received = h.subscribe_tf_static()
+    h.add_samples(samples[:3])
+    assert h.node.session.result is not None
+    h.spin_for(0.5)
+    assert received == []
+    assert values_of(h.node.diagnostic_status())['tf_static'] == (
+        'not broadcast yet: the frame convention is not checked')
+    assert not h.node_logs(30, 'publish_tf')   # (a wait of every session: info, no WARN)
+    h.add_samples(samples[3:])   # the convention checked: this setup fits badly
+    h.spin_for(0.5)
+    assert received == [] and not h.node.session.result.usable
+    # Latched under a convention later found wrong: withdrawn (every estimate was made so).
+    (done,) = h.node.set_parameters([Parameter('setup', value='eye_in_hand')])
+    assert done.successful and h.node.session.result.usable
+    h.spin_until(lambda: received, what='/tf_static')
+    wrong = dataclasses.replace(h.node.session.result, warnings=[
+        'frame convention: the samples fit badly as configured ...; do not use this estimate '
+        'as configured'])
+    h.node.publish_estimate(wrong)
+    h.spin_until(lambda: not received[-1].transforms, what='the withdrawal')
+    assert values_of(h.node.diagnostic_status())['tf_static'] == (
+        'not broadcast: the estimate says not to use it')
 
 
 def test_publish_tf_turned_on_at_runtime_sends_the_current_estimate(make_harness,

@@ -34,6 +34,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from geometry_msgs.msg import QuaternionStamped
 from geometry_msgs.msg import TransformStamped
+from quatcal_ros.core import conventions
 from quatcal_ros.core.planner import plan_next_pose
 from quatcal_ros.core.pose import Pose
 from quatcal_ros.core.validation import published
@@ -166,6 +167,7 @@ class CalibratorNode(Node):
             TransformStamped, '~/transform', LATCHED_QOS,
             event_callbacks=quiet_publisher_events())
         self.static_tf = StaticTf(self)
+        self._broadcast_convention = None   # (setup, invert_sensor) of the estimate latched
         if self.inputs.tf is not None:   # our broadcast heard back gives way to another's
             self.inputs.tf.ours = self.static_tf.sent
             self.inputs.tf.on_ours_replaced = self._rebroadcast
@@ -365,12 +367,36 @@ class CalibratorNode(Node):
             self.static_tf.resend(self.inputs.tf.tree)
 
     def _broadcast(self, result, stamp_ns):
-        """Put the result on /tf_static, frame-safe in the TF tree with TF input."""
-        if not result.usable:   # the last usable one stays latched
+        """
+        Put the result on /tf_static, frame-safe in the TF tree with TF input.
+
+        Not before the frame convention is checked (3 samples fit every one alike: a wrong
+        setup's estimate was latched, 176 deg off, and kept when sample 4 found it wrong). A
+        convention found wrong withdraws what was latched under it (not one latched under
+        another setup before a change at runtime). Any other warning that says not to use it
+        leaves the last usable one latched.
+        """
+        options = self.session.config.calibration
+        convention = (options.setup, options.invert_sensor)
+        if conventions.unchecked(result.warnings):
+            self.static_tf.hold(f'publish_tf: the frame convention is checked from '
+                                f'{conventions.CHECKED_FROM_SAMPLES} samples on: nothing is '
+                                'broadcast until then', 'the frame convention is not checked',
+                                problem=False)
+            return
+        if not result.usable:
+            if (any(text.startswith(conventions.PREFIX) for text in result.warnings)
+                    and self._broadcast_convention == convention):
+                self.static_tf.withdraw()
+                self.static_tf.hold('publish_tf: the frame convention fits badly (on '
+                                    '/diagnostics): the estimates broadcast were made with it, '
+                                    'so none stays on /tf_static')
+                return
             self.static_tf.hold('publish_tf: the estimate says not to use it (its warnings, '
                                 'on /diagnostics): the last one without such a warning stays '
                                 'on /tf_static')
             return
+        self._broadcast_convention = convention
         self.static_tf.send(Pose.create(result.translation, result.quaternion), stamp_ns,
                             *self.config.result_frames,
                             self.inputs.tf.tree if self.inputs.tf is not None else None)

@@ -85,6 +85,7 @@ class StaticTf:
         """
         if self.publisher is not None and self.sent:   # (`sent` stays: ours to replace)
             self.publisher.publish(TFMessage(transforms=[]))
+        self.last = None   # (nothing to send again when the tree changes)
 
     def _frame_safe(self, pose, parent, child, tree):
         """Return (parent, child, pose) that adds no second parent to `tree`, or None."""
@@ -101,10 +102,15 @@ class StaticTf:
                       f'mounting composed with the static {target[1]} -> {child}')
         return target
 
-    def hold(self, text):
-        """Broadcast nothing for this estimate, for the reason `text` (logged once)."""
-        self.problem, self.held = text, 'the estimate says not to use it'
-        self._say(text, warning=True)
+    def hold(self, text, brief='the estimate says not to use it', problem=True):
+        """
+        Broadcast nothing for this estimate, for the reason `text` (logged once).
+
+        brief: the reason in a few words, for the state; problem: False for a wait that is
+        part of every session (logged as info, not named as a problem).
+        """
+        self.problem, self.held = (text if problem else None), brief
+        self._say(text, warning=problem)
 
     def _refuse(self, text):
         self.problem, self.held = text, None
@@ -123,6 +129,8 @@ class StaticTf:
         """Return the broadcast state for /diagnostics, and the problem to name (or None)."""
         if not enabled:
             return 'off (publish_tf is false)', None
+        if self.held and not self.problem:
+            return f'not broadcast yet: {self.held}', None
         if self.problem:
             return f'not broadcast: {self.held or "it would break the TF tree"}', self.problem
         return 'broadcast', None
