@@ -430,3 +430,5 @@ def test_every_warning_of_a_reduced_dof_estimate_reaches_the_log(rig_factory, ca
     failed = int(rig.node.session.result.validation['verdict'] == 'fail')
     assert saved.success and f'the estimate has {len(warnings) + failed} warning(s), in the ' \
         f'file too: {SCARA_WARNING}' in saved.message
+    # An estimate not to use is said first (test_node_transform); this one may be used.
+    assert rig.node.session.result.usable and saved.message.startswith('saved to ')

@@ -245,6 +245,11 @@ def test_publish_tf_waits_for_the_convention_check_and_withdraws_a_wrong_one(
     h.add_samples(samples[3:])   # the convention checked: this setup fits badly
     h.spin_for(0.5)
     assert received == [] and not h.node.session.result.usable
+    # ~/save writes it as asked, and says first that it is not to be used (the reply, past a
+    # kilobyte, ended with its warnings).
+    saved = h.call_save()
+    assert saved.success and saved.message.startswith(
+        'saved an estimate that says not to use it ("usable": false in the file): saved to ')
     # Latched under a convention later found wrong: withdrawn (every estimate was made so).
     (done,) = h.node.set_parameters([Parameter('setup', value='eye_in_hand')])
     assert done.successful and h.node.session.result.usable

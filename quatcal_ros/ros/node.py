@@ -607,6 +607,9 @@ class CalibratorNode(Node):
                             config.easy_handeye2_file, easy_handeye2_frames(config),
                             joint=mount)
         response.success, response.message = saved.ok, '; '.join(saved.texts())
+        if saved.ok and not result.usable:   # (first: the reply runs past a kilobyte)
+            response.message = ('saved an estimate that says not to use it ("usable": false '
+                                f'in the file): {response.message}')
         if not saved.ok:
             self.get_logger().error(response.message)
         if saved.ok and result.warnings:   # saved as asked, but not without a word
