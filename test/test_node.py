@@ -211,7 +211,7 @@ def test_estimate_needs_two_non_parallel_motions_then_save_and_reset(harness_fac
     assert not refused.success and 'no estimate' in refused.message
     assert not result_file.exists()
     status = h.node.diagnostic_status()
-    assert status.message.startswith('collecting: 2 samples')
+    assert status.message.startswith('collecting: 2 sample(s)')
 
     # Motions about one axis only (as a SCARA's): the translations fix the rotation, and the
     # offset along the axis is named, loudly, as what the data do not determine.

@@ -400,7 +400,7 @@ def test_a_full_disk_keeps_the_samples_and_the_estimate_going(tmp_path, monkeypa
             node.handle_events(node.session.add_sample(sample))
         status = node.diagnostic_status()
         assert status.level == status.WARN
-        assert (f'2 captured samples not yet saved to {path} (No space left on device): they '
+        assert (f'2 captured sample(s) not yet saved to {path} (No space left on device): they '
                 'are kept and written with the next sample') in status.message
         assert node.session.result.samples == 9   # the estimate goes on
         assert len(journal.read_journal(path).samples) == 7

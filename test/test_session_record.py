@@ -92,7 +92,7 @@ def test_journal_problem_is_kept_until_the_samples_are_on_disk(tmp_path, monkeyp
         raise OSError(errno.ENOSPC, 'No space left on device')
     monkeypatch.setattr(journal.os, 'write', full_disk)
     ((level, text),) = record.append(samples[:1])
-    assert level == 'error' and '1 captured samples not yet saved' in text
+    assert level == 'error' and '1 captured sample(s) not yet saved' in text
     assert record.problem == text
     monkeypatch.setattr(journal.os, 'write', real_write)
     assert record.append(samples[1:2]) == [] and record.sync() == []

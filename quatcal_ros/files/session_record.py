@@ -110,13 +110,13 @@ class SamplesJournal:
             reason = error.strerror or error
             unsaved = self.journal.unwritten
             if not self.journal.header_written:
-                also = f', nor {unsaved} captured samples saved' if unsaved else ''
+                also = f', nor {unsaved} captured sample(s) saved' if unsaved else ''
                 self.problem = (f'the new setup, frames or TF joint are not yet recorded in '
                                 f'{self.path}{also} ({reason}): tried again with the next '
                                 'sample')
             elif unsaved:
                 self.problem = (
-                    f'{unsaved} captured samples not yet saved to '
+                    f'{unsaved} captured sample(s) not yet saved to '
                     f'{self.path} ({reason}): they are kept and written with the next sample')
             else:
                 self.problem = (

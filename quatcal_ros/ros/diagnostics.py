@@ -209,7 +209,7 @@ def status_message(session, stats, topics=None, composed=(), result=None):
         return (f'collecting: no still sample yet from {counters["pairs"]} paired poses: stop '
                 f'the robot at each pose for {capture.window_ns * 1e-9:g} s (still_window_s) '
                 f'after each motion{sensor}{never}')
-    return f'collecting: {count} samples, need motions about 2 different axes'
+    return f'collecting: {count} sample(s), need motions about 2 different axes'
 
 
 def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_static='',
