@@ -117,6 +117,11 @@ def test_two_files_at_one_path_are_refused(tmp_path):
         Settings.from_values(dict(DEFAULTS, result_file='~/r.yaml', easy_handeye2_file='~/r.yaml'))
     apart = Settings.from_values(dict(DEFAULTS, easy_handeye2_file=str(tmp_path / 'a.calib')))
     assert apart.easy_handeye2_file.endswith('a.calib')
+    # A directory was accepted at start and at runtime, and failed only at ~/save.
+    for name in ('result_file', 'easy_handeye2_file'):
+        with pytest.raises(ConfigError, match=f"^{name} '{tmp_path}' is a directory: give the "
+                                              'path of a file in it$'):
+            Settings.from_values(dict(DEFAULTS, **{name: str(tmp_path)}))
 
 
 def test_integers_for_floats_become_floats():

@@ -343,9 +343,10 @@ FILES = ('samples_file', 'result_file', 'easy_handeye2_file')
 
 def _check_files(settings):
     """
-    Raise ConfigError when two of the node's files are one (~ expanded, links followed).
+    Raise ConfigError when two of the node's files are one, or one is a directory.
 
-    ~/save with result_file at the journal's path had replaced the samples with the result.
+    Paths are compared with ~ expanded and links followed. ~/save with result_file at the
+    journal's path had replaced the samples with the result.
     """
     seen = {}
     for name in FILES:
@@ -353,6 +354,8 @@ def _check_files(settings):
         if not path:
             continue
         target = os.path.realpath(os.path.expanduser(path))
+        if os.path.isdir(target):   # (it was found only by ~/save)
+            raise ConfigError(f'{name} {path!r} is a directory: give the path of a file in it')
         if target in seen:
             raise ConfigError(f'{seen[target]} and {name} are one file, {path!r}: ~/save '
                               'would replace the one with the other; give each its own path')
