@@ -698,7 +698,7 @@ def clock_offset_ns(replay, report):
     return lag['link'] - lag['sensor']
 
 
-def easy_handeye2_frames(report, invert_sensor=False):
+def seen_frames(report, invert_sensor=False):
     """
     Return the frames the replay saw, by easy_handeye2 parameter name (empty ones left out).
 
@@ -721,8 +721,6 @@ def result_frames(report, setup='eye_in_hand', invert_sensor=False):
     Parent: the link frame (eye_in_hand) or the base frame (eye_to_hand); child: the sensor
     frame, the header frame of T_sensor_obj (its child frame with invert_sensor).
     """
-    base, link = report.frames.get('link', (None, None))
-    sensor_parent, sensor_child = report.frames.get('sensor', (None, None))
-    parent = link if setup == 'eye_in_hand' else base
-    child = sensor_child if invert_sensor else sensor_parent
-    return parent or None, child or None
+    seen = seen_frames(report, invert_sensor)
+    return (seen.get('robot_effector_frame' if setup == 'eye_in_hand' else 'robot_base_frame'),
+            seen.get('tracking_base_frame'))

@@ -11,6 +11,7 @@ import os
 import textwrap
 
 from quatcal_ros.files.text_input import typo_of
+from quatcal_ros.stream.settings import Setting
 from rclpy.exceptions import ParameterException
 from rclpy.parameter import Parameter
 from rclpy.utilities import remove_ros_args
@@ -62,9 +63,8 @@ def problem(arguments, help_text, names):
     return None
 
 
-# What a parameter of each default's type takes, for messages (declared).
-KINDS = {bool: 'true or false', int: 'a whole number', float: 'a number', str: 'text',
-         Parameter.Type.DOUBLE_ARRAY: "a list of numbers, such as '[0.0, 0.0, 0.1]'"}
+# What a list-valued parameter takes (Setting.check knows the single values).
+LIST_OF_NUMBERS = "must be a list of numbers, such as '[0.0, 0.0, 0.1]'"
 
 
 def declared(node, name, default, descriptor, limits=None):
@@ -72,30 +72,24 @@ def declared(node, name, default, descriptor, limits=None):
     Declare a parameter of a node without a settings table (sim_cell, target_detector).
 
     Return its value. What -p or a params file gave that rclpy refuses is a ValueError in
-    plain words: 'parameter NAME must be between LOW and HIGH, not VALUE' (rclpy's name the
-    parameter twice, or end a node in a traceback). limits: (low, high), or None.
+    the settings table's words (Setting.check): 'parameter NAME must be between LOW and
+    HIGH, not VALUE' (rclpy's name the parameter twice, or end a node in a traceback).
+    limits: (low, high), or None.
     """
     try:
         return node.declare_parameter(name, default, descriptor).value
     except ParameterException:
         given = node._parameter_overrides.get(name)   # (what was refused)
-        problem = given and _value_problem(default, limits, given.value)
+        if given is None:
+            raise
+        if default == Parameter.Type.DOUBLE_ARRAY:
+            problem = f'{LIST_OF_NUMBERS}, not {given.value!r}'
+        else:
+            low, high = limits or (None, None)
+            problem = Setting(name, default, '', low=low, high=high).check(given.value)
         if not problem:
             raise
-        raise ValueError(f'parameter {name} must be {problem}') from None
-
-
-def _value_problem(default, limits, given):
-    """Say what a parameter of `default` and `limits` takes that `given` is not, or None."""
-    kind = default if isinstance(default, Parameter.Type) else type(default)
-    number = isinstance(given, (int, float)) and not isinstance(given, bool)
-    if not (kind is type(given) or kind is float and number):
-        return f'{KINDS[kind]}, not {given!r}'
-    if limits is not None and number and not limits[0] <= given <= limits[1]:
-        low, high = (f'{limit:g}' if isinstance(limit, float) else str(limit)
-                     for limit in limits)
-        return f'between {low} and {high}, not {given!r}'
-    return None
+        raise ValueError(f'parameter {name} {problem}') from None
 
 
 def accept_integers_for_reals(node, real_types):

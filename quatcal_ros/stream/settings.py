@@ -99,7 +99,9 @@ class Setting:
 
     def _check_range(self, value):
         if not math.isfinite(value) or not self.low <= value <= self.high:
-            return f'must be between {self.low:g} and {self.high:g}, not {value!r}'
+            low, high = (str(limit) if isinstance(limit, int) else f'{limit:g}'
+                         for limit in (self.low, self.high))   # (2147483647, not 2.14748e+09)
+            return f'must be between {low} and {high}, not {value!r}'
         return None
 
     def plain(self, value):

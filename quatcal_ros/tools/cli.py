@@ -999,7 +999,7 @@ def _write_journal(prog, args, session, report):
 
 
 def _write_result(prog, args, result, session, warnings, report, link, sensor, causes=()):
-    from quatcal_ros.ros.bag import easy_handeye2_frames, result_frames
+    from quatcal_ros.ros.bag import result_frames, seen_frames
     seen = result_frames(report, args.setup, args.invert_sensor)
     frames = _replay_frames(args, report)
     for role, given, chosen in zip(('parent', 'child'),
@@ -1013,7 +1013,7 @@ def _write_result(prog, args, result, session, warnings, report, link, sensor, c
     source = {'bag': str(absolute(args.bag)), 'link': str(link), 'sensor': str(sensor),
               'capture': session.config.capture.mode}
     return _write_files(prog, args, result, frames, warnings,
-                        easy_handeye2_frames(report, args.invert_sensor), source=source,
+                        seen_frames(report, args.invert_sensor), source=source,
                         tree=report.tree, causes=causes)
 
 
