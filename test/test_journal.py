@@ -383,6 +383,70 @@ def test_resume_with_another_invert_sensor_goes_on_and_records_it(tmp_path):
     assert contents.header == now and len(contents.samples) == 3
 
 
+def test_the_sensor_time_offsets_round_trip_and_bad_ones_are_refused():
+    header = replace(HEADER, invert_sensor=False, sensor_time_offsets=(0.0, -0.03))
+    assert header.line().endswith(' invert_sensor=false sensor_time_offset_s=0.0,-0.03')
+    assert JournalHeader.parse(header.line()) == header
+    assert not header.differences(HEADER)   # not compared: start warns instead
+    for value in ('', '0.0,x', 'nan', '1_0', '0.0,,0.1'):
+        with pytest.raises(JournalError) as raised:
+            JournalHeader.parse(HEADER.line() + f' sensor_time_offset_s={value}', 'f.csv')
+        assert str(raised.value) == (
+            f"f.csv, row 1: sensor_time_offset_s='{value}' in the journal header: expected "
+            'seconds, finite numbers separated by commas')
+
+
+def test_paired_with_lists_each_offset_the_kept_samples_were_paired_with():
+    header = replace(HEADER, sensor_time_offsets=(0.0,))
+    assert header.paired_with(0.0).sensor_time_offsets == (0.0,)
+    assert header.paired_with(-0.03).sensor_time_offsets == (0.0, -0.03)
+    assert header.paired_with(-0.03).paired_with(0.0).sensor_time_offsets == (0.0, -0.03)
+    assert header.paired_with(-0.03, kept=False).sensor_time_offsets == (-0.03,)
+    # An earlier version's journal does not say: unknown while its samples are kept.
+    assert HEADER.paired_with(-0.03).sensor_time_offsets is None
+    assert HEADER.paired_with(-0.03, kept=False).sensor_time_offsets == (-0.03,)
+
+
+def test_resume_with_another_sensor_time_offset_warns_and_records_both(tmp_path):
+    """Resumed samples keep their pairing, as after a change at runtime: said, not silent."""
+    path = tmp_path / 'samples.csv'
+    written_journal(path, make_samples(3), replace(HEADER, sensor_time_offsets=(0.0,)))
+    opened, report = started(path, replace(HEADER, sensor_time_offsets=(-0.03,)), resume=True)
+    opened.close()
+    warnings = [text for level, text in report.messages if level == 'warning']
+    assert warnings == [
+        f'{path}: its 3 samples were paired with sensor_time_offset_s 0 (its first line); '
+        '-0.03 applies to new poses only: the samples resumed keep their pairing. Call '
+        '~/reset to take them again with -0.03, or resume with sensor_time_offset_s:=0']
+    assert journal.read_journal(path).header.sensor_time_offsets == (0.0, -0.03)
+    # The same offset again: nothing to say, nothing rewritten.
+    opened, report = started(path, replace(HEADER, sensor_time_offsets=(0.0,)), resume=True)
+    opened.close()
+    assert [text for level, text in report.messages if level == 'warning'] == [
+        f'{path}: its 3 samples were paired with sensor_time_offset_s 0 then -0.03 (its first '
+        'line); 0 applies to new poses only: the samples resumed keep their pairing. Call '
+        '~/reset to take them again with 0']
+    written_journal(path, make_samples(3), replace(HEADER, sensor_time_offsets=(0.0,)))
+    opened, report = started(path, replace(HEADER, sensor_time_offsets=(0.0,)), resume=True)
+    opened.close()
+    assert [level for level, _ in report.messages] == ['info']
+    # An earlier version's journal does not say which offset: nothing to compare.
+    written_journal(path, make_samples(3), HEADER)
+    opened, report = started(path, replace(HEADER, sensor_time_offsets=(-0.03,)), resume=True)
+    opened.close()
+    assert [level for level, _ in report.messages] == ['info']
+    assert journal.read_journal(path).header.sensor_time_offsets is None
+
+
+def test_restart_takes_the_header_given(tmp_path):
+    path = tmp_path / 'samples.csv'
+    opened, _ = started(path, replace(HEADER, sensor_time_offsets=(0.0, -0.03)))
+    opened.append(make_samples(1)[0])
+    opened.restart(NOW, replace(HEADER, sensor_time_offsets=(-0.03,)))
+    opened.close()
+    assert journal.read_journal(path).header.sensor_time_offsets == (-0.03,)
+
+
 def test_resume_without_a_journal_starts_one(tmp_path):
     opened, report = started(tmp_path / 'samples.csv', resume=True)
     opened.close()

@@ -268,6 +268,8 @@ def test_estimate_needs_two_non_parallel_motions_then_save_and_reset(harness_fac
     assert warned == ['sensor_time_offset_s applies to the poses from now on: the 5 samples '
                       'taken keep the pairing they were taken with; call ~/reset to take them '
                       'again with the new offset']
+    # The journal says so: a resume with 0.03 warns of the samples paired with 0.
+    assert h.node.journal.header.sensor_time_offsets == (0.0, 0.03)
 
     saved = h.call('save')
     assert saved.success and str(result_file) in saved.message
@@ -281,6 +283,7 @@ def test_estimate_needs_two_non_parallel_motions_then_save_and_reset(harness_fac
     assert reset.success and '5 samples' in reset.message
     assert h.node.session.samples == [] and h.node.session.result is None
     assert not h.call('save').success
+    assert h.node.journal.header.sensor_time_offsets == (0.03,)   # the new journal's
 
 
 # --- services in manual mode ----------------------------------------------------------------

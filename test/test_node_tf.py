@@ -445,8 +445,9 @@ def camera_tree():
 def test_the_journal_header_keeps_a_recorded_tf_joint_until_the_tree_shows_one():
     """A resumed node before the driver's /tf_static keeps the journal's static chain."""
     config = types.SimpleNamespace(setup='eye_in_hand', invert_sensor=False,
-                                   result_frames=('tool0', 'optical'))
-    plain = journal.JournalHeader('eye_in_hand', 'tool0', 'optical', False)
+                                   result_frames=('tool0', 'optical'), sensor_time_offset_s=0.0)
+    plain = journal.JournalHeader('eye_in_hand', 'tool0', 'optical', False,
+                                  sensor_time_offsets=(0.0,))
     assert journal_header(config) == plain   # pose topics: no joint
     tree = TransformTree()
     tree.set_transform('camera_link', 'optical', 0, CAMERA_LINK_TO_OPTICAL, static=True)

@@ -174,7 +174,11 @@ def test_the_replay_writes_a_journal_the_node_resumes(bags, tmp_path, capsys):
     contents = journal.read_journal(journal_path)
     assert len(contents.samples) == out['samples'] == 10
     assert contents.header == journal.JournalHeader('eye_in_hand', 'tool0', 'camera_optical',
-                                                    False)
+                                                    False, sensor_time_offsets=(0.0,))
+    # The offset the samples were paired with (a node resuming with another one says so).
+    assert replay_main(argv + ['--quiet', '--sensor-time-offset', '-0.02']) == 0
+    assert journal.read_journal(journal_path).header.sensor_time_offsets == (-0.02,)
+    capsys.readouterr()
     (aside,) = [p for p in tmp_path.iterdir() if p.name.startswith('samples.csv.corrupt-')]
     assert aside.read_text() == 'an earlier file\n'    # moved aside, never overwritten
     # Over the journal of the first run: moved aside, without the node's resume:=true advice

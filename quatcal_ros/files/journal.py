@@ -12,8 +12,10 @@ so `python -m quatcal_ros solve JOURNAL` reads it as it is, with the node's setu
 invert_sensor (the first line goes on: `invert_sensor=false`, or true; journals of earlier
 versions leave it out) and, with TF input, where the mounting joins the TF tree
 (`static_chain=camera_link,x,y,z,qx,qy,qz,qw` when the sensor frame hangs from a static
-parent: JournalHeader).  Header values are percent-encoded (urllib.parse.quote) when they
-hold anything but letters, digits and _/.:-.
+parent: JournalHeader) and the sensor time offsets its samples were paired with
+(`sensor_time_offset_s=0.0`, or `0.0,-0.03` after a change that kept the samples).
+Header values are percent-encoded (urllib.parse.quote) when they hold anything but letters,
+digits and _/.:-.
 
 Crash safety: the two header lines are written with persistence.atomic_write_text (temporary
 file, fsync, rename), so a journal either exists whole or not at all.  Each sample is then
@@ -56,8 +58,9 @@ MAGIC = '# quatcal_ros samples journal'
 VERSION = 1
 HEADER_KEYS = ('setup', 'link_frame', 'sensor_frame')
 # Keys a header may leave out (journals of earlier versions): invert_sensor, true or false;
-# static_chain, the static chain above the sensor frame with TF input (JournalHeader).
-OPTIONAL_KEYS = ('invert_sensor', 'static_chain')
+# static_chain, the static chain above the sensor frame with TF input; sensor_time_offset_s,
+# the offsets (s) the samples were paired with (JournalHeader).
+OPTIONAL_KEYS = ('invert_sensor', 'static_chain', 'sensor_time_offset_s')
 BOOLEANS = {'true': True, 'false': False}
 # The robot base of eye-to-hand journals of earlier versions when link_frame was not set.
 LEGACY_BASE_FRAME = DEFAULT_FRAMES['eye_in_hand'][0]
@@ -91,7 +94,9 @@ class JournalHeader:
     static_chain: with TF input, where the sensor frame already hangs in the TF tree, the top
     of its static subtree and the static transform from it to the sensor frame, (root, (x, y,
     z, qx, qy, qz, qw)), or None (stream.tf_joint.static_chain): the mounting's joint goes
-    there. Neither is compared when resuming.
+    there. sensor_time_offsets: the sensor_time_offset_s values (s) the samples were paired
+    with, each once in the order first used, or None (not recorded: an earlier version's).
+    None of these three is compared when resuming (start warns of other offsets).
     """
 
     setup: str
@@ -99,6 +104,21 @@ class JournalHeader:
     sensor_frame: str
     invert_sensor: bool = None
     static_chain: tuple = None
+    sensor_time_offsets: tuple = None
+
+    def paired_with(self, offset_s, kept=True):
+        """
+        Return this header for new samples paired with the sensor time offset `offset_s`.
+
+        kept: whether the journal's samples stay (their offsets stay listed: unknown stays
+        None); else the samples start anew, all paired with offset_s.
+        """
+        offsets = (offset_s,)
+        if kept:
+            known = self.sensor_time_offsets
+            offsets = None if known is None else known + (offsets if offset_s not in known
+                                                          else ())
+        return replace(self, sensor_time_offsets=offsets)
 
     def line(self):
         """Return the first line of the journal (without its end of line)."""
@@ -110,6 +130,9 @@ class JournalHeader:
             root, numbers = self.static_chain
             values.append(f'static_chain={quote(root, safe=SAFE_CHARACTERS)},'
                           + ','.join(repr(float(number)) for number in numbers))
+        if self.sensor_time_offsets is not None:
+            values.append('sensor_time_offset_s='
+                          + ','.join(repr(float(offset)) for offset in self.sensor_time_offsets))
         return f'{MAGIC} v{VERSION} {" ".join(values)}'
 
     @staticmethod
@@ -135,7 +158,8 @@ class JournalHeader:
             key, sep, value = item.partition('=')
             if not sep or key not in HEADER_KEYS + OPTIONAL_KEYS or key in values:
                 raise JournalError(f'{name}, row 1: unexpected {item!r} in the journal header')
-            values[key] = value if key == 'static_chain' else unquote(value)
+            values[key] = value if key in ('static_chain', 'sensor_time_offset_s') \
+                else unquote(value)
         if 'invert_sensor' in values:
             invert = BOOLEANS.get(values['invert_sensor'])
             if invert is None:
@@ -153,6 +177,8 @@ class JournalHeader:
         if 'static_chain' in values:
             values['static_chain'] = _static_chain(values['static_chain'],
                                                    values['sensor_frame'], name)
+        if 'sensor_time_offset_s' in values:
+            values['sensor_time_offsets'] = _offsets(values.pop('sensor_time_offset_s'), name)
         return JournalHeader(**values)
 
     def differences(self, other, origins=None):
@@ -179,6 +205,22 @@ def _static_chain(text, sensor_frame, name):
                            f'{problem} (expected FRAME,x,y,z,qx,qy,qz,qw: the top of the '
                            'static chain above the sensor frame and the transform from it)')
     return root, tuple(float(number) for number in numbers)
+
+
+def _offsets(text, name):
+    """Return a header's sensor_time_offset_s=S[,S...] as JournalHeader holds it."""
+    values = []
+    for number in text.split(','):
+        try:   # (float() reads 1_0 as 10: refused, as in the samples)
+            value = float(number) if '_' not in number else math.nan
+        except ValueError:
+            value = math.nan
+        if not math.isfinite(value):
+            raise JournalError(f'{name}, row 1: sensor_time_offset_s={shown(text)!r} in the '
+                               'journal header: expected seconds, finite numbers separated by '
+                               'commas')
+        values.append(value)
+    return tuple(values)
 
 
 def _chain_problem(root, numbers, sensor_frame):
@@ -496,9 +538,9 @@ class Journal:
         os.close(self._fd)
         self._open()
 
-    def restart(self, now=None):
+    def restart(self, now=None, header=None):
         """
-        Start an empty journal at the same path (~/reset).
+        Start an empty journal at the same path (~/reset), with `header` if given.
 
         The old one, if it holds samples, is moved aside as NAME.previous-TIMESTAMP; samples
         not yet written are dropped with it (the session forgets them too).
@@ -515,6 +557,7 @@ class Journal:
         self.count = 0
         self._unwritten = []
         self._unsynced = False
+        self.header = header or self.header
         _write_empty(self.path, self.header)
         self.header_written = True
         self._open()
@@ -619,6 +662,30 @@ def start(path, header, resume, now=None, resumable=True, origins=None):
         raise
 
 
+def _resumed_offsets(resumed, header, count):
+    """
+    Record the parameters' sensor time offset in a resumed journal; warn when it is new.
+
+    Its samples keep the pairing they were taken with, as after a change at runtime.
+    """
+    if header.sensor_time_offsets is None:
+        return []
+    offset = header.sensor_time_offsets[-1]
+    recorded = resumed.header.sensor_time_offsets
+    updated = resumed.header.paired_with(offset, kept=bool(count))
+    if updated != resumed.header:
+        resumed.set_header(updated)
+    if not count or recorded is None or set(recorded) == {offset}:
+        return []
+    same = (f', or resume with sensor_time_offset_s:={recorded[0]:g}' if len(recorded) == 1
+            else '')
+    return [('warning', f'{resumed.path}: its {count} samples were paired with '
+                        f'sensor_time_offset_s {" then ".join(f"{s:g}" for s in recorded)} '
+                        f'(its first line); {offset:g} applies to new poses only: the samples '
+                        'resumed keep their pairing. Call ~/reset to take them again with '
+                        f'{offset:g}{same}')]
+
+
 def unnamed_base(recorded):
     """
     Return whether `recorded` is an eye-to-hand header of an earlier version's default base.
@@ -687,6 +754,7 @@ def _start_locked(path, header, resume, lock_fd, now, resumable=True, origins=No
                          f'{boolean_text(recorded.invert_sensor)}: its samples (the poses as '
                          f'received) are solved with {boolean_text(header.invert_sensor)} '
                          'from now on, and its first line says so'))
+        report.messages += _resumed_offsets(resumed, header, len(report.samples))
         if unnamed:
             resumed.set_header(header)
             report.messages.append(

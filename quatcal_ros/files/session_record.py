@@ -85,10 +85,14 @@ class SamplesJournal:
         """Fsync what append wrote; return errors to log."""
         return self._call(self.journal.sync)
 
-    def restart(self):
-        """Start a new journal (~/reset); return what happened to the old one, as text."""
+    def restart(self, header=None):
+        """
+        Start a new journal (~/reset); return what happened to the old one, as text.
+
+        header: the new journal's JournalHeader, if not the old one's.
+        """
         try:
-            moved = self.journal.restart()
+            moved = self.journal.restart(header=header)
         except OSError as error:
             self.problem = f'could not start a new samples journal: {error}'
             return f'; {self.problem}'

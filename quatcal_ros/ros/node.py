@@ -77,16 +77,21 @@ TF_PROBLEM_LOG_S = 5.0
 INPUT_PROBLEM_LOG_S = 5.0
 
 
-def journal_header(config, tree=None, recorded=None):
+def journal_header(config, tree=None, recorded=None, kept=True):
     """
-    Return the journal's first line: setup, frames, invert_sensor and the TF joint.
+    Return the journal's first line: setup, frames, invert_sensor, TF joint, time offsets.
 
     tree: with TF input, the TF tree; its static chain above the sensor frame is recorded
     (tf_joint.static_chain), else the one of `recorded` (the journal's header now), if any,
     while it is the same sensor frame's: a resumed node before the driver's /tf_static.
+    The sensor time offset is added to those `recorded` lists while its samples are kept
+    (JournalHeader.paired_with; kept False: ~/reset).
     """
     frames = config.result_frames
-    header = journal.JournalHeader(config.setup, *frames, config.invert_sensor)
+    header = journal.JournalHeader(
+        config.setup, *frames, config.invert_sensor,
+        sensor_time_offsets=recorded.sensor_time_offsets if recorded is not None else None)
+    header = header.paired_with(config.sensor_time_offset_s, kept and recorded is not None)
     if tree is None:
         return header
     chain = tf_joint.static_chain(*frames, tree)
@@ -403,11 +408,11 @@ class CalibratorNode(Node):
 
     # --- samples journal -------------------------------------------------------------------
 
-    def _journal_header(self):
+    def _journal_header(self, kept=True):
         """Return the journal's first line for the parameters and the TF tree now."""
         return journal_header(self.config,
                               self.inputs.tf.tree if self.inputs.tf is not None else None,
-                              self.journal.header)
+                              self.journal.header, kept and self.journal.count > 0)
 
     def _resume(self):
         """Log what opening the journal did; estimate from its samples when resuming."""
@@ -573,7 +578,7 @@ class CalibratorNode(Node):
         self.log.reset()
         self.moves.reset()
         self.next_pose = None
-        journal_text = self.journal.restart()
+        journal_text = self.journal.restart(self._journal_header(kept=False))
         self.markers_publisher.publish(markers.clear_markers(
             Header(stamp=self.get_clock().now().to_msg(), frame_id=self._base_frame())))
         if self.images is not None:

@@ -983,7 +983,8 @@ def _write_journal(prog, args, session, report):
     parent, child = _replay_frames(args, report)
     try:
         header = JournalHeader(args.setup, parent, child, args.invert_sensor,
-                               tf_joint.static_chain(parent, child, report.tree))
+                               tf_joint.static_chain(parent, child, report.tree),
+                               (session.config.sensor_offset_ns / NS_PER_S,))
         record = SamplesJournal(args.journal_out, header, resume=False, resumable=False)
     except (JournalRefused, OSError) as error:
         return fail(prog, f'{args.journal_out}: cannot write: {error}', EXIT_BAD_INPUT)
