@@ -755,8 +755,9 @@ def _start_locked(path, header, resume, lock_fd, now, resumable=True, origins=No
                          f'received) are solved with {boolean_text(header.invert_sensor)} '
                          'from now on, and its first line says so'))
         report.messages += _resumed_offsets(resumed, header, len(report.samples))
-        if unnamed:
-            resumed.set_header(header)
+        if unnamed:   # (the offsets of its samples as recorded: the parameters' are new)
+            resumed.set_header(replace(
+                header, sensor_time_offsets=resumed.header.sensor_time_offsets))
             report.messages.append(
                 ('warning', f'{path} named the eye-to-hand robot base {LEGACY_BASE_FRAME!r}, '
                             'the flange frame earlier versions put there when link_frame was '
