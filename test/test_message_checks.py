@@ -746,7 +746,7 @@ def test_three_samples_leave_the_convention_unchecked_said_but_no_problem():
     assert '; frame convention: not checked yet: 3 samples fit every' in status.message
     from test_log_throttle import Lines   # (a logger that keeps its lines)
     logger = Lines()
-    EventLog(logger).log([EstimateUpdated(session.result)], lambda result: None)
+    EventLog(logger).log([EstimateUpdated(session.result)], lambda result: [])
     assert ('info', session.result.warnings[0]) in logger.lines
     assert not [line for line in logger.lines if line[0] == 'warning']
     session.add_samples(samples[3:])

@@ -448,6 +448,12 @@ def test_parameters_at_runtime(harness_factory, monkeypatch):
     assert result.successful
     assert node.config.pairs == 'consecutive'
     assert node.session.config.calibration.pairs == 'consecutive'
+    # The moved-marker watch learns where capture became continuous (its samples are
+    # noisier: a rise there is said to be that first).
+    for mode in ('continuous', 'auto', 'continuous'):
+        (result,) = node.set_parameters([Parameter('capture_mode', value=mode)])
+        assert result.successful
+    assert node.moves.continuous_from == [0, 0]
     (result,) = node.set_parameters([Parameter('link_frame', value='flange')])
     assert result.successful and node.config.link_frame == 'flange'
     # With an estimate, a new result frame republishes it between the new frames (the

@@ -74,13 +74,60 @@ def test_move_watch_warns_once_when_the_marker_moves():
     moved = samples[:10] + [replace(s, sensor=s.sensor @ bump) for s in samples[10:]]
     q_z = cell.mounting.quaternion
     watch = MoveWatch()
-    assert watch.check(moved[:10], q_z, 'eye_in_hand') is None
-    first = watch.check(moved, q_z, 'eye_in_hand')
-    assert first is not None and watch.move.first == 10
-    assert watch.check(moved, q_z, 'eye_in_hand') is None        # said once
-    assert watch.warning(len(moved)) is not None
+    assert watch.check(moved[:10], q_z, 'eye_in_hand') == []
+    ((level, text),) = watch.check(moved, q_z, 'eye_in_hand')
+    assert level == 'warning' and watch.move.first == 10
+    assert text == watch.warning(len(moved)) and 'has the marker or the sensor moved?' in text
+    assert watch.check(moved, q_z, 'eye_in_hand') == []        # said once
+    # A move lasts: more samples of the moved marker keep it.
+    more = moved + [replace(s, sensor=s.sensor @ bump) for s in cell_samples(
+        22, seed=5, noise_deg=0.02)[1][16:]]
+    for n in range(17, 23):
+        assert watch.check(more[:n], q_z, 'eye_in_hand') == []
+    assert watch.warning(22).startswith('the residual rose from') and watch.move.first == 10
     watch.reset()
     assert watch.move is None and watch.warning(len(moved)) is None
+
+
+def test_a_rise_that_does_not_last_is_withdrawn():
+    """Noisier samples for a while (taken while moving): not a move once they agree again."""
+    cell, samples = cell_samples(22, seed=5, noise_deg=0.02)
+    bump = Pose.create([0.0, 0.0, 0.0], [np.cos(0.05), np.sin(0.05), 0.0, 0.0])
+    bumped = samples[:10] + [replace(s, sensor=s.sensor @ bump) for s in samples[10:14]] + \
+        samples[14:]
+    q_z = cell.mounting.quaternion
+    watch = MoveWatch()
+    said = {n: watch.check(bumped[:n], q_z, 'eye_in_hand') for n in range(10, 23)}
+    assert [level for level, _ in said[13]] == ['warning']
+    # 14, 15 and 16 agree with the samples before 10 again: withdrawn with the 17th sample.
+    assert said[17] == [('info', 'the residual came back down: the samples from sample 10 to '
+                                 '13 were noisier, the later ones agree with those before: '
+                                 'not a move')]
+    assert all(not said[n] for n in said if n not in (13, 17))
+    assert watch.move is None and watch.warning(22) is None
+
+
+def test_a_rise_where_capture_became_continuous_says_so():
+    cell, samples = cell_samples(16, seed=5, noise_deg=0.02)
+    bump = Pose.create([0.0, 0.0, 0.0], [np.cos(0.05), np.sin(0.05), 0.0, 0.0])
+    noisier = samples[:10] + [replace(s, sensor=s.sensor @ bump) for s in samples[10:]]
+    watch = MoveWatch()
+    watch.capture_continuous(10)
+    ((level, text),) = watch.check(noisier, cell.mounting.quaternion, 'eye_in_hand')
+    assert level == 'warning'
+    assert text.startswith('the residual rose from ')
+    assert text.endswith(' over the last 6 samples (from sample 10 on, where capture_mode '
+                         'became continuous at sample 10): samples taken while moving are '
+                         'noisier than still ones, the more so with a time offset between the '
+                         'streams (sensor_time_offset_s). If nothing moved, this passes once '
+                         'still samples come again (capture_mode auto); if the marker or the '
+                         'sensor moved, call ~/reset and recollect')
+    watch.reset()
+    assert watch.continuous_from == []
+    # A rise long after the change is not its doing.
+    watch.capture_continuous(4)
+    ((level, text),) = watch.check(noisier, cell.mounting.quaternion, 'eye_in_hand')
+    assert 'has the marker or the sensor moved?' in text and 'continuous' not in text
 
 
 def test_journal_problem_is_kept_until_the_samples_are_on_disk(tmp_path, monkeypatch):

@@ -16,6 +16,8 @@ of the samples before k (and at least MIN_RISE_DEG) from their mean.  Isolated b
 among the samples before are left out of their mean and noise level.  For good samples the
 residual angle follows sigma times a chi distribution with 3 degrees of freedom: a sample beyond
 4 medians (6.2 sigma) has odds below 1e-7, so RECENT of them in a row do not happen by chance.
+A move lasts: `came_back` tells when the last RECENT samples agree with those before it again
+(noisier samples for a while, such as samples taken while moving in continuous capture).
 
 Quaternions are (w, x, y, z).  No rclpy here.
 """
@@ -43,12 +45,23 @@ class Move:
     after_deg: float      # median residual of the samples from `first` on
     threshold_deg: float  # what counted as a rise
 
-    def text(self):
-        """Return the operator message: what rose, and what to do."""
-        return (f'the residual rose from {self.before_deg:.2f} to {self.after_deg:.2f} deg '
-                f'over the last {self.samples} samples (from sample {self.first} on): has the '
-                'marker or the sensor moved? call ~/reset and recollect (offline: solve the '
-                f'samples from sample {self.first} on, or record again)')
+    def text(self, continuous_from=None):
+        """
+        Return the operator message: what rose, and what to do.
+
+        continuous_from: the sample from which on capture was continuous, when the rise
+        starts there (samples taken while moving are noisier: said first).
+        """
+        rose = (f'the residual rose from {self.before_deg:.2f} to {self.after_deg:.2f} deg '
+                f'over the last {self.samples} samples (from sample {self.first} on')
+        if continuous_from is not None:
+            return (f'{rose}, where capture_mode became continuous at sample {continuous_from}):'
+                    ' samples taken while moving are noisier than still ones, the more so with '
+                    'a time offset between the streams (sensor_time_offset_s). If nothing '
+                    'moved, this passes once still samples come again (capture_mode auto); if '
+                    'the marker or the sensor moved, call ~/reset and recollect')
+        return (f'{rose}): has the marker or the sensor moved? call ~/reset and recollect '
+                f'(offline: solve the samples from sample {self.first} on, or record again)')
 
 
 def residual_angles(Z, center):
@@ -73,6 +86,22 @@ def robust_center(Z):
             keep = angles <= np.median(angles)
     center = quat.average(Z[keep])
     return center, residual_angles(Z[keep], center)
+
+
+def came_back(samples, move, q_z, setup='eye_in_hand', invert_sensor=False, recent=RECENT):
+    """
+    Return whether the last `recent` samples after `move` agree with those before it again.
+
+    Within the threshold a rise is judged by (find_move), about the samples before the move
+    under the estimate q_z now: the rise did not last, so it was no move.
+    """
+    if len(samples) - move.first < move.samples + recent:   # (not the move's own samples)
+        return False
+    Z = SampleRotations.from_samples(samples, setup, invert_sensor).object_orientations(
+        np.asarray(q_z, dtype=float))
+    center, before = robust_center(Z[:move.first])
+    threshold = max(RISE_FACTOR * float(np.median(before)), np.radians(MIN_RISE_DEG))
+    return bool(np.all(residual_angles(Z[-recent:], center) <= threshold))
 
 
 def find_move(samples, q_z, setup='eye_in_hand', invert_sensor=False, first=0,

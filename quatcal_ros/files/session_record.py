@@ -188,27 +188,52 @@ def _write(saved, what, target, text):
 
 @dataclass
 class MoveWatch:
-    """The moved-marker check over a session's samples: warns once, until reset."""
+    """
+    The moved-marker check over a session's samples: warns once, until reset.
+
+    Or until the samples come back (drift.came_back: a rise that did not last was no move).
+    """
 
     move: drift.Move = None
     checked: int = 0     # samples the check has seen
+    continuous_from: list = field(default_factory=list)   # samples where continuous began
 
     def check(self, samples, q_z, setup, invert_sensor=False):
-        """Look at the samples not seen yet; return the warning when a move shows first."""
-        found = None
-        if self.move is None:
+        """
+        Look at the samples not seen yet; return (level, text) messages to log.
+
+        A 'warning' when a move shows first; an 'info' when the samples came back.
+        """
+        messages = []
+        if self.move is not None and drift.came_back(samples, self.move, q_z, setup,
+                                                     invert_sensor):
+            messages.append(('info', f'the residual came back down: the samples from sample '
+                                     f'{self.move.first} to {len(samples) - drift.RECENT - 1} '
+                                     'were noisier, the later ones agree with those before: '
+                                     'not a move'))
+            self.move = None
+        elif self.move is None:
             self.move = drift.find_move(samples, q_z, setup, invert_sensor,
                                         first=max(0, self.checked - drift.RECENT + 1))
-            found = self.move.text() if self.move is not None else None
+            if self.move is not None:
+                messages.append(('warning', self.warning(len(samples))))
         self.checked = len(samples)
-        return found
+        return messages
+
+    def capture_continuous(self, sample_count):
+        """Note that capture became continuous after `sample_count` samples."""
+        self.continuous_from.append(sample_count)
 
     def warning(self, sample_count):
         """Return the moved-marker warning with the current sample count, or None."""
         if self.move is None:
             return None
-        return replace(self.move, samples=sample_count - self.move.first).text()
+        # a rise that starts with the first samples of continuous capture (or soon after)
+        cause = [k for k in self.continuous_from
+                 if k <= self.move.first < k + drift.RECENT]
+        return replace(self.move, samples=sample_count - self.move.first).text(
+            cause[-1] if cause else None)
 
     def reset(self):
         """Forget the samples seen (~/reset)."""
-        self.move, self.checked = None, 0
+        self.move, self.checked, self.continuous_from = None, 0, []

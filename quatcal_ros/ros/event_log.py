@@ -4,8 +4,8 @@ What the live node says in its log about the session: samples, estimates, refusa
 `EventLog.log(events, move_check)` writes one line per session event (stream/session.py):
 a captured sample with its link position, each estimate (diagnostics.describe_result) with
 the samples newly rejected since the last one and its warnings, throttled refusals (of
-poses, and of ~/capture: capture_refused) and notices, and the moved-marker warning that
-`move_check(result)` returns. `messages` writes the (level, text) pairs of the journal and
+poses, and of ~/capture: capture_refused) and notices, and the moved-marker check's messages
+that `move_check(result)` returns. `messages` writes the (level, text) pairs of the journal and
 the result files.
 
 An estimate's warnings come back with every estimate, and a clock-jump notice or a refused
@@ -45,7 +45,7 @@ class EventLog:
         self._refusals_logged.clear()
 
     def log(self, events, move_check):
-        """Log `events`; move_check(result) returns a moved-marker warning or None."""
+        """Log `events`; move_check(result) returns the moved-marker check's messages."""
         for event in events:
             if isinstance(event, SampleCaptured):
                 self.sample(event)
@@ -82,8 +82,7 @@ class EventLog:
                 self.logger.info(warning)
             else:
                 self.logger.warning(warning)
-        if moved:
-            self.logger.warning(moved)
+        self.messages(moved)
 
     def capture_refused(self, reason):
         """

@@ -647,6 +647,8 @@ class CalibratorNode(Node):
             self.log.messages(self.journal.set_header(self._journal_header()))
         if 'publish_tf' in changed:
             self._start_tf_broadcast()
+        if 'capture_mode' in changed and self.config.capture_mode == 'continuous':
+            self.moves.capture_continuous(len(self.session.samples))
         if any(name not in settings.PRESENTATION for name in changed):
             samples = self.session.samples
             earlier, self.session = self.session, self._new_session()

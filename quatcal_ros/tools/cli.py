@@ -642,9 +642,8 @@ def replay_main(argv=None):
         warnings += _moving_samples(session)
     if session.result is not None:   # the live node's moved-marker watch, over the whole bag
         options = config.calibration
-        moved = MoveWatch().check(session.samples, session.result.quaternion, options.setup,
-                                  options.invert_sensor)
-        warnings += [moved] if moved else []
+        warnings += [text for _, text in MoveWatch().check(
+            session.samples, session.result.quaternion, options.setup, options.invert_sensor)]
     extra = {'time_offset': time_offset} if time_offset else {}
     on_pixels = None
     if images is not None:
