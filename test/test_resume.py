@@ -367,7 +367,7 @@ def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before
                             lambda msg: steps.append('publish') or publish(msg))
         log_sample = node.log.sample
         monkeypatch.setattr(node.log, 'sample',
-                            lambda event: steps.append('log') or log_sample(event))
+                            lambda *a: steps.append('log') or log_sample(*a))
         node.handle_events(node.session.add_sample(samples[7]))
         # The sample's events first (journal, log), then the estimate the node asks for.
         assert steps == ['write', 'fsync', 'log', 'publish']
@@ -388,7 +388,7 @@ def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before
 
 
 def test_a_full_disk_keeps_the_samples_and_the_estimate_going(tmp_path, monkeypatch,
-                                                              domain_id):
+                                                              domain_id, capfd):
     _, samples = synthetic_samples(11)
     path = tmp_path / 'samples.csv'
     with resumed_node(domain_id, path, samples[:7]) as node:
@@ -404,11 +404,20 @@ def test_a_full_disk_keeps_the_samples_and_the_estimate_going(tmp_path, monkeypa
                 'are kept and written with the next sample') in status.message
         assert node.session.result.samples == 9   # the estimate goes on
         assert len(journal.read_journal(path).samples) == 7
+        # The log says so of each such sample: 'captured' promises a sample on disk.
+        log = capfd.readouterr().err
+        waiting = re.findall(r'sample (\d) captured at stamp [^\n]*; not yet saved: kept in '
+                             r'memory, written with the next sample\)', log)
+        assert waiting == ['7', '8'], log
         monkeypatch.setattr(journal.os, 'write', real_write)   # space again
         node.handle_events(node.session.add_sample(samples[9]))
         assert 'not yet saved' not in node.diagnostic_status().message
         written = [s.stamp_ns for s in journal.read_journal(path).samples]
         assert written == [s.stamp_ns for s in samples[:10]]   # in order, no gap
+        log = capfd.readouterr().err
+        assert (f'the 2 captured sample(s) that could not be written are now saved to {path}'
+                in log), log
+        assert re.search(r'sample 9 captured at stamp [^\n]* m\)\n', log), log
 
 
 def test_a_due_full_solve_is_the_one_estimate_the_node_publishes(tmp_path, monkeypatch,

@@ -141,10 +141,14 @@ def test_journal_problem_is_kept_until_the_samples_are_on_disk(tmp_path, monkeyp
     ((level, text),) = record.append(samples[:1])
     assert level == 'error' and '1 captured sample(s) not yet saved' in text
     assert record.problem == text
+    assert record.saved == 0 and record.count == 1
     monkeypatch.setattr(journal.os, 'write', real_write)
-    assert record.append(samples[1:2]) == [] and record.sync() == []
-    assert record.problem is None and record.count == 2
-    assert len(journal.read_journal(tmp_path / 'samples.csv').samples) == 2
+    assert record.append(samples[1:2]) == [
+        ('info', f'the 1 captured sample(s) that could not be written are now saved to '
+                 f'{tmp_path / "samples.csv"}')]
+    assert record.sync() == [] and record.append(samples[2:3]) == []
+    assert record.problem is None and record.count == record.saved == 3
+    assert len(journal.read_journal(tmp_path / 'samples.csv').samples) == 3
     record.close()
 
 

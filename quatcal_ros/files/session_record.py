@@ -57,6 +57,11 @@ class SamplesJournal:
         """Return the number of samples the journal holds."""
         return self.journal.count
 
+    @property
+    def saved(self):
+        """Return the number of samples on disk: the first ones (the rest wait in memory)."""
+        return self.journal.count - self.journal.unwritten
+
     def append(self, samples, session_samples=None):
         """
         Write `samples` (in the file, not yet fsync'd: see sync); return errors to log.
@@ -108,6 +113,7 @@ class SamplesJournal:
         self.journal.close()
 
     def _call(self, method, *args, **kwargs):
+        waiting = self.journal.unwritten
         try:
             method(*args, **kwargs)
         except OSError as error:
@@ -129,6 +135,9 @@ class SamplesJournal:
             return [('error', self.problem)]
         if not self.journal.unwritten and self.journal.header_written:
             self.problem = None
+        if waiting and not self.journal.unwritten:
+            return [('info', f'the {waiting} captured sample(s) that could not be written are '
+                             f'now saved to {self.path}')]
         return []
 
 

@@ -44,11 +44,16 @@ class EventLog:
         self._throttle.clear()
         self._refusals_logged.clear()
 
-    def log(self, events, move_check):
-        """Log `events`; move_check(result) returns the moved-marker check's messages."""
+    def log(self, events, move_check, saved=None):
+        """
+        Log `events`; move_check(result) returns the moved-marker check's messages.
+
+        saved: how many of the session's samples are on disk (the first ones), if known: a
+        captured sample beyond them is said to wait in memory.
+        """
         for event in events:
             if isinstance(event, SampleCaptured):
-                self.sample(event)
+                self.sample(event, saved is not None and event.index >= saved)
             elif isinstance(event, EstimateUpdated):
                 self._estimate(event.result, move_check(event.result))
             elif isinstance(event, Rejected):
@@ -61,11 +66,13 @@ class EventLog:
             elif isinstance(event, Notice):
                 self.logger.info(event.text)
 
-    def sample(self, event):
-        """Log the SampleCaptured `event`: index, stamp and link position."""
+    def sample(self, event, unsaved=False):
+        """Log the SampleCaptured `event`: index, stamp, link position; `unsaved`: not on disk."""
         position = ', '.join(f'{v:.3f}' for v in event.sample.link.position)
+        waiting = ('; not yet saved: kept in memory, written with the next sample'
+                   if unsaved else '')
         self.logger.info(f'sample {event.index} captured at stamp '
-                         f'{event.sample.stamp_ns * 1e-9:.3f} s (link at [{position}] m)')
+                         f'{event.sample.stamp_ns * 1e-9:.3f} s (link at [{position}] m{waiting})')
 
     def _estimate(self, result, moved):
         self.logger.info(describe_result(result))

@@ -277,7 +277,7 @@ class CalibratorNode(Node):
             self.log.messages(self.journal.sync())
             if self.images is not None:
                 self.log.messages(self.images.sync())
-        self.log.log(events, self._move_check)
+        self.log.log(events, self._move_check, self.journal.saved)
         # The estimate of new samples, if any (the session estimates when asked).
         later = self.session.estimate()
         if later:
