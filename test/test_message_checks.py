@@ -33,7 +33,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
 from rclpy.qos import ReliabilityPolicy
-from ros_harness import SpinMixin
+from ros_harness import logged_warnings, SpinMixin
 from rosgraph_msgs.msg import Clock
 
 NS = NS_PER_S
@@ -545,23 +545,61 @@ def test_a_robot_that_never_stops_is_told_to_stop_not_to_move_more():
 def test_a_sensor_that_scatters_while_the_link_stands_still_is_named_with_its_bands():
     # The robot stops, but the detections scatter by 2 deg, beyond the sensor's 1 deg band:
     # the status names the parameters that widen it (the replay's error, its options).
+    # With the bands it suggests, the same poses give a still sample.
     from quatcal_ros.ros.diagnostics import status_message
+    from quatcal_ros.stream.capture import CaptureConfig
     from quatcal_ros.stream.session import Session, SessionConfig
-    session = Session(SessionConfig())
-    rng = np.random.default_rng(5)
-    for k in range(200):   # 2 s at 100 Hz, the link still
-        session.add_link_pose(1_000 * NS + k * 10 * MS, Pose.create([0.4, 0.0, 0.3],
-                                                                    [1.0, 0.0, 0.0, 0.0]))
-        if k % 3 == 0:
-            scattered = quat.from_rotation_vector(np.radians(rng.normal(0.0, 2.0, 3)))
-            session.add_sensor_pose(1_000 * NS + k * 10 * MS, Pose.create([0, 0, 1.0],
-                                                                          scattered))
+
+    def stop(capture=CaptureConfig()):
+        session = Session(SessionConfig(capture=capture))
+        rng = np.random.default_rng(5)
+        for k in range(120):   # 1.2 s at 100 Hz, the link still
+            session.add_link_pose(1_000 * NS + k * 10 * MS, Pose.create([0.4, 0.0, 0.3],
+                                                                        [1.0, 0.0, 0.0, 0.0]))
+            if k % 3 == 0:
+                scattered = quat.from_rotation_vector(np.radians(rng.normal(0.0, 2.0, 3)))
+                session.add_sensor_pose(1_000 * NS + k * 10 * MS, Pose.create([0, 0, 1.0],
+                                                                              scattered))
+        return session
+    session = stop()
     unsteady = session.counters['unsteady_sensor']
     assert unsteady > 0 and not session.samples
+    degrees, metres = session.sensor_scatter
+    assert 5.0 < degrees < 8.0 and metres == 0.005   # (the position does not scatter)
     assert status_message(session, mc.StreamStats(), {}).endswith(
         f'after each motion; at {unsteady} paired poses the link stood still but the sensor '
         'pose moved beyond its bands (1 deg, 0.005 m): for a sensor that noisy widen them '
-        '(sensor_still_rotation_deg, sensor_still_translation_m)')
+        f'(sensor_still_rotation_deg {degrees:g}, sensor_still_translation_m 0.005: what the '
+        'scatter seen there takes)')
+    assert len(stop(CaptureConfig(sensor_rotation_band_deg=degrees)).samples) == 1
+    # Not far beyond what it takes: 1.3-1.7 times the narrowest band that takes a sample
+    # (measured on ten draws), so one 1.8 times narrower takes none.
+    assert not stop(CaptureConfig(sensor_rotation_band_deg=degrees / 1.8)).samples
+
+
+def test_the_node_logs_a_sensor_too_noisy_for_its_bands_once_it_is_a_problem(
+        harness_factory):
+    """/diagnostics alone said it: the log stayed silent for a minute of a noisy detector."""
+    node = harness_factory().node
+    rng = np.random.default_rng(5)
+    with logged_warnings(node) as warned:
+        for k in range(3_200):   # 32 s at 100 Hz, the link still, the detector scattering
+            node.session.add_link_pose(1_000 * NS + k * 10 * MS, Pose.create(
+                [0.4, 0.0, 0.3], [1.0, 0.0, 0.0, 0.0]))
+            if k % 3 == 0:
+                scattered = quat.from_rotation_vector(np.radians(rng.normal(0.0, 2.0, 3)))
+                node.session.add_sensor_pose(1_000 * NS + k * 10 * MS,
+                                             Pose.create([0, 0, 1.0], scattered))
+            if k in (2_900, 3_100, 3_199):
+                node.diagnostic_status()
+    # Once, when it became a problem (31 s), not at 29 s, not again at 32 s.
+    (text,) = warned
+    assert re.fullmatch(
+        r'no still sample in 31 s of paired poses: stop the robot at each pose for 0.5 s '
+        r'\(still_window_s\) after each motion; at \d+ paired poses the link stood still but '
+        r'the sensor pose moved beyond its bands \(1 deg, 0.005 m\): for a sensor that noisy '
+        r'widen them \(sensor_still_rotation_deg [5-7]\.\d, sensor_still_translation_m '
+        r'0.005: what the scatter seen there takes\)', text), text   # (the robot stops)
 
 
 def test_a_pause_of_the_streams_is_not_paired_time():

@@ -953,10 +953,18 @@ def test_a_sensor_too_noisy_for_its_bands_is_named(repo_root, streams, tmp_path)
     done = replay_changed(repo_root, streams, tmp_path / 'noisy', '/sensor_pose', noisy,
                           '--no-fallback')
     assert done.returncode == 2
-    assert re.search(r'at \d+ paired poses the link stood still but the sensor pose moved '
-                     r'beyond its bands \(1 deg, 0.005 m\): for a sensor that noisy widen them '
-                     r'\(--sensor-still-rotation-deg, --sensor-still-translation-m\)',
-                     done.stderr), done.stderr
+    named = re.search(r'at \d+ paired poses the link stood still but the sensor pose moved '
+                      r'beyond its bands \(1 deg, 0.005 m\): for a sensor that noisy widen '
+                      r'them \((--sensor-still-rotation-deg \S+), '
+                      r'(--sensor-still-translation-m \S+): what the scatter seen there '
+                      r'takes\)', done.stderr)
+    assert named, done.stderr
+    # The bands it names take the stops.
+    rng = np.random.default_rng(3)
+    done = replay_changed(repo_root, streams, tmp_path / 'again', '/sensor_pose', noisy,
+                          '--no-fallback', *named[1].split(), *named[2].split())
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)['samples'] >= 10
 
 
 def test_a_marker_that_moves_during_the_bag_is_warned_about(tmp_path, capsys):

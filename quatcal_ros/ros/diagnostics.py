@@ -201,15 +201,31 @@ def status_message(session, stats, topics=None, composed=(), result=None):
         return 'waiting for poses (none paired yet: are both stamped on the same clock?)'
     count, capture = len(session.samples), session.config.capture
     if count == 0 and capture.mode == 'auto':   # paired poses, yet no still window
-        counters = session.counters
-        sensor = unsteady_sensor_note(counters['unsteady_sensor'], capture,
-                                      ('sensor_still_rotation_deg', 'sensor_still_translation_m'))
-        never = ('; a robot that never stops needs capture_mode continuous'
-                 if session.paired_seconds >= NEVER_STOPS_HINT_S else '')
-        return (f'collecting: no still sample yet from {counters["pairs"]} paired poses: stop '
-                f'the robot at each pose for {capture.window_ns * 1e-9:g} s (still_window_s) '
-                f'after each motion{sensor}{never}')
+        return (f'collecting: no still sample yet from {session.counters["pairs"]} paired '
+                f'poses: {still_advice(session)}')
     return f'collecting: {count} sample(s), need motions about 2 different axes'
+
+
+def still_advice(session):
+    """Say how auto capture gets a still sample: the stops, the sensor bands, continuous."""
+    capture, unsteady = session.config.capture, session.counters['unsteady_sensor']
+    sensor = unsteady_sensor_note(unsteady, capture,
+                                  ('sensor_still_rotation_deg', 'sensor_still_translation_m'),
+                                  session.sensor_scatter)
+    # (not when the link stood still: the robot stops, the sensor is what moves)
+    never = ('; a robot that never stops needs capture_mode continuous'
+             if session.paired_seconds >= NEVER_STOPS_HINT_S and not unsteady else '')
+    return (f'stop the robot at each pose for {capture.window_ns * 1e-9:g} s (still_window_s) '
+            f'after each motion{sensor}{never}')
+
+
+def never_still(session):
+    """Return the problem of auto capture without a still sample for NEVER_STILL_S, or None."""
+    if (session.result is None and not session.counters['samples']
+            and session.config.capture.mode == 'auto'
+            and session.paired_seconds >= NEVER_STILL_S):
+        return f'no still sample in {session.paired_seconds:.0f} s of paired poses'
+    return None
 
 
 def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_static='',
@@ -245,9 +261,8 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
     on_pixels = (result.reprojection if result is not None else None) or {}
     failed = failure_warning(validation)
     found += [failed] if failed else []
-    if (result is None and not counters['samples'] and session.config.capture.mode == 'auto'
-            and session.paired_seconds >= NEVER_STILL_S):
-        found.append(f'no still sample in {session.paired_seconds:.0f} s of paired poses')
+    stuck = never_still(session)
+    found += [stuck] if stuck else []
     if not counters['pairs'] and counters['unpaired'] >= UNPAIRED_NOTICE_AFTER:
         found.append(f'none of {counters["unpaired"]} poses could be paired; the latest: '
                      f'{session.last_unpaired}')

@@ -45,7 +45,8 @@ from quatcal_ros.ros import conversions
 from quatcal_ros.ros import markers
 from quatcal_ros.ros import parameters
 from quatcal_ros.ros import spin
-from quatcal_ros.ros.diagnostics import calibrator_status, InputWatch, skipped_text, status_name
+from quatcal_ros.ros.diagnostics import calibrator_status, InputWatch, never_still, \
+    skipped_text, status_name, still_advice
 from quatcal_ros.ros.event_log import EventLog
 from quatcal_ros.ros.image_samples import ImageSamples
 from quatcal_ros.ros.inputs import NodeInputs
@@ -155,6 +156,7 @@ class CalibratorNode(Node):
         # frames changes) once it has stood TF_PROBLEM_LOG_S, while it stands.
         self._frames_log = StandingLog(forget=False)
         self._clock_log = StandingLog(key=lambda text: 'clocks')
+        self._still_log = StandingLog(key=lambda text: 'never still')
         # A silent or stale stream, publishers of the wrong type: logged once they have stood
         # INPUT_PROBLEM_LOG_S (their texts carry the seconds since: keyed without numbers).
         self._input_log = StandingLog(INPUT_PROBLEM_LOG_S * 1e9, key=without_numbers)
@@ -476,6 +478,9 @@ class CalibratorNode(Node):
         # (/diagnostics alone said that nothing came on a pose topic: the log stayed silent)
         self._log_standing(self._input_log, [*dict.fromkeys(text for _, text in stale),
                                              *watched])
+        # (a sensor too noisy for its still bands showed on /diagnostics alone)
+        stuck = never_still(self.session)
+        self._log_standing(self._still_log, [stuck and f'{stuck}: {still_advice(self.session)}'])
         problems = [self.moves.warning(len(self.session.samples)), self.journal.problem,
                     tf_problem, *watched, *self._input_problems(), *self._frame_problems(),
                     self._clock_problem()]

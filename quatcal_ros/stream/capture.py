@@ -26,6 +26,7 @@ whole window ago):
 Quaternions are (w, x, y, z); stamps are integer nanoseconds.
 """
 
+from collections import deque
 from dataclasses import dataclass
 import math
 
@@ -49,6 +50,13 @@ SENSOR_NOT_STEADY = 'sensor pose is not steady'
 # turns the pose by tens of degrees; a detector's noise that reaches twice the band needs
 # wider bands).
 JUMP_BANDS = 2.0
+# The sensor's scatter while the link stood still, for the bands to suggest (sensor_scatter):
+# each refused window's 75th percentile of the sensor poses' changes from the newest (a window
+# may have a quarter outside: MAX_OUTSIDE_SHARE), the median over the latest SCATTER_WINDOWS
+# windows, times SCATTER_MARGIN. On a detector scattering 2 deg per axis that is 1.3-1.7 times
+# the narrowest band that takes a sample in a 1.2 s stop (test_message_checks.py).
+SCATTER_WINDOWS = 200
+SCATTER_MARGIN = 1.2
 
 
 @dataclass(frozen=True)
@@ -180,19 +188,30 @@ class _PairWindow:
                       Pose(p[1][kept].mean(axis=0), quat.average(q[1][kept]), covariance))
 
 
-def unsteady_sensor_note(count, config, band_names):
+def _round_up(value):
+    """Return `value` > 0 rounded up to two significant digits."""
+    step = 10.0 ** (math.floor(math.log10(value)) - 1)
+    return round(math.ceil(value / step - 1e-9) * step, 12)
+
+
+def unsteady_sensor_note(count, config, band_names, scatter=None):
     """
     Say that at `count` paired poses the link stood still but the sensor pose did not, or ''.
 
     config: the CaptureConfig; band_names: what the reader sets the two sensor bands with
-    (the node's parameters, the tools' options).
+    (the node's parameters, the tools' options); scatter: Capture.sensor_scatter(), the
+    bands to suggest.
     """
     if not count:
         return ''
+    widen = ', '.join(band_names)
+    if scatter is not None:
+        widen = ', '.join(f'{name} {value:g}' for name, value in zip(band_names, scatter))
+        widen += ': what the scatter seen there takes'
     return (f'; at {count} paired poses the link stood still but the sensor pose moved beyond '
             f'its bands ({config.sensor_rotation_band_deg:g} deg, '
             f'{config.sensor_translation_band_m:g} m): for a sensor that noisy widen them '
-            f'({", ".join(band_names)})')
+            f'({widen})')
 
 
 class Capture:
@@ -207,6 +226,7 @@ class Capture:
         # Pairs at which the link stayed within its still bands but the sensor pose did not:
         # what keeps a noisy sensor from ever giving a still sample (its bands are too tight).
         self.unsteady_sensor = 0
+        self._scatter = deque(maxlen=SCATTER_WINDOWS)   # (deg, m) of those windows
         # Sensor poses left out of the still samples taken: they jumped over JUMP_BANDS times
         # the sensor bands for a frame or a few (module doc).
         self.sensor_jumps = 0
@@ -292,11 +312,33 @@ class Capture:
             return False
         if (sensor_deg > config.sensor_rotation_band_deg
                 or sensor_m > config.sensor_translation_band_m):
-            self.unsteady_sensor += 1
+            self._note_unsteady()
             return False
         reason = self._still_reason()
-        self.unsteady_sensor += bool(reason and reason.startswith(SENSOR_NOT_STEADY))
+        if reason and reason.startswith(SENSOR_NOT_STEADY):
+            self._note_unsteady()
         return reason is None
+
+    def _note_unsteady(self):
+        """Count a window where the link stood still but the sensor did not; keep its scatter."""
+        self.unsteady_sensor += 1
+        degrees, metres = self._window.changes()
+        self._scatter.append((np.percentile(degrees[1], 75), np.percentile(metres[1], 75)))
+
+    def sensor_scatter(self):
+        """
+        Return the sensor bands that would take most still windows refused so far, or None.
+
+        (deg, m): SCATTER_MARGIN times the median of the refused windows' 75th percentile of
+        the sensor's changes from the newest pose, each at least the band it is now, rounded
+        up to two significant digits.
+        """
+        if not self._scatter:
+            return None
+        wanted = SCATTER_MARGIN * np.median(np.array(self._scatter), axis=0)
+        config = self.config
+        return tuple(_round_up(max(value, band)) for value, band in zip(
+            wanted, (config.sensor_rotation_band_deg, config.sensor_translation_band_m)))
 
     def _still_reason(self):
         """Why the latest window is not still, or None when it is."""

@@ -393,6 +393,11 @@ class Session:
         }
 
     @property
+    def sensor_scatter(self):
+        """Return the sensor bands that the scatter at still links would take (Capture)."""
+        return self._capture.sensor_scatter()
+
+    @property
     def last_unpaired(self):
         """Return why the latest pose that could not be paired was not, or ''."""
         return self._pairer.last_unpaired

@@ -836,7 +836,8 @@ def _fallback_note(capture, session):
 def _unsteady_sensor(capture, session):
     """Say so when the link stood still but the sensor pose did not, else ''."""
     return unsteady_sensor_note(session.counters['unsteady_sensor'], capture,
-                                ('--sensor-still-rotation-deg', '--sensor-still-translation-m'))
+                                ('--sensor-still-rotation-deg', '--sensor-still-translation-m'),
+                                session.sensor_scatter)
 
 
 def _run(replay, config, args, label):
