@@ -466,6 +466,53 @@ def test_moving_aside_never_overwrites(tmp_path):
     assert not path.exists()
 
 
+def test_the_lock_file_goes_with_the_journal_that_held_it(tmp_path):
+    """No empty .NAME.lock is left beside a journal closed (replay --journal-out left one)."""
+    path = tmp_path / 'samples.csv'
+    opened, _ = started(path)
+    assert journal.lock_path(path).exists()
+    opened.close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['samples.csv']
+    # A refused start lets go of its lock, and of its file.
+    written_journal(path, make_samples(3), JournalHeader('eye_to_hand', 'base', 'camera'))
+    with pytest.raises(JournalRefused, match='resume:=true refused'):
+        started(path, resume=True)
+    assert not journal.lock_path(path).exists()
+    # Another's lock file stays while they hold it.
+    first, _ = started(path, resume=False)
+    with pytest.raises(JournalRefused, match='in use'):
+        started(path, resume=True)
+    assert journal.lock_path(path).exists()
+    first.close()
+
+
+def test_a_lock_taken_on_a_file_its_holder_removed_is_taken_again(tmp_path, monkeypatch):
+    """
+    The race of removing lock files.
+
+    B opens the lock file, A removes it and lets go, B locks the removed file: B must lock
+    the file at the path, or a third would lock a new one.
+    """
+    path = tmp_path / 'samples.csv'
+    holder = journal.lock(path)
+    real_flock, opened = journal.fcntl.flock, []
+
+    def flock_after_release(fd, operation):
+        if not opened:   # B has the old file open: A lets go, removing it
+            opened.append(fd)
+            journal.release_lock(path, holder)
+        return real_flock(fd, operation)
+    monkeypatch.setattr(journal.fcntl, 'flock', flock_after_release)
+    taken = journal.lock(path)
+    monkeypatch.undo()
+    assert journal.lock_path(path).exists()
+    assert os.fstat(taken).st_ino == os.stat(journal.lock_path(path)).st_ino
+    with pytest.raises(JournalRefused, match='in use'):
+        journal.lock(path)
+    journal.release_lock(path, taken)
+    assert not journal.lock_path(path).exists()
+
+
 def test_a_directory_or_a_journal_in_use_is_refused(tmp_path):
     (tmp_path / 'dir').mkdir()
     with pytest.raises(JournalRefused, match='directory'):

@@ -31,7 +31,8 @@ Nothing here deletes or overwrites a file that holds samples.
 
 Only the paths given are touched: the journal, files beside it (the moved-aside ones, the
 temporary file of the atomic write, and `.NAME.lock`, which a running journal holds locked with
-flock so that two nodes configured with the same samples_file do not write into one journal).
+flock so that two nodes configured with the same samples_file do not write into one journal,
+and removes as it lets go).
 The file is data: it is parsed as numbers, never evaluated.  No rclpy here.
 """
 
@@ -573,7 +574,7 @@ class Journal:
             os.close(self._fd)
             self._fd = None
         if unlock and self._lock_fd is not None:
-            os.close(self._lock_fd)    # closing releases the flock
+            release_lock(self.path, self._lock_fd)
             self._lock_fd = None
 
 
@@ -607,17 +608,43 @@ def lock(path):
         return None
     lock_file = lock_path(path)
     lock_file.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)
+    while True:
+        fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            os.close(fd)
+            if error.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise JournalRefused(
+                    f'{absolute(path)} is in use by another running calibrator (locked through '
+                    f'{lock_file}): give each node a samples_file of its own') from None
+            raise
+        if _same_file(fd, lock_file):
+            return fd
+        os.close(fd)   # its holder removed it as it let go (release_lock): lock the new one
+
+
+def release_lock(path, fd):
+    """Remove the lock file of the journal `path` while it is still ours, then let go."""
+    if fd is None:   # pragma: no cover (no fcntl)
+        return
+    lock_file = lock_path(path)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError as error:
-        os.close(fd)
-        if error.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-            raise JournalRefused(
-                f'{absolute(path)} is in use by another running calibrator (locked through '
-                f'{lock_file}): give each node a samples_file of its own') from None
-        raise
-    return fd
+        if _same_file(fd, lock_file):
+            lock_file.unlink()
+    except OSError:
+        pass   # left behind: harmless, the next lock takes it
+    os.close(fd)   # closing releases the flock
+
+
+def _same_file(fd, path):
+    """Return whether the open `fd` is the file at `path` (not one removed or replaced)."""
+    try:
+        there = os.stat(path)
+    except FileNotFoundError:
+        return False
+    held = os.fstat(fd)
+    return (held.st_dev, held.st_ino) == (there.st_dev, there.st_ino)
 
 
 def start(path, header, resume, now=None, resumable=True, origins=None):
@@ -657,8 +684,7 @@ def start(path, header, resume, now=None, resumable=True, origins=None):
     try:
         return _start_locked(path, header, resume, lock_fd, now, resumable, origins)
     except BaseException:
-        if lock_fd is not None:
-            os.close(lock_fd)
+        release_lock(path, lock_fd)
         raise
 
 
