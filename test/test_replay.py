@@ -500,15 +500,20 @@ def test_poses_to_bag_writes_the_recordings_bag_from_its_files(repo_root, eth_ba
     # The ETH recording is two files of timed poses: poses_to_bag gives replay the bag of this
     # module's own conversion (eth_streams reads the files as poses_to_bag does; its bag was
     # built with float stamps, off by up to about 128 ns, once: the tolerances below).
-    from quatcal_ros.tools.poses_to_bag import main
+    from quatcal_ros.tools.poses_to_bag import interpreter, main
     folder, out = datasets_dir / 'ethz_robot_arm_real', tmp_path / 'eth'
     assert main([str(folder / 'link_hinge_in_base.csv'), str(folder / 'ir_camera_in_target.csv'),
                  str(out), '--link-topic', '/link', '--sensor-topic', '/camera',
                  '--sensor-frame-id', 'target']) == 0
-    assert capsys.readouterr().out == (
+    printed = capsys.readouterr().out
+    assert printed == (
         f'{out}: 2817 link poses on /link, 1703 sensor poses on /camera (sqlite3). Replay it '
-        f'with:\n  python -m quatcal_ros replay {out} --link-topic /link --sensor-topic '
-        '/camera\n')
+        f'with:\n  {interpreter()} -m quatcal_ros replay {out} --link-topic /link '
+        '--sensor-topic /camera\n')
+    # The command it prints runs as it is (a bare `python` was not this Python).
+    command = printed.splitlines()[1].split() + ['--invert-sensor', '--capture', 'continuous']
+    assert command[0] != 'python' and subprocess.run(
+        command, capture_output=True, cwd=os.getcwd()).returncode == 0
     options = ('--link-topic', '/link', '--sensor-topic', '/camera', '--invert-sensor',
                '--capture', 'continuous')
     ours, theirs = (run_replay(repo_root, bag, *options) for bag in (out, eth_bag))

@@ -12,6 +12,7 @@ storage file is named after it), and moved to OUT_BAG when complete.
 import argparse
 import os
 from pathlib import Path
+import shlex
 import shutil
 import sys
 
@@ -90,11 +91,17 @@ def main(argv=None):
     finally:
         shutil.rmtree(partial, ignore_errors=True)
     counts = [len(stamps) for (stamps, _, _), _ in streams.values()]
+    replay = [interpreter(), '-m', 'quatcal_ros', 'replay', str(out), '--link-topic',
+              args.link_topic, '--sensor-topic', args.sensor_topic]
     print(f'{out}: {counts[0]} link poses on {args.link_topic}, {counts[1]} sensor poses on '
-          f'{args.sensor_topic} ({args.storage}). Replay it with:\n'
-          f'  python -m quatcal_ros replay {out} --link-topic {args.link_topic} '
-          f'--sensor-topic {args.sensor_topic}')
+          f'{args.sensor_topic} ({args.storage}). Replay it with:\n  {shlex.join(replay)}')
     return 0
+
+
+def interpreter():
+    """Return this Python as a command: relative below the working directory (.venv/...)."""
+    relative = os.path.relpath(sys.executable)
+    return relative if not relative.startswith('..') else sys.executable
 
 
 def _fail(message):
