@@ -245,6 +245,18 @@ def test_a_last_line_with_too_few_fields_is_dropped(tmp_path):
     assert 'row 6' in notice and '3 of 15 fields' in notice
 
 
+def test_a_comment_or_a_blank_line_at_the_end_is_no_interrupted_write(tmp_path):
+    # A note added by hand at the end was called 'an interrupted write: dropped'.
+    samples = make_samples(4)
+    path = tmp_path / 'samples.csv'
+    data = written_journal(path, samples)
+    for end in (b'# moved the camera after this\n', b'  # indented\n', b'\n', b'  \n'):
+        path.write_bytes(data + end)
+        contents = journal.read_journal(path)
+        assert_same_samples(contents.samples, samples)
+        assert contents.notices == [] and contents.intact_bytes == len(data + end)
+
+
 @settings(max_examples=60, deadline=None)
 @given(cut=st.floats(min_value=0.0, max_value=1.0))
 def test_a_crash_at_any_byte_loses_at_most_the_line_being_written(tmp_path_factory, cut):

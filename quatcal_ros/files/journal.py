@@ -303,14 +303,17 @@ def complete_lines(text, name, torn_bytes=0):
 
     text: the file's text up to its last end of line; torn_bytes: the length of what follows
     it (a last line without its end of line: dropped). A last line with too few fields is an
-    interrupted write too (module docstring).
+    interrupted write too (module docstring); not a blank line or a '#' comment (added by hand:
+    the samples CSV reads them as such).
     """
     notices = []
     if torn_bytes:
         notices.append(f'{name}: the last line ({torn_bytes} bytes without an end of line) was '
                        'being written when the node stopped: dropped')
     lines = text.split('\n')[:-1]
-    if len(lines) > 2 and lines[-1].count(',') < len(COLUMNS) - 1:
+    last = lines[-1].strip() if lines else ''
+    if (len(lines) > 2 and last and not last.startswith('#')
+            and last.count(',') < len(COLUMNS) - 1):
         notices.append(f'{name}, row {len(lines)}: the last line has '
                        f'{lines[-1].count(",") + 1} of {len(COLUMNS)} fields, an interrupted '
                        'write: dropped')
