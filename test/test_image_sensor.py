@@ -188,6 +188,19 @@ def test_replay_of_camera_images_refines_on_the_corners(tmp_path, board_file, ca
         error_mm, result['translation_uncertainty_mm'])
 
 
+def test_samples_taken_in_motion_weigh_the_time_offset_against_the_answer_printed(
+        tmp_path, board_file, capsys):
+    # The hint quoted the pose-based uncertainty beside the answer on the pixels.
+    write_image_bag(tmp_path / 'cell', 8)
+    assert replay_main([str(tmp_path / 'cell'), '--link-topic', '/robot/pose',
+                        '--image-topic', '/camera/color/image_raw', '--board-file',
+                        str(board_file), '--capture', 'continuous', '--quiet']) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result['method'] == 'reprojection'
+    (moving,) = [w for w in result['warnings'] if 'taken while the link turned' in w]
+    assert f'(the uncertainty: {result["uncertainty_deg"]:.2g} deg)' in moving, moving
+
+
 def test_a_bag_whose_first_image_comes_before_its_camera_info_uses_it(tmp_path, board_file,
                                                                       capsys):
     write_image_bag(tmp_path / 'cell', 6, info_after=True)

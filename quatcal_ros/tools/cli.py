@@ -639,7 +639,6 @@ def replay_main(argv=None):
     if not args.estimate_time_offset:   # (the search starts from what the log times say)
         warnings += _logged_clocks(bag.clock_offset_ns(replay, report),
                                    config.sensor_offset_ns)
-        warnings += _moving_samples(session)
     if session.result is not None:   # the live node's moved-marker watch, over the whole bag
         options = config.calibration
         warnings += [text for _, text in MoveWatch().check(
@@ -656,6 +655,8 @@ def replay_main(argv=None):
                 'search keeps none)'))
     if on_pixels is not None:
         extra['pose_based_method'] = session.result.method
+    if not args.estimate_time_offset:   # (the answer's uncertainty: on the pixels, if so)
+        warnings += _moving_samples(session, on_pixels and on_pixels[0])
     if session.result is not None and (args.result_out or args.easy_handeye2_out):
         status = _write_result(prog, args, on_pixels[0] if on_pixels else session.result,
                                session, warnings, report, link, sensor, causes)
@@ -743,9 +744,12 @@ def _logged_clocks(logged_ns, given_ns):
 OFFSET_WEIGHED_NS = 10_000_000
 
 
-def _moving_samples(session):
+def _moving_samples(session, published=None):
     """
     Return [the hint that samples taken in motion need the time offset], or [].
+
+    published: the answer printed when it is not the session's (on the pixels): its
+    uncertainty is the one to weigh the shift against.
 
     With continuous capture and no sensor time offset given: stamps of two devices are
     rarely the same moment (a camera stamps at the end of its exposure, a driver when it
@@ -763,8 +767,8 @@ def _moving_samples(session):
     return [f'the samples were taken while the link turned (median {speed:.1f} deg/s between '
             f'them): each {OFFSET_WEIGHED_NS / 1e6:.0f} ms by which the sensor stamps are off '
             f'moves them by about {shift:.2g} deg (the uncertainty: '
-            f'{result.uncertainty_deg:.2g} deg); --estimate-time-offset measures the offset '
-            '(or give it, --sensor-time-offset)']
+            f'{(published or result).uncertainty_deg:.2g} deg); --estimate-time-offset '
+            'measures the offset (or give it, --sensor-time-offset)']
 
 
 def _logged_fix(logged_ns):
