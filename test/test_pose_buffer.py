@@ -167,6 +167,18 @@ def test_trim_by_window_and_length():
     assert both.span_ns == 30 * MS
 
 
+def test_median_interval_of_the_kept_stamps_or_of_the_newest_ones():
+    assert filled([0]).median_interval_ns() is None
+    lost = filled([0, 20, 30, 40])     # one lost message: 20, 10, 10
+    assert lost.median_interval_ns() == 10 * MS
+    slowed = filled([0, 10, 20, 30, 40, 50, 70, 90])   # 10 ms five times, then 20 ms
+    assert slowed.median_interval_ns() == 10 * MS
+    assert slowed.median_interval_ns(recent=3) == 20 * MS
+    assert slowed.median_interval_ns(recent=100) == 10 * MS
+    slowed.forget_older_than(START_NS + 50 * MS)   # the kept ones only
+    assert slowed.median_interval_ns() == 20 * MS
+
+
 def test_forget_older_than():
     buffer = filled(range(0, 100, 10))
     buffer.forget_older_than(START_NS + 35 * MS)

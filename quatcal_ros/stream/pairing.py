@@ -31,15 +31,16 @@ from quatcal_ros.stream.pose_buffer import OLDER, PoseBuffer, StampNotNewer
 LINK = 'link'
 SENSOR = 'sensor'
 
-# Samples each stream needs before its rate, and so which stream is faster, is trusted.
-MIN_RATE_SAMPLES = 3
 # The slower stream takes over as the interpolated one only when clearly faster (hysteresis).
 ROLE_SWITCH_RATIO = 1.5
-# A stream's rate is said (typical_rates_hz) once it keeps RATE_POSES stamps spanning
-# RATE_SPAN_NS (or half the window when that is shorter): the median of three intervals
-# survives one lost or late message among the first of a subscription, a mean does not. (A
-# stream too slow to keep RATE_POSES in the window, below 1.5 Hz at 2 s, has none said.)
+# A stream's rate (which stream is faster, and typical_rates_hz) is the median interval of
+# its kept stamps, once it keeps RATE_POSES: the median of three intervals survives one lost
+# or late message among the first of a subscription, a mean does not. It is said
+# (typical_rates_hz) once they span RATE_SPAN_NS (or half the window when that is shorter).
+# (A stream too slow to keep RATE_POSES in the window, below 1.5 Hz at 2 s, has none said.)
+# Of the newest RATE_INTERVALS intervals only: the slower stream asks at every pose.
 RATE_POSES = 4
+RATE_INTERVALS = 16
 RATE_SPAN_NS = 500_000_000
 
 
@@ -123,8 +124,7 @@ class Pairer:
         if any(len(stream) < RATE_POSES or stream.span_ns < span_ns
                for stream in self._streams.values()):
             return None
-        return {name: 1e9 / stream.median_interval_ns()
-                for name, stream in self._streams.items()}
+        return self.rates_hz()
 
     def buffered(self):
         """Poses kept per stream, {'link': count, 'sensor': count}."""
@@ -188,9 +188,9 @@ class Pairer:
         return LINK if self._faster == SENSOR else SENSOR
 
     def _update_roles(self):
+        if any(len(stream) < RATE_POSES for stream in self._streams.values()):
+            return   # (before the median of the other: a silent camera, a 1 kHz link)
         rates = self.rates_hz()
-        if None in rates.values():
-            return
         if self._faster is None:
             self._faster = SENSOR if rates[SENSOR] > rates[LINK] else LINK
         elif rates[self._slower] > ROLE_SWITCH_RATIO * rates[self._faster]:
@@ -250,8 +250,7 @@ class Pairer:
 
 
 def _rate_hz(stream):
-    """Mean rate of a stream's kept poses (a PoseBuffer), or None with too few of them."""
-    count = len(stream)
-    if count < MIN_RATE_SAMPLES:
+    """Rate of a stream's kept poses (a PoseBuffer) by their median interval, or None."""
+    if len(stream) < RATE_POSES:
         return None
-    return (count - 1) * 1e9 / stream.span_ns
+    return 1e9 / stream.median_interval_ns(RATE_INTERVALS)

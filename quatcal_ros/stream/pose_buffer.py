@@ -105,13 +105,18 @@ class PoseBuffer:
         """Return the time from the oldest kept stamp to the newest (0 when empty)."""
         return self._stamps[-1] - self._stamps[self._start] if self._stamps else 0
 
-    def median_interval_ns(self):
-        """Return the median interval between kept stamps (ns), or None with fewer than two."""
+    def median_interval_ns(self, recent=None):
+        """
+        Return the median interval between kept stamps (ns), or None with fewer than two.
+
+        recent: of the newest `recent` intervals only (a bounded cost at any rate).
+        """
         if len(self) < 2:
             return None
         stamps = self._stamps
-        return statistics.median(b - a for a, b in zip(islice(stamps, self._start, None),
-                                                       islice(stamps, self._start + 1, None)))
+        first = self._start if recent is None else max(self._start, len(stamps) - recent - 1)
+        return statistics.median(b - a for a, b in zip(islice(stamps, first, None),
+                                                       islice(stamps, first + 1, None)))
 
     # --- adding ------------------------------------------------------------------------
 
