@@ -116,8 +116,8 @@ class Pairer:
         """
         Each stream's rate to report, {'link': Hz, 'sensor': Hz}, or None until both are known.
 
-        From the median interval of its kept stamps (a dropped or late message does not
-        change it), once there are RATE_POSES of them spanning RATE_SPAN_NS (or half the
+        From the median interval of its newest stamps (a dropped or late message does not
+        change it: rates_hz), once it keeps RATE_POSES spanning RATE_SPAN_NS (or half the
         window).
         """
         span_ns = min(RATE_SPAN_NS, self.config.window_ns // 2)
