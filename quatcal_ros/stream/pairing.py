@@ -31,16 +31,18 @@ from quatcal_ros.stream.pose_buffer import OLDER, PoseBuffer, StampNotNewer
 LINK = 'link'
 SENSOR = 'sensor'
 
-# The slower stream takes over as the interpolated one only when clearly faster (hysteresis).
-ROLE_SWITCH_RATIO = 1.5
-# A stream's rate (which stream is faster, and typical_rates_hz) is the median interval of
-# its kept stamps, once it keeps RATE_POSES: the median of three intervals survives one lost
-# or late message among the first of a subscription, a mean does not. It is said
-# (typical_rates_hz) once they span RATE_SPAN_NS (or half the window when that is shorter).
-# (A stream too slow to keep RATE_POSES in the window, below 1.5 Hz at 2 s, has none said.)
-# Of the newest RATE_INTERVALS intervals only: the slower stream asks at every pose.
+# A stream's rate (rates_hz) is the median interval of its newest RATE_INTERVALS stamps (the
+# slower stream asks at every pose), once it keeps MIN_RATE_POSES. Which stream is faster is
+# decided from MIN_RATE_POSES, and decided again at each pose of the slower one until both
+# keep RATE_POSES: the median of three intervals survives one lost or late message among the
+# first of a subscription, the two of three stamps do not. From then on the slower stream
+# takes over as the interpolated one only when clearly faster (ROLE_SWITCH_RATIO, hysteresis).
+# The rates are said (typical_rates_hz) once RATE_POSES span RATE_SPAN_NS (or half the window
+# when that is shorter); a stream too slow to keep RATE_POSES in the window has none said.
+MIN_RATE_POSES = 3
 RATE_POSES = 4
 RATE_INTERVALS = 16
+ROLE_SWITCH_RATIO = 1.5
 RATE_SPAN_NS = 500_000_000
 
 
@@ -98,6 +100,7 @@ class Pairer:
         self._streams = {name: PoseBuffer(config.window_ns, config.max_length)
                          for name in (LINK, SENSOR)}
         self._faster = None
+        self._roles_settled = False   # (both streams kept RATE_POSES when they were chosen)
         self._resolved_until_ns = None
         self.unpaired = Counter()   # unpaired slower-stream stamps by reason
         self.unpaired_total = 0     # their sum
@@ -135,6 +138,7 @@ class Pairer:
         for stream in self._streams.values():
             stream.clear()
         self._faster = None
+        self._roles_settled = False
         self._resolved_until_ns = None
 
     def add(self, stream_name, stamp_ns, pose):
@@ -188,11 +192,13 @@ class Pairer:
         return LINK if self._faster == SENSOR else SENSOR
 
     def _update_roles(self):
-        if any(len(stream) < RATE_POSES for stream in self._streams.values()):
+        kept = min(len(stream) for stream in self._streams.values())
+        if kept < MIN_RATE_POSES:
             return   # (before the median of the other: a silent camera, a 1 kHz link)
         rates = self.rates_hz()
-        if self._faster is None:
+        if not self._roles_settled:
             self._faster = SENSOR if rates[SENSOR] > rates[LINK] else LINK
+            self._roles_settled = kept >= RATE_POSES
         elif rates[self._slower] > ROLE_SWITCH_RATIO * rates[self._faster]:
             self._faster = self._slower
 
@@ -251,6 +257,6 @@ class Pairer:
 
 def _rate_hz(stream):
     """Rate of a stream's kept poses (a PoseBuffer) by their median interval, or None."""
-    if len(stream) < RATE_POSES:
+    if len(stream) < MIN_RATE_POSES:
         return None
     return 1e9 / stream.median_interval_ns(RATE_INTERVALS)
