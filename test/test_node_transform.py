@@ -194,6 +194,8 @@ def test_publish_tf_broadcasts_every_estimate_on_tf_static(make_harness, cell_an
     """A tf2_msgs publisher of the node's own (no tf2_ros): latched, so late listeners get it."""
     _, samples = cell_and_samples
     h = make_harness([Parameter('publish_tf', value=True)])
+    assert values_of(h.node.diagnostic_status())['tf_static'] == (
+        'nothing broadcast yet: no estimate')
     h.add_samples(samples[:8])
     h.add_samples(samples[8:])
     received = h.subscribe_tf_static()   # late: transient local delivers the last one
@@ -202,6 +204,12 @@ def test_publish_tf_broadcasts_every_estimate_on_tf_static(make_harness, cell_an
     assert last.header.frame_id == 'tool0' and last.child_frame_id == 'camera'
     np.testing.assert_allclose(translation(last.transform), h.node.session.result.translation,
                                atol=1e-12)
+    assert values_of(h.node.diagnostic_status())['tf_static'] == 'broadcast'
+    # After ~/reset the latched transform is the old session's: said so, until a new one.
+    assert h.node._on_reset(None, Trigger.Response()).success
+    assert values_of(h.node.diagnostic_status())['tf_static'] == (
+        'broadcast: the estimate before ~/reset, latched until a new one')
+    h.add_samples(samples)
     assert values_of(h.node.diagnostic_status())['tf_static'] == 'broadcast'
 
 

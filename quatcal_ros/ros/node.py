@@ -584,6 +584,7 @@ class CalibratorNode(Node):
         self.moves.reset()
         self.next_pose = None
         journal_text = self.journal.restart(self._journal_header(kept=False))
+        self.static_tf.new_session()
         self.markers_publisher.publish(markers.clear_markers(
             Header(stamp=self.get_clock().now().to_msg(), frame_id=self._base_frame())))
         if self.images is not None:

@@ -41,6 +41,7 @@ class StaticTf:
         self.said = None          # the last redirection or refusal logged
         self.sent = set()         # (parent, child) edges this node has broadcast
         self.last = None          # (pose, stamp_ns, parent, child) of the last send()
+        self.earlier = False      # what is latched is an earlier session's (~/reset)
 
     def start(self):
         """Make the publisher (once); return True."""
@@ -68,6 +69,7 @@ class StaticTf:
         parent, child, pose = target
         self.sent.add((normalize_frame(parent), normalize_frame(child)))
         self.problem = self.held = None
+        self.earlier = False
         self.publisher.publish(TFMessage(transforms=[
             conversions.transform_stamped_msg(pose, stamp_ns, parent, child)]))
 
@@ -75,6 +77,15 @@ class StaticTf:
         """Broadcast the last transform sent again, re-rooted in `tree` (its parents changed)."""
         if self.last is not None:
             self.send(*self.last, tree)
+
+    def new_session(self):
+        """
+        Note that the session started anew (~/reset): what is latched stays until a new estimate.
+
+        Its reasons for holding or refusing were the old estimates'.
+        """
+        self.problem = self.held = None
+        self.earlier = self.publisher is not None and bool(self.sent) and self.last is not None
 
     def withdraw(self):
         """
@@ -133,6 +144,10 @@ class StaticTf:
             return f'not broadcast yet: {self.held}', None
         if self.problem:
             return f'not broadcast: {self.held or "it would break the TF tree"}', self.problem
+        if self.earlier:
+            return 'broadcast: the estimate before ~/reset, latched until a new one', None
+        if self.last is None:
+            return 'nothing broadcast yet: no estimate', None
         return 'broadcast', None
 
 
