@@ -270,6 +270,14 @@ def test_estimate_needs_two_non_parallel_motions_then_save_and_reset(harness_fac
                       'again with the new offset']
     # The journal says so: a resume with 0.03 warns of the samples paired with 0.
     assert h.node.journal.header.sensor_time_offsets == (0.0, 0.03)
+    # How samples are taken does not change how those taken are solved: no re-estimate.
+    session, estimate = h.node.session, h.node.session.result
+    changed = h.node.set_parameters_atomically([Parameter('still_window_s', value=0.8),
+                                                Parameter('capture_mode', value='manual')])
+    assert changed.successful and h.node.session is session
+    assert session.result is estimate and session.estimate() == []   # nothing to publish
+    assert session.config.capture.window_ns == 800_000_000
+    assert session.config.capture.mode == 'manual' and len(session.samples) == 5
 
     saved = h.call('save')
     assert saved.success and str(result_file) in saved.message

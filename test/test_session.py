@@ -173,6 +173,25 @@ def test_manual_capture_through_the_session():
     assert session.counters['samples'] == 2
 
 
+def test_new_capture_settings_keep_the_samples_the_estimate_and_the_counts():
+    rng = np.random.default_rng(22)
+    streams, messages = stop_and_go_messages(rng, n_stops=6)
+    half = bisect.bisect_right([m[0] for m in messages], streams.stills[3][1])
+    session = Session(SessionConfig())
+    feed(session, messages[:half])
+    taken, estimate, counts = session.samples, session.result, session.counters
+    assert len(taken) == 4 and estimate is not None
+    manual = CaptureConfig(mode='manual', window_ns=800 * MS)
+    session.set_capture(manual)
+    assert session.config.capture == manual and session.samples == taken
+    assert session.result is estimate and session.estimate() == []
+    assert session.counters == counts
+    # The stops that follow are taken as manual captures now, with the new still window.
+    assert of_type(feed(session, messages[half:]), SampleCaptured) == []
+    ok, text = session.capture(streams.stills[5][1])
+    assert ok and re.fullmatch(r'sample 4 captured: averaged \d+ pairs over 0\.[78]\d* s', text)
+
+
 def test_csv_samples_and_bad_ones():
     rng = np.random.default_rng(23)
     cell = sim.random_cell(rng)

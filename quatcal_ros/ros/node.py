@@ -655,7 +655,7 @@ class CalibratorNode(Node):
             self._start_tf_broadcast()
         if 'capture_mode' in changed and self.config.capture_mode == 'continuous':
             self.moves.capture_continuous(len(self.session.samples))
-        if any(name not in settings.PRESENTATION for name in changed):
+        if any(name not in settings.PRESENTATION + settings.CAPTURE for name in changed):
             samples = self.session.samples
             earlier, self.session = self.session, self._new_session()
             self.session.continue_counts(earlier)
@@ -670,10 +670,13 @@ class CalibratorNode(Node):
                         f'{len(samples)} samples taken keep the pairing they were taken with; '
                         'call ~/reset to take them again with the new offset')
                 self._add_known_samples(samples)
-        elif old.result_frames != self.config.result_frames and self.result is not None:
+        else:
+            if any(name in settings.CAPTURE for name in changed):   # (the estimate stays)
+                self.session.set_capture(settings.session_config(self.config).capture)
             # the same estimate, between the new frames (eye_to_hand's parent follows
             # link_frame_id while link_frame is left at its default)
-            self.publish_estimate(self.result)
+            if old.result_frames != self.config.result_frames and self.result is not None:
+                self.publish_estimate(self.result)
 
 
 def main(args=None):

@@ -234,6 +234,16 @@ class Capture:
         # PAIRED_STEP_NS (a pause of the streams, or stamps that leap, is not paired time).
         self.paired_ns = 0
 
+    def reconfigure(self, config):
+        """
+        Capture with `config` from now on (a runtime change).
+
+        The counts and the last sample stay; the still window starts anew.
+        """
+        self.config = config
+        self._window = _PairWindow(config.window_ns)
+        self._newest = None
+
     def clear_window(self):
         """Forget the recent pairs only (time jumped); the next capture still needs a motion."""
         self._window.clear()

@@ -200,6 +200,15 @@ class Session:
         self._pending = []
         self._behind = {}   # stream: (stamp_ns, pose, OutOfOrderStamp) of a jump not confirmed
 
+    def set_capture(self, capture):
+        """
+        Capture with the CaptureConfig `capture` from now on; the samples and the estimate stay.
+
+        How samples are taken does not change how those taken are solved (Capture.reconfigure).
+        """
+        self.config = replace(self.config, capture=capture)
+        self._capture.reconfigure(capture)
+
     def continue_counts(self, earlier):
         """
         Take over the counts of `earlier`, the session of the same streams before new settings.

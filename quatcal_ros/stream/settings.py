@@ -306,6 +306,11 @@ PRESENTATION = ('link_frame', 'sensor_frame', 'result_file', 'max_stamp_offset_s
                 'max_position_m', 'link_frame_id', 'sensor_frame_id', 'easy_handeye2_file',
                 'publish_tf', 'plan_max_rotation_deg', 'plan_view_cone_deg',
                 'plan_workspace_margin_m')
+# Settings that change only how samples are taken: the node keeps its samples and estimate
+# (Session.set_capture).
+CAPTURE = ('capture_mode', 'still_window_s', 'still_rotation_deg', 'still_translation_m',
+           'sensor_still_rotation_deg', 'sensor_still_translation_m', 'min_still_pairs',
+           'continuous_step_deg')
 
 
 def _from_values(values):
