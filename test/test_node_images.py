@@ -242,6 +242,18 @@ def test_resumed_session_refines_on_the_corners_it_kept(make_harness, board_file
     assert again.node.images.sensor.corners == {}
 
 
+def test_capture_settings_at_runtime_reach_the_image_sensor(make_harness, board_file):
+    # Kept with the estimate (no new session), they must still reach the image sensor:
+    # continuous capture takes the nearest image, still capture averages a window's.
+    h = make_harness([Parameter('board_file', value=str(board_file))])
+    sensor = h.node.images.sensor
+    assert sensor.average and sensor.half_window_ns == 250_000_000
+    done = h.node.set_parameters_atomically([Parameter('capture_mode', value='continuous'),
+                                             Parameter('still_window_s', value=0.8)])
+    assert done.successful
+    assert not sensor.average and sensor.half_window_ns == 400_000_000
+
+
 def test_image_mode_needs_a_readable_board_file(domain_id, tmp_path, board_file):
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)

@@ -672,7 +672,10 @@ class CalibratorNode(Node):
                 self._add_known_samples(samples)
         else:
             if any(name in settings.CAPTURE for name in changed):   # (the estimate stays)
-                self.session.set_capture(settings.session_config(self.config).capture)
+                config = settings.session_config(self.config)
+                if self.images is not None:   # (its still window, its averaging)
+                    self.images.sensor.configure(config)
+                self.session.set_capture(config.capture)
             # the same estimate, between the new frames (eye_to_hand's parent follows
             # link_frame_id while link_frame is left at its default)
             if old.result_frames != self.config.result_frames and self.result is not None:
