@@ -178,8 +178,8 @@ def test_a_late_sensor_frame_waits_for_the_link_to_reach_its_stamp():
     truth = ConstantTwist(rng, 20.0, 0.1)
     pairer = Pairer()
     link = [(s, truth.at(s)) for s in stamps(500.0, 0.2)]
-    sensor = [(s, marker(s)) for s in stamps(30.0, 0.1, offset_ns=1_000)]
-    assert len(feed(pairer, link[:60], sensor)) == 3     # roles are known from here on
+    sensor = [(s, marker(s)) for s in stamps(30.0, 0.134, offset_ns=1_000)]   # 4 frames
+    assert len(feed(pairer, link[:60], sensor)) == 4     # roles are known from here on
     early = START_NS + 150_000_777    # a sensor stamp ahead of the newest link pose (118 ms)
     assert pairer.add(SENSOR, early, marker(early)) == []
     pairs = []
@@ -357,7 +357,7 @@ def test_a_message_lost_early_does_not_choose_the_slower_stream_to_interpolate()
     feed(pairer, link, [(s, marker(s)) for s in stamps(30.0, 1.0, offset_ns=1_000)])
     assert pairer.faster == LINK
     assert pairer.rates_hz() == {LINK: pytest.approx(40.0), SENSOR: pytest.approx(30.0)}
-    # A detector so slow that three frames span the window still pairs (chosen from three).
+    # A detector so slow that its window never keeps four frames still pairs (from three).
     pairer = Pairer()
     link = [(s, Pose.identity()) for s in stamps(500.0, 30.0)]
     pairs = feed(pairer, link, [(s, marker(s)) for s in stamps(0.5, 30.0, offset_ns=1_000)])
@@ -368,11 +368,11 @@ def test_a_message_lost_early_does_not_choose_the_slower_stream_to_interpolate()
 
 def test_add_many_stops_at_the_pose_that_completes_pairs():
     pairer = Pairer()
-    link = [(s, Pose.identity()) for s in stamps(1000.0, 0.1)]
-    assert len(feed(pairer, link, [(s, marker(s)) for s in stamps(30.0, 0.1)])) == 3
+    link = [(s, Pose.identity()) for s in stamps(1000.0, 0.11)]
+    assert len(feed(pairer, link, [(s, marker(s)) for s in stamps(30.0, 0.134)])) == 4
     late = START_NS + 120_500_000   # a camera frame ahead of the link stream
     assert pairer.add(SENSOR, late, marker(late)) == []
-    more = stamps(1000.0, 0.05, offset_ns=100_000_000)
+    more = stamps(1000.0, 0.05, offset_ns=110_000_000)
     rows = np.zeros((len(more), 3)), np.tile(quat.IDENTITY, (len(more), 1))
     taken, pairs = pairer.add_many('link', more, *rows)
     assert more[taken - 2] < late <= more[taken - 1]

@@ -33,12 +33,13 @@ SENSOR = 'sensor'
 
 # A stream's rate (rates_hz) is the median interval of its newest RATE_INTERVALS stamps (the
 # slower stream asks at every pose), once it keeps MIN_RATE_POSES. Which stream is faster is
-# decided from MIN_RATE_POSES, and decided again at each pose of the slower one until both
-# keep RATE_POSES: the median of three intervals survives one lost or late message among the
-# first of a subscription, the two of three stamps do not. From then on the slower stream
-# takes over as the interpolated one only when clearly faster (ROLE_SWITCH_RATIO, hysteresis).
-# The rates are said (typical_rates_hz) once RATE_POSES span RATE_SPAN_NS (or half the window
-# when that is shorter); a stream too slow to keep RATE_POSES in the window has none said.
+# decided once both keep RATE_POSES, or MIN_RATE_POSES spanning half the window (a detector
+# so slow that its window never keeps more): the median of three intervals survives one lost
+# or late message among the first of a subscription, the two of three stamps do not. From
+# then on the slower stream takes over as the interpolated one only when clearly faster
+# (ROLE_SWITCH_RATIO, hysteresis). The rates are said (typical_rates_hz) once RATE_POSES span
+# RATE_SPAN_NS (or half the window when that is shorter); a stream too slow to keep
+# RATE_POSES in the window has none said.
 MIN_RATE_POSES = 3
 RATE_POSES = 4
 RATE_INTERVALS = 16
@@ -100,7 +101,6 @@ class Pairer:
         self._streams = {name: PoseBuffer(config.window_ns, config.max_length)
                          for name in (LINK, SENSOR)}
         self._faster = None
-        self._roles_settled = False   # (both streams kept RATE_POSES when they were chosen)
         self._resolved_until_ns = None
         self.unpaired = Counter()   # unpaired slower-stream stamps by reason
         self.unpaired_total = 0     # their sum
@@ -138,7 +138,6 @@ class Pairer:
         for stream in self._streams.values():
             stream.clear()
         self._faster = None
-        self._roles_settled = False
         self._resolved_until_ns = None
 
     def add(self, stream_name, stamp_ns, pose):
@@ -192,14 +191,17 @@ class Pairer:
         return LINK if self._faster == SENSOR else SENSOR
 
     def _update_roles(self):
-        kept = min(len(stream) for stream in self._streams.values())
-        if kept < MIN_RATE_POSES:
-            return   # (before the median of the other: a silent camera, a 1 kHz link)
-        rates = self.rates_hz()
-        if not self._roles_settled:
+        if self._faster is None:
+            half_window_ns = self.config.window_ns // 2
+            if not all(len(stream) >= RATE_POSES or (len(stream) >= MIN_RATE_POSES
+                                                     and stream.span_ns >= half_window_ns)
+                       for stream in self._streams.values()):
+                return   # (before the median of the other: a silent camera, a 1 kHz link)
+            rates = self.rates_hz()
             self._faster = SENSOR if rates[SENSOR] > rates[LINK] else LINK
-            self._roles_settled = kept >= RATE_POSES
-        elif rates[self._slower] > ROLE_SWITCH_RATIO * rates[self._faster]:
+            return
+        rates = self.rates_hz()
+        if rates[self._slower] > ROLE_SWITCH_RATIO * rates[self._faster]:
             self._faster = self._slower
 
     def _resolve_pending(self):
