@@ -200,7 +200,9 @@ class Pairer:
             rates = self.rates_hz()
             self._faster = SENSOR if rates[SENSOR] > rates[LINK] else LINK
             return
-        rates = self.rates_hz()
+        rates = self.rates_hz()   # (None for a stream the window kept too few of: a pause)
+        if None in rates.values():
+            return
         if rates[self._slower] > ROLE_SWITCH_RATIO * rates[self._faster]:
             self._faster = self._slower
 
