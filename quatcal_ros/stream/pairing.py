@@ -221,9 +221,9 @@ class Pairer:
                 fast_pose = self._fast_pose_at(fast, stamp_ns)
             elif slow_newest_ns - stamp_ns > self.config.window_ns:
                 fast_pose = self._unpaired(
-                    'waiting', f'the {self._faster} stream stopped at stamp {fast_newest_ns} '
-                    f'ns, {(stamp_ns - fast_newest_ns) * 1e-9:.3f} s before this '
-                    f'{self._slower} stamp')
+                    'waiting', f'the {self._faster} stream stopped at stamp '
+                    f'{fast_newest_ns * 1e-9:.3f} s, {(stamp_ns - fast_newest_ns) * 1e-9:.3f} s '
+                    f'before this {self._slower} stamp')
             else:
                 break
             self._resolved_until_ns = stamp_ns
@@ -238,14 +238,14 @@ class Pairer:
             return pose
         if miss.reason == OLDER:
             return self._unpaired(
-                'outside', f'{self._slower} stamp {stamp_ns} ns is '
+                'outside', f'{self._slower} stamp {stamp_ns * 1e-9:.3f} s is '
                 f'{(miss.after_ns - stamp_ns) * 1e-9:.3f} s older than the oldest kept '
                 f'{self._faster} pose: latency beyond the {self.config.window_ns * 1e-9:.3g} s '
                 'buffer, or stamps from different clocks?')
         return self._unpaired(
             'gap', f'the {self._faster} stream has a gap of '
             f'{(miss.after_ns - miss.before_ns) * 1e-9:.3f} s around {self._slower} stamp '
-            f'{stamp_ns} ns (max gap {self.config.max_gap_ns * 1e-9:.3g} s)')
+            f'{stamp_ns * 1e-9:.3f} s (max gap {self.config.max_gap_ns * 1e-9:.3g} s)')
 
     def _unpaired(self, reason, text):
         self.unpaired[reason] += 1
