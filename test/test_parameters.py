@@ -124,6 +124,24 @@ def test_two_files_at_one_path_are_refused(tmp_path):
             Settings.from_values(dict(DEFAULTS, **{name: str(tmp_path)}))
 
 
+def test_a_file_in_a_folder_that_cannot_be_written_is_refused(tmp_path, monkeypatch):
+    """A read-only folder was accepted at start and at runtime, and failed only at ~/save."""
+    from quatcal_ros.stream import settings as module
+    locked = tmp_path / 'locked'
+    locked.mkdir()
+    # (root writes anywhere but on a read-only mount: the check is os.access's)
+    monkeypatch.setattr(module.os, 'access', lambda path, mode: path != str(locked))
+    for name in ('result_file', 'easy_handeye2_file'):
+        for path in (locked / 'r.yaml', locked / 'new' / 'deeper' / 'r.yaml'):
+            with pytest.raises(ConfigError) as refused:
+                Settings.from_values(dict(DEFAULTS, **{name: str(path)}))
+            assert str(refused.value) == (
+                f"{name} '{path}' cannot be written: {locked} is not writable (read-only, or "
+                'not yours): give a path in a writable folder')
+        # a folder still to be made in a writable one: made by ~/save
+        assert Settings.from_values(dict(DEFAULTS, **{name: str(tmp_path / 'new' / 'r.yaml')}))
+
+
 def test_integers_for_floats_become_floats():
     config = Settings.from_values(dict(DEFAULTS, still_window_s=1))
     assert config.still_window_s == 1.0 and isinstance(config.still_window_s, float)

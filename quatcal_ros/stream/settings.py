@@ -273,7 +273,8 @@ SETTINGS = (
             tools=BOTH),
     Setting('result_file', DEFAULT_RESULT_FILE,
             'Where ~/save writes the result YAML (~ is expanded; written atomically). A '
-            'path of its own: not samples_file nor easy_handeye2_file.'),
+            'path of its own: not samples_file nor easy_handeye2_file; a file in a folder that '
+            'can be written (checked at start and when set).'),
     Setting('easy_handeye2_file', '',
             "~/save also writes the result here in easy_handeye2's calibration layout "
             '(parameters + transform; ~ is expanded; written atomically), e.g. '
@@ -363,10 +364,22 @@ def _check_files(settings):
         target = os.path.realpath(os.path.expanduser(path))
         if os.path.isdir(target):   # (it was found only by ~/save)
             raise ConfigError(f'{name} {path!r} is a directory: give the path of a file in it')
+        folder = _existing_folder(target)
+        if not os.access(folder, os.W_OK):   # (a read-only folder, too, was found by ~/save)
+            raise ConfigError(f'{name} {path!r} cannot be written: {folder} is not writable '
+                              '(read-only, or not yours): give a path in a writable folder')
         if target in seen:
             raise ConfigError(f'{seen[target]} and {name} are one file, {path!r}: ~/save '
                               'would replace the one with the other; give each its own path')
         seen[target] = name
+
+
+def _existing_folder(path):
+    """Return the folder of `path` that exists, or its nearest existing ancestor (made later)."""
+    folder = os.path.dirname(path)
+    while not os.path.isdir(folder) and os.path.dirname(folder) != folder:
+        folder = os.path.dirname(folder)
+    return folder
 
 
 def _as_dict(self):
