@@ -12,7 +12,8 @@ import re
 import textwrap
 
 from quatcal_ros.ros import command_line
-from quatcal_ros.stream.settings import ConfigError, NODE_NAME, PRESENTATION, SETTING_BY_NAME
+from quatcal_ros.stream.settings import CAPTURE, check_writable, ConfigError, NODE_NAME, \
+    PRESENTATION, SETTING_BY_NAME
 from quatcal_ros.stream.settings import SETTINGS
 from quatcal_ros.stream.settings import Settings
 from rcl_interfaces.msg import FloatingPointRange
@@ -68,8 +69,10 @@ def declare_parameters(node):
         raise ConfigError(refusal)
     if warning:
         node.get_logger().warning(warning)
-    return Settings.from_values(
+    settings = Settings.from_values(
         {setting.name: node.get_parameter(setting.name).value for setting in SETTINGS})
+    check_writable(settings)
+    return settings
 
 
 def updated(settings, parameters):
@@ -78,7 +81,9 @@ def updated(settings, parameters):
 
     :raises ConfigError: when a new value is not allowed; `settings` stay as they were.
     """
-    return settings.updated(**{p.name: p.value for p in parameters if p.name in SETTING_BY_NAME})
+    new = settings.updated(**{p.name: p.value for p in parameters if p.name in SETTING_BY_NAME})
+    check_writable(new)
+    return new
 
 
 def params_file_text():
@@ -91,7 +96,8 @@ def params_file_text():
         '# A whole number is taken for a real-valued parameter (1 for 1.0).',
         '# read-only: set at startup only; every other parameter can be changed at runtime',
         '# (ros2 param set), and the estimate is recomputed from the samples so far, except',
-        '# for those marked "keeps the estimate" (they change only the outputs or the checks).',
+        '# for those marked "keeps the estimate" (they change only the outputs, the checks or',
+        '# how samples are taken).',
         f'{NODE_NAME}:',
         '  ros__parameters:',
     ]
@@ -107,7 +113,7 @@ def _described(setting):
     notes = [setting.constraints] if setting.constraints else []
     if setting.read_only:
         notes.append('read-only')
-    elif setting.name in PRESENTATION:
+    elif setting.name in PRESENTATION + CAPTURE:
         notes.append('keeps the estimate')
     return setting.description + (f' ({"; ".join(notes)})' if notes else '')
 

@@ -364,14 +364,28 @@ def _check_files(settings):
         target = os.path.realpath(os.path.expanduser(path))
         if os.path.isdir(target):   # (it was found only by ~/save)
             raise ConfigError(f'{name} {path!r} is a directory: give the path of a file in it')
-        folder = _existing_folder(target)
-        if not os.access(folder, os.W_OK):   # (a read-only folder, too, was found by ~/save)
-            raise ConfigError(f'{name} {path!r} cannot be written: {folder} is not writable '
-                              '(read-only, or not yours): give a path in a writable folder')
         if target in seen:
             raise ConfigError(f'{seen[target]} and {name} are one file, {path!r}: ~/save '
                               'would replace the one with the other; give each its own path')
         seen[target] = name
+
+
+def check_writable(settings):
+    """
+    Raise ConfigError when one of the node's files lies in a folder that cannot be written.
+
+    The node's check, at start and when set (a read-only folder was found only by ~/save);
+    not the offline tools', which write none of them. A folder still to be made is judged by
+    its nearest existing parent.
+    """
+    for name in FILES:
+        path = getattr(settings, name)
+        if not path:
+            continue
+        folder = _existing_folder(os.path.realpath(os.path.expanduser(path)))
+        if not os.access(folder, os.W_OK):
+            raise ConfigError(f'{name} {path!r} cannot be written: {folder} is not writable '
+                              '(read-only, or not yours): give a path in a writable folder')
 
 
 def _existing_folder(path):
