@@ -399,6 +399,28 @@ def test_stamps_on_clocks_seconds_apart_are_named_with_the_offset_to_set(harness
 
 # --- parameters -----------------------------------------------------------------------------
 
+def test_another_node_of_the_same_name_is_named_once(harness_factory):
+    # Two calibrators of one name ran side by side without a word; ~/save reached either.
+    h = harness_factory()
+    other = rclpy.create_node('calibrator', context=h.context)
+    try:
+        h.spin_until(lambda: h.node.get_node_names_and_namespaces().count(
+            ('calibrator', '/')) == 2, what='the other node discovered')
+        expected = ('1 other node(s) named /calibrator run on this ROS domain: ~/save, ~/reset '
+                    'and parameter changes may reach either; give each calibrator a name of '
+                    'its own (--ros-args -r __node:=calibrator_2)')
+        with logged_warnings(h.node) as warned:
+            for _ in range(3):
+                status = h.node.diagnostic_status()
+        assert warned == [expected] and expected in status.message
+        assert status.level == status.WARN
+    finally:
+        other.destroy_node()
+    h.spin_until(lambda: h.node.get_node_names_and_namespaces().count(
+        ('calibrator', '/')) == 1, what='the other node gone')
+    assert 'other node(s) named' not in h.node.diagnostic_status().message
+
+
 def test_invalid_parameters_are_refused_at_start(domain_id):
     context = Context()
     rclpy.init(context=context, domain_id=domain_id)

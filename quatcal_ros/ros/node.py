@@ -157,6 +157,7 @@ class CalibratorNode(Node):
         self._frames_log = StandingLog(forget=False)
         self._clock_log = StandingLog(key=lambda text: 'clocks')
         self._still_log = StandingLog(key=lambda text: 'never still')
+        self._name_log = StandingLog(key=lambda text: 'name')
         # A silent or stale stream, publishers of the wrong type: logged once they have stood
         # INPUT_PROBLEM_LOG_S (their texts carry the seconds since: keyed without numbers).
         self._input_log = StandingLog(INPUT_PROBLEM_LOG_S * 1e9, key=without_numbers)
@@ -483,7 +484,7 @@ class CalibratorNode(Node):
         self._log_standing(self._still_log, [stuck and f'{stuck}: {still_advice(self.session)}'])
         problems = [self.moves.warning(len(self.session.samples)), self.journal.problem,
                     tf_problem, *watched, *self._input_problems(), *self._frame_problems(),
-                    self._clock_problem()]
+                    self._clock_problem(), self._name_problem()]
         return calibrator_status(self.session, self.stats, now_ns,
                                  self.config.result_frames[0], problems, tf_static,
                                  self.input_watch.started_ns, self.inputs.topics,
@@ -509,6 +510,24 @@ class CalibratorNode(Node):
     def _settle_held(self):
         """Count a pose the old session held undecided, which the new one never saw (good)."""
         self.inputs.screen.verdict(LINK, [], count=0, held=self.session.held)
+
+    def _name_problem(self):
+        """
+        Return the problem of another node of this name on the domain (logged once), or None.
+
+        Its services and parameters answer at the same names: ~/save, ~/reset or a parameter
+        change may reach either (two of one name ran side by side without a word).
+        """
+        me = (self.get_name(), self.get_namespace())
+        others = self.get_node_names_and_namespaces().count(me) - 1
+        text = None
+        if others > 0:
+            name = self.get_fully_qualified_name()
+            text = (f'{others} other node(s) named {name} run on this ROS domain: ~/save, '
+                    '~/reset and parameter changes may reach either; give each calibrator a '
+                    f'name of its own (--ros-args -r __node:={self.get_name()}_2)')
+        self._log_standing(self._name_log, [text])
+        return text
 
     def _clock_problem(self):
         """Return arrival_lag's warning on the streams' clocks (logged once), or None."""
