@@ -897,11 +897,19 @@ def test_publishers_of_the_wrong_type_are_named(domain_id):
         h.spin_until(lambda: 'geometry_msgs/msg/PointStamped' in [
             info.topic_type for info in h.node.get_publishers_info_by_topic('/sensor_pose')],
             what='the wrong-type publisher in the graph')
+        # Silent for long enough to be stale: the type explains it, the topic and the
+        # publisher are right ('is it remapped ..., does the publisher run?' sent the user
+        # to check them); the link stream, silent with no publisher at all, keeps its advice.
+        h.node.input_watch.started_ns = h.node.now_ns() - 10 * NS_PER_S
+        h.node.diagnostic_status()   # (the graph's verdict, at the status before)
         status = h.node.diagnostic_status()
         assert status.level == DiagnosticStatus.WARN
         assert '/sensor_pose has publishers of type geometry_msgs/msg/PointStamped; the node ' \
             'subscribes geometry_msgs/msg/PoseStamped (parameter pose_type, or ' \
             'sensor_pose_type)' in status.message
+        assert 'no message on /sensor_pose' not in status.message, status.message
+        assert 'no message on /link_pose' in status.message, status.message
+        assert 'sensor_pose' in {kv.key: kv.value for kv in status.values}['stale'].split()
         # Only /diagnostics said so; the log is told once it has stood a while, then once.
         h.node._input_log.after = 0   # (as if it had stood INPUT_PROBLEM_LOG_S)
         with logged_warnings(h.node) as warned:

@@ -82,6 +82,9 @@ class InputWatch:
         self.stale_seen = 0                  # and its stale-stamped messages
         self.clock_seen = (None, None)       # (node clock, steady clock) when it last moved
         self.counts_seen = {}                # stream: (received, lost) at the last status
+        # streams whose silence the publishers' type or QoS explains (at the last status): the
+        # silent stream's 'is it remapped ..., does the publisher run?' would mislead
+        self.explained = frozenset()
 
     def problems(self, stats, topics, publishers, time_jumps, now_ns, sim_time,
                  steady_ns=None):
@@ -92,7 +95,7 @@ class InputWatch:
         TopicEndpointInfo: topic_type, qos_profile);
         steady_ns: the steady (wall) clock, to see a node clock that stopped.
         """
-        found = []
+        found, explained = [], set()
         stale = set(stats.stale(now_ns))   # a publisher replaced after the stream had data
         for stream, topic in topics.items():
             if stats.received[stream] and stream not in stale:
@@ -101,16 +104,19 @@ class InputWatch:
             heard = publishers(topic)
             wrong = sorted({info.topic_type for info in heard} - {expected})
             if wrong:
+                explained.add(stream)
                 found.append(f'{topic} has publishers of type {", ".join(wrong)}; the node '
                              f'subscribes {expected} (parameter pose_type'
                              f'{", or sensor_pose_type" if stream == "sensor_pose" else ""})')
             elif heard and stream in self.reliable and all(
                     info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
                     for info in heard):
+                explained.add(stream)
                 found.append(f'{topic} has only best-effort publishers ({len(heard)}); the '
                              'node subscribes it reliable, and a reliable subscription hears '
                              "no best-effort publisher: publish it reliable (the driver's QoS "
                              'setting, or a relay)')
+        self.explained = frozenset(explained)
         for stream, topic in topics.items():
             received, lost = stats.received[stream], stats.lost[stream]
             before = self.counts_seen.get(stream, (0, 0))
@@ -230,7 +236,7 @@ def never_still(session):
 
 def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_static='',
                       started_ns=None, topics=None, next_pose=None, result=None, composed=(),
-                      name=DIAGNOSTIC_NAME):
+                      name=DIAGNOSTIC_NAME, explained=()):
     """
     Return the DiagnosticStatus of the calibrator.
 
@@ -241,11 +247,14 @@ def calibrator_status(session, stats, now_ns, hardware_id, problems=(), tf_stati
     :param next_pose: the planner's core.planner.NextPose, or None.
     :param result: the published CalibrationResult when it is not the session's (on pixels).
     :param composed: the streams of TF input (poses composed from frames on their topic).
+    :param explained: streams whose silence a problem already explains (InputWatch): their
+        stale text is left out (the stream stays in the 'stale' key).
     """
     result = result or session.result
     counters = session.counters
     stale = stats.stale_reasons(now_ns, STALE_AFTER_S, started_ns, topics, composed)
-    found = list(dict.fromkeys(text for _, text in stale))   # (TF input: one topic, /tf)
+    found = list(dict.fromkeys(text for stream, text in stale   # (TF input: one topic, /tf)
+                               if stream not in explained))
     # The input's problems before the estimate's warnings: they are the causes (swapped TF
     # frames make the frame-convention warning advise another setup).
     found += [text for text in problems if text]

@@ -477,7 +477,9 @@ class CalibratorNode(Node):
         stale = self.stats.stale_reasons(now_ns, STALE_AFTER_S, self.input_watch.started_ns,
                                          self.inputs.topics, self.inputs.composed)
         # (/diagnostics alone said that nothing came on a pose topic: the log stayed silent)
-        self._log_standing(self._input_log, [*dict.fromkeys(text for _, text in stale),
+        explained = self.input_watch.explained   # (a wrong type: not 'does it run?')
+        self._log_standing(self._input_log, [*dict.fromkeys(text for stream, text in stale
+                                                            if stream not in explained),
                                              *watched])
         # (a sensor too noisy for its still bands showed on /diagnostics alone)
         stuck = never_still(self.session)
@@ -489,7 +491,7 @@ class CalibratorNode(Node):
                                  self.config.result_frames[0], problems, tf_static,
                                  self.input_watch.started_ns, self.inputs.topics,
                                  self.next_pose, self.result, self.inputs.composed,
-                                 status_name(self.get_name()))
+                                 status_name(self.get_name()), explained)
 
     def _input_problems(self):
         """
