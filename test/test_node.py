@@ -470,6 +470,16 @@ def test_parameters_at_runtime(harness_factory, monkeypatch):
         (result,) = node.set_parameters([parameter])
         assert not result.successful and words in result.reason, result.reason
     assert node.config.pairs == 'all' and node.get_parameter('pairs').value == 'all'
+    # A misspelt name is named, as at start (rclpy's refusal read 'undeclared parameter(s):
+    # []'), and nothing is declared.
+    (result,) = node.set_parameters([Parameter('still_windw_s', value=0.7)])
+    assert not result.successful and result.reason == (
+        'no such parameter: still_windw_s (did you mean still_window_s?); `calibrator --help` '
+        'lists every parameter')
+    (result,) = node.set_parameters([Parameter('colour', value='red')])
+    assert result.reason == ('no such parameter: colour; `calibrator --help` lists every '
+                             'parameter')
+    assert not node.has_parameter('still_windw_s') and not node.has_parameter('colour')
     # `ros2 param set /calibrator still_window_s 1` sends an integer: taken as 1.0.
     (result,) = node.set_parameters([Parameter('still_window_s', value=1)])
     assert result.successful and node.config.still_window_s == 1.0

@@ -138,6 +138,21 @@ def unknown_parameters(node, names, node_name):
     return refusal, warning
 
 
+def unknown_at_runtime(node, parameters, names, node_name):
+    """
+    Return the refusal of a runtime change (`ros2 param set`) to a parameter `node` lacks.
+
+    For a node made with allow_undeclared_parameters, so that its set-parameters callback
+    sees the name: rclpy's own refusal named none ('undeclared parameter(s): []').
+    """
+    unknown = [p.name for p in parameters if not node.has_parameter(p.name)]
+    if not unknown:
+        return None
+    named = [f'{name} (did you mean {typo_of(name, names)}?)' if typo_of(name, names) else name
+             for name in unknown]
+    return f'no such parameter: {", ".join(named)}; `{node_name} --help` lists every parameter'
+
+
 def help_text(node_name, about, parameters):
     """
     Return a node's --help: how to give parameters, what it is, each parameter and default.

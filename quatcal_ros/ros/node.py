@@ -41,6 +41,7 @@ from quatcal_ros.core.validation import published
 from quatcal_ros.files import journal
 from quatcal_ros.files.session_record import MoveWatch, SamplesJournal, save_result
 from quatcal_ros.files.text_input import BadInputError
+from quatcal_ros.ros import command_line
 from quatcal_ros.ros import conversions
 from quatcal_ros.ros import markers
 from quatcal_ros.ros import parameters
@@ -110,7 +111,8 @@ class CalibratorNode(Node):
     """The `calibrator` node (module docstring); raises ConfigError on bad parameters."""
 
     def __init__(self, **kwargs):
-        super().__init__(NODE_NAME, **kwargs)
+        # (undeclared names reach _check_parameters, which names them: rclpy's refusal did not)
+        super().__init__(NODE_NAME, allow_undeclared_parameters=True, **kwargs)
         try:
             self.config = parameters.declare_parameters(self)
             self._tf_frames = settings.tf_frames(self.config)
@@ -657,6 +659,10 @@ class CalibratorNode(Node):
 
     def _check_parameters(self, changes):
         self.inputs.flush()
+        unknown = command_line.unknown_at_runtime(self, changes, settings.SETTING_BY_NAME,
+                                                  NODE_NAME)
+        if unknown:
+            return SetParametersResult(successful=False, reason=unknown)
         try:
             parameters.updated(self.config, changes)
         except ConfigError as error:
