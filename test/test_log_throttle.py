@@ -118,3 +118,30 @@ def test_a_capture_refused_again_and_again_is_logged_once_per_period_with_its_co
     log.capture_refused('robot is moving: link rotated 0.5 deg in the last 1.0 s')
     assert logger.lines[-1] == ('info', 'capture refused: robot is moving: link rotated 0.5 deg '
                                 'in the last 1.0 s')
+
+
+def test_a_warning_every_estimate_repeats_is_logged_in_full_once_then_shortened_rarely():
+    # A 900-character frame-convention warning came back in full every 5 s of estimates.
+    from quatcal_ros.stream.log_throttle import WARNING_REPEAT_S
+    now = [0.0]
+    log = EventLog(Lines(), clock=lambda: now[0])
+    long = 'frame convention: another one fits far better ' + 'and says so at length ' * 40
+    residual = 'high residual {:.2f} deg RMS'
+
+    def estimate(*warnings):   # the texts an estimate with these warnings logs
+        return [text for _, text in log._warnings_due(list(warnings))]
+    assert estimate(long, residual.format(1.5)) == [long, 'high residual 1.50 deg RMS']
+    for k in range(1, 12):   # an estimate every 5 s for 55 s, the same warnings: nothing
+        now[0] = 5.0 * k
+        assert estimate(long, residual.format(1.5 + 0.1 * k)) == []
+    now[0] = WARNING_REPEAT_S   # still standing after a minute: shortened
+    assert estimate(long) == [f'still: {long[:157]}... (in full on /diagnostics)']
+    assert estimate(long) == []
+    # The residual went away with that estimate: back, it is new again, in full; one that
+    # comes and goes with every estimate is not logged each time.
+    now[0] += 10.0
+    assert estimate(long, residual.format(2.0)) == ['high residual 2.00 deg RMS']
+    now[0] += 1.0
+    assert estimate(long) == [] and estimate(long, residual.format(2.1)) == []
+    log.reset()   # a cleared session: in full again
+    assert estimate(long) == [long]

@@ -8,24 +8,31 @@ poses, and of ~/capture: capture_refused) and notices, and the moved-marker chec
 that `move_check(result)` returns. `messages` writes the (level, text) pairs of the journal and
 the result files.
 
-An estimate's warnings come back with every estimate, and a clock-jump notice or a refused
-pose can come with every message (in the node the pose screen counts refused poses before
-they get here): each kind is logged at most every LOG_THROTTLE_S seconds
-(log_throttle.LogThrottle), counted as the same when only its numbers changed. A refused sample
+An estimate's warnings come back with every estimate: each is logged in full when it comes
+(numbers aside: a warning whose numbers changed is the same), then, while every estimate
+repeats it, shortened ('still: ...') at most every WARNING_REPEAT_S seconds; its text stays on
+/diagnostics. A clock-jump notice or a refused pose can come with every message (in the node
+the pose screen counts refused poses before they get here): each kind is logged at most every
+LOG_THROTTLE_S seconds (log_throttle.LogThrottle), counted as the same when only its numbers
+changed. A refused sample
 (non-finite, or a repeat of an earlier one, from a resumed journal) is logged each time: each
 names its sample, and there is one per sample given.
 """
 
+import math
 import re
 import time
 
 from quatcal_ros.core import conventions
+from quatcal_ros.core.units import shown
 from quatcal_ros.ros.diagnostics import describe_result
-from quatcal_ros.stream.log_throttle import LogThrottle
+from quatcal_ros.stream.log_throttle import LOG_THROTTLE_S, LogThrottle, WARNING_REPEAT_S
 from quatcal_ros.stream.session import EstimateUpdated, Notice, Rejected, SampleCaptured
 
 # The numbers of a line (residuals, counts, stamps): the same line with new numbers is not new.
 NUMBER = re.compile(r'[-+]?\d[\d.]*(?:e[-+]?\d+)?')
+# Characters of a standing warning's repeat ('still: ...').
+REPEAT_CHARACTERS = 160
 
 
 class EventLog:
@@ -37,12 +44,16 @@ class EventLog:
         self._rejected_samples = set()   # reported already: each is logged once
         self._throttle = LogThrottle()    # per line without its numbers
         self._refusals_logged = {}        # a ~/capture refusal's key: when last logged
+        self._warnings_logged = {}        # an estimate warning's key: when last logged
+        self._standing = set()            # the keys of the last estimate's warnings
 
     def reset(self):
         """Forget the samples reported rejected and the throttled lines (a cleared session)."""
         self._rejected_samples = set()
         self._throttle.clear()
         self._refusals_logged.clear()
+        self._warnings_logged.clear()
+        self._standing = set()
 
     def log(self, events, move_check, saved=None):
         """
@@ -81,15 +92,36 @@ class EventLog:
         for index in sorted(set(rejected) - self._rejected_samples):
             self.logger.info(f'rejected sample {index}: {rejected[index]}')
         self._rejected_samples = set(rejected)
-        for warning in result.warnings:
-            if not self._due(warning):
-                continue
+        for warning, text in self._warnings_due(result.warnings):
             # ('not checked yet' is a state, said as such; rclpy wants one severity a line)
             if conventions.unchecked([warning]):
-                self.logger.info(warning)
+                self.logger.info(text)
             else:
-                self.logger.warning(warning)
+                self.logger.warning(text)
         self.messages(moved)
+
+    def _warnings_due(self, warnings):
+        """
+        Return (warning, text to log) of an estimate's `warnings` (module docstring).
+
+        In full when new (not within LOG_THROTTLE_S of its last line: one that comes and goes
+        with every estimate), shortened while it stands, at most every WARNING_REPEAT_S.
+        """
+        now, due, standing = self.clock(), [], set()
+        for warning in warnings:
+            key = NUMBER.sub('#', warning)
+            standing.add(key)
+            since = now - self._warnings_logged.get(key, -math.inf)
+            if key not in self._standing and since >= LOG_THROTTLE_S:
+                due.append((warning, warning))
+            elif key in self._standing and since >= WARNING_REPEAT_S:
+                due.append((warning, f'still: {shown(warning, REPEAT_CHARACTERS)} (in full on '
+                                     '/diagnostics)'))
+            else:
+                continue
+            self._warnings_logged[key] = now
+        self._standing = standing
+        return due
 
     def capture_refused(self, reason):
         """

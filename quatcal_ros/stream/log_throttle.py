@@ -13,6 +13,9 @@ from collections import Counter
 
 # Each kind of event is logged at most once per this many seconds (steady clock).
 LOG_THROTTLE_S = 5.0
+# A warning that every estimate repeats is logged in full when it comes, then shortened at
+# most once per this many seconds while it stands (it is on /diagnostics all along).
+WARNING_REPEAT_S = 60.0
 # Kinds remembered before a new one makes those whose period has passed, with nothing held
 # back, be forgotten (their next line is due at once anyway): a soft bound on memory when keys
 # carry free text, such as warnings (kinds still within their period stay).
