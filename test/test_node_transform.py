@@ -27,6 +27,7 @@ from rclpy.qos import DurabilityPolicy
 from rclpy.qos import QoSProfile
 from rclpy.qos import ReliabilityPolicy
 from ros_harness import SpinMixin
+from std_msgs.msg import Bool
 from std_srvs.srv import Trigger
 from tf2_msgs.msg import TFMessage
 import yaml
@@ -219,20 +220,24 @@ def test_publish_tf_holds_an_estimate_that_says_not_to_use_it(make_harness, cell
     _, samples = cell_and_samples
     h = make_harness([Parameter('publish_tf', value=True)])
     received = h.subscribe_tf_static()
+    usable = []   # ~/usable: ~/transform carries such an estimate too, this says so
+    h.driver.create_subscription(Bool, '/calibrator/usable', usable.append, LATCHED)
     h.add_samples(samples)
-    h.spin_until(lambda: received, what='/tf_static')
+    h.spin_until(lambda: received and usable, what='/tf_static and ~/usable')
+    assert usable[-1].data is True
     good = translation(received[-1].transforms[0].transform)
     (done,) = h.node.set_parameters([Parameter('setup', value='eye_to_hand')])
     assert done.successful
     result = h.node.session.result
     assert not result.usable and any('do not use this estimate' in w for w in result.warnings)
-    h.spin_for(0.5)
+    h.spin_until(lambda: usable[-1].data is False, what='~/usable false')
     np.testing.assert_array_equal(translation(received[-1].transforms[0].transform), good)
     assert values_of(h.node.diagnostic_status())['tf_static'] == (
         'not broadcast: the estimate says not to use it')
     (done,) = h.node.set_parameters([Parameter('setup', value='eye_in_hand')])
     assert done.successful and h.node.session.result.usable
     assert values_of(h.node.diagnostic_status())['tf_static'] == 'broadcast'
+    h.spin_until(lambda: usable[-1].data is True, what='~/usable true again')
 
 
 def test_publish_tf_waits_for_the_convention_check_and_withdraws_a_wrong_one(

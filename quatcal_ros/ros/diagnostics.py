@@ -60,8 +60,9 @@ def describe_result(result):
         uncertainty += f' and {result.translation_uncertainty_mm:.2f} mm'
     return (f'estimate: {format_quaternion_xyzw(result.quaternion)}{translation}, residual '
             f'{result.residual_rms_deg:.3f} deg RMS, uncertainty {uncertainty}, from '
-            f'{result.samples} samples ({result.inliers} of {result.motions} motions used); '
-            f'next: {result.hint}')
+            f'{result.samples} samples ({result.inliers} of {result.motions} motions used)'
+            f'{"" if result.usable else "; it says not to use it (usable false: its warnings)"}'
+            f'; next: {result.hint}')
 
 
 class InputWatch:

@@ -66,7 +66,7 @@ from quatcal_ros.vision.board import read_board
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from std_msgs.msg import Header
+from std_msgs.msg import Bool, Header
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
@@ -176,6 +176,10 @@ class CalibratorNode(Node):
         self.transform_publisher = self.create_publisher(
             TransformStamped, '~/transform', LATCHED_QOS,
             event_callbacks=quiet_publisher_events())
+        # whether the estimate on ~/rotation and ~/transform may be used (its `usable`): they
+        # carry one that says not to use it too, with nothing in the message to tell
+        self.usable_publisher = self.create_publisher(
+            Bool, '~/usable', LATCHED_QOS, event_callbacks=quiet_publisher_events())
         self.static_tf = StaticTf(self)
         self._broadcast_convention = None   # (setup, invert_sensor) of the estimate latched
         if self.inputs.tf is not None:   # our broadcast heard back gives way to another's
@@ -329,6 +333,7 @@ class CalibratorNode(Node):
         """Publish `result` (quaternion, translation) on ~/rotation, ~/transform, /tf_static."""
         msg = conversions.quaternion_stamped_msg(
             result.quaternion, self.now_ns(), self.config.result_frames[0])
+        self.usable_publisher.publish(Bool(data=bool(result.usable)))   # (first: read with it)
         self.rotation_publisher.publish(msg)
         stamp_ns = conversions.stamp_ns_from_header(msg.header)
         self.transform_publisher.publish(self.transform_msg(result, stamp_ns))
