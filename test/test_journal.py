@@ -419,29 +419,36 @@ def test_paired_with_lists_each_offset_the_kept_samples_were_paired_with():
     assert HEADER.paired_with(-0.03, kept=False).sensor_time_offsets == (-0.03,)
 
 
-def test_resume_with_another_sensor_time_offset_warns_and_records_both(tmp_path):
+def test_resume_with_another_sensor_time_offset_warns(tmp_path):
     """Resumed samples keep their pairing, as after a change at runtime: said, not silent."""
     path = tmp_path / 'samples.csv'
-    written_journal(path, make_samples(3), replace(HEADER, sensor_time_offsets=(0.0,)))
+    written = written_journal(path, make_samples(3), replace(HEADER, sensor_time_offsets=(0.0,)))
     opened, report = started(path, replace(HEADER, sensor_time_offsets=(-0.03,)), resume=True)
     opened.close()
     warnings = [text for level, text in report.messages if level == 'warning']
     assert warnings == [
         f'{path}: its 3 samples were paired with sensor_time_offset_s 0 (its first line); '
         '-0.03 applies to new poses only: the samples resumed keep their pairing. Call '
-        '~/reset to take them again with -0.03, or resume with sensor_time_offset_s:=0']
-    assert journal.read_journal(path).header.sensor_time_offsets == (0.0, -0.03)
-    # The same offset again: nothing to say, nothing rewritten.
+        '~/reset to take them again with -0.03, or resume with sensor_time_offset_s:=0.0']
+    # Nothing rewritten: no sample was paired with -0.03 (the node adds it with the first).
+    assert path.read_bytes() == written
+    opened, report = started(path, replace(HEADER, sensor_time_offsets=(0.0,)), resume=True)
+    opened.close()
+    assert [level for level, _ in report.messages] == ['info']
+    # The value to resume with exactly: a rounded one would warn again.
+    written_journal(path, make_samples(3), replace(HEADER, sensor_time_offsets=(1 / 30,)))
+    opened, report = started(path, replace(HEADER, sensor_time_offsets=(0.0,)), resume=True)
+    opened.close()
+    assert [text for level, text in report.messages if level == 'warning'][0].endswith(
+        f'or resume with sensor_time_offset_s:={1 / 30!r}')
+    # Samples of two offsets: each named, no single value to resume with.
+    written_journal(path, make_samples(3), replace(HEADER, sensor_time_offsets=(0.0, -0.03)))
     opened, report = started(path, replace(HEADER, sensor_time_offsets=(0.0,)), resume=True)
     opened.close()
     assert [text for level, text in report.messages if level == 'warning'] == [
         f'{path}: its 3 samples were paired with sensor_time_offset_s 0 then -0.03 (its first '
         'line); 0 applies to new poses only: the samples resumed keep their pairing. Call '
         '~/reset to take them again with 0']
-    written_journal(path, make_samples(3), replace(HEADER, sensor_time_offsets=(0.0,)))
-    opened, report = started(path, replace(HEADER, sensor_time_offsets=(0.0,)), resume=True)
-    opened.close()
-    assert [level for level, _ in report.messages] == ['info']
     # An earlier version's journal does not say which offset: nothing to compare.
     written_journal(path, make_samples(3), HEADER)
     opened, report = started(path, replace(HEADER, sensor_time_offsets=(-0.03,)), resume=True)

@@ -760,10 +760,16 @@ def test_an_estimates_log_line_gives_the_translation_too():
     result = SimpleNamespace(quaternion=[1.0, 0.0, 0.0, 0.0], translation=[0.0099, -0.0106, 0.05],
                              residual_rms_deg=0.128, uncertainty_deg=0.036,
                              translation_uncertainty_mm=0.55, samples=11, inliers=55,
-                             motions=55, hint='motions excite all axes')
+                             motions=55, hint='motions excite all axes', usable=True)
     line = describe_result(result)
     assert (', translation (0.0099, -0.0106, 0.0500) m, residual 0.128 deg RMS, uncertainty '
-            '0.036 deg and 0.55 mm, from 11 samples') in line, line
+            '0.036 deg and 0.55 mm, from 11 samples (55 of 55 motions used); next: motions '
+            'excite all axes') in line, line
+    # One that says not to use it says so in its line too (~/transform carries it as well).
+    result.usable = False
+    assert describe_result(result).endswith(
+        '(55 of 55 motions used); it says not to use it (usable false: its warnings); next: '
+        'motions excite all axes')
 
 
 def test_three_samples_leave_the_convention_unchecked_said_but_no_problem():

@@ -143,6 +143,9 @@ def test_a_file_in_a_folder_that_cannot_be_written_is_refused(tmp_path, monkeypa
         # a folder still to be made in a writable one: made by ~/save
         assert updated(Settings.from_values(DEFAULTS),
                        [Parameter(name, value=str(tmp_path / 'new' / 'r.yaml'))])
+    # A folder that became read-only while the node ran does not block other changes.
+    running = Settings.from_values(dict(DEFAULTS, result_file=str(locked / 'r.yaml')))
+    assert updated(running, [Parameter('pairs', value='consecutive')]).pairs == 'consecutive'
 
 
 def test_integers_for_floats_become_floats():

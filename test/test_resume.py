@@ -13,6 +13,7 @@ host (conftest: domain_id in-process, process_domain_id for processes) keep them
 
 import ast
 import contextlib
+from dataclasses import replace
 import errno
 import os
 from pathlib import Path
@@ -385,6 +386,31 @@ def test_a_sample_is_written_before_the_estimate_is_published_and_fsynced_before
         assert steps[-3:] == ['fsync again', 'log', 'publish']
         assert 'could not fsync' not in node.diagnostic_status().message
         assert len(journal.read_journal(path).samples) == 10
+
+
+def test_a_resumed_journal_gains_a_new_sensor_time_offset_with_its_first_sample(
+        tmp_path, domain_id, capfd):
+    _, samples = synthetic_samples(8)
+    path = tmp_path / 'samples.csv'
+    write_journal(path, samples[:6], replace(HEADER, sensor_time_offsets=(0.0,)))
+    node, context = make_node(domain_id, Parameter('samples_file', value=str(path)),
+                              Parameter('resume', value=True),
+                              Parameter('sensor_time_offset_s', value=-0.03))
+    try:
+        assert 'its 6 samples were paired with sensor_time_offset_s 0 (its first line); ' \
+            '-0.03 applies to new poses only' in capfd.readouterr().err
+        assert journal.read_journal(path).header.sensor_time_offsets == (0.0,)
+        node.handle_events(node.session.add_sample(samples[6]))
+        assert journal.read_journal(path).header.sensor_time_offsets == (0.0, -0.03)
+        assert len(journal.read_journal(path).samples) == 7
+        # A change and back before any sample: nothing paired with it, nothing listed.
+        for offset in (0.05, -0.03):
+            (done,) = node.set_parameters([Parameter('sensor_time_offset_s', value=offset)])
+            assert done.successful
+        node.handle_events(node.session.add_sample(samples[7]))
+        assert journal.read_journal(path).header.sensor_time_offsets == (0.0, -0.03)
+    finally:
+        close_node(node, context)
 
 
 def test_a_full_disk_keeps_the_samples_and_the_estimate_going(tmp_path, monkeypatch,

@@ -185,7 +185,10 @@ def test_new_capture_settings_keep_the_samples_the_estimate_and_the_counts():
     session.set_capture(manual)
     assert session.config.capture == manual and session.samples == taken
     assert session.result is estimate and session.estimate() == []
-    assert session.counters == counts
+    # (what the old bands judged starts anew: the advice to widen them, the time without a
+    # still sample)
+    assert session.counters == dict(counts, unsteady_sensor=0)
+    assert session.paired_seconds == 0.0 and session.sensor_scatter is None
     # The stops that follow are taken as manual captures now, with the new still window.
     assert of_type(feed(session, messages[half:]), SampleCaptured) == []
     ok, text = session.capture(streams.stills[5][1])

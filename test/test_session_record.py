@@ -100,9 +100,9 @@ def test_a_rise_that_does_not_last_is_withdrawn():
     said = {n: watch.check(bumped[:n], q_z, 'eye_in_hand') for n in range(10, 23)}
     assert [level for level, _ in said[13]] == ['warning']
     # 14, 15 and 16 agree with the samples before 10 again: withdrawn with the 17th sample.
-    assert said[17] == [('info', 'the residual came back down: the samples from sample 10 to '
-                                 '13 were noisier, the later ones agree with those before: '
-                                 'not a move')]
+    assert said[17] == [('info', 'moved-marker warning withdrawn: the last 3 samples agree '
+                                 'with those before sample 10 again; the rise from sample 10 '
+                                 'on did not last (noisier samples, not a move)')]
     assert all(not said[n] for n in said if n not in (13, 17))
     assert watch.move is None and watch.warning(22) is None
 

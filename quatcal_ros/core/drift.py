@@ -92,8 +92,8 @@ def came_back(samples, move, q_z, setup='eye_in_hand', invert_sensor=False, rece
     """
     Return whether the last `recent` samples after `move` agree with those before it again.
 
-    Within the threshold a rise is judged by (find_move), about the samples before the move
-    under the estimate q_z now: the rise did not last, so it was no move.
+    Within find_move's threshold of the samples before the move (under the estimate q_z now):
+    then the rise did not last, and it was no move.
     """
     if len(samples) - move.first < move.samples + recent:   # (not the move's own samples)
         return False

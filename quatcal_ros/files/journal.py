@@ -691,24 +691,22 @@ def start(path, header, resume, now=None, resumable=True, origins=None):
         raise
 
 
-def _resumed_offsets(resumed, header, count):
+def _resumed_offsets(path, recorded, header, count):
     """
-    Record the parameters' sensor time offset in a resumed journal; warn when it is new.
+    Warn when the parameters' sensor time offset is not the one the resumed samples had.
 
-    Its samples keep the pairing they were taken with, as after a change at runtime.
+    They keep the pairing they were taken with, as after a change at runtime. (The first line
+    gains the new offset with the first sample paired with it: JournalHeader.paired_with.)
     """
-    if header.sensor_time_offsets is None:
+    if header.sensor_time_offsets is None or recorded.sensor_time_offsets is None or not count:
         return []
-    offset = header.sensor_time_offsets[-1]
-    recorded = resumed.header.sensor_time_offsets
-    updated = resumed.header.paired_with(offset, kept=bool(count))
-    if updated != resumed.header:
-        resumed.set_header(updated)
-    if not count or recorded is None or set(recorded) == {offset}:
+    offset, recorded = header.sensor_time_offsets[-1], recorded.sensor_time_offsets
+    if set(recorded) == {offset}:
         return []
-    same = (f', or resume with sensor_time_offset_s:={recorded[0]:g}' if len(recorded) == 1
+    # (the value exactly, as the first line has it: a rounded one would warn again)
+    same = (f', or resume with sensor_time_offset_s:={recorded[0]!r}' if len(recorded) == 1
             else '')
-    return [('warning', f'{resumed.path}: its {count} samples were paired with '
+    return [('warning', f'{path}: its {count} samples were paired with '
                         f'sensor_time_offset_s {" then ".join(f"{s:g}" for s in recorded)} '
                         f'(its first line); {offset:g} applies to new poses only: the samples '
                         'resumed keep their pairing. Call ~/reset to take them again with '
@@ -783,7 +781,7 @@ def _start_locked(path, header, resume, lock_fd, now, resumable=True, origins=No
                          f'{boolean_text(recorded.invert_sensor)}: its samples (the poses as '
                          f'received) are solved with {boolean_text(header.invert_sensor)} '
                          'from now on, and its first line says so'))
-        report.messages += _resumed_offsets(resumed, header, len(report.samples))
+        report.messages += _resumed_offsets(path, recorded, header, len(report.samples))
         if unnamed:   # (the offsets of its samples as recorded: the parameters' are new)
             resumed.set_header(replace(
                 header, sensor_time_offsets=resumed.header.sensor_time_offsets))

@@ -216,10 +216,11 @@ class MoveWatch:
         messages = []
         if self.move is not None and drift.came_back(samples, self.move, q_z, setup,
                                                      invert_sensor):
-            messages.append(('info', f'the residual came back down: the samples from sample '
-                                     f'{self.move.first} to {len(samples) - drift.RECENT - 1} '
-                                     'were noisier, the later ones agree with those before: '
-                                     'not a move'))
+            messages.append(('info', f'moved-marker warning withdrawn: the last '
+                                     f'{drift.RECENT} samples agree with those before sample '
+                                     f'{self.move.first} again; the rise from sample '
+                                     f'{self.move.first} on did not last (noisier samples, '
+                                     'not a move)'))
             self.move = None
         elif self.move is None:
             self.move = drift.find_move(samples, q_z, setup, invert_sensor,

@@ -148,7 +148,8 @@ def unknown_at_runtime(node, parameters, names, node_name):
     unknown = [p.name for p in parameters if not node.has_parameter(p.name)]
     if not unknown:
         return None
-    named = [f'{name} (did you mean {typo_of(name, names)}?)' if typo_of(name, names) else name
+    close = {name: typo_of(name, names) for name in unknown}
+    named = [f'{name} (did you mean {close[name]}?)' if close[name] else name
              for name in unknown]
     return f'no such parameter: {", ".join(named)}; `{node_name} --help` lists every parameter'
 

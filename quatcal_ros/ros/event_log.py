@@ -26,7 +26,7 @@ import time
 from quatcal_ros.core import conventions
 from quatcal_ros.core.units import shown
 from quatcal_ros.ros.diagnostics import describe_result
-from quatcal_ros.stream.log_throttle import LOG_THROTTLE_S, LogThrottle, WARNING_REPEAT_S
+from quatcal_ros.stream.log_throttle import LogThrottle, REMEMBERED_KINDS, WARNING_REPEAT_S
 from quatcal_ros.stream.session import EstimateUpdated, Notice, Rejected, SampleCaptured
 
 # The numbers of a line (residuals, counts, stamps): the same line with new numbers is not new.
@@ -104,21 +104,24 @@ class EventLog:
         """
         Return (warning, text to log) of an estimate's `warnings` (module docstring).
 
-        In full when new (not within LOG_THROTTLE_S of its last line: one that comes and goes
-        with every estimate), shortened while it stands, at most every WARNING_REPEAT_S.
+        In full when new, shortened while it stands; either at most every WARNING_REPEAT_S
+        (one that comes and goes with every estimate is not new each time).
         """
         now, due, standing = self.clock(), [], set()
+        if len(self._warnings_logged) > REMEMBERED_KINDS:   # (keys carry free text)
+            self._warnings_logged = {key: when for key, when in self._warnings_logged.items()
+                                     if now - when < WARNING_REPEAT_S}
         for warning in warnings:
             key = NUMBER.sub('#', warning)
             standing.add(key)
             since = now - self._warnings_logged.get(key, -math.inf)
-            if key not in self._standing and since >= LOG_THROTTLE_S:
+            if since < WARNING_REPEAT_S:
+                continue
+            if key not in self._standing:
                 due.append((warning, warning))
-            elif key in self._standing and since >= WARNING_REPEAT_S:
+            else:
                 due.append((warning, f'still: {shown(warning, REPEAT_CHARACTERS)} (in full on '
                                      '/diagnostics)'))
-            else:
-                continue
             self._warnings_logged[key] = now
         self._standing = standing
         return due

@@ -79,21 +79,22 @@ TF_PROBLEM_LOG_S = 5.0
 INPUT_PROBLEM_LOG_S = 5.0
 
 
-def journal_header(config, tree=None, recorded=None, kept=True):
+def journal_header(config, tree=None, recorded=None):
     """
     Return the journal's first line: setup, frames, invert_sensor, TF joint, time offsets.
 
     tree: with TF input, the TF tree; its static chain above the sensor frame is recorded
     (tf_joint.static_chain), else the one of `recorded` (the journal's header now), if any,
     while it is the same sensor frame's: a resumed node before the driver's /tf_static.
-    The sensor time offset is added to those `recorded` lists while its samples are kept
-    (JournalHeader.paired_with; kept False: ~/reset).
+    The sensor time offsets are those `recorded` lists (its samples were paired with them;
+    the node adds one with the first sample paired with it: JournalHeader.paired_with), or
+    the parameter's for a new journal.
     """
     frames = config.result_frames
     header = journal.JournalHeader(
         config.setup, *frames, config.invert_sensor,
-        sensor_time_offsets=recorded.sensor_time_offsets if recorded is not None else None)
-    header = header.paired_with(config.sensor_time_offset_s, kept and recorded is not None)
+        sensor_time_offsets=(recorded.sensor_time_offsets if recorded is not None
+                             else (config.sensor_time_offset_s,)))
     if tree is None:
         return header
     chain = tf_joint.static_chain(*frames, tree)
@@ -198,6 +199,8 @@ class CalibratorNode(Node):
         self.create_service(Trigger, '~/capture', self._on_capture)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_service(Trigger, '~/save', self._on_save)
+        # (after every declaration: a later declare_parameter reaches _check_parameters too,
+        # which refuses a name not yet declared)
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(
@@ -272,8 +275,10 @@ class CalibratorNode(Node):
         of the new samples, whose events are handled the same way.
         """
         captured = [event.sample for event in events if isinstance(event, SampleCaptured)]
-        if captured and self.inputs.tf is not None:   # the TF joint, once the tree shows it
-            self.log.messages(self.journal.set_header(self._journal_header()))
+        if captured:   # the sensor time offset they have; the TF joint, once the tree shows it
+            header = self.journal.header if self.inputs.tf is None else self._journal_header()
+            self.log.messages(self.journal.set_header(header.paired_with(
+                self.config.sensor_time_offset_s, kept=self.journal.count > 0)))
         self.log.messages(self.journal.append(captured, self.session.samples))
         if self.images is not None:
             self.log.messages(self.images.keep(captured))
@@ -418,11 +423,11 @@ class CalibratorNode(Node):
 
     # --- samples journal -------------------------------------------------------------------
 
-    def _journal_header(self, kept=True):
+    def _journal_header(self):
         """Return the journal's first line for the parameters and the TF tree now."""
         return journal_header(self.config,
                               self.inputs.tf.tree if self.inputs.tf is not None else None,
-                              self.journal.header, kept and self.journal.count > 0)
+                              self.journal.header)
 
     def _resume(self):
         """Log what opening the journal did; estimate from its samples when resuming."""
@@ -611,7 +616,8 @@ class CalibratorNode(Node):
         self.log.reset()
         self.moves.reset()
         self.next_pose = None
-        journal_text = self.journal.restart(self._journal_header(kept=False))
+        journal_text = self.journal.restart(   # (its samples: all paired with the offset now)
+            self._journal_header().paired_with(self.config.sensor_time_offset_s, kept=False))
         self.static_tf.new_session()
         self.markers_publisher.publish(markers.clear_markers(
             Header(stamp=self.get_clock().now().to_msg(), frame_id=self._base_frame())))

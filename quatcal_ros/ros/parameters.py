@@ -12,8 +12,8 @@ import re
 import textwrap
 
 from quatcal_ros.ros import command_line
-from quatcal_ros.stream.settings import CAPTURE, check_writable, ConfigError, NODE_NAME, \
-    PRESENTATION, SETTING_BY_NAME
+from quatcal_ros.stream.settings import CAPTURE, check_writable, ConfigError, FILES, \
+    NODE_NAME, PRESENTATION, SETTING_BY_NAME
 from quatcal_ros.stream.settings import SETTINGS
 from quatcal_ros.stream.settings import Settings
 from rcl_interfaces.msg import FloatingPointRange
@@ -82,7 +82,8 @@ def updated(settings, parameters):
     :raises ConfigError: when a new value is not allowed; `settings` stay as they were.
     """
     new = settings.updated(**{p.name: p.value for p in parameters if p.name in SETTING_BY_NAME})
-    check_writable(new)
+    # (the files set now: one whose folder became read-only since does not block the others)
+    check_writable(new, [p.name for p in parameters if p.name in FILES])
     return new
 
 

@@ -238,11 +238,15 @@ class Capture:
         """
         Capture with `config` from now on (a runtime change).
 
-        The counts and the last sample stay; the still window starts anew.
+        The last sample stays; the still window starts anew, and so do the counts judged by
+        the old bands and window (the advice to widen the bands, the time without a still
+        sample).
         """
         self.config = config
         self._window = _PairWindow(config.window_ns)
         self._newest = None
+        self.unsteady_sensor, self.paired_ns = 0, 0
+        self._scatter.clear()
 
     def clear_window(self):
         """Forget the recent pairs only (time jumped); the next capture still needs a motion."""

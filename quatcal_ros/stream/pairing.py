@@ -196,7 +196,8 @@ class Pairer:
             if not all(len(stream) >= RATE_POSES or (len(stream) >= MIN_RATE_POSES
                                                      and stream.span_ns >= half_window_ns)
                        for stream in self._streams.values()):
-                return   # (before the median of the other: a silent camera, a 1 kHz link)
+                return   # (checked by counts first: no median of a 1 kHz link's stamps at
+                #          every pose while the camera is silent)
             rates = self.rates_hz()
             self._faster = SENSOR if rates[SENSOR] > rates[LINK] else LINK
             return

@@ -370,15 +370,15 @@ def _check_files(settings):
         seen[target] = name
 
 
-def check_writable(settings):
+def check_writable(settings, names=FILES):
     """
-    Raise ConfigError when one of the node's files lies in a folder that cannot be written.
+    Raise ConfigError when one of the node's files `names` lies in a folder it cannot write.
 
     The node's check, at start and when set (a read-only folder was found only by ~/save);
     not the offline tools', which write none of them. A folder still to be made is judged by
     its nearest existing parent.
     """
-    for name in FILES:
+    for name in names:
         path = getattr(settings, name)
         if not path:
             continue
