@@ -99,9 +99,15 @@ def came_back(samples, move, q_z, setup='eye_in_hand', invert_sensor=False, rece
         return False
     Z = SampleRotations.from_samples(samples, setup, invert_sensor).object_orientations(
         np.asarray(q_z, dtype=float))
-    center, before = robust_center(Z[:move.first])
-    threshold = max(RISE_FACTOR * float(np.median(before)), np.radians(MIN_RISE_DEG))
+    center, _, threshold = _before(Z[:move.first])
     return bool(np.all(residual_angles(Z[-recent:], center) <= threshold))
+
+
+def _before(Z):
+    """Return the samples before a change point: their center, noise level, rise threshold."""
+    center, residuals = robust_center(Z)
+    level = float(np.median(residuals))
+    return center, level, max(RISE_FACTOR * level, np.radians(MIN_RISE_DEG))
 
 
 def find_move(samples, q_z, setup='eye_in_hand', invert_sensor=False, first=0,
@@ -123,9 +129,7 @@ def find_move(samples, q_z, setup='eye_in_hand', invert_sensor=False, first=0,
     Z = SampleRotations.from_samples(samples, setup, invert_sensor).object_orientations(
         np.asarray(q_z, dtype=float))
     for k in range(max(first, min_before), n - recent + 1):
-        center, before = robust_center(Z[:k])
-        level = float(np.median(before))
-        threshold = max(RISE_FACTOR * level, np.radians(MIN_RISE_DEG))
+        center, level, threshold = _before(Z[:k])
         after = residual_angles(Z[k:], center)
         if np.all(after > threshold):
             return Move(first=k, samples=n - k, before_deg=float(np.degrees(level)),

@@ -210,18 +210,23 @@ def _static_chain(text, sensor_frame, name):
 
 def _offsets(text, name):
     """Return a header's sensor_time_offset_s=S[,S...] as JournalHeader holds it."""
-    values = []
-    for number in text.split(','):
-        try:   # (float() reads 1_0 as 10: refused, as in the samples)
-            value = float(number) if '_' not in number else math.nan
-        except ValueError:
-            value = math.nan
-        if not math.isfinite(value):
-            raise JournalError(f'{name}, row 1: sensor_time_offset_s={shown(text)!r} in the '
-                               'journal header: expected seconds, finite numbers separated by '
-                               'commas')
-        values.append(value)
-    return tuple(values)
+    values = _finite_numbers(text.split(','))
+    if values is None:
+        raise JournalError(f'{name}, row 1: sensor_time_offset_s={shown(text)!r} in the '
+                           'journal header: expected seconds, finite numbers separated by '
+                           'commas')
+    return values
+
+
+def _finite_numbers(texts):
+    """Return `texts` as a tuple of finite floats, or None when one is not a plain number."""
+    try:   # (float() reads 1_0 as 10: refused, as in the samples)
+        values = tuple(float(text) for text in texts if '_' not in text)
+    except ValueError:
+        return None
+    if len(values) != len(texts) or not all(map(math.isfinite, values)):
+        return None
+    return values
 
 
 def _chain_problem(root, numbers, sensor_frame):
@@ -232,11 +237,8 @@ def _chain_problem(root, numbers, sensor_frame):
         return f'the frame is the sensor frame {sensor_frame} itself'
     if len(numbers) != 7:
         return f'{len(numbers)} numbers, 7 expected'
-    try:   # (float() reads 1_0 as 10: refused, as in the samples)
-        values = [float(number) for number in numbers if '_' not in number]
-    except ValueError:
-        values = []
-    if len(values) != 7 or not all(map(math.isfinite, values)):
+    values = _finite_numbers(numbers)
+    if values is None:
         return 'not 7 finite numbers'
     return quaternion_norm_problem(values[3:], MESSAGE_NORM_TOLERANCE) or ''
 

@@ -118,24 +118,23 @@ def accept_integers_for_reals(node, real_types):
     node.add_pre_set_parameters_callback(reals)
 
 
-def unknown_parameters(node, names, node_name):
+def refuse_unknown_parameters(node, names, node_name, error):
     """
-    Return (refusal or None, warning or None) for the parameters set for `node` it lacks.
+    Raise `error` for a parameter set for `node` at start that is a typo of one of `names`.
 
     What -p and a params file set for this node (rclpy keeps them, declared or not): a name
     no parameter has was ignored without a word (still_windw_s, tf_mod). One close to a
-    parameter's (`names`) is a typo: the refusal. Others may be meant for other nodes (a
-    params file's /** section, a launch file's global parameters): the warning.
+    parameter's is a typo: refused. Others may be meant for other nodes (a params file's /**
+    section, a launch file's global parameters): logged as ignored.
     """
     unknown = sorted(name for name in getattr(node, '_parameter_overrides', {})
                      if not node.has_parameter(name) and not name.startswith('qos_overrides.'))
-    close = {name: typo_of(name, names) for name in unknown}
-    typos = [f'{name} (did you mean {close[name]}?)' for name in unknown if close[name]]
-    refusal = (f'no such parameter: {", ".join(typos)}; `{node_name} --help` lists every '
-               'parameter') if typos else None
-    warning = (f'parameters set for this node that it does not have, ignored: '
-               f'{", ".join(unknown)}') if unknown else None
-    return refusal, warning
+    refusal = _no_such(unknown, names, node_name, typos_only=True)
+    if refusal:
+        raise error(refusal)
+    if unknown:
+        node.get_logger().warning(f'parameters set for this node that it does not have, '
+                                  f'ignored: {", ".join(unknown)}')
 
 
 def unknown_at_runtime(node, parameters, names, node_name):
@@ -145,12 +144,17 @@ def unknown_at_runtime(node, parameters, names, node_name):
     For a node made with allow_undeclared_parameters, so that its set-parameters callback
     sees the name: rclpy's own refusal named none ('undeclared parameter(s): []').
     """
-    unknown = [p.name for p in parameters if not node.has_parameter(p.name)]
-    if not unknown:
-        return None
+    return _no_such([p.name for p in parameters if not node.has_parameter(p.name)], names,
+                    node_name)
+
+
+def _no_such(unknown, names, node_name, typos_only=False):
+    """Say 'no such parameter: ...' of the `unknown` names, each with the one meant; or None."""
     close = {name: typo_of(name, names) for name in unknown}
     named = [f'{name} (did you mean {close[name]}?)' if close[name] else name
-             for name in unknown]
+             for name in unknown if close[name] or not typos_only]
+    if not named:
+        return None
     return f'no such parameter: {", ".join(named)}; `{node_name} --help` lists every parameter'
 
 

@@ -19,14 +19,13 @@ changed. A refused sample
 names its sample, and there is one per sample given.
 """
 
-import math
 import re
 import time
 
 from quatcal_ros.core import conventions
 from quatcal_ros.core.units import shown
 from quatcal_ros.ros.diagnostics import describe_result
-from quatcal_ros.stream.log_throttle import LogThrottle, REMEMBERED_KINDS, WARNING_REPEAT_S
+from quatcal_ros.stream.log_throttle import LogThrottle, WARNING_REPEAT_S
 from quatcal_ros.stream.session import EstimateUpdated, Notice, Rejected, SampleCaptured
 
 # The numbers of a line (residuals, counts, stamps): the same line with new numbers is not new.
@@ -44,7 +43,7 @@ class EventLog:
         self._rejected_samples = set()   # reported already: each is logged once
         self._throttle = LogThrottle()    # per line without its numbers
         self._refusals_logged = {}        # a ~/capture refusal's key: when last logged
-        self._warnings_logged = {}        # an estimate warning's key: when last logged
+        self._warnings = LogThrottle(WARNING_REPEAT_S)   # per estimate warning, numbers aside
         self._standing = set()            # the keys of the last estimate's warnings
 
     def reset(self):
@@ -52,7 +51,7 @@ class EventLog:
         self._rejected_samples = set()
         self._throttle.clear()
         self._refusals_logged.clear()
-        self._warnings_logged.clear()
+        self._warnings.clear()
         self._standing = set()
 
     def log(self, events, move_check, saved=None):
@@ -108,21 +107,13 @@ class EventLog:
         (one that comes and goes with every estimate is not new each time).
         """
         now, due, standing = self.clock(), [], set()
-        if len(self._warnings_logged) > REMEMBERED_KINDS:   # (keys carry free text)
-            self._warnings_logged = {key: when for key, when in self._warnings_logged.items()
-                                     if now - when < WARNING_REPEAT_S}
         for warning in warnings:
             key = NUMBER.sub('#', warning)
             standing.add(key)
-            since = now - self._warnings_logged.get(key, -math.inf)
-            if since < WARNING_REPEAT_S:
+            if self._warnings.due(key, now) is None:
                 continue
-            if key not in self._standing:
-                due.append((warning, warning))
-            else:
-                due.append((warning, f'still: {shown(warning, REPEAT_CHARACTERS)} (in full on '
-                                     '/diagnostics)'))
-            self._warnings_logged[key] = now
+            due.append((warning, warning if key not in self._standing else
+                        f'still: {shown(warning, REPEAT_CHARACTERS)} (in full on /diagnostics)'))
         self._standing = standing
         return due
 

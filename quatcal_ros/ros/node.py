@@ -299,11 +299,17 @@ class CalibratorNode(Node):
 
     def _new_session(self):
         """Return a Session of the settings; with images, each sample keeps its corners."""
-        config = settings.session_config(self.config)
+        config = self._session_config()
         if self.images is None:
             return Session(config)
-        self.images.sensor.configure(config)
         return Session(config, on_sample=self.images.sensor.keep)
+
+    def _session_config(self):
+        """Return the SessionConfig of the settings; the image sensor, if any, follows it."""
+        config = settings.session_config(self.config)
+        if self.images is not None:   # (its still window, its averaging, its time offset)
+            self.images.sensor.configure(config)
+        return config
 
     def _on_pixels(self, result):
         """Return the result to publish: with sensor_input:=image refined on the corners."""
@@ -710,10 +716,7 @@ class CalibratorNode(Node):
                 self._add_known_samples(samples)
         else:
             if any(name in settings.CAPTURE for name in changed):   # (the estimate stays)
-                config = settings.session_config(self.config)
-                if self.images is not None:   # (its still window, its averaging)
-                    self.images.sensor.configure(config)
-                self.session.set_capture(config.capture)
+                self.session.set_capture(self._session_config().capture)
             # the same estimate, between the new frames (eye_to_hand's parent follows
             # link_frame_id while link_frame is left at its default)
             if old.result_frames != self.config.result_frames and self.result is not None:

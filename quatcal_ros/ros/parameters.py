@@ -64,11 +64,7 @@ def declare_parameters(node):
             if problem:
                 raise ConfigError(f'parameter {setting.name} {problem}') from None
             raise ConfigError(f'parameter {setting.name}: {error}') from None
-    refusal, warning = command_line.unknown_parameters(node, SETTING_BY_NAME, NODE_NAME)
-    if refusal:
-        raise ConfigError(refusal)
-    if warning:
-        node.get_logger().warning(warning)
+    command_line.refuse_unknown_parameters(node, SETTING_BY_NAME, NODE_NAME, ConfigError)
     settings = Settings.from_values(
         {setting.name: node.get_parameter(setting.name).value for setting in SETTINGS})
     check_writable(settings)

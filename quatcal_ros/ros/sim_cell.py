@@ -193,11 +193,7 @@ def read_config(node):
     for name, (default, description, limits) in PARAMETERS.items():
         values[name] = command_line.declared(node, name, default,
                                              _descriptor(description, limits), limits)
-    refusal, warning = command_line.unknown_parameters(node, PARAMETERS, NODE_NAME)
-    if refusal:
-        raise ValueError(refusal)
-    if warning:
-        node.get_logger().warning(warning)
+    command_line.refuse_unknown_parameters(node, PARAMETERS, NODE_NAME, ValueError)
     if values['robot'] not in simulation.ROBOTS:
         raise ValueError(f'parameter robot must be one of {", ".join(simulation.ROBOTS)}, '
                          f'not {values["robot"]!r}')

@@ -85,7 +85,7 @@ class StaticTf:
         Its reasons for holding or refusing were the old estimates'.
         """
         self.problem = self.held = None
-        self.earlier = self.publisher is not None and bool(self.sent) and self.last is not None
+        self.earlier = bool(self.sent) and self.last is not None   # (sent, not withdrawn)
 
     def withdraw(self):
         """

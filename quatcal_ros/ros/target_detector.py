@@ -63,11 +63,7 @@ class TargetDetector(Node):
         values = {name: command_line.declared(
             self, name, default, ParameterDescriptor(description=text, read_only=True))
             for name, (default, text) in PARAMETERS.items()}
-        refusal, warning = command_line.unknown_parameters(self, PARAMETERS, NODE_NAME)
-        if refusal:
-            raise ValueError(refusal)
-        if warning:
-            self.get_logger().warning(warning)
+        command_line.refuse_unknown_parameters(self, PARAMETERS, NODE_NAME, ValueError)
         if values['image_transport'] not in TRANSPORTS:
             raise ValueError(f'image_transport must be one of {TRANSPORTS}, not '
                              f'{values["image_transport"]!r}')

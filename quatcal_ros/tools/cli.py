@@ -748,13 +748,12 @@ def _moving_samples(session, published=None):
     """
     Return [the hint that samples taken in motion need the time offset], or [].
 
-    published: the answer printed when it is not the session's (on the pixels): its
-    uncertainty is the one to weigh the shift against.
-
     With continuous capture and no sensor time offset given: stamps of two devices are
     rarely the same moment (a camera stamps at the end of its exposure, a driver when it
     sends), and tens of ms matter in motion (the ETH arm recording's 20 ms moved its answer
     by 1.3 times its uncertainty). How far 10 ms moves the samples lets the user judge.
+    published: the answer printed when it is not the session's (on the pixels): its
+    uncertainty is the one to weigh the shift against.
     """
     result = session.result
     if (result is None or session.config.capture.mode != 'continuous'
