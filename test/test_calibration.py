@@ -468,6 +468,8 @@ def test_with_the_noise_in_the_robot_poses_the_right_fix_is_still_named():
         # and the fit alone as samples came), the ratio beside it when it was refined.
         assert re.search(r'Its mirror image, [a-z_ ]+, also fits \(\d\.\d\d deg, '
                          r'\d+\.\d mm(; its refined noise \d\.\dx as large)?\)', said), said
+        # The mirror's fix is said as a clause, not in parentheses around parentheses.
+        assert 'may be the right one instead: then ' in said, said
 
 
 def test_inverted_sensor_poses_with_bad_detections_are_still_named():

@@ -149,7 +149,7 @@ def _better_convention(samples, options, screen=None):
     return [f'{said} {_name(*best)} ({_fit_text(others[best])}): {fix(options, *best)}. '
             f'Its mirror image, {_name(*mirror)}, also fits ({worse}); if the noise is mostly '
             "in the robot's poses rather than the sensor's, the mirror may be the right one "
-            f'instead ({fix(options, *mirror)})']
+            f'instead: then {fix(options, *mirror)}']
 
 
 # Quaternions read in the wrong component order: (internal w, x, y, z) rolled by this to
