@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.calibration import calibrate
-from quatcal_ros.core.pose import Pose, Sample
+from quatcal_ros.core.calibration import calibrate, sensor_covariances
+from quatcal_ros.core.pose import inverse_perturbation, Pose, residual_order, Sample
 from quatcal_ros.files.samples_csv import COLUMNS, COVARIANCE_COLUMNS, format_samples, \
     parse_samples, parse_samples_and_rows
 from quatcal_ros.files.text_input import BadInputError
@@ -611,3 +611,50 @@ def test_the_json_and_the_result_file_say_whether_the_sensor_poses_were_inverted
     assert solve_main([str(path), '--result-out', str(tmp_path / 'r.yaml'), *options]) == 0
     assert json.loads(capsys.readouterr().out)['invert_sensor'] is inverted
     assert read_result_yaml(tmp_path / 'r.yaml')['invert_sensor'] is inverted
+
+
+def test_inverted_sensor_covariances_exact_along_one_axis_solve(repo_root, tmp_path):
+    # A covariance exact to a nanometre in position and 0.1 rad in rotation passes the
+    # file's check; carried to the inverted poses as a formed product it lost its smallest
+    # eigenvalue to rounding, and `solve --invert-sensor` said the solver failed (exit 3).
+    rng = np.random.default_rng(0)
+    cell = simulation.random_cell(rng)
+    samples = simulation.samples(rng, cell, 10, rotation_noise_deg=0.5,
+                                 translation_noise_m=0.001)[0]
+    exact = np.diag([1e-9 ** 2] * 3 + [0.1 ** 2] * 3)   # ROS order: position first
+    inverted = [Sample(s.stamp_ns, s.link, Pose(s.sensor.inverse().position,
+                                                s.sensor.inverse().quaternion, exact))
+                for s in samples]
+    path = tmp_path / 'inverted.csv'
+    path.write_text(format_samples(inverted))
+    done = run_solve(repo_root, path, '--invert-sensor')
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)['noise_model']['sample_covariances'] == 'input'
+    factors = sensor_covariances(inverted, invert_sensor=True)
+    assert np.all(np.isfinite(factors)) and np.all(np.diagonal(factors, axis1=1, axis2=2) > 0)
+    # Ordinary covariances: the factor is the Cholesky factor of the product, to rounding.
+    ordinary = [Sample(s.stamp_ns, s.link, Pose(s.sensor.position, s.sensor.quaternion, c))
+                for s, c in zip(inverted, (s.sensor.covariance for s in covariance_samples(10)))]
+    rotations = quat.matrix_from_quaternion(np.array([s.sensor.quaternion for s in ordinary]))
+    A = inverse_perturbation(rotations, np.array([s.sensor.position for s in ordinary]))
+    C = residual_order(np.array([s.sensor.covariance for s in ordinary]))
+    expected = np.linalg.cholesky(A @ C @ np.transpose(A, (0, 2, 1)))
+    found = sensor_covariances(ordinary, invert_sensor=True)
+    np.testing.assert_allclose(found, expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
+
+
+@pytest.mark.parametrize('covariance, expected', [
+    (np.diag([1e-6] * 3 + [1e-4, 1e-4, 0.0]), 'not positive definite'),
+    (np.full((6, 6), np.nan), 'NaN or inf'),
+    (np.eye(3), 'not 6x6'),
+])
+def test_unusable_covariances_given_to_the_solver_are_named(covariance, expected):
+    # The file and message readers refuse them; a program that builds samples itself got
+    # numpy's LinAlgError, 'SVD did not converge' or an IndexError.
+    samples = covariance_samples(6)
+    samples = [Sample(s.stamp_ns, s.link, Pose(s.sensor.position, s.sensor.quaternion,
+                                               covariance if k == 4 else s.sensor.covariance))
+               for k, s in enumerate(samples)]
+    with pytest.raises(ValueError, match=f'sample 4: its sensor covariance is unusable: '
+                                         f'{expected}'):
+        calibrate(samples)

@@ -43,7 +43,7 @@ from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, least_squar
 from quatcal_ros.core.motions import motion_count, Motions, pair_angles, pair_indices, \
     PAIRINGS, SampleRotations
 from quatcal_ros.core.numerics import finite_or_none, median, random_integers
-from quatcal_ros.core.pose import inverse_perturbation, residual_order
+from quatcal_ros.core.pose import covariance_problem, inverse_perturbation, residual_order
 from quatcal_ros.core.refine import MAX_ITERATIONS, refine, uncertainties, with_jackknife_of
 from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.translation import SamplePositions, solve_translation
@@ -810,7 +810,7 @@ def _estimate(samples, rotations, positions, fit, options, previous):
                             link_R=rotations.link_matrices[ok],
                             start=warm, max_iterations=(MAX_ITERATIONS if warm is None
                                                         else WARM_ITERATIONS),
-                            sensor_covariance=None if own is None else own[ok],
+                            sensor_factor=None if own is None else own[ok],
                             resample=published and warm is None,
                             object_start=(fit.object_orientation, translation.object_position))
         if published and warm is not None:
@@ -932,22 +932,35 @@ def _with_alternatives(estimate, others):
 
 def sensor_covariances(samples, invert_sensor=False):
     """
-    Return the samples' own sensor covariances (N, 6, 6) as refine weighs them, or None.
+    Return the Cholesky factors L_i (N, 6, 6) of the samples' own sensor covariances, or None.
 
-    Used only when every sample has one (Pose.covariance: ROS order, re-ordered to the
-    residual's rotation, translation); with invert_sensor they are carried to the inverted
-    poses (pose.inverse_perturbation).
+    C_i = L_i L_i^T as refine weighs them (refine.whitening_of). Used only when every sample
+    has one (Pose.covariance: ROS order, re-ordered to the residual's rotation, translation);
+    with invert_sensor they are carried to the inverted poses (pose.inverse_perturbation):
+    A_i C_i A_i^T = (A_i L_i)(A_i L_i)^T, whose factor is taken from the QR decomposition of
+    (A_i L_i)^T without forming the product (formed, a covariance exact to a nanometre along
+    one axis and a tenth of a radian across, which pose.covariance_problem takes, lost its
+    smallest eigenvalue to rounding and was no longer positive definite). Raises ValueError
+    naming the first sample whose covariance is unusable (pose.covariance_problem; the file
+    and message readers refuse those before they get here).
     """
     given = [s.sensor.covariance for s in samples]
     if not given or any(c is None for c in given):
         return None
-    covariances = residual_order(np.array(given))
-    if invert_sensor:
-        A = inverse_perturbation(
-            quat.matrix_from_quaternion(np.array([s.sensor.quaternion for s in samples])),
-            np.array([s.sensor.position for s in samples]))
-        covariances = A @ covariances @ np.transpose(A, (0, 2, 1))
-    return covariances
+    for index, covariance in enumerate(given):
+        problem = ('not 6x6' if np.shape(covariance) != (6, 6)
+                   else covariance_problem(covariance))
+        if problem:
+            raise ValueError(f'sample {index}: its sensor covariance is unusable: {problem}')
+    factors = np.linalg.cholesky(residual_order(np.array(given, dtype=float)))
+    if not invert_sensor:
+        return factors
+    A = inverse_perturbation(
+        quat.matrix_from_quaternion(np.array([s.sensor.quaternion for s in samples])),
+        np.array([s.sensor.position for s in samples]))
+    upper = np.linalg.qr(np.transpose(A @ factors, (0, 2, 1)), mode='r')   # (A L)^T = Q U
+    signs = np.sign(np.diagonal(upper, axis1=1, axis2=2))
+    return np.transpose(signs[:, :, None] * upper, (0, 2, 1))   # U^T U = A C A^T, diagonal > 0
 
 
 def _unused_covariances(samples):

@@ -34,8 +34,8 @@ short by that factor: with t noise (nu = 3) the true errors were 1.1-1.3x the re
 uncertainty from 20 to 300 samples, 0.9-1.1x with H (1.0x for Gaussian noise either way).
 Leave-one-out predictions of every sample come from the same sums (`leave_one_out`).
 
-Samples whose input gave their own covariance C_i (`sensor_covariance`) are weighted by it:
-residuals and Jacobian are whitened by W_i = L_i^-1 (C_i = L_i L_i^T), so the noise model
+Samples whose input gave their own covariance C_i are weighted by it: residuals and Jacobian
+are whitened by W_i = L_i^-1 (C_i = L_i L_i^T, `sensor_factor`), so the noise model
 fits the scale left beyond the given covariances (1 when they are right); `noise_covariance`
 carries it back to radians and metres for a typical sample, and `residuals` and
 `leave_one_out` stay in radians and metres.
@@ -266,7 +266,7 @@ _UNIT_PRODUCTS = np.einsum('jab,kbc->cajk', quat.plus_matrix(np.eye(4)),
 
 
 def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None,
-           max_iterations=MAX_ITERATIONS, sensor_covariance=None, resample=False,
+           max_iterations=MAX_ITERATIONS, sensor_factor=None, resample=False,
            object_start=None, link_R=None):
     """
     Refine the mounting (x_q, x_t) over samples (link_q, link_t, sensor_q, sensor_t).
@@ -275,14 +275,14 @@ def refine(link_q, link_t, sensor_q, sensor_t, x_q, x_t, robust=True, start=None
     poses already inverted for eye-to-hand. robust: a heavy-tailed noise model (else
     Gaussian); start: an earlier Refinement to start from instead (a warm start: its mounting
     and object pose, and its noise models and their probabilities, whose scales alone are
-    refitted; a solve without it chooses the models); sensor_covariance: (N, 6, 6) each
-    sample's own covariance of its residual (rotation, translation; pose.residual_order), or
-    None; resample: add the block jackknife (_jackknife); object_start: the object pose
-    (quaternion, position) the samples give with (x_q, x_t), when the caller has it (else
-    object_pose); link_R: the link rotation matrices, when the caller has them. Returns a
-    Refinement.
+    refitted; a solve without it chooses the models); sensor_factor: (N, 6, 6) the lower
+    Cholesky factor L_i of each sample's own covariance of its residual (C_i = L_i L_i^T;
+    rotation, translation: pose.residual_order), or None; resample: add the block jackknife
+    (_jackknife); object_start: the object pose (quaternion, position) the samples give with
+    (x_q, x_t), when the caller has it (else object_pose); link_R: the link rotation
+    matrices, when the caller has them. Returns a Refinement.
     """
-    whitening = None if sensor_covariance is None else whitening_of(sensor_covariance)
+    whitening = None if sensor_factor is None else whitening_of(sensor_factor)
     samples = _Samples(link_q, link_t, sensor_q, sensor_t, link_R, whitening)
     if start is None:
         o_q, o_t = (object_pose(link_q, link_t, sensor_q, sensor_t, x_q, x_t, samples.link_R)
@@ -325,9 +325,9 @@ def _gaussian_start(samples, model, iterations=GAUSSIAN_START_ITERATIONS):
     return apply_step(step, *model) if np.all(np.isfinite(step)) else model
 
 
-def whitening_of(covariances):
-    """Return W_i = L_i^-1 (module docstring) of covariances (N, 6, 6)."""
-    return np.linalg.inv(np.linalg.cholesky(np.asarray(covariances, dtype=float)))
+def whitening_of(factors):
+    """Return W_i = L_i^-1 (module docstring) of the covariances' Cholesky factors (N, 6, 6)."""
+    return np.linalg.inv(np.asarray(factors, dtype=float))
 
 
 def _fit(samples, model, robust, warm, max_iterations):
