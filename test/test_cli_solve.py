@@ -658,3 +658,25 @@ def test_unusable_covariances_given_to_the_solver_are_named(covariance, expected
     with pytest.raises(ValueError, match=f'sample 4: its sensor covariance is unusable: '
                                          f'{expected}'):
         calibrate(samples)
+
+
+def test_a_mounting_bumped_halfway_is_named_as_the_replay_and_the_node_name_it(
+        repo_root, tmp_path):
+    # Ten samples, then the sensor turned 10 deg on its mount: the estimate lies between the
+    # two mountings, 5 deg from either, reporting 1.2 deg; only a failed validation said so.
+    rng = np.random.default_rng(0)
+    cell = simulation.random_cell(rng)
+    samples = simulation.samples(rng, cell, 20, rotation_noise_deg=0.5,
+                                 translation_noise_m=0.001)[0]
+    bump = Pose(np.zeros(3), quat.from_axis_angle([1.0, 0.0, 0.0], np.radians(10.0)))
+    moved = samples[:10] + [Sample(s.stamp_ns, s.link, bump.inverse() @ s.sensor)
+                            for s in samples[10:]]
+    for given, expected in ((samples, 0), (moved, 1)):
+        path = tmp_path / 'samples.csv'
+        path.write_text(format_samples(given))
+        done = run_solve(repo_root, path)
+        assert done.returncode == 0, done.stderr
+        said = [text for text in json.loads(done.stdout)['warnings']
+                if 'has the marker or the sensor moved?' in text]
+        assert len(said) == expected, said
+    assert 'from sample 10 on' in said[0], said

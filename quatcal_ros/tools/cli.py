@@ -121,7 +121,8 @@ def solve_main(argv=None):
     session = Session(session_config(settings_of(args)))
     copies = _copies(session.add_samples(imported.samples))
     session.estimate()   # one full solve over all of them
-    warnings = [*imported.warnings, *_copies_warning(copies, imported.rows)]
+    warnings = [*imported.warnings, *_copies_warning(copies, imported.rows),
+                *moved_marker(session)]
     frames, tree, said = _journal_tree(imported, frames)
     warnings += said
     failed = _write_files(parser.prog, args, session.result, frames, warnings, imported.frames,
@@ -445,6 +446,21 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     return 0
 
 
+def moved_marker(session):
+    """
+    Return the live node's moved-marker warning over all of the session's samples, or [].
+
+    A marker or sensor bumped halfway through leaves two mountings in one file: the estimate
+    lies between them, its uncertainty knows nothing of it, and only a failed validation
+    hinted at it.
+    """
+    if session.result is None:
+        return []
+    options = session.config.calibration
+    return [text for _, text in MoveWatch().check(
+        session.samples, session.result.quaternion, options.setup, options.invert_sensor)]
+
+
 def prepared(result, frames, warnings=(), tree=None, causes=()):
     """
     Return (the CalibrationResult as printed and written, its tf_joint.Joint).
@@ -639,10 +655,7 @@ def replay_main(argv=None):
     if not args.estimate_time_offset:   # (the search starts from what the log times say)
         warnings += _logged_clocks(bag.clock_offset_ns(replay, report),
                                    config.sensor_offset_ns)
-    if session.result is not None:   # the live node's moved-marker watch, over the whole bag
-        options = config.calibration
-        warnings += [text for _, text in MoveWatch().check(
-            session.samples, session.result.quaternion, options.setup, options.invert_sensor)]
+    warnings += moved_marker(session)
     extra = {'time_offset': time_offset} if time_offset else {}
     on_pixels = None
     if images is not None:
