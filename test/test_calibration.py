@@ -611,3 +611,18 @@ def test_options_out_of_range_are_refused_by_name(options, words):
     """The Python entry point: NaN had raised an IndexError, (0, 0) a matmul shape error."""
     with pytest.raises(ValueError, match=words):
         CalibrationOptions(**options)
+
+
+def test_a_robust_fit_no_rigid_mounting_leaves_is_not_told_to_screen_detections():
+    # Two samples in three with random sensor orientations: the screening of bad detections
+    # ran and could not help; the warning told the user not to turn off what was on.
+    rng = np.random.default_rng(0)
+    cell = simulation.random_cell(rng)
+    samples = simulation.samples(rng, cell, 12, rotation_noise_deg=0.3,
+                                 translation_noise_m=0.001)[0]
+    spoiled = [Sample(s.stamp_ns, s.link, Pose(s.sensor.position,
+                                               quat.normalize(rng.normal(size=4))))
+               if k % 3 else s for k, s in enumerate(samples)]
+    (said,) = [w for w in calibrate(spoiled).warnings
+               if w.startswith('the samples do not fit a rigid mounting')]
+    assert 'that most detections are good' in said and '--no-robust' not in said, said

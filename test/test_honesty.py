@@ -447,7 +447,9 @@ def test_no_robust_is_plain_least_squares_and_says_when_nothing_rigid_fits():
             flipped[k].sensor.quaternion, [0.0, 1.0, 0.0, 0.0])))
     spoiled = calibrate(flipped, CalibrationOptions(robust=False))
     assert spoiled.residual_rms_deg > 10.0
-    assert any(w.startswith('the samples do not fit a rigid mounting') for w in spoiled.warnings)
+    (said,) = [w for w in spoiled.warnings
+               if w.startswith('the samples do not fit a rigid mounting')]
+    assert 'do not use --no-robust' in said, said   # the advice fits what was done
     robust = calibrate(flipped)
     assert rejected_samples(robust) == {4, 9, 15} and not robust.warnings
 

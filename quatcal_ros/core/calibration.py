@@ -351,7 +351,8 @@ def _reduced_result(samples, rotations, positions, motion, options, check=True):
     closed = Estimate(found.start_q, found.start_t, float('nan'), float('nan'))
     refined = Estimate(found.x_q, found.x_t, deg, mm)
     noise_deg, noise_mm = np.degrees(found.noise[0]), 1e3 * found.noise[3]
-    warnings = [warning, *conventions.rigid_fit_warnings(np.degrees(rotation_rms), noise_mm),
+    rigid = conventions.rigid_fit_warnings(np.degrees(rotation_rms), noise_mm, options.robust)
+    warnings = [warning, *rigid,
                 *(_reduced_convention_warnings(samples, options, found.noise[3]) if check
                   else [])]
     return CalibrationResult(
@@ -977,7 +978,8 @@ def _report(fit, options, closed, refined, noise, warnings, refinement, scale=No
     published = refined or closed
     ratio, axis = fit.info.excitation()
     used = np.flatnonzero(fit.sample_ok)
-    warnings = warnings + conventions.rigid_fit_warnings(np.degrees(fit.residual_rms), noise[1])
+    warnings = warnings + conventions.rigid_fit_warnings(np.degrees(fit.residual_rms),
+                                                         noise[1], options.robust)
     return CalibrationResult(
         quaternion=published.quaternion, matrix=quat.matrix_from_quaternion(published.quaternion),
         samples=len(fit.sample_ok), motions=motion_count(len(fit.sample_ok), options.pairs),

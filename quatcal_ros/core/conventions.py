@@ -331,12 +331,19 @@ def exchanged_warnings(setup, translation, object_position):
             'object, this may be right)']
 
 
-def rigid_fit_warnings(residual_rms_deg, translation_noise_mm):
-    """Return a loud warning when the residuals are too large for any rigid mounting."""
+def rigid_fit_warnings(residual_rms_deg, translation_noise_mm, robust=True):
+    """
+    Return a loud warning when the residuals are too large for any rigid mounting.
+
+    robust: whether bad detections were screened (else the advice says to screen them).
+    """
     if not residual_rms_deg > NOT_RIGID_DEG:
         return []
+    screened = ('that most detections are good (the screening of bad ones needs a majority '
+                'of good samples)' if robust else
+                'that bad detections are screened (do not use --no-robust, or robust:=false '
+                'on the node, on such data)')
     return [f'the samples do not fit a rigid mounting: residual {residual_rms_deg:.1f} deg RMS '
             f'(position scatter {translation_noise_mm:.0f} mm per axis). Check that the '
             'sensor is fixed where the setup says, that the link and sensor poses belong to '
-            'the same moments, and that bad detections are screened (do not use --no-robust, '
-            f'or robust:=false on the node, on such data); {DO_NOT_USE}']
+            f'the same moments, and {screened}; {DO_NOT_USE}']
