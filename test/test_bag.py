@@ -329,6 +329,18 @@ def test_damaged_storage_is_a_bag_error(tmp_path, pose_bag, streams):
             Replay(recording, PoseInput('/link'), PoseInput('/sensor')).run(Session())
 
 
+def test_an_error_while_feeding_is_raised_as_it_is(pose_bag, monkeypatch):
+    # The window of messages read ahead is fed again after damaged storage; after an error
+    # while feeding it, that second feed failed on the half-fed window (an IndexError) and
+    # hid the error itself.
+    def failing(*args, **kwargs):
+        raise RuntimeError('the error itself')
+    monkeypatch.setattr(Session, 'add_poses', failing)
+    monkeypatch.setattr(bag, 'WINDOW_BYTES', 0)   # fed as they are read
+    with pytest.raises(RuntimeError, match='the error itself'):
+        replay(pose_bag)
+
+
 def awkward_bag(path, streams, link_type):
     """Both streams with bad, odd and late messages among the good ones; frame ids change."""
     messages = pose_messages(streams, link_type)

@@ -404,6 +404,7 @@ class Replay:
         feeds = {connection.id: run.feed_of(connection.topic) for connection in connections}
         topics = {connection.id: connection.topic for connection in connections}
         window, held = [], 0   # the feed of each message read ahead, and their bytes
+        feeding = False   # (an error while feeding is the caller's: not fed again on top)
         try:
             for count, (connection, log_ns, raw) in enumerate(self.bag.messages(connections),
                                                               count + 1):
@@ -420,12 +421,14 @@ class Replay:
                 window.append(feed)
                 held += len(raw)
                 if held > WINDOW_BYTES or not count % PROGRESS_EVERY:
+                    feeding = True
                     _feed_window(window)
-                    held = 0
+                    feeding, held = False, 0
                 if on_progress is not None and not count % PROGRESS_EVERY:
                     on_progress(count)
         finally:
-            _feed_window(window)   # what was read before damaged storage, too
+            if not feeding:
+                _feed_window(window)   # what was read before damaged storage, too
         return count
 
 
