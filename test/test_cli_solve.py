@@ -190,6 +190,7 @@ def test_sensor_covariance_columns_round_trip_and_weight_the_solve(repo_root, tm
     (lambda cells: cells[:-1] + ['nan'], 'field sensor_cov_rz_rz: nan is not a finite number'),
     (lambda cells: ['-1'] + cells[1:], 'the covariance is not positive definite'),
     (lambda cells: ['5e-324'] + cells[1:], 'the covariance is nearly singular'),
+    (lambda cells: cells[:2] + ['1e308'] + cells[3:], 'the covariance is not positive definite'),
 ])
 def test_bad_sensor_covariances_are_named(change, expected):
     text = format_samples(covariance_samples(3))
@@ -680,3 +681,20 @@ def test_a_mounting_bumped_halfway_is_named_as_the_replay_and_the_node_name_it(
                 if 'has the marker or the sensor moved?' in text]
         assert len(said) == expected, said
     assert 'from sample 10 on' in said[0], said
+
+
+def test_a_stray_quote_is_named_at_its_row_not_swallowing_the_rows_after_it():
+    # A quote opens a CSV field that runs over the ends of lines: one in a note took in the
+    # rows after it, and the file solved with 3 of its 12 samples (or an error named the row
+    # where the field ended).
+    rows = [f'{k}.0,0,0,0,0,0,0,1,0,0,1,0,0,0,1,note {k}' for k in range(1, 13)]
+    rows[2] = rows[2].replace('note 3', '"a note with one quote')
+    text = '\n'.join([','.join(COLUMNS) + ',note', *rows]) + '\n'
+    with pytest.raises(BadInputError) as raised:
+        parse_samples(text, 'q.csv')
+    assert str(raised.value).startswith('q.csv, row 4: a quote (") opens a field that is not '
+                                        'closed on its row, so it takes in the rows up to row '
+                                        '13'), raised.value
+    # Quotes closed on their row are CSV as it should be.
+    rows[2] = rows[2].replace('"a note with one quote', '"a note, quoted"')
+    assert len(parse_samples('\n'.join([','.join(COLUMNS) + ',note', *rows]) + '\n')) == 12

@@ -292,6 +292,9 @@ BAD_INPUTS = [
     ('bad.samples', 'easy_handeye2',
      lambda d: set_path(d, ['samples', 2, 'robot', 'rotation', 'w'], 'abc'),
      "bad.samples, entry samples[2], field robot.rotation.w: 'abc' is not a number"),
+    ('bad.samples', 'easy_handeye2',   # a string as a CSV cell: float() read it as 5
+     lambda d: set_path(d, ['samples', 2, 'robot', 'rotation', 'w'], '0_5'),
+     "bad.samples, entry samples[2], field robot.rotation.w: '0_5' is not a number"),
     ('bad.samples', 'easy_handeye2',
      lambda d: set_path(d, ['samples', 1, 'tracking', 'translation', 'y'], float('nan')),
      'bad.samples, entry samples[1], field tracking.translation.y: nan is not a finite'),
@@ -439,6 +442,7 @@ def test_spreadsheet_csv_details(tmp_path):
     header, first, *rest = text.splitlines()
     cells = first.split(',')
     for bad, words in (('0_455', "field link_x: '0_455' is not a number"),
+                       ('\u0663', "field link_x: '\u0663' is not a number"),   # float(): 3
                        ('1e308', 'field link_x: 1e+308 m is not a position in a robot cell')):
         path.write_text('\n'.join([header, ','.join([cells[0], bad] + cells[2:]), *rest]))
         with pytest.raises(BadInputError, match='row 2') as caught:

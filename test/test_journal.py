@@ -116,6 +116,9 @@ def test_a_bad_tf_joint_in_the_header_is_refused(value, problem):
 
 @pytest.mark.parametrize('line, words', [
     ('stamp,link_x', 'not a quatcal_ros samples journal'),
+    # The magic words alone, with or without a space: no version (one raised a ValueError)
+    ('# quatcal_ros samples journal ', 'expected .* then its version, v1, and its settings'),
+    ('# quatcal_ros samples journal', 'expected .* then its version, v1, and its settings'),
     ('# quatcal_ros samples journal v2 setup=eye_in_hand', "version 'v2'"),
     ('# quatcal_ros samples journal v1 setup=eye_in_hand link_frame=tool0', 'sensor_frame'),
     ('# quatcal_ros samples journal v1 setup=a link_frame=b sensor_frame=c colour=red',

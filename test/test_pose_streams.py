@@ -26,6 +26,9 @@ def test_rows_of_commas_or_spaces_with_comments_and_a_header_are_read():
     ('# only a comment\n', 'f.csv: no poses'),
     ('1,0,0,0,0,0,1\n', 'f.csv, row 1: 7 fields, expected 8: t x y z qx qy qz qw (seconds, '
                         'metres, a quaternion x y z w)'),
+    # A first row of numbers in another separator is no header: it was skipped as one.
+    ('1;0;0;0;0;0;0;1\n2,0,0,0,0,0,0,1\n', 'f.csv, row 1: 1 fields, expected 8'),
+    ('\u0661 0 0 0 0 0 0 1\n', "f.csv, row 1, field t: '\u0661' is not a number"),
     ('1,0,,0,0,0,0,1\n', "f.csv, row 1, field y: '' is not a number"),
     ('1,0,0,0,0,0,0,1\n2,0,0,nan,0,0,0,1\n', 'f.csv, row 2, field z: nan is not a finite number'),
     ('1,0,0,0,0,0,0,2\n', 'f.csv, row 1, fields qx..qw: the quaternion has norm 2, not 1 '

@@ -987,6 +987,21 @@ def test_image_names_that_do_not_match_say_what_to_change(tmp_path):
         assert why in str(error.value)
 
 
+def test_robot_poses_take_comments_and_name_a_stray_quote_at_its_row(tmp_path):
+    from quatcal_ros.vision.dataset import read_robot_poses
+    path = tmp_path / 'robot_poses.csv'
+    header = 'image,link_x,link_y,link_z,link_qx,link_qy,link_qz,link_qw\n'
+    rows = [f'v{k}.png,0.4,0,0.4,0,0,0,1\n' for k in range(5)]
+    path.write_text('# taken on the cell, 2026\n' + header + rows[0] + '  # v1 retaken\n'
+                    + ''.join(rows[1:]))
+    assert [name for name, _ in read_robot_poses(path)] == [f'v{k}.png' for k in range(5)]
+    path.write_text(header + rows[0] + '"' + ''.join(rows[1:]))   # a quote swallowed rows
+    with pytest.raises(BadInputError, match=r'row 3: a quote \(\"\) opens a field that is not '
+                                            'closed on its row, so it takes in the rows up to '
+                                            'row 6'):
+        read_robot_poses(path)
+
+
 def test_robot_poses_with_a_column_twice_are_refused(tmp_path):
     from quatcal_ros.vision.dataset import read_robot_poses
     path = tmp_path / 'robot_poses.csv'

@@ -43,7 +43,7 @@ from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, least_squar
 from quatcal_ros.core.motions import motion_count, Motions, pair_angles, pair_indices, \
     PAIRINGS, SampleRotations
 from quatcal_ros.core.numerics import finite_or_none, median, random_integers
-from quatcal_ros.core.pose import covariance_problem, inverse_perturbation, residual_order
+from quatcal_ros.core.pose import inverse_perturbation, residual_order
 from quatcal_ros.core.refine import MAX_ITERATIONS, refine, uncertainties, with_jackknife_of
 from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.translation import SamplePositions, solve_translation
@@ -942,18 +942,25 @@ def sensor_covariances(samples, invert_sensor=False):
     (A_i L_i)^T without forming the product (formed, a covariance exact to a nanometre along
     one axis and a tenth of a radian across, which pose.covariance_problem takes, lost its
     smallest eigenvalue to rounding and was no longer positive definite). Raises ValueError
-    naming the first sample whose covariance is unusable (pose.covariance_problem; the file
-    and message readers refuse those before they get here).
+    naming the first sample whose covariance is not a finite positive definite 6x6 (the file
+    and message readers refuse those, and more, before they get here:
+    pose.covariance_problem).
     """
     given = [s.sensor.covariance for s in samples]
     if not given or any(c is None for c in given):
         return None
     for index, covariance in enumerate(given):
-        problem = ('not 6x6' if np.shape(covariance) != (6, 6)
-                   else covariance_problem(covariance))
-        if problem:
-            raise ValueError(f'sample {index}: its sensor covariance is unusable: {problem}')
-    factors = np.linalg.cholesky(residual_order(np.array(given, dtype=float)))
+        if np.shape(covariance) != (6, 6) or not np.all(np.isfinite(covariance)):
+            raise ValueError(f'sample {index}: its sensor covariance is unusable: '
+                             + ('not 6x6' if np.shape(covariance) != (6, 6) else 'NaN or inf'))
+    covariances = residual_order(np.array(given, dtype=float))
+    try:
+        factors = np.linalg.cholesky(covariances)
+    except np.linalg.LinAlgError:
+        index = next(k for k, c in enumerate(covariances)
+                     if not np.all(np.linalg.eigvalsh(c) > 0.0))
+        raise ValueError(f'sample {index}: its sensor covariance is unusable: not positive '
+                         'definite') from None
     if not invert_sensor:
         return factors
     A = inverse_perturbation(

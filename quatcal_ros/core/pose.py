@@ -102,7 +102,10 @@ def covariance_problem(covariance):
         return (f'nearly singular: a standard deviation of {np.sqrt(variances.min()):.3g}, '
                 f'below {MIN_SENSOR_SIGMA:g} (m, rad); no sensor is that exact')
     sigma = np.sqrt(variances)
-    if not np.linalg.eigvalsh(c / np.outer(sigma, sigma))[0] >= MIN_CORRELATION_EIGENVALUE:
+    with np.errstate(over='ignore'):   # (an entry of 1e308: inf, refused below)
+        correlation = c / np.outer(sigma, sigma)
+    if not (np.all(np.abs(correlation) <= 1.0 + 1e-9)   # (inf made eigvalsh fail)
+            and np.linalg.eigvalsh(correlation)[0] >= MIN_CORRELATION_EIGENVALUE):
         return 'not positive definite (correlations must lie within -1..1, short of +-1)'
     return None
 

@@ -48,7 +48,7 @@ from quatcal_ros.core.units import DEFAULT_FRAMES, MESSAGE_NORM_TOLERANCE, \
     quaternion_norm_problem, SETUPS, shown
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import COLUMNS, format_samples, header_columns, parse_samples
-from quatcal_ros.files.text_input import BadInputError, MAX_TEXT_CHARACTERS
+from quatcal_ros.files.text_input import BadInputError, MAX_TEXT_CHARACTERS, plain_float
 
 try:   # POSIX; elsewhere journals are not locked
     import fcntl
@@ -144,12 +144,13 @@ class JournalHeader:
         :param line: the first line of the file (without its end of line).
         :param name: the file name, for messages.
         """
-        if not line.startswith(MAGIC + ' '):
+        words = line[len(MAGIC) + 1:].split() if line.startswith(MAGIC + ' ') else []
+        if not words:
             raise JournalError(
                 f'{name}: not a quatcal_ros samples journal (its first line is '
-                f'{shown(line, 80)!r}, '
-                f'expected {MAGIC!r} ...)')
-        version, *items = line[len(MAGIC) + 1:].split()
+                f'{shown(line, 80)!r}, expected {MAGIC!r} then its version, v{VERSION}, and '
+                'its settings)')
+        version, *items = words
         if version != f'v{VERSION}':
             raise JournalError(
                 f'{name}: samples journal version {version!r}; this quatcal_ros reads '
@@ -221,10 +222,10 @@ def _offsets(text, name):
 def _finite_numbers(texts):
     """Return `texts` as a tuple of finite floats, or None when one is not a plain number."""
     try:   # (float() reads 1_0 as 10: refused, as in the samples)
-        values = tuple(float(text) for text in texts if '_' not in text)
+        values = tuple(plain_float(text) for text in texts)
     except ValueError:
         return None
-    if len(values) != len(texts) or not all(map(math.isfinite, values)):
+    if not all(map(math.isfinite, values)):
         return None
     return values
 

@@ -26,7 +26,8 @@ import numpy as np
 from quatcal_ros.core.pose import covariance_problem, Pose, Sample
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, NS_PER_S, \
     position_problem, quaternion_norm_problem, shown
-from quatcal_ros.files.text_input import BadInputError, read_text, typo_of
+from quatcal_ros.files.text_input import BadInputError, csv_rows, plain_float, read_text, \
+    typo_of
 
 COLUMNS = ('stamp',
            'link_x', 'link_y', 'link_z', 'link_qx', 'link_qy', 'link_qz', 'link_qw',
@@ -56,21 +57,14 @@ COMMENT_LINE = re.compile(r'^[ \t]*#[^\n]*', re.MULTILINE)
 
 def parse_samples_and_rows(text, name='<samples>'):
     """Return parse_samples' samples and the file row of each (as the errors count them)."""
-    reader = csv.reader(io.StringIO(COMMENT_LINE.sub('', text), newline=''))
-    try:
-        return _parse_rows(reader, name)
-    except csv.Error as error:   # a field over the csv module's size limit, ...
-        raise BadInputError(f'{name}, row {reader.line_num}: not a CSV row: {error}') from None
-
-
-def _parse_rows(reader, name):
-    header = next(reader, None)
+    rows = csv_rows(COMMENT_LINE.sub('', text), name)
+    line, header = next(rows, (None, None))
     while header is not None and not any(cell.strip() for cell in header):
-        header = next(reader, None)   # a blank or comment line before the header row
+        line, header = next(rows, (None, None))   # a blank or comment line before the header
     if header is None:
         raise BadInputError(f'{name}: empty file: expected the header row {",".join(COLUMNS)}')
     header = [column.strip() for column in header]
-    where = f'{name}, row {reader.line_num} (header)'
+    where = f'{name}, row {line} (header)'
     check_header(header, COLUMNS, where, COLUMNS + COVARIANCE_COLUMNS)
     index = {column: header.index(column) for column in COLUMNS}
     given = [column for column in COVARIANCE_COLUMNS if column in header]
@@ -79,23 +73,23 @@ def _parse_rows(reader, name):
         raise BadInputError(f'{where}: covariance column(s) {", ".join(missing)} '
                             f'missing: give all {len(COVARIANCE_COLUMNS)} sensor_cov_* or none')
     covariance_index = [header.index(column) for column in given]
-    samples, rows = [], []
-    for row in reader:
+    samples, lines = [], []
+    for line, row in rows:
         if not any(cell.strip() for cell in row):
             continue   # (a blank line, or a comment: a row left out by hand)
         if any(cell.strip() for cell in row[len(header):]):   # (empty ones: a trailing comma)
-            raise BadInputError(f'{name}, row {reader.line_num}: {len(row)} fields, the header '
+            raise BadInputError(f'{name}, row {line}: {len(row)} fields, the header '
                                 f'has {len(header)}: a value too many, or a decimal comma?')
-        sample = _sample_from_row(row, index, name, reader.line_num)
+        sample = _sample_from_row(row, index, name, line)
         if covariance_index:
-            covariance = _covariance(row, covariance_index, name, reader.line_num)
+            covariance = _covariance(row, covariance_index, name, line)
             if covariance is not None:
                 sample = Sample(sample.stamp_ns, sample.link,
                                 Pose(sample.sensor.position, sample.sensor.quaternion,
                                      covariance))
         samples.append(sample)
-        rows.append(reader.line_num)
-    return samples, rows
+        lines.append(line)
+    return samples, lines
 
 
 def _covariance(row, columns, name, line):
@@ -107,9 +101,7 @@ def _covariance(row, columns, name, line):
     covariance = np.zeros((6, 6))
     for column, cell, (i, j) in zip(COVARIANCE_COLUMNS, cells, COVARIANCE_ENTRIES):
         try:
-            if not cell or '_' in cell:
-                raise ValueError(cell)
-            value = float(cell)
+            value = plain_float(cell)
         except ValueError:
             raise BadInputError(f'{where}, field {column}: {shown(repr(cell))} is not a number '
                                 f'(give all {len(COVARIANCE_COLUMNS)} sensor_cov_* or none)') \
@@ -153,11 +145,10 @@ def parse_numbers(row, index, name, line):
     a finite number, or a position (a column ending in _x, _y, _z) beyond MAX_POSITION_M.
     """
     try:   # the usual row: every cell a plain finite number, positions in range
-        values = {column: float(row[i]) for column, i in index.items()}
+        values = {column: plain_float(row[i]) for column, i in index.items()}
     except (IndexError, ValueError):
         values = None
-    if (values is None or any('_' in row[i] for i in index.values())
-            or not all(map(math.isfinite, values.values()))
+    if (values is None or not all(map(math.isfinite, values.values()))
             or any(abs(value) > MAX_POSITION_M for column, value in values.items()
                    if column[-2:] in ('_x', '_y', '_z'))):
         _check_numbers(row, index, name, line)
@@ -171,9 +162,7 @@ def _check_numbers(row, index, name, line):
         if i >= len(row):
             raise BadInputError(f'{where}: missing (the row has {len(row)} fields)')
         try:
-            if '_' in row[i]:   # float() reads 0_455 as 455
-                raise ValueError(row[i])
-            value = float(row[i])
+            value = plain_float(row[i])
         except ValueError:
             raise BadInputError(f'{where}: {shown(repr(row[i].strip()))} is not a '
                                 'number') from None

@@ -3,11 +3,14 @@ The user's text files: one error for input that cannot be used, and one way to r
 
 Every reader of a user's file (samples CSV, YAML, robot poses of an image dataset) opens it
 with `open_text`, so a missing file, a directory or a binary file gives the same clear error
-naming the file, wherever it is read.
+naming the file, wherever it is read; its CSV rows come from `csv_rows` and its numbers written
+as text from `plain_float`.
 """
 
 from contextlib import contextmanager
+import csv
 import difflib
+import io
 
 # The most text a whole-file reader takes, and the largest journal (some 600,000 samples): far
 # above any samples, result, camera or board file.
@@ -64,3 +67,39 @@ def read_text(path, limit=None):
         raise BadInputError(f'{path}: larger than {limit // (1024 * 1024)} MiB: not a file this '
                             'tool reads (samples, results, camera and board files)')
     return text
+
+
+def plain_float(text):
+    """
+    Return the number a cell of text writes; ValueError when it is not a plain number.
+
+    float() also reads 0_455 as 455 and digits of other scripts ('\u0663' as 3): no
+    program that writes numbers writes those, a hand-edited cell does by mistake.
+    """
+    if '_' in text or not text.isascii():
+        raise ValueError(text)
+    return float(text)
+
+
+def csv_rows(text, name):
+    """
+    Yield (row number in the file, cells) of CSV text; BadInputError names the row it cannot read.
+
+    A quote (") opens a field that runs to the next quote, over the ends of lines: a stray one
+    in a note swallowed the rows after it without a word, and an error in the swallowed text
+    named the row where the field ended. A field holding an end of line is refused, named by
+    the row where it began.
+    """
+    reader = csv.reader(io.StringIO(text, newline=''))
+    first = 1   # the row the next record starts on
+    try:
+        for cells in reader:
+            if any('\n' in cell or '\r' in cell for cell in cells):
+                raise BadInputError(
+                    f'{name}, row {first}: a quote (") opens a field that is not closed on its '
+                    f'row, so it takes in the rows up to row {reader.line_num}: remove the '
+                    'quote, or close it on the same row')
+            yield first, cells
+            first = reader.line_num + 1
+    except csv.Error as error:   # a field over the csv module's size limit, ...
+        raise BadInputError(f'{name}, row {first}: not a CSV row: {error}') from None

@@ -11,17 +11,16 @@ silently. Errors in the files name the file, the row and the field.
 """
 
 from collections import Counter
-import csv
 from dataclasses import dataclass, field
-import io
 import os
 from pathlib import Path
 import stat
 
 from quatcal_ros.core.pose import Sample
 from quatcal_ros.core.units import NS_PER_S
-from quatcal_ros.files.samples_csv import check_header, parse_numbers, pose_from_values
-from quatcal_ros.files.text_input import BadInputError, read_text
+from quatcal_ros.files.samples_csv import check_header, COMMENT_LINE, parse_numbers, \
+    pose_from_values
+from quatcal_ros.files.text_input import BadInputError, csv_rows, read_text
 from quatcal_ros.vision.board import read_board
 from quatcal_ros.vision.camera import read_camera_yaml
 from quatcal_ros.vision.detect import detect
@@ -189,22 +188,17 @@ def _read_gray(path):
 def read_robot_poses(path):
     """Return [(image name, T_base_link Pose)] of robot_poses.csv; BadInputError names the row."""
     name = str(path)
-    try:
-        return _robot_pose_rows(csv.reader(io.StringIO(read_text(path), newline='')), name)
-    except csv.Error as error:
-        raise BadInputError(f'{name}: not a CSV file: {error}') from None
-
-
-def _robot_pose_rows(reader, name):
-    """Return read_robot_poses' rows of an open csv.reader."""
-    header = [column.strip() for column in next(reader, [])]
-    check_header(header, POSE_COLUMNS, f'{name}, row 1 (header)')
+    records = csv_rows(COMMENT_LINE.sub('', read_text(path)), name)
+    line, header = next(records, (1, []))
+    while header is not None and not any(cell.strip() for cell in header):
+        line, header = next(records, (line, None))   # a blank or comment line before it
+    header = [column.strip() for column in header or []]
+    check_header(header, POSE_COLUMNS, f'{name}, row {line} (header)')
     index = {c: header.index(c) for c in POSE_COLUMNS}
     rows, seen = [], {}
-    for row in reader:
+    for line, row in records:
         if not row or all(not cell.strip() for cell in row):
             continue
-        line = reader.line_num
         image = row[index['image']].strip() if index['image'] < len(row) else ''
         if not image or '/' in image or image in seen:
             why = ('empty' if not image else
