@@ -626,3 +626,27 @@ def test_a_robust_fit_no_rigid_mounting_leaves_is_not_told_to_screen_detections(
     (said,) = [w for w in calibrate(spoiled).warnings
                if w.startswith('the samples do not fit a rigid mounting')]
     assert 'that most detections are good' in said and '--no-robust' not in said, said
+
+
+def test_a_sample_that_knows_nothing_leaves_the_reported_noise_as_it_was():
+    # The noise of a typical sample was the mean of the samples' covariances: one sample
+    # given a variance of 1 m^2 among millimetres made it 22 deg and 285 mm. Of the mean
+    # information, it stays where the others put it; the estimate is nearly theirs.
+    rng = np.random.default_rng(3)
+    cell = simulation.random_cell(rng)
+    samples = simulation.samples(rng, cell, 12, rotation_noise_deg=0.2,
+                                 translation_noise_m=0.001)[0]
+    given = np.diag([1e-6] * 3 + [1e-5] * 3)   # ROS order: position first
+    unsure = calibrate([Sample(s.stamp_ns, s.link, Pose(
+        s.sensor.position, s.sensor.quaternion, np.eye(6) if k == 7 else given))
+        for k, s in enumerate(samples)])
+    without = calibrate([Sample(s.stamp_ns, s.link,
+                                Pose(s.sensor.position, s.sensor.quaternion, given))
+                         for k, s in enumerate(samples) if k != 7])
+    assert unsure.noise_model['sample_covariances'] == 'input'
+    # (the rotation stage before the refinement weighs every sample alike)
+    assert quat.angle_between(without.quaternion, unsure.quaternion) < 0.2 * np.radians(
+        without.uncertainty_deg)
+    assert 0.9 < unsure.noise_deg / without.noise_deg < 1.1
+    assert 0.9 < unsure.translation_noise_mm / without.translation_noise_mm < 1.1
+    assert 0.1 < without.noise_deg < 0.4 and 0.5 < without.translation_noise_mm < 2.0

@@ -123,12 +123,21 @@ class Refinement(ReportedUncertainty):
 
     @cached_property
     def noise_covariance(self):
-        """Return the fitted noise of one sensor pose (6x6, rad and m; a typical sample's)."""
+        """
+        Return the fitted noise of one sensor pose (6x6, rad and m; a typical sample's).
+
+        With the samples' own covariances, that of a sample of their mean information: the
+        inverse of the mean of the inverses, which weigh the samples in the estimate too.
+        Their plain mean was the largest one's (a sample that says it knows nothing, a
+        variance of 1 m^2 among millimetres, made the noise reported 22 deg and 285 mm where
+        the samples scatter by 0.2 deg and 1 mm; the estimate rightly gives it no weight).
+        """
         if self.whitening is None:
             return self.noise.covariance
-        unwhiten = np.linalg.inv(self.whitening)
-        covariance = np.mean(unwhiten @ self.noise.covariance
-                             @ np.transpose(unwhiten, (0, 2, 1)), axis=0)
+        # C_i^-1 = W_i^T S^-1 W_i, S the fitted scale in whitened coordinates
+        information = (np.transpose(self.whitening, (0, 2, 1)) @ inverse(self.noise.covariance)
+                       @ self.whitening)
+        covariance = inverse(information.mean(axis=0))
         covariance.flags.writeable = False   # remembered: callers share it
         return covariance
 
