@@ -584,6 +584,13 @@ def test_a_result_from_a_frame_to_itself_is_refused_and_leading_slashes_dropped(
     assert solve_main([str(path), '--parent-frame', '/tool0', '--child-frame', '/cam']) == 0
     command = json.loads(capsys.readouterr().out)['static_transform_publisher']
     assert command.endswith('--frame-id tool0 --child-frame-id cam')
+    # Frames TF cannot take (they went into the command, the URDF joint and the files).
+    for frame, option, shown in (('/', '--parent-frame', "''"),
+                                 ('cam\nera', '--child-frame', "'cam\\nera'"),
+                                 (' ', '--child-frame', "' '")):
+        assert solve_main([str(path), option, frame]) == 2
+        assert (f'{shown} is not a frame TF can take (empty, or with a space or a control '
+                f'character): give the frame as {option}') in capsys.readouterr().err
 
 
 def test_an_estimate_not_to_use_is_said_on_stderr_and_in_the_result_file(repo_root, tmp_path):

@@ -98,6 +98,9 @@ def test_the_tf_joint_round_trips_in_the_header():
     ('camera_link,0,0,nan,0,0,0,1', 'not 7 finite numbers'),
     ('camera_link,0,0,x,0,0,0,1', 'not 7 finite numbers'),
     ('camera_link,1_0,0,0,0,0,0,1', 'not 7 finite numbers'),
+    ('camera_link,1e300,0,0,0,0,0,1', '[1e+300, 0.0, 0.0] m is not a position in a robot '
+                                      'cell (at most 1000 m from the origin; positions are in '
+                                      'metres)'),   # (was taken)
     ('camera,0,0,0,0,0,0,1', 'the frame is the sensor frame camera itself'),
     ('%2Fcamera,0,0,0,0,0,0,1', 'the frame is the sensor frame camera itself')])
 def test_a_bad_tf_joint_in_the_header_is_refused(value, problem):

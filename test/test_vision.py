@@ -100,6 +100,8 @@ def test_bad_camera_info_is_named():
         parse_camera({**good, 'distortion_model': 'rational_polynomial'})
     with pytest.raises(BadInputError, match='distortion_model'):
         parse_camera({**good, 'distortion_model': 'equidistant'})
+    with pytest.raises(BadInputError, match=r"distortion_model: \['plumb_bob'\] is not one"):
+        parse_camera({**good, 'distortion_model': ['plumb_bob']})   # (a TypeError)
     skewed = CAMERA.K.copy()
     skewed[0, 1] = 3.0
     with pytest.raises(BadInputError, match=r'field camera_matrix: skew 3 px \(K\[0\]\[1\]\)'):
@@ -978,7 +980,9 @@ def test_image_names_that_do_not_match_say_what_to_change(tmp_path):
     pose = ',0.4,0,0.4,0,0,0,1'
     for rows, why in ((['images/view_000.png'], "'images/view_000.png': a file name in images/, "
                                                 "without the folder: 'view_000.png'"),
-                      (['a.png', 'a.png'], "row 3, field image: 'a.png': already on row 2")):
+                      (['a.png', 'a.png'], "row 3, field image: 'a.png': already on row 2"),
+                      (['a\x00.png'], "'a\\x00.png': not a file name: it holds a control "
+                                      'character')):   # (os.stat raised a ValueError)
         path = tmp_path / 'robot_poses.csv'
         path.write_text('image,link_x,link_y,link_z,link_qx,link_qy,link_qz,link_qw\n'
                         + ''.join(row + pose + '\n' for row in rows))

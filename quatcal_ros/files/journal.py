@@ -44,7 +44,7 @@ from pathlib import Path
 import time
 from urllib.parse import quote, unquote
 
-from quatcal_ros.core.units import DEFAULT_FRAMES, MESSAGE_NORM_TOLERANCE, \
+from quatcal_ros.core.units import DEFAULT_FRAMES, MESSAGE_NORM_TOLERANCE, position_problem, \
     quaternion_norm_problem, SETUPS, shown
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import COLUMNS, format_samples, header_columns, parse_samples
@@ -241,7 +241,8 @@ def _chain_problem(root, numbers, sensor_frame):
     values = _finite_numbers(numbers)
     if values is None:
         return 'not 7 finite numbers'
-    return quaternion_norm_problem(values[3:], MESSAGE_NORM_TOLERANCE) or ''
+    return (position_problem(values[:3])
+            or quaternion_norm_problem(values[3:], MESSAGE_NORM_TOLERANCE) or '')
 
 
 @dataclass(frozen=True)

@@ -380,8 +380,18 @@ def solve_frames(args, named=None):
 
 
 def frames_problem(frames):
-    """Say why the result's (parent, child) `frames` cannot be used (one frame), or ''."""
+    """
+    Say why the result's (parent, child) `frames` cannot be used, or ''.
+
+    One frame twice, or one that TF cannot take: empty (a lone '/'), or with a space or a
+    control character (a hand-edited samples file gave ' ' and a name across two lines, which
+    went into the printed command, the URDF joint and the files).
+    """
     parent, child = (normalize_frame(frame) for frame in frames)
+    for frame, option in ((parent, '--parent-frame'), (child, '--child-frame')):
+        if not frame or not frame.isprintable() or any(c.isspace() for c in frame):
+            return (f'{frame!r} is not a frame TF can take (empty, or with a space or a '
+                    f'control character): give the frame as {option}')
     if parent != child:
         return ''
     return (f'the result would be a transform from frame {child!r} to itself (its '

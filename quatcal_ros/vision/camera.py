@@ -87,7 +87,7 @@ def parse_camera(document, name='<camera_info>'):
     width, height = (_size(document, field, name) for field in ('image_width', 'image_height'))
     K = _matrix(document, 'camera_matrix', name, (3, 3))
     model = document.get('distortion_model', 'plumb_bob')
-    if model not in MODELS:
+    if not isinstance(model, str) or model not in MODELS:   # (a list raised a TypeError)
         raise BadInputError(f'{name}, field distortion_model: {_unknown_model(model)}')
     D = _matrix(document, 'distortion_coefficients', name, None).ravel()
     return camera_from(width, height, K, model, D, name)

@@ -200,9 +200,11 @@ def read_robot_poses(path):
         if not row or all(not cell.strip() for cell in row):
             continue
         image = row[index['image']].strip() if index['image'] < len(row) else ''
-        if not image or '/' in image or image in seen:
+        if not image or '/' in image or image in seen or not image.isprintable():
             why = ('empty' if not image else
                    f'already on row {seen[image]}' if image in seen else
+                   'not a file name: it holds a control character' if not image.isprintable()
+                   else
                    f'a file name in {IMAGES_FOLDER}/, without the folder: '
                    f'{image.rsplit("/", 1)[1]!r}' if image.startswith(IMAGES_FOLDER + '/') else
                    f'a file name in {IMAGES_FOLDER}/ (no folders)')
