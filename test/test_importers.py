@@ -13,6 +13,7 @@ import json
 import os
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -561,3 +562,14 @@ def test_an_earlier_eye_to_hand_journal_names_no_flange_as_the_base(tmp_path):
     named.write_text(JournalHeader('eye_to_hand', 'world', 'camera').line() + '\n'
                      + format_samples(samples))
     assert importers.load_samples(named).frames['robot_base_frame'] == 'world'
+
+
+def test_a_huge_matrix_entry_is_refused_without_a_numpy_warning():
+    # |R^T R - I| overflowed: numpy's RuntimeWarning on stderr before the clear refusal.
+    huge = np.eye(4)
+    huge[0, 1] = 1e200
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        with pytest.raises(BadInputError, match=r'not a rotation matrix \(\|R\^T R - I\| = inf'):
+            importers.parse_moveit_json_samples(
+                [[huge.ravel().tolist(), np.eye(4).ravel().tolist()]] * 3, 'x.json')

@@ -170,12 +170,13 @@ def _matrix_pose(value, where, field_name):
         raise BadInputError(f'{prefix}: the last row is {H[3].tolist()}, not [0, 0, 0, 1]: '
                             'not a homogeneous transform')
     R = H[:3, :3]
-    error = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    with np.errstate(over='ignore', invalid='ignore'):   # (1e200: inf, refused below)
+        error = float(np.max(np.abs(R.T @ R - np.eye(3))))
     if error <= ROTATION_TOLERANCE and np.linalg.det(R) < 0.0:
         raise BadInputError(f'{prefix}: the upper-left 3x3 block is a reflection (determinant '
                             f'{np.linalg.det(R):.3g}), not a rotation: one axis of a frame is '
                             'flipped (a left-handed frame, or a sign lost in a conversion)')
-    if error > ROTATION_TOLERANCE:
+    if not error <= ROTATION_TOLERANCE:
         raise BadInputError(f'{prefix}: the upper-left 3x3 block is not a rotation matrix '
                             f'(|R^T R - I| = {error:.3g}, det {np.linalg.det(R):.3g}); is the '
                             'matrix transposed or scaled?')
