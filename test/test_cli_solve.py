@@ -343,6 +343,13 @@ def test_solve_on_a_journal_drops_the_line_a_crash_interrupted(tmp_path, capsys,
     assert result['samples'] == 8
     assert any('without an end of line) was being written when the node stopped: dropped'
                in warning for warning in result['warnings']), result['warnings']
+    # Too few samples left: the error comes after what was dropped, not alone ('2 sample(s)').
+    lines = path.read_text().splitlines(keepends=True)
+    path.write_text(''.join(lines[:4]) + cut)
+    assert solve_main([str(path)]) == 2
+    err = capsys.readouterr().err
+    assert 'was being written when the node stopped: dropped' in err.split('\n')[0], err
+    assert '2 sample(s); at least 3 are needed' in err, err
 
 
 def test_a_reader_that_leaves_early_gets_no_traceback(repo_root, cell_csv):

@@ -416,6 +416,9 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     problems that explain the estimate's warnings (validation.published), said first on
     stderr too.
     """
+    if len(session.samples) < 3 or session.result is None:
+        for warning in warnings:   # what the input lacked may be why (a journal's torn tail)
+            print(f'{prog}: warning: {where}{warning}', file=sys.stderr)
     if len(session.samples) < 3:
         copies = session.counters['repeated_samples']
         more = f' ({copies} more repeat earlier ones exactly)' if copies else ''
