@@ -101,3 +101,20 @@ def test_first_limits_the_change_points_examined():
     assert drift.find_move(moved[:15], q, first=12).first == 12
     assert drift.find_move(moved, q, first=18) is None      # no change point left (k <= 17)
     assert drift.find_move(moved, q, first=13).first == 13  # all after 13 moved too
+
+
+@pytest.mark.parametrize('first', [40, 640, 1196, 1197])
+def test_a_long_file_is_searched_in_steps_and_finds_the_same_change_point(first):
+    # Every change point of a long file cost O(N) each: solve on 8,000 samples took 12 s.
+    # Beyond SCANNED change points every step-th is examined, then the earliest between the
+    # one found and the one before it: the same change point as examining them all.
+    cell, samples = cell_and_samples(77, 1200, noise_deg=0.1)
+    q = calibration.calibrate(samples).quaternion
+    assert drift.find_move(samples, q) is None
+    moved = sensor_slipped(cell, samples, first, 3.0)
+    q = calibration.calibrate(moved).quaternion
+    Z = calibration.SampleRotations.from_samples(moved).object_orientations(q)
+    examined = [k for k in range(drift.MIN_BEFORE, len(moved) - drift.RECENT + 1)
+                if drift._move_at(Z, k) is not None]
+    assert len(examined) > 0
+    assert drift.find_move(moved, q).first == examined[0] == first

@@ -33,6 +33,10 @@ RECENT = 3            # samples after the change point needed to call it a move
 MIN_BEFORE = 5        # samples before it needed for a noise level
 RISE_FACTOR = 4.0     # residual rise, in medians of the residuals before
 MIN_RISE_DEG = 0.05   # smallest residual counted as a rise (noise-free data)
+# find_move examines at most this many change points, each O(N): of a longer file every
+# step-th, then bisects between the one found and the one before (solve and replay over a
+# file of 8,000 samples had taken 12 s here; 1,000 samples 0.3 s).
+SCANNED = 500
 
 
 @dataclass(frozen=True)
@@ -128,11 +132,37 @@ def find_move(samples, q_z, setup='eye_in_hand', invert_sensor=False, first=0,
         return None
     Z = SampleRotations.from_samples(samples, setup, invert_sensor).object_orientations(
         np.asarray(q_z, dtype=float))
-    for k in range(max(first, min_before), n - recent + 1):
-        center, level, threshold = _before(Z[:k])
-        after = residual_angles(Z[k:], center)
-        if np.all(after > threshold):
-            return Move(first=k, samples=n - k, before_deg=float(np.degrees(level)),
-                        after_deg=float(np.degrees(np.median(after))),
-                        threshold_deg=float(np.degrees(threshold)))
-    return None
+    start, last = max(first, min_before), n - recent
+    step = -(-(last + 1 - start) // SCANNED)   # (ceiling)
+    if step <= 1:   # every change point: the node after each sample, a file of a few hundred
+        return _earliest(Z, range(start, last + 1))
+    # A longer file: every step-th change point (each costs O(N)), then the earliest between
+    # the one found and the one before it (a move lasts, so it shows from both sides).
+    found = _earliest(Z, range(last - (last - start) // step * step, last + 1, step))
+    if found is None:
+        return None
+    low, high = max(start, found.first - step + 1) - 1, found.first
+    while high - low > 1:
+        middle = (low + high) // 2
+        move = _move_at(Z, middle)
+        if move is None:
+            low = middle
+        else:
+            found, high = move, middle
+    return found
+
+
+def _earliest(Z, change_points):
+    """Return the Move of the earliest of `change_points` that has one, or None."""
+    return next(filter(None, (_move_at(Z, k) for k in change_points)), None)
+
+
+def _move_at(Z, k):
+    """Return the Move of change point k in the object orientations Z (N, 4), or None."""
+    center, level, threshold = _before(Z[:k])
+    after = residual_angles(Z[k:], center)
+    if not np.all(after > threshold):
+        return None
+    return Move(first=k, samples=len(Z) - k, before_deg=float(np.degrees(level)),
+                after_deg=float(np.degrees(np.median(after))),
+                threshold_deg=float(np.degrees(threshold)))
