@@ -694,7 +694,8 @@ def test_a_mounting_bumped_halfway_is_named_as_the_replay_and_the_node_name_it(
         said = [text for text in json.loads(done.stdout)['warnings']
                 if 'has the marker or the sensor moved?' in text]
         assert len(said) == expected, said
-    assert 'from sample 10 on' in said[0], said
+    assert said[0].endswith('(from sample 10 on): has the marker or the sensor moved? solve '
+                            'the samples from sample 10 on, or record again'), said
 
 
 def test_a_stray_quote_is_named_at_its_row_not_swallowing_the_rows_after_it():

@@ -49,12 +49,13 @@ class Move:
     after_deg: float      # median residual of the samples from `first` on
     threshold_deg: float  # what counted as a rise
 
-    def text(self, continuous_from=None):
+    def text(self, continuous_from=None, offline=False):
         """
         Return the operator message: what rose, and what to do.
 
         continuous_from: the sample from which on capture was continuous, when the rise
-        starts there (samples taken while moving are noisier: said first).
+        starts there (samples taken while moving are noisier: said first). offline: for a
+        file's samples (solve, replay), where no ~/reset is to call.
         """
         rose = (f'the residual rose from {self.before_deg:.2f} to {self.after_deg:.2f} deg '
                 f'over the last {self.samples} samples (from sample {self.first} on')
@@ -64,6 +65,9 @@ class Move:
                     'a time offset between the streams (sensor_time_offset_s). If nothing '
                     'moved, this passes once still samples come again (capture_mode auto); if '
                     'the marker or the sensor moved, call ~/reset and recollect')
+        if offline:
+            return (f'{rose}): has the marker or the sensor moved? solve the samples from '
+                    f'sample {self.first} on, or record again')
         return (f'{rose}): has the marker or the sensor moved? call ~/reset and recollect '
                 f'(offline: solve the samples from sample {self.first} on, or record again)')
 

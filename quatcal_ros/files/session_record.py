@@ -206,6 +206,7 @@ class MoveWatch:
     move: drift.Move = None
     checked: int = 0     # samples the check has seen
     continuous_from: list = field(default_factory=list)   # samples where continuous began
+    offline: bool = False   # over a file's samples (solve, replay): no ~/reset to call
 
     def check(self, samples, q_z, setup, invert_sensor=False):
         """
@@ -242,7 +243,7 @@ class MoveWatch:
         cause = [k for k in self.continuous_from
                  if k <= self.move.first < k + drift.RECENT]
         return replace(self.move, samples=sample_count - self.move.first).text(
-            cause[-1] if cause else None)
+            cause[-1] if cause else None, self.offline)
 
     def reset(self):
         """Forget the samples seen (~/reset)."""

@@ -470,7 +470,7 @@ def moved_marker(session):
     if session.result is None:
         return []
     options = session.config.calibration
-    return [text for _, text in MoveWatch().check(
+    return [text for _, text in MoveWatch(offline=True).check(
         session.samples, session.result.quaternion, options.setup, options.invert_sensor)]
 
 
