@@ -592,7 +592,7 @@ def test_a_result_from_a_frame_to_itself_is_refused_and_leading_slashes_dropped(
     command = json.loads(capsys.readouterr().out)['static_transform_publisher']
     assert command.endswith('--frame-id tool0 --child-frame-id cam')
     # Frames TF cannot take (they went into the command, the URDF joint and the files).
-    for frame, option, shown in (('/', '--parent-frame', "''"),
+    for frame, option, shown in (('/', '--parent-frame', "'/'"),
                                  ('cam\nera', '--child-frame', "'cam\\nera'"),
                                  (' ', '--child-frame', "' '")):
         assert solve_main([str(path), option, frame]) == 2
@@ -662,6 +662,8 @@ def test_inverted_sensor_covariances_exact_along_one_axis_solve(repo_root, tmp_p
     (np.diag([1e-6] * 3 + [1e-4, 1e-4, 0.0]), 'not positive definite'),
     (np.full((6, 6), np.nan), 'NaN or inf'),
     (np.eye(3), 'not 6x6'),
+    (np.outer(np.arange(1.0, 7.0), np.arange(1.0, 7.0)), 'not positive definite'),   # rank 1
+    (np.eye(6) + np.triu(np.full((6, 6), 0.1), 1), 'not symmetric'),
 ])
 def test_unusable_covariances_given_to_the_solver_are_named(covariance, expected):
     # The file and message readers refuse them; a program that builds samples itself got
@@ -707,9 +709,18 @@ def test_a_stray_quote_is_named_at_its_row_not_swallowing_the_rows_after_it():
     text = '\n'.join([','.join(COLUMNS) + ',note', *rows]) + '\n'
     with pytest.raises(BadInputError) as raised:
         parse_samples(text, 'q.csv')
-    assert str(raised.value).startswith('q.csv, row 4: a quote (") opens a field that is not '
-                                        'closed on its row, so it takes in the rows up to row '
-                                        '13'), raised.value
-    # Quotes closed on their row are CSV as it should be.
+    assert str(raised.value).startswith('q.csv, row 4: a quote (") opens a field that takes '
+                                        'in the rows after it, up to row 13'), raised.value
+    # Quotes closed on their row are CSV as it should be, and so is a note over two lines.
     rows[2] = rows[2].replace('"a note with one quote', '"a note, quoted"')
+    rows[5] = rows[5].replace('note 6', '"a note\nover two lines, as a spreadsheet writes it"')
     assert len(parse_samples('\n'.join([','.join(COLUMNS) + ',note', *rows]) + '\n')) == 12
+
+
+@pytest.mark.parametrize('text', ['1_0', '\u0663'])
+def test_an_option_number_is_read_as_a_file_number_is(text, capsys):
+    # float() reads 1_0 as 10 and '\u0663' as 3; cells of a file were refused, options not.
+    from quatcal_ros.tools.cli import solve_main
+    with pytest.raises(SystemExit):
+        solve_main(['x.csv', '--min-motion-deg', text])
+    assert f'argument --min-motion-deg: {text!r} is not a number' in capsys.readouterr().err

@@ -99,6 +99,8 @@ def test_session_config_gets_plain_numbers_in_nanoseconds():
     ('link_frame', '', 'empty'),
     ('result_file', '  ', 'empty'),
     ('known_translation', '1e9 1e9 1e9', 'not a position in a robot cell'),
+    ('known_translation', '0_5 0 0', 'three numbers'),        # float() read 5
+    ('known_translation', '\u0663 0 0', 'three numbers'),     # float() read 3
 ])
 def test_invalid_values_are_refused_with_the_reason(name, value, words):
     with pytest.raises(ConfigError) as error:
@@ -347,6 +349,24 @@ def test_a_result_from_a_frame_to_itself_is_refused(changes):
         Settings.from_values({**DEFAULTS, **changes})
     with pytest.raises(ConfigError, match='to itself'):
         Settings().updated(**changes)
+
+
+@pytest.mark.parametrize('changes, which, frame', [
+    ({'sensor_frame': 'my camera'}, 'child', "'my camera'"),
+    ({'link_frame': '/'}, 'parent', "'/'"),
+    ({'sensor_frame': 'cam\nera'}, 'child', "'cam\\nera'"),
+])
+def test_a_result_frame_tf_cannot_take_is_refused_as_the_tools_refuse_it(changes, which, frame):
+    # The node took them, into its static_transform_publisher line, URDF joint and files; the
+    # offline tools refused them: one check now (tf_tree.frame_problem).
+    from quatcal_ros.tools.cli import frames_problem
+    with pytest.raises(ConfigError) as raised:
+        Settings.from_values({**DEFAULTS, **changes})
+    said = f'{frame} is not a frame TF can take (empty, or with a space or a control character)'
+    assert str(raised.value).startswith(f"the result's {which}") and said in str(raised.value)
+    assert frames_problem(Settings().updated().result_frames) == ''
+    assert said in frames_problem((changes.get('link_frame', 'tool0'),
+                                   changes.get('sensor_frame', 'camera')))
 
 
 def test_the_cores_own_defaults_are_the_tables():

@@ -6,6 +6,15 @@ from quatcal_ros.files.pose_streams import parse_pose_stream
 from quatcal_ros.files.text_input import BadInputError
 
 
+@pytest.mark.parametrize('header', ['"t","x","y","z","qx","qy","qz","qw"',
+                                    'time (s),x,y,z,qx,qy,qz,qw', '%time,x,y,z,qx,qy,qz,qw',
+                                    'nanoseconds x y z qx qy qz qw'])
+def test_a_header_row_of_names_is_skipped_as_other_programs_write_them(header):
+    # (quoted as R writes them, with units, a name that begins as 'nan' does)
+    stamps, _, _ = parse_pose_stream(header + '\n1,0,0,0,0,0,0,1\n2,0,0,0,0,0,0,1\n', 'f.csv')
+    assert len(stamps) == 2
+
+
 def test_rows_of_commas_or_spaces_with_comments_and_a_header_are_read():
     text = ('# timestamp tx ty tz qx qy qz qw (a TUM trajectory)\n'
             '1.5 0.1 0.2 0.3 0 0 0 1\n'
@@ -26,6 +35,8 @@ def test_rows_of_commas_or_spaces_with_comments_and_a_header_are_read():
     ('# only a comment\n', 'f.csv: no poses'),
     ('1,0,0,0,0,0,1\n', 'f.csv, row 1: 7 fields, expected 8: t x y z qx qy qz qw (seconds, '
                         'metres, a quaternion x y z w)'),
+    ('inf,nan,nan,nan,nan,nan,nan,nan\n1,0,0,0,0,0,0,1\n',
+     'row 1, field t: inf is not a finite number'),   # (no header)
     # A first row of numbers in another separator is no header: it was skipped as one.
     ('1;0;0;0;0;0;0;1\n2,0,0,0,0,0,0,1\n', 'f.csv, row 1: 1 fields, expected 8'),
     ('\u0661 0 0 0 0 0 0 1\n', "f.csv, row 1, field t: '\u0661' is not a number"),

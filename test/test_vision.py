@@ -991,18 +991,18 @@ def test_image_names_that_do_not_match_say_what_to_change(tmp_path):
         assert why in str(error.value)
 
 
-def test_robot_poses_take_comments_and_name_a_stray_quote_at_its_row(tmp_path):
+def test_robot_poses_name_a_stray_quote_at_its_row(tmp_path):
     from quatcal_ros.vision.dataset import read_robot_poses
     path = tmp_path / 'robot_poses.csv'
     header = 'image,link_x,link_y,link_z,link_qx,link_qy,link_qz,link_qw\n'
     rows = [f'v{k}.png,0.4,0,0.4,0,0,0,1\n' for k in range(5)]
-    path.write_text('# taken on the cell, 2026\n' + header + rows[0] + '  # v1 retaken\n'
-                    + ''.join(rows[1:]))
-    assert [name for name, _ in read_robot_poses(path)] == [f'v{k}.png' for k in range(5)]
+    names = ['#0.png', 'v\xa01.png', 'v\u30002.png', 'v3.png', 'v4.png']   # all file names
+    path.write_text(header + ''.join(name + row[row.index(','):]
+                                     for name, row in zip(names, rows)))
+    assert [name for name, _ in read_robot_poses(path)] == names
     path.write_text(header + rows[0] + '"' + ''.join(rows[1:]))   # a quote swallowed rows
-    with pytest.raises(BadInputError, match=r'row 3: a quote \(\"\) opens a field that is not '
-                                            'closed on its row, so it takes in the rows up to '
-                                            'row 6'):
+    with pytest.raises(BadInputError, match=r'row 3: a quote \(\"\) opens a field that takes '
+                                            'in the rows after it, up to row 6'):
         read_robot_poses(path)
 
 

@@ -950,17 +950,23 @@ def sensor_covariances(samples, invert_sensor=False):
     if not given or any(c is None for c in given):
         return None
     for index, covariance in enumerate(given):
-        if np.shape(covariance) != (6, 6) or not np.all(np.isfinite(covariance)):
-            raise ValueError(f'sample {index}: its sensor covariance is unusable: '
-                             + ('not 6x6' if np.shape(covariance) != (6, 6) else 'NaN or inf'))
+        problem = ('not 6x6' if np.shape(covariance) != (6, 6) else
+                   'NaN or inf' if not np.all(np.isfinite(covariance)) else
+                   'not symmetric' if not np.allclose(covariance, np.transpose(covariance),
+                                                      rtol=1e-6, atol=0.0) else None)
+        if problem:
+            raise ValueError(f'sample {index}: its sensor covariance is unusable: {problem}')
     covariances = residual_order(np.array(given, dtype=float))
     try:
         factors = np.linalg.cholesky(covariances)
     except np.linalg.LinAlgError:
-        index = next(k for k, c in enumerate(covariances)
-                     if not np.all(np.linalg.eigvalsh(c) > 0.0))
-        raise ValueError(f'sample {index}: its sensor covariance is unusable: not positive '
-                         'definite') from None
+        for index, covariance in enumerate(covariances):
+            try:
+                np.linalg.cholesky(covariance)
+            except np.linalg.LinAlgError:
+                raise ValueError(f'sample {index}: its sensor covariance is unusable: not '
+                                 'positive definite') from None
+        raise
     if not invert_sensor:
         return factors
     A = inverse_perturbation(

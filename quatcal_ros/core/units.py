@@ -39,6 +39,18 @@ def ns_from_s(seconds):
     return int(round(seconds * NS_PER_S))
 
 
+def plain_number(text, kind=float):
+    """
+    Return the number (a `kind`: float or int) a text writes; ValueError when it is not plain.
+
+    float() and int() also read 0_455 as 455 and digits of other scripts ('\u0663' as 3): no
+    program that writes numbers writes those, a hand-edited cell or option does by mistake.
+    """
+    if '_' in text or not text.isascii():
+        raise ValueError(text)
+    return kind(text)
+
+
 def position_problem(position):
     """
     Say why a position read from a file (a coordinate, or the three) is not one, or None.

@@ -38,11 +38,11 @@ import numpy as np
 from quatcal_ros.core.pose import Pose, Sample
 from quatcal_ros.core.quaternion import quaternion_from_matrix, wxyz_from_xyzw, xyz_json, \
     xyzw_json
-from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, position_problem, \
-    quaternion_norm_problem, shown
+from quatcal_ros.core.units import FILE_NORM_TOLERANCE, NS_PER_S, plain_number, \
+    position_problem, quaternion_norm_problem, shown
 from quatcal_ros.files import exports, journal, plain_yaml
 from quatcal_ros.files.samples_csv import parse_samples_and_rows
-from quatcal_ros.files.text_input import BadInputError, plain_float, read_text
+from quatcal_ros.files.text_input import BadInputError, read_text
 
 FORMATS = ('csv', 'easy_handeye2', 'moveit', 'moveit-json')
 # A 4x4 matrix whose rotation block is farther than this from orthonormal (max |R^T R - I|)
@@ -91,7 +91,7 @@ def _number(value, where):
     if isinstance(value, bool) or value is None:
         raise BadInputError(f'{where}: {shown(repr(value))} is not a number')
     try:   # (a YAML or JSON string '0_5' is no number, as a CSV cell of it is not)
-        number = plain_float(value) if isinstance(value, str) else float(value)
+        number = plain_number(value) if isinstance(value, str) else float(value)
     except (TypeError, ValueError):
         raise BadInputError(f'{where}: {shown(repr(value))} is not a number') from None
     if not math.isfinite(number):

@@ -44,11 +44,11 @@ from pathlib import Path
 import time
 from urllib.parse import quote, unquote
 
-from quatcal_ros.core.units import DEFAULT_FRAMES, MESSAGE_NORM_TOLERANCE, position_problem, \
-    quaternion_norm_problem, SETUPS, shown
+from quatcal_ros.core.units import DEFAULT_FRAMES, MESSAGE_NORM_TOLERANCE, plain_number, \
+    position_problem, quaternion_norm_problem, SETUPS, shown
 from quatcal_ros.files.persistence import atomic_write_text
 from quatcal_ros.files.samples_csv import COLUMNS, format_samples, header_columns, parse_samples
-from quatcal_ros.files.text_input import BadInputError, MAX_TEXT_CHARACTERS, plain_float
+from quatcal_ros.files.text_input import BadInputError, MAX_TEXT_CHARACTERS
 
 try:   # POSIX; elsewhere journals are not locked
     import fcntl
@@ -222,7 +222,7 @@ def _offsets(text, name):
 def _finite_numbers(texts):
     """Return `texts` as a tuple of finite floats, or None when one is not a plain number."""
     try:   # (float() reads 1_0 as 10: refused, as in the samples)
-        values = tuple(plain_float(text) for text in texts)
+        values = tuple(plain_number(text) for text in texts)
     except ValueError:
         return None
     if not all(map(math.isfinite, values)):

@@ -3,8 +3,8 @@ A pose stream in a text file: one timed pose per row, as robots, trackers and SL
 
 Each row is `t x y z qx qy qz qw`: seconds, metres and a unit quaternion, scalar last (the TUM
 trajectory format, and the ETH hand-eye datasets'), its numbers separated by commas or by
-whitespace. Lines starting with `#` are comments; a first row of names (every cell a name
-such as t, x or qw) is a header and skipped. Every row is checked as a samples CSV's
+whitespace. Lines starting with `#` are comments; a first row of names (no cell that begins
+as a number does) is a header and skipped. Every row is checked as a samples CSV's
 (samples_csv: finite numbers, positions within MAX_POSITION_M, the quaternion's norm), and
 the stamps must increase.
 """
@@ -20,8 +20,9 @@ from quatcal_ros.files.text_input import BadInputError, read_text
 COLUMNS = ('t', 'x', 'y', 'z', 'qx', 'qy', 'qz', 'qw')
 _INDEX = {column: i for i, column in enumerate(COLUMNS)}
 _WHITESPACE = re.compile(r'\s+')
-# A column name of a header row: a malformed first row of numbers is no header ('1;0;0;...').
-_COLUMN_NAME = re.compile(r'[A-Za-z_][A-Za-z0-9_.\[\]-]*')
+# A cell of a header row does not begin as a number does: a first row of numbers in another
+# separator ('1;0;0;...') is no header, 'time (s)', '"t"' or '%time' are.
+_LIKE_A_NUMBER = re.compile(r'[-+]?(\.?[0-9]|(inf|infinity|nan)$)', re.IGNORECASE)
 
 
 def read_pose_stream(path):
@@ -39,7 +40,7 @@ def parse_pose_stream(text, name='<poses>'):
             continue
         cells = ([cell.strip() for cell in stripped.split(',')] if ',' in stripped
                  else _WHITESPACE.split(stripped))
-        if header_allowed and all(_COLUMN_NAME.fullmatch(cell) for cell in cells):
+        if header_allowed and not any(_LIKE_A_NUMBER.match(cell) for cell in cells):
             header_allowed = False   # the column names
             continue
         header_allowed = False

@@ -25,9 +25,8 @@ import re
 import numpy as np
 from quatcal_ros.core.pose import covariance_problem, Pose, Sample
 from quatcal_ros.core.units import FILE_NORM_TOLERANCE, MAX_POSITION_M, NS_PER_S, \
-    position_problem, quaternion_norm_problem, shown
-from quatcal_ros.files.text_input import BadInputError, csv_rows, plain_float, read_text, \
-    typo_of
+    plain_number, position_problem, quaternion_norm_problem, shown
+from quatcal_ros.files.text_input import BadInputError, csv_rows, read_text, typo_of
 
 COLUMNS = ('stamp',
            'link_x', 'link_y', 'link_z', 'link_qx', 'link_qy', 'link_qz', 'link_qw',
@@ -101,7 +100,7 @@ def _covariance(row, columns, name, line):
     covariance = np.zeros((6, 6))
     for column, cell, (i, j) in zip(COVARIANCE_COLUMNS, cells, COVARIANCE_ENTRIES):
         try:
-            value = plain_float(cell)
+            value = plain_number(cell)
         except ValueError:
             raise BadInputError(f'{where}, field {column}: {shown(repr(cell))} is not a number '
                                 f'(give all {len(COVARIANCE_COLUMNS)} sensor_cov_* or none)') \
@@ -145,7 +144,7 @@ def parse_numbers(row, index, name, line):
     a finite number, or a position (a column ending in _x, _y, _z) beyond MAX_POSITION_M.
     """
     try:   # the usual row: every cell a plain finite number, positions in range
-        values = {column: plain_float(row[i]) for column, i in index.items()}
+        values = {column: plain_number(row[i]) for column, i in index.items()}
     except (IndexError, ValueError):
         values = None
     if (values is None or not all(map(math.isfinite, values.values()))
@@ -162,7 +161,7 @@ def _check_numbers(row, index, name, line):
         if i >= len(row):
             raise BadInputError(f'{where}: missing (the row has {len(row)} fields)')
         try:
-            value = plain_float(row[i])
+            value = plain_number(row[i])
         except ValueError:
             raise BadInputError(f'{where}: {shown(repr(row[i].strip()))} is not a '
                                 'number') from None

@@ -3,8 +3,8 @@ The user's text files: one error for input that cannot be used, and one way to r
 
 Every reader of a user's file (samples CSV, YAML, robot poses of an image dataset) opens it
 with `open_text`, so a missing file, a directory or a binary file gives the same clear error
-naming the file, wherever it is read; its CSV rows come from `csv_rows` and its numbers written
-as text from `plain_float`.
+naming the file, wherever it is read; its CSV rows come from `csv_rows` (its numbers written as
+text: units.plain_number).
 """
 
 from contextlib import contextmanager
@@ -69,36 +69,29 @@ def read_text(path, limit=None):
     return text
 
 
-def plain_float(text):
-    """
-    Return the number a cell of text writes; ValueError when it is not a plain number.
-
-    float() also reads 0_455 as 455 and digits of other scripts ('\u0663' as 3): no
-    program that writes numbers writes those, a hand-edited cell does by mistake.
-    """
-    if '_' in text or not text.isascii():
-        raise ValueError(text)
-    return float(text)
-
-
 def csv_rows(text, name):
     """
     Yield (row number in the file, cells) of CSV text; BadInputError names the row it cannot read.
 
     A quote (") opens a field that runs to the next quote, over the ends of lines: a stray one
     in a note swallowed the rows after it without a word, and an error in the swallowed text
-    named the row where the field ended. A field holding an end of line is refused, named by
-    the row where it began.
+    named the row where the field ended. A field that holds a line as long as a row (as many
+    commas as the first row, less one) is refused, named by the row where it began; a quoted
+    note written over two lines, as a spreadsheet writes one, is a field as CSV has it.
     """
     reader = csv.reader(io.StringIO(text, newline=''))
-    first = 1   # the row the next record starts on
+    first, width = 1, None   # the row the next record starts on; the first row's commas
     try:
         for cells in reader:
-            if any('\n' in cell or '\r' in cell for cell in cells):
+            if width is None and any(cell.strip() for cell in cells):
+                width = len(cells) - 1
+            if width and any(line.count(',') >= width - 1 for cell in cells
+                             if '\n' in cell or '\r' in cell
+                             for line in cell.splitlines()[1:]):
                 raise BadInputError(
-                    f'{name}, row {first}: a quote (") opens a field that is not closed on its '
-                    f'row, so it takes in the rows up to row {reader.line_num}: remove the '
-                    'quote, or close it on the same row')
+                    f'{name}, row {first}: a quote (") opens a field that takes in the rows '
+                    f'after it, up to row {reader.line_num}: remove the quote, or close it on '
+                    'its row')
             yield first, cells
             first = reader.line_num + 1
     except csv.Error as error:   # a field over the csv module's size limit, ...

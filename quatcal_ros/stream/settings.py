@@ -26,13 +26,14 @@ import os
 
 from quatcal_ros.core.calibration import CalibrationOptions, METHODS
 from quatcal_ros.core.planner import PlanLimits
-from quatcal_ros.core.units import DEFAULT_FRAMES, ns_from_s, position_problem, SETUPS
+from quatcal_ros.core.units import DEFAULT_FRAMES, ns_from_s, plain_number, position_problem, \
+    SETUPS
 from quatcal_ros.core.validation import Thresholds
 from quatcal_ros.stream.capture import CaptureConfig, MODES as CAPTURE_MODES
 from quatcal_ros.stream.message_checks import CheckConfig, LINK, SENSOR
 from quatcal_ros.stream.pairing import PairingConfig
 from quatcal_ros.stream.session import SessionConfig
-from quatcal_ros.stream.tf_tree import normalize_frame
+from quatcal_ros.stream.tf_tree import frame_problem, normalize_frame
 
 DEFAULT_RESULT_FILE = '~/.ros/quatcal/calibration.yaml'
 DEFAULT_SAMPLES_FILE = '~/.ros/quatcal/samples.csv'
@@ -457,6 +458,11 @@ def _check_result_frames(settings):
                               f'input the result is named by the TF frames; leave {name} '
                               f'unset or set it to {tf_frame!r}')
     parent, child = settings.result_frames
+    for frame, which in ((parent, 'parent (link_frame; eye_to_hand: the robot base)'),
+                         (child, 'child (sensor_frame)')):
+        problem = frame_problem(frame)
+        if problem:
+            raise ConfigError(f"the result's {which}: {problem}")
     if normalize_frame(parent) == normalize_frame(child):
         raise ConfigError(f'the result would be a transform from frame {child!r} to itself: '
                           'its parent (link_frame; eye_to_hand: the robot base) and its child '
@@ -534,7 +540,7 @@ def known_translation(text):
     if not text.strip():
         return None
     try:
-        values = tuple(float(v) for v in text.replace(',', ' ').split())
+        values = tuple(plain_number(v) for v in text.replace(',', ' ').split())
     except ValueError:
         values = ()
     if len(values) != 3 or not all(math.isfinite(v) for v in values):

@@ -82,6 +82,20 @@ def normalize_frame(frame):
     return str(frame).lstrip('/')
 
 
+def frame_problem(frame):
+    """
+    Say why TF cannot take `frame` as a result's frame id, or return ''.
+
+    Empty (a lone '/'), or with a space or a control character: such a name went into the
+    static_transform_publisher line, the URDF joint and the files.
+    """
+    name = normalize_frame(frame)
+    if name and name.isprintable() and not any(c.isspace() for c in name):
+        return ''
+    return (f'{str(frame)!r} is not a frame TF can take (empty, or with a space or a control '
+            'character)')
+
+
 class TransformTree:
     """Static and buffered dynamic transforms between frames (module docstring)."""
 

@@ -31,7 +31,7 @@ from quatcal_ros.stream.recorded_stream import RecordedStream
 from quatcal_ros.stream.session import Rejected, Session
 from quatcal_ros.stream.settings import check_config, ConfigError, IMAGES_NOT_INVERTED, \
     plan_limits, session_config
-from quatcal_ros.stream.tf_tree import normalize_frame
+from quatcal_ros.stream.tf_tree import frame_problem, normalize_frame
 from quatcal_ros.stream.time_offset import find_time_offset, link_speed_deg_s
 from quatcal_ros.tools.options import add_setting_options, HelpFormatter, settings_of
 from quatcal_ros.tools.output_paths import output_problem
@@ -383,15 +383,14 @@ def frames_problem(frames):
     """
     Say why the result's (parent, child) `frames` cannot be used, or ''.
 
-    One frame twice, or one that TF cannot take: empty (a lone '/'), or with a space or a
-    control character (a hand-edited samples file gave ' ' and a name across two lines, which
-    went into the printed command, the URDF joint and the files).
+    One frame twice, or one that TF cannot take (tf_tree.frame_problem: a hand-edited samples
+    file gave ' ' and a name across two lines).
     """
+    for frame, option in zip(frames, ('--parent-frame', '--child-frame')):
+        problem = frame_problem(frame)
+        if problem:
+            return f'{problem}: give the frame as {option}'
     parent, child = (normalize_frame(frame) for frame in frames)
-    for frame, option in ((parent, '--parent-frame'), (child, '--child-frame')):
-        if not frame or not frame.isprintable() or any(c.isspace() for c in frame):
-            return (f'{frame!r} is not a frame TF can take (empty, or with a space or a '
-                    f'control character): give the frame as {option}')
     if parent != child:
         return ''
     return (f'the result would be a transform from frame {child!r} to itself (its '

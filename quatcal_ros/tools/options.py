@@ -12,6 +12,7 @@ import argparse
 import re
 import textwrap
 
+from quatcal_ros.core.units import plain_number
 from quatcal_ros.stream.settings import DEFAULTS, SETTINGS, Settings
 
 # Options named otherwise than their setting (the command-line contract).
@@ -88,9 +89,7 @@ def _parser_of(setting):
 
     def parse(text):
         try:
-            if kind is not str and '_' in text:   # float('0_455') is 455
-                raise ValueError(text)
-            value = kind(text) if kind is not str else text
+            value = plain_number(text, kind) if kind is not str else text
         except ValueError:
             what = 'whole number' if kind is int else 'number'
             raise argparse.ArgumentTypeError(f'{text!r} is not a {what}') from None

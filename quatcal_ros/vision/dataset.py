@@ -15,11 +15,11 @@ from dataclasses import dataclass, field
 import os
 from pathlib import Path
 import stat
+import unicodedata
 
 from quatcal_ros.core.pose import Sample
 from quatcal_ros.core.units import NS_PER_S
-from quatcal_ros.files.samples_csv import check_header, COMMENT_LINE, parse_numbers, \
-    pose_from_values
+from quatcal_ros.files.samples_csv import check_header, parse_numbers, pose_from_values
 from quatcal_ros.files.text_input import BadInputError, csv_rows, read_text
 from quatcal_ros.vision.board import read_board
 from quatcal_ros.vision.camera import read_camera_yaml
@@ -188,23 +188,20 @@ def _read_gray(path):
 def read_robot_poses(path):
     """Return [(image name, T_base_link Pose)] of robot_poses.csv; BadInputError names the row."""
     name = str(path)
-    records = csv_rows(COMMENT_LINE.sub('', read_text(path)), name)
-    line, header = next(records, (1, []))
-    while header is not None and not any(cell.strip() for cell in header):
-        line, header = next(records, (line, None))   # a blank or comment line before it
-    header = [column.strip() for column in header or []]
-    check_header(header, POSE_COLUMNS, f'{name}, row {line} (header)')
+    records = csv_rows(read_text(path), name)
+    header = [column.strip() for column in next(records, (1, []))[1]]
+    check_header(header, POSE_COLUMNS, f'{name}, row 1 (header)')
     index = {c: header.index(c) for c in POSE_COLUMNS}
     rows, seen = [], {}
     for line, row in records:
         if not row or all(not cell.strip() for cell in row):
             continue
         image = row[index['image']].strip() if index['image'] < len(row) else ''
-        if not image or '/' in image or image in seen or not image.isprintable():
+        control = any(unicodedata.category(c) == 'Cc' for c in image)   # (NUL: os.stat)
+        if not image or '/' in image or image in seen or control:
             why = ('empty' if not image else
                    f'already on row {seen[image]}' if image in seen else
-                   'not a file name: it holds a control character' if not image.isprintable()
-                   else
+                   'not a file name: it holds a control character' if control else
                    f'a file name in {IMAGES_FOLDER}/, without the folder: '
                    f'{image.rsplit("/", 1)[1]!r}' if image.startswith(IMAGES_FOLDER + '/') else
                    f'a file name in {IMAGES_FOLDER}/ (no folders)')
