@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from quatcal_ros.core import quaternion as quat
-from quatcal_ros.core.calibration import calibrate, sensor_covariances
+from quatcal_ros.core.calibration import calibrate, sensor_covariance_factors
 from quatcal_ros.core.pose import inverse_perturbation, Pose, residual_order, Sample
 from quatcal_ros.files.samples_csv import COLUMNS, COVARIANCE_COLUMNS, format_samples, \
     parse_samples, parse_samples_and_rows
@@ -645,7 +645,7 @@ def test_inverted_sensor_covariances_exact_along_one_axis_solve(repo_root, tmp_p
     done = run_solve(repo_root, path, '--invert-sensor')
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)['noise_model']['sample_covariances'] == 'input'
-    factors = sensor_covariances(inverted, invert_sensor=True)
+    factors = sensor_covariance_factors(inverted, invert_sensor=True)
     assert np.all(np.isfinite(factors)) and np.all(np.diagonal(factors, axis1=1, axis2=2) > 0)
     # Ordinary covariances: the factor is the Cholesky factor of the product, to rounding.
     ordinary = [Sample(s.stamp_ns, s.link, Pose(s.sensor.position, s.sensor.quaternion, c))
@@ -654,7 +654,7 @@ def test_inverted_sensor_covariances_exact_along_one_axis_solve(repo_root, tmp_p
     A = inverse_perturbation(rotations, np.array([s.sensor.position for s in ordinary]))
     C = residual_order(np.array([s.sensor.covariance for s in ordinary]))
     expected = np.linalg.cholesky(A @ C @ np.transpose(A, (0, 2, 1)))
-    found = sensor_covariances(ordinary, invert_sensor=True)
+    found = sensor_covariance_factors(ordinary, invert_sensor=True)
     np.testing.assert_allclose(found, expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
 
 

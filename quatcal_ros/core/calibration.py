@@ -799,7 +799,7 @@ def _estimate(samples, rotations, positions, fit, options, previous):
     if options.known_translation is not None:   # (a robot that turns freely needs none)
         warnings.append('known_translation is not used: the motions determine the whole '
                         'translation (it fills only what a SCARA or a gantry leaves open)')
-    own = sensor_covariances(samples, options.invert_sensor)
+    own = sensor_covariance_factors(samples, options.invert_sensor)
     if previous is None and own is None:
         warnings += _unused_covariances(samples)
     arrays = (rotations.link[ok], positions.link[ok], rotations.sensor[ok], positions.sensor[ok])
@@ -931,7 +931,7 @@ def _with_alternatives(estimate, others):
                                                  + p @ offsets ** 2)))
 
 
-def sensor_covariances(samples, invert_sensor=False):
+def sensor_covariance_factors(samples, invert_sensor=False):
     """
     Return the Cholesky factors L_i (N, 6, 6) of the samples' own sensor covariances, or None.
 
@@ -978,7 +978,7 @@ def sensor_covariances(samples, invert_sensor=False):
 
 
 def _unused_covariances(samples):
-    """Return a warning when some samples give a covariance that sensor_covariances left out."""
+    """Return a warning when some samples give a covariance that is not used (not all do)."""
     given = sum(s.sensor.covariance is not None for s in samples)
     if not given:
         return []

@@ -174,9 +174,9 @@ class _PairWindow:
         When most sensor poses of the window have a covariance, the sample's is the mean of
         theirs (one frame without, an all-zero covariance or a frame the detector sent bare,
         had left the sample without one, and the session's every sample with it:
-        calibration.sensor_covariances): not divided by the number of frames, whose errors in
-        a still window are mostly shared (the same view of the target); refine fits the
-        overall scale anyway. left_out: a mask of the sensor poses not averaged (jumps).
+        calibration.sensor_covariance_factors): not divided by the number of frames, whose
+        errors in a still window are mostly shared (the same view of the target); refine fits
+        the overall scale anyway. left_out: a mask of the sensor poses not averaged (jumps).
         """
         q, p = self._arrays()
         kept = np.ones(len(self), bool) if left_out is None else ~left_out
