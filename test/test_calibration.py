@@ -6,6 +6,7 @@ method='closed-form' (CLOSED); the joint refinement is tested at the end with tr
 """
 
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -650,3 +651,25 @@ def test_a_sample_that_knows_nothing_leaves_the_reported_noise_as_it_was():
     assert 0.9 < unsure.noise_deg / without.noise_deg < 1.1
     assert 0.9 < unsure.translation_noise_mm / without.translation_noise_mm < 1.1
     assert 0.1 < without.noise_deg < 0.4 and 0.5 < without.translation_noise_mm < 2.0
+
+
+@pytest.mark.parametrize('scale', [1e-10, 1e290])
+def test_covariances_given_in_any_unit_weigh_and_report_alike(scale):
+    # Only the covariances' ratios weigh the samples; the refinement fits their common scale.
+    # Its noise floors were applied in their units: of covariances 1e308 that a detector gave
+    # every message, the noise reported was 1e150 deg.
+    rng = np.random.default_rng(5)
+    cell = simulation.random_cell(rng)
+    covariances = simulation.pnp_like_covariance()[None] * np.linspace(1.0, 4.0, 12)[:, None, None]
+    samples = simulation.samples(rng, cell, 12, sensor_covariance=covariances,
+                                 report_covariance=True)[0]
+    plain = calibrate(samples)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        scaled = calibrate([Sample(s.stamp_ns, s.link, Pose(
+            s.sensor.position, s.sensor.quaternion, s.sensor.covariance * scale))
+            for s in samples])
+    assert quat.angle_between(plain.quaternion, scaled.quaternion) < 1e-9
+    for name in ('noise_deg', 'translation_noise_mm', 'uncertainty_deg',
+                 'translation_uncertainty_mm'):
+        assert getattr(scaled, name) == pytest.approx(getattr(plain, name), rel=1e-6), name

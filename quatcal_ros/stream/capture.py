@@ -183,7 +183,10 @@ class _PairWindow:
         stamp = self.link.oldest_ns + self.span_ns // 2
         poses = [pose for pose, keep in zip(self.sensor.poses(), kept) if keep]
         given = [pose.covariance for pose in poses if pose.covariance is not None]
-        covariance = np.mean(given, axis=0) if 2 * len(given) > len(poses) else None
+        # (each divided first: the sum of covariances of 1e308 that each message may give
+        # overflowed to inf)
+        covariance = (np.sum(np.asarray(given) / len(given), axis=0)
+                      if 2 * len(given) > len(poses) else None)
         return Sample(stamp, Pose(p[0].mean(axis=0), quat.average(q[0])),
                       Pose(p[1][kept].mean(axis=0), quat.average(q[1][kept]), covariance))
 
