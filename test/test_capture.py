@@ -348,14 +348,15 @@ def test_config_is_checked():
         CaptureConfig(window_ns=0)
 
 
-@pytest.mark.parametrize('bare, kept', [
-    (lambda k: False, True), (lambda k: k % 10 == 5, True), (lambda k: k % 3 == 0, True),
-    (lambda k: k % 3 != 0, False)])
-def test_a_still_sample_keeps_its_covariance_when_most_frames_have_one(bare, kept):
+@pytest.mark.parametrize('bare, kept, size', [
+    (lambda k: False, True, 1.0), (lambda k: k % 10 == 5, True, 1.0),
+    (lambda k: k % 3 == 0, True, 1.0), (lambda k: k % 3 != 0, False, 1.0),
+    (lambda k: False, True, 1e308)])   # (their sum overflowed to inf)
+def test_a_still_sample_keeps_its_covariance_when_most_frames_have_one(bare, kept, size):
     """One frame without a covariance left the sample without one (the session's all with it)."""
     rng = np.random.default_rng(12)
     link, sensor = Pose.identity(), Pose(np.array([0.1, 0.2, 0.5]), quat.IDENTITY)
-    covariance = np.diag([1e-6, 1e-6, 4e-6, 1e-5, 1e-5, 1e-5])
+    covariance = np.diag([1e-6, 1e-6, 4e-6, 1e-5, 1e-5, 1e-5]) * size * 1e5
     moved = [Pair(k * 10**6, turned(link, 30.0), sensor) for k in range(3)]
     pairs = still_pairs(rng, link, sensor, 10**9, 1.0, 30.0)
     pairs = [Pair(pair.stamp_ns, pair.link, Pose(pair.sensor.position, pair.sensor.quaternion,
