@@ -1,5 +1,7 @@
 """Tests of quatcal_ros.ros.bag: reading rosbag2 recordings and replaying them into a Session."""
 
+import sqlite3
+
 import numpy as np
 from numpy.testing import assert_allclose
 import pytest
@@ -148,6 +150,21 @@ def test_undecodable_and_late_messages(tmp_path, streams):
     assert report.bad == {('link_pose', 'undecodable'): 1, ('link_pose', 'out_of_order'): 1}
     assert any('/link: 1 message(s) skipped (out_of_order): stamp 20 ms older' in w
                for w in report.warnings())
+
+
+def test_a_number_where_a_db3_holds_a_message_is_undecodable(tmp_path, streams):
+    # sqlite's columns take any type: a hand-edited or damaged db3 gave an int for the bytes,
+    # and replay raised a TypeError.
+    path = tmp_path / 'b'
+    write_bag(path, TOPICS, pose_messages(streams), 'sqlite3')
+    (db,) = path.glob('*.db3')
+    with sqlite3.connect(db) as connection:
+        connection.execute('update messages set data=12345 where id=500')
+        connection.execute('update messages set data=1.5 where id=501')
+    connection.close()
+    _, report = replay(path)
+    assert sum(count for (_, reason), count in report.bad.items()
+               if reason == 'undecodable') == 2, report.bad
 
 
 def tf_message(transforms):

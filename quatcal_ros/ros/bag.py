@@ -119,9 +119,11 @@ class Bag:
             return   # rosbags reads every topic when given none
         read = 0
         try:
-            for item in self._reader.messages(connections):
+            for connection, log_ns, raw in self._reader.messages(connections):
                 read += 1
-                yield item
+                if not isinstance(raw, (bytes, bytearray, memoryview)):   # a number in a db3
+                    raw = b''   # (counted as undecodable, as text there is)
+                yield connection, log_ns, raw
         except Exception as error:   # noqa: B902 - sqlite, mcap and zstd errors alike
             raise BagError(f'{self.path}: the recording is damaged after {read} messages: '
                            f'{type(error).__name__}: {error}') from None
