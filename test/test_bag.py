@@ -53,10 +53,11 @@ def pose_bag(tmp_path_factory, streams):
     return path
 
 
-def replay(path, link='/link', sensor='/sensor', session=None, **options):
+def replay(path, link='/link', sensor='/sensor', session=None, partial=False, **options):
     session = session or Session()
     with Bag(path) as recording:
-        report = Replay(recording, PoseInput(link), PoseInput(sensor), **options).run(session)
+        report = Replay(recording, PoseInput(link), PoseInput(sensor), **options).run(
+            session, partial=partial)
     return session, report
 
 
@@ -165,6 +166,23 @@ def test_a_number_where_a_db3_holds_a_message_is_undecodable(tmp_path, streams):
     _, report = replay(path)
     assert sum(count for (_, reason), count in report.bad.items()
                if reason == 'undecodable') == 2, report.bad
+
+
+@pytest.mark.parametrize('cut', [1, 8, 50])
+def test_a_db3_cut_inside_its_last_page_is_damaged(tmp_path, streams, cut):
+    # sqlite read the torn page without a word, zeros for the missing bytes: a pose of the
+    # last messages came out 3.9 deg off and was used.
+    path = tmp_path / 'b'
+    write_bag(path, TOPICS, pose_messages(streams), 'sqlite3')
+    (db,) = path.glob('*.db3')
+    db.write_bytes(db.read_bytes()[:-cut])
+    with pytest.raises(BagError, match=r'the recording is damaged after \d+ messages: b.db3 ends '
+                                       r'inside a page \(\d+ bytes, pages of \d+\): it was cut '
+                                       'short, and its last messages may be corrupt'):
+        replay(path)
+    _, report = replay(path, partial=True)
+    assert report.warnings()[0].startswith('partial replay: the recording is damaged (')
+    assert 'metadata.yaml' not in report.warnings()[0]
 
 
 def tf_message(transforms):

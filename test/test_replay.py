@@ -742,6 +742,7 @@ def test_a_damaged_recording_exits_2_unless_a_partial_replay_is_asked(
     done = run_replay(repo_root, tmp_path / 'bag', *args)
     assert done.returncode == 2 and done.stdout == '', done.stderr
     assert 'the recording is damaged' in done.stderr and 'Traceback' not in done.stderr
+    assert done.stderr.rstrip().endswith('; pass --partial to use what could be read')
     partial = run_replay(repo_root, tmp_path / 'bag', *args, '--partial')
     if partial.returncode == 0:
         warnings = json.loads(partial.stdout)['warnings']

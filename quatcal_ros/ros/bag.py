@@ -62,6 +62,10 @@ class BagError(ValueError):
 
 # --- the recording ---------------------------------------------------------------------------
 
+# What Bag.messages' BagError says when the storage cannot be read on (replay --partial).
+DAMAGED = 'the recording is damaged'
+
+
 class Bag:
     """An open rosbag2 recording: its topics, and raw messages in log-time order."""
 
@@ -125,8 +129,37 @@ class Bag:
                     raw = b''   # (counted as undecodable, as text there is)
                 yield connection, log_ns, raw
         except Exception as error:   # noqa: B902 - sqlite, mcap and zstd errors alike
-            raise BagError(f'{self.path}: the recording is damaged after {read} messages: '
+            raise BagError(f'{self.path}: {DAMAGED} after {read} messages: '
                            f'{type(error).__name__}: {error}') from None
+        cut = _cut_short(self.path)
+        if cut:   # sqlite read the torn page without a word
+            raise BagError(f'{self.path}: {DAMAGED} after {read} messages: {cut}')
+
+
+def _cut_short(path):
+    """
+    Say which sqlite storage file of the bag at `path` ends inside a page, or return ''.
+
+    A db3 cut short by a few bytes still opens and reads, its last page filled up with
+    zeros: a pose of the last messages came out 3.9 deg off, and was used. Its size is then
+    no multiple of its page size (the header's bytes 16-17; 1 means 65536).
+    """
+    files = [path] if path.suffix == '.db3' else bag_folder.storage_files(path, ('.db3',))
+    for file in files:
+        try:
+            with open(file, 'rb') as stream:
+                header = stream.read(18)
+            size = file.stat().st_size
+        except OSError:
+            continue
+        if len(header) < 18 or not header.startswith(b'SQLite format 3\0'):
+            continue
+        page = int.from_bytes(header[16:18], 'big')
+        page = 65536 if page == 1 else page
+        if page and size % page:
+            return (f'{file.name} ends inside a page ({size} bytes, pages of {page}): it was '
+                    'cut short, and its last messages may be corrupt')
+    return ''
 
 
 def _open_reader(path):
@@ -256,7 +289,7 @@ class ReplayReport:
         """Say which topics' indexed messages could not all be read, or ''."""
         return '; '.join(f'{topic}: {read} of the {indexed} messages its index lists'
                          + (' (none: does metadata.yaml give the topic the type its messages '
-                            'have?)' if not read else '')
+                            'have?)' if not (read or self.damaged) else '')
                          for topic, (read, indexed) in self.unread.items())
 
     def warnings(self, said=()):
@@ -266,9 +299,10 @@ class ReplayReport:
         said: streams whose TF stamps not evaluated the caller has named already.
         """
         out = []
-        if self.unread:
-            out.append(f'partial replay: the recording is damaged, read only '
-                       f'{self.unread_text()}' + (f' ({self.damaged})' if self.damaged else ''))
+        if self.unread or self.damaged:   # (a db3 cut inside its last page: all were read)
+            out.append('partial replay: the recording is damaged'
+                       + (f', read only {self.unread_text()}' if self.unread else '')
+                       + (f' ({self.damaged})' if self.damaged else ''))
         for key, count in sorted(self.bad.items()):
             where, reason = key
             item = 'message' if where in self.sources else 'transform'

@@ -628,7 +628,9 @@ def replay_main(argv=None):
             else:
                 session, report, notes = _replay(replay, config, args)
     except bag.BagError as error:
-        return fail(prog, error, EXIT_BAD_INPUT)
+        partial = ('; pass --partial to use what could be read'
+                   if f': {bag.DAMAGED} after ' in str(error) else '')
+        return fail(prog, f'{error}{partial}', EXIT_BAD_INPUT)
     except KeyboardInterrupt:
         return fail(prog, 'interrupted', EXIT_INTERRUPTED)
     if not args.quiet:
