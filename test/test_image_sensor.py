@@ -107,22 +107,26 @@ def image_msg(stamp_ns, gray, encoding='mono8'):
                 is_bigendian=0, step=gray.shape[1], data=np.frombuffer(gray.tobytes(), np.uint8))
 
 
-def camera_info_msg(stamp_ns):
+def camera_info_msg(stamp_ns, focal_scale=1.0):
     types = bag.TYPESTORE.types
+    K = CAMERA.K.copy()
+    K[0, 0] *= focal_scale
+    K[1, 1] *= focal_scale
     roi = types['sensor_msgs/msg/RegionOfInterest'](
         x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
     return types['sensor_msgs/msg/CameraInfo'](
         header=conversions._header(stamp_ns, 'camera_optical', bag.TYPESTORE),
         height=CAMERA.height, width=CAMERA.width, distortion_model='plumb_bob',
-        d=np.zeros(5), k=CAMERA.K.ravel().astype(float), r=np.eye(3).ravel(),
+        d=np.zeros(5), k=K.ravel().astype(float), r=np.eye(3).ravel(),
         p=np.zeros(12), binning_x=0, binning_y=0, roi=roi)
 
 
-def write_image_bag(path, n_stops, seed=4, bad_every=0, info_after=False):
+def write_image_bag(path, n_stops, seed=4, bad_every=0, info_after=False, changed_at=None):
     """
     Write a stop-and-go eye-in-hand bag: 50 Hz link poses, 10 Hz images at each stop.
 
-    Each image's camera_info is logged just before it, or just after it (`info_after`).
+    Each image's camera_info is logged just before it, or just after it (`info_after`); that
+    of image number `changed_at` (from 1) has focal lengths 1 % longer.
     """
     rng = np.random.default_rng(seed)
     renderer = Renderer(parse_board(BOARD), CAMERA)
@@ -139,7 +143,7 @@ def write_image_bag(path, n_stops, seed=4, bad_every=0, info_after=False):
                 images += 1
                 bad = bad_every and images % bad_every == 0
                 messages.append(('/camera/color/camera_info', stamp + (3 if info_after else 1),
-                                 camera_info_msg(stamp)))
+                                 camera_info_msg(stamp, 1.01 if images == changed_at else 1.0)))
                 messages.append(('/camera/color/image_raw', stamp + 2,
                                  image_msg(stamp, gray, 'yuv422' if bad else 'mono8')))
     bag.write_bag(path, {'/robot/pose': 'geometry_msgs/msg/PoseStamped',
@@ -209,6 +213,20 @@ def test_a_bag_whose_first_image_comes_before_its_camera_info_uses_it(tmp_path, 
                         str(board_file), '--still-window-s', '0.5', '--quiet']) == 0
     counts = json.loads(capsys.readouterr().out)['views']['counts']
     assert counts['images'] == counts['detected'] == 6 * 8 and 'no_camera_info' not in counts
+
+
+def test_a_camera_info_that_changes_is_said_with_the_views_it_cost(tmp_path, board_file,
+                                                                   capsys):
+    # The corners measured with the old intrinsics are dropped: 4 of 8 views went without a
+    # word in a replay (the live node logs it).
+    write_image_bag(tmp_path / 'cell', 6, changed_at=14)
+    assert replay_main([str(tmp_path / 'cell'), '--link-topic', '/robot/pose',
+                        '--image-topic', '/camera/color/image_raw', '--board-file',
+                        str(board_file), '--still-window-s', '0.5', '--quiet']) == 0
+    warnings = json.loads(capsys.readouterr().out)['warnings']
+    (said,) = [w for w in warnings if w.startswith('camera_info changed')]
+    assert said.startswith('camera_info changed 2 times; the first: camera_info changed (new '
+                           'intrinsics): the corners of '), said
 
 
 def test_images_are_fed_in_windows_of_bounded_bytes(tmp_path, board_file, capsys,

@@ -284,6 +284,7 @@ class ReplayReport:
     static_tf_topics: tuple = ()                           # those read, e.g. /tf_static
     static_tf_unread: tuple = ()                           # the bag's others, not asked for
     counters: dict = field(default_factory=dict)           # the session's, at the end
+    camera_changes: list = field(default_factory=list)   # ImageSensor.set_camera's sentences
 
     def unread_text(self):
         """Say which topics' indexed messages could not all be read, or ''."""
@@ -325,6 +326,11 @@ class ReplayReport:
         if unpaired:
             out.append(f'{unpaired} pose stamp(s) of the slower stream could not be paired '
                        '(gaps in the faster stream, or stamps outside its range)')
+        changes = self.camera_changes
+        if changes:   # (the views dropped with them had gone without a word)
+            out.append(changes[0] if len(changes) == 1 else
+                       f'camera_info changed {len(changes)} times; the first: {changes[0]}; '
+                       f'the last: {changes[-1]}')
         return out
 
 
@@ -565,7 +571,8 @@ class _Run:
         self.images = None
         if replay.images is not None:
             replay.images.restart()   # a second run (capture mode fallback) starts afresh
-            self.images = ImageInput(replay.images, self.poses)
+            self.images = ImageInput(replay.images, self.poses,
+                                     on_notice=self.report.camera_changes.append)
         self.tree = TfFeed.new_tree(replay.tf_max_gap_ns)
         self.adders = {'link': session.add_link_pose, 'sensor': session.add_sensor_pose}
         self.tf = TfFeed(self.tree, self.poses, {
