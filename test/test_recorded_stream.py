@@ -52,6 +52,22 @@ def test_runs_are_cut_where_the_stamps_start_over_and_sorted_within():
     assert len(stream.runs(time_jump_ns=10**12)) == 1
 
 
+def test_a_lone_stale_or_future_stamp_is_left_out_not_a_restart():
+    # One message stamped 10 s back (or ahead) cut a run of its stream alone: the time-offset
+    # search then refused the recording ('the link stamps start over 1 time(s) and the sensor
+    # stamps 0 time(s)'), where the replay had skipped it as a stale message.
+    rng = np.random.default_rng(3)
+    stamps = [k * 20 * MS for k in range(1000, 1012)]
+    for index, odd in ((5, -10_000 * MS), (5, 10_000 * MS), (11, -10_000 * MS)):
+        given = list(stamps)
+        given[index] += odd
+        (run,) = RecordedStream.of(zip(given, random_poses(rng, 12))).runs(50 * MS)
+        assert run.stamps().tolist() == stamps[:index] + stamps[index + 1:]
+    # A restart lasts: two runs, as before.
+    restarted = stamps[:6] + [s - 10_000 * MS for s in stamps[6:]]
+    assert len(RecordedStream.of(zip(restarted, random_poses(rng, 12))).runs(50 * MS)) == 2
+
+
 def test_a_pose_costs_its_stamp_and_seven_floats():
     """A list of (stamp, Pose) took about 0.9 KB a pose: 339 MB for 313k robot poses."""
     rng = np.random.default_rng(3)

@@ -83,21 +83,30 @@ class RecordedStream:
 
         Each run a RecordedStream in stamp order (a late message within a run moved to its
         place; equal stamps keep their arrival order): the timelines of a looped recording or
-        a clock restart.
+        a clock restart. A single message that far from the ones on both sides of it, which
+        agree, belongs to no timeline (a stale or future stamp, which the live checks drop
+        too): it is left out. It had cut a run of one stream only, and the time-offset search
+        refused the recording.
         """
+        stamps = self.stamps()
+        apart = np.abs(np.diff(stamps)) > time_jump_ns
+        lone = np.zeros(len(stamps), dtype=bool)
+        lone[1:-1] = apart[:-1] & apart[1:] & (np.abs(stamps[2:] - stamps[:-2]) <= time_jump_ns)
+        if len(stamps) > 1 and apart[-1] and stamps[-1] < stamps[-2]:   # a stale one last
+            lone[-1] = True
+        kept = np.flatnonzero(~lone)
         cuts, latest = [], None
-        for index, stamp_ns in enumerate(self._stamps):
+        for position, stamp_ns in enumerate(stamps[kept].tolist()):
             if latest is not None and latest - stamp_ns > time_jump_ns:
-                cuts.append(index)
+                cuts.append(position)
                 latest = None
             latest = stamp_ns if latest is None else max(latest, stamp_ns)
-        stamps = self.stamps()
-        if not cuts and np.all(stamps[1:] >= stamps[:-1]):
+        if not cuts and not lone.any() and np.all(stamps[1:] >= stamps[:-1]):
             return [self]
         rows = self._rows()
         runs = []
-        for start, stop in zip([0] + cuts, cuts + [len(stamps)]):
-            order = start + np.argsort(stamps[start:stop], kind='stable')
+        for start, stop in zip([0] + cuts, cuts + [len(kept)]):
+            order = kept[start + np.argsort(stamps[kept[start:stop]], kind='stable')]
             run = RecordedStream()
             run._stamps.extend(stamps[order].tolist())
             run._values.frombytes(rows[order].tobytes())
