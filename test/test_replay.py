@@ -764,6 +764,20 @@ def replay_changed(repo_root, streams, folder, topic, change, *options):
                       '/sensor_pose', '--quiet', *options)
 
 
+def test_a_time_offset_that_cannot_be_searched_names_the_bag(repo_root, streams, tmp_path):
+    seen = []
+
+    def restarted(msg, first):   # the link clock starts over halfway, the sensor's does not
+        seen.append(1)
+        if len(seen) > 3000:
+            msg.header.stamp.sec -= 100
+    done = replay_changed(repo_root, streams, tmp_path / 'restart', '/link_pose', restarted,
+                          '--estimate-time-offset')
+    assert done.returncode == 2, done.stderr
+    assert (f"{tmp_path / 'restart'}: cannot estimate the time offset: the link stamps start "
+            'over 1 time(s) and the sensor stamps 0 time(s)') in done.stderr, done.stderr
+
+
 def test_a_stream_with_only_bad_messages_is_named_with_why(repo_root, streams, tmp_path):
     def zero_quaternion(msg, first):
         msg.pose.orientation.x = msg.pose.orientation.y = 0.0

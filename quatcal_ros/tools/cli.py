@@ -829,7 +829,7 @@ def _replay_with_time_offset(replay, config, args):
             found, session = find_time_offset(recorder.link, recorder.sensor,
                                               continuous, residual_options=scoring)
     except ValueError as error:
-        raise bag.BagError(f'cannot estimate the time offset: {error}') from None
+        raise bag.BagError(f'{args.bag}: cannot estimate the time offset: {error}') from None
     report.counters = session.counters
     offset = found.to_json_dict()
     return session, report, [f'time offset: {offset_sentence(offset)}', *notes], offset
