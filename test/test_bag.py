@@ -1,5 +1,6 @@
 """Tests of quatcal_ros.ros.bag: reading rosbag2 recordings and replaying them into a Session."""
 
+import re
 import sqlite3
 
 import numpy as np
@@ -183,6 +184,22 @@ def test_a_db3_cut_inside_its_last_page_is_damaged(tmp_path, streams, cut):
     _, report = replay(path, partial=True)
     assert report.warnings()[0].startswith('partial replay: the recording is damaged (')
     assert 'metadata.yaml' not in report.warnings()[0]
+    # With a static TF topic, read first in a pass of its own: the damage was raised after
+    # that pass, and a partial replay read nothing else.
+    static = tf_message([conversions.transform_stamped_msg(Pose.identity(), 0, 'a', 'b',
+                                                           typestore=TYPESTORE)])
+    write_bag(tmp_path / 'tf', {**TOPICS, '/tf_static': bag.TF_TYPE},
+              [('/tf_static', 1, static), *pose_messages(streams)], 'sqlite3')
+    (db,) = (tmp_path / 'tf').glob('*.db3')
+    db.write_bytes(db.read_bytes()[:-cut])
+    (db.parent / 'copy.db3').write_bytes(db.read_bytes()[:100])   # (not in the index)
+    session = Session()
+    with Bag(tmp_path / 'tf') as recording:
+        report = Replay(recording, PoseInput('/link'), PoseInput('/sensor'),
+                        tf_topics=('/tf_static',)).run(session, partial=True)
+    # (every message read; the torn one among the last may be refused, as bad)
+    assert session.counters['link_messages'] >= len(streams.link) - 1 and not report.unread
+    assert re.search(r'after \d+ messages: tf.db3 ends inside a page', report.damaged)
 
 
 def tf_message(transforms):

@@ -103,6 +103,7 @@ def test_pose_with_covariance_is_read_too():
     (lambda c: c.__setitem__((slice(0, 2), slice(0, 2)), 1e-6), 'correlations must lie'),
     # one huge entry (symmetric): numpy's eigvalsh failed on it instead
     (lambda c: np.put(c, [2, 12], 1e308), 'correlations must lie'),   # at (0, 2) and (2, 0)
+    (lambda c: c.__setitem__((5, 5), 1e308), 'a standard deviation of 1e+154, above 1e+06'),
 ])
 def test_an_unusable_covariance_is_refused_naming_why(change, problem):
     """A subnormal variance passed the Cholesky check and then broke the solver's inverse."""

@@ -63,9 +63,17 @@ def test_a_lone_stale_or_future_stamp_is_left_out_not_a_restart():
         given[index] += odd
         (run,) = RecordedStream.of(zip(given, random_poses(rng, 12))).runs(50 * MS)
         assert run.stamps().tolist() == stamps[:index] + stamps[index + 1:]
-    # A restart lasts: two runs, as before.
+    # Two together, a future first one, a future one before the last: left out alike.
+    for odd in ({5: -10_000, 6: -10_000}, {0: 10_000}, {10: 10_000}):
+        given = [stamp + odd.get(k, 0) * MS for k, stamp in enumerate(stamps)]
+        (run,) = RecordedStream.of(zip(given, random_poses(rng, 12))).runs(50 * MS)
+        assert run.stamps().tolist() == [s for k, s in enumerate(stamps) if k not in odd]
+    # A restart lasts: two runs, as before; a slow stream (2 s apart) keeps every pose.
     restarted = stamps[:6] + [s - 10_000 * MS for s in stamps[6:]]
     assert len(RecordedStream.of(zip(restarted, random_poses(rng, 12))).runs(50 * MS)) == 2
+    slow = [k * 2000 * MS for k in range(6)]
+    (run,) = RecordedStream.of(zip(slow, random_poses(rng, 6))).runs(50 * MS)
+    assert run.stamps().tolist() == slow
 
 
 def test_a_pose_costs_its_stamp_and_seven_floats():

@@ -935,10 +935,8 @@ def sensor_covariance_factors(samples, invert_sensor=False):
     """
     Return the Cholesky factors L_i (N, 6, 6) of the samples' own sensor covariances, or None.
 
-    C_i = c L_i L_i^T as refine weighs them (refine.whitening_of), c a constant that refine's
-    fitted scale takes up (the square of a typical standard deviation). Used only when every
-    sample has one (Pose.covariance: ROS order, re-ordered to the residual's rotation,
-    translation);
+    C_i = L_i L_i^T as refine weighs them (refine.whitening_of). Used only when every sample
+    has one (Pose.covariance: ROS order, re-ordered to the residual's rotation, translation);
     with invert_sensor they are carried to the inverted poses (pose.inverse_perturbation):
     A_i C_i A_i^T = (A_i L_i)(A_i L_i)^T, whose factor is taken from the QR decomposition of
     (A_i L_i)^T without forming the product (formed, a covariance exact to a nanometre along
@@ -969,10 +967,6 @@ def sensor_covariance_factors(samples, invert_sensor=False):
                 raise ValueError(f'sample {index}: its sensor covariance is unusable: not '
                                  'positive definite') from None
         raise
-    # Relative to a typical standard deviation: refine fits the common scale, and its noise
-    # floors (refine.NOISE_FLOOR) stay near radians and metres. Of covariances of 1e308 that
-    # every message gave, the floor was 1e296: the noise reported was 1e150 deg.
-    factors = factors / np.median(np.diagonal(factors, axis1=1, axis2=2))
     if not invert_sensor:
         return factors
     A = inverse_perturbation(

@@ -77,6 +77,10 @@ def ros_order(covariances):
 # A sensor pose's standard deviation below this (metres, radians) is no sensor's: such a
 # covariance would weigh its sample by more than 1e18 (subnormal ones overflow the solver).
 MIN_SENSOR_SIGMA = 1e-9
+# Above this (metres, radians) is no sensor's either: drivers that do not know an axis give
+# it a variance of 1e6 or 1e9 (a standard deviation of 1e3 or 3e4), which stays usable; a
+# covariance of 1e308 overflowed the averaging and the noise figures.
+MAX_SENSOR_SIGMA = 1e6
 # The covariance's correlation matrix may not be nearer singular than this (its smallest
 # eigenvalue): correlations of +-1 leave a direction with no noise at all.
 MIN_CORRELATION_EIGENVALUE = 1e-9
@@ -86,8 +90,9 @@ def covariance_problem(covariance):
     """
     Say what makes a sensor pose's 6x6 covariance unusable, or return None.
 
-    Usable: finite, symmetric (to 1e-6 relative), every standard deviation at least
-    MIN_SENSOR_SIGMA and its correlations short of singular (MIN_CORRELATION_EIGENVALUE):
+    Usable: finite, symmetric (to 1e-6 relative), every standard deviation from
+    MIN_SENSOR_SIGMA to MAX_SENSOR_SIGMA and its correlations short of singular
+    (MIN_CORRELATION_EIGENVALUE):
     then it is positive definite and its inverse, the sample's weight, is bounded.
     """
     c = np.asarray(covariance, dtype=float)
@@ -101,6 +106,10 @@ def covariance_problem(covariance):
     if not np.all(variances >= MIN_SENSOR_SIGMA ** 2):
         return (f'nearly singular: a standard deviation of {np.sqrt(variances.min()):.3g}, '
                 f'below {MIN_SENSOR_SIGMA:g} (m, rad); no sensor is that exact')
+    if not np.all(variances <= MAX_SENSOR_SIGMA ** 2):
+        return (f'a standard deviation of {np.sqrt(variances.max()):.3g}, above '
+                f'{MAX_SENSOR_SIGMA:g} (m, rad): no sensor is that unsure (a driver that does '
+                'not know a covariance sends zeros)')
     sigma = np.sqrt(variances)
     with np.errstate(over='ignore'):   # (an entry of 1e308: inf, refused below)
         correlation = c / np.outer(sigma, sigma)

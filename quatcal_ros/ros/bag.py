@@ -131,6 +131,9 @@ class Bag:
         except Exception as error:   # noqa: B902 - sqlite, mcap and zstd errors alike
             raise BagError(f'{self.path}: {DAMAGED} after {read} messages: '
                            f'{type(error).__name__}: {error}') from None
+
+    def cut_short(self, read):
+        """Raise the BagError of storage cut inside a page (_cut_short), `read` messages read."""
         cut = _cut_short(self.path)
         if cut:   # sqlite read the torn page without a word
             raise BagError(f'{self.path}: {DAMAGED} after {read} messages: {cut}')
@@ -144,7 +147,15 @@ def _cut_short(path):
     zeros: a pose of the last messages came out 3.9 deg off, and was used. Its size is then
     no multiple of its page size (the header's bytes 16-17; 1 means 65536).
     """
-    files = [path] if path.suffix == '.db3' else bag_folder.storage_files(path, ('.db3',))
+    if path.suffix == '.db3':
+        files = [path]
+    else:   # those the index lists (a half-copied file beside them is none of the bag's)
+        try:
+            index = (path / bag_folder.INDEX).read_text(errors='replace')
+        except OSError:
+            index = None
+        files = [file for file in bag_folder.storage_files(path, ('.db3',))
+                 if index is None or file.name in index]
     for file in files:
         try:
             with open(file, 'rb') as stream:
@@ -413,6 +424,7 @@ class Replay:
         run = _Run(self, session)
         try:
             count = self._read(run, read, on_progress)
+            self.bag.cut_short(count)   # (after the last pass: the static one reads first)
         except BagError as error:
             if not partial:
                 raise

@@ -83,25 +83,20 @@ class RecordedStream:
 
         Each run a RecordedStream in stamp order (a late message within a run moved to its
         place; equal stamps keep their arrival order): the timelines of a looped recording or
-        a clock restart. A single message that far from the ones on both sides of it, which
-        agree, belongs to no timeline (a stale or future stamp, which the live checks drop
-        too): it is left out. It had cut a run of one stream only, and the time-offset search
-        refused the recording.
+        a clock restart. A message or two that far from the ones on both sides of them, which
+        agree, belong to no timeline (stale or future stamps, which the live checks drop too):
+        they are left out (_lone). They had cut a run of one stream only, and the time-offset
+        search refused the recording.
         """
         stamps = self.stamps()
-        apart = np.abs(np.diff(stamps)) > time_jump_ns
-        lone = np.zeros(len(stamps), dtype=bool)
-        lone[1:-1] = apart[:-1] & apart[1:] & (np.abs(stamps[2:] - stamps[:-2]) <= time_jump_ns)
-        if len(stamps) > 1 and apart[-1] and stamps[-1] < stamps[-2]:   # a stale one last
-            lone[-1] = True
-        kept = np.flatnonzero(~lone)
+        kept = np.flatnonzero(~_lone(stamps, time_jump_ns))
         cuts, latest = [], None
         for position, stamp_ns in enumerate(stamps[kept].tolist()):
             if latest is not None and latest - stamp_ns > time_jump_ns:
                 cuts.append(position)
                 latest = None
             latest = stamp_ns if latest is None else max(latest, stamp_ns)
-        if not cuts and not lone.any() and np.all(stamps[1:] >= stamps[:-1]):
+        if not cuts and len(kept) == len(stamps) and np.all(stamps[1:] >= stamps[:-1]):
             return [self]
         rows = self._rows()
         runs = []
@@ -142,3 +137,38 @@ class RecordedStream:
 
     def _rows(self, columns=slice(None)):
         return np.frombuffer(self._values, dtype=float).reshape(-1, 7)[:, columns].copy()
+
+
+def _lone(stamps, jump_ns):
+    """
+    Return which stamps (N,) belong to no timeline: a mask for RecordedStream.runs.
+
+    One or two messages together, all more than jump_ns behind the message before them or
+    all more than jump_ns ahead of the message after them, where the message after them is
+    not behind the one before (the timeline resumes: a restart stays behind); a first
+    message ahead of the second by more (a future stamp: a restart after one message would
+    look the same, and one message pairs with nothing either way); a last one behind the
+    last one kept before it (a stale stamp). A slow stream, its messages further apart than
+    jump_ns, has none: they are neither behind nor ahead.
+    """
+    n = len(stamps)
+    lone = np.zeros(n, dtype=bool)
+    if n < 2:
+        return lone
+    for k in (1, 2):   # k messages i .. i + k - 1, between i - 1 and i + k
+        if n < k + 2:
+            break
+        before, after = stamps[:n - k - 1], stamps[k + 1:]
+        odd = [stamps[1 + j:n - k + j] for j in range(k)]
+        behind = np.logical_and.reduce([o < before - jump_ns for o in odd])
+        ahead = np.logical_and.reduce([o > after + jump_ns for o in odd])
+        mark = (after >= before - jump_ns) & (behind | ahead)
+        for j in range(k):
+            lone[1 + j:n - k + j] |= mark
+    after = np.flatnonzero(~lone[1:])   # (against the messages kept)
+    if len(after) and stamps[0] > stamps[after[0] + 1] + jump_ns:
+        lone[0] = True
+    kept = np.flatnonzero(~lone[:-1])
+    if len(kept) and stamps[kept[-1]] - stamps[-1] > jump_ns:
+        lone[-1] = True
+    return lone

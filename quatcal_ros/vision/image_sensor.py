@@ -89,11 +89,12 @@ class ImageSensor:
                            and np.array_equal(old.D, camera.D)
                            and (old.width, old.height) == (camera.width, camera.height)):
             return ''
-        dropped = len(self.corners)
+        samples, views = len(self.corners), len(self._recent)
         self.corners.clear()
         self._recent.clear()
-        return (f'camera_info changed (new intrinsics): the corners of {dropped} samples were '
-                'measured with the old ones and are no longer used')
+        return (f'camera_info changed (new intrinsics): the corners of {samples} sample(s) and '
+                f'{views} view(s) of the still window were measured with the old ones and are '
+                'no longer used')
 
     def view(self, stamp_ns, gray):
         """Return the view.View of one image at header stamp `stamp_ns`."""
