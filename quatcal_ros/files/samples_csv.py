@@ -13,7 +13,7 @@ Optional: the sensor pose's own covariance in 21 columns sensor_cov_A_B (A, B in
 ry, rz, the upper triangle of geometry_msgs/PoseWithCovariance's 6x6, metres and radians,
 rotations about the sensor frame's axes). A row gives all 21 or none (empty or left off);
 a covariance must be usable (pose.covariance_problem: positive definite, no standard
-deviation below 1e-9 m or rad).
+deviation below 1e-9 or above 1e6 m or rad).
 """
 
 import csv
