@@ -43,7 +43,8 @@ from quatcal_ros.core.leastsq import all_pairs_rotation, b_matrices, least_squar
 from quatcal_ros.core.motions import motion_count, Motions, pair_angles, pair_indices, \
     PAIRINGS, SampleRotations
 from quatcal_ros.core.numerics import finite_or_none, median, random_integers
-from quatcal_ros.core.pose import inverse_perturbation, residual_order
+from quatcal_ros.core.pose import covariance_form_problem, inverse_perturbation, \
+    residual_order
 from quatcal_ros.core.refine import MAX_ITERATIONS, refine, uncertainties, with_jackknife_of
 from quatcal_ros.core.solver import DegenerateMotionError
 from quatcal_ros.core.translation import SamplePositions, solve_translation
@@ -942,18 +943,16 @@ def sensor_covariance_factors(samples, invert_sensor=False):
     (A_i L_i)^T without forming the product (formed, a covariance exact to a nanometre along
     one axis and a tenth of a radian across, which pose.covariance_problem takes, lost its
     smallest eigenvalue to rounding and was no longer positive definite). Raises ValueError
-    naming the first sample whose covariance is not a finite positive definite 6x6 (the file
-    and message readers refuse those, and more, before they get here:
-    pose.covariance_problem).
+    naming the first sample whose covariance is not of its form (pose.covariance_form_problem)
+    or not positive definite (the file and message readers refuse those, and more, before
+    they get here: pose.covariance_problem).
     """
     given = [s.sensor.covariance for s in samples]
     if not given or any(c is None for c in given):
         return None
     for index, covariance in enumerate(given):
-        problem = ('not 6x6' if np.shape(covariance) != (6, 6) else
-                   'NaN or inf' if not np.all(np.isfinite(covariance)) else
-                   'not symmetric' if not np.allclose(covariance, np.transpose(covariance),
-                                                      rtol=1e-6, atol=0.0) else None)
+        problem = ('not 6x6' if np.shape(covariance) != (6, 6)
+                   else covariance_form_problem(covariance))
         if problem:
             raise ValueError(f'sample {index}: its sensor covariance is unusable: {problem}')
     covariances = residual_order(np.array(given, dtype=float))

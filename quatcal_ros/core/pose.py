@@ -86,20 +86,29 @@ MAX_SENSOR_SIGMA = 1e6
 MIN_CORRELATION_EIGENVALUE = 1e-9
 
 
-def covariance_problem(covariance):
-    """
-    Say what makes a sensor pose's 6x6 covariance unusable, or return None.
-
-    Usable: finite, symmetric (to 1e-6 relative), every standard deviation from
-    MIN_SENSOR_SIGMA to MAX_SENSOR_SIGMA and its correlations short of singular
-    (MIN_CORRELATION_EIGENVALUE):
-    then it is positive definite and its inverse, the sample's weight, is bounded.
-    """
+def covariance_form_problem(covariance):
+    """Say why a square `covariance` is not finite and symmetric (to 1e-6 relative), or None."""
     c = np.asarray(covariance, dtype=float)
     if not np.all(np.isfinite(c)):
         return 'NaN or inf'
     if not np.allclose(c, c.T, rtol=1e-6, atol=0.0):
         return 'not symmetric'
+    return None
+
+
+def covariance_problem(covariance):
+    """
+    Say what makes a sensor pose's 6x6 covariance unusable, or return None.
+
+    Usable: of its form (covariance_form_problem), every standard deviation from
+    MIN_SENSOR_SIGMA to MAX_SENSOR_SIGMA and its correlations short of singular
+    (MIN_CORRELATION_EIGENVALUE):
+    then it is positive definite and its inverse, the sample's weight, is bounded.
+    """
+    problem = covariance_form_problem(covariance)
+    if problem:
+        return problem
+    c = np.asarray(covariance, dtype=float)
     variances = np.diagonal(c)
     if not np.all(variances > 0.0):
         return 'not positive definite (variances must be > 0)'

@@ -62,8 +62,8 @@ class BagError(ValueError):
 
 # --- the recording ---------------------------------------------------------------------------
 
-# What Bag.messages' BagError says when the storage cannot be read on (replay --partial).
-DAMAGED = 'the recording is damaged'
+class DamagedStorage(BagError):
+    """Storage that cannot be read on, or not trusted (replay --partial uses what was read)."""
 
 
 class Bag:
@@ -129,14 +129,15 @@ class Bag:
                     raw = b''   # (counted as undecodable, as text there is)
                 yield connection, log_ns, raw
         except Exception as error:   # noqa: B902 - sqlite, mcap and zstd errors alike
-            raise BagError(f'{self.path}: {DAMAGED} after {read} messages: '
-                           f'{type(error).__name__}: {error}') from None
+            raise DamagedStorage(f'{self.path}: the recording is damaged after {read} '
+                                 f'messages: {type(error).__name__}: {error}') from None
 
     def cut_short(self, read):
-        """Raise the BagError of storage cut inside a page (_cut_short), `read` messages read."""
+        """Raise DamagedStorage for storage cut inside a page (_cut_short), `read` read."""
         cut = _cut_short(self.path)
         if cut:   # sqlite read the torn page without a word
-            raise BagError(f'{self.path}: {DAMAGED} after {read} messages: {cut}')
+            raise DamagedStorage(f'{self.path}: the recording is damaged after {read} '
+                                 f'messages: {cut}')
 
 
 def _cut_short(path):

@@ -417,7 +417,7 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     """
     if len(session.samples) < 3 or session.result is None:
         for warning in warnings:   # what the input lacked may be why (a journal's torn tail)
-            print(f'{prog}: warning: {where}{warning}', file=sys.stderr)
+            warn(prog, f'{where}{warning}')
     if len(session.samples) < 3:
         copies = session.counters['repeated_samples']
         more = f' ({copies} more repeat earlier ones exactly)' if copies else ''
@@ -430,14 +430,13 @@ def print_result(prog, session, where='', warnings=(), frames=None, extra=None, 
     parent, child = frames or exports.default_frames(result.setup)
     result, mount = prepared(result, (parent, child), warnings, tree, causes)
     for cause in causes:   # (before the advice they make wrong: 'set setup to ...')
-        print(f'{prog}: warning: {where}{cause}', file=sys.stderr)
+        warn(prog, f'{where}{cause}')
     if not result.usable:   # a script that reads only the exit status hears it here
         said = next(text for text in result.warnings if DO_NOT_USE in text)
-        print(f'{prog}: warning: {where}the estimate says not to use it ("usable": false): '
-              f'{said}', file=sys.stderr)
+        warn(prog, f'{where}the estimate says not to use it ("usable": false): {said}')
     failed = failure_warning(result.validation)
     if failed:   # (as in the warnings; only the JSON said it)
-        print(f'{prog}: warning: {where}{failed}', file=sys.stderr)
+        warn(prog, f'{where}{failed}')
     document = result.to_json_dict()
     document['parent_frame'], document['child_frame'] = parent, child   # (the calibrated)
     document['static_transform_publisher'] = exports.static_transform_publisher_command(
@@ -486,6 +485,11 @@ def prepared(result, frames, warnings=(), tree=None, causes=()):
         warnings = [*warnings, f'TF: the static_transform_publisher line and the urdf joint '
                                f'are {parent} -> {child} as calibrated, and {mount.note}']
     return published(result, warnings, causes), mount
+
+
+def warn(prog, message):
+    """Print `prog: warning: message` on stderr."""
+    print(f'{prog}: warning: {message}', file=sys.stderr)
 
 
 def fail(prog, message, status):
@@ -629,7 +633,7 @@ def replay_main(argv=None):
                 session, report, notes = _replay(replay, config, args)
     except bag.BagError as error:
         partial = ('; pass --partial to use what could be read'
-                   if f': {bag.DAMAGED} after ' in str(error) else '')
+                   if isinstance(error, bag.DamagedStorage) else '')
         return fail(prog, f'{error}{partial}', EXIT_BAD_INPUT)
     except KeyboardInterrupt:
         return fail(prog, 'interrupted', EXIT_INTERRUPTED)
